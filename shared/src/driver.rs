@@ -1,0 +1,248 @@
+//! The synchronous driver that runs the tuner against the simulated double dot:
+//! used by the browser's teaching mode, the benchmarks and the tests. (The
+//! backend has its own async driver for real instruments, over the same
+//! [`Tuner`].)
+
+use serde::{Deserialize, Serialize};
+
+use crate::estimator::EstimatorKind;
+use crate::parameter::{ParameterSpec, Tolerance, Transform};
+use crate::protocol::{IterationRecord, Request, Response, ScanKind};
+use crate::sim::{default_gates, DeviceConfig, SimulatedDevice};
+use crate::solver::SolverConfig;
+use crate::tuner::{
+    Action, Compensation, ConfigError, InitialGradient, LevelConfig, LevelKind, NewtonConfig, SensingDotConfig,
+    Tuner, TunerConfig, TunerError,
+};
+
+/// Everything needed for a simulated run.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SimulationConfig {
+    /// Human-readable name.
+    pub name: String,
+    /// Seed of the device's random number generator.
+    pub seed: u64,
+    /// The simulated device.
+    pub device: DeviceConfig,
+    /// The tuner hierarchy.
+    pub tuner: TunerConfig,
+}
+
+impl Default for SimulationConfig {
+    fn default() -> Self {
+        Self::paper_default()
+    }
+}
+
+/// Paper targets: t_sr = 20 ns, w = 270 µV (set point I).
+pub const PAPER_FIRST_TARGET: (f64, f64) = (20.0, 270.0);
+
+impl SimulationConfig {
+    /// The paper's setup on the default simulated device: the qubit level tunes
+    /// `t_sr` (ns) and `w` (µV) with N, SA, SB, T (Kalman filter, the paper's Q,
+    /// 10 mV step limit, initial gradient by finite differences), with a linear
+    /// virtual-gate correction on PA/PB; after each move the sensing dot is
+    /// re-tuned and the transition lines are held at 0 mV by a Kalman-tuned
+    /// PA/PB level. Targets: the paper's first set point.
+    pub fn paper_default() -> Self {
+        let device = DeviceConfig::default();
+        let gates = default_gates();
+        let tuning = ["N", "SA", "SB", "T"];
+        let plungers = ["PA", "PB"];
+        let compensation = Compensation {
+            gates: plungers.iter().map(|s| s.to_string()).collect(),
+            matrix: device.nominal_compensation(&tuning, &plungers),
+        };
+        let qubit = NewtonConfig {
+            gates: tuning.iter().map(|s| s.to_string()).collect(),
+            parameters: vec![
+                ParameterSpec {
+                    name: "t_sr".into(),
+                    unit: "ns".into(),
+                    scan: ScanKind::ReloadTime,
+                    target: Some(PAPER_FIRST_TARGET.0),
+                    tolerance: Tolerance::Relative(0.1),
+                    transform: Transform::Linear,
+                    process_noise_per_mv: 0.075,
+                },
+                ParameterSpec {
+                    name: "w".into(),
+                    unit: "µV".into(),
+                    scan: ScanKind::TransitionWidth,
+                    target: Some(PAPER_FIRST_TARGET.1),
+                    tolerance: Tolerance::Relative(0.1),
+                    transform: Transform::Linear,
+                    process_noise_per_mv: 0.3,
+                },
+            ],
+            estimator: EstimatorKind::Kalman,
+            initial_gradient: InitialGradient::FiniteDifference {
+                step_mv: 4.0,
+                repetitions: 3,
+            },
+            solver: SolverConfig::default(),
+            outlier_sigma: Some(5.0),
+            min_step_mv: 0.01,
+            fd_step_mv: 4.0,
+            max_iterations_per_call: 1,
+            hold_initial_values: false,
+            compensation: Some(compensation),
+        };
+        let chemical = NewtonConfig {
+            gates: plungers.iter().map(|s| s.to_string()).collect(),
+            parameters: ["mu_a_mv", "mu_b_mv"]
+                .iter()
+                .map(|name| ParameterSpec {
+                    name: name.to_string(),
+                    unit: "mV".into(),
+                    scan: ScanKind::ChemicalPotential,
+                    target: Some(0.0),
+                    tolerance: Tolerance::Absolute(0.1),
+                    transform: Transform::Linear,
+                    process_noise_per_mv: 0.005,
+                })
+                .collect(),
+            estimator: EstimatorKind::Kalman,
+            initial_gradient: InitialGradient::FiniteDifference {
+                step_mv: 2.0,
+                repetitions: 1,
+            },
+            solver: SolverConfig {
+                max_step_mv: 10.0,
+                ..SolverConfig::default()
+            },
+            outlier_sigma: None,
+            min_step_mv: 0.01,
+            fd_step_mv: 2.0,
+            max_iterations_per_call: 3,
+            hold_initial_values: false,
+            compensation: None,
+        };
+        let sensing = SensingDotConfig {
+            gate: "SP".into(),
+            half_width_mv: 15.0,
+            points: 151,
+        };
+        let tuner = TunerConfig {
+            gates,
+            levels: vec![
+                LevelConfig {
+                    name: "qubit".into(),
+                    kind: LevelKind::Newton(qubit),
+                    after_move: vec!["sensing_dot".into(), "chemical_potential".into()],
+                },
+                LevelConfig {
+                    name: "chemical_potential".into(),
+                    kind: LevelKind::Newton(chemical),
+                    after_move: vec!["sensing_dot".into()],
+                },
+                LevelConfig {
+                    name: "sensing_dot".into(),
+                    kind: LevelKind::SensingDot(sensing),
+                    after_move: Vec::new(),
+                },
+            ],
+            stop_when_tuned: false,
+            max_iterations: None,
+        };
+        Self {
+            name: "paper default".into(),
+            seed: 1,
+            device,
+            tuner,
+        }
+    }
+
+    /// Check the whole config; the error names the field.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        self.device.validate().map_err(|m| ConfigError::new("device", m))?;
+        self.tuner.validate().map_err(|e| e.within("tuner"))
+    }
+}
+
+/// Why a simulated run could not continue.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum RunError {
+    /// The tuner refused a response (a bug in the device or the driver).
+    #[error(transparent)]
+    Tuner(#[from] TunerError),
+    /// The safety choke point refused a request (never expected from the tuner).
+    #[error("refused by safety limits: {0}")]
+    Safety(#[from] crate::safety::SafetyError),
+}
+
+/// A tuner wired to a simulated device. Serializable as a whole (RNG and lab clock included).
+///
+/// ```
+/// use spintune::driver::{SimulationConfig, SimulationRun};
+/// let mut cfg = SimulationConfig::paper_default();
+/// cfg.tuner.max_iterations = Some(1);
+/// let mut run = SimulationRun::new(cfg).unwrap();
+/// let rec = run.next_iteration().unwrap().expect("one iteration");
+/// assert!(rec.lab_seconds > 0.0);
+/// assert!(run.next_iteration().unwrap().is_none());
+/// ```
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct SimulationRun {
+    tuner: Tuner,
+    device: SimulatedDevice,
+}
+
+impl SimulationRun {
+    /// Validate the config and build tuner and device at the gates' initial voltages.
+    pub fn new(cfg: SimulationConfig) -> Result<Self, ConfigError> {
+        cfg.validate()?;
+        let device = SimulatedDevice::new(cfg.device, &cfg.tuner.gates, cfg.seed)
+            .map_err(|m| ConfigError::new("device", m))?;
+        let tuner = Tuner::new(cfg.tuner).map_err(|e| e.within("tuner"))?;
+        Ok(Self { tuner, device })
+    }
+
+    /// Assemble from parts (e.g. a device state cloned from another run).
+    pub fn from_parts(tuner: Tuner, device: SimulatedDevice) -> Self {
+        Self { tuner, device }
+    }
+
+    /// Run until the next top-level iteration completes; `None` when the tuner is finished.
+    pub fn next_iteration(&mut self) -> Result<Option<IterationRecord>, RunError> {
+        loop {
+            match self.tuner.poll() {
+                Action::Request(req) => {
+                    let resp = self.execute(&req)?;
+                    self.tuner.feed(resp)?;
+                }
+                Action::Iteration(rec) => return Ok(Some(rec)),
+                Action::Finished => return Ok(None),
+            }
+        }
+    }
+
+    /// Execute one request on the device, through the safety choke point.
+    fn execute(&mut self, req: &Request) -> Result<Response, RunError> {
+        if let Request::SetVoltages { voltages_mv } = req {
+            self.tuner.safety().check(self.device.voltages_mv(), voltages_mv)?;
+        }
+        Ok(self.device.execute(req))
+    }
+
+    /// The tuner.
+    pub fn tuner(&self) -> &Tuner {
+        &self.tuner
+    }
+
+    /// The tuner, e.g. to change targets between iterations.
+    pub fn tuner_mut(&mut self) -> &mut Tuner {
+        &mut self.tuner
+    }
+
+    /// The simulated device.
+    pub fn device(&self) -> &SimulatedDevice {
+        &self.device
+    }
+
+    /// The simulated device, mutably.
+    pub fn device_mut(&mut self) -> &mut SimulatedDevice {
+        &mut self.device
+    }
+}

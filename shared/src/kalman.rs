@@ -1,0 +1,546 @@
+//! Kalman-filter tracking of one parameter's gradient over the tuning gates.
+//!
+//! This is exactly the filter of Teske et al. (APL 2019), main text eqs. 2–4:
+//!
+//! * observation model `H = Δv` (1×n, the last voltage step, mV),
+//! * measured change `z = p(k) − p(k−1)` (parameter units),
+//! * measurement variance `Δz² = δp(k)² + δp(k−1)²`,
+//! * gain `K = C Hᵀ / (H C Hᵀ + Δz²)`,
+//! * `g ← g + K (z − H g)`, `C ← (I − K H) C + Q`.
+//!
+//! The covariance update uses the Joseph form
+//! `C ← (I − K H) C (I − K H)ᵀ + K Δz² Kᵀ + Q`, which equals the paper's form
+//! for the optimal gain but stays symmetric positive semi-definite under
+//! rounding; the result is symmetrised explicitly as well.
+//!
+//! Units: gradients are in parameter units per mV (e.g. ns/mV, µV/mV); `C` and
+//! `Q` in (parameter units / mV)².
+
+use nalgebra::{DMatrix, DVector};
+use serde::{Deserialize, Serialize};
+
+/// How the process noise `Q` (the growth of gradient uncertainty per step) is chosen.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum ProcessNoise {
+    /// The paper's choice: the same `Q` after every update, (unit/mV)².
+    Constant {
+        /// n×n matrix, (parameter unit / mV)².
+        q: DMatrix<f64>,
+    },
+    /// The paper's proposed improvement: `Q(k) = Q_ref · (|Δv(k)| / reference_step_mv)²`,
+    /// so a full reference step adds `Q_ref` and a small step adds little.
+    StepScaled {
+        /// n×n matrix added for a step of `reference_step_mv`, (unit/mV)².
+        q_ref: DMatrix<f64>,
+        /// Step norm (mV) at which `q_ref` is added; must be > 0.
+        reference_step_mv: f64,
+    },
+}
+
+impl ProcessNoise {
+    /// The paper's isotropic constant `Q = σ² I` for `n` gates, `sigma` in unit/mV.
+    pub fn isotropic(n: usize, sigma_per_mv: f64) -> Self {
+        ProcessNoise::Constant {
+            q: DMatrix::identity(n, n) * sigma_per_mv * sigma_per_mv,
+        }
+    }
+
+    /// Isotropic step-scaled `Q`: adds `(sigma_per_mv)² I` for a step of `reference_step_mv`.
+    pub fn isotropic_step_scaled(n: usize, sigma_per_mv: f64, reference_step_mv: f64) -> Self {
+        ProcessNoise::StepScaled {
+            q_ref: DMatrix::identity(n, n) * sigma_per_mv * sigma_per_mv,
+            reference_step_mv,
+        }
+    }
+
+    /// The matrix to add after a step `dv` (mV).
+    pub fn for_step(&self, dv: &DVector<f64>) -> DMatrix<f64> {
+        match self {
+            ProcessNoise::Constant { q } => q.clone(),
+            ProcessNoise::StepScaled {
+                q_ref,
+                reference_step_mv,
+            } => {
+                let ratio = dv.norm() / reference_step_mv;
+                q_ref * (ratio * ratio)
+            }
+        }
+    }
+
+    fn dimension(&self) -> (usize, usize) {
+        match self {
+            ProcessNoise::Constant { q } => q.shape(),
+            ProcessNoise::StepScaled { q_ref, .. } => q_ref.shape(),
+        }
+    }
+
+    fn validate(&self, n: usize) -> Result<(), FilterError> {
+        if self.dimension() != (n, n) {
+            return Err(FilterError::Dimension {
+                what: "process noise Q",
+                expected: n,
+                got: self.dimension().0,
+            });
+        }
+        let m = match self {
+            ProcessNoise::Constant { q } => q,
+            ProcessNoise::StepScaled {
+                q_ref,
+                reference_step_mv,
+            } => {
+                if !(reference_step_mv.is_finite() && *reference_step_mv > 0.0) {
+                    return Err(FilterError::Invalid {
+                        what: "reference_step_mv",
+                        value: *reference_step_mv,
+                    });
+                }
+                q_ref
+            }
+        };
+        validate_covariance(m, "process noise Q")
+    }
+}
+
+/// Why an update could not be applied. The filter state is unchanged whenever
+/// one of these is returned.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum FilterError {
+    /// A value was NaN or infinite, or a variance negative.
+    #[error("{what} must be finite{}, got {value}", if what.contains("variance") { " and non-negative" } else { "" })]
+    Invalid {
+        /// Which input was rejected.
+        what: &'static str,
+        /// The offending value.
+        value: f64,
+    },
+    /// A vector or matrix had the wrong size.
+    #[error("{what} has dimension {got}, expected {expected}")]
+    Dimension {
+        /// Which input was rejected.
+        what: &'static str,
+        /// The filter's number of gates.
+        expected: usize,
+        /// The size that was passed.
+        got: usize,
+    },
+    /// A covariance matrix was not symmetric positive semi-definite.
+    #[error("{what} must be symmetric positive semi-definite")]
+    NotPsd {
+        /// Which matrix was rejected.
+        what: &'static str,
+    },
+}
+
+/// What an accepted call to [`KalmanGradient::update`] did.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum UpdateOutcome {
+    /// The gradient and covariance were updated.
+    Updated {
+        /// Innovation `z − H g` before the update (parameter units).
+        innovation: f64,
+        /// Predicted standard deviation of the innovation, `√(H C Hᵀ + Δz²)`.
+        innovation_sigma: f64,
+    },
+    /// `|Δv|` was below the filter's minimum step: nothing was learned or changed.
+    SkippedSmallStep {
+        /// The step norm, mV.
+        step_norm_mv: f64,
+    },
+    /// The innovation was further than `outlier_sigma` predicted standard
+    /// deviations from zero: the gradient was not moved. `Q` was still added,
+    /// since the gates did move.
+    Gated {
+        /// Innovation `z − H g` (parameter units).
+        innovation: f64,
+        /// Predicted standard deviation of the innovation.
+        innovation_sigma: f64,
+    },
+}
+
+/// Gradient estimate `g` (1×n) of one parameter and its covariance `C` (n×n).
+///
+/// ```
+/// use nalgebra::{DMatrix, DVector};
+/// use spintune::kalman::{KalmanGradient, ProcessNoise};
+///
+/// // One parameter over two gates; rough prior.
+/// let mut f = KalmanGradient::new(
+///     DVector::from_vec(vec![1.0, 0.0]),
+///     DMatrix::identity(2, 2),
+///     ProcessNoise::isotropic(2, 0.0),
+/// ).unwrap();
+/// // A 1 mV step on gate 0 changed the parameter by 2.0 (noise-free).
+/// f.update(&DVector::from_vec(vec![1.0, 0.0]), 2.0, 0.0).unwrap();
+/// assert!((f.gradient()[0] - 2.0).abs() < 1e-12);
+/// ```
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct KalmanGradient {
+    gradient: DVector<f64>,
+    covariance: DMatrix<f64>,
+    process_noise: ProcessNoise,
+    /// Steps with `|Δv|` (mV) below this are skipped. Default 1e-6 mV.
+    min_step_mv: f64,
+    /// Gate innovations beyond this many predicted standard deviations; `None` = never gate.
+    outlier_sigma: Option<f64>,
+}
+
+impl KalmanGradient {
+    /// A filter with initial gradient `g0` (unit/mV), covariance `c0` ((unit/mV)²) and
+    /// process noise `q`. No outlier gating, minimum step 1e-6 mV.
+    pub fn new(
+        g0: DVector<f64>,
+        c0: DMatrix<f64>,
+        q: ProcessNoise,
+    ) -> Result<Self, FilterError> {
+        let n = g0.len();
+        for &x in g0.iter() {
+            if !x.is_finite() {
+                return Err(FilterError::Invalid {
+                    what: "initial gradient",
+                    value: x,
+                });
+            }
+        }
+        if c0.shape() != (n, n) {
+            return Err(FilterError::Dimension {
+                what: "initial covariance",
+                expected: n,
+                got: c0.nrows(),
+            });
+        }
+        validate_covariance(&c0, "initial covariance")?;
+        q.validate(n)?;
+        Ok(Self {
+            gradient: g0,
+            covariance: symmetrise(c0),
+            process_noise: q,
+            min_step_mv: 1e-6,
+            outlier_sigma: None,
+        })
+    }
+
+    /// Set the minimum step norm (mV) below which updates are skipped.
+    pub fn with_min_step_mv(mut self, min_step_mv: f64) -> Result<Self, FilterError> {
+        if !(min_step_mv.is_finite() && min_step_mv >= 0.0) {
+            return Err(FilterError::Invalid {
+                what: "min_step_mv",
+                value: min_step_mv,
+            });
+        }
+        self.min_step_mv = min_step_mv;
+        Ok(self)
+    }
+
+    /// Gate innovations beyond `sigma` predicted standard deviations (`None`: never).
+    pub fn with_outlier_sigma(mut self, sigma: Option<f64>) -> Result<Self, FilterError> {
+        if let Some(s) = sigma {
+            if !(s.is_finite() && s > 0.0) {
+                return Err(FilterError::Invalid {
+                    what: "outlier_sigma",
+                    value: s,
+                });
+            }
+        }
+        self.outlier_sigma = sigma;
+        Ok(self)
+    }
+
+    /// Current gradient estimate, unit/mV.
+    pub fn gradient(&self) -> &DVector<f64> {
+        &self.gradient
+    }
+
+    /// Current covariance, (unit/mV)²; symmetric PSD.
+    pub fn covariance(&self) -> &DMatrix<f64> {
+        &self.covariance
+    }
+
+    /// The process-noise policy.
+    pub fn process_noise(&self) -> &ProcessNoise {
+        &self.process_noise
+    }
+
+    /// Number of gates.
+    pub fn dimension(&self) -> usize {
+        self.gradient.len()
+    }
+
+    /// One filter step: the gates moved by `dv` (mV), the parameter changed by
+    /// `z`, and `dz2 = δp(k)² + δp(k−1)²` is the variance of that change.
+    ///
+    /// Invalid inputs (NaN, ±∞, negative variance, wrong dimension) return an
+    /// error and leave the state untouched.
+    pub fn update(
+        &mut self,
+        dv: &DVector<f64>,
+        z: f64,
+        dz2: f64,
+    ) -> Result<UpdateOutcome, FilterError> {
+        let n = self.dimension();
+        if dv.len() != n {
+            return Err(FilterError::Dimension {
+                what: "voltage step",
+                expected: n,
+                got: dv.len(),
+            });
+        }
+        if let Some(&bad) = dv.iter().find(|x| !x.is_finite()) {
+            return Err(FilterError::Invalid {
+                what: "voltage step",
+                value: bad,
+            });
+        }
+        if !z.is_finite() {
+            return Err(FilterError::Invalid {
+                what: "measured change",
+                value: z,
+            });
+        }
+        if !(dz2.is_finite() && dz2 >= 0.0) {
+            return Err(FilterError::Invalid {
+                what: "measurement variance",
+                value: dz2,
+            });
+        }
+        let step_norm_mv = dv.norm();
+        if step_norm_mv < self.min_step_mv || step_norm_mv == 0.0 {
+            return Ok(UpdateOutcome::SkippedSmallStep { step_norm_mv });
+        }
+        let h = dv; // as a column; H = hᵀ
+        let ch = &self.covariance * h; // C Hᵀ (n)
+        let s = h.dot(&ch) + dz2; // H C Hᵀ + Δz²
+        let innovation = z - h.dot(&self.gradient);
+        let q = self.process_noise.for_step(dv);
+        if s <= 0.0 || !s.is_finite() {
+            // No uncertainty in prediction or measurement: nothing sensible to learn.
+            // Treat as an exact Broyden step in the limit.
+            let hh = h.dot(h);
+            self.gradient += h * (innovation / hh);
+            self.covariance = symmetrise(&self.covariance + q);
+            return Ok(UpdateOutcome::Updated {
+                innovation,
+                innovation_sigma: 0.0,
+            });
+        }
+        let innovation_sigma = s.sqrt();
+        if let Some(limit) = self.outlier_sigma {
+            if innovation.abs() > limit * innovation_sigma {
+                self.covariance = symmetrise(&self.covariance + q);
+                return Ok(UpdateOutcome::Gated {
+                    innovation,
+                    innovation_sigma,
+                });
+            }
+        }
+        let k = ch / s; // Kalman gain (n)
+        let new_gradient = &self.gradient + &k * innovation;
+        // Joseph form: (I − K H) C (I − K H)ᵀ + K Δz² Kᵀ + Q
+        let ikh = DMatrix::identity(n, n) - &k * h.transpose();
+        let new_cov =
+            &ikh * &self.covariance * ikh.transpose() + (&k * k.transpose()) * dz2 + q;
+        self.gradient = new_gradient;
+        self.covariance = symmetrise(new_cov);
+        Ok(UpdateOutcome::Updated {
+            innovation,
+            innovation_sigma,
+        })
+    }
+}
+
+/// `(M + Mᵀ)/2`.
+pub(crate) fn symmetrise(m: DMatrix<f64>) -> DMatrix<f64> {
+    (&m + m.transpose()) * 0.5
+}
+
+/// Check that `m` is finite, symmetric (to 1e-9 relative) and PSD (eigenvalues ≥ −1e-9·max).
+pub(crate) fn validate_covariance(m: &DMatrix<f64>, what: &'static str) -> Result<(), FilterError> {
+    if let Some(&bad) = m.iter().find(|x| !x.is_finite()) {
+        return Err(FilterError::Invalid {
+            what: "covariance entry",
+            value: bad,
+        });
+    }
+    if !m.is_square() {
+        return Err(FilterError::NotPsd { what });
+    }
+    let scale = m.iter().fold(0.0f64, |a, x| a.max(x.abs()));
+    if scale == 0.0 {
+        return Ok(());
+    }
+    if (m - m.transpose()).iter().any(|x| x.abs() > 1e-9 * scale) {
+        return Err(FilterError::NotPsd { what });
+    }
+    let eig = symmetrise(m.clone()).symmetric_eigenvalues();
+    if eig.iter().any(|&l| l < -1e-9 * scale) {
+        return Err(FilterError::NotPsd { what });
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn filter(n: usize) -> KalmanGradient {
+        KalmanGradient::new(
+            DVector::zeros(n),
+            DMatrix::identity(n, n),
+            ProcessNoise::isotropic(n, 0.1),
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn matches_paper_equations_by_hand() {
+        // n = 2, C = diag(4, 1), g = (1, 2), Δv = (1, 1), z = 5, Δz² = 1, Q = 0.01 I.
+        let mut f = KalmanGradient::new(
+            DVector::from_vec(vec![1.0, 2.0]),
+            DMatrix::from_diagonal(&DVector::from_vec(vec![4.0, 1.0])),
+            ProcessNoise::isotropic(2, 0.1),
+        )
+        .unwrap();
+        f.update(&DVector::from_vec(vec![1.0, 1.0]), 5.0, 1.0).unwrap();
+        // H C Hᵀ = 5, S = 6, K = (4/6, 1/6), innovation = 5 − 3 = 2.
+        let g = f.gradient();
+        assert!((g[0] - (1.0 + 8.0 / 6.0)).abs() < 1e-12);
+        assert!((g[1] - (2.0 + 2.0 / 6.0)).abs() < 1e-12);
+        // (I − K H) C = C − K (H C) = [[4 − 16/6, −4/6], [−4/6, 1 − 1/6]] (+ Q on the diagonal)
+        let c = f.covariance();
+        assert!((c[(0, 0)] - (4.0 - 16.0 / 6.0 + 0.01)).abs() < 1e-12);
+        assert!((c[(0, 1)] - (-4.0 / 6.0)).abs() < 1e-12);
+        assert!((c[(1, 1)] - (1.0 - 1.0 / 6.0 + 0.01)).abs() < 1e-12);
+    }
+
+    #[test]
+    fn zero_measurement_noise_is_broyden() {
+        let mut f = KalmanGradient::new(
+            DVector::from_vec(vec![0.5, -0.5, 0.0]),
+            DMatrix::identity(3, 3),
+            ProcessNoise::isotropic(3, 0.0),
+        )
+        .unwrap();
+        let dv = DVector::from_vec(vec![0.3, -1.0, 2.0]);
+        let g0 = f.gradient().clone();
+        f.update(&dv, 1.7, 0.0).unwrap();
+        let broyden = &g0 + &dv * ((1.7 - dv.dot(&g0)) / dv.dot(&dv));
+        assert!((f.gradient() - broyden).norm() < 1e-12);
+        // and the new gradient reproduces the observed change exactly
+        assert!((f.gradient().dot(&dv) - 1.7).abs() < 1e-12);
+    }
+
+    #[test]
+    fn noisy_measurement_barely_moves_gradient() {
+        let mut f = filter(2);
+        f.update(&DVector::from_vec(vec![1.0, 0.0]), 10.0, 1e6).unwrap();
+        assert!(f.gradient().norm() < 1e-4);
+    }
+
+    #[test]
+    fn invalid_inputs_rejected_state_unchanged() {
+        let mut f = filter(2);
+        let before = f.clone();
+        let dv = DVector::from_vec(vec![1.0, 0.0]);
+        for (z, dz2) in [
+            (f64::NAN, 1.0),
+            (f64::INFINITY, 1.0),
+            (1.0, f64::NAN),
+            (1.0, -1.0),
+            (1.0, f64::INFINITY),
+        ] {
+            assert!(f.update(&dv, z, dz2).is_err(), "z={z}, dz2={dz2}");
+            assert_eq!(f, before);
+        }
+        assert!(f
+            .update(&DVector::from_vec(vec![f64::NAN, 0.0]), 1.0, 1.0)
+            .is_err());
+        assert!(f.update(&DVector::from_vec(vec![1.0]), 1.0, 1.0).is_err());
+        assert_eq!(f, before);
+        let err = f.update(&dv, 1.0, -2.0).unwrap_err();
+        assert!(err.to_string().contains("non-negative"), "{err}");
+    }
+
+    #[test]
+    fn small_step_skips() {
+        let mut f = filter(2).with_min_step_mv(0.01).unwrap();
+        let before = f.clone();
+        let out = f
+            .update(&DVector::from_vec(vec![0.001, 0.0]), 5.0, 0.0)
+            .unwrap();
+        assert!(matches!(out, UpdateOutcome::SkippedSmallStep { .. }));
+        assert_eq!(f, before);
+    }
+
+    #[test]
+    fn outlier_is_gated_and_gradient_unmoved() {
+        let mut f = KalmanGradient::new(
+            DVector::from_vec(vec![1.0, 1.0]),
+            DMatrix::identity(2, 2) * 0.01,
+            ProcessNoise::isotropic(2, 0.01),
+        )
+        .unwrap()
+        .with_outlier_sigma(Some(5.0))
+        .unwrap();
+        let g = f.gradient().clone();
+        // predicted change 1.0 ± ~0.1; measured 50 → far outside
+        let out = f
+            .update(&DVector::from_vec(vec![1.0, 0.0]), 50.0, 0.0)
+            .unwrap();
+        assert!(matches!(out, UpdateOutcome::Gated { .. }));
+        assert_eq!(f.gradient(), &g);
+        // a plausible change is learned
+        let out = f
+            .update(&DVector::from_vec(vec![1.0, 0.0]), 1.1, 0.0001)
+            .unwrap();
+        assert!(matches!(out, UpdateOutcome::Updated { .. }));
+        assert!(f.gradient()[0] > 1.0);
+    }
+
+    #[test]
+    fn step_scaled_q_grows_with_step() {
+        let q = ProcessNoise::isotropic_step_scaled(2, 0.3, 10.0);
+        let small = q.for_step(&DVector::from_vec(vec![1.0, 0.0]));
+        let full = q.for_step(&DVector::from_vec(vec![6.0, 8.0]));
+        assert!((full[(0, 0)] - 0.09).abs() < 1e-12);
+        assert!((small[(0, 0)] - 0.0009).abs() < 1e-12);
+    }
+
+    #[test]
+    fn rejects_bad_initial_state() {
+        let bad_c = DMatrix::from_row_slice(2, 2, &[1.0, 0.0, 0.0, -1.0]);
+        assert!(KalmanGradient::new(DVector::zeros(2), bad_c, ProcessNoise::isotropic(2, 0.1))
+            .is_err());
+        assert!(KalmanGradient::new(
+            DVector::zeros(2),
+            DMatrix::identity(2, 2),
+            ProcessNoise::isotropic(3, 0.1)
+        )
+        .is_err());
+    }
+
+    proptest! {
+        #[test]
+        fn covariance_stays_symmetric_psd(
+            steps in proptest::collection::vec(
+                (proptest::collection::vec(-10.0f64..10.0, 4), -100.0f64..100.0, 0.0f64..100.0),
+                1..60)
+        ) {
+            let mut f = KalmanGradient::new(
+                DVector::from_vec(vec![1.0, -2.0, 0.5, 3.0]),
+                DMatrix::identity(4, 4) * 4.0,
+                ProcessNoise::isotropic(4, 0.075),
+            ).unwrap();
+            for (dv, z, dz2) in steps {
+                f.update(&DVector::from_vec(dv), z, dz2).unwrap();
+                let c = f.covariance();
+                prop_assert!((c - c.transpose()).norm() == 0.0);
+                let eig = c.clone().symmetric_eigenvalues();
+                let scale = c.amax().max(1e-300);
+                prop_assert!(eig.iter().all(|&l| l >= -1e-9 * scale), "eigenvalues {:?}", eig);
+                prop_assert!(f.gradient().iter().all(|x| x.is_finite()));
+            }
+        }
+    }
+}

@@ -1,0 +1,153 @@
+//! Tuned parameters: what is measured, its unit, its target and tolerance, and
+//! the optional log transform (tune `ln p` instead of `p`, the paper's proposal
+//! for tunnel-coupling-like quantities).
+
+use serde::{Deserialize, Serialize};
+
+use crate::protocol::ScanKind;
+
+/// Space in which the estimator and solver see a parameter.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Transform {
+    /// `p` itself.
+    #[default]
+    Linear,
+    /// `ln p` (requires `p > 0`); the variance maps as `δ(ln p)² = δp² / p²`.
+    Log,
+}
+
+impl Transform {
+    /// Map a value and its variance into estimator space. `None` if not representable
+    /// (non-positive value under `Log`, or non-finite input).
+    ///
+    /// ```
+    /// use spintune::parameter::Transform;
+    /// let (y, var) = Transform::Log.forward(20.0, 4.0).unwrap();
+    /// assert!((y - 20f64.ln()).abs() < 1e-15);
+    /// assert!((var - 0.01).abs() < 1e-15);
+    /// assert!(Transform::Log.forward(-1.0, 1.0).is_none());
+    /// ```
+    pub fn forward(self, value: f64, variance: f64) -> Option<(f64, f64)> {
+        if !value.is_finite() || !variance.is_finite() || variance < 0.0 {
+            return None;
+        }
+        match self {
+            Transform::Linear => Some((value, variance)),
+            Transform::Log => (value > 0.0).then(|| (value.ln(), variance / (value * value))),
+        }
+    }
+
+    /// Map a value alone into estimator space (targets).
+    pub fn forward_value(self, value: f64) -> Option<f64> {
+        self.forward(value, 0.0).map(|x| x.0)
+    }
+
+    /// Chain rule for a gradient: `∂(ln p)/∂v = (∂p/∂v) / p`.
+    pub fn forward_gradient_factor(self, value: f64) -> f64 {
+        match self {
+            Transform::Linear => 1.0,
+            Transform::Log => 1.0 / value,
+        }
+    }
+}
+
+/// Tolerance band around a target.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", deny_unknown_fields)]
+pub enum Tolerance {
+    /// `|p − p*| ≤ value` (parameter units).
+    Absolute(f64),
+    /// `|p − p*| ≤ fraction · |p*|` (e.g. 0.1 for ±10 %).
+    Relative(f64),
+}
+
+impl Default for Tolerance {
+    fn default() -> Self {
+        Tolerance::Relative(0.1)
+    }
+}
+
+impl Tolerance {
+    /// Half-width of the band around `target`, in parameter units.
+    pub fn half_width(self, target: f64) -> f64 {
+        match self {
+            Tolerance::Absolute(a) => a.abs(),
+            Tolerance::Relative(r) => (r * target).abs(),
+        }
+    }
+
+    /// Whether `value` lies inside the band around `target`.
+    pub fn contains(self, target: f64, value: f64) -> bool {
+        (value - target).abs() <= self.half_width(target)
+    }
+
+    /// Checks the tolerance is a finite, non-negative number.
+    pub fn validate(self) -> Result<(), String> {
+        let x = match self {
+            Tolerance::Absolute(a) => a,
+            Tolerance::Relative(r) => r,
+        };
+        if x.is_finite() && x >= 0.0 {
+            Ok(())
+        } else {
+            Err(format!("tolerance must be finite and non-negative, got {x}"))
+        }
+    }
+}
+
+/// One tuned (or merely observed) parameter of a tuner level.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ParameterSpec {
+    /// Name as reported by the evaluation of its scan, e.g. `"t_sr"`.
+    pub name: String,
+    /// Display unit, e.g. `"ns"`, `"µV"`, `"mV"`.
+    pub unit: String,
+    /// The scan that measures it.
+    pub scan: ScanKind,
+    /// Target value (parameter units). `None`: observed but not driven anywhere.
+    #[serde(default)]
+    pub target: Option<f64>,
+    /// Tolerance band around the target.
+    #[serde(default)]
+    pub tolerance: Tolerance,
+    /// Estimator space.
+    #[serde(default)]
+    pub transform: Transform,
+    /// Isotropic process noise σ_Q added to every gradient element per update,
+    /// in (estimator-space unit)/mV: `Q = σ_Q² I` (paper: 0.075 ns/mV for t_sr,
+    /// 0.3 µV/mV for w). In log space the unit is 1/mV.
+    #[serde(default)]
+    pub process_noise_per_mv: f64,
+}
+
+impl ParameterSpec {
+    /// Whether the parameter is inside its band (true when it has no target).
+    pub fn in_band(&self, value: f64) -> bool {
+        match self.target {
+            Some(t) => self.tolerance.contains(t, value),
+            None => true,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tolerance_bands() {
+        assert!(Tolerance::Relative(0.1).contains(20.0, 21.9));
+        assert!(!Tolerance::Relative(0.1).contains(20.0, 22.1));
+        assert!(Tolerance::Absolute(5.0).contains(270.0, 266.0));
+        assert!(Tolerance::Absolute(-1.0).validate().is_err());
+        assert!(Tolerance::Relative(f64::NAN).validate().is_err());
+    }
+
+    #[test]
+    fn log_gradient_factor() {
+        assert_eq!(Transform::Log.forward_gradient_factor(4.0), 0.25);
+        assert_eq!(Transform::Linear.forward_gradient_factor(4.0), 1.0);
+    }
+}

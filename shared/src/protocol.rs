@@ -1,0 +1,386 @@
+//! Plain, serializable messages: what the tuner asks of a device, what the
+//! device answers, and the per-iteration record that is stored and streamed.
+//! Nothing else crosses a process boundary (DESIGN invariant 3).
+//!
+//! Units are in the field names: `_mv` millivolts, `_s` seconds, parameter
+//! values in the unit of their [`crate::parameter::ParameterSpec`].
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+
+/// Version of the wire format; bumped on any incompatible change.
+pub const PROTOCOL_VERSION: u32 = 1;
+
+/// The measurements a device can be asked for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ScanKind {
+    /// 1-D sweep of a sensing-dot gate over Coulomb peaks → `sd_flank_mv`
+    /// (steepest flank of the highest peak, mV) and `sd_contrast`.
+    SensingDot,
+    /// Lead-transition scans in the RFA/RFB plane → `mu_a_mv`, `mu_b_mv`
+    /// (transition-line positions, mV on RFA and RFB).
+    ChemicalPotential,
+    /// Detuning line scan across the inter-dot transition → `w` (µV).
+    TransitionWidth,
+    /// Load curve (signal vs. wait time) → `t_sr` (ns).
+    ReloadTime,
+}
+
+impl ScanKind {
+    /// All kinds.
+    pub const ALL: [ScanKind; 4] = [
+        ScanKind::SensingDot,
+        ScanKind::ChemicalPotential,
+        ScanKind::TransitionWidth,
+        ScanKind::ReloadTime,
+    ];
+}
+
+/// A 1-D sweep of one gate, mV.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Sweep {
+    /// Swept gate.
+    pub gate: String,
+    /// Start, mV.
+    pub from_mv: f64,
+    /// End, mV.
+    pub to_mv: f64,
+    /// Number of points (≥ 2).
+    pub points: usize,
+}
+
+/// Ask the device to run one scan.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ScanRequest {
+    /// What to measure.
+    pub kind: ScanKind,
+    /// For [`ScanKind::SensingDot`]: the sweep. Other kinds use the device's own settings.
+    #[serde(default)]
+    pub sweep: Option<Sweep>,
+}
+
+/// One trace of raw data: `y` against `x`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Trace {
+    /// What the trace is, e.g. `"RFA sweep"` or `"fit"`.
+    pub label: String,
+    /// Abscissa values.
+    pub x: Vec<f64>,
+    /// Ordinate values (same length as `x`).
+    pub y: Vec<f64>,
+}
+
+/// Raw data of one scan, as a device returns it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RawScan {
+    /// Which scan this is.
+    pub kind: ScanKind,
+    /// Abscissa label with unit, e.g. `"detuning ε (mV)"`, `"wait time (ns)"`.
+    pub x_label: String,
+    /// Ordinate label with unit, e.g. `"sensor signal (a.u.)"`.
+    pub y_label: String,
+    /// One or more traces (the chemical-potential scan has one per line).
+    pub traces: Vec<Trace>,
+}
+
+/// A measured parameter value with its variance (unit², never NaN or negative
+/// once accepted by the tuner).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ParameterValue {
+    /// Parameter name, e.g. `"w"`.
+    pub name: String,
+    /// Value in the parameter's unit.
+    pub value: f64,
+    /// Variance `δp²` in the parameter's unit squared.
+    pub variance: f64,
+}
+
+impl ParameterValue {
+    /// `Err` naming the problem if value or variance is NaN/∞ or the variance negative.
+    pub fn validate(&self) -> Result<(), String> {
+        if !self.value.is_finite() {
+            return Err(format!("{}: value {} is not finite", self.name, self.value));
+        }
+        if !(self.variance.is_finite() && self.variance >= 0.0) {
+            return Err(format!(
+                "{}: variance {} must be finite and non-negative",
+                self.name, self.variance
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// What a scan produced.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum ScanOutcome {
+    /// Raw traces; the tuner fits them with [`crate::fit::evaluate`].
+    Raw {
+        /// The data.
+        scan: RawScan,
+    },
+    /// Already-evaluated parameters (e.g. from a lab's own analysis).
+    Evaluated {
+        /// The values.
+        values: Vec<ParameterValue>,
+    },
+    /// The measurement could not be made.
+    Failed {
+        /// Why.
+        reason: String,
+    },
+}
+
+/// What the tuner asks of a device. Produced only by the tuner, executed by a driver.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "request", rename_all = "snake_case")]
+pub enum Request {
+    /// Set these gates (absolute voltages, mV). Already within limits and step limits.
+    SetVoltages {
+        /// Gate → voltage, mV.
+        voltages_mv: BTreeMap<String, f64>,
+    },
+    /// Run a scan.
+    Measure {
+        /// Which scan and how.
+        scan: ScanRequest,
+    },
+    /// Simulator only: the true Jacobian of `parameters` w.r.t. `gates` (unit/mV)
+    /// and the true parameter values, for the oracle baseline.
+    TrueJacobian {
+        /// Gates (columns).
+        gates: Vec<String>,
+        /// Parameter names (rows).
+        parameters: Vec<String>,
+    },
+}
+
+/// The device's answer to a [`Request`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "response", rename_all = "snake_case")]
+pub enum Response {
+    /// Voltages were applied; the read-back values (mV).
+    VoltagesSet {
+        /// Gate → read-back voltage, mV.
+        voltages_mv: BTreeMap<String, f64>,
+        /// Lab time the operation took, s.
+        lab_seconds: f64,
+    },
+    /// A scan finished (or failed).
+    Scanned {
+        /// Its result.
+        outcome: ScanOutcome,
+        /// Lab time the scan took, s.
+        lab_seconds: f64,
+    },
+    /// Answer to [`Request::TrueJacobian`].
+    TrueJacobian {
+        /// True parameter values (rows' order).
+        values: Vec<f64>,
+        /// Row-major m×n Jacobian, unit/mV.
+        jacobian: Vec<Vec<f64>>,
+    },
+    /// The device could not execute the request.
+    Error {
+        /// Why.
+        message: String,
+    },
+}
+
+/// One parameter in an [`IterationRecord`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ParameterReport {
+    /// Name.
+    pub name: String,
+    /// Unit.
+    pub unit: String,
+    /// Measured value, if the measurement succeeded.
+    pub value: Option<f64>,
+    /// Standard deviation δp of the measurement.
+    pub std: Option<f64>,
+    /// Target, if any.
+    pub target: Option<f64>,
+    /// Half-width of the tolerance band around the target (parameter units).
+    pub tolerance: Option<f64>,
+}
+
+/// One estimated Jacobian row in an [`IterationRecord`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GradientReport {
+    /// Parameter name.
+    pub parameter: String,
+    /// Unit of the gradient, e.g. `"ns/mV"` (or `"1/mV"` in log space).
+    pub unit: String,
+    /// Gradient over the level's gates.
+    pub gradient: Vec<f64>,
+    /// Covariance (row-major), if the estimator has one.
+    pub covariance: Option<Vec<Vec<f64>>>,
+}
+
+/// A scan with its fit, for display.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ScanReport {
+    /// The raw data.
+    pub raw: RawScan,
+    /// Fitted curves over the same axes (empty if the fit failed).
+    pub fit: Vec<Trace>,
+}
+
+/// Everything about one top-level iteration: stored, streamed, exported.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct IterationRecord {
+    /// Iteration number k (0 = first measurement after initialisation).
+    pub iteration: u64,
+    /// All gate voltages at the time of the measurement, mV.
+    pub voltages_mv: BTreeMap<String, f64>,
+    /// The top level's gates, in gradient order.
+    pub gates: Vec<String>,
+    /// Measured parameters.
+    pub parameters: Vec<ParameterReport>,
+    /// Gradient estimates after this iteration's update.
+    pub gradients: Vec<GradientReport>,
+    /// Step decided in this iteration over `gates`, mV (zeros if none).
+    pub step_mv: Vec<f64>,
+    /// Every targeted parameter is inside its band.
+    pub tuned: bool,
+    /// Cumulative lab time since the run started, s.
+    pub lab_seconds: f64,
+    /// Cumulative number of scans per kind.
+    pub scan_counts: BTreeMap<ScanKind, u64>,
+    /// Cumulative number of failed or rejected evaluations.
+    pub failed_evaluations: u64,
+    /// Latest scans of the top level's parameters, with their fits.
+    pub scans: Vec<ScanReport>,
+    /// Notable events of this iteration (gated outliers, failed fits, clipped steps).
+    pub events: Vec<String>,
+}
+
+// ---------------------------------------------------------------------------
+// Server ⇄ viewer/controller messages (REST bodies and WebSocket frames).
+// ---------------------------------------------------------------------------
+
+/// Lifecycle of a run on the server.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(tag = "state", rename_all = "snake_case")]
+pub enum RunStatus {
+    /// Iterating.
+    Running,
+    /// Waiting for resume or single step.
+    Paused,
+    /// The tuner reached its goal or its iteration limit.
+    Finished,
+    /// Stopped by a user.
+    Stopped,
+    /// The server went away while the run was active; can be resumed.
+    Interrupted,
+    /// Stopped by an error (device fault, safety refusal, …); can be resumed after fixing.
+    Failed {
+        /// What went wrong.
+        message: String,
+    },
+}
+
+/// A run as listed by the server.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RunSummary {
+    /// Server-assigned id.
+    pub id: u64,
+    /// Human-readable name from the config.
+    pub name: String,
+    /// Current state.
+    pub status: RunStatus,
+    /// Number of committed iterations.
+    pub iterations: u64,
+    /// Cumulative lab time, s.
+    pub lab_seconds: f64,
+    /// Whether the last iteration was tuned.
+    pub tuned: bool,
+}
+
+/// A control action. Needs the control token.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "action", rename_all = "snake_case", deny_unknown_fields)]
+pub enum ControlCommand {
+    /// Pause after the current request completes.
+    Pause,
+    /// Continue iterating.
+    Resume,
+    /// Run exactly one more iteration, then pause.
+    Step,
+    /// Stop for good.
+    Stop,
+    /// Change a parameter's target and/or tolerance between iterations.
+    SetTarget {
+        /// Parameter name, e.g. `"t_sr"`.
+        parameter: String,
+        /// New target (parameter units); `null` removes the target.
+        target: Option<f64>,
+        /// New tolerance; omitted keeps the present one.
+        #[serde(default)]
+        tolerance: Option<crate::parameter::Tolerance>,
+    },
+}
+
+/// Messages from a browser (or script) to the server over a run's WebSocket.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+pub enum ClientMessage {
+    /// Present the control token; the server answers `AuthOk` or `Error`.
+    Auth {
+        /// The token printed by `spintune serve`.
+        token: String,
+    },
+    /// A control action (requires a prior successful `Auth` on this socket).
+    Control {
+        /// What to do.
+        command: ControlCommand,
+    },
+}
+
+/// Messages from the server over a run's WebSocket.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum ServerMessage {
+    /// First frame on every socket.
+    Hello {
+        /// [`PROTOCOL_VERSION`].
+        version: u32,
+        /// The run.
+        run: RunSummary,
+    },
+    /// Stored iterations the viewer has not seen yet, oldest first.
+    History {
+        /// Records.
+        records: Vec<IterationRecord>,
+    },
+    /// One new iteration, live.
+    Iteration {
+        /// Record.
+        record: IterationRecord,
+    },
+    /// The run's status changed.
+    Status {
+        /// The run.
+        run: RunSummary,
+    },
+    /// The viewer fell behind; the server skipped ahead and resends from the store.
+    Lagged {
+        /// Number of live messages dropped for this viewer.
+        skipped: u64,
+    },
+    /// Control token accepted on this socket.
+    AuthOk,
+    /// A request was refused or malformed; the socket stays open.
+    Error {
+        /// What was wrong.
+        message: String,
+    },
+}

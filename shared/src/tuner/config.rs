@@ -1,0 +1,403 @@
+//! Configuration of a tuner hierarchy: gates, levels, parameters, estimators.
+//!
+//! All voltages in mV, gradients in parameter unit per mV.
+
+use serde::{Deserialize, Serialize};
+
+use crate::estimator::EstimatorKind;
+use crate::parameter::ParameterSpec;
+use crate::safety::GateSpec;
+use crate::solver::SolverConfig;
+
+/// A config value that does not make sense, with the path of the field.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("invalid config at `{field}`: {message}")]
+pub struct ConfigError {
+    /// Dotted path of the offending field, e.g. `tuner.levels[0].gates[2]`.
+    pub field: String,
+    /// What is wrong with it.
+    pub message: String,
+}
+
+impl ConfigError {
+    /// New error for `field`.
+    pub fn new(field: impl Into<String>, message: impl Into<String>) -> Self {
+        Self {
+            field: field.into(),
+            message: message.into(),
+        }
+    }
+
+    /// Prefix the field path with `outer` (e.g. `tuner`).
+    pub fn within(mut self, outer: &str) -> Self {
+        self.field = format!("{outer}.{}", self.field);
+        self
+    }
+}
+
+/// How a Newton level obtains its initial gradient `g(0)` and covariance `C(0)`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum InitialGradient {
+    /// Measure by one-sided finite differences, `repetitions` times:
+    /// `g(0)` the mean, `C(0)` diagonal with the sample variances of the
+    /// individual estimates (with one repetition: the variance propagated from
+    /// the measurement errors).
+    FiniteDifference {
+        /// Voltage offset per gate, mV.
+        step_mv: f64,
+        /// Number of repetitions (≥ 1).
+        repetitions: u32,
+    },
+    /// Known gradient rows (one per parameter, unit/mV) and covariances.
+    Given {
+        /// `gradient[i][j] = ∂p_i/∂v_j`.
+        gradient: Vec<Vec<f64>>,
+        /// One n×n covariance per parameter.
+        covariance: Vec<Vec<Vec<f64>>>,
+    },
+    /// A rough guess: `C(0) = diag((relative_std · g(0))²)`; the paper's recipe
+    /// with `relative_std ≈ 1` lets the filter effectively re-learn.
+    RoughGuess {
+        /// `gradient[i][j] = ∂p_i/∂v_j`.
+        gradient: Vec<Vec<f64>>,
+        /// Relative standard deviation of each element.
+        relative_std: f64,
+    },
+}
+
+/// Linear virtual-gate compensation applied with every move of a level:
+/// `Δv_gates = matrix · Δv_level`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Compensation {
+    /// Compensating gates (rows), e.g. `["PA", "PB"]`.
+    pub gates: Vec<String>,
+    /// Rows: compensating gates; columns: the level's gates (dimensionless, mV/mV).
+    pub matrix: Vec<Vec<f64>>,
+}
+
+/// A quasi-Newton level: parameters driven by gates through an estimated Jacobian.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NewtonConfig {
+    /// Gates this level moves (Jacobian columns), e.g. `["N", "SA", "SB", "T"]`.
+    pub gates: Vec<String>,
+    /// Parameters (Jacobian rows).
+    pub parameters: Vec<ParameterSpec>,
+    /// Gradient estimator.
+    pub estimator: EstimatorKind,
+    /// Where `g(0)`, `C(0)` come from.
+    pub initial_gradient: InitialGradient,
+    /// Step limit and rank tolerance.
+    #[serde(default)]
+    pub solver: SolverConfig,
+    /// Kalman innovations beyond this many σ are gated as outliers (`None`: never).
+    #[serde(default)]
+    pub outlier_sigma: Option<f64>,
+    /// Steps smaller than this (mV) teach the estimator nothing.
+    #[serde(default = "default_min_step_mv")]
+    pub min_step_mv: f64,
+    /// Finite-difference offset for `fd-newton` re-measurements, mV.
+    #[serde(default = "default_fd_step_mv")]
+    pub fd_step_mv: f64,
+    /// For levels run as children: iterations per call before returning to the
+    /// parent even if not tuned. Ignored for the top level.
+    #[serde(default = "default_max_inner")]
+    pub max_iterations_per_call: u32,
+    /// Set each target from the first successful measurement (e.g. keep the
+    /// transition lines where they were at the start).
+    #[serde(default)]
+    pub hold_initial_values: bool,
+    /// Linear virtual-gate correction applied with each move.
+    #[serde(default)]
+    pub compensation: Option<Compensation>,
+}
+
+fn default_min_step_mv() -> f64 {
+    0.01
+}
+fn default_fd_step_mv() -> f64 {
+    2.0
+}
+fn default_max_inner() -> u32 {
+    3
+}
+
+/// A sensing-dot level: sweep one gate and park it on the steepest flank of the
+/// highest Coulomb peak.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SensingDotConfig {
+    /// Swept gate, e.g. `"SP"`.
+    pub gate: String,
+    /// Sweep half-width around the present voltage, mV.
+    pub half_width_mv: f64,
+    /// Points per sweep.
+    pub points: usize,
+}
+
+/// What a level does.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum LevelKind {
+    /// Quasi-Newton level.
+    Newton(NewtonConfig),
+    /// Sensing-dot re-tuning.
+    SensingDot(SensingDotConfig),
+}
+
+/// One level of the hierarchy. (Unknown fields are still refused: the
+/// flattened `kind` config denies them.)
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LevelConfig {
+    /// Unique name, e.g. `"qubit"`, `"chemical_potential"`, `"sensing_dot"`.
+    pub name: String,
+    /// Behaviour.
+    #[serde(flatten)]
+    pub kind: LevelKind,
+    /// Levels run (in order, to completion) after every move of this level.
+    /// Must name levels listed *after* this one (no cycles).
+    #[serde(default)]
+    pub after_move: Vec<String>,
+}
+
+/// A whole tuner: gates with limits and the level hierarchy (`levels[0]` is the top).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TunerConfig {
+    /// Every gate the tuner may touch, with limits and start voltages.
+    pub gates: Vec<GateSpec>,
+    /// Levels; the first is the top level that defines an iteration.
+    pub levels: Vec<LevelConfig>,
+    /// Stop as soon as every targeted top-level parameter is in its band.
+    #[serde(default)]
+    pub stop_when_tuned: bool,
+    /// Stop after this many top-level iterations (`None`: never).
+    #[serde(default)]
+    pub max_iterations: Option<u64>,
+}
+
+impl TunerConfig {
+    /// The top level's Newton config.
+    ///
+    /// # Panics
+    /// If the top level is not a Newton level (rejected by [`TunerConfig::validate`]).
+    pub fn top(&self) -> &NewtonConfig {
+        match &self.levels[0].kind {
+            LevelKind::Newton(n) => n,
+            LevelKind::SensingDot(_) => panic!("top level must be a Newton level"),
+        }
+    }
+
+    /// Mutable access to the top level's Newton config (estimator, Q, step limit, targets).
+    ///
+    /// # Panics
+    /// If the top level is not a Newton level.
+    pub fn top_mut(&mut self) -> &mut NewtonConfig {
+        match &mut self.levels[0].kind {
+            LevelKind::Newton(n) => n,
+            LevelKind::SensingDot(_) => panic!("top level must be a Newton level"),
+        }
+    }
+
+    /// Index of the level called `name`.
+    pub fn level_index(&self, name: &str) -> Option<usize> {
+        self.levels.iter().position(|l| l.name == name)
+    }
+
+    /// Check the config; the error names the offending field.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        if self.gates.is_empty() {
+            return Err(ConfigError::new("gates", "at least one gate is required"));
+        }
+        for (i, g) in self.gates.iter().enumerate() {
+            let f = |x: &str| format!("gates[{i}].{x}");
+            if g.name.is_empty() {
+                return Err(ConfigError::new(f("name"), "must not be empty"));
+            }
+            if self.gates[..i].iter().any(|o| o.name == g.name) {
+                return Err(ConfigError::new(f("name"), format!("duplicate gate {:?}", g.name)));
+            }
+            for (name, v) in [
+                ("min_mv", g.min_mv),
+                ("max_mv", g.max_mv),
+                ("initial_mv", g.initial_mv),
+                ("max_step_mv", g.max_step_mv),
+            ] {
+                if !v.is_finite() {
+                    return Err(ConfigError::new(f(name), "must be a finite number"));
+                }
+            }
+            if g.min_mv > g.max_mv {
+                return Err(ConfigError::new(f("min_mv"), "must not exceed max_mv"));
+            }
+            if !(g.min_mv..=g.max_mv).contains(&g.initial_mv) {
+                return Err(ConfigError::new(
+                    f("initial_mv"),
+                    format!("{} mV is outside [{}, {}] mV", g.initial_mv, g.min_mv, g.max_mv),
+                ));
+            }
+            if g.max_step_mv <= 0.0 {
+                return Err(ConfigError::new(f("max_step_mv"), "must be > 0"));
+            }
+        }
+        if self.levels.is_empty() {
+            return Err(ConfigError::new("levels", "at least one level is required"));
+        }
+        if !matches!(self.levels[0].kind, LevelKind::Newton(_)) {
+            return Err(ConfigError::new("levels[0].kind", "the top level must be `newton`"));
+        }
+        let has_gate = |name: &str| self.gates.iter().any(|g| g.name == name);
+        for (li, level) in self.levels.iter().enumerate() {
+            let lf = |x: &str| format!("levels[{li}].{x}");
+            if self.levels[..li].iter().any(|o| o.name == level.name) {
+                return Err(ConfigError::new(lf("name"), format!("duplicate level {:?}", level.name)));
+            }
+            for (ci, child) in level.after_move.iter().enumerate() {
+                match self.level_index(child) {
+                    Some(idx) if idx > li => {}
+                    Some(_) => {
+                        return Err(ConfigError::new(
+                            lf(&format!("after_move[{ci}]")),
+                            format!("{child:?} must be listed after {:?} (no cycles)", level.name),
+                        ))
+                    }
+                    None => {
+                        return Err(ConfigError::new(
+                            lf(&format!("after_move[{ci}]")),
+                            format!("unknown level {child:?}"),
+                        ))
+                    }
+                }
+            }
+            match &level.kind {
+                LevelKind::SensingDot(sd) => {
+                    if !has_gate(&sd.gate) {
+                        return Err(ConfigError::new(lf("gate"), format!("unknown gate {:?}", sd.gate)));
+                    }
+                    if !(sd.half_width_mv.is_finite() && sd.half_width_mv > 0.0) {
+                        return Err(ConfigError::new(lf("half_width_mv"), "must be > 0"));
+                    }
+                    if sd.points < 5 {
+                        return Err(ConfigError::new(lf("points"), "must be at least 5"));
+                    }
+                }
+                LevelKind::Newton(n) => validate_newton(n, &has_gate).map_err(|e| e.within(&format!("levels[{li}]")))?,
+            }
+        }
+        Ok(())
+    }
+}
+
+fn validate_newton(n: &NewtonConfig, has_gate: &dyn Fn(&str) -> bool) -> Result<(), ConfigError> {
+    if n.gates.is_empty() {
+        return Err(ConfigError::new("gates", "at least one gate is required"));
+    }
+    for (i, g) in n.gates.iter().enumerate() {
+        if !has_gate(g) {
+            return Err(ConfigError::new(format!("gates[{i}]"), format!("unknown gate {g:?}")));
+        }
+        if n.gates[..i].contains(g) {
+            return Err(ConfigError::new(format!("gates[{i}]"), format!("duplicate gate {g:?}")));
+        }
+    }
+    if n.parameters.is_empty() {
+        return Err(ConfigError::new("parameters", "at least one parameter is required"));
+    }
+    for (i, p) in n.parameters.iter().enumerate() {
+        let f = |x: &str| format!("parameters[{i}].{x}");
+        if n.parameters[..i].iter().any(|o| o.name == p.name) {
+            return Err(ConfigError::new(f("name"), format!("duplicate parameter {:?}", p.name)));
+        }
+        if let Some(t) = p.target {
+            if !t.is_finite() {
+                return Err(ConfigError::new(f("target"), "must be a finite number"));
+            }
+            if p.transform == crate::parameter::Transform::Log && t <= 0.0 {
+                return Err(ConfigError::new(f("target"), "must be > 0 for a log-transformed parameter"));
+            }
+        }
+        p.tolerance.validate().map_err(|m| ConfigError::new(f("tolerance"), m))?;
+        if !(p.process_noise_per_mv.is_finite() && p.process_noise_per_mv >= 0.0) {
+            return Err(ConfigError::new(f("process_noise_per_mv"), "must be finite and non-negative"));
+        }
+    }
+    let (m, k) = (n.parameters.len(), n.gates.len());
+    match &n.initial_gradient {
+        InitialGradient::FiniteDifference { step_mv, repetitions } => {
+            if !(step_mv.is_finite() && *step_mv > 0.0) {
+                return Err(ConfigError::new("initial_gradient.step_mv", "must be > 0"));
+            }
+            if *repetitions == 0 {
+                return Err(ConfigError::new("initial_gradient.repetitions", "must be ≥ 1"));
+            }
+        }
+        InitialGradient::Given { gradient, covariance } => {
+            check_rows(gradient, m, k, "initial_gradient.gradient")?;
+            if covariance.len() != m {
+                return Err(ConfigError::new("initial_gradient.covariance", format!("needs {m} matrices")));
+            }
+            for (i, c) in covariance.iter().enumerate() {
+                check_rows(c, k, k, &format!("initial_gradient.covariance[{i}]"))?;
+                let mat = nalgebra::DMatrix::from_fn(k, k, |r, s| c[r][s]);
+                crate::kalman::validate_covariance(&mat, "covariance").map_err(|e| {
+                    ConfigError::new(format!("initial_gradient.covariance[{i}]"), e.to_string())
+                })?;
+            }
+        }
+        InitialGradient::RoughGuess { gradient, relative_std } => {
+            check_rows(gradient, m, k, "initial_gradient.gradient")?;
+            if !(relative_std.is_finite() && *relative_std >= 0.0) {
+                return Err(ConfigError::new("initial_gradient.relative_std", "must be ≥ 0"));
+            }
+        }
+    }
+    if !(n.solver.max_step_mv.is_finite() && n.solver.max_step_mv > 0.0) {
+        return Err(ConfigError::new("solver.max_step_mv", "must be > 0"));
+    }
+    if !(n.solver.rank_tolerance.is_finite() && n.solver.rank_tolerance >= 0.0) {
+        return Err(ConfigError::new("solver.rank_tolerance", "must be ≥ 0"));
+    }
+    if let Some(s) = n.outlier_sigma {
+        if !(s.is_finite() && s > 0.0) {
+            return Err(ConfigError::new("outlier_sigma", "must be > 0 (or null for no gating)"));
+        }
+    }
+    if !(n.min_step_mv.is_finite() && n.min_step_mv >= 0.0) {
+        return Err(ConfigError::new("min_step_mv", "must be ≥ 0"));
+    }
+    if !(n.fd_step_mv.is_finite() && n.fd_step_mv > 0.0) {
+        return Err(ConfigError::new("fd_step_mv", "must be > 0"));
+    }
+    if let Some(c) = &n.compensation {
+        for (i, g) in c.gates.iter().enumerate() {
+            if !has_gate(g) {
+                return Err(ConfigError::new(format!("compensation.gates[{i}]"), format!("unknown gate {g:?}")));
+            }
+            if n.gates.contains(g) {
+                return Err(ConfigError::new(
+                    format!("compensation.gates[{i}]"),
+                    format!("{g:?} is also a tuning gate of this level"),
+                ));
+            }
+        }
+        check_rows(&c.matrix, c.gates.len(), k, "compensation.matrix")?;
+    }
+    Ok(())
+}
+
+fn check_rows(rows: &[Vec<f64>], m: usize, n: usize, field: &str) -> Result<(), ConfigError> {
+    if rows.len() != m {
+        return Err(ConfigError::new(field, format!("needs {m} rows, got {}", rows.len())));
+    }
+    for (i, r) in rows.iter().enumerate() {
+        if r.len() != n {
+            return Err(ConfigError::new(format!("{field}[{i}]"), format!("needs {n} entries, got {}", r.len())));
+        }
+        if let Some(x) = r.iter().find(|x| !x.is_finite()) {
+            return Err(ConfigError::new(format!("{field}[{i}]"), format!("{x} is not a finite number")));
+        }
+    }
+    Ok(())
+}

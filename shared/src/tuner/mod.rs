@@ -1,0 +1,595 @@
+//! The sans-IO tuner state machine (DESIGN invariant 2).
+//!
+//! The tuner never calls a device. [`Tuner::poll`] returns the next
+//! [`Action`]: a [`Request`] for the driver to execute (and answer with
+//! [`Tuner::feed`]), a finished top-level [`IterationRecord`], or
+//! [`Action::Finished`]. The same machine is driven by the async backend,
+//! the in-browser simulator and the benchmarks.
+//!
+//! # Hierarchy
+//! A tuner is a list of levels (`levels[0]` is the top). After each move of a
+//! level, the levels named in its `after_move` run to completion, in order —
+//! the paper's structure: move N/SA/SB/T (with a linear virtual-gate correction
+//! on PA/PB), re-tune the sensing dot, compensate the chemical potentials with
+//! a Kalman-tuned PA/PB level (which itself re-tunes the sensing dot after each
+//! of its moves), then measure w and t_sr again.
+//!
+//! Internally every active level is a frame on a stack holding a queue of
+//! micro-operations (move, measure, run child, decide); the whole machine is
+//! plain data and serde-serializable, so a checkpoint taken after any
+//! [`Action::Iteration`] resumes bit-identically (invariant 4).
+//!
+//! ```
+//! use spintune::driver::{SimulationConfig, SimulationRun};
+//! let mut cfg = SimulationConfig::paper_default();
+//! cfg.tuner.max_iterations = Some(2);
+//! let mut run = SimulationRun::new(cfg).unwrap();
+//! let first = run.next_iteration().unwrap().unwrap();
+//! assert_eq!(first.iteration, 0);
+//! assert_eq!(first.gates, ["N", "SA", "SB", "T"]);
+//! ```
+
+mod config;
+pub mod finite_difference;
+mod newton;
+
+use std::collections::{BTreeMap, VecDeque};
+
+use nalgebra::{DMatrix, DVector};
+use serde::{Deserialize, Serialize};
+
+pub use config::{
+    Compensation, ConfigError, InitialGradient, LevelConfig, LevelKind, NewtonConfig, SensingDotConfig,
+    TunerConfig,
+};
+use newton::NewtonState;
+
+use crate::parameter::Tolerance;
+use crate::protocol::{
+    IterationRecord, ParameterValue, Request, Response, ScanKind, ScanOutcome, ScanReport, ScanRequest, Sweep,
+};
+use crate::safety::SafetyLimits;
+
+/// What the driver should do next.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Action {
+    /// Execute this request and [`Tuner::feed`] the response.
+    Request(Request),
+    /// A top-level iteration finished: persist / display it, then poll again.
+    Iteration(IterationRecord),
+    /// The tuner is done (tuned with `stop_when_tuned`, or `max_iterations` reached).
+    Finished,
+}
+
+/// Why a response could not be taken. The tuner state is unchanged; polling
+/// again re-issues the same request.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum TunerError {
+    /// A response arrived although no request is outstanding.
+    #[error("no request is outstanding")]
+    NothingPending,
+    /// The response does not answer the outstanding request.
+    #[error("response does not answer the outstanding {expected} request")]
+    UnexpectedResponse {
+        /// What was expected.
+        expected: &'static str,
+    },
+    /// The device reported an error.
+    #[error("device error: {0}")]
+    Device(String),
+    /// Unknown parameter in [`Tuner::set_target`].
+    #[error("unknown parameter {0:?}")]
+    UnknownParameter(String),
+    /// Invalid target or tolerance.
+    #[error("invalid target for {parameter}: {message}")]
+    InvalidTarget {
+        /// Parameter name.
+        parameter: String,
+        /// What is wrong.
+        message: String,
+    },
+}
+
+/// One micro-operation of a level's queue.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+enum Op {
+    /// Move the level's gates to these absolute voltages (mV), with compensation.
+    Move(Vec<f64>),
+    /// Set one gate to an absolute voltage (mV).
+    SetGate(String, f64),
+    /// Run a scan; the result is absorbed into the level's state.
+    Measure(ScanRequest),
+    /// Ask the device for the true Jacobian (oracle).
+    QueryJacobian,
+    /// Run a child level to completion.
+    Child(usize),
+    /// Let the level decide what comes next.
+    Decide(Decision),
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+enum Decision {
+    /// Base measurement of a finite-difference repetition is in.
+    FdBase(usize),
+    /// Offset measurement (repetition, gate) is in.
+    FdPoint(usize, usize),
+    /// All finite-difference measurements are in.
+    FdFinish,
+    /// Parameters measured: update the estimator, test for tuned.
+    Evaluate,
+    /// Compute and queue the Newton step.
+    Step,
+    /// The level's round is complete.
+    EndIteration,
+    /// Sensing-dot sweep is in: park the gate on the flank.
+    SdPark,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct Frame {
+    level: usize,
+    ops: VecDeque<Op>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+enum Pending {
+    Set(Request),
+    Measure(Request, usize),
+    Jacobian(Request, usize),
+}
+
+impl Pending {
+    fn request(&self) -> &Request {
+        match self {
+            Pending::Set(r) | Pending::Measure(r, _) | Pending::Jacobian(r, _) => r,
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[allow(clippy::large_enum_variant)]
+enum LevelState {
+    Newton(NewtonState),
+    SensingDot {
+        last: Option<ParameterValue>,
+    },
+}
+
+/// The tuner: configuration, learned gradients, position in the hierarchy.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Tuner {
+    config: TunerConfig,
+    safety: SafetyLimits,
+    voltages_mv: BTreeMap<String, f64>,
+    levels: Vec<LevelState>,
+    stack: Vec<Frame>,
+    pending: Option<Pending>,
+    iteration: u64,
+    lab_seconds: f64,
+    scan_counts: BTreeMap<ScanKind, u64>,
+    failed_evaluations: u64,
+    finished: bool,
+}
+
+impl Tuner {
+    /// A tuner at the configured initial voltages. The config is validated.
+    pub fn new(config: TunerConfig) -> Result<Self, ConfigError> {
+        config.validate()?;
+        let safety = SafetyLimits::new(&config.gates);
+        let voltages_mv = config.gates.iter().map(|g| (g.name.clone(), g.initial_mv)).collect();
+        let mut levels = Vec::new();
+        for (i, l) in config.levels.iter().enumerate() {
+            levels.push(match &l.kind {
+                LevelKind::Newton(n) => LevelState::Newton(
+                    NewtonState::new(n).map_err(|e| e.within(&format!("levels[{i}]")))?,
+                ),
+                LevelKind::SensingDot(_) => LevelState::SensingDot { last: None },
+            });
+        }
+        Ok(Self {
+            config,
+            safety,
+            voltages_mv,
+            levels,
+            stack: Vec::new(),
+            pending: None,
+            iteration: 0,
+            lab_seconds: 0.0,
+            scan_counts: BTreeMap::new(),
+            failed_evaluations: 0,
+            finished: false,
+        })
+    }
+
+    /// The configuration, including targets as changed by [`Tuner::set_target`].
+    pub fn config(&self) -> &TunerConfig {
+        &self.config
+    }
+
+    /// The gate limits every request is checked against.
+    pub fn safety(&self) -> &SafetyLimits {
+        &self.safety
+    }
+
+    /// Voltages as last read back from the device, mV.
+    pub fn voltages_mv(&self) -> &BTreeMap<String, f64> {
+        &self.voltages_mv
+    }
+
+    /// Number of completed top-level iterations.
+    pub fn iteration(&self) -> u64 {
+        self.iteration
+    }
+
+    /// Cumulative lab time reported by the device, s.
+    pub fn lab_seconds(&self) -> f64 {
+        self.lab_seconds
+    }
+
+    /// Scans run so far, per kind.
+    pub fn scan_counts(&self) -> &BTreeMap<ScanKind, u64> {
+        &self.scan_counts
+    }
+
+    /// Failed or rejected evaluations so far.
+    pub fn failed_evaluations(&self) -> u64 {
+        self.failed_evaluations
+    }
+
+    /// Whether [`Action::Finished`] has been reached.
+    pub fn is_finished(&self) -> bool {
+        self.finished
+    }
+
+    /// Allow further iterations after the tuner finished (e.g. after a target change).
+    pub fn set_max_iterations(&mut self, max: Option<u64>) {
+        self.config.max_iterations = max;
+        self.finished = false;
+    }
+
+    /// Gradient rows (estimator space) and covariances of a Newton level, once initialised.
+    pub fn gradients(&self, level: usize) -> Option<Vec<(DVector<f64>, Option<DMatrix<f64>>)>> {
+        match self.levels.get(level)? {
+            LevelState::Newton(n) => n.gradients(),
+            LevelState::SensingDot { .. } => None,
+        }
+    }
+
+    /// The config with every initialised Newton level's present gradient as
+    /// [`InitialGradient::Given`]: start other tuners from what this one measured.
+    pub fn config_with_learned_gradients(&self) -> TunerConfig {
+        let mut cfg = self.config.clone();
+        for (i, level) in cfg.levels.iter_mut().enumerate() {
+            if let (LevelKind::Newton(n), Some(rows)) = (&mut level.kind, self.gradients(i)) {
+                let k = n.gates.len();
+                n.initial_gradient = InitialGradient::Given {
+                    gradient: rows.iter().map(|(g, _)| g.iter().copied().collect()).collect(),
+                    covariance: rows
+                        .iter()
+                        .map(|(_, c)| {
+                            let c = c.clone().unwrap_or_else(|| DMatrix::zeros(k, k));
+                            (0..k).map(|r| (0..k).map(|s| c[(r, s)]).collect()).collect()
+                        })
+                        .collect(),
+                };
+            }
+        }
+        cfg
+    }
+
+    /// Change a parameter's target and/or tolerance; takes effect at its next evaluation.
+    /// `tolerance: None` keeps the present tolerance.
+    pub fn set_target(
+        &mut self,
+        parameter: &str,
+        target: Option<f64>,
+        tolerance: Option<Tolerance>,
+    ) -> Result<(), TunerError> {
+        let invalid = |m: &str| TunerError::InvalidTarget {
+            parameter: parameter.to_string(),
+            message: m.to_string(),
+        };
+        if let Some(t) = target {
+            if !t.is_finite() {
+                return Err(invalid("target must be a finite number"));
+            }
+        }
+        if let Some(tol) = tolerance {
+            tol.validate().map_err(|m| invalid(&m))?;
+        }
+        for level in &mut self.config.levels {
+            if let LevelKind::Newton(n) = &mut level.kind {
+                if let Some(p) = n.parameters.iter_mut().find(|p| p.name == parameter) {
+                    if let Some(t) = target {
+                        if p.transform.forward_value(t).is_none() {
+                            return Err(invalid("target must be > 0 for a log-transformed parameter"));
+                        }
+                    }
+                    p.target = target;
+                    if let Some(tol) = tolerance {
+                        p.tolerance = tol;
+                    }
+                    if self.config.stop_when_tuned {
+                        // a new target may need more work; max_iterations still applies
+                        self.finished = false;
+                    }
+                    return Ok(());
+                }
+            }
+        }
+        Err(TunerError::UnknownParameter(parameter.to_string()))
+    }
+
+    /// The next thing to do. Calling it again without [`Tuner::feed`] returns the
+    /// same outstanding request.
+    pub fn poll(&mut self) -> Action {
+        if let Some(p) = &self.pending {
+            return Action::Request(p.request().clone());
+        }
+        loop {
+            if self.finished {
+                return Action::Finished;
+            }
+            let Some(frame) = self.stack.last_mut() else {
+                if let LevelState::Newton(top) = &self.levels[0] {
+                    if !top.is_initialised() {
+                        let ops = self.init_ops(0);
+                        self.stack.push(Frame { level: 0, ops });
+                        continue;
+                    }
+                }
+                if self.config.max_iterations.is_some_and(|m| self.iteration >= m) {
+                    self.finished = true;
+                    continue;
+                }
+                self.push_level(0);
+                continue;
+            };
+            let level = frame.level;
+            let Some(op) = frame.ops.pop_front() else {
+                self.stack.pop();
+                continue;
+            };
+            match op {
+                Op::Move(target) => {
+                    if let Some(req) = self.move_request(level, &target) {
+                        self.pending = Some(Pending::Set(req.clone()));
+                        return Action::Request(req);
+                    }
+                }
+                Op::SetGate(gate, v) => {
+                    let present = self.voltages_mv.get(&gate).copied().unwrap_or(v);
+                    let v = self.safety.clip(&gate, present, v);
+                    let req = BTreeMap::from([(gate, v)]);
+                    if self.safety.check(&self.voltages_mv, &req).is_ok() {
+                        let req = Request::SetVoltages { voltages_mv: req };
+                        self.pending = Some(Pending::Set(req.clone()));
+                        return Action::Request(req);
+                    }
+                }
+                Op::Measure(scan) => {
+                    let req = Request::Measure { scan };
+                    self.pending = Some(Pending::Measure(req.clone(), level));
+                    return Action::Request(req);
+                }
+                Op::QueryJacobian => {
+                    let req = self.jacobian_request(level);
+                    self.pending = Some(Pending::Jacobian(req.clone(), level));
+                    return Action::Request(req);
+                }
+                Op::Child(child) => self.push_level(child),
+                Op::Decide(d) => {
+                    if let Some(record) = self.decide(level, d) {
+                        self.iteration += 1;
+                        if self.config.stop_when_tuned && record.tuned {
+                            self.finished = true;
+                        }
+                        return Action::Iteration(record);
+                    }
+                }
+            }
+        }
+    }
+
+    /// Answer the outstanding request. On error the state is unchanged and the
+    /// same request will be polled again.
+    pub fn feed(&mut self, response: Response) -> Result<(), TunerError> {
+        let pending = self.pending.as_ref().ok_or(TunerError::NothingPending)?;
+        if let Response::Error { message } = &response {
+            return Err(TunerError::Device(message.clone()));
+        }
+        match (pending, response) {
+            (Pending::Set(_), Response::VoltagesSet { voltages_mv, lab_seconds }) => {
+                for (g, v) in voltages_mv {
+                    if v.is_finite() && self.voltages_mv.contains_key(&g) {
+                        self.voltages_mv.insert(g, v);
+                    }
+                }
+                self.add_lab_time(lab_seconds);
+            }
+            (Pending::Measure(req, level), Response::Scanned { outcome, lab_seconds }) => {
+                let level = *level;
+                let kind = match req {
+                    Request::Measure { scan } => scan.kind,
+                    _ => unreachable!("measure pending holds a measure request"),
+                };
+                *self.scan_counts.entry(kind).or_insert(0) += 1;
+                self.add_lab_time(lab_seconds);
+                let (values, report) = evaluate_outcome(outcome);
+                if let Err(e) = &values {
+                    self.failed_evaluations += 1;
+                    self.note(level, format!("{kind:?} evaluation failed: {e}"));
+                }
+                match &mut self.levels[level] {
+                    LevelState::Newton(n) => n.absorb(values.unwrap_or_default(), report),
+                    LevelState::SensingDot { last } => {
+                        *last = values
+                            .ok()
+                            .and_then(|v| v.into_iter().find(|p| p.name == "sd_flank_mv"));
+                    }
+                }
+            }
+            (Pending::Jacobian(_, level), Response::TrueJacobian { values, jacobian }) => {
+                let level = *level;
+                if let LevelState::Newton(n) = &mut self.levels[level] {
+                    n.oracle = Some((values, jacobian));
+                }
+            }
+            (Pending::Set(_), _) => return Err(TunerError::UnexpectedResponse { expected: "set_voltages" }),
+            (Pending::Measure(..), _) => return Err(TunerError::UnexpectedResponse { expected: "measure" }),
+            (Pending::Jacobian(..), _) => {
+                return Err(TunerError::UnexpectedResponse { expected: "true_jacobian" })
+            }
+        }
+        self.pending = None;
+        Ok(())
+    }
+
+    fn add_lab_time(&mut self, s: f64) {
+        if s.is_finite() && s > 0.0 {
+            self.lab_seconds += s;
+        }
+    }
+
+    fn note(&mut self, level: usize, event: String) {
+        if let LevelState::Newton(n) = &mut self.levels[level] {
+            n.events.push(event);
+        } else if let LevelState::Newton(top) = &mut self.levels[0] {
+            top.events.push(format!("{}: {event}", self.config.levels[level].name));
+        }
+    }
+
+    fn push_level(&mut self, level: usize) {
+        let ops = match &self.config.levels[level].kind {
+            LevelKind::SensingDot(sd) => {
+                let present = self.voltages_mv.get(&sd.gate).copied().unwrap_or(0.0);
+                let spec = self.safety.gate(&sd.gate);
+                let lo = spec.map_or(f64::NEG_INFINITY, |s| s.min_mv);
+                let hi = spec.map_or(f64::INFINITY, |s| s.max_mv);
+                let sweep = Sweep {
+                    gate: sd.gate.clone(),
+                    from_mv: (present - sd.half_width_mv).max(lo),
+                    to_mv: (present + sd.half_width_mv).min(hi),
+                    points: sd.points,
+                };
+                VecDeque::from([
+                    Op::Measure(ScanRequest {
+                        kind: ScanKind::SensingDot,
+                        sweep: Some(sweep),
+                    }),
+                    Op::Decide(Decision::SdPark),
+                ])
+            }
+            LevelKind::Newton(_) => {
+                let mut ops = self.init_ops(level);
+                if let LevelState::Newton(n) = &mut self.levels[level] {
+                    n.iterations_this_call = 0;
+                }
+                ops.extend(self.round_ops(level));
+                ops
+            }
+        };
+        self.stack.push(Frame { level, ops });
+    }
+
+    fn push_ops(&mut self, ops: impl IntoIterator<Item = Op>) {
+        let frame = self.stack.last_mut().expect("decisions run inside a frame");
+        // decisions queue their follow-ups before whatever the frame still holds
+        let mut new: VecDeque<Op> = ops.into_iter().collect();
+        new.extend(frame.ops.drain(..));
+        frame.ops = new;
+    }
+
+    fn after_move_ops(&self, level: usize) -> Vec<Op> {
+        self.config.levels[level]
+            .after_move
+            .iter()
+            .filter_map(|name| self.config.level_index(name))
+            .map(Op::Child)
+            .collect()
+    }
+
+    fn move_request(&mut self, level: usize, target: &[f64]) -> Option<Request> {
+        let LevelKind::Newton(cfg) = &self.config.levels[level].kind else {
+            return None;
+        };
+        let mut req = BTreeMap::new();
+        let mut dv_actual = Vec::with_capacity(cfg.gates.len());
+        for (g, &t) in cfg.gates.iter().zip(target) {
+            let present = self.voltages_mv[g];
+            let v = self.safety.clip(g, present, t);
+            dv_actual.push(v - present);
+            req.insert(g.clone(), v);
+        }
+        if let Some(comp) = &cfg.compensation {
+            for (row, g) in comp.matrix.iter().zip(&comp.gates) {
+                let present = self.voltages_mv[g];
+                let shift: f64 = row.iter().zip(&dv_actual).map(|(m, d)| m * d).sum();
+                req.insert(g.clone(), self.safety.clip(g, present, present + shift));
+            }
+        }
+        // The choke point: never emit a request the limits refuse.
+        if let Err(e) = self.safety.check(&self.voltages_mv, &req) {
+            self.note(level, format!("move refused: {e}"));
+            return None;
+        }
+        Some(Request::SetVoltages { voltages_mv: req })
+    }
+
+    fn jacobian_request(&self, level: usize) -> Request {
+        let LevelKind::Newton(cfg) = &self.config.levels[level].kind else {
+            unreachable!("only Newton levels query Jacobians")
+        };
+        Request::TrueJacobian {
+            gates: cfg.gates.clone(),
+            parameters: cfg.parameters.iter().map(|p| p.name.clone()).collect(),
+        }
+    }
+
+    fn level_voltages(&self, level: usize) -> Vec<f64> {
+        match &self.config.levels[level].kind {
+            LevelKind::Newton(cfg) => cfg.gates.iter().map(|g| self.voltages_mv[g]).collect(),
+            LevelKind::SensingDot(_) => Vec::new(),
+        }
+    }
+
+    fn decide(&mut self, level: usize, d: Decision) -> Option<IterationRecord> {
+        if d == Decision::SdPark {
+            let LevelKind::SensingDot(sd) = &self.config.levels[level].kind else {
+                return None;
+            };
+            let gate = sd.gate.clone();
+            if let LevelState::SensingDot { last: Some(p) } = &self.levels[level] {
+                let v = p.value;
+                self.push_ops([Op::SetGate(gate, v)]);
+            }
+            return None;
+        }
+        self.decide_newton(level, d)
+    }
+}
+
+/// Turn a device's scan outcome into validated parameter values and a display report.
+fn evaluate_outcome(outcome: ScanOutcome) -> (Result<Vec<ParameterValue>, String>, Option<ScanReport>) {
+    match outcome {
+        ScanOutcome::Raw { scan } => match crate::fit::evaluate(&scan) {
+            Ok(ev) => {
+                let values = validate_values(ev.values);
+                (values, Some(ScanReport { raw: scan, fit: ev.fit }))
+            }
+            Err(e) => (Err(e.to_string()), Some(ScanReport { raw: scan, fit: Vec::new() })),
+        },
+        ScanOutcome::Evaluated { values } => (validate_values(values), None),
+        ScanOutcome::Failed { reason } => (Err(reason), None),
+    }
+}
+
+/// NaN, infinite or negative variances never reach an estimator.
+fn validate_values(values: Vec<ParameterValue>) -> Result<Vec<ParameterValue>, String> {
+    for v in &values {
+        v.validate()?;
+    }
+    Ok(values)
+}
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,581 @@
+//! The quasi-Newton level: measure, learn the gradient, test for tuned, step.
+
+use std::collections::BTreeMap;
+
+use nalgebra::{DMatrix, DVector};
+use serde::{Deserialize, Serialize};
+
+use super::config::{ConfigError, InitialGradient, LevelKind, NewtonConfig};
+use super::finite_difference::{FiniteDifference, Sample};
+use super::{Decision, LevelState, Op, Tuner};
+use crate::estimator::{EstimatorKind, GradientEstimator};
+use crate::kalman::{ProcessNoise, UpdateOutcome};
+use crate::parameter::{ParameterSpec, Transform};
+use crate::protocol::{
+    GradientReport, IterationRecord, ParameterReport, ParameterValue, ScanKind, ScanReport, ScanRequest,
+};
+use crate::solver::newton_step;
+
+/// After this many gated outliers in a row, the reference point is reset to
+/// the newest measurement (the parameter really moved; stop comparing with
+/// the old point) without learning from it.
+const MAX_GATED_IN_A_ROW: u32 = 2;
+
+/// The last accepted measurement of one parameter: where and what.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct Reference {
+    voltages_mv: Vec<f64>,
+    value: f64,
+    variance: f64,
+}
+
+/// What the level measured at the start of the current round.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct Snapshot {
+    voltages_mv: BTreeMap<String, f64>,
+    level_voltages_mv: Vec<f64>,
+    samples: Vec<Option<Sample>>,
+    raw: Vec<Option<ParameterValue>>,
+    tuned: bool,
+    step_mv: Vec<f64>,
+}
+
+/// Mutable state of one Newton level.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub(super) struct NewtonState {
+    estimators: Option<Vec<GradientEstimator>>,
+    references: Vec<Option<Reference>>,
+    gated_in_a_row: Vec<u32>,
+    measured: BTreeMap<String, ParameterValue>,
+    scans: BTreeMap<ScanKind, ScanReport>,
+    fd: Option<FiniteDifference>,
+    pub(super) oracle: Option<(Vec<f64>, Vec<Vec<f64>>)>,
+    pub(super) iterations_this_call: u32,
+    pub(super) events: Vec<String>,
+    snapshot: Option<Snapshot>,
+    targets_held: bool,
+}
+
+impl NewtonState {
+    pub(super) fn new(cfg: &NewtonConfig) -> Result<Self, ConfigError> {
+        let m = cfg.parameters.len();
+        let estimators = match &cfg.initial_gradient {
+            InitialGradient::FiniteDifference { .. } => None,
+            InitialGradient::Given { gradient, covariance } => {
+                let k = cfg.gates.len();
+                let rows = gradient
+                    .iter()
+                    .zip(covariance)
+                    .map(|(g, c)| (DVector::from_column_slice(g), DMatrix::from_fn(k, k, |r, s| c[r][s])))
+                    .collect();
+                Some(build_estimators(cfg, rows)?)
+            }
+            InitialGradient::RoughGuess { gradient, relative_std } => {
+                let rows = gradient
+                    .iter()
+                    .map(|g| {
+                        let g = DVector::from_column_slice(g);
+                        let c = DMatrix::from_diagonal(&g.map(|x| (relative_std * x).powi(2)));
+                        (g, c)
+                    })
+                    .collect();
+                Some(build_estimators(cfg, rows)?)
+            }
+        };
+        Ok(Self {
+            estimators,
+            references: vec![None; m],
+            gated_in_a_row: vec![0; m],
+            measured: BTreeMap::new(),
+            scans: BTreeMap::new(),
+            fd: None,
+            oracle: None,
+            iterations_this_call: 0,
+            events: Vec::new(),
+            snapshot: None,
+            targets_held: false,
+        })
+    }
+
+    pub(super) fn is_initialised(&self) -> bool {
+        self.estimators.is_some()
+    }
+
+    pub(super) fn gradients(&self) -> Option<Vec<(DVector<f64>, Option<DMatrix<f64>>)>> {
+        self.estimators
+            .as_ref()
+            .map(|es| es.iter().map(|e| (e.gradient().clone(), e.covariance().cloned())).collect())
+    }
+
+    pub(super) fn absorb(&mut self, values: Vec<ParameterValue>, report: Option<ScanReport>) {
+        for v in values {
+            self.measured.insert(v.name.clone(), v);
+        }
+        if let Some(r) = report {
+            self.scans.insert(r.raw.kind, r);
+        }
+    }
+
+    /// Take this round's measurements as estimator-space samples, in parameter order.
+    fn take_samples(&mut self, cfg: &NewtonConfig) -> (Vec<Option<Sample>>, Vec<Option<ParameterValue>>) {
+        let measured = std::mem::take(&mut self.measured);
+        let raw: Vec<Option<ParameterValue>> =
+            cfg.parameters.iter().map(|p| measured.get(&p.name).cloned()).collect();
+        let mut samples = Vec::with_capacity(raw.len());
+        for (p, v) in cfg.parameters.iter().zip(&raw) {
+            let s = v.as_ref().and_then(|v| p.transform.forward(v.value, v.variance));
+            if v.is_some() && s.is_none() {
+                self.events
+                    .push(format!("{}: value not representable in {:?} space", p.name, p.transform));
+            }
+            samples.push(s);
+        }
+        (samples, raw)
+    }
+}
+
+fn build_estimators(
+    cfg: &NewtonConfig,
+    rows: Vec<(DVector<f64>, DMatrix<f64>)>,
+) -> Result<Vec<GradientEstimator>, ConfigError> {
+    let n = cfg.gates.len();
+    cfg.parameters
+        .iter()
+        .zip(rows)
+        .enumerate()
+        .map(|(i, (p, (g, c)))| {
+            GradientEstimator::new(
+                cfg.estimator,
+                g,
+                c,
+                &ProcessNoise::isotropic(n, p.process_noise_per_mv),
+                cfg.solver.max_step_mv,
+                cfg.outlier_sigma,
+                cfg.min_step_mv,
+            )
+            .map_err(|e| ConfigError::new(format!("parameters[{i}]"), e.to_string()))
+        })
+        .collect()
+}
+
+fn scan_ops(cfg: &NewtonConfig) -> Vec<Op> {
+    let mut kinds: Vec<ScanKind> = Vec::new();
+    for p in &cfg.parameters {
+        if !kinds.contains(&p.scan) {
+            kinds.push(p.scan);
+        }
+    }
+    kinds
+        .into_iter()
+        .map(|kind| Op::Measure(ScanRequest { kind, sweep: None }))
+        .collect()
+}
+
+fn gradient_unit(p: &ParameterSpec) -> String {
+    match p.transform {
+        Transform::Linear => format!("{}/mV", p.unit),
+        Transform::Log => "1/mV (log space)".to_string(),
+    }
+}
+
+impl Tuner {
+    fn newton(&self, level: usize) -> (&NewtonConfig, &NewtonState) {
+        match (&self.config.levels[level].kind, &self.levels[level]) {
+            (LevelKind::Newton(c), LevelState::Newton(s)) => (c, s),
+            _ => unreachable!("level {level} is a Newton level"),
+        }
+    }
+
+    fn newton_mut(&mut self, level: usize) -> (&mut NewtonConfig, &mut NewtonState) {
+        match (&mut self.config.levels[level].kind, &mut self.levels[level]) {
+            (LevelKind::Newton(c), LevelState::Newton(s)) => (c, s),
+            _ => unreachable!("level {level} is a Newton level"),
+        }
+    }
+
+    /// Operations that measure the initial gradient, if the level still needs one.
+    pub(super) fn init_ops(&mut self, level: usize) -> std::collections::VecDeque<Op> {
+        let mut ops = std::collections::VecDeque::new();
+        let LevelState::Newton(state) = &self.levels[level] else {
+            return ops;
+        };
+        if state.is_initialised() || state.fd.is_some() {
+            return ops;
+        }
+        let (cfg, _) = self.newton(level);
+        let InitialGradient::FiniteDifference { step_mv, repetitions } = cfg.initial_gradient else {
+            return ops;
+        };
+        let base = self.level_voltages(level);
+        let children = self.after_move_ops(level);
+        let scans = scan_ops(cfg);
+        let reps = repetitions as usize;
+        ops.extend(children.iter().cloned());
+        for rep in 0..reps {
+            if rep > 0 {
+                ops.push_back(Op::Move(base.clone()));
+                ops.extend(children.iter().cloned());
+            }
+            ops.extend(scans.iter().cloned());
+            ops.push_back(Op::Decide(Decision::FdBase(rep)));
+            for j in 0..base.len() {
+                let mut v = base.clone();
+                v[j] += step_mv;
+                ops.push_back(Op::Move(v));
+                ops.extend(children.iter().cloned());
+                ops.extend(scans.iter().cloned());
+                ops.push_back(Op::Decide(Decision::FdPoint(rep, j)));
+            }
+        }
+        ops.push_back(Op::Move(base.clone()));
+        ops.extend(children.iter().cloned());
+        ops.push_back(Op::Decide(Decision::FdFinish));
+        let m = cfg.parameters.len();
+        let (_, state) = self.newton_mut(level);
+        state.fd = Some(FiniteDifference::new(m, base, step_mv, reps));
+        ops
+    }
+
+    /// Measure every parameter, then evaluate.
+    pub(super) fn round_ops(&self, level: usize) -> Vec<Op> {
+        let (cfg, _) = self.newton(level);
+        let mut ops = scan_ops(cfg);
+        ops.push(Op::Decide(Decision::Evaluate));
+        ops
+    }
+
+    pub(super) fn decide_newton(&mut self, level: usize, d: Decision) -> Option<IterationRecord> {
+        match d {
+            Decision::FdBase(rep) => {
+                let cfg = self.newton(level).0.clone();
+                let (_, state) = self.newton_mut(level);
+                let (samples, _) = state.take_samples(&cfg);
+                if let Some(fd) = &mut state.fd {
+                    fd.record_base(rep, samples);
+                }
+                None
+            }
+            Decision::FdPoint(rep, j) => {
+                let cfg = self.newton(level).0.clone();
+                let v = self.level_voltages(level);
+                let (_, state) = self.newton_mut(level);
+                let (samples, _) = state.take_samples(&cfg);
+                if let Some(fd) = &mut state.fd {
+                    let offset = v[j] - fd.base_mv[j];
+                    fd.record_point(rep, j, offset, samples);
+                }
+                None
+            }
+            Decision::FdFinish => {
+                self.finish_fd(level);
+                None
+            }
+            Decision::Evaluate => {
+                self.evaluate(level);
+                None
+            }
+            Decision::Step => {
+                self.step(level);
+                None
+            }
+            Decision::EndIteration => self.end_iteration(level),
+            Decision::SdPark => None,
+        }
+    }
+
+    fn finish_fd(&mut self, level: usize) {
+        let cfg = self.newton(level).0.clone();
+        let n = cfg.gates.len();
+        let (_, state) = self.newton_mut(level);
+        let Some(fd) = state.fd.take() else { return };
+        let rows: Vec<(DVector<f64>, DMatrix<f64>)> = fd
+            .result()
+            .into_iter()
+            .zip(&cfg.parameters)
+            .map(|(r, p)| {
+                r.unwrap_or_else(|| {
+                    state.events.push(format!(
+                        "{}: finite differences failed for every repetition of some gate; gradient unknown (0 ± 1)",
+                        p.name
+                    ));
+                    (DVector::zeros(n), DMatrix::identity(n, n))
+                })
+            })
+            .collect();
+        match &mut state.estimators {
+            Some(es) => {
+                for (e, (g, c)) in es.iter_mut().zip(rows) {
+                    e.remeasured(g, c);
+                }
+            }
+            None => match build_estimators(&cfg, rows) {
+                Ok(es) => state.estimators = Some(es),
+                Err(e) => {
+                    // An FD result that the filter refuses (e.g. non-finite) — start from zero.
+                    state.events.push(format!("initial gradient rejected: {e}"));
+                    let zero = (0..cfg.parameters.len())
+                        .map(|_| (DVector::zeros(n), DMatrix::identity(n, n)))
+                        .collect();
+                    state.estimators = build_estimators(&cfg, zero).ok();
+                }
+            },
+        }
+    }
+
+    fn evaluate(&mut self, level: usize) {
+        let cfg = self.newton(level).0.clone();
+        let v_now = self.level_voltages(level);
+        let all_v = self.voltages_mv.clone();
+        let (cfg_mut, state) = self.newton_mut(level);
+        let (samples, raw) = state.take_samples(&cfg);
+        // Targets held at their first measured values.
+        if cfg.hold_initial_values && !state.targets_held && raw.iter().all(Option::is_some) {
+            for (p, v) in cfg_mut.parameters.iter_mut().zip(&raw) {
+                p.target = v.as_ref().map(|v| v.value);
+            }
+            state.targets_held = true;
+        }
+        let cfg = cfg_mut.clone();
+        for (i, p) in cfg.parameters.iter().enumerate() {
+            if raw[i].is_none() {
+                state.events.push(format!("{}: no valid measurement this iteration", p.name));
+            }
+        }
+        // Learn from the step since each parameter's reference point.
+        if let Some(estimators) = &mut state.estimators {
+            for (i, p) in cfg.parameters.iter().enumerate() {
+                let Some((y, var)) = samples[i] else { continue };
+                let Some(reference) = &state.references[i] else {
+                    state.references[i] = Some(Reference {
+                        voltages_mv: v_now.clone(),
+                        value: y,
+                        variance: var,
+                    });
+                    continue;
+                };
+                let dv = DVector::from_iterator(
+                    v_now.len(),
+                    v_now.iter().zip(&reference.voltages_mv).map(|(a, b)| a - b),
+                );
+                let z = y - reference.value;
+                let dz2 = var + reference.variance;
+                let new_ref = Some(Reference {
+                    voltages_mv: v_now.clone(),
+                    value: y,
+                    variance: var,
+                });
+                match estimators[i].observe(&dv, z, dz2) {
+                    Ok(UpdateOutcome::Gated {
+                        innovation,
+                        innovation_sigma,
+                    }) => {
+                        state.gated_in_a_row[i] += 1;
+                        state.events.push(format!(
+                            "{}: outlier gated (innovation {innovation:.3} {} vs predicted σ {innovation_sigma:.3})",
+                            p.name, p.unit
+                        ));
+                        if state.gated_in_a_row[i] >= MAX_GATED_IN_A_ROW {
+                            state.references[i] = new_ref;
+                            state.gated_in_a_row[i] = 0;
+                        }
+                    }
+                    Ok(_) => {
+                        state.references[i] = new_ref;
+                        state.gated_in_a_row[i] = 0;
+                    }
+                    Err(e) => state.events.push(format!("{}: update rejected: {e}", p.name)),
+                }
+            }
+        }
+        let tuned = cfg
+            .parameters
+            .iter()
+            .zip(&raw)
+            .all(|(p, v)| p.target.is_none() || v.as_ref().is_some_and(|v| p.in_band(v.value)));
+        let missing_targeted = cfg
+            .parameters
+            .iter()
+            .zip(&raw)
+            .any(|(p, v)| p.target.is_some() && v.is_none());
+        state.snapshot = Some(Snapshot {
+            voltages_mv: all_v,
+            level_voltages_mv: v_now.clone(),
+            samples: samples.clone(),
+            raw,
+            tuned,
+            step_mv: vec![0.0; v_now.len()],
+        });
+        let top = level == 0;
+        if tuned {
+            if top {
+                self.push_ops([Op::Decide(Decision::EndIteration)]);
+            }
+            return;
+        }
+        if missing_targeted {
+            // Measure again next round rather than stepping blind.
+            self.push_ops([Op::Decide(Decision::EndIteration)]);
+            return;
+        }
+        match cfg.estimator {
+            EstimatorKind::FdNewton => {
+                let mut fd = FiniteDifference::new(cfg.parameters.len(), v_now.clone(), cfg.fd_step_mv, 1);
+                fd.record_base(0, samples);
+                let (_, state) = self.newton_mut(level);
+                state.fd = Some(fd);
+                let children = self.after_move_ops(level);
+                let scans = scan_ops(&cfg);
+                let mut ops = Vec::new();
+                for j in 0..v_now.len() {
+                    let mut v = v_now.clone();
+                    v[j] += cfg.fd_step_mv;
+                    ops.push(Op::Move(v));
+                    ops.extend(children.iter().cloned());
+                    ops.extend(scans.iter().cloned());
+                    ops.push(Op::Decide(Decision::FdPoint(0, j)));
+                }
+                ops.push(Op::Decide(Decision::FdFinish));
+                ops.push(Op::Decide(Decision::Step));
+                self.push_ops(ops);
+            }
+            EstimatorKind::Oracle => {
+                self.push_ops([Op::QueryJacobian, Op::Decide(Decision::Step)]);
+            }
+            _ => self.step(level),
+        }
+    }
+
+    fn step(&mut self, level: usize) {
+        let cfg = self.newton(level).0.clone();
+        let (_, state) = self.newton_mut(level);
+        let Some(snapshot) = state.snapshot.clone() else { return };
+        // The oracle's Jacobian replaces the estimate (in estimator space).
+        if let (Some((values, jac)), Some(es)) = (state.oracle.take(), &mut state.estimators) {
+            for (i, (e, p)) in es.iter_mut().zip(&cfg.parameters).enumerate() {
+                if let (Some(row), Some(&val)) = (jac.get(i), values.get(i)) {
+                    let f = p.transform.forward_gradient_factor(val);
+                    let n = row.len();
+                    e.remeasured(DVector::from_iterator(n, row.iter().map(|x| x * f)), DMatrix::zeros(n, n));
+                }
+            }
+        }
+        let Some(es) = &state.estimators else { return };
+        let rows: Vec<usize> = (0..cfg.parameters.len())
+            .filter(|&i| cfg.parameters[i].target.is_some() && snapshot.samples[i].is_some())
+            .collect();
+        let n = cfg.gates.len();
+        let jac = DMatrix::from_fn(rows.len(), n, |r, c| es[rows[r]].gradient()[c]);
+        let delta = DVector::from_iterator(
+            rows.len(),
+            rows.iter().map(|&i| {
+                let p = &cfg.parameters[i];
+                let target = p
+                    .target
+                    .and_then(|t| p.transform.forward_value(t))
+                    .expect("validated target");
+                snapshot.samples[i].expect("filtered").0 - target
+            }),
+        );
+        let step = newton_step(&jac, &delta, &cfg.solver);
+        let mut target = snapshot.level_voltages_mv.clone();
+        for (j, g) in cfg.gates.iter().enumerate() {
+            target[j] += step.dv_mv[j];
+            if let Some(spec) = self.safety.gate(g) {
+                target[j] = target[j].clamp(spec.min_mv, spec.max_mv);
+            }
+        }
+        let dv: Vec<f64> = target
+            .iter()
+            .zip(&snapshot.level_voltages_mv)
+            .map(|(a, b)| a - b)
+            .collect();
+        let (_, state) = self.newton_mut(level);
+        if step.unlimited_norm_mv > cfg.solver.max_step_mv {
+            state.events.push(format!(
+                "step limited from {:.2} mV to {:.2} mV",
+                step.unlimited_norm_mv, cfg.solver.max_step_mv
+            ));
+        }
+        if let Some(s) = &mut state.snapshot {
+            s.step_mv = dv;
+        }
+        let mut ops = vec![Op::Move(target)];
+        ops.extend(self.after_move_ops(level));
+        ops.push(Op::Decide(Decision::EndIteration));
+        self.push_ops(ops);
+    }
+
+    fn end_iteration(&mut self, level: usize) -> Option<IterationRecord> {
+        if level != 0 {
+            let max = self.newton(level).0.max_iterations_per_call;
+            let (_, state) = self.newton_mut(level);
+            state.iterations_this_call += 1;
+            if state.iterations_this_call < max {
+                let ops = self.round_ops(level);
+                self.push_ops(ops);
+            }
+            return None;
+        }
+        let (cfg, state) = self.newton(0);
+        let snapshot = state.snapshot.clone()?;
+        let parameters = cfg
+            .parameters
+            .iter()
+            .zip(&snapshot.raw)
+            .map(|(p, v)| ParameterReport {
+                name: p.name.clone(),
+                unit: p.unit.clone(),
+                value: v.as_ref().map(|v| v.value),
+                std: v.as_ref().map(|v| v.variance.sqrt()),
+                target: p.target,
+                tolerance: p.target.map(|t| p.tolerance.half_width(t)),
+            })
+            .collect();
+        let gradients = state
+            .estimators
+            .as_ref()
+            .map(|es| {
+                es.iter()
+                    .zip(&cfg.parameters)
+                    .map(|(e, p)| GradientReport {
+                        parameter: p.name.clone(),
+                        unit: gradient_unit(p),
+                        gradient: e.gradient().iter().copied().collect(),
+                        covariance: e.covariance().map(|c| {
+                            (0..c.nrows()).map(|r| (0..c.ncols()).map(|s| c[(r, s)]).collect()).collect()
+                        }),
+                    })
+                    .collect()
+            })
+            .unwrap_or_default();
+        let record = IterationRecord {
+            iteration: self.iteration,
+            voltages_mv: snapshot.voltages_mv.clone(),
+            gates: cfg.gates.clone(),
+            parameters,
+            gradients,
+            step_mv: snapshot.step_mv.clone(),
+            tuned: snapshot.tuned,
+            lab_seconds: self.lab_seconds,
+            scan_counts: self.scan_counts.clone(),
+            failed_evaluations: self.failed_evaluations,
+            scans: state.scans.values().cloned().collect(),
+            events: Vec::new(),
+        };
+        // Collect events of every level (inner levels prefixed with their name).
+        let mut events = Vec::new();
+        for (i, l) in self.levels.iter_mut().enumerate() {
+            if let LevelState::Newton(s) = l {
+                let name = &self.config.levels[i].name;
+                events.extend(
+                    std::mem::take(&mut s.events)
+                        .into_iter()
+                        .map(|e| if i == 0 { e } else { format!("{name}: {e}") }),
+                );
+            }
+        }
+        let (_, state) = self.newton_mut(0);
+        state.scans.clear();
+        Some(IterationRecord { events, ..record })
+    }
+}

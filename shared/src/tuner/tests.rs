@@ -1,0 +1,512 @@
+//! State-machine tests against a small analytic device (independent of the
+//! full simulator, which has its own end-to-end tests).
+
+use std::collections::BTreeMap;
+
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
+use serde::{Deserialize, Serialize};
+
+use super::*;
+use crate::estimator::EstimatorKind;
+use crate::parameter::{ParameterSpec, Transform};
+use crate::protocol::ScanOutcome;
+use crate::safety::GateSpec;
+use crate::solver::SolverConfig;
+
+/// p_a = 40·exp(−(v0 + 0.5 v1)/60) + 0.1 v2 (ns-like, positive)
+/// p_b = 200 + 1.5 v1 − 0.8 v3 + 0.01 v0 v3 (µV-like)
+/// mu  = 0.3 v0 + 0.2 v1 + 0.1 v2 + 0.1 v3 + PA  (mV-like, compensated by PA)
+#[derive(Clone, Serialize, Deserialize)]
+struct Toy {
+    v: BTreeMap<String, f64>,
+    rng: ChaCha8Rng,
+    sigma: [f64; 2],
+    log: Vec<String>,
+    /// iteration index (counted in w measurements) at which w is reported absurdly
+    bogus_at: Option<u32>,
+    nan_at: Option<u32>,
+    w_count: u32,
+}
+
+impl Toy {
+    fn new(gates: &[GateSpec], seed: u64) -> Self {
+        Self {
+            v: gates.iter().map(|g| (g.name.clone(), g.initial_mv)).collect(),
+            rng: ChaCha8Rng::seed_from_u64(seed),
+            sigma: [0.3, 2.0],
+            log: Vec::new(),
+            bogus_at: None,
+            nan_at: None,
+            w_count: 0,
+        }
+    }
+    fn truth(&self) -> (f64, f64, f64) {
+        let v = |g: &str| self.v[g];
+        let a = 40.0 * (-(v("N") + 0.5 * v("SA")) / 60.0).exp() + 0.1 * v("SB");
+        let b = 200.0 + 1.5 * v("SA") - 0.8 * v("T") + 0.01 * v("N") * v("T");
+        let mu = 0.3 * v("N") + 0.2 * v("SA") + 0.1 * v("SB") + 0.1 * v("T") + v("PA");
+        (a, b, mu)
+    }
+    fn execute(&mut self, req: &Request) -> Response {
+        match req {
+            Request::SetVoltages { voltages_mv } => {
+                self.log.push(format!("set {}", voltages_mv.keys().cloned().collect::<Vec<_>>().join(",")));
+                for (g, v) in voltages_mv {
+                    self.v.insert(g.clone(), *v);
+                }
+                Response::VoltagesSet {
+                    voltages_mv: voltages_mv.clone(),
+                    lab_seconds: 0.1,
+                }
+            }
+            Request::Measure { scan } => {
+                self.log.push(format!("measure {:?}", scan.kind));
+                let (a, b, mu) = self.truth();
+                let values = match scan.kind {
+                    ScanKind::ReloadTime => {
+                        let n = Normal::new(0.0, self.sigma[0]).unwrap().sample(&mut self.rng);
+                        vec![ParameterValue {
+                            name: "t_sr".into(),
+                            value: a + n,
+                            variance: self.sigma[0].powi(2),
+                        }]
+                    }
+                    ScanKind::TransitionWidth => {
+                        self.w_count += 1;
+                        let n = Normal::new(0.0, self.sigma[1]).unwrap().sample(&mut self.rng);
+                        let bogus = self.bogus_at == Some(self.w_count);
+                        let nan = self.nan_at == Some(self.w_count);
+                        vec![ParameterValue {
+                            name: "w".into(),
+                            value: if bogus { b + 500.0 } else { b + n },
+                            variance: if nan { f64::NAN } else { self.sigma[1].powi(2) },
+                        }]
+                    }
+                    ScanKind::ChemicalPotential => vec![ParameterValue {
+                        name: "mu_a_mv".into(),
+                        value: mu,
+                        variance: 1e-4,
+                    }],
+                    ScanKind::SensingDot => vec![ParameterValue {
+                        name: "sd_flank_mv".into(),
+                        value: -300.0 + 0.05 * self.v["N"],
+                        variance: 0.01,
+                    }],
+                };
+                Response::Scanned {
+                    outcome: ScanOutcome::Evaluated { values },
+                    lab_seconds: 10.0,
+                }
+            }
+            Request::TrueJacobian { .. } => Response::Error {
+                message: "toy has no oracle".into(),
+            },
+        }
+    }
+}
+
+fn gate(name: &str, initial: f64, max_step: f64) -> GateSpec {
+    GateSpec {
+        name: name.into(),
+        min_mv: -100.0,
+        max_mv: 100.0,
+        max_step_mv: max_step,
+        initial_mv: initial,
+    }
+}
+
+fn gates() -> Vec<GateSpec> {
+    vec![
+        gate("N", 0.0, 10.0),
+        gate("SA", 0.0, 10.0),
+        gate("SB", 0.0, 10.0),
+        gate("T", 0.0, 10.0),
+        gate("PA", 0.0, 20.0),
+        GateSpec { min_mv: -400.0, ..gate("SP", -300.0, 20.0) },
+    ]
+}
+
+fn qubit(estimator: EstimatorKind) -> NewtonConfig {
+    NewtonConfig {
+        gates: ["N", "SA", "SB", "T"].map(String::from).to_vec(),
+        parameters: vec![
+            ParameterSpec {
+                name: "t_sr".into(),
+                unit: "ns".into(),
+                scan: ScanKind::ReloadTime,
+                target: Some(20.0),
+                tolerance: Tolerance::Relative(0.1),
+                transform: Transform::Linear,
+                process_noise_per_mv: 0.075,
+            },
+            ParameterSpec {
+                name: "w".into(),
+                unit: "µV".into(),
+                scan: ScanKind::TransitionWidth,
+                target: Some(230.0),
+                tolerance: Tolerance::Relative(0.05),
+                transform: Transform::Linear,
+                process_noise_per_mv: 0.3,
+            },
+        ],
+        estimator,
+        initial_gradient: InitialGradient::FiniteDifference {
+            step_mv: 3.0,
+            repetitions: 2,
+        },
+        solver: SolverConfig::default(),
+        outlier_sigma: Some(5.0),
+        min_step_mv: 0.01,
+        fd_step_mv: 3.0,
+        max_iterations_per_call: 1,
+        hold_initial_values: false,
+        compensation: None,
+    }
+}
+
+fn flat(estimator: EstimatorKind) -> TunerConfig {
+    TunerConfig {
+        gates: gates(),
+        levels: vec![LevelConfig {
+            name: "qubit".into(),
+            kind: LevelKind::Newton(qubit(estimator)),
+            after_move: vec![],
+        }],
+        stop_when_tuned: false,
+        max_iterations: Some(25),
+    }
+}
+
+fn hierarchical() -> TunerConfig {
+    let mut q = qubit(EstimatorKind::Kalman);
+    q.compensation = Some(Compensation {
+        gates: vec!["PA".into()],
+        matrix: vec![vec![-0.3, -0.2, -0.1, -0.1]],
+    });
+    let chem = NewtonConfig {
+        gates: vec!["PA".into()],
+        parameters: vec![ParameterSpec {
+            name: "mu_a_mv".into(),
+            unit: "mV".into(),
+            scan: ScanKind::ChemicalPotential,
+            target: Some(0.0),
+            tolerance: Tolerance::Absolute(0.05),
+            transform: Transform::Linear,
+            process_noise_per_mv: 0.001,
+        }],
+        estimator: EstimatorKind::Kalman,
+        initial_gradient: InitialGradient::Given {
+            gradient: vec![vec![0.9]],
+            covariance: vec![vec![vec![0.01]]],
+        },
+        solver: SolverConfig {
+            max_step_mv: 20.0,
+            ..Default::default()
+        },
+        outlier_sigma: None,
+        min_step_mv: 0.0,
+        fd_step_mv: 1.0,
+        max_iterations_per_call: 3,
+        hold_initial_values: false,
+        compensation: None,
+    };
+    TunerConfig {
+        gates: gates(),
+        levels: vec![
+            LevelConfig {
+                name: "qubit".into(),
+                kind: LevelKind::Newton(q),
+                after_move: vec!["sensing_dot".into(), "chemical_potential".into()],
+            },
+            LevelConfig {
+                name: "chemical_potential".into(),
+                kind: LevelKind::Newton(chem),
+                after_move: vec!["sensing_dot".into()],
+            },
+            LevelConfig {
+                name: "sensing_dot".into(),
+                kind: LevelKind::SensingDot(SensingDotConfig {
+                    gate: "SP".into(),
+                    half_width_mv: 10.0,
+                    points: 50,
+                }),
+                after_move: vec![],
+            },
+        ],
+        stop_when_tuned: false,
+        max_iterations: Some(25),
+    }
+}
+
+/// Drive to completion; checks every request against the limits on the way.
+fn drive(tuner: &mut Tuner, dev: &mut Toy, max_records: usize) -> Vec<IterationRecord> {
+    let mut out = Vec::new();
+    for _ in 0..100_000 {
+        match tuner.poll() {
+            Action::Request(req) => {
+                if let Request::SetVoltages { voltages_mv } = &req {
+                    tuner.safety().check(&dev.v, voltages_mv).expect("tuner emitted an unsafe request");
+                }
+                let resp = dev.execute(&req);
+                tuner.feed(resp).unwrap();
+            }
+            Action::Iteration(r) => {
+                out.push(r);
+                if out.len() >= max_records {
+                    return out;
+                }
+            }
+            Action::Finished => return out,
+        }
+    }
+    panic!("tuner did not finish");
+}
+
+fn step_norm(a: &IterationRecord, b: &IterationRecord) -> f64 {
+    a.gates
+        .iter()
+        .map(|g| (b.voltages_mv[g] - a.voltages_mv[g]).powi(2))
+        .sum::<f64>()
+        .sqrt()
+}
+
+#[test]
+fn kalman_reaches_target_within_limits() {
+    let cfg = flat(EstimatorKind::Kalman);
+    let mut tuner = Tuner::new(cfg).unwrap();
+    let mut dev = Toy::new(&gates(), 7);
+    let recs = drive(&mut tuner, &mut dev, usize::MAX);
+    assert_eq!(recs.len(), 25);
+    let first_tuned = recs.iter().position(|r| r.tuned).expect("never tuned");
+    assert!(first_tuned <= 10, "took {first_tuned} iterations");
+    for pair in recs.windows(2) {
+        assert!(step_norm(&pair[0], &pair[1]) <= 10.0 + 1e-9);
+    }
+    // records carry gradients with covariances and units
+    let g = &recs[3].gradients[0];
+    assert_eq!(g.unit, "ns/mV");
+    assert_eq!(g.gradient.len(), 4);
+    assert!(g.covariance.is_some());
+    // the FD initialisation measured each parameter 1 + 4 times per repetition, twice
+    assert!(recs[0].scan_counts[&ScanKind::ReloadTime] >= 10);
+}
+
+#[test]
+fn every_estimator_kind_runs_and_respects_limits() {
+    for kind in [
+        EstimatorKind::KalmanAdaptiveQ,
+        EstimatorKind::Broyden,
+        EstimatorKind::FixedJacobian,
+        EstimatorKind::FdNewton,
+    ] {
+        let mut tuner = Tuner::new(flat(kind)).unwrap();
+        let mut dev = Toy::new(&gates(), 3);
+        let recs = drive(&mut tuner, &mut dev, usize::MAX);
+        assert!(recs.iter().any(|r| r.tuned), "{kind:?} never tuned");
+        for pair in recs.windows(2) {
+            assert!(step_norm(&pair[0], &pair[1]) <= 10.0 + 1e-9, "{kind:?}");
+        }
+    }
+}
+
+#[test]
+fn fd_newton_counts_its_extra_measurements() {
+    let mut a = Tuner::new(flat(EstimatorKind::FdNewton)).unwrap();
+    let mut b = Tuner::new(flat(EstimatorKind::Kalman)).unwrap();
+    let ra = drive(&mut a, &mut Toy::new(&gates(), 5), 6);
+    let rb = drive(&mut b, &mut Toy::new(&gates(), 5), 6);
+    let untuned = ra.iter().filter(|r| !r.tuned).count() as u64;
+    // 4 extra measurements of each scan per untuned iteration
+    assert!(
+        ra[5].scan_counts[&ScanKind::ReloadTime] >= rb[5].scan_counts[&ScanKind::ReloadTime] + 4 * (untuned - 1)
+    );
+}
+
+#[test]
+fn untargeted_parameter_is_not_driven() {
+    let mut cfg = flat(EstimatorKind::Kalman);
+    cfg.top_mut().parameters[1].target = None;
+    cfg.max_iterations = Some(15);
+    let mut tuner = Tuner::new(cfg).unwrap();
+    let recs = drive(&mut tuner, &mut Toy::new(&gates(), 9), usize::MAX);
+    let last = recs.last().unwrap();
+    assert!(last.tuned);
+    assert_eq!(last.parameters[1].target, None);
+    // once t_sr is in band, nothing moves although w is far from any value
+    let i = recs.iter().position(|r| r.tuned).unwrap();
+    assert!(recs[i].step_mv.iter().all(|&x| x == 0.0));
+}
+
+#[test]
+fn hierarchy_runs_children_after_each_move_in_order() {
+    let mut tuner = Tuner::new(hierarchical()).unwrap();
+    let mut dev = Toy::new(&gates(), 11);
+    let recs = drive(&mut tuner, &mut dev, 4);
+    assert_eq!(recs.len(), 4);
+    // after a qubit move (set with N,PA,SA,SB,T: compensation included) the
+    // sensing dot is swept and parked, then the chemical potential measured.
+    let log = &dev.log;
+    let moves: Vec<usize> = log
+        .iter()
+        .enumerate()
+        .filter(|(_, l)| l.as_str() == "set N,PA,SA,SB,T")
+        .map(|(i, _)| i)
+        .collect();
+    assert!(!moves.is_empty());
+    for &i in &moves {
+        assert_eq!(log[i + 1], "measure SensingDot");
+        assert_eq!(log[i + 2], "set SP");
+        assert_eq!(log[i + 3], "measure ChemicalPotential");
+    }
+    // compensation + chemical level keep mu near 0 at every qubit measurement
+    let (_, _, mu) = dev.truth();
+    assert!(mu.abs() < 0.5, "mu = {mu}");
+    assert!(recs.iter().all(|r| r.voltages_mv.contains_key("PA")));
+}
+
+#[test]
+fn checkpoint_resume_is_bit_identical() {
+    let cfg = hierarchical();
+    let mut tuner = Tuner::new(cfg).unwrap();
+    let mut dev = Toy::new(&gates(), 21);
+    let _ = drive(&mut tuner, &mut dev, 5);
+    let saved = (serde_json::to_string(&tuner).unwrap(), serde_json::to_string(&dev).unwrap());
+    let straight = drive(&mut tuner, &mut dev, 8);
+    let mut t2: Tuner = serde_json::from_str(&saved.0).unwrap();
+    let mut d2: Toy = serde_json::from_str(&saved.1).unwrap();
+    let resumed = drive(&mut t2, &mut d2, 8);
+    assert_eq!(straight, resumed);
+    assert_eq!(serde_json::to_string(&tuner).unwrap(), serde_json::to_string(&t2).unwrap());
+}
+
+#[test]
+fn targets_change_between_iterations() {
+    let mut tuner = Tuner::new(flat(EstimatorKind::Kalman)).unwrap();
+    let mut dev = Toy::new(&gates(), 13);
+    let recs = drive(&mut tuner, &mut dev, 12);
+    assert!(recs.last().unwrap().tuned);
+    tuner.set_target("t_sr", Some(30.0), None).unwrap();
+    assert!(tuner.set_target("t_sr", Some(f64::NAN), None).is_err());
+    assert!(matches!(
+        tuner.set_target("nope", Some(1.0), None),
+        Err(TunerError::UnknownParameter(_))
+    ));
+    let after = drive(&mut tuner, &mut dev, 10);
+    assert_eq!(after[0].parameters[0].target, Some(30.0));
+    assert!(!after[0].tuned);
+    assert!(after.iter().any(|r| r.tuned), "did not reach the new target");
+}
+
+#[test]
+fn outlier_is_gated_and_does_not_move_gradient() {
+    let mut tuner = Tuner::new(flat(EstimatorKind::Kalman)).unwrap();
+    let mut dev = Toy::new(&gates(), 17);
+    // the FD init takes 2·(1+4) = 10 w measurements; the 3rd iteration's is bogus
+    dev.bogus_at = Some(13);
+    let recs = drive(&mut tuner, &mut dev, 4);
+    let bad = &recs[2];
+    assert!(bad.events.iter().any(|e| e.contains("w: outlier gated")), "{:?}", bad.events);
+    assert_eq!(recs[1].gradients[1].gradient, bad.gradients[1].gradient);
+}
+
+#[test]
+fn nan_variance_is_rejected_before_the_filter() {
+    let mut tuner = Tuner::new(flat(EstimatorKind::Kalman)).unwrap();
+    let mut dev = Toy::new(&gates(), 19);
+    dev.nan_at = Some(12);
+    let recs = drive(&mut tuner, &mut dev, 3);
+    let r = &recs[1];
+    assert_eq!(r.parameters[1].value, None);
+    assert!(r.failed_evaluations >= 1);
+    assert!(r.gradients[1].gradient.iter().all(|x| x.is_finite()));
+    assert_eq!(recs[0].gradients[1].gradient, r.gradients[1].gradient);
+}
+
+#[test]
+fn device_error_keeps_request_pending() {
+    let mut tuner = Tuner::new(flat(EstimatorKind::Kalman)).unwrap();
+    let Action::Request(first) = tuner.poll() else { panic!() };
+    let before = tuner.clone();
+    let err = tuner.feed(Response::Error {
+        message: "bridge timed out".into(),
+    });
+    assert!(matches!(err, Err(TunerError::Device(_))));
+    assert_eq!(tuner, before);
+    assert_eq!(tuner.poll(), Action::Request(first));
+    // a response of the wrong kind is refused too
+    assert!(tuner
+        .feed(Response::VoltagesSet {
+            voltages_mv: BTreeMap::new(),
+            lab_seconds: 0.0
+        })
+        .is_err());
+}
+
+#[test]
+fn stop_when_tuned_finishes() {
+    let mut cfg = flat(EstimatorKind::Kalman);
+    cfg.stop_when_tuned = true;
+    cfg.max_iterations = None;
+    let mut tuner = Tuner::new(cfg).unwrap();
+    let recs = drive(&mut tuner, &mut Toy::new(&gates(), 23), 100);
+    assert!(recs.last().unwrap().tuned);
+    assert!(recs[..recs.len() - 1].iter().all(|r| !r.tuned));
+    assert_eq!(tuner.poll(), Action::Finished);
+}
+
+#[test]
+fn log_transform_tunes_and_reports_log_units() {
+    let mut cfg = flat(EstimatorKind::Kalman);
+    cfg.top_mut().parameters[0].transform = Transform::Log;
+    cfg.top_mut().parameters[0].process_noise_per_mv = 0.002;
+    let mut tuner = Tuner::new(cfg).unwrap();
+    let recs = drive(&mut tuner, &mut Toy::new(&gates(), 29), usize::MAX);
+    assert!(recs.iter().any(|r| r.tuned));
+    assert!(recs[0].gradients[0].unit.contains("log"));
+}
+
+#[test]
+fn config_errors_name_the_field() {
+    let mut cfg = flat(EstimatorKind::Kalman);
+    cfg.top_mut().gates[2] = "XX".into();
+    let e = Tuner::new(cfg).unwrap_err();
+    assert_eq!(e.field, "levels[0].gates[2]");
+    let mut cfg = flat(EstimatorKind::Kalman);
+    cfg.gates[0].initial_mv = 1000.0;
+    assert_eq!(Tuner::new(cfg).unwrap_err().field, "gates[0].initial_mv");
+    let mut cfg = hierarchical();
+    cfg.levels[2].after_move = vec!["qubit".into()];
+    assert!(Tuner::new(cfg).unwrap_err().field.starts_with("levels[2].after_move"));
+    let mut cfg = flat(EstimatorKind::Kalman);
+    cfg.top_mut().parameters[0].process_noise_per_mv = -1.0;
+    assert_eq!(
+        Tuner::new(cfg).unwrap_err().field,
+        "levels[0].parameters[0].process_noise_per_mv"
+    );
+}
+
+#[test]
+fn learned_gradients_seed_a_new_tuner() {
+    let mut cfg = flat(EstimatorKind::Kalman);
+    cfg.max_iterations = Some(0);
+    let mut tuner = Tuner::new(cfg).unwrap();
+    let recs = drive(&mut tuner, &mut Toy::new(&gates(), 31), 10);
+    assert!(recs.is_empty());
+    let learned = tuner.config_with_learned_gradients();
+    assert!(matches!(learned.top().initial_gradient, InitialGradient::Given { .. }));
+    let t2 = Tuner::new(learned).unwrap();
+    assert_eq!(t2.gradients(0).unwrap()[0].0, tuner.gradients(0).unwrap()[0].0);
+}
+
+#[test]
+fn config_round_trips_and_refuses_unknown_fields() {
+    let cfg = hierarchical();
+    let json = serde_json::to_string(&cfg).unwrap();
+    let back: TunerConfig = serde_json::from_str(&json).unwrap();
+    assert_eq!(back, cfg);
+    let bad = json.replacen("\"fd_step_mv\"", "\"fd_stepp_mv\"", 1);
+    let err = serde_json::from_str::<TunerConfig>(&bad).unwrap_err().to_string();
+    assert!(err.contains("fd_stepp_mv"), "{err}");
+}

@@ -1,0 +1,211 @@
+//! Project tasks. The two commands of the README:
+//!
+//! * `cargo xtask run`  — install what is missing, build the dashboard with
+//!   Trunk, start the server on the embedded simulator and print its URL.
+//! * `cargo xtask test` — install what is missing, then run every check and
+//!   test: formatting, clippy, native tests (incl. server and browser
+//!   end-to-end tests) and the wasm tests in headless Chromium.
+//!
+//! Every install step is skipped when the right version is already present.
+//! Builds go to `$CARGO_TARGET_DIR` (default `~/.cache/spintune/target`, outside
+//! the clone, so repeated runs stay warm).
+
+use std::env;
+use std::path::{Path, PathBuf};
+use std::process::{exit, Command};
+use std::time::Instant;
+
+const TRUNK_VERSION: &str = "0.21.14";
+const WASM_TARGET: &str = "wasm32-unknown-unknown";
+
+fn main() {
+    let args: Vec<String> = env::args().skip(1).collect();
+    let root = workspace_root();
+    env::set_current_dir(&root).expect("cd to workspace root");
+    let target_dir = target_dir();
+    // Child cargo/trunk processes share this target directory.
+    env::set_var("CARGO_TARGET_DIR", &target_dir);
+    env::set_var("TRUNK_SKIP_VERSION_CHECK", "true");
+    prepend_path(&cargo_bin_dir());
+    match args.first().map(String::as_str) {
+        Some("run") => run(&args[1..]),
+        Some("test") => test(&args[1..]),
+        Some("install") => {
+            install_tools(true);
+        }
+        _ => {
+            eprintln!(
+                "usage: cargo xtask <command>\n\n  run [server args]  build the dashboard and start the server on the simulator\n  test [--no-lint]   run formatting/lint checks and every test (native, browser, wasm)\n  install            install the tools only (wasm target, trunk, wasm-bindgen, chromium)"
+            );
+            exit(2);
+        }
+    }
+}
+
+fn run(server_args: &[String]) {
+    install_tools(false);
+    build_dashboard();
+    step("start the server (Ctrl-C to stop)");
+    let mut args: Vec<String> = ["run", "--release", "-p", "spintune-server", "--", "serve", "--dist", "dist"]
+        .map(String::from)
+        .to_vec();
+    args.extend(server_args.iter().cloned());
+    cmd("cargo", &args);
+}
+
+fn test(flags: &[String]) {
+    let started = Instant::now();
+    let lint = !flags.iter().any(|f| f == "--no-lint");
+    install_tools(true);
+    if lint {
+        step("formatting");
+        cmd("cargo", &["fmt", "--all", "--", "--check"]);
+        step("clippy (native)");
+        cmd("cargo", &["clippy", "--workspace", "--all-targets", "--", "-D", "warnings"]);
+        step("clippy (wasm dashboard)");
+        cmd("cargo", &["clippy", "-p", "spintune-web", "--target", WASM_TARGET, "--", "-D", "warnings"]);
+    }
+    build_dashboard();
+    step("build the server binary for the end-to-end tests");
+    cmd("cargo", &["build", "-p", "spintune-server"]);
+    let bin = PathBuf::from(env::var("CARGO_TARGET_DIR").unwrap()).join("debug/spintune");
+    env::set_var("SPINTUNE_BIN", &bin);
+    env::set_var("SPINTUNE_DIST", env::current_dir().unwrap().join("dist"));
+    step("native tests (core, server, end-to-end incl. headless Chromium)");
+    cmd("cargo", &["test", "--workspace"]);
+    step("wasm tests in headless Chromium (core + dashboard)");
+    cmd(
+        "cargo",
+        &["test", "--target", WASM_TARGET, "-p", "spintune", "--test", "wasm"],
+    );
+    cmd(
+        "cargo",
+        &["test", "--target", WASM_TARGET, "-p", "spintune-web", "--lib", "--bins", "--tests"],
+    );
+    eprintln!("\nxtask test: all steps passed in {:.0} s", started.elapsed().as_secs_f64());
+}
+
+fn build_dashboard() {
+    step("build the dashboard (trunk, release)");
+    cmd("trunk", &["build", "--release", "--offline"]);
+}
+
+/// Install what is missing; `browser` also installs Chromium + ChromeDriver.
+fn install_tools(browser: bool) {
+    step("toolchain check");
+    let installed = output("rustup", &["target", "list", "--installed"]).unwrap_or_default();
+    if !installed.lines().any(|l| l.trim() == WASM_TARGET) {
+        cmd("rustup", &["target", "add", WASM_TARGET]);
+    } else {
+        eprintln!("  wasm32 target: present");
+    }
+    let wb = wasm_bindgen_version();
+    let have_wb = output("wasm-bindgen", &["--version"]).unwrap_or_default();
+    let have_runner = output("wasm-bindgen-test-runner", &["--version"]).unwrap_or_default();
+    if have_wb.contains(&wb) && have_runner.contains(&wb) {
+        eprintln!("  wasm-bindgen-cli {wb}: present");
+    } else {
+        // Without --locked: its lockfile names a crate version the registry mirror lacks.
+        cmd("cargo", &["install", "wasm-bindgen-cli", "--version", &wb, "--force"]);
+    }
+    if output("trunk", &["--version"]).unwrap_or_default().contains(TRUNK_VERSION) {
+        eprintln!("  trunk {TRUNK_VERSION}: present");
+    } else {
+        cmd("cargo", &["install", "--locked", "trunk", "--version", TRUNK_VERSION]);
+    }
+    if browser {
+        if which("chromium") && which("chromedriver") {
+            eprintln!("  chromium + chromedriver: present");
+        } else {
+            let sudo = if is_root() { vec![] } else { vec!["sudo"] };
+            let apt = |args: &[&str]| {
+                let mut full: Vec<&str> = sudo.clone();
+                full.push("apt-get");
+                full.extend_from_slice(args);
+                cmd(full[0], &full[1..]);
+            };
+            apt(&["update", "-qq"]);
+            apt(&["install", "-y", "-qq", "chromium", "chromium-driver"]);
+        }
+    }
+}
+
+/// The wasm-bindgen version pinned in Cargo.lock.
+fn wasm_bindgen_version() -> String {
+    let lock = std::fs::read_to_string("Cargo.lock").expect("Cargo.lock is committed");
+    let mut lines = lock.lines();
+    while let Some(l) = lines.next() {
+        if l.trim() == "name = \"wasm-bindgen\"" {
+            if let Some(v) = lines.next().and_then(|v| v.trim().strip_prefix("version = \"")) {
+                return v.trim_end_matches('"').to_string();
+            }
+        }
+    }
+    eprintln!("xtask: wasm-bindgen not found in Cargo.lock");
+    exit(1);
+}
+
+fn workspace_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("xtask lives in the workspace").to_path_buf()
+}
+
+fn home() -> PathBuf {
+    env::var_os("HOME").map(PathBuf::from).unwrap_or_else(|| PathBuf::from("/tmp"))
+}
+
+fn target_dir() -> PathBuf {
+    env::var_os("CARGO_TARGET_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| home().join(".cache/spintune/target"))
+}
+
+fn cargo_bin_dir() -> PathBuf {
+    env::var_os("CARGO_HOME")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| home().join(".cargo"))
+        .join("bin")
+}
+
+fn prepend_path(dir: &Path) {
+    let path = env::var_os("PATH").unwrap_or_default();
+    let mut parts: Vec<PathBuf> = vec![dir.to_path_buf()];
+    parts.extend(env::split_paths(&path));
+    env::set_var("PATH", env::join_paths(parts).expect("valid PATH"));
+}
+
+fn is_root() -> bool {
+    output("id", &["-u"]).is_some_and(|s| s.trim() == "0")
+}
+
+fn which(tool: &str) -> bool {
+    env::var_os("PATH")
+        .map(|p| env::split_paths(&p).any(|d| d.join(tool).is_file()))
+        .unwrap_or(false)
+}
+
+fn step(what: &str) {
+    eprintln!("\n==> {what}");
+}
+
+fn output(program: &str, args: &[&str]) -> Option<String> {
+    let out = Command::new(program).args(args).output().ok()?;
+    out.status
+        .success()
+        .then(|| String::from_utf8_lossy(&out.stdout).into_owned() + &String::from_utf8_lossy(&out.stderr))
+}
+
+fn cmd<S: AsRef<str>>(program: &str, args: &[S]) {
+    let args: Vec<&str> = args.iter().map(AsRef::as_ref).collect();
+    eprintln!("  $ {program} {}", args.join(" "));
+    match Command::new(program).args(&args).status() {
+        Ok(s) if s.success() => {}
+        Ok(s) => {
+            eprintln!("xtask: `{program} {}` failed ({s})", args.join(" "));
+            exit(s.code().unwrap_or(1));
+        }
+        Err(e) => {
+            eprintln!("xtask: could not start `{program}`: {e}");
+            exit(1);
+        }
+    }
+}

@@ -1,0 +1,414 @@
+//! The `spintune` subcommands (argument structs and their implementations).
+//! `main.rs` holds only the clap enum and the dispatch.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+
+use spintune::protocol::{RunStatus, ServerMessage};
+
+use crate::config::RunConfig;
+use crate::run::{Manager, ManagerOptions};
+use crate::server::{random_token, router, AppState};
+use crate::store::Store;
+
+/// A failed command: message and process exit code.
+#[derive(Debug)]
+pub struct CliError {
+    /// Exit code (1 = runtime failure, 2 = bad input).
+    pub code: i32,
+    /// What went wrong.
+    pub message: String,
+}
+
+impl CliError {
+    /// Runtime failure (exit 1).
+    pub fn runtime(m: impl std::fmt::Display) -> Self {
+        Self {
+            code: 1,
+            message: m.to_string(),
+        }
+    }
+    /// Bad input (exit 2).
+    pub fn input(m: impl std::fmt::Display) -> Self {
+        Self {
+            code: 2,
+            message: m.to_string(),
+        }
+    }
+}
+
+/// When `serve` creates a demo run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum DemoMode {
+    /// Only if the store has no runs yet.
+    Auto,
+    /// Always create one.
+    Always,
+    /// Never.
+    Never,
+}
+
+/// `spintune serve`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ServeArgs {
+    /// Address to bind (host:port). Port 0 picks a free port.
+    #[arg(long, env = "SPINTUNE_BIND", default_value = "127.0.0.1:8080")]
+    pub bind: SocketAddr,
+    /// SQLite database file.
+    #[arg(long, env = "SPINTUNE_DB", default_value = "spintune.db")]
+    pub db: PathBuf,
+    /// Directory of the built dashboard (Trunk's output).
+    #[arg(long, default_value = "dist")]
+    pub dist: PathBuf,
+    /// Control token (default: random, printed at start).
+    #[arg(long, env = "SPINTUNE_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
+    /// Wall-clock pause after each iteration, ms, so a human can watch (runs may override).
+    #[arg(long, default_value_t = 300)]
+    pub iteration_delay_ms: u64,
+    /// Live frames buffered per viewer before it is told it lagged.
+    #[arg(long, default_value_t = 256)]
+    pub viewer_buffer: usize,
+    /// Create a demo run on the embedded simulator (paper default config).
+    #[arg(long, value_enum, default_value_t = DemoMode::Auto)]
+    pub demo: DemoMode,
+    /// Config of the demo run (TOML); default: the paper's default run.
+    #[arg(long)]
+    pub demo_config: Option<PathBuf>,
+}
+
+/// A started server.
+pub struct Server {
+    /// The bound address.
+    pub addr: SocketAddr,
+    /// The control token.
+    pub token: String,
+    /// The run manager.
+    pub manager: Arc<Manager>,
+    /// The serving task.
+    pub task: tokio::task::JoinHandle<()>,
+}
+
+/// Start a server (store, manager, demo run, HTTP) and return once it listens.
+pub async fn start_server(args: &ServeArgs) -> Result<Server, CliError> {
+    let store = Arc::new(
+        Store::open(&args.db)
+            .map_err(|e| CliError::runtime(format!("cannot open {}: {e}", args.db.display())))?,
+    );
+    let was_empty = store.list_runs().map(|r| r.is_empty()).unwrap_or(false);
+    let manager = Manager::open(
+        store,
+        ManagerOptions {
+            iteration_delay: Duration::from_millis(args.iteration_delay_ms),
+            viewer_buffer: args.viewer_buffer,
+            recover: true,
+        },
+    )
+    .map_err(CliError::runtime)?;
+    let token = args.token.clone().unwrap_or_else(random_token);
+    if token.trim().is_empty() {
+        return Err(CliError::input("the control token must not be empty"));
+    }
+    let create_demo = match args.demo {
+        DemoMode::Auto => was_empty,
+        DemoMode::Always => true,
+        DemoMode::Never => false,
+    };
+    if create_demo {
+        let mut config = match &args.demo_config {
+            Some(path) => load_config(path)?,
+            None => RunConfig::paper_default(),
+        };
+        if args.demo_config.is_none() {
+            config.simulation.name = "demo".into();
+        }
+        manager
+            .create(config, false)
+            .await
+            .map_err(|e| CliError::runtime(format!("cannot create the demo run: {e}")))?;
+    }
+    let listener = tokio::net::TcpListener::bind(args.bind)
+        .await
+        .map_err(|e| CliError::runtime(format!("cannot bind {}: {e}", args.bind)))?;
+    let addr = listener.local_addr().map_err(CliError::runtime)?;
+    let app = router(
+        AppState {
+            manager: manager.clone(),
+            token: token.clone().into(),
+        },
+        args.dist.clone(),
+    );
+    let task = tokio::spawn(async move {
+        if let Err(e) = axum::serve(listener, app).await {
+            eprintln!("server error: {e}");
+        }
+    });
+    Ok(Server {
+        addr,
+        token,
+        manager,
+        task,
+    })
+}
+
+/// `spintune serve`: run until Ctrl-C.
+pub async fn serve(args: ServeArgs) -> Result<(), CliError> {
+    let server = start_server(&args).await?;
+    let host = if server.addr.ip().is_unspecified() {
+        "127.0.0.1".to_string()
+    } else {
+        server.addr.ip().to_string()
+    };
+    println!("Dashboard: http://{host}:{}/", server.addr.port());
+    println!("Control token: {}", server.token);
+    println!("Store: {}", args.db.display());
+    if !args.dist.join("index.html").is_file() {
+        println!(
+            "Note: no dashboard in {} (build it with `trunk build --release`); the API works.",
+            args.dist.display()
+        );
+    }
+    for r in server.manager.list() {
+        if r.status == RunStatus::Interrupted {
+            println!(
+                "Interrupted run {} ({:?}, {} iterations): resume with POST /api/runs/{}/control {{\"action\":\"resume\"}}",
+                r.id, r.name, r.iterations, r.id
+            );
+        }
+    }
+    use std::io::Write;
+    let _ = std::io::stdout().flush();
+    let manager = server.manager.clone();
+    tokio::select! {
+        _ = server.task => Err(CliError::runtime("the server stopped")),
+        _ = tokio::signal::ctrl_c() => {
+            manager.mark_live_interrupted();
+            println!("Shutting down; live runs are marked interrupted and can be resumed.");
+            Ok(())
+        }
+    }
+}
+
+/// Read a TOML run config.
+pub fn load_config(path: &std::path::Path) -> Result<RunConfig, CliError> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| CliError::input(format!("cannot read {}: {e}", path.display())))?;
+    RunConfig::from_toml_str(&text).map_err(|e| CliError::input(format!("{}: {e}", path.display())))
+}
+
+/// `spintune run`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct RunArgs {
+    /// Run config (TOML); see examples/.
+    #[arg(long)]
+    pub config: PathBuf,
+    /// SQLite database file (results are stored like server runs).
+    #[arg(long, env = "SPINTUNE_DB", default_value = "spintune.db")]
+    pub db: PathBuf,
+    /// No progress display (final summary only).
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+/// `spintune run --config FILE`: a full headless run with a progress display.
+pub async fn run(args: RunArgs) -> Result<(), CliError> {
+    let config = load_config(&args.config)?;
+    let store = Arc::new(
+        Store::open(&args.db)
+            .map_err(|e| CliError::runtime(format!("cannot open {}: {e}", args.db.display())))?,
+    );
+    // Do not recover: a server may be using the same store.
+    let manager = Manager::open(
+        store,
+        ManagerOptions {
+            iteration_delay: Duration::ZERO,
+            viewer_buffer: 1 << 16,
+            recover: false,
+        },
+    )
+    .map_err(CliError::runtime)?;
+    let max = config.simulation.tuner.max_iterations;
+    let summary = manager
+        .create(config, true)
+        .await
+        .map_err(|e| CliError::input(format!("{}: {e}", args.config.display())))?;
+    let id = summary.id;
+    let handle = manager.get(id).map_err(CliError::runtime)?;
+    let mut rx = handle.subscribe();
+    manager
+        .control(id, spintune::protocol::ControlCommand::Resume)
+        .await
+        .map_err(CliError::runtime)?;
+
+    let bar = if args.quiet {
+        indicatif::ProgressBar::hidden()
+    } else {
+        match max {
+            Some(n) => indicatif::ProgressBar::new(n),
+            None => indicatif::ProgressBar::new_spinner(),
+        }
+    };
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(if max.is_some() {
+            "{spinner} [{bar:30}] {pos}/{len} {msg}"
+        } else {
+            "{spinner} {pos} iterations {msg}"
+        })
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+        .progress_chars("=> "),
+    );
+    bar.set_message(format!("run {id} ({})", summary.name));
+    let mut last: Option<spintune::protocol::IterationRecord> = None;
+    let interrupted = loop {
+        tokio::select! {
+            frame = rx.recv() => match frame {
+                Ok(frame) => {
+                    match serde_json::from_str::<ServerMessage>(frame.text.as_str()) {
+                        Ok(ServerMessage::Iteration { record }) => {
+                            bar.set_position(record.iteration + 1);
+                            bar.set_message(progress_line(&record));
+                            last = Some(record);
+                        }
+                        Ok(ServerMessage::Status { run }) => {
+                            if !matches!(run.status, RunStatus::Running | RunStatus::Paused) {
+                                break false;
+                            }
+                        }
+                        _ => {}
+                    }
+                }
+                Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => {}
+                Err(tokio::sync::broadcast::error::RecvError::Closed) => break false,
+            },
+            _ = tokio::signal::ctrl_c() => break true,
+        }
+    };
+    if interrupted {
+        manager.mark_live_interrupted();
+        bar.abandon_with_message("interrupted");
+        eprintln!(
+            "Interrupted: run {id} is stored in {} and can be resumed from `spintune serve --db {}`.",
+            args.db.display(),
+            args.db.display()
+        );
+        return Err(CliError {
+            code: 130,
+            message: "interrupted".into(),
+        });
+    }
+    let final_summary = manager.wait_idle(id).await.map_err(CliError::runtime)?;
+    bar.finish_and_clear();
+    println!("Run {id} ({}): {}", final_summary.name, describe_status(&final_summary.status));
+    println!(
+        "  iterations: {}   lab time: {:.1} min   tuned: {}",
+        final_summary.iterations,
+        final_summary.lab_seconds / 60.0,
+        if final_summary.tuned { "yes" } else { "no" }
+    );
+    if let Some(r) = &last {
+        for p in &r.parameters {
+            println!(
+                "  {:<6} {:>10} ± {:<8} {:<3} target {}",
+                p.name,
+                fmt_opt(p.value),
+                fmt_opt(p.std),
+                p.unit,
+                match (p.target, p.tolerance) {
+                    (Some(t), Some(tol)) => format!("{t} ± {tol:.3}"),
+                    (Some(t), None) => format!("{t}"),
+                    _ => "none".into(),
+                }
+            );
+        }
+    }
+    println!(
+        "  stored in {} — export with `spintune export {id} --format csv --db {}`",
+        args.db.display(),
+        args.db.display()
+    );
+    match final_summary.status {
+        RunStatus::Failed { message } => Err(CliError::runtime(format!("run {id} failed: {message}"))),
+        _ => Ok(()),
+    }
+}
+
+fn describe_status(s: &RunStatus) -> String {
+    match s {
+        RunStatus::Failed { message } => format!("failed: {message}"),
+        other => crate::run::status_name(other).to_string(),
+    }
+}
+
+fn fmt_opt(x: Option<f64>) -> String {
+    x.map(|v| format!("{v:.3}")).unwrap_or_else(|| "—".into())
+}
+
+/// One-line progress: iteration, parameters vs targets, lab time.
+pub fn progress_line(r: &spintune::protocol::IterationRecord) -> String {
+    let mut s = format!("k={}", r.iteration);
+    for p in &r.parameters {
+        s.push_str(&format!(" {}={}", p.name, fmt_opt(p.value)));
+        if let Some(t) = p.target {
+            s.push_str(&format!("→{t}"));
+        }
+        s.push_str(&format!(" {}", p.unit));
+    }
+    s.push_str(&format!(
+        " | lab {:.1} min{}",
+        r.lab_seconds / 60.0,
+        if r.tuned { " | tuned" } else { "" }
+    ));
+    s
+}
+
+/// `spintune export`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ExportArgs {
+    /// Run id.
+    pub run: u64,
+    /// Output format.
+    #[arg(long, value_enum, default_value_t = crate::export::Format::Csv)]
+    pub format: crate::export::Format,
+    /// SQLite database file.
+    #[arg(long, env = "SPINTUNE_DB", default_value = "spintune.db")]
+    pub db: PathBuf,
+    /// Write to this file instead of stdout.
+    #[arg(long, short)]
+    pub output: Option<PathBuf>,
+}
+
+/// `spintune export RUN`.
+pub fn export(args: ExportArgs) -> Result<(), CliError> {
+    if !args.db.exists() {
+        return Err(CliError::input(format!("no database at {}", args.db.display())));
+    }
+    let store = Store::open(&args.db)
+        .map_err(|e| CliError::runtime(format!("cannot open {}: {e}", args.db.display())))?;
+    let out = crate::export::export(&store, args.run, args.format).map_err(CliError::input)?;
+    match args.output {
+        Some(path) => std::fs::write(&path, out)
+            .map_err(|e| CliError::runtime(format!("cannot write {}: {e}", path.display()))),
+        None => {
+            use std::io::Write;
+            std::io::stdout()
+                .write_all(out.as_bytes())
+                .map_err(CliError::runtime)
+        }
+    }
+}
+
+/// `spintune replay`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ReplayArgs {
+    /// Recorded sequence (JSON, see `spintune_server::replay`).
+    pub file: PathBuf,
+}
+
+/// `spintune replay FILE.json`.
+pub fn replay(args: ReplayArgs) -> Result<(), CliError> {
+    let stdout = std::io::stdout();
+    let mut lock = stdout.lock();
+    crate::replay::run_file(&args.file, &mut lock).map_err(CliError::input)
+}

@@ -1,0 +1,344 @@
+//! Durable store: embedded SQLite (WAL).
+//!
+//! Tables:
+//! * `runs`: one row per run with its config, status, counters and the latest
+//!   checkpoint (serialized tuner + device state, RNG included).
+//! * `iterations`: one row per committed iteration (`seq` = 0, 1, 2, … per run)
+//!   holding the [`spintune::protocol::IterationRecord`] as JSON.
+//!
+//! [`Store::commit_iteration`] writes the record and the checkpoint in one
+//! transaction; the run task broadcasts only after it returns. With WAL and
+//! `synchronous = NORMAL` a committed transaction survives a crash or `kill -9`
+//! of the process (not necessarily a power loss).
+//!
+//! The store is synchronous; async callers use `tokio::task::spawn_blocking`.
+
+use std::path::Path;
+use std::sync::Mutex;
+
+use rusqlite::{params, Connection, OptionalExtension};
+use spintune::protocol::{RunStatus, RunSummary};
+
+/// Store errors (SQLite or corrupt rows).
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    /// SQLite failed.
+    #[error("database error: {0}")]
+    Sqlite(#[from] rusqlite::Error),
+    /// A stored JSON value could not be decoded.
+    #[error("corrupt stored value: {0}")]
+    Json(#[from] serde_json::Error),
+    /// No such run.
+    #[error("no run with id {0}")]
+    NotFound(u64),
+    /// An iteration was committed out of order.
+    #[error("run {run}: expected iteration seq {expected}, got {got}")]
+    OutOfOrder {
+        /// Run id.
+        run: u64,
+        /// Next expected seq.
+        expected: u64,
+        /// Seq that was offered.
+        got: u64,
+    },
+}
+
+/// A run row (without its checkpoint).
+#[derive(Debug, Clone)]
+pub struct StoredRun {
+    /// Summary as listed.
+    pub summary: RunSummary,
+    /// The run config as JSON (a [`crate::config::RunConfig`]).
+    pub config_json: String,
+}
+
+/// The SQLite store: one connection for writes, one for reads.
+pub struct Store {
+    writer: Mutex<Connection>,
+    reader: Mutex<Connection>,
+}
+
+const SCHEMA: &str = "
+CREATE TABLE IF NOT EXISTS runs (
+    id          INTEGER PRIMARY KEY AUTOINCREMENT,
+    name        TEXT    NOT NULL,
+    config      TEXT    NOT NULL,
+    status      TEXT    NOT NULL,
+    iterations  INTEGER NOT NULL DEFAULT 0,
+    lab_seconds REAL    NOT NULL DEFAULT 0,
+    tuned       INTEGER NOT NULL DEFAULT 0,
+    checkpoint  TEXT    NOT NULL,
+    created_unix_s REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS iterations (
+    run_id INTEGER NOT NULL REFERENCES runs(id) ON DELETE CASCADE,
+    seq    INTEGER NOT NULL,
+    record TEXT    NOT NULL,
+    PRIMARY KEY (run_id, seq)
+) WITHOUT ROWID;
+";
+
+fn open_conn(path: &Path) -> Result<Connection, StoreError> {
+    let conn = Connection::open(path)?;
+    conn.busy_timeout(std::time::Duration::from_secs(10))?;
+    conn.pragma_update(None, "journal_mode", "WAL")?;
+    conn.pragma_update(None, "synchronous", "NORMAL")?;
+    conn.pragma_update(None, "foreign_keys", "ON")?;
+    Ok(conn)
+}
+
+fn now_unix_s() -> f64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs_f64())
+        .unwrap_or(0.0)
+}
+
+fn summary_from_row(row: &rusqlite::Row<'_>) -> rusqlite::Result<(RunSummary, String, String)> {
+    let id: i64 = row.get(0)?;
+    let name: String = row.get(1)?;
+    let status: String = row.get(2)?;
+    let iterations: i64 = row.get(3)?;
+    let lab_seconds: f64 = row.get(4)?;
+    let tuned: bool = row.get(5)?;
+    let config: String = row.get(6)?;
+    Ok((
+        RunSummary {
+            id: id as u64,
+            name,
+            status: RunStatus::Running, // replaced by the caller from `status`
+            iterations: iterations as u64,
+            lab_seconds,
+            tuned,
+        },
+        status,
+        config,
+    ))
+}
+
+impl Store {
+    /// Open (or create) the database at `path`.
+    pub fn open(path: &Path) -> Result<Self, StoreError> {
+        let writer = open_conn(path)?;
+        writer.execute_batch(SCHEMA)?;
+        let reader = open_conn(path)?;
+        Ok(Self {
+            writer: Mutex::new(writer),
+            reader: Mutex::new(reader),
+        })
+    }
+
+    fn w(&self) -> std::sync::MutexGuard<'_, Connection> {
+        self.writer.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    fn r(&self) -> std::sync::MutexGuard<'_, Connection> {
+        self.reader.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Create a run with its initial checkpoint; returns its id.
+    pub fn create_run(
+        &self,
+        name: &str,
+        config_json: &str,
+        status: &RunStatus,
+        checkpoint_json: &str,
+    ) -> Result<u64, StoreError> {
+        let conn = self.w();
+        conn.execute(
+            "INSERT INTO runs (name, config, status, checkpoint, created_unix_s) VALUES (?1, ?2, ?3, ?4, ?5)",
+            params![name, config_json, serde_json::to_string(status)?, checkpoint_json, now_unix_s()],
+        )?;
+        Ok(conn.last_insert_rowid() as u64)
+    }
+
+    /// Commit iteration `seq` of run `id` and the checkpoint taken right after it,
+    /// in one transaction.
+    pub fn commit_iteration(
+        &self,
+        id: u64,
+        seq: u64,
+        record_json: &str,
+        checkpoint_json: &str,
+        lab_seconds: f64,
+        tuned: bool,
+    ) -> Result<(), StoreError> {
+        let mut conn = self.w();
+        let tx = conn.transaction()?;
+        let expected: Option<i64> = tx
+            .query_row(
+                "SELECT iterations FROM runs WHERE id = ?1",
+                params![id as i64],
+                |r| r.get(0),
+            )
+            .optional()?;
+        let expected = expected.ok_or(StoreError::NotFound(id))? as u64;
+        if expected != seq {
+            return Err(StoreError::OutOfOrder {
+                run: id,
+                expected,
+                got: seq,
+            });
+        }
+        tx.execute(
+            "INSERT INTO iterations (run_id, seq, record) VALUES (?1, ?2, ?3)",
+            params![id as i64, seq as i64, record_json],
+        )?;
+        tx.execute(
+            "UPDATE runs SET iterations = ?2, lab_seconds = ?3, tuned = ?4, checkpoint = ?5 WHERE id = ?1",
+            params![id as i64, (seq + 1) as i64, lab_seconds, tuned, checkpoint_json],
+        )?;
+        tx.commit()?;
+        Ok(())
+    }
+
+    /// Replace the checkpoint of run `id` (e.g. after a target change between iterations).
+    pub fn save_checkpoint(&self, id: u64, checkpoint_json: &str) -> Result<(), StoreError> {
+        let n = self.w().execute(
+            "UPDATE runs SET checkpoint = ?2 WHERE id = ?1",
+            params![id as i64, checkpoint_json],
+        )?;
+        if n == 0 {
+            return Err(StoreError::NotFound(id));
+        }
+        Ok(())
+    }
+
+    /// Set the status of run `id`.
+    pub fn set_status(&self, id: u64, status: &RunStatus) -> Result<(), StoreError> {
+        let n = self.w().execute(
+            "UPDATE runs SET status = ?2 WHERE id = ?1",
+            params![id as i64, serde_json::to_string(status)?],
+        )?;
+        if n == 0 {
+            return Err(StoreError::NotFound(id));
+        }
+        Ok(())
+    }
+
+    /// The latest checkpoint of run `id`.
+    pub fn checkpoint(&self, id: u64) -> Result<String, StoreError> {
+        self.r()
+            .query_row(
+                "SELECT checkpoint FROM runs WHERE id = ?1",
+                params![id as i64],
+                |r| r.get(0),
+            )
+            .optional()?
+            .ok_or(StoreError::NotFound(id))
+    }
+
+    /// All runs, oldest first.
+    pub fn list_runs(&self) -> Result<Vec<StoredRun>, StoreError> {
+        let conn = self.r();
+        let mut stmt = conn.prepare(
+            "SELECT id, name, status, iterations, lab_seconds, tuned, config FROM runs ORDER BY id",
+        )?;
+        let rows = stmt.query_map([], summary_from_row)?;
+        let mut out = Vec::new();
+        for row in rows {
+            let (mut summary, status, config_json) = row?;
+            summary.status = serde_json::from_str(&status)?;
+            out.push(StoredRun {
+                summary,
+                config_json,
+            });
+        }
+        Ok(out)
+    }
+
+    /// One run.
+    pub fn get_run(&self, id: u64) -> Result<StoredRun, StoreError> {
+        let conn = self.r();
+        let row = conn
+            .query_row(
+                "SELECT id, name, status, iterations, lab_seconds, tuned, config FROM runs WHERE id = ?1",
+                params![id as i64],
+                summary_from_row,
+            )
+            .optional()?
+            .ok_or(StoreError::NotFound(id))?;
+        let (mut summary, status, config_json) = row;
+        summary.status = serde_json::from_str(&status)?;
+        Ok(StoredRun {
+            summary,
+            config_json,
+        })
+    }
+
+    /// Stored iteration records (JSON) of run `id` with `seq >= from`, at most `limit`.
+    pub fn iterations_json(
+        &self,
+        id: u64,
+        from: u64,
+        limit: Option<u64>,
+    ) -> Result<Vec<String>, StoreError> {
+        let conn = self.r();
+        let mut stmt = conn.prepare_cached(
+            "SELECT record FROM iterations WHERE run_id = ?1 AND seq >= ?2 ORDER BY seq LIMIT ?3",
+        )?;
+        let limit = limit.map(|l| l.min(i64::MAX as u64) as i64).unwrap_or(-1);
+        let rows = stmt.query_map(params![id as i64, from.min(i64::MAX as u64) as i64, limit], |r| {
+            r.get::<_, String>(0)
+        })?;
+        Ok(rows.collect::<Result<Vec<_>, _>>()?)
+    }
+
+    /// Delete run `id` and its iterations.
+    pub fn delete_run(&self, id: u64) -> Result<(), StoreError> {
+        let mut conn = self.w();
+        let tx = conn.transaction()?;
+        tx.execute("DELETE FROM iterations WHERE run_id = ?1", params![id as i64])?;
+        let n = tx.execute("DELETE FROM runs WHERE id = ?1", params![id as i64])?;
+        tx.commit()?;
+        if n == 0 {
+            return Err(StoreError::NotFound(id));
+        }
+        Ok(())
+    }
+
+    /// Mark every run left `running` or `paused` by a previous process as
+    /// `interrupted`; returns their ids. Call once at startup.
+    pub fn mark_interrupted(&self) -> Result<Vec<u64>, StoreError> {
+        let runs = self.list_runs()?;
+        let mut ids = Vec::new();
+        for r in runs {
+            if matches!(r.summary.status, RunStatus::Running | RunStatus::Paused) {
+                self.set_status(r.summary.id, &RunStatus::Interrupted)?;
+                ids.push(r.summary.id);
+            }
+        }
+        Ok(ids)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn commit_and_read_back() {
+        let dir = std::env::temp_dir().join(format!("spintune-store-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("t.db");
+        let _ = std::fs::remove_file(&path);
+        let s = Store::open(&path).unwrap();
+        let id = s.create_run("a", "{}", &RunStatus::Running, "{\"c\":0}").unwrap();
+        s.commit_iteration(id, 0, "{\"k\":0}", "{\"c\":1}", 1.5, false).unwrap();
+        assert!(matches!(
+            s.commit_iteration(id, 2, "{}", "{}", 0.0, false),
+            Err(StoreError::OutOfOrder { expected: 1, .. })
+        ));
+        s.commit_iteration(id, 1, "{\"k\":1}", "{\"c\":2}", 3.0, true).unwrap();
+        assert_eq!(s.iterations_json(id, 1, None).unwrap(), vec!["{\"k\":1}"]);
+        assert_eq!(s.checkpoint(id).unwrap(), "{\"c\":2}");
+        let r = s.get_run(id).unwrap();
+        assert_eq!(r.summary.iterations, 2);
+        assert!(r.summary.tuned);
+        assert_eq!(s.mark_interrupted().unwrap(), vec![id]);
+        assert_eq!(s.get_run(id).unwrap().summary.status, RunStatus::Interrupted);
+        s.delete_run(id).unwrap();
+        assert!(s.get_run(id).is_err());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

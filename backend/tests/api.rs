@@ -1,0 +1,282 @@
+//! Integration tests against a real server on an ephemeral loopback port with
+//! real WebSocket clients (tokio-tungstenite).
+
+mod common;
+
+use common::*;
+use serde_json::{json, Value};
+use spintune::protocol::{RunStatus, ServerMessage, PROTOCOL_VERSION};
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_viewers_receive_identical_streams_and_late_viewer_gets_history() {
+    let dir = TempDir::new("viewers");
+    let srv = server(&dir, 256).await;
+    let n = 6;
+    // Start paused so both viewers are connected before anything happens.
+    let run = create_run(srv.addr, &small_config("viewers", n, 0)).await;
+    let (s, b) = control(srv.addr, run.id, r#"{"action":"pause"}"#).await;
+    assert_eq!(s, 200, "{b}");
+    let mut a = connect(srv.addr, run.id, None).await;
+    let mut b = connect(srv.addr, run.id, None).await;
+    for ws in [&mut a, &mut b] {
+        match next_msg(ws).await {
+            ServerMessage::Hello { version, run: r } => {
+                assert_eq!(version, PROTOCOL_VERSION);
+                assert_eq!(r.id, run.id);
+            }
+            other => panic!("expected hello, got {other:?}"),
+        }
+    }
+    let (s, body) = control(srv.addr, run.id, r#"{"action":"resume"}"#).await;
+    assert_eq!(s, 200, "{body}");
+    let ra = collect(&mut a, n as usize).await;
+    let rb = collect(&mut b, n as usize).await;
+    assert_eq!(ra.len(), n as usize);
+    assert_eq!(ra, rb, "two viewers saw different streams");
+    for (k, r) in ra.iter().enumerate() {
+        assert_eq!(r.iteration, k as u64, "out of order or duplicated");
+    }
+    let done = wait_status(srv.addr, run.id, is_finished).await;
+    assert_eq!(done.iterations, n);
+
+    // The stream equals the store.
+    let stored = records(srv.addr, run.id).await;
+    assert_eq!(serde_json::to_value(&ra).unwrap(), Value::Array(stored));
+
+    // A late viewer gets the whole history first, then nothing is missing.
+    let mut late = connect(srv.addr, run.id, None).await;
+    assert!(matches!(next_msg(&mut late).await, ServerMessage::Hello { .. }));
+    match next_msg(&mut late).await {
+        ServerMessage::History { records } => assert_eq!(records, ra),
+        other => panic!("expected history, got {other:?}"),
+    }
+    // ... and `from` skips what it already has.
+    let mut partial = connect(srv.addr, run.id, Some(4)).await;
+    assert!(matches!(next_msg(&mut partial).await, ServerMessage::Hello { .. }));
+    match next_msg(&mut partial).await {
+        ServerMessage::History { records } => assert_eq!(records, ra[4..].to_vec()),
+        other => panic!("expected history, got {other:?}"),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn slow_viewer_is_told_it_lagged_and_still_sees_everything() {
+    let dir = TempDir::new("lag");
+    // A buffer of one frame: any viewer that does not read at once lags.
+    let srv = server(&dir, 1).await;
+    let n = 6;
+    let run = create_run(srv.addr, &small_config("lag", n, 0)).await;
+    control(srv.addr, run.id, r#"{"action":"pause"}"#).await;
+    let mut ws = connect(srv.addr, run.id, None).await;
+    assert!(matches!(next_msg(&mut ws).await, ServerMessage::Hello { .. }));
+    control(srv.addr, run.id, r#"{"action":"resume"}"#).await;
+    // Do not read until the run is over: the viewer stalls, the run does not.
+    wait_status(srv.addr, run.id, is_finished).await;
+    let mut got = Vec::new();
+    let mut lagged = false;
+    while got.len() < n as usize {
+        match next_msg(&mut ws).await {
+            ServerMessage::History { records } => got.extend(records),
+            ServerMessage::Iteration { record } => got.push(record),
+            ServerMessage::Lagged { skipped } => {
+                assert!(skipped > 0);
+                lagged = true;
+            }
+            _ => {}
+        }
+    }
+    assert!(lagged, "the stalled viewer was not told it lagged");
+    let ks: Vec<u64> = got.iter().map(|r| r.iteration).collect();
+    assert_eq!(ks, (0..n).collect::<Vec<_>>());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn control_needs_the_token_and_changes_nothing_without_it() {
+    let dir = TempDir::new("auth");
+    let srv = server(&dir, 256).await;
+    let run = create_run(srv.addr, &small_config("auth", 1000, 100)).await;
+    wait_status(srv.addr, run.id, |r| r.iterations >= 1).await;
+
+    // REST without / with a wrong token.
+    let path = format!("/api/runs/{}/control", run.id);
+    let (s, body) = http(srv.addr, "POST", &path, None, Some(r#"{"action":"pause"}"#)).await;
+    assert_eq!(s, 401, "{body}");
+    assert!(body.contains("token"), "{body}");
+    let (s, _) = http(srv.addr, "POST", &path, Some("wrong"), Some(r#"{"action":"stop"}"#)).await;
+    assert_eq!(s, 403);
+    let (s, _) = http(srv.addr, "POST", "/api/runs", None, Some("{}")).await;
+    assert_eq!(s, 401);
+    let (s, _) = http(srv.addr, "DELETE", &format!("/api/runs/{}", run.id), Some("nope"), None).await;
+    assert_eq!(s, 403);
+    let (_, list) = http(srv.addr, "GET", "/api/runs", None, None).await;
+    assert_eq!(serde_json::from_str::<Vec<Value>>(&list).unwrap().len(), 1);
+    let before = get_run(srv.addr, run.id).await;
+    assert_eq!(before.status, RunStatus::Running);
+    // Still running: iterations keep coming.
+    wait_status(srv.addr, run.id, |r| r.iterations > before.iterations).await;
+
+    // WS: control before auth is refused, wrong token refused, socket stays.
+    let mut ws = connect(srv.addr, run.id, None).await;
+    let pause = r#"{"type":"control","command":{"action":"pause"}}"#;
+    send(&mut ws, pause).await;
+    expect_error(&mut ws, "token").await;
+    send(&mut ws, r#"{"type":"auth","token":"wrong"}"#).await;
+    expect_error(&mut ws, "invalid control token").await;
+    assert_eq!(get_run(srv.addr, run.id).await.status, RunStatus::Running);
+
+    // With the token it works.
+    send(&mut ws, &format!(r#"{{"type":"auth","token":"{TOKEN}"}}"#)).await;
+    expect(&mut ws, |m| matches!(m, ServerMessage::AuthOk)).await;
+    send(&mut ws, pause).await;
+    expect(&mut ws, |m| {
+        matches!(m, ServerMessage::Status { run } if run.status == RunStatus::Paused)
+    })
+    .await;
+    let paused = get_run(srv.addr, run.id).await;
+    assert_eq!(paused.status, RunStatus::Paused);
+    tokio::time::sleep(std::time::Duration::from_millis(300)).await;
+    assert_eq!(get_run(srv.addr, run.id).await.iterations, paused.iterations, "paused run advanced");
+
+    // Single step: exactly one more iteration, then paused again.
+    let (s, body) = control(srv.addr, run.id, r#"{"action":"step"}"#).await;
+    assert_eq!(s, 200, "{body}");
+    let r = wait_status(srv.addr, run.id, |r| {
+        r.status == RunStatus::Paused && r.iterations == paused.iterations + 1
+    })
+    .await;
+    assert_eq!(r.iterations, paused.iterations + 1);
+
+    // Target change via REST shows up in the next record.
+    let (s, body) = control(
+        srv.addr,
+        run.id,
+        r#"{"action":"set_target","parameter":"t_sr","target":70.0,"tolerance":{"absolute":5.0}}"#,
+    )
+    .await;
+    assert_eq!(s, 200, "{body}");
+    control(srv.addr, run.id, r#"{"action":"step"}"#).await;
+    wait_status(srv.addr, run.id, |x| x.iterations == r.iterations + 1 && x.status == RunStatus::Paused).await;
+    let recs = records(srv.addr, run.id).await;
+    let last = recs.last().unwrap();
+    let t_sr = last["parameters"].as_array().unwrap().iter().find(|p| p["name"] == "t_sr").unwrap();
+    assert_eq!(t_sr["target"], json!(70.0));
+    assert_eq!(t_sr["tolerance"], json!(5.0));
+
+    // Unknown parameter: clear error, nothing changes.
+    let (s, body) = control(srv.addr, run.id, r#"{"action":"set_target","parameter":"nope","target":1.0}"#).await;
+    assert_eq!(s, 422, "{body}");
+    assert!(body.contains("nope"), "{body}");
+
+    // Stop, then resume is refused; delete with the token works.
+    let (s, _) = control(srv.addr, run.id, r#"{"action":"stop"}"#).await;
+    assert_eq!(s, 200);
+    wait_status(srv.addr, run.id, |r| r.status == RunStatus::Stopped).await;
+    let (s, body) = control(srv.addr, run.id, r#"{"action":"resume"}"#).await;
+    assert_eq!(s, 409, "{body}");
+    let (s, _) = http(srv.addr, "DELETE", &format!("/api/runs/{}", run.id), Some(TOKEN), None).await;
+    assert_eq!(s, 204);
+    let (s, _) = http(srv.addr, "GET", &format!("/api/runs/{}", run.id), None, None).await;
+    assert_eq!(s, 404);
+}
+
+async fn expect(ws: &mut Ws, f: impl Fn(&ServerMessage) -> bool) -> ServerMessage {
+    loop {
+        let m = next_msg(ws).await;
+        if f(&m) {
+            return m;
+        }
+        assert!(
+            matches!(
+                m,
+                ServerMessage::Iteration { .. }
+                    | ServerMessage::History { .. }
+                    | ServerMessage::Hello { .. }
+                    | ServerMessage::Status { .. }
+            ),
+            "unexpected {m:?}"
+        );
+    }
+}
+
+async fn expect_error(ws: &mut Ws, needle: &str) {
+    match expect(ws, |m| matches!(m, ServerMessage::Error { .. })).await {
+        ServerMessage::Error { message } => {
+            assert!(message.contains(needle), "error {message:?} does not mention {needle:?}")
+        }
+        _ => unreachable!(),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn malformed_messages_get_clear_errors_and_the_socket_stays_open() {
+    let dir = TempDir::new("malformed");
+    let srv = server(&dir, 256).await;
+    let run = create_run(srv.addr, &small_config("malformed", 2, 0)).await;
+    let mut ws = connect(srv.addr, run.id, None).await;
+    for (frame, needle) in [
+        ("this is not json", "malformed"),
+        (r#"{"type":"auth"}"#, "token"),
+        (r#"{"type":"bogus"}"#, "bogus"),
+        (r#"{"type":"auth","token":"x","extra":1}"#, "extra"),
+        (r#"{"type":"control","command":{"action":"pause","extra":1}}"#, "extra"),
+        (r#"{"type":"control","command":{"action":"fly"}}"#, "fly"),
+        (r#"{"type":"control","command":{"action":"set_target","parameter":"w","target":"high"}}"#, "high"),
+        (r#"{"type":"control","command":{"action":"set_target","parameter":"w","target":270,"tolerance":{"relative":-1}}}"#, "tolerance"),
+    ] {
+        send(&mut ws, frame).await;
+        expect_error(&mut ws, needle).await;
+    }
+    ws.send_binary().await;
+    expect_error(&mut ws, "binary").await;
+    // Still alive and usable.
+    send(&mut ws, &format!(r#"{{"type":"auth","token":"{TOKEN}"}}"#)).await;
+    expect(&mut ws, |m| matches!(m, ServerMessage::AuthOk)).await;
+
+    // REST: malformed bodies and parameters name the problem.
+    let path = format!("/api/runs/{}/control", run.id);
+    for (body, needle) in [
+        ("{", "malformed"),
+        (r#"{"action":"pause","x":1}"#, "x"),
+        (r#"{"action":"set_target","parameter":"w","target":1,"tolerance":{"absolute":-3}}"#, "tolerance"),
+    ] {
+        let (s, text) = http(srv.addr, "POST", &path, Some(TOKEN), Some(body)).await;
+        assert_eq!(s, 400, "{body} → {text}");
+        assert!(text.contains(needle), "{body} → {text}");
+        assert!(serde_json::from_str::<Value>(&text).unwrap()["error"].is_string());
+    }
+    for (body, needle) in [
+        (r#"{"seed":"abc"}"#, "seed"),
+        (r#"{"tuner":{"levels":[]}}"#, "levels"),
+        (r#"{"device_typo":1}"#, "device_typo"),
+        (r#"{"targets":{"t_sr":-5e400}}"#, "targets"),
+    ] {
+        let (s, text) = http(srv.addr, "POST", "/api/runs", Some(TOKEN), Some(body)).await;
+        assert_eq!(s, 422, "{body} → {text}");
+        assert!(text.contains(needle), "{body} → {text}");
+    }
+    let (s, text) = http(srv.addr, "GET", &format!("/api/runs/{}/iterations?from=-1", run.id), None, None).await;
+    assert_eq!(s, 400, "{text}");
+    assert!(text.contains("from"));
+    let (s, _) = http(srv.addr, "GET", "/api/runs/999/iterations", None, None).await;
+    assert_eq!(s, 404);
+    // No dashboard built: `/` explains how to build it.
+    let (s, text) = http(srv.addr, "GET", "/", None, None).await;
+    assert_eq!(s, 200);
+    assert!(text.contains("trunk build"), "{text}");
+    let (s, text) = http(srv.addr, "GET", &format!("/api/runs/{}/export?format=csv", run.id), None, None).await;
+    assert_eq!(s, 200, "{text}");
+    assert!(text.starts_with("seq,iteration,lab_seconds"), "{text}");
+}
+
+trait SendBinary {
+    async fn send_binary(&mut self);
+}
+
+impl SendBinary for Ws {
+    async fn send_binary(&mut self) {
+        use futures_util::SinkExt;
+        self.send(tokio_tungstenite::tungstenite::Message::Binary(vec![1u8, 2, 3].into()))
+            .await
+            .unwrap();
+    }
+}

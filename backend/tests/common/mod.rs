@@ -1,0 +1,206 @@
+//! Helpers shared by the integration tests: a real server on an ephemeral
+//! loopback port, a tiny HTTP/1.1 client, and WebSocket helpers. Everything is
+//! bounded in time.
+#![allow(dead_code)]
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use futures_util::{SinkExt, StreamExt};
+use serde_json::Value;
+use spintune::protocol::{IterationRecord, RunStatus, RunSummary, ServerMessage};
+use spintune_server::cli::{start_server, DemoMode, ServeArgs, Server};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio_tungstenite::tungstenite::Message;
+
+pub const TOKEN: &str = "test-token";
+pub const STEP: Duration = Duration::from_secs(20);
+
+pub type Ws = tokio_tungstenite::WebSocketStream<
+    tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>,
+>;
+
+/// A fresh temporary directory (removed on drop).
+pub struct TempDir(pub PathBuf);
+
+impl TempDir {
+    pub fn new(tag: &str) -> Self {
+        use std::sync::atomic::{AtomicU32, Ordering};
+        static N: AtomicU32 = AtomicU32::new(0);
+        let p = std::env::temp_dir().join(format!(
+            "spintune-test-{tag}-{}-{}",
+            std::process::id(),
+            N.fetch_add(1, Ordering::Relaxed)
+        ));
+        let _ = std::fs::remove_dir_all(&p);
+        std::fs::create_dir_all(&p).unwrap();
+        Self(p)
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+pub async fn server(dir: &TempDir, viewer_buffer: usize) -> Server {
+    start_server(&ServeArgs {
+        bind: "127.0.0.1:0".parse().unwrap(),
+        db: dir.0.join("test.db"),
+        dist: dir.0.join("dist"),
+        token: Some(TOKEN.into()),
+        iteration_delay_ms: 0,
+        viewer_buffer,
+        demo: DemoMode::Never,
+        demo_config: None,
+    })
+    .await
+    .unwrap_or_else(|e| panic!("server: {}", e.message))
+}
+
+/// Minimal HTTP/1.1 request; returns (status, body).
+pub async fn http(
+    addr: SocketAddr,
+    method: &str,
+    path: &str,
+    token: Option<&str>,
+    body: Option<&str>,
+) -> (u16, String) {
+    tokio::time::timeout(STEP, async {
+        let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+        let body = body.unwrap_or("");
+        let auth = token
+            .map(|t| format!("Authorization: Bearer {t}\r\n"))
+            .unwrap_or_default();
+        let req = format!(
+            "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n{auth}Content-Type: application/json\r\nContent-Length: {}\r\n\r\n{body}",
+            body.len()
+        );
+        s.write_all(req.as_bytes()).await.unwrap();
+        let mut buf = Vec::new();
+        s.read_to_end(&mut buf).await.unwrap();
+        let text = String::from_utf8_lossy(&buf).to_string();
+        let status: u16 = text[9..12].parse().unwrap();
+        let (head, rest) = text.split_once("\r\n\r\n").unwrap();
+        let body = if head.to_ascii_lowercase().contains("transfer-encoding: chunked") {
+            dechunk(rest)
+        } else {
+            rest.to_string()
+        };
+        (status, body)
+    })
+    .await
+    .expect("HTTP request timed out")
+}
+
+fn dechunk(mut s: &str) -> String {
+    let mut out = String::new();
+    loop {
+        let Some((len, rest)) = s.split_once("\r\n") else { break };
+        let n = usize::from_str_radix(len.trim(), 16).unwrap_or(0);
+        if n == 0 {
+            break;
+        }
+        out.push_str(&rest[..n]);
+        s = &rest[n + 2..];
+    }
+    out
+}
+
+pub async fn create_run(addr: SocketAddr, config: &Value) -> RunSummary {
+    let (status, body) = http(addr, "POST", "/api/runs", Some(TOKEN), Some(&config.to_string())).await;
+    assert_eq!(status, 201, "{body}");
+    serde_json::from_str(&body).unwrap()
+}
+
+pub async fn get_run(addr: SocketAddr, id: u64) -> RunSummary {
+    let (status, body) = http(addr, "GET", &format!("/api/runs/{id}"), None, None).await;
+    assert_eq!(status, 200, "{body}");
+    serde_json::from_str(&body).unwrap()
+}
+
+pub async fn control(addr: SocketAddr, id: u64, cmd: &str) -> (u16, String) {
+    http(addr, "POST", &format!("/api/runs/{id}/control"), Some(TOKEN), Some(cmd)).await
+}
+
+pub async fn records(addr: SocketAddr, id: u64) -> Vec<Value> {
+    let (status, body) = http(addr, "GET", &format!("/api/runs/{id}/iterations"), None, None).await;
+    assert_eq!(status, 200, "{body}");
+    serde_json::from_str(&body).unwrap()
+}
+
+/// Poll until the run's status satisfies `f`.
+pub async fn wait_status(addr: SocketAddr, id: u64, f: impl Fn(&RunSummary) -> bool) -> RunSummary {
+    tokio::time::timeout(STEP, async {
+        loop {
+            let r = get_run(addr, id).await;
+            if f(&r) {
+                return r;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await
+    .expect("run did not reach the expected state in time")
+}
+
+pub fn is_finished(r: &RunSummary) -> bool {
+    r.status == RunStatus::Finished
+}
+
+/// A small run config: paper default, `n` iterations, given pacing.
+pub fn small_config(name: &str, n: u64, delay_ms: u64) -> Value {
+    serde_json::json!({
+        "name": name,
+        "seed": 7,
+        "iteration_delay_ms": delay_ms,
+        "tuner": { "max_iterations": n }
+    })
+}
+
+pub async fn connect(addr: SocketAddr, id: u64, from: Option<u64>) -> Ws {
+    let q = from.map(|f| format!("?from={f}")).unwrap_or_default();
+    let url = format!("ws://{addr}/api/runs/{id}/ws{q}");
+    let (ws, _) = tokio::time::timeout(STEP, tokio_tungstenite::connect_async(url))
+        .await
+        .expect("connect timed out")
+        .expect("connect");
+    ws
+}
+
+pub async fn next_msg(ws: &mut Ws) -> ServerMessage {
+    loop {
+        let m = tokio::time::timeout(STEP, ws.next())
+            .await
+            .expect("no message in time")
+            .expect("socket closed")
+            .expect("socket error");
+        match m {
+            Message::Text(t) => {
+                return serde_json::from_str(t.as_str())
+                    .unwrap_or_else(|e| panic!("bad server frame {t}: {e}"))
+            }
+            Message::Ping(_) | Message::Pong(_) => continue,
+            other => panic!("unexpected frame {other:?}"),
+        }
+    }
+}
+
+pub async fn send(ws: &mut Ws, text: &str) {
+    ws.send(Message::Text(text.into())).await.unwrap();
+}
+
+/// Collect iteration records (history + live) until `n` records are in.
+pub async fn collect(ws: &mut Ws, n: usize) -> Vec<IterationRecord> {
+    let mut out = Vec::new();
+    while out.len() < n {
+        match next_msg(ws).await {
+            ServerMessage::History { records } => out.extend(records),
+            ServerMessage::Iteration { record } => out.push(record),
+            _ => {}
+        }
+    }
+    out
+}

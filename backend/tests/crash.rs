@@ -1,0 +1,121 @@
+//! Crash test: the real binary as a process, `kill -9` mid-run, restart on the
+//! same store, resume. No committed iteration may be lost, and the resumed
+//! trajectory must equal an uninterrupted run of the same seed, bit for bit.
+
+mod common;
+
+use std::io::{BufRead, BufReader};
+use std::net::SocketAddr;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::*;
+use serde_json::Value;
+use spintune::driver::SimulationRun;
+use spintune::protocol::RunStatus;
+use spintune_server::config::RunConfig;
+
+struct Proc(Child);
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Start `spintune serve` on an ephemeral port; returns the process and its address.
+fn spawn_server(db: &std::path::Path) -> (Proc, SocketAddr) {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_spintune"))
+        .args(["serve", "--bind", "127.0.0.1:0", "--demo", "never", "--token", TOKEN])
+        .arg("--db")
+        .arg(db)
+        .arg("--dist")
+        .arg(db.with_file_name("no-dist"))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .expect("spawn spintune serve");
+    let stdout = child.stdout.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+            if let Some(rest) = line.strip_prefix("Dashboard: http://") {
+                let _ = tx.send(rest.trim_end_matches('/').to_string());
+            }
+        }
+    });
+    let addr = rx
+        .recv_timeout(Duration::from_secs(20))
+        .expect("server did not print its address");
+    (Proc(child), addr.parse().unwrap())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn kill_9_mid_run_then_resume_continues_bit_identically() {
+    let dir = TempDir::new("crash");
+    let db = dir.0.join("crash.db");
+    let n: u64 = 10;
+    let config = small_config("crash", n, 40);
+
+    let (mut proc1, addr) = spawn_server(&db);
+    let run = create_run(addr, &config).await;
+    wait_status(addr, run.id, |r| r.iterations >= 4).await;
+    let seen_before = records(addr, run.id).await;
+    assert!(seen_before.len() >= 4);
+    // SIGKILL, no chance to clean up.
+    proc1.0.kill().unwrap();
+    proc1.0.wait().unwrap();
+    drop(proc1);
+
+    let (_proc2, addr) = spawn_server(&db);
+    let listed = get_run(addr, run.id).await;
+    assert_eq!(listed.status, RunStatus::Interrupted, "{listed:?}");
+    assert!(listed.iterations >= seen_before.len() as u64);
+    assert!(listed.iterations < n, "the run finished before the kill; make it slower");
+    let after_restart = records(addr, run.id).await;
+    assert_eq!(
+        &after_restart[..seen_before.len()],
+        &seen_before[..],
+        "a committed iteration was lost or changed"
+    );
+
+    let (s, body) = control(addr, run.id, r#"{"action":"resume"}"#).await;
+    assert_eq!(s, 200, "{body}");
+    let done = wait_status(addr, run.id, is_finished).await;
+    assert_eq!(done.iterations, n);
+    let resumed = records(addr, run.id).await;
+
+    // The same config, uninterrupted, in the core's own synchronous driver.
+    let (s, cfg) = http(addr, "GET", &format!("/api/runs/{}/config", run.id), None, None).await;
+    assert_eq!(s, 200);
+    let cfg: RunConfig = serde_json::from_str(&cfg).unwrap();
+    let mut sim = SimulationRun::new(cfg.simulation).unwrap();
+    let mut reference = Vec::new();
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while let Some(r) = sim.next_iteration().unwrap() {
+        reference.push(serde_json::to_value(&r).unwrap());
+        assert!(Instant::now() < deadline);
+    }
+    assert_eq!(reference.len(), n as usize);
+    for (k, (a, b)) in resumed.iter().zip(&reference).enumerate() {
+        assert_eq!(a, b, "iteration {k} differs from the uninterrupted run");
+    }
+
+    // And an uninterrupted server run of the same config gives the same records.
+    let again = create_run(addr, &config).await;
+    wait_status(addr, again.id, is_finished).await;
+    assert_eq!(records(addr, again.id).await, resumed);
+
+    // Export works on the stored run (CLI, same store while the server runs).
+    let out = Command::new(env!("CARGO_BIN_EXE_spintune"))
+        .args(["export", &run.id.to_string(), "--format", "json", "--db"])
+        .arg(&db)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let rows: Vec<Value> = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(rows.len(), n as usize);
+    assert!(rows[0].get("V_SB_mV").is_some(), "{}", rows[0]);
+    assert!(rows[0].get("t_sr_ns").is_some(), "{}", rows[0]);
+}

@@ -1,0 +1,99 @@
+//! Talking to the backend: base URL, REST (fetch) and WebSocket URLs.
+
+use serde::de::DeserializeOwned;
+use wasm_bindgen::JsCast;
+use wasm_bindgen_futures::JsFuture;
+
+/// Where the backend lives: the page's own origin, or `?server=http://host:port`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ApiBase {
+    /// e.g. `http://127.0.0.1:8080` (no trailing slash).
+    pub http: String,
+}
+
+impl ApiBase {
+    /// From the page location (`?server=` overrides the origin).
+    pub fn from_location() -> Self {
+        let loc = leptos::prelude::location();
+        let search = loc.search().unwrap_or_default();
+        let server = search
+            .trim_start_matches('?')
+            .split('&')
+            .find_map(|kv| kv.strip_prefix("server="))
+            .and_then(|v| js_sys::decode_uri_component(v).ok())
+            .and_then(|v| v.as_string());
+        let http = server.unwrap_or_else(|| loc.origin().unwrap_or_else(|_| "http://127.0.0.1:8080".into()));
+        Self::new(&http)
+    }
+
+    /// From an explicit base URL.
+    pub fn new(http: &str) -> Self {
+        Self {
+            http: http.trim_end_matches('/').to_string(),
+        }
+    }
+
+    /// REST URL of a path such as `/api/runs`.
+    pub fn url(&self, path: &str) -> String {
+        format!("{}{}", self.http, path)
+    }
+
+    /// WebSocket URL of a path (http → ws, https → wss).
+    pub fn ws_url(&self, path: &str) -> String {
+        let base = if let Some(rest) = self.http.strip_prefix("https://") {
+            format!("wss://{rest}")
+        } else if let Some(rest) = self.http.strip_prefix("http://") {
+            format!("ws://{rest}")
+        } else {
+            self.http.clone()
+        };
+        format!("{base}{path}")
+    }
+
+    /// WebSocket URL of a run's stream, resuming at iteration `from`.
+    pub fn run_ws_url(&self, run: u64, from: u64) -> String {
+        self.ws_url(&format!("/api/runs/{run}/ws?from={from}"))
+    }
+}
+
+fn js_err(e: wasm_bindgen::JsValue) -> String {
+    e.as_string()
+        .or_else(|| {
+            js_sys::Reflect::get(&e, &"message".into())
+                .ok()
+                .and_then(|m| m.as_string())
+        })
+        .unwrap_or_else(|| format!("{e:?}"))
+}
+
+/// `GET url` and decode the JSON body.
+pub async fn get_json<T: DeserializeOwned>(url: &str) -> Result<T, String> {
+    let window = leptos::prelude::window();
+    let resp = JsFuture::from(window.fetch_with_str(url))
+        .await
+        .map_err(|e| format!("cannot reach the server: {}", js_err(e)))?;
+    let resp: web_sys::Response = resp.dyn_into().map_err(js_err)?;
+    let status = resp.status();
+    let text = JsFuture::from(resp.text().map_err(js_err)?)
+        .await
+        .map_err(js_err)?
+        .as_string()
+        .unwrap_or_default();
+    if !(200..300).contains(&status) {
+        return Err(format!("HTTP {status}: {text}"));
+    }
+    serde_json::from_str(&text).map_err(|e| format!("unexpected reply: {e}"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ws_urls() {
+        let b = ApiBase::new("http://127.0.0.1:8080/");
+        assert_eq!(b.url("/api/runs"), "http://127.0.0.1:8080/api/runs");
+        assert_eq!(b.run_ws_url(3, 17), "ws://127.0.0.1:8080/api/runs/3/ws?from=17");
+        assert_eq!(ApiBase::new("https://lab.example").ws_url("/x"), "wss://lab.example/x");
+    }
+}

@@ -1,0 +1,461 @@
+//! Charts drawn with plotters (on a `<canvas>` through plotters-canvas in the
+//! page). Every function draws one figure into a drawing area and labels
+//! every axis with its unit.
+
+use plotters::coord::Shift;
+use plotters::prelude::*;
+use spintune::protocol::{IterationRecord, ScanKind, ScanReport};
+
+use crate::model::{gradient_sigmas, padded_range};
+
+/// Result of drawing a figure.
+pub type DrawResult = Result<(), String>;
+
+const FONT: &str = "sans-serif";
+
+/// Series colours (colour-blind friendly, Okabe–Ito).
+pub const PALETTE: [RGBColor; 8] = [
+    RGBColor(0, 114, 178),
+    RGBColor(213, 94, 0),
+    RGBColor(0, 158, 115),
+    RGBColor(204, 121, 167),
+    RGBColor(86, 180, 233),
+    RGBColor(230, 159, 0),
+    RGBColor(120, 120, 120),
+    RGBColor(0, 0, 0),
+];
+
+const BAND: RGBColor = RGBColor(0, 158, 115);
+const TARGET: RGBColor = RGBColor(0, 110, 80);
+
+fn err<E: std::fmt::Debug>(e: E) -> String {
+    format!("{e:?}")
+}
+
+/// Colour of series `i`.
+pub fn color(i: usize) -> RGBColor {
+    PALETTE[i % PALETTE.len()]
+}
+
+fn iteration_range(records: &[IterationRecord]) -> (f64, f64) {
+    match (records.first(), records.last()) {
+        (Some(a), Some(b)) => {
+            let (a, b) = (a.iteration as f64, b.iteration as f64);
+            (a - 0.5, b.max(a + 4.0) + 0.5)
+        }
+        _ => (-0.5, 10.5),
+    }
+}
+
+fn placeholder<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, title: &str, text: &str) -> DrawResult {
+    let (w, h) = area.dim_in_pixel();
+    area.draw(&Text::new(
+        title.to_string(),
+        (12, 10),
+        (FONT, 16).into_font().style(FontStyle::Bold),
+    ))
+    .map_err(err)?;
+    area.draw(&Text::new(
+        text.to_string(),
+        (w as i32 / 2 - 80, h as i32 / 2),
+        (FONT, 14).into_font().color(&RGBColor(120, 120, 120)),
+    ))
+    .map_err(err)?;
+    Ok(())
+}
+
+fn int_label(x: &f64) -> String {
+    if (x - x.round()).abs() < 1e-9 {
+        format!("{x:.0}")
+    } else {
+        String::new()
+    }
+}
+
+/// Segments of constant (target, tolerance): `(first iteration, last iteration, target, half-width)`.
+pub fn target_segments(records: &[IterationRecord], parameter: &str) -> Vec<(f64, f64, f64, f64)> {
+    let mut out: Vec<(f64, f64, f64, f64)> = Vec::new();
+    for r in records {
+        let Some(p) = r.parameters.iter().find(|p| p.name == parameter) else {
+            continue;
+        };
+        let Some(t) = p.target.filter(|t| t.is_finite()) else {
+            continue;
+        };
+        let tol = p.tolerance.filter(|x| x.is_finite()).unwrap_or(0.0);
+        let k = r.iteration as f64;
+        match out.last_mut() {
+            Some(last) if last.2 == t && last.3 == tol && k - last.1 <= 1.0 => last.1 = k,
+            _ => out.push((k, k, t, tol)),
+        }
+    }
+    out
+}
+
+/// One parameter against iteration: measured values with ±1σ error bars,
+/// the target line and its tolerance band.
+pub fn draw_parameter<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    records: &[IterationRecord],
+    parameter: &str,
+    series: usize,
+) -> DrawResult {
+    let unit = records
+        .iter()
+        .rev()
+        .find_map(|r| r.parameters.iter().find(|p| p.name == parameter).map(|p| p.unit.clone()))
+        .unwrap_or_default();
+    let title = format!("{parameter} ({unit}) vs iteration");
+    let points: Vec<(f64, f64, f64)> = records
+        .iter()
+        .filter_map(|r| {
+            let p = r.parameters.iter().find(|p| p.name == parameter)?;
+            let v = p.value.filter(|v| v.is_finite())?;
+            let s = p.std.filter(|s| s.is_finite()).unwrap_or(0.0);
+            Some((r.iteration as f64, v, s))
+        })
+        .collect();
+    if points.is_empty() {
+        return placeholder(area, &title, "waiting for measurements…");
+    }
+    let bands = target_segments(records, parameter);
+    let (x0, x1) = iteration_range(records);
+    let (y0, y1) = padded_range(
+        points
+            .iter()
+            .flat_map(|&(_, v, s)| [v - s, v + s])
+            .chain(bands.iter().flat_map(|&(_, _, t, tol)| [t - tol, t + tol])),
+        0.08,
+    );
+    let mut chart = ChartBuilder::on(area)
+        .caption(&title, (FONT, 16))
+        .margin(8)
+        .x_label_area_size(36)
+        .y_label_area_size(62)
+        .build_cartesian_2d(x0..x1, y0..y1)
+        .map_err(err)?;
+    chart
+        .configure_mesh()
+        .x_desc("iteration")
+        .y_desc(format!("{parameter} ({unit})"))
+        .x_label_formatter(&int_label)
+        .light_line_style(RGBColor(238, 238, 238))
+        .label_style((FONT, 12))
+        .axis_desc_style((FONT, 13))
+        .draw()
+        .map_err(err)?;
+    if !bands.is_empty() {
+        chart
+            .draw_series(bands.iter().map(|&(a, b, t, tol)| {
+                Rectangle::new([(a - 0.5, t - tol), (b + 0.5, t + tol)], BAND.mix(0.16).filled())
+            }))
+            .map_err(err)?
+            .label("tolerance band")
+            .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 16, y + 5)], BAND.mix(0.3).filled()));
+        chart
+            .draw_series(bands.iter().map(|&(a, b, t, _)| {
+                PathElement::new(vec![(a - 0.5, t), (b + 0.5, t)], TARGET.stroke_width(2))
+            }))
+            .map_err(err)?
+            .label("target")
+            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], TARGET.stroke_width(2)));
+    }
+    let c = color(series);
+    chart
+        .draw_series(LineSeries::new(points.iter().map(|&(k, v, _)| (k, v)), c.mix(0.5).stroke_width(1)))
+        .map_err(err)?;
+    chart
+        .draw_series(
+            points
+                .iter()
+                .map(|&(k, v, s)| ErrorBar::new_vertical(k, v - s, v, v + s, c.filled(), 5)),
+        )
+        .map_err(err)?
+        .label("measured ±1σ")
+        .legend(move |(x, y)| Circle::new((x + 8, y), 3, c.filled()));
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::UpperRight)
+        .background_style(WHITE.mix(0.85))
+        .border_style(RGBColor(200, 200, 200))
+        .label_font((FONT, 12))
+        .draw()
+        .map_err(err)?;
+    Ok(())
+}
+
+/// Every element of one parameter's gradient against iteration, with ±1σ
+/// error bars `√diag C` (one panel per gate, like the paper's Fig. 3b).
+pub fn draw_gradient<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    records: &[IterationRecord],
+    parameter: &str,
+) -> DrawResult {
+    let Some(last) = records
+        .iter()
+        .rev()
+        .find(|r| r.gradients.iter().any(|g| g.parameter == parameter))
+    else {
+        return placeholder(
+            area,
+            &format!("gradient of {parameter}"),
+            "waiting for a gradient estimate…",
+        );
+    };
+    let gates = last.gates.clone();
+    let unit = last
+        .gradients
+        .iter()
+        .find(|g| g.parameter == parameter)
+        .map(|g| g.unit.clone())
+        .unwrap_or_default();
+    let panels = area.split_evenly((1, gates.len().max(1)));
+    let (x0, x1) = iteration_range(records);
+    for (gi, (gate, panel)) in gates.iter().zip(panels.iter()).enumerate() {
+        let pts: Vec<(f64, f64, f64)> = records
+            .iter()
+            .filter_map(|r| {
+                let g = r.gradients.iter().find(|g| g.parameter == parameter)?;
+                let col = r.gates.iter().position(|x| x == gate)?;
+                let v = *g.gradient.get(col)?;
+                let s = gradient_sigmas(g)
+                    .and_then(|s| s.get(col).copied())
+                    .filter(|s| s.is_finite())
+                    .unwrap_or(0.0);
+                v.is_finite().then_some((r.iteration as f64, v, s))
+            })
+            .collect();
+        let (y0, y1) = padded_range(pts.iter().flat_map(|&(_, v, s)| [v - s, v + s]), 0.08);
+        let mut chart = ChartBuilder::on(panel)
+            .caption(format!("∂{parameter}/∂{gate}"), (FONT, 15))
+            .margin(6)
+            .x_label_area_size(34)
+            .y_label_area_size(54)
+            .build_cartesian_2d(x0..x1, y0..y1)
+            .map_err(err)?;
+        chart
+            .configure_mesh()
+            .x_desc("iteration")
+            .y_desc(unit.as_str())
+            .x_label_formatter(&int_label)
+            .x_labels(6)
+            .y_labels(6)
+            .light_line_style(RGBColor(238, 238, 238))
+            .label_style((FONT, 11))
+            .axis_desc_style((FONT, 12))
+            .draw()
+            .map_err(err)?;
+        let c = color(gi);
+        chart
+            .draw_series(LineSeries::new(pts.iter().map(|&(k, v, _)| (k, v)), c.mix(0.5)))
+            .map_err(err)?;
+        chart
+            .draw_series(
+                pts.iter()
+                    .map(|&(k, v, s)| ErrorBar::new_vertical(k, v - s, v, v + s, c.filled(), 4)),
+            )
+            .map_err(err)?;
+    }
+    Ok(())
+}
+
+/// The tuning gates' voltages against iteration (one panel per gate).
+pub fn draw_gates<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, records: &[IterationRecord]) -> DrawResult {
+    let Some(last) = records.last() else {
+        return placeholder(area, "gate voltages", "waiting for data…");
+    };
+    let gates = last.gates.clone();
+    let panels = area.split_evenly((1, gates.len().max(1)));
+    let (x0, x1) = iteration_range(records);
+    for (gi, (gate, panel)) in gates.iter().zip(panels.iter()).enumerate() {
+        let pts: Vec<(f64, f64)> = records
+            .iter()
+            .filter_map(|r| r.voltages_mv.get(gate).map(|v| (r.iteration as f64, *v)))
+            .filter(|p| p.1.is_finite())
+            .collect();
+        let (y0, y1) = padded_range(pts.iter().map(|p| p.1), 0.1);
+        let mut chart = ChartBuilder::on(panel)
+            .caption(format!("V_{gate}"), (FONT, 15))
+            .margin(6)
+            .x_label_area_size(34)
+            .y_label_area_size(60)
+            .build_cartesian_2d(x0..x1, y0..y1)
+            .map_err(err)?;
+        chart
+            .configure_mesh()
+            .x_desc("iteration")
+            .y_desc("voltage (mV)")
+            .x_label_formatter(&int_label)
+            .x_labels(6)
+            .y_labels(6)
+            .light_line_style(RGBColor(238, 238, 238))
+            .label_style((FONT, 11))
+            .axis_desc_style((FONT, 12))
+            .draw()
+            .map_err(err)?;
+        let c = color(gi);
+        chart
+            .draw_series(LineSeries::new(pts.iter().copied(), c.stroke_width(2)))
+            .map_err(err)?;
+        chart
+            .draw_series(pts.iter().map(|&p| Circle::new(p, 2, c.filled())))
+            .map_err(err)?;
+    }
+    Ok(())
+}
+
+/// Title of a scan kind.
+pub fn scan_title(kind: ScanKind) -> &'static str {
+    match kind {
+        ScanKind::SensingDot => "sensing-dot sweep",
+        ScanKind::ChemicalPotential => "chemical-potential scan",
+        ScanKind::TransitionWidth => "detuning scan (w)",
+        ScanKind::ReloadTime => "load curve (t_sr)",
+    }
+}
+
+/// One raw scan (points) with its fitted curve(s) (lines).
+pub fn draw_scan<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    scan: Option<&ScanReport>,
+    iteration: Option<u64>,
+) -> DrawResult {
+    let Some(scan) = scan else {
+        return placeholder(area, "latest scan", "no scan yet");
+    };
+    let all = scan.raw.traces.iter().chain(scan.fit.iter());
+    let (x0, x1) = padded_range(all.clone().flat_map(|t| t.x.iter().copied()), 0.02);
+    let (y0, y1) = padded_range(all.flat_map(|t| t.y.iter().copied()), 0.08);
+    let title = match iteration {
+        Some(k) => format!("{} — iteration {k}", scan_title(scan.raw.kind)),
+        None => scan_title(scan.raw.kind).to_string(),
+    };
+    let mut chart = ChartBuilder::on(area)
+        .caption(title, (FONT, 16))
+        .margin(8)
+        .x_label_area_size(36)
+        .y_label_area_size(62)
+        .build_cartesian_2d(x0..x1, y0..y1)
+        .map_err(err)?;
+    chart
+        .configure_mesh()
+        .x_desc(scan.raw.x_label.as_str())
+        .y_desc(scan.raw.y_label.as_str())
+        .light_line_style(RGBColor(238, 238, 238))
+        .label_style((FONT, 12))
+        .axis_desc_style((FONT, 13))
+        .draw()
+        .map_err(err)?;
+    for (i, t) in scan.raw.traces.iter().enumerate() {
+        let c = color(i + 4);
+        chart
+            .draw_series(
+                t.x.iter()
+                    .zip(&t.y)
+                    .filter(|(x, y)| x.is_finite() && y.is_finite())
+                    .map(|(&x, &y)| Circle::new((x, y), 2, c.mix(0.7).filled())),
+            )
+            .map_err(err)?
+            .label(format!("data: {}", t.label))
+            .legend(move |(x, y)| Circle::new((x + 8, y), 3, c.filled()));
+    }
+    for (i, t) in scan.fit.iter().enumerate() {
+        let c = color(i + 1);
+        chart
+            .draw_series(LineSeries::new(
+                t.x.iter()
+                    .zip(&t.y)
+                    .filter(|(x, y)| x.is_finite() && y.is_finite())
+                    .map(|(&x, &y)| (x, y)),
+                c.stroke_width(2),
+            ))
+            .map_err(err)?
+            .label(t.label.clone())
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], c.stroke_width(2)));
+    }
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::UpperRight)
+        .background_style(WHITE.mix(0.85))
+        .border_style(RGBColor(200, 200, 200))
+        .label_font((FONT, 12))
+        .draw()
+        .map_err(err)?;
+    if scan.fit.is_empty() {
+        area.draw(&Text::new(
+            "fit failed",
+            (80, 40),
+            (FONT, 14).into_font().color(&RGBColor(200, 40, 40)),
+        ))
+        .map_err(err)?;
+    }
+    Ok(())
+}
+
+/// Cumulative lab time (minutes) against iteration.
+pub fn draw_lab_time<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, records: &[IterationRecord]) -> DrawResult {
+    if records.is_empty() {
+        return placeholder(area, "lab time", "waiting for data…");
+    }
+    let pts: Vec<(f64, f64)> = records
+        .iter()
+        .map(|r| (r.iteration as f64, r.lab_seconds / 60.0))
+        .filter(|p| p.1.is_finite())
+        .collect();
+    let (x0, x1) = iteration_range(records);
+    let (_, y1) = padded_range(pts.iter().map(|p| p.1).chain([0.0]), 0.05);
+    let mut chart = ChartBuilder::on(area)
+        .caption("cumulative lab time", (FONT, 16))
+        .margin(8)
+        .x_label_area_size(36)
+        .y_label_area_size(62)
+        .build_cartesian_2d(x0..x1, 0.0..y1)
+        .map_err(err)?;
+    chart
+        .configure_mesh()
+        .x_desc("iteration")
+        .y_desc("lab time (min)")
+        .x_label_formatter(&int_label)
+        .light_line_style(RGBColor(238, 238, 238))
+        .label_style((FONT, 12))
+        .axis_desc_style((FONT, 13))
+        .draw()
+        .map_err(err)?;
+    chart
+        .draw_series(LineSeries::new(pts.iter().copied(), color(6).stroke_width(2)))
+        .map_err(err)?;
+    chart
+        .draw_series(
+            records
+                .iter()
+                .filter(|r| r.tuned)
+                .map(|r| Circle::new((r.iteration as f64, r.lab_seconds / 60.0), 3, BAND.filled())),
+        )
+        .map_err(err)?
+        .label("tuned")
+        .legend(|(x, y)| Circle::new((x + 8, y), 3, BAND.filled()));
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::UpperLeft)
+        .background_style(WHITE.mix(0.85))
+        .border_style(RGBColor(200, 200, 200))
+        .label_font((FONT, 12))
+        .draw()
+        .map_err(err)?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::fake_records;
+
+    #[test]
+    fn target_segments_merge_constant_runs() {
+        let mut recs = fake_records(5);
+        recs[3].parameters[0].target = Some(70.0);
+        recs[4].parameters[0].target = Some(70.0);
+        let segs = target_segments(&recs, "t_sr");
+        assert_eq!(segs, vec![(0.0, 2.0, 20.0, 2.0), (3.0, 4.0, 70.0, 2.0)]);
+    }
+}

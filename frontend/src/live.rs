@@ -1,0 +1,597 @@
+//! Live mode: list the server's runs, stream one over its WebSocket (history,
+//! then live iterations), reconnect with backoff resuming at the next missing
+//! iteration, and — after the control token is accepted — control it.
+
+use std::cell::RefCell;
+use std::rc::Rc;
+use std::time::Duration;
+
+use leptos::prelude::*;
+use send_wrapper::SendWrapper;
+use spintune::parameter::Tolerance;
+use spintune::protocol::{ClientMessage, ControlCommand, RunSummary, ServerMessage, PROTOCOL_VERSION};
+use wasm_bindgen::prelude::*;
+use web_sys::{CloseEvent, MessageEvent, WebSocket};
+
+use crate::api::{get_json, ApiBase};
+use crate::model::{format_lab_time, status_is_final, status_label, History, Push};
+use crate::ui::Dashboard;
+
+/// State of a run's WebSocket.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ConnState {
+    /// Opening a socket.
+    Connecting {
+        /// Reconnection attempt (0 = first connection).
+        attempt: u32,
+    },
+    /// Open and streaming.
+    Open,
+    /// Waiting before the next attempt.
+    Reconnecting {
+        /// Attempt that will be made.
+        attempt: u32,
+        /// Delay before it, ms.
+        delay_ms: u32,
+    },
+    /// Not streaming and not retrying.
+    Closed {
+        /// Why.
+        reason: String,
+    },
+}
+
+impl ConnState {
+    /// Text shown in the connection badge.
+    pub fn label(&self) -> String {
+        match self {
+            ConnState::Connecting { attempt: 0 } => "connecting…".into(),
+            ConnState::Connecting { attempt } => format!("reconnecting (attempt {attempt})…"),
+            ConnState::Open => "live".into(),
+            ConnState::Reconnecting { attempt, delay_ms } => {
+                format!("disconnected — retry {attempt} in {:.1} s", *delay_ms as f64 / 1000.0)
+            }
+            ConnState::Closed { reason } => format!("closed: {reason}"),
+        }
+    }
+
+    /// CSS class of the badge.
+    pub fn class(&self) -> &'static str {
+        match self {
+            ConnState::Open => "conn live",
+            ConnState::Connecting { .. } => "conn connecting",
+            ConnState::Reconnecting { .. } => "conn down",
+            ConnState::Closed { .. } => "conn closed",
+        }
+    }
+}
+
+/// Backoff before reconnection attempt `attempt` (1-based): 0.5 s doubling to 10 s.
+pub fn backoff_ms(attempt: u32) -> u32 {
+    let exp = attempt.saturating_sub(1).min(5);
+    (500u32 << exp).min(10_000)
+}
+
+/// Whether the control token was accepted on the current socket.
+#[derive(Debug, Clone, PartialEq)]
+pub enum AuthState {
+    /// No token entered: read-only.
+    None,
+    /// Token sent, waiting for the answer.
+    Pending,
+    /// Controls enabled.
+    Ok,
+    /// The server refused the token.
+    Refused(String),
+}
+
+/// Reactive outputs of a run session.
+#[derive(Clone, Copy)]
+struct Signals {
+    history: RwSignal<History>,
+    summary: RwSignal<Option<RunSummary>>,
+    conn: RwSignal<ConnState>,
+    auth: RwSignal<AuthState>,
+    notice: RwSignal<Option<String>>,
+}
+
+type Handler<T> = Closure<dyn FnMut(T)>;
+
+struct Session {
+    run: u64,
+    base: ApiBase,
+    sig: Signals,
+    ws: Option<WebSocket>,
+    handlers: Option<(Handler<web_sys::Event>, Handler<MessageEvent>, Handler<CloseEvent>)>,
+    generation: u32,
+    attempt: u32,
+    retry: Option<gloo_timers::callback::Timeout>,
+    shut_down: bool,
+    token: Option<String>,
+}
+
+type SessionRef = Rc<RefCell<Session>>;
+
+fn drop_socket(s: &mut Session) {
+    s.generation = s.generation.wrapping_add(1);
+    if let Some(ws) = s.ws.take() {
+        ws.set_onopen(None);
+        ws.set_onmessage(None);
+        ws.set_onclose(None);
+        let _ = ws.close();
+    }
+    s.handlers = None;
+}
+
+fn connect(sess: &SessionRef) {
+    let mut s = sess.borrow_mut();
+    if s.shut_down {
+        return;
+    }
+    drop_socket(&mut s);
+    s.retry = None;
+    let from = s.sig.history.with_untracked(|h| h.next_iteration());
+    let url = s.base.run_ws_url(s.run, from);
+    s.sig.conn.set(ConnState::Connecting { attempt: s.attempt });
+    let ws = match WebSocket::new(&url) {
+        Ok(ws) => ws,
+        Err(e) => {
+            s.sig.notice.set(Some(format!("cannot open {url}: {e:?}")));
+            drop(s);
+            schedule_reconnect(sess);
+            return;
+        }
+    };
+    let gen = s.generation;
+
+    let weak = Rc::downgrade(sess);
+    let on_open = Closure::<dyn FnMut(web_sys::Event)>::new(move |_| {
+        let Some(sess) = weak.upgrade() else { return };
+        let s = sess.borrow();
+        if s.generation != gen {
+            return;
+        }
+        s.sig.conn.set(ConnState::Open);
+        if let Some(token) = s.token.clone() {
+            send_on(&s, &ClientMessage::Auth { token });
+        }
+    });
+
+    let weak = Rc::downgrade(sess);
+    let on_message = Closure::<dyn FnMut(MessageEvent)>::new(move |ev: MessageEvent| {
+        let Some(sess) = weak.upgrade() else { return };
+        if sess.borrow().generation != gen {
+            return;
+        }
+        let Some(text) = ev.data().as_string() else { return };
+        let resync = handle_message(&sess, &text);
+        if resync {
+            // A gap: start over from the next missing iteration, immediately.
+            connect(&sess);
+        }
+    });
+
+    let weak = Rc::downgrade(sess);
+    let on_close = Closure::<dyn FnMut(CloseEvent)>::new(move |ev: CloseEvent| {
+        let Some(sess) = weak.upgrade() else { return };
+        let final_status = {
+            let s = sess.borrow();
+            if s.generation != gen || s.shut_down {
+                return;
+            }
+            s.sig
+                .summary
+                .with_untracked(|r| r.as_ref().is_some_and(|r| status_is_final(&r.status)))
+        };
+        if final_status {
+            let mut s = sess.borrow_mut();
+            drop_socket(&mut s);
+            s.sig.conn.set(ConnState::Closed {
+                reason: "run has ended".into(),
+            });
+            return;
+        }
+        if ev.code() != 1000 && !ev.reason().is_empty() {
+            sess.borrow().sig.notice.set(Some(format!("socket closed: {}", ev.reason())));
+        }
+        schedule_reconnect(&sess);
+    });
+
+    ws.set_onopen(Some(on_open.as_ref().unchecked_ref()));
+    ws.set_onmessage(Some(on_message.as_ref().unchecked_ref()));
+    ws.set_onclose(Some(on_close.as_ref().unchecked_ref()));
+    s.handlers = Some((on_open, on_message, on_close));
+    s.ws = Some(ws);
+}
+
+fn schedule_reconnect(sess: &SessionRef) {
+    let mut s = sess.borrow_mut();
+    if s.shut_down {
+        return;
+    }
+    drop_socket(&mut s);
+    s.attempt += 1;
+    let delay_ms = backoff_ms(s.attempt);
+    s.sig.conn.set(ConnState::Reconnecting {
+        attempt: s.attempt,
+        delay_ms,
+    });
+    let weak = Rc::downgrade(sess);
+    s.retry = Some(gloo_timers::callback::Timeout::new(delay_ms, move || {
+        if let Some(sess) = weak.upgrade() {
+            connect(&sess);
+        }
+    }));
+}
+
+/// Applies one server frame; returns true if the stream must be resubscribed.
+fn handle_message(sess: &SessionRef, text: &str) -> bool {
+    let sig = sess.borrow().sig;
+    let msg: ServerMessage = match serde_json::from_str(text) {
+        Ok(m) => m,
+        Err(e) => {
+            sig.notice.set(Some(format!("undecodable message from server: {e}")));
+            return false;
+        }
+    };
+    match msg {
+        ServerMessage::Hello { version, run } => {
+            if version != PROTOCOL_VERSION {
+                sig.notice.set(Some(format!(
+                    "server speaks protocol v{version}, this page v{PROTOCOL_VERSION}; reload the page"
+                )));
+            }
+            sig.summary.set(Some(run));
+            sess.borrow_mut().attempt = 0;
+        }
+        ServerMessage::History { records } => {
+            let mut gap = false;
+            sig.history.update(|h| gap = h.extend(records).is_err());
+            return gap;
+        }
+        ServerMessage::Iteration { record } => {
+            let mut res = Push::Duplicate;
+            let tuned = record.tuned;
+            let (k, lab) = (record.iteration, record.lab_seconds);
+            sig.history.update(|h| res = h.push(record));
+            if res == Push::Appended {
+                sig.summary.update(|s| {
+                    if let Some(s) = s {
+                        s.iterations = s.iterations.max(k + 1);
+                        s.lab_seconds = lab;
+                        s.tuned = tuned;
+                    }
+                });
+            }
+            return matches!(res, Push::Gap { .. });
+        }
+        ServerMessage::Status { run } => sig.summary.set(Some(run)),
+        ServerMessage::Lagged { skipped } => {
+            sig.notice.set(Some(format!(
+                "this viewer fell behind ({skipped} live messages skipped); catching up from the store"
+            )));
+        }
+        ServerMessage::AuthOk => sig.auth.set(AuthState::Ok),
+        ServerMessage::Error { message } => {
+            if sig.auth.get_untracked() == AuthState::Pending {
+                sess.borrow_mut().token = None;
+                sig.auth.set(AuthState::Refused(message));
+            } else {
+                sig.notice.set(Some(format!("server: {message}")));
+            }
+        }
+    }
+    false
+}
+
+fn send_on(s: &Session, msg: &ClientMessage) -> bool {
+    let Some(ws) = s.ws.as_ref().filter(|ws| ws.ready_state() == WebSocket::OPEN) else {
+        return false;
+    };
+    match serde_json::to_string(msg) {
+        Ok(json) => ws.send_with_str(&json).is_ok(),
+        Err(_) => false,
+    }
+}
+
+/// Live mode: run list on the left, the selected run on the right.
+#[component]
+pub fn LiveMode(base: ApiBase) -> impl IntoView {
+    let runs = RwSignal::new(Vec::<RunSummary>::new());
+    let error = RwSignal::new(None::<String>);
+    let loaded = RwSignal::new(false);
+    let selected = RwSignal::new(initial_run_from_hash());
+    let refresh = {
+        let base = base.clone();
+        move || {
+            let url = base.url("/api/runs");
+            leptos::task::spawn_local(async move {
+                match get_json::<Vec<RunSummary>>(&url).await {
+                    Ok(list) => {
+                        let _ = runs.try_set(list);
+                        let _ = error.try_set(None);
+                    }
+                    Err(e) => {
+                        let _ = error.try_set(Some(e));
+                    }
+                }
+                let _ = loaded.try_set(true);
+            });
+        }
+    };
+    refresh();
+    let r2 = refresh.clone();
+    if let Ok(handle) = set_interval_with_handle(r2, Duration::from_secs(4)) {
+        let handle = SendWrapper::new(handle);
+        on_cleanup(move || handle.clear());
+    }
+    // Open the first run automatically when nothing is selected.
+    Effect::new(move |_| {
+        if selected.get_untracked().is_none() {
+            if let Some(first) = runs.with(|r| r.first().map(|r| r.id)) {
+                selected.set(Some(first));
+            }
+        }
+    });
+    let run_view = move || {
+        selected.get().map(|id| {
+            let _ = window().location().set_hash(&format!("live/{id}"));
+            view! { <RunView run=id base=base.clone() /> }
+        })
+    };
+    view! {
+        <div class="live">
+            <aside class="sidebar">
+                <h2>"Runs"</h2>
+                <Show when=move || error.with(|e| e.is_some())>
+                    <p class="error">{move || error.get().unwrap_or_default()}</p>
+                    <p class="hint">"The in-browser mode works without a server."</p>
+                </Show>
+                <Show when=move || loaded.get() && error.with(|e| e.is_none()) && runs.with(|r| r.is_empty())>
+                    <p class="hint">"The server has no runs."</p>
+                </Show>
+                <ul class="runs">
+                    <For
+                        each=move || runs.get()
+                        key=|r| (r.id, r.iterations, format!("{:?}", r.status))
+                        children=move |r| {
+                            let id = r.id;
+                            view! {
+                                <li>
+                                    <button
+                                        class="run"
+                                        class:selected=move || selected.get() == Some(id)
+                                        data-run=id
+                                        on:click=move |_| selected.set(Some(id))
+                                    >
+                                        <span class="run-name">{format!("#{} {}", r.id, r.name)}</span>
+                                        <span class="run-meta">
+                                            {format!("{} · {} it · {}", status_label(&r.status), r.iterations, format_lab_time(r.lab_seconds))}
+                                            {if r.tuned { " · tuned" } else { "" }}
+                                        </span>
+                                    </button>
+                                </li>
+                            }
+                        }
+                    />
+                </ul>
+            </aside>
+            <section class="main">{run_view}</section>
+        </div>
+    }
+}
+
+fn initial_run_from_hash() -> Option<u64> {
+    let hash = window().location().hash().ok()?;
+    hash.trim_start_matches('#').strip_prefix("live/")?.parse().ok()
+}
+
+/// One run: connection state, summary, controls, plots.
+#[component]
+pub fn RunView(run: u64, base: ApiBase) -> impl IntoView {
+    let sig = Signals {
+        history: RwSignal::new(History::new()),
+        summary: RwSignal::new(None),
+        conn: RwSignal::new(ConnState::Connecting { attempt: 0 }),
+        auth: RwSignal::new(AuthState::None),
+        notice: RwSignal::new(None),
+    };
+    let sess: SessionRef = Rc::new(RefCell::new(Session {
+        run,
+        base,
+        sig,
+        ws: None,
+        handlers: None,
+        generation: 0,
+        attempt: 0,
+        retry: None,
+        shut_down: false,
+        token: None,
+    }));
+    connect(&sess);
+    {
+        let sess = SendWrapper::new(sess.clone());
+        on_cleanup(move || {
+            let mut s = sess.borrow_mut();
+            s.shut_down = true;
+            s.retry = None;
+            drop_socket(&mut s);
+        });
+    }
+    let sess = SendWrapper::new(sess);
+    let sess = StoredValue::new(sess);
+    let send = move |msg: ClientMessage| {
+        sess.with_value(|s| {
+            if !send_on(&s.borrow(), &msg) {
+                sig.notice.set(Some("not connected; try again when the badge says live".into()));
+            }
+        })
+    };
+    let token_input = RwSignal::new(String::new());
+    let unlock = move || {
+        let token = token_input.get_untracked().trim().to_string();
+        if token.is_empty() {
+            return;
+        }
+        sig.auth.set(AuthState::Pending);
+        sess.with_value(|s| {
+            s.borrow_mut().token = Some(token.clone());
+            send_on(&s.borrow(), &ClientMessage::Auth { token });
+        });
+    };
+    let control = move |command: ControlCommand| send(ClientMessage::Control { command });
+    let title = move || {
+        sig.summary.with(|s| match s {
+            Some(s) => format!("Run #{} — {}", s.id, s.name),
+            None => format!("Run #{run}"),
+        })
+    };
+    let status = move || sig.summary.with(|s| s.as_ref().map(|s| status_label(&s.status)).unwrap_or_else(|| "…".into()));
+    view! {
+        <div class="run-view">
+            <header class="run-head">
+                <h2>{title}</h2>
+                <span class="status" data-testid="run-status">{status}</span>
+                <span class=move || sig.conn.with(|c| c.class()) data-testid="connection">{move || sig.conn.with(|c| c.label())}</span>
+            </header>
+            {move || sig.notice.get().map(|n| view! {
+                <p class="notice">{n} <button class="link" on:click=move |_| sig.notice.set(None)>"dismiss"</button></p>
+            })}
+            <div class="control-panel">
+                {move || match sig.auth.get() {
+                    AuthState::Ok => view! {
+                        <Controls history=sig.history on_command=Callback::new(control) />
+                    }.into_any(),
+                    state => view! {
+                        <div class="readonly" data-testid="readonly">
+                            <p><b>"Read-only view."</b> " Enter the control token printed by "<code>"spintune serve"</code>" to change targets, pause, step or stop this run."</p>
+                            <form class="token" on:submit=move |ev| { ev.prevent_default(); unlock(); }>
+                                <input type="password" placeholder="control token" data-testid="token"
+                                    prop:value=move || token_input.get()
+                                    on:input=move |ev| token_input.set(event_target_value(&ev)) />
+                                <button type="submit" data-testid="unlock">"Unlock controls"</button>
+                            </form>
+                            {match state {
+                                AuthState::Pending => Some(view! { <p class="hint">"checking token…"</p> }.into_any()),
+                                AuthState::Refused(m) => Some(view! { <p class="error" data-testid="auth-error">{format!("Token refused: {m}")}</p> }.into_any()),
+                                _ => None,
+                            }}
+                        </div>
+                    }.into_any(),
+                }}
+            </div>
+            <Dashboard history=sig.history />
+        </div>
+    }
+}
+
+/// Control buttons and target/tolerance editors (shown after authentication).
+#[component]
+fn Controls(history: RwSignal<History>, on_command: Callback<ControlCommand>) -> impl IntoView {
+    let params = Memo::new(move |_| {
+        history.with(|h| {
+            h.last()
+                .map(|r| {
+                    r.parameters
+                        .iter()
+                        .map(|p| (p.name.clone(), p.unit.clone(), p.target, p.tolerance))
+                        .collect::<Vec<_>>()
+                })
+                .unwrap_or_default()
+        })
+    });
+    view! {
+        <div class="controls" data-testid="controls">
+            <span class="badge ok">"controls unlocked"</span>
+            <button data-testid="pause" on:click=move |_| on_command.run(ControlCommand::Pause)>"Pause"</button>
+            <button data-testid="resume" on:click=move |_| on_command.run(ControlCommand::Resume)>"Resume"</button>
+            <button data-testid="step" on:click=move |_| on_command.run(ControlCommand::Step)>"Single step"</button>
+            <button class="danger" data-testid="stop" on:click=move |_| {
+                if window().confirm_with_message("Stop this run for good?").unwrap_or(false) {
+                    on_command.run(ControlCommand::Stop);
+                }
+            }>"Stop"</button>
+            <div class="targets">
+                <For
+                    each=move || params.get()
+                    key=|p| p.0.clone()
+                    children=move |(name, unit, target, tol)| view! {
+                        <TargetEditor name unit target tolerance=tol on_command />
+                    }
+                />
+            </div>
+        </div>
+    }
+}
+
+/// Edit one parameter's target and tolerance.
+#[component]
+fn TargetEditor(
+    name: String,
+    unit: String,
+    target: Option<f64>,
+    tolerance: Option<f64>,
+    on_command: Callback<ControlCommand>,
+) -> impl IntoView {
+    let t = RwSignal::new(target.map(|t| format!("{t}")).unwrap_or_default());
+    let tol = RwSignal::new(tolerance.map(|t| format!("{t}")).unwrap_or_default());
+    let err = RwSignal::new(None::<String>);
+    let n2 = name.clone();
+    let apply = move || {
+        let tt = t.get_untracked();
+        let target = if tt.trim().is_empty() {
+            None
+        } else {
+            match tt.trim().parse::<f64>() {
+                Ok(v) if v.is_finite() => Some(v),
+                _ => {
+                    err.set(Some("target must be a number".into()));
+                    return;
+                }
+            }
+        };
+        let tl = tol.get_untracked();
+        let tolerance = if tl.trim().is_empty() {
+            None
+        } else {
+            match tl.trim().parse::<f64>() {
+                Ok(v) if v.is_finite() && v >= 0.0 => Some(Tolerance::Absolute(v)),
+                _ => {
+                    err.set(Some("tolerance must be a non-negative number".into()));
+                    return;
+                }
+            }
+        };
+        err.set(None);
+        on_command.run(ControlCommand::SetTarget {
+            parameter: n2.clone(),
+            target,
+            tolerance,
+        });
+    };
+    view! {
+        <form class="target" data-parameter=name.clone() on:submit=move |ev| { ev.prevent_default(); apply(); }>
+            <b>{name.clone()}</b>
+            <label>"target "<input type="number" step="any" data-testid=format!("target-{name}")
+                prop:value=move || t.get() on:input=move |ev| t.set(event_target_value(&ev)) />{format!(" {unit}")}</label>
+            <label>"± "<input type="number" step="any" min="0" data-testid=format!("tolerance-{name}")
+                prop:value=move || tol.get() on:input=move |ev| tol.set(event_target_value(&ev)) />{format!(" {unit}")}</label>
+            <button type="submit">"Apply"</button>
+            {move || err.get().map(|e| view! { <span class="error">{e}</span> })}
+        </form>
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn backoff_grows_and_caps() {
+        assert_eq!(backoff_ms(1), 500);
+        assert_eq!(backoff_ms(2), 1000);
+        assert_eq!(backoff_ms(4), 4000);
+        assert_eq!(backoff_ms(6), 10_000);
+        assert_eq!(backoff_ms(60), 10_000);
+    }
+}

@@ -1,0 +1,3 @@
+fn main() {
+    spintune_web::start();
+}

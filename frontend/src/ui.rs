@@ -1,0 +1,209 @@
+//! Shared view pieces: a plotters canvas component and the dashboard of plots
+//! used by both the live and the in-browser mode.
+
+use leptos::html;
+use leptos::prelude::*;
+use plotters::coord::Shift;
+use plotters::prelude::*;
+use plotters_canvas::CanvasBackend;
+use wasm_bindgen::JsValue;
+
+use crate::charts;
+use crate::model::{format_lab_time, History};
+
+/// A drawing function for [`Chart`]: returns how many iterations it drew.
+pub type Area = DrawingArea<CanvasBackend, Shift>;
+
+fn note_first_chart(iterations: usize) {
+    if iterations == 0 {
+        return;
+    }
+    let w = window();
+    let key = JsValue::from_str("spintuneFirstChartMs");
+    let already = js_sys::Reflect::get(&w, &key).map(|v| !v.is_undefined()).unwrap_or(true);
+    if !already {
+        let now = w.performance().map(|p| p.now()).unwrap_or(f64::NAN);
+        let _ = js_sys::Reflect::set(&w, &key, &JsValue::from_f64(now));
+    }
+}
+
+/// A `<canvas>` redrawn by plotters whenever the signals read in `draw` change.
+/// The canvas takes the width of its container and the given height.
+/// After each draw it carries `data-iterations` (iterations drawn) and
+/// `data-draws` (number of draws), which the end-to-end test reads.
+#[component]
+pub fn Chart<F>(
+    /// Name for tests and screen readers.
+    #[prop(into)]
+    name: String,
+    /// Height in CSS pixels.
+    height: u32,
+    /// Draws the figure; returns the number of iterations drawn.
+    draw: F,
+) -> impl IntoView
+where
+    F: Fn(&Area) -> Result<usize, String> + 'static,
+{
+    let node = NodeRef::<html::Canvas>::new();
+    let draws = StoredValue::new(0u64);
+    Effect::new(move |_| {
+        let Some(canvas) = node.get() else {
+            return;
+        };
+        let ratio = window().device_pixel_ratio().clamp(1.0, 2.0);
+        let css_w = canvas.client_width().max(320) as f64;
+        canvas.set_width((css_w * ratio) as u32);
+        canvas.set_height((height as f64 * ratio) as u32);
+        let Some(backend) = CanvasBackend::with_canvas_object(canvas.clone()) else {
+            return;
+        };
+        if let Ok(Some(ctx)) = canvas.get_context("2d") {
+            use wasm_bindgen::JsCast;
+            if let Ok(ctx) = ctx.dyn_into::<web_sys::CanvasRenderingContext2d>() {
+                let _ = ctx.scale(ratio, ratio);
+            }
+        }
+        let root = backend.into_drawing_area();
+        let root = root.shrink((0, 0), (css_w as u32, height));
+        let _ = root.fill(&WHITE);
+        let drawn = match draw(&root) {
+            Ok(n) => n,
+            Err(e) => {
+                leptos::logging::warn!("chart {}: {e}", canvas.id());
+                0
+            }
+        };
+        let _ = root.present();
+        draws.update_value(|d| *d += 1);
+        let _ = canvas.set_attribute("data-iterations", &drawn.to_string());
+        let _ = canvas.set_attribute("data-draws", &draws.get_value().to_string());
+        note_first_chart(drawn);
+    });
+    view! {
+        <canvas
+            node_ref=node
+            class="chart"
+            data-chart=name.clone()
+            aria-label=name
+            style=format!("height:{height}px")
+        ></canvas>
+    }
+}
+
+/// Headline numbers of a history.
+#[component]
+pub fn Stats(history: RwSignal<History>) -> impl IntoView {
+    let last = move || history.with(|h| h.last().map(|r| (r.iteration, r.lab_seconds, r.tuned, r.failed_evaluations)));
+    view! {
+        <div class="stats">
+            {move || match last() {
+                None => view! { <span class="stat">"no iterations yet"</span> }.into_any(),
+                Some((k, lab, tuned, failed)) => view! {
+                    <span class="stat">"iteration " <b data-testid="iteration">{k}</b></span>
+                    <span class="stat">"lab time " <b data-testid="lab-time">{format_lab_time(lab)}</b></span>
+                    <span class="stat">"failed fits " <b>{failed}</b></span>
+                    <span class=if tuned { "badge ok" } else { "badge" } data-testid="tuned">
+                        {if tuned { "tuned: all parameters in band" } else { "tuning…" }}
+                    </span>
+                }.into_any(),
+            }}
+        </div>
+    }
+}
+
+/// The plots of one run: parameters, gradients, gates, latest scans, lab time.
+#[component]
+pub fn Dashboard(history: RwSignal<History>) -> impl IntoView {
+    let names = Memo::new(move |_| {
+        history.with(|h| {
+            h.last()
+                .map(|r| r.parameters.iter().map(|p| p.name.clone()).collect::<Vec<_>>())
+                .unwrap_or_default()
+        })
+    });
+    let scan_count = Memo::new(move |_| history.with(|h| h.last().map_or(0, |r| r.scans.len())));
+    let events = Memo::new(move |_| {
+        history.with(|h| {
+            h.records()
+                .iter()
+                .rev()
+                .flat_map(|r| r.events.iter().map(move |e| (r.iteration, e.clone())))
+                .take(6)
+                .collect::<Vec<_>>()
+        })
+    });
+    view! {
+        <div class="dashboard">
+            <Stats history=history />
+            <Show when=move || history.with(|h| h.is_empty())>
+                <p class="hint">"Waiting for the first iteration…"</p>
+            </Show>
+            <h3>"Parameters"</h3>
+            <div class="grid2">
+                <For
+                    each=move || names.get().into_iter().enumerate()
+                    key=|(i, n)| (*i, n.clone())
+                    children=move |(i, name)| {
+                        let n2 = name.clone();
+                        view! {
+                            <Chart
+                                name=format!("parameter-{name}")
+                                height=270
+                                draw=move |a: &Area| history.with(|h| charts::draw_parameter(a, h.records(), &n2, i).map(|_| h.len()))
+                            />
+                        }
+                    }
+                />
+            </div>
+            <h3>"Gradient estimates " <small>"(error bars: ±1σ = √diag C of the estimator)"</small></h3>
+            <For
+                each=move || names.get()
+                key=|n| n.clone()
+                children=move |name| {
+                    let n2 = name.clone();
+                    view! {
+                        <Chart
+                            name=format!("gradient-{name}")
+                            height=210
+                            draw=move |a: &Area| history.with(|h| charts::draw_gradient(a, h.records(), &n2).map(|_| h.len()))
+                        />
+                    }
+                }
+            />
+            <h3>"Gate voltages"</h3>
+            <Chart
+                name="gates"
+                height=200
+                draw=move |a: &Area| history.with(|h| charts::draw_gates(a, h.records()).map(|_| h.len()))
+            />
+            <h3>"Latest scans and fits"</h3>
+            <div class="grid2">
+                <For
+                    each=move || 0..scan_count.get().max(1)
+                    key=|i| *i
+                    children=move |i| view! {
+                        <Chart
+                            name=format!("scan-{i}")
+                            height=250
+                            draw=move |a: &Area| history.with(|h| {
+                                let last = h.last();
+                                charts::draw_scan(a, last.and_then(|r| r.scans.get(i)), last.map(|r| r.iteration)).map(|_| h.len())
+                            })
+                        />
+                    }
+                />
+                <Chart
+                    name="lab-time"
+                    height=250
+                    draw=move |a: &Area| history.with(|h| charts::draw_lab_time(a, h.records()).map(|_| h.len()))
+                />
+            </div>
+            <Show when=move || !events.with(|e| e.is_empty())>
+                <h3>"Recent events"</h3>
+                <ul class="events">
+                    {move || events.get().into_iter().map(|(k, e)| view! { <li><b>{format!("#{k} ")}</b>{e}</li> }).collect_view()}
+                </ul>
+            </Show>
+        </div>
+    }
+}

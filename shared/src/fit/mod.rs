@@ -1,0 +1,168 @@
+//! Parameter extraction from raw scans by Levenberg–Marquardt fits
+//! (the `levenberg-marquardt` crate on nalgebra).
+//!
+//! | scan | fit | parameters |
+//! |---|---|---|
+//! | [`ScanKind::TransitionWidth`] | [`tanh::fit_tanh_step`] | `w` (µV) = 1000 × fitted width (mV) |
+//! | [`ScanKind::ReloadTime`] | [`exponential::fit_exponential`] | `t_sr` (ns) = τ |
+//! | [`ScanKind::SensingDot`] | [`peak::fit_highest_peak`] | `sd_flank_mv` (mV), `sd_contrast` (0..1) |
+//! | [`ScanKind::ChemicalPotential`] | [`tanh::fit_tanh_step`] per line | `mu_a_mv`, `mu_b_mv` (mV) |
+//!
+//! Variances: `w` and `t_sr` by the paper's residual rule
+//! ([`uncertainty`]); the others from the fit covariance. A fit that does
+//! not converge or whose result is implausible is an `Err`, never a value.
+//! All model functions use [`crate::sim::detmath`], so fits are
+//! bit-reproducible across targets.
+
+pub mod exponential;
+pub(crate) mod lm;
+pub mod peak;
+pub mod tanh;
+pub mod uncertainty;
+
+use crate::protocol::{ParameterValue, RawScan, ScanKind, Trace};
+use uncertainty::{scaled_residual_sum, References, DEFAULT_REFERENCES};
+
+/// Why a scan could not be evaluated.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum FitError {
+    /// Not enough data points for the model.
+    #[error("too few points: got {got}, need at least {need}")]
+    TooFewPoints {
+        /// Points supplied.
+        got: usize,
+        /// Points needed.
+        need: usize,
+    },
+    /// Levenberg–Marquardt did not converge.
+    #[error("fit did not converge: {0}")]
+    NotConverged(String),
+    /// The data are malformed or the fit result is implausible.
+    #[error("bad data: {0}")]
+    BadData(String),
+    /// No usable Coulomb peak in a sensing-dot sweep.
+    #[error("no usable peak: {0}")]
+    NoPeak(String),
+}
+
+/// Parameters extracted from one scan, with the fitted curves for display.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Evaluation {
+    /// Fitted parameters with variances (unit²).
+    pub values: Vec<ParameterValue>,
+    /// Fitted curves (label `"fit"` or `"fit <trace label>"`), on the data's x.
+    pub fit: Vec<Trace>,
+}
+
+/// Evaluates a raw scan with the reference constants of the default device
+/// ([`DEFAULT_REFERENCES`]).
+///
+/// ```
+/// use spintune::protocol::{Request, Response, ScanKind, ScanOutcome, ScanRequest};
+/// use spintune::sim::{default_gates, DeviceConfig, SimulatedDevice};
+/// let mut dev = SimulatedDevice::new(DeviceConfig::default(), &default_gates(), 1).unwrap();
+/// let req = Request::Measure { scan: ScanRequest { kind: ScanKind::ReloadTime, sweep: None } };
+/// let Response::Scanned { outcome: ScanOutcome::Raw { scan }, .. } = dev.execute(&req) else { panic!() };
+/// let eval = spintune::fit::evaluate(&scan).unwrap();
+/// assert_eq!(eval.values[0].name, "t_sr");
+/// assert!((eval.values[0].value - dev.truth().t_sr_ns).abs() < 5.0);
+/// ```
+pub fn evaluate(scan: &RawScan) -> Result<Evaluation, FitError> {
+    evaluate_with(scan, &DEFAULT_REFERENCES)
+}
+
+/// Like [`evaluate`], with explicit reference constants for the `w` and
+/// `t_sr` uncertainties (e.g. from [`crate::sim::calibrate_reference`] or a
+/// lab's own repeated measurements).
+pub fn evaluate_with(scan: &RawScan, references: &References) -> Result<Evaluation, FitError> {
+    match scan.kind {
+        ScanKind::TransitionWidth => {
+            let t = single_trace(scan)?;
+            let f = tanh::fit_tanh_step(&t.x, &t.y)?;
+            let sigma = scaled_residual_sum(&f.residuals, f.height.abs());
+            let delta = references.w.delta(sigma);
+            Ok(Evaluation {
+                values: vec![value("w", 1000.0 * f.width, delta * delta)?],
+                fit: vec![curve("fit", &t.x, |x| f.value(x))],
+            })
+        }
+        ScanKind::ReloadTime => {
+            let t = single_trace(scan)?;
+            let f = exponential::fit_exponential(&t.x, &t.y)?;
+            let (lo, hi) = t
+                .y
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
+                    (l.min(v), h.max(v))
+                });
+            let sigma = scaled_residual_sum(&f.residuals, hi - lo);
+            let delta = references.t_sr.delta(sigma);
+            Ok(Evaluation {
+                values: vec![value("t_sr", f.tau, delta * delta)?],
+                fit: vec![curve("fit", &t.x, |x| f.value(x))],
+            })
+        }
+        ScanKind::SensingDot => {
+            let t = single_trace(scan)?;
+            let p = peak::fit_highest_peak(&t.x, &t.y)?;
+            let n = t.x.len();
+            let centre = 0.5 * (t.x[0] + t.x[n - 1]);
+            let (slope, slope_var) = peak::local_slope(&t.x, &t.y, centre, 0.25 * p.width);
+            let contrast = (slope.abs() / p.max_slope).min(1.0);
+            let contrast_var = slope_var / (p.max_slope * p.max_slope);
+            Ok(Evaluation {
+                values: vec![
+                    value("sd_flank_mv", p.flank, p.flank_variance)?,
+                    value("sd_contrast", contrast, contrast_var)?,
+                ],
+                fit: vec![curve("fit", &p.window_x, |x| p.value(x))],
+            })
+        }
+        ScanKind::ChemicalPotential => {
+            let mut values = Vec::new();
+            let mut fit = Vec::new();
+            for (name, prefix) in [("mu_a_mv", "RFA"), ("mu_b_mv", "RFB")] {
+                let t = scan
+                    .traces
+                    .iter()
+                    .find(|t| t.label.starts_with(prefix))
+                    .ok_or_else(|| {
+                        FitError::BadData(format!("no trace labelled {prefix:?}…"))
+                    })?;
+                let f = tanh::fit_tanh_step(&t.x, &t.y)?;
+                values.push(value(name, f.center, f.center_std * f.center_std)?);
+                fit.push(curve(&format!("fit {}", t.label), &t.x, |x| f.value(x)));
+            }
+            Ok(Evaluation { values, fit })
+        }
+    }
+}
+
+fn single_trace(scan: &RawScan) -> Result<&Trace, FitError> {
+    match scan.traces.as_slice() {
+        [t] => Ok(t),
+        ts => Err(FitError::BadData(format!(
+            "{:?} scan needs exactly one trace, got {}",
+            scan.kind,
+            ts.len()
+        ))),
+    }
+}
+
+fn value(name: &str, value: f64, variance: f64) -> Result<ParameterValue, FitError> {
+    let v = ParameterValue {
+        name: name.into(),
+        value,
+        variance,
+    };
+    v.validate().map_err(FitError::BadData)?;
+    Ok(v)
+}
+
+fn curve(label: &str, x: &[f64], f: impl Fn(f64) -> f64) -> Trace {
+    Trace {
+        label: label.into(),
+        x: x.to_vec(),
+        y: x.iter().map(|&x| f(x)).collect(),
+    }
+}

@@ -1,0 +1,55 @@
+//! Slow drifts (Ornstein–Uhlenbeck) and charge jumps.
+
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::Distribution;
+use serde::{Deserialize, Serialize};
+
+use super::config::NoiseConfig;
+use super::detmath::{exp, StandardNormal};
+
+/// The device's slowly varying disorder state. All start at 0.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DriftState {
+    /// OU drift of transition line A, mV on RFA.
+    pub mu_a_mv: f64,
+    /// OU drift of transition line B, mV on RFB.
+    pub mu_b_mv: f64,
+    /// OU drift of the sensing-dot potential u, mV.
+    pub sd_u_mv: f64,
+    /// OU drift of the sensor signal offset, a.u.
+    pub signal: f64,
+    /// Accumulated (persistent) shift of u by charge jumps, mV.
+    pub jump_u_mv: f64,
+    /// Number of charge jumps so far.
+    pub jumps: u64,
+}
+
+fn ou(x: f64, sigma: f64, decay: f64, rng: &mut ChaCha8Rng) -> f64 {
+    let n: f64 = StandardNormal.sample(rng);
+    x * decay + sigma * (1.0 - decay * decay).max(0.0).sqrt() * n
+}
+
+impl DriftState {
+    /// Evolves every drift by `dt_s` of lab time and draws charge jumps
+    /// (Poisson rate [`NoiseConfig::charge_jump_rate_per_s`]). Returns
+    /// whether a jump happened. Always consumes the same random numbers
+    /// for the same state, so it is deterministic.
+    pub(crate) fn advance(&mut self, noise: &NoiseConfig, dt_s: f64, rng: &mut ChaCha8Rng) -> bool {
+        let decay = exp(-dt_s / noise.drift_time_s);
+        self.mu_a_mv = ou(self.mu_a_mv, noise.drift_mu_mv, decay, rng);
+        self.mu_b_mv = ou(self.mu_b_mv, noise.drift_mu_mv, decay, rng);
+        self.sd_u_mv = ou(self.sd_u_mv, noise.drift_sd_mv, decay, rng);
+        self.signal = ou(self.signal, noise.drift_signal, decay, rng);
+        let p_jump = 1.0 - exp(-noise.charge_jump_rate_per_s * dt_s);
+        if rng.gen::<f64>() < p_jump {
+            let n: f64 = StandardNormal.sample(rng);
+            self.jump_u_mv += noise.charge_jump_sd_mv * n;
+            self.jumps += 1;
+            true
+        } else {
+            false
+        }
+    }
+}

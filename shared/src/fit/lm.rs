@@ -37,7 +37,11 @@ impl Fitted {
 
     /// Residual standard deviation `√(Σr²/(n − p))`.
     pub fn residual_std(&self) -> f64 {
-        let dof = self.residuals.len().saturating_sub(self.params.len()).max(1);
+        let dof = self
+            .residuals
+            .len()
+            .saturating_sub(self.params.len())
+            .max(1);
         (self.ssr() / dof as f64).sqrt()
     }
 
@@ -98,7 +102,12 @@ impl<M: Model> LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_, M> {
 
 /// Least-squares fit of `model` to `(x, y)` from the start `p0`.
 /// `Err(NotConverged)` unless LM reports success and all parameters are finite.
-pub(crate) fn fit<M: Model>(model: &M, x: &[f64], y: &[f64], p0: &[f64]) -> Result<Fitted, FitError> {
+pub(crate) fn fit<M: Model>(
+    model: &M,
+    x: &[f64],
+    y: &[f64],
+    p0: &[f64],
+) -> Result<Fitted, FitError> {
     debug_assert_eq!(p0.len(), M::N);
     if x.len() != y.len() {
         return Err(FitError::BadData(format!(

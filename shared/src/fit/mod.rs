@@ -89,12 +89,11 @@ pub fn evaluate_with(scan: &RawScan, references: &References) -> Result<Evaluati
         ScanKind::ReloadTime => {
             let t = single_trace(scan)?;
             let f = exponential::fit_exponential(&t.x, &t.y)?;
-            let (lo, hi) = t
-                .y
-                .iter()
-                .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
-                    (l.min(v), h.max(v))
-                });
+            let (lo, hi) =
+                t.y.iter()
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
+                        (l.min(v), h.max(v))
+                    });
             let sigma = scaled_residual_sum(&f.residuals, hi - lo);
             let delta = references.t_sr.delta(sigma);
             Ok(Evaluation {
@@ -107,7 +106,7 @@ pub fn evaluate_with(scan: &RawScan, references: &References) -> Result<Evaluati
             let p = peak::fit_highest_peak(&t.x, &t.y)?;
             let n = t.x.len();
             let centre = 0.5 * (t.x[0] + t.x[n - 1]);
-            let (slope, slope_var) = peak::local_slope(&t.x, &t.y, centre, 0.25 * p.width);
+            let (slope, slope_var) = peak::local_slope(&t.x, &t.y, centre, 0.3 * p.width);
             let contrast = (slope.abs() / p.max_slope).min(1.0);
             let contrast_var = slope_var / (p.max_slope * p.max_slope);
             Ok(Evaluation {
@@ -126,9 +125,7 @@ pub fn evaluate_with(scan: &RawScan, references: &References) -> Result<Evaluati
                     .traces
                     .iter()
                     .find(|t| t.label.starts_with(prefix))
-                    .ok_or_else(|| {
-                        FitError::BadData(format!("no trace labelled {prefix:?}…"))
-                    })?;
+                    .ok_or_else(|| FitError::BadData(format!("no trace labelled {prefix:?}…")))?;
                 let f = tanh::fit_tanh_step(&t.x, &t.y)?;
                 values.push(value(name, f.center, f.center_std * f.center_std)?);
                 fit.push(curve(&format!("fit {}", t.label), &t.x, |x| f.value(x)));

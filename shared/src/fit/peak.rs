@@ -1,6 +1,8 @@
 //! Coulomb peak `y = b + h·sech²((x − x₀)/γ)`: the sensing-dot sweep →
 //! steepest flank of the highest peak (`sd_flank_mv`) and `sd_contrast`.
 
+use nalgebra::{DMatrix, DVector};
+
 use super::lm::{self, Model};
 use super::tanh::check_axis;
 use super::FitError;
@@ -125,7 +127,9 @@ pub fn fit_highest_peak(x: &[f64], y: &[f64]) -> Result<Peak, FitError> {
         )));
     }
     if gamma < 0.5 * dx || gamma > x[n - 1] - x[0] {
-        return Err(FitError::NoPeak(format!("peak width {gamma:.3e} not resolved")));
+        return Err(FitError::NoPeak(format!(
+            "peak width {gamma:.3e} not resolved"
+        )));
     }
     let flank = c - STEEPEST_SECH2_OFFSET * gamma;
     if !(wx[0]..=wx[wx.len() - 1]).contains(&c) || flank < x[0] {
@@ -154,24 +158,32 @@ pub fn fit_highest_peak(x: &[f64], y: &[f64]) -> Result<Peak, FitError> {
     })
 }
 
-/// Local slope of the data at `x_c` by a straight-line fit to the points
-/// within ±`half_width` of it (at least 3 points nearest to `x_c`).
-/// Returns `(slope, variance of slope)` with the noise estimated from the
-/// whole trace.
+/// Local slope of the data at `x_c` from a cubic least-squares polynomial
+/// through the points within ±`half_width` of it (at least the 7 points
+/// nearest to `x_c`). Returns `(slope, variance of slope)` with the noise
+/// estimated from the whole trace. The cubic makes the slope exact up to
+/// fourth-order curvature terms, so a noiseless peak flank gives its true slope.
 pub(crate) fn local_slope(x: &[f64], y: &[f64], x_c: f64, half_width: f64) -> (f64, f64) {
     let mut idx: Vec<usize> = (0..x.len())
         .filter(|&i| (x[i] - x_c).abs() <= half_width)
         .collect();
-    if idx.len() < 3 {
+    if idx.len() < 7 {
         let mut all: Vec<usize> = (0..x.len()).collect();
         all.sort_by(|&a, &b| (x[a] - x_c).abs().total_cmp(&(x[b] - x_c).abs()));
-        idx = all.into_iter().take(3).collect();
+        idx = all.into_iter().take(7).collect();
     }
-    let m = idx.len() as f64;
-    let xm = idx.iter().map(|&i| x[i]).sum::<f64>() / m;
-    let ym = idx.iter().map(|&i| y[i]).sum::<f64>() / m;
-    let sxx: f64 = idx.iter().map(|&i| (x[i] - xm).powi(2)).sum();
-    let sxy: f64 = idx.iter().map(|&i| (x[i] - xm) * (y[i] - ym)).sum();
+    let h = idx
+        .iter()
+        .map(|&i| (x[i] - x_c).abs())
+        .fold(0.0, f64::max)
+        .max(f64::MIN_POSITIVE);
+    let design = DMatrix::from_fn(idx.len(), 4, |r, c| ((x[idx[r]] - x_c) / h).powi(c as i32));
+    let rhs = DVector::from_iterator(idx.len(), idx.iter().map(|&i| y[i]));
+    let normal = design.transpose() * &design;
+    let Some(inv) = normal.try_inverse() else {
+        return (0.0, f64::INFINITY);
+    };
+    let coef = &inv * (design.transpose() * rhs);
     let noise = lm::noise_estimate(y);
-    (sxy / sxx, noise * noise / sxx)
+    (coef[1] / h, noise * noise * inv[(1, 1)] / (h * h))
 }

@@ -48,7 +48,13 @@ impl TanhStep {
     /// The fitted curve at `x`.
     pub fn value(&self, x: f64) -> f64 {
         TanhModel.value(
-            &[self.offset, self.slope, self.height, self.center, self.width],
+            &[
+                self.offset,
+                self.slope,
+                self.height,
+                self.center,
+                self.width,
+            ],
             x,
         )
     }
@@ -134,7 +140,11 @@ pub fn fit_tanh_step(x: &[f64], y: &[f64]) -> Result<TanhStep, FitError> {
     let f = best.ok_or_else(|| last_err.unwrap_or(FitError::NotConverged("tanh step".into())))?;
     let p = &f.params;
     // tanh is odd: (A, w) and (−A, −w) are the same curve.
-    let (height, width) = if p[4] < 0.0 { (-p[2], -p[4]) } else { (p[2], p[4]) };
+    let (height, width) = if p[4] < 0.0 {
+        (-p[2], -p[4])
+    } else {
+        (p[2], p[4])
+    };
     let noise = f.residual_std();
     if height.abs() < 3.0 * noise {
         return Err(FitError::BadData(format!(

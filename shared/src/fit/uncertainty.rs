@@ -53,16 +53,17 @@ pub struct References {
 /// ([`crate::sim::DeviceConfig::default`] at the start point of
 /// [`crate::sim::default_gates`]), from
 /// `spintune::sim::calibrate_reference(&DeviceConfig::default(), &default_gates(), 2024, 400)`
-/// (400 scans of each kind, seed 2024), rounded to two significant digits.
-/// A test in `sim::calibration` re-derives them and checks agreement within 15 %.
+/// (400 scans of each kind, seed 2024), rounded to three significant digits.
+/// The test `reference_constants_match_calibration` in `shared/tests/sim_fits.rs`
+/// re-derives them and checks agreement within 1 %.
 pub const DEFAULT_REFERENCES: References = References {
     w: Reference {
-        sigma0: 0.16,
-        delta_p0: 4.1,
+        sigma0: 0.0116,
+        delta_p0: 4.67,
     },
     t_sr: Reference {
-        sigma0: 0.09,
-        delta_p0: 0.72,
+        sigma0: 0.005_33,
+        delta_p0: 0.546,
     },
 };
 

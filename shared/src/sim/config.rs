@@ -567,7 +567,10 @@ impl DeviceConfig {
         if !(det.abs() > 1e-12 * scale) {
             return m;
         }
-        let inv = [[g[1][1] / det, -g[0][1] / det], [-g[1][0] / det, g[0][0] / det]];
+        let inv = [
+            [g[1][1] / det, -g[0][1] / det],
+            [-g[1][0] / det, g[0][0] / det],
+        ];
         for (j, t) in tuning.iter().enumerate() {
             let kt = [k(ra, t), k(rb, t)];
             // y = G⁻¹ K_t[:, j]

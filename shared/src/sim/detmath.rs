@@ -220,7 +220,10 @@ mod tests {
         let mut x = 1e-300;
         while x < 1e300 {
             let (a, b) = (ln(x), x.ln());
-            assert!((a - b).abs() <= 2.3e-16 * b.abs().max(1.0), "ln({x}): {a} vs {b}");
+            assert!(
+                (a - b).abs() <= 2.3e-16 * b.abs().max(1.0),
+                "ln({x}): {a} vs {b}"
+            );
             x *= 1.37;
         }
         for x in [0.5, 0.999_999, 1.000_001, 2.0, 5e-320] {
@@ -235,7 +238,10 @@ mod tests {
         while x < 25.0 {
             assert!((tanh(x) - x.tanh()).abs() < 3e-16, "tanh({x})");
             let s = 1.0 / x.cosh().powi(2);
-            assert!((sech2(x) - s).abs() < 1e-15 * s.max(1e-300) + 1e-300, "sech2({x})");
+            assert!(
+                (sech2(x) - s).abs() < 1e-15 * s.max(1e-300) + 1e-300,
+                "sech2({x})"
+            );
             x += 0.0137;
         }
         assert!((tanh(1e-5) - 1e-5f64.tanh()).abs() < 1e-20);

@@ -115,7 +115,10 @@ impl SimulatedDevice {
         let mut voltages_mv = BTreeMap::new();
         for g in gates {
             if !(g.min_mv.is_finite() && g.max_mv.is_finite() && g.initial_mv.is_finite()) {
-                return Err(format!("gate {:?}: limits and initial voltage must be finite", g.name));
+                return Err(format!(
+                    "gate {:?}: limits and initial voltage must be finite",
+                    g.name
+                ));
             }
             if !(g.min_mv <= g.initial_mv && g.initial_mv <= g.max_mv) {
                 return Err(format!(
@@ -287,7 +290,11 @@ impl SimulatedDevice {
     /// assert!(j[(0, 0)] < -0.5); // opening SB speeds up the reload
     /// assert!(dev.true_jacobian(&["X"], &["w"]).is_err());
     /// ```
-    pub fn true_jacobian(&self, gates: &[&str], parameters: &[&str]) -> Result<DMatrix<f64>, String> {
+    pub fn true_jacobian(
+        &self,
+        gates: &[&str],
+        parameters: &[&str],
+    ) -> Result<DMatrix<f64>, String> {
         for p in parameters {
             if !Truth::PARAMETERS.contains(p) {
                 return Err(format!(
@@ -308,7 +315,10 @@ impl SimulatedDevice {
             v.insert(gate.to_string(), v0 - JACOBIAN_STEP_MV);
             let minus = self.truth_at(&v);
             for (row, p) in parameters.iter().enumerate() {
-                let (a, b) = (plus.get(p).unwrap_or(f64::NAN), minus.get(p).unwrap_or(f64::NAN));
+                let (a, b) = (
+                    plus.get(p).unwrap_or(f64::NAN),
+                    minus.get(p).unwrap_or(f64::NAN),
+                );
                 j[(row, col)] = (a - b) / (2.0 * JACOBIAN_STEP_MV);
             }
         }

@@ -104,7 +104,11 @@ pub(crate) fn sd_flank_mv(config: &DeviceConfig, gate_mv: f64, u: f64) -> f64 {
         .max_by(|&a, &b| {
             peak_height(config, a)
                 .total_cmp(&peak_height(config, b))
-                .then((centre(b) - gate_mv).abs().total_cmp(&(centre(a) - gate_mv).abs()))
+                .then(
+                    (centre(b) - gate_mv)
+                        .abs()
+                        .total_cmp(&(centre(a) - gate_mv).abs()),
+                )
         })
         .unwrap_or(k_near);
     centre(best) - STEEPEST_SECH2_OFFSET * sd.peak_width_mv / lever.abs()

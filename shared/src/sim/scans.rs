@@ -30,9 +30,10 @@ impl SimulatedDevice {
                 };
                 (self.sd_sweep(&sweep)?, durations.sd_1d_s)
             }
-            ScanKind::ChemicalPotential => {
-                (self.chemical_potential_scan(), durations.chemical_potential_s)
-            }
+            ScanKind::ChemicalPotential => (
+                self.chemical_potential_scan(),
+                durations.chemical_potential_s,
+            ),
             ScanKind::TransitionWidth => (self.detuning_scan(), durations.transition_width_s),
             ScanKind::ReloadTime => (self.load_curve(), durations.reload_time_s),
         };
@@ -74,7 +75,10 @@ impl SimulatedDevice {
         let d = model::deviations(&self.config, &self.voltages_mv);
         let base_u = model::sd_potential_mv(&self.config, &d);
         let raw = model::raw_lines_mv(&self.config, &d);
-        let base_lines = [raw[0] - self.line_offsets_mv[0], raw[1] - self.line_offsets_mv[1]];
+        let base_lines = [
+            raw[0] - self.line_offsets_mv[0],
+            raw[1] - self.line_offsets_mv[1],
+        ];
         let mut y = Vec::with_capacity(x.len());
         for &xi in x {
             let (g, dg) = model::sd_signal(&self.config, self.sd_u(base_u));
@@ -148,7 +152,8 @@ impl SimulatedDevice {
         let mut traces = Vec::new();
         for (line, label) in [(0usize, "RFA sweep"), (1, "RFB sweep")] {
             let y = self.record(&x, white, dt, |xi, lines| {
-                sd.charge_shift_mv * model::lead_occupation(&cfg, xi - lines[line]) + sd.rf_lever * xi
+                sd.charge_shift_mv * model::lead_occupation(&cfg, xi - lines[line])
+                    + sd.rf_lever * xi
             });
             traces.push(Trace {
                 label: label.into(),

@@ -150,20 +150,56 @@ fn parse_id(id: &str) -> ApiResult<u64> {
 
 /// Parse a `ControlCommand` from JSON text, naming the offending field on error.
 pub fn parse_control(text: &str) -> Result<ControlCommand, String> {
-    let de = &mut serde_json::Deserializer::from_str(text);
-    let cmd: ControlCommand = serde_path_to_error::deserialize(de).map_err(|e| describe(&e))?;
+    let cmd: ControlCommand = parse_strict(text)?;
     validate_control(&cmd)?;
     Ok(cmd)
 }
 
 /// Parse a `ClientMessage` from JSON text, naming the offending field on error.
 pub fn parse_client_message(text: &str) -> Result<ClientMessage, String> {
-    let de = &mut serde_json::Deserializer::from_str(text);
-    let msg: ClientMessage = serde_path_to_error::deserialize(de).map_err(|e| describe(&e))?;
+    let msg: ClientMessage = parse_strict(text)?;
     if let ClientMessage::Control { command } = &msg {
         validate_control(command)?;
     }
     Ok(msg)
+}
+
+/// Deserialize `T`, then refuse keys that `T` does not have. (serde ignores
+/// `deny_unknown_fields` on unit variants of internally tagged enums, e.g.
+/// `{"action":"pause","extra":1}`; comparing with the re-serialized value
+/// catches those.)
+fn parse_strict<T: serde::de::DeserializeOwned + serde::Serialize>(text: &str) -> Result<T, String> {
+    let de = &mut serde_json::Deserializer::from_str(text);
+    let raw: serde_json::Value =
+        serde_path_to_error::deserialize(de).map_err(|e| describe(&e))?;
+    let typed: T = serde_path_to_error::deserialize(raw.clone()).map_err(|e| {
+        let path = e.path().to_string();
+        if path == "." {
+            format!("malformed message: {}", e.inner())
+        } else {
+            format!("malformed message at `{path}`: {}", e.inner())
+        }
+    })?;
+    let back = serde_json::to_value(&typed).map_err(|e| e.to_string())?;
+    unknown_keys(&raw, &back, "")?;
+    Ok(typed)
+}
+
+fn unknown_keys(raw: &serde_json::Value, known: &serde_json::Value, path: &str) -> Result<(), String> {
+    if let (serde_json::Value::Object(r), serde_json::Value::Object(k)) = (raw, known) {
+        for (key, v) in r {
+            let here = if path.is_empty() {
+                key.clone()
+            } else {
+                format!("{path}.{key}")
+            };
+            match k.get(key) {
+                None => return Err(format!("malformed message: unknown field `{here}`")),
+                Some(kv) => unknown_keys(v, kv, &here)?,
+            }
+        }
+    }
+    Ok(())
 }
 
 fn describe(e: &serde_path_to_error::Error<serde_json::Error>) -> String {

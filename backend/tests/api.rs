@@ -248,7 +248,9 @@ async fn malformed_messages_get_clear_errors_and_the_socket_stays_open() {
         (r#"{"seed":"abc"}"#, "seed"),
         (r#"{"tuner":{"levels":[]}}"#, "levels"),
         (r#"{"device_typo":1}"#, "device_typo"),
-        (r#"{"targets":{"t_sr":-5e400}}"#, "targets"),
+        (r#"{"targets":{"t_sr":-5e400}}"#, "number out of range"),
+        (r#"{"targets":{"t_sr":"high"}}"#, "targets.t_sr"),
+        (r#"{"tuner":{"gates":[{"name":"N","min_mv":10,"max_mv":0,"initial_mv":5}]}}"#, "tuner.gates[0].min_mv"),
     ] {
         let (s, text) = http(srv.addr, "POST", "/api/runs", Some(TOKEN), Some(body)).await;
         assert_eq!(s, 422, "{body} → {text}");

@@ -130,7 +130,11 @@ async fn measure(
         .control(id, spintune::protocol::ControlCommand::Stop)
         .await
         .map_err(CliError::runtime)?;
-    server.manager.wait_idle(id).await.map_err(CliError::runtime)?;
+    server
+        .manager
+        .wait_idle(id)
+        .await
+        .map_err(CliError::runtime)?;
     let checkpoint = server
         .manager
         .store()
@@ -162,7 +166,10 @@ async fn measure(
                 if let Message::Text(t) = msg {
                     let t = t.as_str();
                     if let Some(k) = frame_iteration(t) {
-                        let sent = send_times.lock().ok().and_then(|v| v.get(k as usize).copied().flatten());
+                        let sent = send_times
+                            .lock()
+                            .ok()
+                            .and_then(|v| v.get(k as usize).copied().flatten());
                         if let Some(sent) = sent {
                             latencies.push(now.duration_since(sent).as_secs_f64() * 1e3);
                         }
@@ -212,9 +219,8 @@ async fn measure(
     server.task.abort();
     let mut all = Vec::new();
     for c in clients {
-        match tokio::time::timeout(Duration::from_secs(10), c).await {
-            Ok(Ok(l)) => all.extend(l),
-            _ => {}
+        if let Ok(Ok(l)) = tokio::time::timeout(Duration::from_secs(10), c).await {
+            all.extend(l);
         }
     }
     let _ = std::fs::remove_dir_all(&dir);
@@ -234,9 +240,11 @@ async fn measure(
 
 /// Run the bench and print a markdown table.
 pub async fn run(args: BenchServerArgs) -> Result<(), CliError> {
-    if !(args.rate.is_finite() && args.rate > 0.0) || !(args.seconds.is_finite() && args.seconds > 0.0)
-    {
-        return Err(CliError::input("--rate and --seconds must be positive numbers"));
+    let positive = |x: f64| x.is_finite() && x > 0.0;
+    if !(positive(args.rate) && positive(args.seconds)) {
+        return Err(CliError::input(
+            "--rate and --seconds must be positive numbers",
+        ));
     }
     let mut cfg = SimulationConfig::paper_default();
     cfg.tuner.max_iterations = Some(3);
@@ -245,11 +253,15 @@ pub async fn run(args: BenchServerArgs) -> Result<(), CliError> {
     while let Some(r) = sim.next_iteration().map_err(CliError::runtime)? {
         template = Some(r);
     }
-    let mut template = template.ok_or_else(|| CliError::runtime("the simulator produced no record"))?;
+    let mut template =
+        template.ok_or_else(|| CliError::runtime("the simulator produced no record"))?;
     if args.no_scans {
         template.scans.clear();
     }
-    let frame_bytes = serde_json::to_string(&template).map(|s| s.len()).unwrap_or(0) + 30;
+    let frame_bytes = serde_json::to_string(&template)
+        .map(|s| s.len())
+        .unwrap_or(0)
+        + 30;
     println!(
         "spintune bench-server: rate {} Hz, {} s per point, frame {} bytes, viewer buffer {}, {} cores",
         args.rate,

@@ -271,10 +271,10 @@ pub async fn run(args: RunArgs) -> Result<(), CliError> {
                             bar.set_message(progress_line(&record));
                             last = Some(record);
                         }
-                        Ok(ServerMessage::Status { run }) => {
-                            if !matches!(run.status, RunStatus::Running | RunStatus::Paused) {
-                                break false;
-                            }
+                        Ok(ServerMessage::Status { run })
+                            if !matches!(run.status, RunStatus::Running | RunStatus::Paused) =>
+                        {
+                            break false;
                         }
                         _ => {}
                     }
@@ -300,7 +300,11 @@ pub async fn run(args: RunArgs) -> Result<(), CliError> {
     }
     let final_summary = manager.wait_idle(id).await.map_err(CliError::runtime)?;
     bar.finish_and_clear();
-    println!("Run {id} ({}): {}", final_summary.name, describe_status(&final_summary.status));
+    println!(
+        "Run {id} ({}): {}",
+        final_summary.name,
+        describe_status(&final_summary.status)
+    );
     println!(
         "  iterations: {}   lab time: {:.1} min   tuned: {}",
         final_summary.iterations,
@@ -329,7 +333,9 @@ pub async fn run(args: RunArgs) -> Result<(), CliError> {
         args.db.display()
     );
     match final_summary.status {
-        RunStatus::Failed { message } => Err(CliError::runtime(format!("run {id} failed: {message}"))),
+        RunStatus::Failed { message } => {
+            Err(CliError::runtime(format!("run {id} failed: {message}")))
+        }
         _ => Ok(()),
     }
 }
@@ -382,7 +388,10 @@ pub struct ExportArgs {
 /// `spintune export RUN`.
 pub fn export(args: ExportArgs) -> Result<(), CliError> {
     if !args.db.exists() {
-        return Err(CliError::input(format!("no database at {}", args.db.display())));
+        return Err(CliError::input(format!(
+            "no database at {}",
+            args.db.display()
+        )));
     }
     let store = Store::open(&args.db)
         .map_err(|e| CliError::runtime(format!("cannot open {}: {e}", args.db.display())))?;

@@ -106,8 +106,8 @@ impl RunConfig {
                 backend_map.insert(key.to_string(), v);
             }
         }
-        let backend: BackendSettings =
-            serde_path_to_error::deserialize(Value::Object(backend_map)).map_err(|e| {
+        let backend: BackendSettings = serde_path_to_error::deserialize(Value::Object(backend_map))
+            .map_err(|e| {
                 ConfigParseError(format!("invalid config at `{}`: {}", e.path(), e.inner()))
             })?;
         let mut merged = serde_json::to_value(SimulationConfig::paper_default())

@@ -34,7 +34,7 @@ pub enum Format {
 
 /// Make a unit usable in a column name: `µV` → `uV`, `ns/mV` → `ns_per_mV`.
 fn unit_suffix(unit: &str) -> String {
-    let u = unit.replace('µ', "u").replace('μ', "u").replace('/', "_per_");
+    let u = unit.replace(['µ', 'μ'], "u").replace('/', "_per_");
     u.chars()
         .filter(|c| c.is_ascii_alphanumeric() || *c == '_')
         .collect()
@@ -59,10 +59,16 @@ pub struct Table {
 
 /// Build the table from records in store order.
 pub fn table(records: &[IterationRecord]) -> Table {
-    let mut columns: Vec<String> = ["seq", "iteration", "lab_seconds", "tuned", "failed_evaluations"]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
+    let mut columns: Vec<String> = [
+        "seq",
+        "iteration",
+        "lab_seconds",
+        "tuned",
+        "failed_evaluations",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
     let mut index: BTreeMap<String, usize> = BTreeMap::new();
     let mut col = |columns: &mut Vec<String>, name: String| -> usize {
         if let Some(&i) = index.get(&name) {
@@ -87,17 +93,26 @@ pub fn table(records: &[IterationRecord]) -> Table {
         }
         for p in &r.parameters {
             let opt = |x: Option<f64>| x.map(Value::from).unwrap_or(Value::Null);
-            row.push((col(&mut columns, with_unit(p.name.clone(), &p.unit)), opt(p.value)));
+            row.push((
+                col(&mut columns, with_unit(p.name.clone(), &p.unit)),
+                opt(p.value),
+            ));
             row.push((
                 col(&mut columns, with_unit(format!("{}_std", p.name), &p.unit)),
                 opt(p.std),
             ));
             row.push((
-                col(&mut columns, with_unit(format!("{}_target", p.name), &p.unit)),
+                col(
+                    &mut columns,
+                    with_unit(format!("{}_target", p.name), &p.unit),
+                ),
                 opt(p.target),
             ));
             row.push((
-                col(&mut columns, with_unit(format!("{}_tolerance", p.name), &p.unit)),
+                col(
+                    &mut columns,
+                    with_unit(format!("{}_tolerance", p.name), &p.unit),
+                ),
                 opt(p.tolerance),
             ));
         }
@@ -125,7 +140,10 @@ pub fn table(records: &[IterationRecord]) -> Table {
         }
         for (j, gate) in r.gates.iter().enumerate() {
             if let Some(x) = r.step_mv.get(j) {
-                row.push((col(&mut columns, format!("step_{gate}_mV")), Value::from(*x)));
+                row.push((
+                    col(&mut columns, format!("step_{gate}_mV")),
+                    Value::from(*x),
+                ));
             }
         }
         cells.push(row);
@@ -253,7 +271,11 @@ mod tests {
             "grad_w_T_std_uV_per_mV",
             "step_N_mV",
         ] {
-            assert!(lines[0].split(',').any(|h| h == c), "missing {c} in {}", lines[0]);
+            assert!(
+                lines[0].split(',').any(|h| h == c),
+                "missing {c} in {}",
+                lines[0]
+            );
         }
         let json: Vec<serde_json::Map<String, Value>> =
             serde_json::from_str(&render(&t, Format::Json).unwrap()).unwrap();

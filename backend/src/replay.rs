@@ -64,11 +64,17 @@ pub struct ReplayLine {
 
 fn matrix(rows: &[Vec<f64>], n: usize, what: &str) -> Result<DMatrix<f64>, String> {
     if rows.len() != n {
-        return Err(format!("`{what}` has {} rows, expected {n} (one per gate)", rows.len()));
+        return Err(format!(
+            "`{what}` has {} rows, expected {n} (one per gate)",
+            rows.len()
+        ));
     }
     for (i, r) in rows.iter().enumerate() {
         if r.len() != n {
-            return Err(format!("`{what}[{i}]` has {} entries, expected {n}", r.len()));
+            return Err(format!(
+                "`{what}[{i}]` has {} entries, expected {n}",
+                r.len()
+            ));
         }
         if let Some(j) = r.iter().position(|x| !x.is_finite()) {
             return Err(format!("`{what}[{i}][{j}]` is not a finite number"));
@@ -144,7 +150,9 @@ pub fn replay(input: &ReplayInput) -> Result<Vec<ReplayLine>, String> {
         out.push(ReplayLine {
             step: k,
             gradient: filter.gradient().iter().copied().collect(),
-            covariance: (0..n).map(|i| (0..n).map(|j| c[(i, j)]).collect()).collect(),
+            covariance: (0..n)
+                .map(|i| (0..n).map(|j| c[(i, j)]).collect())
+                .collect(),
         });
     }
     Ok(out)
@@ -152,8 +160,8 @@ pub fn replay(input: &ReplayInput) -> Result<Vec<ReplayLine>, String> {
 
 /// Read `path`, replay, write JSON lines to `out`.
 pub fn run_file(path: &std::path::Path, out: &mut dyn Write) -> Result<(), String> {
-    let text =
-        std::fs::read_to_string(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
     let input = parse(&text)?;
     for line in replay(&input)? {
         let s = serde_json::to_string(&line).map_err(|e| e.to_string())?;

@@ -127,7 +127,10 @@ pub struct RunHandle {
 impl RunHandle {
     /// Current summary.
     pub fn summary(&self) -> RunSummary {
-        self.summary.lock().unwrap_or_else(|p| p.into_inner()).clone()
+        self.summary
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
     }
 
     /// Subscribe to the run's live frames.
@@ -277,8 +280,8 @@ impl Manager {
         let store = self.store.clone();
         let name = config.name().to_string();
         let st = status.clone();
-        let id = blocking(move || store.create_run(&name, &config_json, &st, &checkpoint_json))
-            .await?;
+        let id =
+            blocking(move || store.create_run(&name, &config_json, &st, &checkpoint_json)).await?;
         let handle = Arc::new(RunHandle {
             id,
             summary: Mutex::new(RunSummary {
@@ -348,9 +351,7 @@ impl Manager {
                 } else {
                     Mode::Running
                 };
-                let summary = self
-                    .set_status(&handle, RunStatus::Running)
-                    .await?;
+                let summary = self.set_status(&handle, RunStatus::Running).await?;
                 self.spawn_task(handle, checkpoint, mode);
                 Ok(summary)
             }
@@ -460,8 +461,14 @@ impl Manager {
             )));
         }
         let json = serde_json::to_string(record).map_err(|e| RunError::Internal(e.to_string()))?;
-        self.commit_and_broadcast(&handle, json, checkpoint_json, record.lab_seconds, record.tuned)
-            .await
+        self.commit_and_broadcast(
+            &handle,
+            json,
+            checkpoint_json,
+            record.lab_seconds,
+            record.tuned,
+        )
+        .await
     }
 
     /// Stop run `id` (if live) and delete it with its iterations.
@@ -683,7 +690,13 @@ impl RunTask {
         let record_json =
             serde_json::to_string(&record).map_err(|e| format!("cannot serialize record: {e}"))?;
         self.manager
-            .commit_and_broadcast(&self.handle, record_json, checkpoint, record.lab_seconds, record.tuned)
+            .commit_and_broadcast(
+                &self.handle,
+                record_json,
+                checkpoint,
+                record.lab_seconds,
+                record.tuned,
+            )
             .await
             .map(|_| ())
             .map_err(|e| format!("cannot commit iteration: {e}"))
@@ -728,15 +741,24 @@ impl RunTask {
         let (result, flow) = match command {
             ControlCommand::Pause => {
                 self.mode = Mode::Paused;
-                (Ok(self.publish_status(RunStatus::Paused).await), Flow::Continue)
+                (
+                    Ok(self.publish_status(RunStatus::Paused).await),
+                    Flow::Continue,
+                )
             }
             ControlCommand::Resume => {
                 self.mode = Mode::Running;
-                (Ok(self.publish_status(RunStatus::Running).await), Flow::Continue)
+                (
+                    Ok(self.publish_status(RunStatus::Running).await),
+                    Flow::Continue,
+                )
             }
             ControlCommand::Step => {
                 self.mode = Mode::Step;
-                (Ok(self.publish_status(RunStatus::Running).await), Flow::Continue)
+                (
+                    Ok(self.publish_status(RunStatus::Running).await),
+                    Flow::Continue,
+                )
             }
             ControlCommand::Stop => {
                 let summary = self.handle.set_summary(|s| s.status = RunStatus::Stopped);
@@ -806,8 +828,7 @@ mod tests {
         assert_eq!(v["type"], "iteration");
         assert_eq!(v["record"]["iteration"], 3);
         let h: Value =
-            serde_json::from_str(&history_frame_text(&[rec.to_string(), rec.to_string()]))
-                .unwrap();
+            serde_json::from_str(&history_frame_text(&[rec.to_string(), rec.to_string()])).unwrap();
         assert_eq!(h["records"].as_array().unwrap().len(), 2);
         let empty = serde_json::to_string(&ServerMessage::History { records: vec![] }).unwrap();
         assert_eq!(history_frame_text(&[]), empty);

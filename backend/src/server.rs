@@ -64,8 +64,10 @@ impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
         let mut resp = (self.0, Json(json!({ "error": self.1 }))).into_response();
         if self.0 == StatusCode::UNAUTHORIZED {
-            resp.headers_mut()
-                .insert(header::WWW_AUTHENTICATE, "Bearer".parse().expect("static header"));
+            resp.headers_mut().insert(
+                header::WWW_AUTHENTICATE,
+                "Bearer".parse().expect("static header"),
+            );
         }
         resp
     }
@@ -123,7 +125,10 @@ fn authorize(state: &AppState, headers: &HeaderMap) -> ApiResult<()> {
     if token_eq(token.trim(), &state.token) {
         Ok(())
     } else {
-        Err(ApiError(StatusCode::FORBIDDEN, "invalid control token".into()))
+        Err(ApiError(
+            StatusCode::FORBIDDEN,
+            "invalid control token".into(),
+        ))
     }
 }
 
@@ -168,10 +173,11 @@ pub fn parse_client_message(text: &str) -> Result<ClientMessage, String> {
 /// `deny_unknown_fields` on unit variants of internally tagged enums, e.g.
 /// `{"action":"pause","extra":1}`; comparing with the re-serialized value
 /// catches those.)
-fn parse_strict<T: serde::de::DeserializeOwned + serde::Serialize>(text: &str) -> Result<T, String> {
+fn parse_strict<T: serde::de::DeserializeOwned + serde::Serialize>(
+    text: &str,
+) -> Result<T, String> {
     let de = &mut serde_json::Deserializer::from_str(text);
-    let raw: serde_json::Value =
-        serde_path_to_error::deserialize(de).map_err(|e| describe(&e))?;
+    let raw: serde_json::Value = serde_path_to_error::deserialize(de).map_err(|e| describe(&e))?;
     let typed: T = serde_path_to_error::deserialize(raw.clone()).map_err(|e| {
         let path = e.path().to_string();
         if path == "." {
@@ -185,7 +191,11 @@ fn parse_strict<T: serde::de::DeserializeOwned + serde::Serialize>(text: &str) -
     Ok(typed)
 }
 
-fn unknown_keys(raw: &serde_json::Value, known: &serde_json::Value, path: &str) -> Result<(), String> {
+fn unknown_keys(
+    raw: &serde_json::Value,
+    known: &serde_json::Value,
+    path: &str,
+) -> Result<(), String> {
     if let (serde_json::Value::Object(r), serde_json::Value::Object(k)) = (raw, known) {
         for (key, v) in r {
             let here = if path.is_empty() {
@@ -267,7 +277,9 @@ fn dashboard_missing_note(dist: &std::path::Path) -> String {
 }
 
 fn html_escape(s: &str) -> String {
-    s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;")
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
 }
 
 async fn version() -> impl IntoResponse {
@@ -293,7 +305,10 @@ async fn create_run(
     Ok((StatusCode::CREATED, Json(summary)))
 }
 
-async fn get_run(State(s): State<AppState>, Path(id): Path<String>) -> ApiResult<impl IntoResponse> {
+async fn get_run(
+    State(s): State<AppState>,
+    Path(id): Path<String>,
+) -> ApiResult<impl IntoResponse> {
     let id = parse_id(&id)?;
     Ok(Json(s.manager.get(id)?.summary()))
 }
@@ -515,8 +530,9 @@ async fn client_message(
         ClientMessage::Control { command } => {
             if !*authed {
                 ServerMessage::Error {
-                    message: "control requires the token: send {\"type\":\"auth\",\"token\":\"…\"} first"
-                        .into(),
+                    message:
+                        "control requires the token: send {\"type\":\"auth\",\"token\":\"…\"} first"
+                            .into(),
                 }
             } else {
                 match state.manager.control(id, command).await {

@@ -278,9 +278,10 @@ impl Store {
             "SELECT record FROM iterations WHERE run_id = ?1 AND seq >= ?2 ORDER BY seq LIMIT ?3",
         )?;
         let limit = limit.map(|l| l.min(i64::MAX as u64) as i64).unwrap_or(-1);
-        let rows = stmt.query_map(params![id as i64, from.min(i64::MAX as u64) as i64, limit], |r| {
-            r.get::<_, String>(0)
-        })?;
+        let rows = stmt.query_map(
+            params![id as i64, from.min(i64::MAX as u64) as i64, limit],
+            |r| r.get::<_, String>(0),
+        )?;
         Ok(rows.collect::<Result<Vec<_>, _>>()?)
     }
 
@@ -288,7 +289,10 @@ impl Store {
     pub fn delete_run(&self, id: u64) -> Result<(), StoreError> {
         let mut conn = self.w();
         let tx = conn.transaction()?;
-        tx.execute("DELETE FROM iterations WHERE run_id = ?1", params![id as i64])?;
+        tx.execute(
+            "DELETE FROM iterations WHERE run_id = ?1",
+            params![id as i64],
+        )?;
         let n = tx.execute("DELETE FROM runs WHERE id = ?1", params![id as i64])?;
         tx.commit()?;
         if n == 0 {
@@ -323,20 +327,27 @@ mod tests {
         let path = dir.join("t.db");
         let _ = std::fs::remove_file(&path);
         let s = Store::open(&path).unwrap();
-        let id = s.create_run("a", "{}", &RunStatus::Running, "{\"c\":0}").unwrap();
-        s.commit_iteration(id, 0, "{\"k\":0}", "{\"c\":1}", 1.5, false).unwrap();
+        let id = s
+            .create_run("a", "{}", &RunStatus::Running, "{\"c\":0}")
+            .unwrap();
+        s.commit_iteration(id, 0, "{\"k\":0}", "{\"c\":1}", 1.5, false)
+            .unwrap();
         assert!(matches!(
             s.commit_iteration(id, 2, "{}", "{}", 0.0, false),
             Err(StoreError::OutOfOrder { expected: 1, .. })
         ));
-        s.commit_iteration(id, 1, "{\"k\":1}", "{\"c\":2}", 3.0, true).unwrap();
+        s.commit_iteration(id, 1, "{\"k\":1}", "{\"c\":2}", 3.0, true)
+            .unwrap();
         assert_eq!(s.iterations_json(id, 1, None).unwrap(), vec!["{\"k\":1}"]);
         assert_eq!(s.checkpoint(id).unwrap(), "{\"c\":2}");
         let r = s.get_run(id).unwrap();
         assert_eq!(r.summary.iterations, 2);
         assert!(r.summary.tuned);
         assert_eq!(s.mark_interrupted().unwrap(), vec![id]);
-        assert_eq!(s.get_run(id).unwrap().summary.status, RunStatus::Interrupted);
+        assert_eq!(
+            s.get_run(id).unwrap().summary.status,
+            RunStatus::Interrupted
+        );
         s.delete_run(id).unwrap();
         assert!(s.get_run(id).is_err());
         std::fs::remove_dir_all(&dir).unwrap();

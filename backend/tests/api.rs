@@ -45,14 +45,20 @@ async fn two_viewers_receive_identical_streams_and_late_viewer_gets_history() {
 
     // A late viewer gets the whole history first, then nothing is missing.
     let mut late = connect(srv.addr, run.id, None).await;
-    assert!(matches!(next_msg(&mut late).await, ServerMessage::Hello { .. }));
+    assert!(matches!(
+        next_msg(&mut late).await,
+        ServerMessage::Hello { .. }
+    ));
     match next_msg(&mut late).await {
         ServerMessage::History { records } => assert_eq!(records, ra),
         other => panic!("expected history, got {other:?}"),
     }
     // ... and `from` skips what it already has.
     let mut partial = connect(srv.addr, run.id, Some(4)).await;
-    assert!(matches!(next_msg(&mut partial).await, ServerMessage::Hello { .. }));
+    assert!(matches!(
+        next_msg(&mut partial).await,
+        ServerMessage::Hello { .. }
+    ));
     match next_msg(&mut partial).await {
         ServerMessage::History { records } => assert_eq!(records, ra[4..].to_vec()),
         other => panic!("expected history, got {other:?}"),
@@ -68,7 +74,10 @@ async fn slow_viewer_is_told_it_lagged_and_still_sees_everything() {
     let run = create_run(srv.addr, &small_config("lag", n, 0)).await;
     control(srv.addr, run.id, r#"{"action":"pause"}"#).await;
     let mut ws = connect(srv.addr, run.id, None).await;
-    assert!(matches!(next_msg(&mut ws).await, ServerMessage::Hello { .. }));
+    assert!(matches!(
+        next_msg(&mut ws).await,
+        ServerMessage::Hello { .. }
+    ));
     control(srv.addr, run.id, r#"{"action":"resume"}"#).await;
     // Do not read until the run is over: the viewer stalls, the run does not.
     wait_status(srv.addr, run.id, is_finished).await;
@@ -102,11 +111,25 @@ async fn control_needs_the_token_and_changes_nothing_without_it() {
     let (s, body) = http(srv.addr, "POST", &path, None, Some(r#"{"action":"pause"}"#)).await;
     assert_eq!(s, 401, "{body}");
     assert!(body.contains("token"), "{body}");
-    let (s, _) = http(srv.addr, "POST", &path, Some("wrong"), Some(r#"{"action":"stop"}"#)).await;
+    let (s, _) = http(
+        srv.addr,
+        "POST",
+        &path,
+        Some("wrong"),
+        Some(r#"{"action":"stop"}"#),
+    )
+    .await;
     assert_eq!(s, 403);
     let (s, _) = http(srv.addr, "POST", "/api/runs", None, Some("{}")).await;
     assert_eq!(s, 401);
-    let (s, _) = http(srv.addr, "DELETE", &format!("/api/runs/{}", run.id), Some("nope"), None).await;
+    let (s, _) = http(
+        srv.addr,
+        "DELETE",
+        &format!("/api/runs/{}", run.id),
+        Some("nope"),
+        None,
+    )
+    .await;
     assert_eq!(s, 403);
     let (_, list) = http(srv.addr, "GET", "/api/runs", None, None).await;
     assert_eq!(serde_json::from_str::<Vec<Value>>(&list).unwrap().len(), 1);
@@ -128,14 +151,19 @@ async fn control_needs_the_token_and_changes_nothing_without_it() {
     send(&mut ws, &format!(r#"{{"type":"auth","token":"{TOKEN}"}}"#)).await;
     expect(&mut ws, |m| matches!(m, ServerMessage::AuthOk)).await;
     send(&mut ws, pause).await;
-    expect(&mut ws, |m| {
-        matches!(m, ServerMessage::Status { run } if run.status == RunStatus::Paused)
-    })
+    expect(
+        &mut ws,
+        |m| matches!(m, ServerMessage::Status { run } if run.status == RunStatus::Paused),
+    )
     .await;
     let paused = get_run(srv.addr, run.id).await;
     assert_eq!(paused.status, RunStatus::Paused);
     tokio::time::sleep(std::time::Duration::from_millis(300)).await;
-    assert_eq!(get_run(srv.addr, run.id).await.iterations, paused.iterations, "paused run advanced");
+    assert_eq!(
+        get_run(srv.addr, run.id).await.iterations,
+        paused.iterations,
+        "paused run advanced"
+    );
 
     // Single step: exactly one more iteration, then paused again.
     let (s, body) = control(srv.addr, run.id, r#"{"action":"step"}"#).await;
@@ -155,15 +183,28 @@ async fn control_needs_the_token_and_changes_nothing_without_it() {
     .await;
     assert_eq!(s, 200, "{body}");
     control(srv.addr, run.id, r#"{"action":"step"}"#).await;
-    wait_status(srv.addr, run.id, |x| x.iterations == r.iterations + 1 && x.status == RunStatus::Paused).await;
+    wait_status(srv.addr, run.id, |x| {
+        x.iterations == r.iterations + 1 && x.status == RunStatus::Paused
+    })
+    .await;
     let recs = records(srv.addr, run.id).await;
     let last = recs.last().unwrap();
-    let t_sr = last["parameters"].as_array().unwrap().iter().find(|p| p["name"] == "t_sr").unwrap();
+    let t_sr = last["parameters"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|p| p["name"] == "t_sr")
+        .unwrap();
     assert_eq!(t_sr["target"], json!(70.0));
     assert_eq!(t_sr["tolerance"], json!(5.0));
 
     // Unknown parameter: clear error, nothing changes.
-    let (s, body) = control(srv.addr, run.id, r#"{"action":"set_target","parameter":"nope","target":1.0}"#).await;
+    let (s, body) = control(
+        srv.addr,
+        run.id,
+        r#"{"action":"set_target","parameter":"nope","target":1.0}"#,
+    )
+    .await;
     assert_eq!(s, 422, "{body}");
     assert!(body.contains("nope"), "{body}");
 
@@ -173,9 +214,23 @@ async fn control_needs_the_token_and_changes_nothing_without_it() {
     wait_status(srv.addr, run.id, |r| r.status == RunStatus::Stopped).await;
     let (s, body) = control(srv.addr, run.id, r#"{"action":"resume"}"#).await;
     assert_eq!(s, 409, "{body}");
-    let (s, _) = http(srv.addr, "DELETE", &format!("/api/runs/{}", run.id), Some(TOKEN), None).await;
+    let (s, _) = http(
+        srv.addr,
+        "DELETE",
+        &format!("/api/runs/{}", run.id),
+        Some(TOKEN),
+        None,
+    )
+    .await;
     assert_eq!(s, 204);
-    let (s, _) = http(srv.addr, "GET", &format!("/api/runs/{}", run.id), None, None).await;
+    let (s, _) = http(
+        srv.addr,
+        "GET",
+        &format!("/api/runs/{}", run.id),
+        None,
+        None,
+    )
+    .await;
     assert_eq!(s, 404);
 }
 
@@ -201,7 +256,10 @@ async fn expect(ws: &mut Ws, f: impl Fn(&ServerMessage) -> bool) -> ServerMessag
 async fn expect_error(ws: &mut Ws, needle: &str) {
     match expect(ws, |m| matches!(m, ServerMessage::Error { .. })).await {
         ServerMessage::Error { message } => {
-            assert!(message.contains(needle), "error {message:?} does not mention {needle:?}")
+            assert!(
+                message.contains(needle),
+                "error {message:?} does not mention {needle:?}"
+            )
         }
         _ => unreachable!(),
     }
@@ -218,10 +276,19 @@ async fn malformed_messages_get_clear_errors_and_the_socket_stays_open() {
         (r#"{"type":"auth"}"#, "token"),
         (r#"{"type":"bogus"}"#, "bogus"),
         (r#"{"type":"auth","token":"x","extra":1}"#, "extra"),
-        (r#"{"type":"control","command":{"action":"pause","extra":1}}"#, "extra"),
+        (
+            r#"{"type":"control","command":{"action":"pause","extra":1}}"#,
+            "extra",
+        ),
         (r#"{"type":"control","command":{"action":"fly"}}"#, "fly"),
-        (r#"{"type":"control","command":{"action":"set_target","parameter":"w","target":"high"}}"#, "high"),
-        (r#"{"type":"control","command":{"action":"set_target","parameter":"w","target":270,"tolerance":{"relative":-1}}}"#, "tolerance"),
+        (
+            r#"{"type":"control","command":{"action":"set_target","parameter":"w","target":"high"}}"#,
+            "high",
+        ),
+        (
+            r#"{"type":"control","command":{"action":"set_target","parameter":"w","target":270,"tolerance":{"relative":-1}}}"#,
+            "tolerance",
+        ),
     ] {
         send(&mut ws, frame).await;
         expect_error(&mut ws, needle).await;
@@ -237,7 +304,10 @@ async fn malformed_messages_get_clear_errors_and_the_socket_stays_open() {
     for (body, needle) in [
         ("{", "malformed"),
         (r#"{"action":"pause","x":1}"#, "x"),
-        (r#"{"action":"set_target","parameter":"w","target":1,"tolerance":{"absolute":-3}}"#, "tolerance"),
+        (
+            r#"{"action":"set_target","parameter":"w","target":1,"tolerance":{"absolute":-3}}"#,
+            "tolerance",
+        ),
     ] {
         let (s, text) = http(srv.addr, "POST", &path, Some(TOKEN), Some(body)).await;
         assert_eq!(s, 400, "{body} → {text}");
@@ -250,13 +320,23 @@ async fn malformed_messages_get_clear_errors_and_the_socket_stays_open() {
         (r#"{"device_typo":1}"#, "device_typo"),
         (r#"{"targets":{"t_sr":-5e400}}"#, "number out of range"),
         (r#"{"targets":{"t_sr":"high"}}"#, "targets.t_sr"),
-        (r#"{"tuner":{"gates":[{"name":"N","min_mv":10,"max_mv":0,"initial_mv":5}]}}"#, "tuner.gates[0].min_mv"),
+        (
+            r#"{"tuner":{"gates":[{"name":"N","min_mv":10,"max_mv":0,"initial_mv":5}]}}"#,
+            "tuner.gates[0].min_mv",
+        ),
     ] {
         let (s, text) = http(srv.addr, "POST", "/api/runs", Some(TOKEN), Some(body)).await;
         assert_eq!(s, 422, "{body} → {text}");
         assert!(text.contains(needle), "{body} → {text}");
     }
-    let (s, text) = http(srv.addr, "GET", &format!("/api/runs/{}/iterations?from=-1", run.id), None, None).await;
+    let (s, text) = http(
+        srv.addr,
+        "GET",
+        &format!("/api/runs/{}/iterations?from=-1", run.id),
+        None,
+        None,
+    )
+    .await;
     assert_eq!(s, 400, "{text}");
     assert!(text.contains("from"));
     let (s, _) = http(srv.addr, "GET", "/api/runs/999/iterations", None, None).await;
@@ -265,7 +345,14 @@ async fn malformed_messages_get_clear_errors_and_the_socket_stays_open() {
     let (s, text) = http(srv.addr, "GET", "/", None, None).await;
     assert_eq!(s, 200);
     assert!(text.contains("trunk build"), "{text}");
-    let (s, text) = http(srv.addr, "GET", &format!("/api/runs/{}/export?format=csv", run.id), None, None).await;
+    let (s, text) = http(
+        srv.addr,
+        "GET",
+        &format!("/api/runs/{}/export?format=csv", run.id),
+        None,
+        None,
+    )
+    .await;
     assert_eq!(s, 200, "{text}");
     assert!(text.starts_with("seq,iteration,lab_seconds"), "{text}");
 }
@@ -277,8 +364,10 @@ trait SendBinary {
 impl SendBinary for Ws {
     async fn send_binary(&mut self) {
         use futures_util::SinkExt;
-        self.send(tokio_tungstenite::tungstenite::Message::Binary(vec![1u8, 2, 3].into()))
-            .await
-            .unwrap();
+        self.send(tokio_tungstenite::tungstenite::Message::Binary(
+            vec![1u8, 2, 3].into(),
+        ))
+        .await
+        .unwrap();
     }
 }

@@ -30,7 +30,11 @@ fn replay_prints_one_line_per_update() {
                      {"voltages":[1,2],"value":11,"variance":0.2}]}"#,
     );
     let out = spintune(&["replay", p.to_str().unwrap()]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let text = String::from_utf8(out.stdout).unwrap();
     let lines: Vec<serde_json::Value> = text
         .lines()
@@ -47,23 +51,50 @@ fn replay_prints_one_line_per_update() {
     let mut f = KalmanGradient::new(
         DVector::from_vec(vec![0.5, -0.5]),
         DMatrix::identity(2, 2),
-        ProcessNoise::Constant { q: DMatrix::identity(2, 2) * 0.01 },
+        ProcessNoise::Constant {
+            q: DMatrix::identity(2, 2) * 0.01,
+        },
     )
     .unwrap();
-    f.update(&DVector::from_vec(vec![1.0, 0.0]), 2.0, 0.2).unwrap();
-    f.update(&DVector::from_vec(vec![0.0, 2.0]), -1.0, 0.30000000000000004).unwrap();
+    f.update(&DVector::from_vec(vec![1.0, 0.0]), 2.0, 0.2)
+        .unwrap();
+    f.update(
+        &DVector::from_vec(vec![0.0, 2.0]),
+        -1.0,
+        0.30000000000000004,
+    )
+    .unwrap();
     assert_eq!(lines[1]["gradient"][0].as_f64().unwrap(), f.gradient()[0]);
-    assert_eq!(lines[1]["covariance"][0][1].as_f64().unwrap(), f.covariance()[(0, 1)]);
+    assert_eq!(
+        lines[1]["covariance"][0][1].as_f64().unwrap(),
+        f.covariance()[(0, 1)]
+    );
 }
 
 #[test]
 fn replay_rejects_bad_input_with_exit_code_2() {
     for (name, text, needle) in [
         ("syntax.json", "{not json", "invalid replay input"),
-        ("unknown.json", r#"{"gates":["a"],"initial_gradient":[1],"initial_covariance":[[1]],"process_noise":[[0]],"outlier_sigma":null,"steps":[],"q":1}"#, "q"),
-        ("dims.json", r#"{"gates":["a","b"],"initial_gradient":[1,2],"initial_covariance":[[1]],"process_noise":[[0,0],[0,0]],"outlier_sigma":null,"steps":[]}"#, "initial_covariance"),
-        ("negvar.json", r#"{"gates":["a"],"initial_gradient":[1],"initial_covariance":[[1]],"process_noise":[[0]],"outlier_sigma":null,"steps":[{"voltages":[0],"value":1,"variance":-1}]}"#, "steps[0].variance"),
-        ("notpsd.json", r#"{"gates":["a"],"initial_gradient":[1],"initial_covariance":[[-1]],"process_noise":[[0]],"outlier_sigma":null,"steps":[]}"#, "covariance"),
+        (
+            "unknown.json",
+            r#"{"gates":["a"],"initial_gradient":[1],"initial_covariance":[[1]],"process_noise":[[0]],"outlier_sigma":null,"steps":[],"q":1}"#,
+            "q",
+        ),
+        (
+            "dims.json",
+            r#"{"gates":["a","b"],"initial_gradient":[1,2],"initial_covariance":[[1]],"process_noise":[[0,0],[0,0]],"outlier_sigma":null,"steps":[]}"#,
+            "initial_covariance",
+        ),
+        (
+            "negvar.json",
+            r#"{"gates":["a"],"initial_gradient":[1],"initial_covariance":[[1]],"process_noise":[[0]],"outlier_sigma":null,"steps":[{"voltages":[0],"value":1,"variance":-1}]}"#,
+            "steps[0].variance",
+        ),
+        (
+            "notpsd.json",
+            r#"{"gates":["a"],"initial_gradient":[1],"initial_covariance":[[-1]],"process_noise":[[0]],"outlier_sigma":null,"steps":[]}"#,
+            "covariance",
+        ),
     ] {
         let p = temp_file(name, text);
         let out = spintune(&["replay", p.to_str().unwrap()]);
@@ -79,7 +110,13 @@ fn replay_rejects_bad_input_with_exit_code_2() {
 #[test]
 fn run_rejects_a_bad_config_naming_the_field() {
     let p = temp_file("bad.toml", "seed = \"one\"\n");
-    let out = spintune(&["run", "--config", p.to_str().unwrap(), "--db", "/nonexistent/x.db"]);
+    let out = spintune(&[
+        "run",
+        "--config",
+        p.to_str().unwrap(),
+        "--db",
+        "/nonexistent/x.db",
+    ]);
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("seed"));
 }

@@ -27,7 +27,15 @@ impl Drop for Proc {
 /// Start `spintune serve` on an ephemeral port; returns the process and its address.
 fn spawn_server(db: &std::path::Path) -> (Proc, SocketAddr) {
     let mut child = Command::new(env!("CARGO_BIN_EXE_spintune"))
-        .args(["serve", "--bind", "127.0.0.1:0", "--demo", "never", "--token", TOKEN])
+        .args([
+            "serve",
+            "--bind",
+            "127.0.0.1:0",
+            "--demo",
+            "never",
+            "--token",
+            TOKEN,
+        ])
         .arg("--db")
         .arg(db)
         .arg("--dist")
@@ -72,7 +80,10 @@ async fn kill_9_mid_run_then_resume_continues_bit_identically() {
     let listed = get_run(addr, run.id).await;
     assert_eq!(listed.status, RunStatus::Interrupted, "{listed:?}");
     assert!(listed.iterations >= seen_before.len() as u64);
-    assert!(listed.iterations < n, "the run finished before the kill; make it slower");
+    assert!(
+        listed.iterations < n,
+        "the run finished before the kill; make it slower"
+    );
     let after_restart = records(addr, run.id).await;
     assert_eq!(
         &after_restart[..seen_before.len()],
@@ -87,7 +98,14 @@ async fn kill_9_mid_run_then_resume_continues_bit_identically() {
     let resumed = records(addr, run.id).await;
 
     // The same config, uninterrupted, in the core's own synchronous driver.
-    let (s, cfg) = http(addr, "GET", &format!("/api/runs/{}/config", run.id), None, None).await;
+    let (s, cfg) = http(
+        addr,
+        "GET",
+        &format!("/api/runs/{}/config", run.id),
+        None,
+        None,
+    )
+    .await;
     assert_eq!(s, 200);
     let cfg: RunConfig = serde_json::from_str(&cfg).unwrap();
     let mut sim = SimulationRun::new(cfg.simulation).unwrap();
@@ -113,7 +131,11 @@ async fn kill_9_mid_run_then_resume_continues_bit_identically() {
         .arg(&db)
         .output()
         .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let rows: Vec<Value> = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(rows.len(), n as usize);
     assert!(rows[0].get("V_SB_mV").is_some(), "{}", rows[0]);

@@ -17,9 +17,8 @@ use tokio_tungstenite::tungstenite::Message;
 pub const TOKEN: &str = "test-token";
 pub const STEP: Duration = Duration::from_secs(20);
 
-pub type Ws = tokio_tungstenite::WebSocketStream<
-    tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>,
->;
+pub type Ws =
+    tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
 
 /// A fresh temporary directory (removed on drop).
 pub struct TempDir(pub PathBuf);
@@ -97,8 +96,7 @@ pub async fn http(
 
 fn dechunk(mut s: &str) -> String {
     let mut out = String::new();
-    loop {
-        let Some((len, rest)) = s.split_once("\r\n") else { break };
+    while let Some((len, rest)) = s.split_once("\r\n") {
         let n = usize::from_str_radix(len.trim(), 16).unwrap_or(0);
         if n == 0 {
             break;
@@ -110,7 +108,14 @@ fn dechunk(mut s: &str) -> String {
 }
 
 pub async fn create_run(addr: SocketAddr, config: &Value) -> RunSummary {
-    let (status, body) = http(addr, "POST", "/api/runs", Some(TOKEN), Some(&config.to_string())).await;
+    let (status, body) = http(
+        addr,
+        "POST",
+        "/api/runs",
+        Some(TOKEN),
+        Some(&config.to_string()),
+    )
+    .await;
     assert_eq!(status, 201, "{body}");
     serde_json::from_str(&body).unwrap()
 }
@@ -122,11 +127,25 @@ pub async fn get_run(addr: SocketAddr, id: u64) -> RunSummary {
 }
 
 pub async fn control(addr: SocketAddr, id: u64, cmd: &str) -> (u16, String) {
-    http(addr, "POST", &format!("/api/runs/{id}/control"), Some(TOKEN), Some(cmd)).await
+    http(
+        addr,
+        "POST",
+        &format!("/api/runs/{id}/control"),
+        Some(TOKEN),
+        Some(cmd),
+    )
+    .await
 }
 
 pub async fn records(addr: SocketAddr, id: u64) -> Vec<Value> {
-    let (status, body) = http(addr, "GET", &format!("/api/runs/{id}/iterations"), None, None).await;
+    let (status, body) = http(
+        addr,
+        "GET",
+        &format!("/api/runs/{id}/iterations"),
+        None,
+        None,
+    )
+    .await;
     assert_eq!(status, 200, "{body}");
     serde_json::from_str(&body).unwrap()
 }

@@ -109,7 +109,8 @@ impl SimulationConfig {
                 repetitions: 1,
             },
             solver: SolverConfig {
-                max_step_mv: 10.0,
+                // the transition lines are scanned over ±4 mV: small corrections only
+                max_step_mv: 2.0,
                 ..SolverConfig::default()
             },
             outlier_sigma: None,

@@ -16,6 +16,7 @@
 //! `t_sr` in ns, `w` in µV, gradients in parameter unit per mV.
 #![warn(missing_docs)]
 
+pub mod benchmark;
 pub mod driver;
 pub mod estimator;
 pub mod fit;

@@ -39,14 +39,15 @@ use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
 pub use config::{
-    Compensation, ConfigError, InitialGradient, LevelConfig, LevelKind, NewtonConfig, SensingDotConfig,
-    TunerConfig,
+    Compensation, ConfigError, InitialGradient, LevelConfig, LevelKind, NewtonConfig,
+    SensingDotConfig, TunerConfig,
 };
 use newton::NewtonState;
 
 use crate::parameter::Tolerance;
 use crate::protocol::{
-    IterationRecord, ParameterValue, Request, Response, ScanKind, ScanOutcome, ScanReport, ScanRequest, Sweep,
+    IterationRecord, ParameterValue, Request, Response, ScanKind, ScanOutcome, ScanReport,
+    ScanRequest, Sweep,
 };
 use crate::safety::SafetyLimits;
 
@@ -150,9 +151,7 @@ impl Pending {
 #[allow(clippy::large_enum_variant)]
 enum LevelState {
     Newton(NewtonState),
-    SensingDot {
-        last: Option<ParameterValue>,
-    },
+    SensingDot { last: Option<ParameterValue> },
 }
 
 /// The tuner: configuration, learned gradients, position in the hierarchy.
@@ -176,7 +175,11 @@ impl Tuner {
     pub fn new(config: TunerConfig) -> Result<Self, ConfigError> {
         config.validate()?;
         let safety = SafetyLimits::new(&config.gates);
-        let voltages_mv = config.gates.iter().map(|g| (g.name.clone(), g.initial_mv)).collect();
+        let voltages_mv = config
+            .gates
+            .iter()
+            .map(|g| (g.name.clone(), g.initial_mv))
+            .collect();
         let mut levels = Vec::new();
         for (i, l) in config.levels.iter().enumerate() {
             levels.push(match &l.kind {
@@ -263,12 +266,17 @@ impl Tuner {
             if let (LevelKind::Newton(n), Some(rows)) = (&mut level.kind, self.gradients(i)) {
                 let k = n.gates.len();
                 n.initial_gradient = InitialGradient::Given {
-                    gradient: rows.iter().map(|(g, _)| g.iter().copied().collect()).collect(),
+                    gradient: rows
+                        .iter()
+                        .map(|(g, _)| g.iter().copied().collect())
+                        .collect(),
                     covariance: rows
                         .iter()
                         .map(|(_, c)| {
                             let c = c.clone().unwrap_or_else(|| DMatrix::zeros(k, k));
-                            (0..k).map(|r| (0..k).map(|s| c[(r, s)]).collect()).collect()
+                            (0..k)
+                                .map(|r| (0..k).map(|s| c[(r, s)]).collect())
+                                .collect()
                         })
                         .collect(),
                 };
@@ -302,7 +310,9 @@ impl Tuner {
                 if let Some(p) = n.parameters.iter_mut().find(|p| p.name == parameter) {
                     if let Some(t) = target {
                         if p.transform.forward_value(t).is_none() {
-                            return Err(invalid("target must be > 0 for a log-transformed parameter"));
+                            return Err(invalid(
+                                "target must be > 0 for a log-transformed parameter",
+                            ));
                         }
                     }
                     p.target = target;
@@ -338,7 +348,11 @@ impl Tuner {
                         continue;
                     }
                 }
-                if self.config.max_iterations.is_some_and(|m| self.iteration >= m) {
+                if self
+                    .config
+                    .max_iterations
+                    .is_some_and(|m| self.iteration >= m)
+                {
                     self.finished = true;
                     continue;
                 }
@@ -399,7 +413,13 @@ impl Tuner {
             return Err(TunerError::Device(message.clone()));
         }
         match (pending, response) {
-            (Pending::Set(_), Response::VoltagesSet { voltages_mv, lab_seconds }) => {
+            (
+                Pending::Set(_),
+                Response::VoltagesSet {
+                    voltages_mv,
+                    lab_seconds,
+                },
+            ) => {
                 for (g, v) in voltages_mv {
                     if v.is_finite() && self.voltages_mv.contains_key(&g) {
                         self.voltages_mv.insert(g, v);
@@ -407,7 +427,13 @@ impl Tuner {
                 }
                 self.add_lab_time(lab_seconds);
             }
-            (Pending::Measure(req, level), Response::Scanned { outcome, lab_seconds }) => {
+            (
+                Pending::Measure(req, level),
+                Response::Scanned {
+                    outcome,
+                    lab_seconds,
+                },
+            ) => {
                 let level = *level;
                 let kind = match req {
                     Request::Measure { scan } => scan.kind,
@@ -435,10 +461,20 @@ impl Tuner {
                     n.oracle = Some((values, jacobian));
                 }
             }
-            (Pending::Set(_), _) => return Err(TunerError::UnexpectedResponse { expected: "set_voltages" }),
-            (Pending::Measure(..), _) => return Err(TunerError::UnexpectedResponse { expected: "measure" }),
+            (Pending::Set(_), _) => {
+                return Err(TunerError::UnexpectedResponse {
+                    expected: "set_voltages",
+                })
+            }
+            (Pending::Measure(..), _) => {
+                return Err(TunerError::UnexpectedResponse {
+                    expected: "measure",
+                })
+            }
             (Pending::Jacobian(..), _) => {
-                return Err(TunerError::UnexpectedResponse { expected: "true_jacobian" })
+                return Err(TunerError::UnexpectedResponse {
+                    expected: "true_jacobian",
+                })
             }
         }
         self.pending = None;
@@ -455,7 +491,8 @@ impl Tuner {
         if let LevelState::Newton(n) = &mut self.levels[level] {
             n.events.push(event);
         } else if let LevelState::Newton(top) = &mut self.levels[0] {
-            top.events.push(format!("{}: {event}", self.config.levels[level].name));
+            top.events
+                .push(format!("{}: {event}", self.config.levels[level].name));
         }
     }
 
@@ -484,6 +521,12 @@ impl Tuner {
                 let mut ops = self.init_ops(level);
                 if let LevelState::Newton(n) = &mut self.levels[level] {
                     n.iterations_this_call = 0;
+                    if level != 0 {
+                        // The parent moved other gates since this level's last call: its
+                        // observation model (only its own gates move) no longer links the
+                        // old reference to the new measurement. Start a fresh baseline.
+                        n.forget_references();
+                    }
                 }
                 ops.extend(self.round_ops(level));
                 ops
@@ -570,14 +613,28 @@ impl Tuner {
 }
 
 /// Turn a device's scan outcome into validated parameter values and a display report.
-fn evaluate_outcome(outcome: ScanOutcome) -> (Result<Vec<ParameterValue>, String>, Option<ScanReport>) {
+fn evaluate_outcome(
+    outcome: ScanOutcome,
+) -> (Result<Vec<ParameterValue>, String>, Option<ScanReport>) {
     match outcome {
         ScanOutcome::Raw { scan } => match crate::fit::evaluate(&scan) {
             Ok(ev) => {
                 let values = validate_values(ev.values);
-                (values, Some(ScanReport { raw: scan, fit: ev.fit }))
+                (
+                    values,
+                    Some(ScanReport {
+                        raw: scan,
+                        fit: ev.fit,
+                    }),
+                )
             }
-            Err(e) => (Err(e.to_string()), Some(ScanReport { raw: scan, fit: Vec::new() })),
+            Err(e) => (
+                Err(e.to_string()),
+                Some(ScanReport {
+                    raw: scan,
+                    fit: Vec::new(),
+                }),
+            ),
         },
         ScanOutcome::Evaluated { values } => (validate_values(values), None),
         ScanOutcome::Failed { reason } => (Err(reason), None),

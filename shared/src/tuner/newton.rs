@@ -97,6 +97,12 @@ impl NewtonState {
         })
     }
 
+    /// Drop every reference point: the next measurement is a new baseline.
+    pub(super) fn forget_references(&mut self) {
+        self.references.iter_mut().for_each(|r| *r = None);
+        self.gated_in_a_row.iter_mut().for_each(|g| *g = 0);
+    }
+
     pub(super) fn is_initialised(&self) -> bool {
         self.estimators.is_some()
     }
@@ -341,6 +347,30 @@ impl Tuner {
                 state.events.push(format!("{}: no valid measurement this iteration", p.name));
             }
         }
+        // A value whose error bar is wider than its tolerance band says nothing about
+        // where the parameter is: the filter may learn from it (with its tiny gain), but
+        // neither the tuned test nor the Newton step may rely on it.
+        let trusted: Vec<Option<ParameterValue>> = cfg
+            .parameters
+            .iter()
+            .zip(&raw)
+            .map(|(p, v)| {
+                let v = v.as_ref()?;
+                match p.target {
+                    Some(t) if v.variance.sqrt() > p.tolerance.half_width(t) => {
+                        state.events.push(format!(
+                            "{}: {:.3} ± {:.3} {} is too uncertain to act on",
+                            p.name,
+                            v.value,
+                            v.variance.sqrt(),
+                            p.unit
+                        ));
+                        None
+                    }
+                    _ => Some(v.clone()),
+                }
+            })
+            .collect();
         // Learn from the step since each parameter's reference point.
         if let Some(estimators) = &mut state.estimators {
             for (i, p) in cfg.parameters.iter().enumerate() {
@@ -390,12 +420,12 @@ impl Tuner {
         let tuned = cfg
             .parameters
             .iter()
-            .zip(&raw)
+            .zip(&trusted)
             .all(|(p, v)| p.target.is_none() || v.as_ref().is_some_and(|v| p.in_band(v.value)));
         let missing_targeted = cfg
             .parameters
             .iter()
-            .zip(&raw)
+            .zip(&trusted)
             .any(|(p, v)| p.target.is_some() && v.is_none());
         state.snapshot = Some(Snapshot {
             voltages_mv: all_v,
@@ -413,8 +443,11 @@ impl Tuner {
             return;
         }
         if missing_targeted {
-            // Measure again next round rather than stepping blind.
-            self.push_ops([Op::Decide(Decision::EndIteration)]);
+            // Do not step blind: re-tune the lower levels (sensor contrast, transition
+            // lines — the usual reasons a scan fails) and measure again next round.
+            let mut ops = self.after_move_ops(level);
+            ops.push(Op::Decide(Decision::EndIteration));
+            self.push_ops(ops);
             return;
         }
         match cfg.estimator {

@@ -1,0 +1,449 @@
+//! The paper's benchmark protocol on the simulator, for one seed at a time
+//! (the CLI runs seeds in parallel and aggregates).
+//!
+//! Protocol (paper, main text): targets `(t_sr, w)` cycle
+//! (20 ns, 270 µV) → (70 ns, 270 µV) → (70 ns, 180 µV) → (20 ns, 180 µV) →
+//! (20 ns, 270 µV), 21 iterations at each, with the full hierarchy (sensing
+//! dot, chemical-potential compensation) in the loop and the lab clock
+//! running. Every strategy of a seed starts from the same device state and the
+//! same initial finite-difference gradient measurement.
+
+use serde::{Deserialize, Serialize};
+
+use crate::driver::{SimulationConfig, SimulationRun};
+use crate::estimator::EstimatorKind;
+use crate::parameter::{Tolerance, Transform};
+use crate::protocol::{IterationRecord, Request};
+use crate::tuner::{Action, InitialGradient, Tuner};
+
+/// The paper's set-point cycle, `(t_sr ns, w µV)`.
+pub const PAPER_SET_POINTS: [(f64, f64); 5] = [
+    (20.0, 270.0),
+    (70.0, 270.0),
+    (70.0, 180.0),
+    (20.0, 180.0),
+    (20.0, 270.0),
+];
+
+/// A strategy: how the top level estimates its Jacobian.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Strategy {
+    /// The paper's filter, constant Q.
+    Kalman,
+    /// Q growing with the step.
+    KalmanAdaptiveQ,
+    /// `t_sr` and `w` tuned in log space.
+    KalmanLog,
+    /// Broyden rank-one update.
+    Broyden,
+    /// Initial Jacobian, never updated.
+    FixedJacobian,
+    /// Jacobian re-measured every iteration.
+    FdNewton,
+    /// The simulator's true Jacobian.
+    Oracle,
+}
+
+impl Strategy {
+    /// All strategies in report order.
+    pub const ALL: [Strategy; 7] = [
+        Strategy::Kalman,
+        Strategy::KalmanAdaptiveQ,
+        Strategy::KalmanLog,
+        Strategy::Broyden,
+        Strategy::FixedJacobian,
+        Strategy::FdNewton,
+        Strategy::Oracle,
+    ];
+
+    /// Command-line name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Strategy::Kalman => "kalman",
+            Strategy::KalmanAdaptiveQ => "kalman-adaptive-q",
+            Strategy::KalmanLog => "kalman-log",
+            Strategy::Broyden => "broyden",
+            Strategy::FixedJacobian => "fixed-jacobian",
+            Strategy::FdNewton => "fd-newton",
+            Strategy::Oracle => "oracle",
+        }
+    }
+
+    /// Parse a command-line name.
+    pub fn from_name(s: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|k| k.name() == s)
+    }
+
+    fn estimator(self) -> EstimatorKind {
+        match self {
+            Strategy::Kalman | Strategy::KalmanLog => EstimatorKind::Kalman,
+            Strategy::KalmanAdaptiveQ => EstimatorKind::KalmanAdaptiveQ,
+            Strategy::Broyden => EstimatorKind::Broyden,
+            Strategy::FixedJacobian => EstimatorKind::FixedJacobian,
+            Strategy::FdNewton => EstimatorKind::FdNewton,
+            Strategy::Oracle => EstimatorKind::Oracle,
+        }
+    }
+}
+
+/// Protocol settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BenchmarkProtocol {
+    /// Set points `(t_sr ns, w µV)`, visited in order.
+    pub set_points: Vec<(f64, f64)>,
+    /// Iterations at each set point, regardless of convergence.
+    pub iterations_per_set_point: u32,
+    /// Relative tolerance band of both parameters (0.1 = ±10 %).
+    pub relative_tolerance: f64,
+}
+
+impl Default for BenchmarkProtocol {
+    fn default() -> Self {
+        Self {
+            set_points: PAPER_SET_POINTS.to_vec(),
+            iterations_per_set_point: 21,
+            relative_tolerance: 0.1,
+        }
+    }
+}
+
+/// Outcome of one target change for one strategy.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ChangeResult {
+    /// Iterations (moves) after the change until both parameters were in their
+    /// bands; `None` if not within the block.
+    pub iterations: Option<u32>,
+    /// Lab time from the change until then, minutes (`None` if not converged).
+    pub lab_minutes: Option<f64>,
+}
+
+/// One strategy on one seed.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SeedResult {
+    /// Strategy.
+    pub strategy: Strategy,
+    /// Seed.
+    pub seed: u64,
+    /// One entry per set point.
+    pub changes: Vec<ChangeResult>,
+    /// Requests the safety limits refused, plus iteration steps above the step limit.
+    pub limit_violations: u64,
+    /// Failed or rejected evaluations (all scans, all levels).
+    pub failed_fits: u64,
+    /// All top-level records (for plots); empty unless requested.
+    pub records: Vec<IterationRecord>,
+}
+
+/// Why a seed could not be benchmarked.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("seed {seed}: {message}")]
+pub struct BenchmarkError {
+    /// Seed.
+    pub seed: u64,
+    /// What went wrong.
+    pub message: String,
+}
+
+/// Run every strategy on one seed. `keep_records` keeps the iteration records.
+pub fn run_seed(
+    base: &SimulationConfig,
+    protocol: &BenchmarkProtocol,
+    strategies: &[Strategy],
+    seed: u64,
+    keep_records: bool,
+) -> Result<Vec<SeedResult>, BenchmarkError> {
+    let err = |m: String| BenchmarkError { seed, message: m };
+    let mut cfg = base.clone();
+    cfg.seed = seed;
+    cfg.tuner.max_iterations = Some(0);
+    cfg.tuner.stop_when_tuned = false;
+    let top = cfg.tuner.top_mut();
+    top.estimator = EstimatorKind::Kalman;
+    for p in &mut top.parameters {
+        p.tolerance = Tolerance::Relative(protocol.relative_tolerance);
+    }
+    // The shared starting point: initial finite-difference measurement of every level.
+    let mut init = SimulationRun::new(cfg).map_err(|e| err(e.to_string()))?;
+    while init
+        .next_iteration()
+        .map_err(|e| err(e.to_string()))?
+        .is_some()
+    {}
+    let learned = init.tuner().config_with_learned_gradients();
+    let device = init.device().clone();
+    let start_lab_seconds = init.tuner().lab_seconds();
+
+    strategies
+        .iter()
+        .map(|&strategy| {
+            let mut tcfg = learned.clone();
+            tcfg.max_iterations = None;
+            let top = tcfg.top_mut();
+            top.estimator = strategy.estimator();
+            if strategy == Strategy::KalmanLog {
+                let truth = device.truth();
+                let values = [truth.t_sr_ns, truth.w_uv];
+                for (p, typical) in top.parameters.iter_mut().zip(values) {
+                    p.transform = Transform::Log;
+                    p.process_noise_per_mv /= typical;
+                }
+                if let InitialGradient::Given {
+                    gradient,
+                    covariance,
+                } = &mut top.initial_gradient
+                {
+                    for ((row, cov), value) in
+                        gradient.iter_mut().zip(covariance.iter_mut()).zip(values)
+                    {
+                        row.iter_mut().for_each(|g| *g /= value);
+                        cov.iter_mut().flatten().for_each(|c| *c /= value * value);
+                    }
+                }
+            }
+            let tuner = Tuner::new(tcfg).map_err(|e| err(format!("{}: {e}", strategy.name())))?;
+            run_protocol(
+                strategy,
+                seed,
+                tuner,
+                device.clone(),
+                protocol,
+                start_lab_seconds,
+                keep_records,
+            )
+            .map_err(|m| err(format!("{}: {m}", strategy.name())))
+        })
+        .collect()
+}
+
+fn run_protocol(
+    strategy: Strategy,
+    seed: u64,
+    tuner: Tuner,
+    device: crate::sim::SimulatedDevice,
+    protocol: &BenchmarkProtocol,
+    start_lab_seconds: f64,
+    keep_records: bool,
+) -> Result<SeedResult, String> {
+    let mut run = SimulationRun::from_parts(tuner, device);
+    let max_step = run.tuner().config().top().solver.max_step_mv;
+    let mut violations = 0u64;
+    let mut changes = Vec::new();
+    let mut records = Vec::new();
+    let mut previous: Option<IterationRecord> = None;
+    let mut lab_at_change = start_lab_seconds;
+    for &(t_sr, w) in &protocol.set_points {
+        let tol = Some(Tolerance::Relative(protocol.relative_tolerance));
+        run.tuner_mut()
+            .set_target("t_sr", Some(t_sr), tol)
+            .map_err(|e| e.to_string())?;
+        run.tuner_mut()
+            .set_target("w", Some(w), tol)
+            .map_err(|e| e.to_string())?;
+        let mut converged: Option<ChangeResult> = None;
+        for k in 0..protocol.iterations_per_set_point {
+            let rec = next_checked(&mut run, &mut violations)?;
+            if let Some(prev) = &previous {
+                let norm = rec
+                    .gates
+                    .iter()
+                    .map(|g| (rec.voltages_mv[g] - prev.voltages_mv[g]).powi(2))
+                    .sum::<f64>()
+                    .sqrt();
+                if norm > max_step * (1.0 + 1e-9) {
+                    violations += 1;
+                }
+            }
+            if converged.is_none() && rec.tuned {
+                converged = Some(ChangeResult {
+                    iterations: Some(k),
+                    lab_minutes: Some((rec.lab_seconds - lab_at_change) / 60.0),
+                });
+            }
+            previous = Some(rec.clone());
+            if keep_records {
+                records.push(rec);
+            }
+        }
+        lab_at_change = previous.as_ref().map_or(lab_at_change, |r| r.lab_seconds);
+        changes.push(converged.unwrap_or(ChangeResult {
+            iterations: None,
+            lab_minutes: None,
+        }));
+    }
+    Ok(SeedResult {
+        strategy,
+        seed,
+        changes,
+        limit_violations: violations,
+        failed_fits: run.tuner().failed_evaluations(),
+        records,
+    })
+}
+
+/// Like [`SimulationRun::next_iteration`], but counts refused requests instead of stopping.
+fn next_checked(run: &mut SimulationRun, violations: &mut u64) -> Result<IterationRecord, String> {
+    loop {
+        match run.tuner_mut().poll() {
+            Action::Request(req) => {
+                if let Request::SetVoltages { voltages_mv } = &req {
+                    if run
+                        .tuner()
+                        .safety()
+                        .check(run.device().voltages_mv(), voltages_mv)
+                        .is_err()
+                    {
+                        *violations += 1;
+                    }
+                }
+                let resp = run.device_mut().execute(&req);
+                run.tuner_mut().feed(resp).map_err(|e| e.to_string())?;
+            }
+            Action::Iteration(rec) => return Ok(rec),
+            Action::Finished => return Err("tuner finished unexpectedly".into()),
+        }
+    }
+}
+
+/// Summary statistics of one strategy over many seeds (keys as in the JSON report).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StrategySummary {
+    /// Strategy name.
+    pub name: String,
+    /// Iterations per change: median, p90, max (non-converged changes count as the block length).
+    pub iterations_per_change: Quantiles,
+    /// Lab minutes per change: median and p90 over converged changes.
+    pub lab_minutes_per_change: Quantiles,
+    /// Changes not reached within the block.
+    pub not_converged: u64,
+    /// Must be 0.
+    pub limit_violations: u64,
+    /// Failed fits over all seeds.
+    pub failed_fits: u64,
+    /// Median iterations ÷ the oracle's median iterations (`None` without an oracle run).
+    pub ratio_to_oracle: Option<f64>,
+    /// Number of changes measured.
+    pub changes: u64,
+}
+
+/// Order statistics.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Quantiles {
+    /// Median.
+    pub median: f64,
+    /// 90th percentile.
+    pub p90: f64,
+    /// Maximum.
+    pub max: f64,
+}
+
+/// Quantile by linear interpolation between order statistics (`q` in 0..=1).
+///
+/// ```
+/// use spintune::benchmark::quantile;
+/// assert_eq!(quantile(&[1.0, 2.0, 3.0, 4.0], 0.5), 2.5);
+/// assert_eq!(quantile(&[5.0], 0.9), 5.0);
+/// ```
+pub fn quantile(values: &[f64], q: f64) -> f64 {
+    if values.is_empty() {
+        return f64::NAN;
+    }
+    let mut v = values.to_vec();
+    v.sort_by(|a, b| a.total_cmp(b));
+    let pos = q.clamp(0.0, 1.0) * (v.len() - 1) as f64;
+    let (lo, hi) = (pos.floor() as usize, pos.ceil() as usize);
+    v[lo] + (v[hi] - v[lo]) * (pos - lo as f64)
+}
+
+fn quantiles(values: &[f64]) -> Quantiles {
+    Quantiles {
+        median: quantile(values, 0.5),
+        p90: quantile(values, 0.9),
+        max: values.iter().copied().fold(f64::NAN, f64::max),
+    }
+}
+
+/// Aggregate per-seed results into one summary per strategy (in `strategies` order).
+pub fn summarize(
+    results: &[SeedResult],
+    strategies: &[Strategy],
+    block: u32,
+) -> Vec<StrategySummary> {
+    let mut out: Vec<StrategySummary> = strategies
+        .iter()
+        .map(|&s| {
+            let mine: Vec<&SeedResult> = results.iter().filter(|r| r.strategy == s).collect();
+            let changes: Vec<&ChangeResult> = mine.iter().flat_map(|r| &r.changes).collect();
+            let iters: Vec<f64> = changes
+                .iter()
+                .map(|c| c.iterations.map_or(block as f64, f64::from))
+                .collect();
+            let minutes: Vec<f64> = changes.iter().filter_map(|c| c.lab_minutes).collect();
+            StrategySummary {
+                name: s.name().to_string(),
+                iterations_per_change: quantiles(&iters),
+                lab_minutes_per_change: quantiles(&minutes),
+                not_converged: changes.iter().filter(|c| c.iterations.is_none()).count() as u64,
+                limit_violations: mine.iter().map(|r| r.limit_violations).sum(),
+                failed_fits: mine.iter().map(|r| r.failed_fits).sum(),
+                ratio_to_oracle: None,
+                changes: changes.len() as u64,
+            }
+        })
+        .collect();
+    if let Some(oracle) = out
+        .iter()
+        .find(|s| s.name == Strategy::Oracle.name())
+        .cloned()
+    {
+        for s in &mut out {
+            s.ratio_to_oracle = Some(if oracle.iterations_per_change.median > 0.0 {
+                s.iterations_per_change.median / oracle.iterations_per_change.median
+            } else if s.iterations_per_change.median == 0.0 {
+                1.0
+            } else {
+                f64::INFINITY
+            });
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_round_trip() {
+        for s in Strategy::ALL {
+            assert_eq!(Strategy::from_name(s.name()), Some(s));
+        }
+    }
+
+    #[test]
+    fn summary_counts_non_converged_as_block_length() {
+        let r = |s, its: Vec<Option<u32>>| SeedResult {
+            strategy: s,
+            seed: 0,
+            changes: its
+                .into_iter()
+                .map(|i| ChangeResult {
+                    iterations: i,
+                    lab_minutes: i.map(|x| x as f64 * 2.0),
+                })
+                .collect(),
+            limit_violations: 0,
+            failed_fits: 1,
+            records: vec![],
+        };
+        let results = vec![
+            r(Strategy::Kalman, vec![Some(2), Some(4), None]),
+            r(Strategy::Oracle, vec![Some(1), Some(2), Some(2)]),
+        ];
+        let s = summarize(&results, &[Strategy::Kalman, Strategy::Oracle], 21);
+        assert_eq!(s[0].iterations_per_change.median, 4.0);
+        assert_eq!(s[0].iterations_per_change.max, 21.0);
+        assert_eq!(s[0].not_converged, 1);
+        assert_eq!(s[0].ratio_to_oracle, Some(2.0));
+        assert_eq!(s[0].lab_minutes_per_change.median, 6.0);
+    }
+}

@@ -163,3 +163,71 @@ fn curve(label: &str, x: &[f64], f: impl Fn(f64) -> f64) -> Trace {
         y: x.iter().map(|&x| f(x)).collect(),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scan(kind: ScanKind, x: Vec<f64>, y: Vec<f64>) -> RawScan {
+        RawScan {
+            kind,
+            x_label: String::new(),
+            y_label: String::new(),
+            traces: vec![Trace {
+                label: "t".into(),
+                x,
+                y,
+            }],
+        }
+    }
+
+    #[test]
+    fn flat_or_malformed_data_are_errors() {
+        let x: Vec<f64> = (0..100).map(f64::from).collect();
+        // Alternating ±1e-3 "noise" with no step.
+        let flat: Vec<f64> = (0..100)
+            .map(|i| if i % 2 == 0 { 1e-3 } else { -1e-3 })
+            .collect();
+        for kind in ScanKind::ALL {
+            assert!(
+                evaluate(&scan(kind, x.clone(), flat.clone())).is_err(),
+                "{kind:?}"
+            );
+        }
+        let few = scan(ScanKind::TransitionWidth, vec![0.0, 1.0], vec![0.0, 1.0]);
+        assert!(matches!(evaluate(&few), Err(FitError::TooFewPoints { .. })));
+        let mut back = x.clone();
+        back.reverse();
+        let rev = scan(ScanKind::ReloadTime, back, flat.clone());
+        assert!(matches!(evaluate(&rev), Err(FitError::BadData(_))));
+        let nan = scan(ScanKind::ReloadTime, x.clone(), vec![f64::NAN; 100]);
+        assert!(matches!(evaluate(&nan), Err(FitError::BadData(_))));
+        let mut two = scan(ScanKind::TransitionWidth, x.clone(), flat);
+        two.traces.push(two.traces[0].clone());
+        assert!(matches!(evaluate(&two), Err(FitError::BadData(_))));
+    }
+
+    #[test]
+    fn steps_of_either_sign_and_the_fitted_curves() {
+        let x: Vec<f64> = (0..100).map(|i| -2.0 + 4.0 * f64::from(i) / 99.0).collect();
+        for sign in [1.0, -1.0] {
+            let y: Vec<f64> = x
+                .iter()
+                .map(|&x| 0.3 + sign * 0.5 * ((x + 0.4) / 0.25).tanh())
+                .collect();
+            let e = evaluate(&scan(ScanKind::TransitionWidth, x.clone(), y.clone())).unwrap();
+            assert!((e.values[0].value - 250.0).abs() < 1e-6);
+            let err: f64 = e.fit[0].y.iter().zip(&y).map(|(a, b)| (a - b).abs()).sum();
+            assert!(err < 1e-8);
+        }
+    }
+
+    #[test]
+    fn error_messages_are_clear() {
+        let e = FitError::TooFewPoints { got: 3, need: 10 };
+        assert_eq!(e.to_string(), "too few points: got 3, need at least 10");
+        assert!(FitError::NotConverged("LostPatience".into())
+            .to_string()
+            .contains("did not converge"));
+    }
+}

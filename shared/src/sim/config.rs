@@ -564,7 +564,7 @@ impl DeviceConfig {
         let det = g[0][0] * g[1][1] - g[0][1] * g[1][0];
         let scale = (g[0][0] * g[1][1]).abs().max(f64::MIN_POSITIVE);
         let mut m = vec![vec![0.0; tuning.len()]; plungers.len()];
-        if !(det.abs() > 1e-12 * scale) {
+        if det.is_nan() || det.abs() <= 1e-12 * scale {
             return m;
         }
         let inv = [

@@ -121,9 +121,9 @@ impl SimulationConfig {
             compensation: None,
         };
         let sensing = SensingDotConfig {
-            gate: "SP".into(),
-            half_width_mv: 15.0,
-            points: 151,
+            gate: device.sensing_dot.gate.clone(),
+            half_width_mv: device.sensing_dot.sweep_half_range_mv,
+            points: device.sensing_dot.sweep_points,
         };
         let tuner = TunerConfig {
             gates,

@@ -10,6 +10,9 @@ use serde::{Deserialize, Serialize};
 /// A measured value and its variance.
 pub type Sample = (f64, f64);
 
+/// One offset point: the actual offset of the gate (mV) and a sample per parameter.
+type Point = (f64, Vec<Option<Sample>>);
+
 /// Accumulates base and offset measurements over repetitions.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FiniteDifference {
@@ -24,7 +27,7 @@ pub struct FiniteDifference {
     /// `base[rep][param]`.
     base: Vec<Vec<Option<Sample>>>,
     /// `points[rep][gate][param]` with the actual voltage offset (mV) of that gate.
-    points: Vec<Vec<Option<(f64, Vec<Option<Sample>>)>>>,
+    points: Vec<Vec<Option<Point>>>,
 }
 
 impl FiniteDifference {

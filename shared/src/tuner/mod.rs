@@ -51,6 +51,9 @@ use crate::protocol::{
 };
 use crate::safety::SafetyLimits;
 
+/// One Jacobian row (unit/mV, estimator space) and its covariance, if the estimator has one.
+pub type GradientRow = (DVector<f64>, Option<DMatrix<f64>>);
+
 /// What the driver should do next.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Action {
@@ -251,7 +254,7 @@ impl Tuner {
     }
 
     /// Gradient rows (estimator space) and covariances of a Newton level, once initialised.
-    pub fn gradients(&self, level: usize) -> Option<Vec<(DVector<f64>, Option<DMatrix<f64>>)>> {
+    pub fn gradients(&self, level: usize) -> Option<Vec<GradientRow>> {
         match self.levels.get(level)? {
             LevelState::Newton(n) => n.gradients(),
             LevelState::SensingDot { .. } => None,

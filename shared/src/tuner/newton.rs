@@ -107,7 +107,7 @@ impl NewtonState {
         self.estimators.is_some()
     }
 
-    pub(super) fn gradients(&self) -> Option<Vec<(DVector<f64>, Option<DMatrix<f64>>)>> {
+    pub(super) fn gradients(&self) -> Option<Vec<super::GradientRow>> {
         self.estimators
             .as_ref()
             .map(|es| es.iter().map(|e| (e.gradient().clone(), e.covariance().cloned())).collect())

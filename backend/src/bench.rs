@@ -1,0 +1,344 @@
+//! `spintune bench`: the paper's set-point cycle over many seeds, every
+//! strategy side by side (protocol and statistics in `spintune::benchmark`;
+//! this module only runs seeds in parallel, shows progress and writes reports).
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Mutex;
+
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use serde::Serialize;
+use spintune::benchmark::{run_seed, summarize, BenchmarkProtocol, SeedResult, Strategy, StrategySummary};
+use spintune::driver::SimulationConfig;
+use spintune::protocol::IterationRecord;
+use spintune::sim::DeviceConfig;
+
+use crate::cli::CliError;
+
+/// Arguments of `spintune bench`.
+#[derive(Debug, Args)]
+pub struct BenchArgs {
+    /// Number of seeds (seeds 1..=N).
+    #[arg(long, default_value_t = 100)]
+    pub seeds: u64,
+    /// Comma-separated strategies (default: all): kalman, kalman-adaptive-q,
+    /// kalman-log, broyden, fixed-jacobian, fd-newton, oracle.
+    #[arg(long, value_delimiter = ',')]
+    pub strategies: Vec<String>,
+    /// Device description (TOML or JSON) overriding the simulator's defaults.
+    #[arg(long)]
+    pub device: Option<PathBuf>,
+    /// Write machine-readable results here.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+    /// Relative tolerance band of both parameters (0.1 = ±10 %).
+    #[arg(long, default_value_t = 0.1)]
+    pub tolerance: f64,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Draw one seed's parameter traces and gradient estimates (paper Fig. 3 style) to this PNG.
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
+    /// Seed and strategy drawn by `--plot`.
+    #[arg(long, default_value_t = 1)]
+    pub plot_seed: u64,
+}
+
+/// The JSON report.
+#[derive(Debug, Serialize)]
+pub struct BenchReport {
+    /// Number of seeds.
+    pub seeds: u64,
+    /// The protocol used.
+    pub protocol: BenchmarkProtocol,
+    /// One object per strategy.
+    pub strategies: Vec<StrategySummary>,
+}
+
+/// Run the benchmark.
+pub fn run(args: BenchArgs) -> Result<(), CliError> {
+    let strategies = parse_strategies(&args.strategies)?;
+    let mut base = SimulationConfig::paper_default();
+    if let Some(path) = &args.device {
+        base.device = load_device(path)?;
+    }
+    base.validate().map_err(|e| CliError::input(e.to_string()))?;
+    if !(args.tolerance.is_finite() && args.tolerance > 0.0) {
+        return Err(CliError::input("--tolerance must be a positive number"));
+    }
+    let protocol = BenchmarkProtocol {
+        relative_tolerance: args.tolerance,
+        ..BenchmarkProtocol::default()
+    };
+    let threads = args
+        .threads
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
+        .max(1);
+    let seeds: Vec<u64> = (1..=args.seeds).collect();
+    let bar = ProgressBar::new(seeds.len() as u64);
+    bar.set_style(
+        ProgressStyle::with_template("{spinner} seeds {pos}/{len} [{bar:30}] {elapsed} (eta {eta}) {msg}")
+            .expect("valid template")
+            .progress_chars("=> "),
+    );
+    let next = AtomicUsize::new(0);
+    let results: Mutex<Vec<SeedResult>> = Mutex::new(Vec::new());
+    let failures: Mutex<Vec<String>> = Mutex::new(Vec::new());
+    std::thread::scope(|scope| {
+        for _ in 0..threads {
+            scope.spawn(|| loop {
+                let i = next.fetch_add(1, Ordering::Relaxed);
+                let Some(&seed) = seeds.get(i) else { break };
+                match run_seed(&base, &protocol, &strategies, seed, false) {
+                    Ok(r) => results.lock().unwrap().extend(r),
+                    Err(e) => failures.lock().unwrap().push(e.to_string()),
+                }
+                bar.inc(1);
+            });
+        }
+    });
+    bar.finish_and_clear();
+    let mut results = results.into_inner().unwrap();
+    results.sort_by_key(|r| (r.seed, Strategy::ALL.iter().position(|s| *s == r.strategy)));
+    let failures = failures.into_inner().unwrap();
+    for f in &failures {
+        eprintln!("warning: {f}");
+    }
+    let summary = summarize(&results, &strategies, protocol.iterations_per_set_point);
+    println!("{}", markdown_table(&summary, args.seeds - failures.len() as u64, &protocol));
+    if let Some(path) = &args.json {
+        let report = BenchReport {
+            seeds: args.seeds,
+            protocol: protocol.clone(),
+            strategies: summary,
+        };
+        let text = serde_json::to_string_pretty(&report).expect("serializable report");
+        std::fs::write(path, text)
+            .map_err(|e| CliError::runtime(format!("cannot write {}: {e}", path.display())))?;
+        eprintln!("wrote {}", path.display());
+    }
+    if let Some(path) = &args.plot {
+        let strategy = strategies[0];
+        let r = run_seed(&base, &protocol, &[strategy], args.plot_seed, true)
+            .map_err(|e| CliError::runtime(e.to_string()))?;
+        draw_figure(path, &r[0].records, strategy.name(), args.plot_seed)?;
+        eprintln!("wrote {}", path.display());
+    }
+    if !failures.is_empty() {
+        return Err(CliError::runtime(format!("{} seed(s) failed", failures.len())));
+    }
+    Ok(())
+}
+
+fn parse_strategies(names: &[String]) -> Result<Vec<Strategy>, CliError> {
+    if names.is_empty() {
+        return Ok(Strategy::ALL.to_vec());
+    }
+    names
+        .iter()
+        .map(|n| {
+            Strategy::from_name(n.trim()).ok_or_else(|| {
+                let all: Vec<&str> = Strategy::ALL.iter().map(|s| s.name()).collect();
+                CliError::input(format!("unknown strategy {n:?}; choose from {}", all.join(", ")))
+            })
+        })
+        .collect()
+}
+
+fn load_device(path: &Path) -> Result<DeviceConfig, CliError> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| CliError::input(format!("cannot read {}: {e}", path.display())))?;
+    let is_json = path.extension().is_some_and(|e| e == "json");
+    let parsed: Result<DeviceConfig, String> = if is_json {
+        let de = &mut serde_json::Deserializer::from_str(&text);
+        serde_path_to_error::deserialize(de).map_err(|e| format!("at `{}`: {}", e.path(), e.inner()))
+    } else {
+        toml::from_str(&text).map_err(|e| e.to_string())
+    };
+    let device = parsed.map_err(|m| CliError::input(format!("invalid device file {}: {m}", path.display())))?;
+    device
+        .validate()
+        .map_err(|m| CliError::input(format!("invalid device file {}: {m}", path.display())))?;
+    Ok(device)
+}
+
+/// The markdown table printed at the end.
+pub fn markdown_table(summary: &[StrategySummary], seeds: u64, protocol: &BenchmarkProtocol) -> String {
+    let mut s = format!(
+        "Seeds: {seeds}; {} set-point changes per seed, {} iterations each, tolerance ±{:.0} %.\n\n",
+        protocol.set_points.len(),
+        protocol.iterations_per_set_point,
+        protocol.relative_tolerance * 100.0
+    );
+    s.push_str("| strategy | iterations/change median | p90 | max | lab min/change median | p90 | not converged | limit violations | failed fits | ratio to oracle |\n");
+    s.push_str("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
+    for r in summary {
+        s.push_str(&format!(
+            "| {} | {:.1} | {:.1} | {:.0} | {:.1} | {:.1} | {} / {} | {} | {} | {} |\n",
+            r.name,
+            r.iterations_per_change.median,
+            r.iterations_per_change.p90,
+            r.iterations_per_change.max,
+            r.lab_minutes_per_change.median,
+            r.lab_minutes_per_change.p90,
+            r.not_converged,
+            r.changes,
+            r.limit_violations,
+            r.failed_fits,
+            r.ratio_to_oracle.map_or("–".to_string(), |x| format!("{x:.2}")),
+        ));
+    }
+    s
+}
+
+/// Paper Fig. 3 style: parameters with targets and ±1σ, gradient elements with ±1σ.
+fn draw_figure(path: &Path, records: &[IterationRecord], strategy: &str, seed: u64) -> Result<(), CliError> {
+    use plotters::prelude::*;
+    register_font()?;
+    let err = |e: &dyn std::fmt::Display| CliError::runtime(format!("plot: {e}"));
+    let root = BitMapBackend::new(path, (1200, 1500)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| err(&e))?;
+    let root = root
+        .titled(
+            &format!("spintune bench: {strategy}, seed {seed} (paper Fig. 3 style)"),
+            ("sans-serif", 26),
+        )
+        .map_err(|e| err(&e))?;
+    let panels = root.split_evenly((4, 1));
+    let colors = [RGBColor(31, 119, 180), RGBColor(255, 127, 14), RGBColor(44, 160, 44), RGBColor(214, 39, 40)];
+    let n = records.len() as f64;
+    for (pi, (name, unit)) in [("t_sr", "ns"), ("w", "µV")].into_iter().enumerate() {
+        // parameter panel
+        let pts: Vec<(f64, f64, f64, Option<f64>, f64)> = records
+            .iter()
+            .filter_map(|r| {
+                let p = r.parameters.iter().find(|p| p.name == name)?;
+                Some((r.iteration as f64, p.value?, p.std.unwrap_or(0.0), p.target, p.tolerance.unwrap_or(0.0)))
+            })
+            .collect();
+        // Scale to the targets and to the trustworthy points: a failed fit with a huge
+        // error bar is drawn (clipped), but does not squash everything else.
+        let (lo, hi) = pts
+            .iter()
+            .filter(|p| p.3.is_none_or(|_| p.2 <= 3.0 * p.4.max(1e-12)))
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+                (lo.min(p.1 - p.2).min(p.3.unwrap_or(p.1) - p.4), hi.max(p.1 + p.2).max(p.3.unwrap_or(p.1) + p.4))
+            });
+        let pad = (hi - lo).max(1e-9) * 0.08;
+        let mut chart = ChartBuilder::on(&panels[pi])
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(70)
+            .caption(format!("({}) {name}", ['a', 'b'][pi]), ("sans-serif", 20))
+            .build_cartesian_2d(0f64..n, (lo - pad)..(hi + pad))
+            .map_err(|e| err(&e))?;
+        chart
+            .configure_mesh()
+            .x_desc("iteration k")
+            .y_desc(format!("{name} ({unit})"))
+            .draw()
+            .map_err(|e| err(&e))?;
+        // target and tolerance band
+        chart
+            .draw_series(pts.iter().filter_map(|p| {
+                let t = p.3?;
+                Some(Rectangle::new([(p.0 - 0.5, t - p.4), (p.0 + 0.5, t + p.4)], RGBColor(170, 200, 255).filled()))
+            }))
+            .map_err(|e| err(&e))?
+            .label("target ± tolerance")
+            .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 15, y + 5)], RGBColor(170, 200, 255).filled()));
+        chart
+            .draw_series(pts.iter().map(|p| {
+                ErrorBar::new_vertical(p.0, p.1 - p.2, p.1, p.1 + p.2, RED.filled(), 6)
+            }))
+            .map_err(|e| err(&e))?;
+        chart
+            .draw_series(LineSeries::new(pts.iter().map(|p| (p.0, p.1)), RED.stroke_width(2)))
+            .map_err(|e| err(&e))?
+            .label(format!("measured {name} ± 1σ"))
+            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 15, y)], RED.stroke_width(2)));
+        chart
+            .configure_series_labels()
+            .border_style(BLACK)
+            .background_style(WHITE.mix(0.8))
+            .draw()
+            .map_err(|e| err(&e))?;
+
+        // gradient panel
+        let grads: Vec<(f64, Vec<(f64, f64)>)> = records
+            .iter()
+            .filter_map(|r| {
+                let g = r.gradients.iter().find(|g| g.parameter == name)?;
+                let sd = |j: usize| g.covariance.as_ref().map_or(0.0, |c| c[j][j].max(0.0).sqrt());
+                Some((r.iteration as f64, g.gradient.iter().enumerate().map(|(j, &x)| (x, sd(j))).collect()))
+            })
+            .collect();
+        let gates = records.first().map(|r| r.gates.clone()).unwrap_or_default();
+        let unit_g = records
+            .first()
+            .and_then(|r| r.gradients.iter().find(|g| g.parameter == name))
+            .map_or(String::new(), |g| g.unit.clone());
+        let (glo, ghi) = grads.iter().flat_map(|(_, v)| v.iter()).fold(
+            (f64::INFINITY, f64::NEG_INFINITY),
+            |(lo, hi), &(x, s)| (lo.min(x - s), hi.max(x + s)),
+        );
+        let gpad = (ghi - glo).max(1e-9) * 0.08;
+        let mut chart = ChartBuilder::on(&panels[2 + pi])
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(70)
+            .caption(format!("({}) gradient of {name}, ±1σ = √diag C", ['c', 'd'][pi]), ("sans-serif", 20))
+            .build_cartesian_2d(0f64..n, (glo - gpad)..(ghi + gpad))
+            .map_err(|e| err(&e))?;
+        chart
+            .configure_mesh()
+            .x_desc("iteration k")
+            .y_desc(format!("∂{name}/∂V ({unit_g})"))
+            .draw()
+            .map_err(|e| err(&e))?;
+        for (j, gate) in gates.iter().enumerate() {
+            let c = colors[j % colors.len()];
+            chart
+                .draw_series(grads.iter().map(|(k, v)| {
+                    let (x, s) = v[j];
+                    ErrorBar::new_vertical(*k, x - s, x, x + s, c.filled(), 5)
+                }))
+                .map_err(|e| err(&e))?;
+            chart
+                .draw_series(LineSeries::new(grads.iter().map(|(k, v)| (*k, v[j].0)), c.stroke_width(2)))
+                .map_err(|e| err(&e))?
+                .label(gate.clone())
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 15, y)], c.stroke_width(2)));
+        }
+        chart
+            .configure_series_labels()
+            .border_style(BLACK)
+            .background_style(WHITE.mix(0.8))
+            .draw()
+            .map_err(|e| err(&e))?;
+    }
+    root.present().map_err(|e| err(&e))?;
+    Ok(())
+}
+
+/// plotters draws text with a font we hand it: the first of the usual system sans fonts.
+fn register_font() -> Result<(), CliError> {
+    const CANDIDATES: [&str; 4] = [
+        "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
+        "/usr/share/fonts/truetype/liberation/LiberationSans-Regular.ttf",
+        "/usr/share/fonts/dejavu/DejaVuSans.ttf",
+        "/usr/share/fonts/TTF/DejaVuSans.ttf",
+    ];
+    for path in CANDIDATES {
+        if let Ok(bytes) = std::fs::read(path) {
+            let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
+            return plotters::style::register_font("sans-serif", plotters::style::FontStyle::Normal, bytes)
+                .map_err(|_| CliError::runtime(format!("{path} is not a usable font")));
+        }
+    }
+    Err(CliError::runtime(
+        "no TrueType font found for the plot: install fonts-dejavu-core (apt-get install fonts-dejavu-core)",
+    ))
+}

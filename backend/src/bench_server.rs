@@ -152,9 +152,16 @@ async fn measure(
     let url = format!("ws://{}/api/runs/{id}/ws", server.addr);
     let mut clients = Vec::with_capacity(viewers);
     for _ in 0..viewers {
-        let (ws, _) = tokio_tungstenite::connect_async(url.as_str())
-            .await
-            .map_err(|e| CliError::runtime(format!("viewer cannot connect: {e}")))?;
+        let (ws, _) = tokio_tungstenite::connect_async_with_config(
+            url.as_str(),
+            Some(
+                tokio_tungstenite::tungstenite::protocol::WebSocketConfig::default()
+                    .read_buffer_size(32 * 1024),
+            ),
+            true,
+        )
+        .await
+        .map_err(|e| CliError::runtime(format!("viewer cannot connect: {e}")))?;
         let send_times = send_times.clone();
         let delivered = delivered.clone();
         let lagged = lagged.clone();

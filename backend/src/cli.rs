@@ -140,6 +140,11 @@ pub async fn start_server(args: &ServeArgs) -> Result<Server, CliError> {
         },
         args.dist.clone(),
     );
+    // Small frames at high rates: do not let Nagle's algorithm hold them back.
+    use axum::serve::ListenerExt;
+    let listener = listener.tap_io(|tcp| {
+        let _ = tcp.set_nodelay(true);
+    });
     let task = tokio::spawn(async move {
         if let Err(e) = axum::serve(listener, app).await {
             eprintln!("server error: {e}");

@@ -402,6 +402,9 @@ async fn ws(
     let id = parse_id(&id)?;
     let from = parse_u64(&q, "from")?.unwrap_or(0);
     s.manager.get(id)?;
+    // Client messages are small; a small read buffer keeps each (frequent,
+    // usually empty) poll of the socket cheap, since tungstenite zeroes it.
+    let upgrade = upgrade.read_buffer_size(4 * 1024);
     Ok(upgrade.on_upgrade(move |socket| async move {
         if let Err(e) = viewer(s, id, from, socket).await {
             // A viewer going away is normal; nothing else to do.

@@ -64,6 +64,54 @@ fn placeholder<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, title: &str, t
     Ok(())
 }
 
+/// Axis range for values with error bars that is not dominated by a few
+/// points with enormous uncertainty (failed or distrusted fits): error bars
+/// count only when σ ≤ 5 × the median σ; the rest are clipped at the frame.
+pub fn robust_range(points: &[(f64, f64, f64)], extra: impl Iterator<Item = f64>) -> (f64, f64) {
+    let mut sig: Vec<f64> = points.iter().map(|p| p.2).filter(|s| s.is_finite()).collect();
+    sig.sort_by(|a, b| a.total_cmp(b));
+    let median = sig.get(sig.len() / 2).copied().unwrap_or(0.0);
+    let limit = 5.0 * median;
+    let core = points
+        .iter()
+        .filter(|p| p.2 <= limit || p.2 == 0.0)
+        .flat_map(|&(_, v, s)| [v - s, v + s]);
+    // Values whose σ is huge still count, but not their error bars.
+    let vals = points.iter().map(|p| p.1);
+    padded_range(core.chain(vals).chain(extra), 0.08)
+}
+
+/// Tick label with a sensible number of digits (and no "-0").
+pub fn num_label(x: &f64) -> String {
+    let a = x.abs();
+    let s = if a == 0.0 || a < 1e-12 {
+        "0".to_string()
+    } else if !(1e-3..1e5).contains(&a) {
+        format!("{x:.1e}")
+    } else if a >= 100.0 {
+        format!("{x:.0}")
+    } else if a >= 10.0 {
+        format!("{x:.1}")
+    } else if a >= 1.0 {
+        format!("{x:.2}")
+    } else {
+        format!("{x:.3}")
+    };
+    if s.starts_with('-') && s.trim_start_matches(['-', '0', '.']).is_empty() {
+        s[1..].to_string()
+    } else {
+        s
+    }
+}
+
+fn bar_width(n: usize) -> u32 {
+    match n {
+        0..=30 => 5,
+        31..=80 => 3,
+        _ => 0,
+    }
+}
+
 fn int_label(x: &f64) -> String {
     if (x - x.round()).abs() < 1e-9 {
         format!("{x:.0}")
@@ -120,13 +168,7 @@ pub fn draw_parameter<DB: DrawingBackend>(
     }
     let bands = target_segments(records, parameter);
     let (x0, x1) = iteration_range(records);
-    let (y0, y1) = padded_range(
-        points
-            .iter()
-            .flat_map(|&(_, v, s)| [v - s, v + s])
-            .chain(bands.iter().flat_map(|&(_, _, t, tol)| [t - tol, t + tol])),
-        0.08,
-    );
+    let (y0, y1) = robust_range(&points, bands.iter().flat_map(|&(_, _, t, tol)| [t - tol, t + tol]));
     let mut chart = ChartBuilder::on(area)
         .caption(&title, (FONT, 16))
         .margin(8)
@@ -139,6 +181,7 @@ pub fn draw_parameter<DB: DrawingBackend>(
         .x_desc("iteration")
         .y_desc(format!("{parameter} ({unit})"))
         .x_label_formatter(&int_label)
+        .y_label_formatter(&num_label)
         .light_line_style(RGBColor(238, 238, 238))
         .label_style((FONT, 12))
         .axis_desc_style((FONT, 13))
@@ -168,7 +211,7 @@ pub fn draw_parameter<DB: DrawingBackend>(
         .draw_series(
             points
                 .iter()
-                .map(|&(k, v, s)| ErrorBar::new_vertical(k, v - s, v, v + s, c.filled(), 5)),
+                .map(|&(k, v, s)| ErrorBar::new_vertical(k, v - s, v, v + s, c.filled(), bar_width(points.len()))),
         )
         .map_err(err)?
         .label("measured ±1σ")
@@ -225,9 +268,9 @@ pub fn draw_gradient<DB: DrawingBackend>(
                 v.is_finite().then_some((r.iteration as f64, v, s))
             })
             .collect();
-        let (y0, y1) = padded_range(pts.iter().flat_map(|&(_, v, s)| [v - s, v + s]), 0.08);
+        let (y0, y1) = robust_range(&pts, std::iter::empty());
         let mut chart = ChartBuilder::on(panel)
-            .caption(format!("∂{parameter}/∂{gate}"), (FONT, 15))
+            .caption(format!("∂{parameter}/∂V_{gate}"), (FONT, 15))
             .margin(6)
             .x_label_area_size(34)
             .y_label_area_size(54)
@@ -238,6 +281,7 @@ pub fn draw_gradient<DB: DrawingBackend>(
             .x_desc("iteration")
             .y_desc(unit.as_str())
             .x_label_formatter(&int_label)
+        .y_label_formatter(&num_label)
             .x_labels(6)
             .y_labels(6)
             .light_line_style(RGBColor(238, 238, 238))
@@ -252,7 +296,7 @@ pub fn draw_gradient<DB: DrawingBackend>(
         chart
             .draw_series(
                 pts.iter()
-                    .map(|&(k, v, s)| ErrorBar::new_vertical(k, v - s, v, v + s, c.filled(), 4)),
+                    .map(|&(k, v, s)| ErrorBar::new_vertical(k, v - s, v, v + s, c.mix(0.55).filled(), bar_width(pts.len()))),
             )
             .map_err(err)?;
     }
@@ -286,6 +330,7 @@ pub fn draw_gates<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, records: &[
             .x_desc("iteration")
             .y_desc("voltage (mV)")
             .x_label_formatter(&int_label)
+        .y_label_formatter(&num_label)
             .x_labels(6)
             .y_labels(6)
             .light_line_style(RGBColor(238, 238, 238))
@@ -340,6 +385,8 @@ pub fn draw_scan<DB: DrawingBackend>(
     chart
         .configure_mesh()
         .x_desc(scan.raw.x_label.as_str())
+        .x_label_formatter(&num_label)
+        .y_label_formatter(&num_label)
         .y_desc(scan.raw.y_label.as_str())
         .light_line_style(RGBColor(238, 238, 238))
         .label_style((FONT, 12))
@@ -416,6 +463,7 @@ pub fn draw_lab_time<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, records:
         .x_desc("iteration")
         .y_desc("lab time (min)")
         .x_label_formatter(&int_label)
+        .y_label_formatter(&num_label)
         .light_line_style(RGBColor(238, 238, 238))
         .label_style((FONT, 12))
         .axis_desc_style((FONT, 13))
@@ -449,6 +497,17 @@ pub fn draw_lab_time<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, records:
 mod tests {
     use super::*;
     use crate::model::fake_records;
+
+    #[test]
+    fn labels_and_robust_range() {
+        assert_eq!(num_label(&-0.0001e-9), "0");
+        assert_eq!(num_label(&-0.0), "0");
+        assert_eq!(num_label(&270.0), "270");
+        assert_eq!(num_label(&0.25), "0.250");
+        let pts = [(0.0, 10.0, 1.0), (1.0, 12.0, 1.0), (2.0, 11.0, 500.0)];
+        let (lo, hi) = robust_range(&pts, std::iter::empty());
+        assert!(lo > -10.0 && hi < 30.0, "{lo} {hi}");
+    }
 
     #[test]
     fn target_segments_merge_constant_runs() {

@@ -340,7 +340,7 @@ pub fn LiveMode(base: ApiBase) -> impl IntoView {
         })
     };
     view! {
-        <div class="live">
+        <div class="mode-live">
             <aside class="sidebar">
                 <h2>"Runs"</h2>
                 <Show when=move || error.with(|e| e.is_some())>

@@ -320,7 +320,7 @@ pub fn LocalMode() -> impl IntoView {
         None => "not tuned yet".into(),
     };
     view! {
-        <div class="local">
+        <div class="mode-local">
             <aside class="sidebar">
                 <h2>"Simulated double dot"</h2>
                 <div class="buttons">

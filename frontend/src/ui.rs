@@ -8,6 +8,8 @@ use plotters::prelude::*;
 use plotters_canvas::CanvasBackend;
 use wasm_bindgen::JsValue;
 
+use spintune::protocol::ParameterReport;
+
 use crate::charts;
 use crate::model::{format_lab_time, History};
 
@@ -90,6 +92,29 @@ where
     }
 }
 
+fn fmt_num(x: f64) -> String {
+    charts::num_label(&x)
+}
+
+/// "t_sr 19.5 ± 0.6 ns → 20 ± 2" for the stats line.
+fn param_summary(p: &ParameterReport) -> impl IntoView {
+    let value = match (p.value, p.std) {
+        (Some(v), Some(s)) => format!("{} ± {} {}", fmt_num(v), fmt_num(s), p.unit),
+        (Some(v), None) => format!("{} {}", fmt_num(v), p.unit),
+        _ => "no valid measurement".to_string(),
+    };
+    let target = match (p.target, p.tolerance) {
+        (Some(t), Some(tol)) => format!("target {} ± {} {}", fmt_num(t), fmt_num(tol), p.unit),
+        (Some(t), None) => format!("target {} {}", fmt_num(t), p.unit),
+        _ => "no target".to_string(),
+    };
+    view! {
+        <span class="stat" data-testid=format!("param-{}", p.name)>
+            <i>{p.name.clone()}</i>" " <b>{value}</b>" " <span class="target-text">{format!("({target})")}</span>
+        </span>
+    }
+}
+
 /// Headline numbers of a history.
 #[component]
 pub fn Stats(history: RwSignal<History>) -> impl IntoView {
@@ -102,6 +127,7 @@ pub fn Stats(history: RwSignal<History>) -> impl IntoView {
                     <span class="stat">"iteration " <b data-testid="iteration">{k}</b></span>
                     <span class="stat">"lab time " <b data-testid="lab-time">{format_lab_time(lab)}</b></span>
                     <span class="stat">"failed fits " <b>{failed}</b></span>
+                    {move || history.with(|h| h.last().map(|r| r.parameters.iter().map(param_summary).collect_view()))}
                     <span class=if tuned { "badge ok" } else { "badge" } data-testid="tuned">
                         {if tuned { "tuned: all parameters in band" } else { "tuning…" }}
                     </span>

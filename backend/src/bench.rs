@@ -9,7 +9,9 @@ use std::sync::Mutex;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
-use spintune::benchmark::{run_seed, summarize, BenchmarkProtocol, SeedResult, Strategy, StrategySummary};
+use spintune::benchmark::{
+    run_seed, summarize, BenchmarkProtocol, SeedResult, Strategy, StrategySummary,
+};
 use spintune::driver::SimulationConfig;
 use spintune::protocol::IterationRecord;
 use spintune::sim::DeviceConfig;
@@ -64,7 +66,8 @@ pub fn run(args: BenchArgs) -> Result<(), CliError> {
     if let Some(path) = &args.device {
         base.device = load_device(path)?;
     }
-    base.validate().map_err(|e| CliError::input(e.to_string()))?;
+    base.validate()
+        .map_err(|e| CliError::input(e.to_string()))?;
     if !(args.tolerance.is_finite() && args.tolerance > 0.0) {
         return Err(CliError::input("--tolerance must be a positive number"));
     }
@@ -79,9 +82,11 @@ pub fn run(args: BenchArgs) -> Result<(), CliError> {
     let seeds: Vec<u64> = (1..=args.seeds).collect();
     let bar = ProgressBar::new(seeds.len() as u64);
     bar.set_style(
-        ProgressStyle::with_template("{spinner} seeds {pos}/{len} [{bar:30}] {elapsed} (eta {eta}) {msg}")
-            .expect("valid template")
-            .progress_chars("=> "),
+        ProgressStyle::with_template(
+            "{spinner} seeds {pos}/{len} [{bar:30}] {elapsed} (eta {eta}) {msg}",
+        )
+        .expect("valid template")
+        .progress_chars("=> "),
     );
     let next = AtomicUsize::new(0);
     let results: Mutex<Vec<SeedResult>> = Mutex::new(Vec::new());
@@ -107,7 +112,10 @@ pub fn run(args: BenchArgs) -> Result<(), CliError> {
         eprintln!("warning: {f}");
     }
     let summary = summarize(&results, &strategies, protocol.iterations_per_set_point);
-    println!("{}", markdown_table(&summary, args.seeds - failures.len() as u64, &protocol));
+    println!(
+        "{}",
+        markdown_table(&summary, args.seeds - failures.len() as u64, &protocol)
+    );
     if let Some(path) = &args.json {
         let report = BenchReport {
             seeds: args.seeds,
@@ -127,7 +135,10 @@ pub fn run(args: BenchArgs) -> Result<(), CliError> {
         eprintln!("wrote {}", path.display());
     }
     if !failures.is_empty() {
-        return Err(CliError::runtime(format!("{} seed(s) failed", failures.len())));
+        return Err(CliError::runtime(format!(
+            "{} seed(s) failed",
+            failures.len()
+        )));
     }
     Ok(())
 }
@@ -141,7 +152,10 @@ fn parse_strategies(names: &[String]) -> Result<Vec<Strategy>, CliError> {
         .map(|n| {
             Strategy::from_name(n.trim()).ok_or_else(|| {
                 let all: Vec<&str> = Strategy::ALL.iter().map(|s| s.name()).collect();
-                CliError::input(format!("unknown strategy {n:?}; choose from {}", all.join(", ")))
+                CliError::input(format!(
+                    "unknown strategy {n:?}; choose from {}",
+                    all.join(", ")
+                ))
             })
         })
         .collect()
@@ -153,11 +167,13 @@ fn load_device(path: &Path) -> Result<DeviceConfig, CliError> {
     let is_json = path.extension().is_some_and(|e| e == "json");
     let parsed: Result<DeviceConfig, String> = if is_json {
         let de = &mut serde_json::Deserializer::from_str(&text);
-        serde_path_to_error::deserialize(de).map_err(|e| format!("at `{}`: {}", e.path(), e.inner()))
+        serde_path_to_error::deserialize(de)
+            .map_err(|e| format!("at `{}`: {}", e.path(), e.inner()))
     } else {
         toml::from_str(&text).map_err(|e| e.to_string())
     };
-    let device = parsed.map_err(|m| CliError::input(format!("invalid device file {}: {m}", path.display())))?;
+    let device = parsed
+        .map_err(|m| CliError::input(format!("invalid device file {}: {m}", path.display())))?;
     device
         .validate()
         .map_err(|m| CliError::input(format!("invalid device file {}: {m}", path.display())))?;
@@ -165,7 +181,11 @@ fn load_device(path: &Path) -> Result<DeviceConfig, CliError> {
 }
 
 /// The markdown table printed at the end.
-pub fn markdown_table(summary: &[StrategySummary], seeds: u64, protocol: &BenchmarkProtocol) -> String {
+pub fn markdown_table(
+    summary: &[StrategySummary],
+    seeds: u64,
+    protocol: &BenchmarkProtocol,
+) -> String {
     let mut s = format!(
         "Seeds: {seeds}; {} set-point changes per seed, {} iterations each, tolerance ±{:.0} %.\n\n",
         protocol.set_points.len(),
@@ -187,14 +207,20 @@ pub fn markdown_table(summary: &[StrategySummary], seeds: u64, protocol: &Benchm
             r.changes,
             r.limit_violations,
             r.failed_fits,
-            r.ratio_to_oracle.map_or("–".to_string(), |x| format!("{x:.2}")),
+            r.ratio_to_oracle
+                .map_or("–".to_string(), |x| format!("{x:.2}")),
         ));
     }
     s
 }
 
 /// Paper Fig. 3 style: parameters with targets and ±1σ, gradient elements with ±1σ.
-fn draw_figure(path: &Path, records: &[IterationRecord], strategy: &str, seed: u64) -> Result<(), CliError> {
+fn draw_figure(
+    path: &Path,
+    records: &[IterationRecord],
+    strategy: &str,
+    seed: u64,
+) -> Result<(), CliError> {
     use plotters::prelude::*;
     register_font()?;
     let err = |e: &dyn std::fmt::Display| CliError::runtime(format!("plot: {e}"));
@@ -207,7 +233,12 @@ fn draw_figure(path: &Path, records: &[IterationRecord], strategy: &str, seed: u
         )
         .map_err(|e| err(&e))?;
     let panels = root.split_evenly((4, 1));
-    let colors = [RGBColor(31, 119, 180), RGBColor(255, 127, 14), RGBColor(44, 160, 44), RGBColor(214, 39, 40)];
+    let colors = [
+        RGBColor(31, 119, 180),
+        RGBColor(255, 127, 14),
+        RGBColor(44, 160, 44),
+        RGBColor(214, 39, 40),
+    ];
     let n = records.len() as f64;
     for (pi, (name, unit)) in [("t_sr", "ns"), ("w", "µV")].into_iter().enumerate() {
         // parameter panel
@@ -215,7 +246,13 @@ fn draw_figure(path: &Path, records: &[IterationRecord], strategy: &str, seed: u
             .iter()
             .filter_map(|r| {
                 let p = r.parameters.iter().find(|p| p.name == name)?;
-                Some((r.iteration as f64, p.value?, p.std.unwrap_or(0.0), p.target, p.tolerance.unwrap_or(0.0)))
+                Some((
+                    r.iteration as f64,
+                    p.value?,
+                    p.std.unwrap_or(0.0),
+                    p.target,
+                    p.tolerance.unwrap_or(0.0),
+                ))
             })
             .collect();
         // Scale to the targets and to the trustworthy points: a failed fit with a huge
@@ -224,7 +261,10 @@ fn draw_figure(path: &Path, records: &[IterationRecord], strategy: &str, seed: u
             .iter()
             .filter(|p| p.3.is_none_or(|_| p.2 <= 3.0 * p.4.max(1e-12)))
             .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
-                (lo.min(p.1 - p.2).min(p.3.unwrap_or(p.1) - p.4), hi.max(p.1 + p.2).max(p.3.unwrap_or(p.1) + p.4))
+                (
+                    lo.min(p.1 - p.2).min(p.3.unwrap_or(p.1) - p.4),
+                    hi.max(p.1 + p.2).max(p.3.unwrap_or(p.1) + p.4),
+                )
             });
         let pad = (hi - lo).max(1e-9) * 0.08;
         let mut chart = ChartBuilder::on(&panels[pi])
@@ -244,18 +284,31 @@ fn draw_figure(path: &Path, records: &[IterationRecord], strategy: &str, seed: u
         chart
             .draw_series(pts.iter().filter_map(|p| {
                 let t = p.3?;
-                Some(Rectangle::new([(p.0 - 0.5, t - p.4), (p.0 + 0.5, t + p.4)], RGBColor(170, 200, 255).filled()))
+                Some(Rectangle::new(
+                    [(p.0 - 0.5, t - p.4), (p.0 + 0.5, t + p.4)],
+                    RGBColor(170, 200, 255).filled(),
+                ))
             }))
             .map_err(|e| err(&e))?
             .label("target ± tolerance")
-            .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 15, y + 5)], RGBColor(170, 200, 255).filled()));
+            .legend(|(x, y)| {
+                Rectangle::new(
+                    [(x, y - 5), (x + 15, y + 5)],
+                    RGBColor(170, 200, 255).filled(),
+                )
+            });
         chart
-            .draw_series(pts.iter().map(|p| {
-                ErrorBar::new_vertical(p.0, p.1 - p.2, p.1, p.1 + p.2, RED.filled(), 6)
-            }))
+            .draw_series(
+                pts.iter().map(|p| {
+                    ErrorBar::new_vertical(p.0, p.1 - p.2, p.1, p.1 + p.2, RED.filled(), 6)
+                }),
+            )
             .map_err(|e| err(&e))?;
         chart
-            .draw_series(LineSeries::new(pts.iter().map(|p| (p.0, p.1)), RED.stroke_width(2)))
+            .draw_series(LineSeries::new(
+                pts.iter().map(|p| (p.0, p.1)),
+                RED.stroke_width(2),
+            ))
             .map_err(|e| err(&e))?
             .label(format!("measured {name} ± 1σ"))
             .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 15, y)], RED.stroke_width(2)));
@@ -271,8 +324,19 @@ fn draw_figure(path: &Path, records: &[IterationRecord], strategy: &str, seed: u
             .iter()
             .filter_map(|r| {
                 let g = r.gradients.iter().find(|g| g.parameter == name)?;
-                let sd = |j: usize| g.covariance.as_ref().map_or(0.0, |c| c[j][j].max(0.0).sqrt());
-                Some((r.iteration as f64, g.gradient.iter().enumerate().map(|(j, &x)| (x, sd(j))).collect()))
+                let sd = |j: usize| {
+                    g.covariance
+                        .as_ref()
+                        .map_or(0.0, |c| c[j][j].max(0.0).sqrt())
+                };
+                Some((
+                    r.iteration as f64,
+                    g.gradient
+                        .iter()
+                        .enumerate()
+                        .map(|(j, &x)| (x, sd(j)))
+                        .collect(),
+                ))
             })
             .collect();
         let gates = records.first().map(|r| r.gates.clone()).unwrap_or_default();
@@ -280,16 +344,21 @@ fn draw_figure(path: &Path, records: &[IterationRecord], strategy: &str, seed: u
             .first()
             .and_then(|r| r.gradients.iter().find(|g| g.parameter == name))
             .map_or(String::new(), |g| g.unit.clone());
-        let (glo, ghi) = grads.iter().flat_map(|(_, v)| v.iter()).fold(
-            (f64::INFINITY, f64::NEG_INFINITY),
-            |(lo, hi), &(x, s)| (lo.min(x - s), hi.max(x + s)),
-        );
+        let (glo, ghi) = grads
+            .iter()
+            .flat_map(|(_, v)| v.iter())
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &(x, s)| {
+                (lo.min(x - s), hi.max(x + s))
+            });
         let gpad = (ghi - glo).max(1e-9) * 0.08;
         let mut chart = ChartBuilder::on(&panels[2 + pi])
             .margin(12)
             .x_label_area_size(40)
             .y_label_area_size(70)
-            .caption(format!("({}) gradient of {name}, ±1σ = √diag C", ['c', 'd'][pi]), ("sans-serif", 20))
+            .caption(
+                format!("({}) gradient of {name}, ±1σ = √diag C", ['c', 'd'][pi]),
+                ("sans-serif", 20),
+            )
             .build_cartesian_2d(0f64..n, (glo - gpad)..(ghi + gpad))
             .map_err(|e| err(&e))?;
         chart
@@ -307,10 +376,15 @@ fn draw_figure(path: &Path, records: &[IterationRecord], strategy: &str, seed: u
                 }))
                 .map_err(|e| err(&e))?;
             chart
-                .draw_series(LineSeries::new(grads.iter().map(|(k, v)| (*k, v[j].0)), c.stroke_width(2)))
+                .draw_series(LineSeries::new(
+                    grads.iter().map(|(k, v)| (*k, v[j].0)),
+                    c.stroke_width(2),
+                ))
                 .map_err(|e| err(&e))?
                 .label(gate.clone())
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 15, y)], c.stroke_width(2)));
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 15, y)], c.stroke_width(2))
+                });
         }
         chart
             .configure_series_labels()
@@ -334,8 +408,12 @@ fn register_font() -> Result<(), CliError> {
     for path in CANDIDATES {
         if let Ok(bytes) = std::fs::read(path) {
             let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
-            return plotters::style::register_font("sans-serif", plotters::style::FontStyle::Normal, bytes)
-                .map_err(|_| CliError::runtime(format!("{path} is not a usable font")));
+            return plotters::style::register_font(
+                "sans-serif",
+                plotters::style::FontStyle::Normal,
+                bytes,
+            )
+            .map_err(|_| CliError::runtime(format!("{path} is not a usable font")));
         }
     }
     Err(CliError::runtime(

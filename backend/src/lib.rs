@@ -4,6 +4,7 @@
 //!
 //! See [`server`] for the HTTP/WebSocket API and [`config`] for run configs.
 
+pub mod bench;
 pub mod bench_server;
 pub mod cli;
 pub mod config;

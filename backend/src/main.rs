@@ -24,6 +24,8 @@ enum Command {
     Export(cli::ExportArgs),
     /// Offline Kalman replay of a recorded sequence (JSON), to choose Q.
     Replay(cli::ReplayArgs),
+    /// The paper's set-point benchmark over many seeds, all strategies side by side.
+    Bench(spintune_server::bench::BenchArgs),
     /// Load bench of the server: N WebSocket viewers on one run at a fixed rate.
     BenchServer(spintune_server::bench_server::BenchServerArgs),
 }
@@ -35,6 +37,7 @@ fn main() {
         Command::Run(args) => runtime().block_on(cli::run(args)),
         Command::Export(args) => cli::export(args),
         Command::Replay(args) => cli::replay(args),
+        Command::Bench(args) => spintune_server::bench::run(args),
         Command::BenchServer(args) => runtime().block_on(spintune_server::bench_server::run(args)),
     };
     if let Err(e) = result {

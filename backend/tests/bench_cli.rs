@@ -1,0 +1,58 @@
+//! `spintune bench` end to end: JSON keys as documented, markdown table,
+//! zero limit violations, clear errors for bad input.
+
+use std::process::Command;
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_spintune"))
+}
+
+#[test]
+fn bench_writes_json_with_the_documented_keys() {
+    let dir = std::env::temp_dir().join(format!("spintune-bench-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let json = dir.join("bench.json");
+    let out = bin()
+        .args(["bench", "--seeds", "1", "--strategies", "kalman,oracle", "--json"])
+        .arg(&json)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let table = String::from_utf8_lossy(&out.stdout);
+    assert!(table.contains("| kalman |") && table.contains("| oracle |"), "{table}");
+    let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let strategies = v["strategies"].as_array().unwrap();
+    assert_eq!(strategies.len(), 2);
+    for s in strategies {
+        for key in ["iterations_per_change", "lab_minutes_per_change"] {
+            assert!(s[key]["median"].is_number(), "{key} in {s}");
+            assert!(s[key]["p90"].is_number(), "{key} in {s}");
+        }
+        assert!(s["iterations_per_change"]["max"].is_number());
+        assert!(s["not_converged"].is_u64());
+        assert_eq!(s["limit_violations"].as_u64(), Some(0), "{s}");
+        assert!(s["failed_fits"].is_u64());
+        assert!(s["ratio_to_oracle"].is_number());
+    }
+    assert_eq!(strategies[0]["name"], "kalman");
+    assert_eq!(strategies[1]["ratio_to_oracle"].as_f64(), Some(1.0));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn bench_rejects_unknown_strategy_and_bad_device_file() {
+    let out = bin().args(["bench", "--seeds", "1", "--strategies", "kalmann"]).output().unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("unknown strategy \"kalmann\""), "{err}");
+
+    let dir = std::env::temp_dir().join(format!("spintune-bench-dev-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let dev = dir.join("device.toml");
+    std::fs::write(&dev, "lever_arm_typo = 3.0\n").unwrap();
+    let out = bin().args(["bench", "--seeds", "1", "--device"]).arg(&dev).output().unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("lever_arm_typo"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -12,7 +12,9 @@
 //!
 //! | key | type | meaning |
 //! |---|---|---|
-//! | `driver` | `"simulator"` | device driver; the embedded simulator is the only one for now |
+//! | `driver` | `"simulator"` \| `"scpi"` \| `"bridge"` | device driver (default `simulator`; see `docs/instruments.md`) |
+//! | `scpi` | table, [`ScpiConfig`] | SCPI DC source: `address`, `channels`, ramp/read-back/timeout settings; required for `driver = "scpi"` |
+//! | `bridge` | table, [`BridgeConfig`] | lab bridge: `request_timeout_s`, `readback_tolerance_mv` |
 //! | `targets` | table parameter → number | targets of the top tuner level's parameters, in the parameter's unit (e.g. `t_sr` in ns, `w` in µV) |
 //! | `tolerances` | table parameter → `{ absolute = x }` or `{ relative = f }` | tolerance bands of the top level's parameters |
 //! | `iteration_delay_ms` | integer, ms | wall-clock pause after each iteration (overrides the server's `--iteration-delay-ms`) |
@@ -26,6 +28,9 @@ use serde_json::{Map, Value};
 use spintune::driver::SimulationConfig;
 use spintune::parameter::Tolerance;
 
+pub use crate::bridge::BridgeConfig;
+pub use crate::scpi::{MeasureSource, ScpiConfig};
+
 /// Which device a run drives.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -33,6 +38,12 @@ pub enum DriverKind {
     /// The embedded simulated double dot (`spintune::sim`).
     #[default]
     Simulator,
+    /// A SCPI DC voltage source over raw TCP sets the gates
+    /// ([`crate::scpi`]); measurements come from `scpi.measure`.
+    Scpi,
+    /// An external lab script connected over WebSocket sets gates and
+    /// measures ([`crate::bridge`]).
+    Bridge,
 }
 
 /// Backend-only settings of a run (everything that is not a [`SimulationConfig`] field).
@@ -51,9 +62,36 @@ pub struct BackendSettings {
     /// Wall-clock pause after each iteration, ms (`None`: the server's default).
     #[serde(default)]
     pub iteration_delay_ms: Option<u64>,
+    /// SCPI DC source settings (required for `driver = "scpi"`).
+    #[serde(default)]
+    pub scpi: Option<ScpiConfig>,
+    /// Lab bridge settings (used by `driver = "bridge"` and `scpi.measure = "bridge"`).
+    #[serde(default)]
+    pub bridge: BridgeConfig,
 }
 
-const BACKEND_KEYS: [&str; 4] = ["driver", "targets", "tolerances", "iteration_delay_ms"];
+impl BackendSettings {
+    /// Whether the run's device includes the lab bridge.
+    pub fn uses_bridge(&self) -> bool {
+        match self.driver {
+            DriverKind::Bridge => true,
+            DriverKind::Scpi => self
+                .scpi
+                .as_ref()
+                .is_some_and(|s| s.measure == MeasureSource::Bridge),
+            DriverKind::Simulator => false,
+        }
+    }
+}
+
+const BACKEND_KEYS: [&str; 6] = [
+    "driver",
+    "targets",
+    "tolerances",
+    "iteration_delay_ms",
+    "scpi",
+    "bridge",
+];
 
 /// A complete, validated run configuration.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -127,6 +165,7 @@ impl RunConfig {
         simulation
             .validate()
             .map_err(|e| ConfigParseError(e.to_string()))?;
+        validate_drivers(&simulation, &backend)?;
         Ok(Self {
             simulation,
             backend,
@@ -169,6 +208,23 @@ fn apply_targets(sim: &mut SimulationConfig, b: &BackendSettings) -> Result<(), 
         p.tolerance = tol;
     }
     Ok(())
+}
+
+fn validate_drivers(sim: &SimulationConfig, b: &BackendSettings) -> Result<(), ConfigParseError> {
+    match (&b.driver, &b.scpi) {
+        (DriverKind::Scpi, None) => {
+            return Err(ConfigParseError(
+                "invalid config at `scpi`: driver = \"scpi\" needs a [scpi] table with `address` and `channels`".into(),
+            ))
+        }
+        (_, Some(scpi)) => scpi
+            .validate(&sim.tuner.gates)
+            .map_err(|(field, m)| ConfigParseError(format!("invalid config at `scpi.{field}`: {m}")))?,
+        _ => {}
+    }
+    b.bridge
+        .validate()
+        .map_err(|(field, m)| ConfigParseError(format!("invalid config at `bridge.{field}`: {m}")))
 }
 
 fn unknown_parameter(section: &str, name: &str, known: &[String]) -> ConfigParseError {
@@ -242,8 +298,28 @@ mod tests {
         assert!(e.0.contains("bogus"), "{e}");
         let e = RunConfig::from_toml_str("[targets]\nnope = 1.0").unwrap_err();
         assert!(e.0.contains("targets.nope"), "{e}");
-        let e = RunConfig::from_toml_str("driver = \"scpi\"").unwrap_err();
+        let e = RunConfig::from_toml_str("driver = \"gpib\"").unwrap_err();
         assert!(e.0.contains("driver"), "{e}");
+        let e = RunConfig::from_toml_str("driver = \"scpi\"").unwrap_err();
+        assert!(e.0.contains("`scpi`"), "{e}");
+        let e = RunConfig::from_toml_str(
+            "driver = \"scpi\"\n[scpi]\naddress = \"127.0.0.1:5025\"\nchannels = { NOPE = 1 }",
+        )
+        .unwrap_err();
+        assert!(e.0.contains("scpi.channels") && e.0.contains("NOPE"), "{e}");
+        let e = RunConfig::from_toml_str(
+            "driver = \"scpi\"\n[scpi]\naddress = \"127.0.0.1:5025\"\nchannels = { N = 1, T = 1 }",
+        )
+        .unwrap_err();
+        assert!(e.0.contains("scpi.channels"), "{e}");
+        let e = RunConfig::from_toml_str("driver = \"bridge\"\n[bridge]\nrequest_timeout_s = -1")
+            .unwrap_err();
+        assert!(e.0.contains("bridge.request_timeout_s"), "{e}");
+        let c = RunConfig::from_toml_str(
+            "driver = \"scpi\"\n[scpi]\naddress = \"127.0.0.1:5025\"\nchannels = { N = 1, T = 2 }\nmeasure = \"bridge\"",
+        )
+        .unwrap();
+        assert!(c.backend.uses_bridge());
         let e = RunConfig::from_json_str("{\"tuner\": {\"gates\": []}}").unwrap_err();
         assert!(e.0.contains("gates"), "{e}");
     }

@@ -22,7 +22,10 @@ impl ApiBase {
             .find_map(|kv| kv.strip_prefix("server="))
             .and_then(|v| js_sys::decode_uri_component(v).ok())
             .and_then(|v| v.as_string());
-        let http = server.unwrap_or_else(|| loc.origin().unwrap_or_else(|_| "http://127.0.0.1:8080".into()));
+        let http = server.unwrap_or_else(|| {
+            loc.origin()
+                .unwrap_or_else(|_| "http://127.0.0.1:8080".into())
+        });
         Self::new(&http)
     }
 
@@ -89,11 +92,18 @@ pub async fn get_json<T: DeserializeOwned>(url: &str) -> Result<T, String> {
 mod tests {
     use super::*;
 
-    #[test]
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
     fn ws_urls() {
         let b = ApiBase::new("http://127.0.0.1:8080/");
         assert_eq!(b.url("/api/runs"), "http://127.0.0.1:8080/api/runs");
-        assert_eq!(b.run_ws_url(3, 17), "ws://127.0.0.1:8080/api/runs/3/ws?from=17");
-        assert_eq!(ApiBase::new("https://lab.example").ws_url("/x"), "wss://lab.example/x");
+        assert_eq!(
+            b.run_ws_url(3, 17),
+            "ws://127.0.0.1:8080/api/runs/3/ws?from=17"
+        );
+        assert_eq!(
+            ApiBase::new("https://lab.example").ws_url("/x"),
+            "wss://lab.example/x"
+        );
     }
 }

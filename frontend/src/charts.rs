@@ -47,7 +47,11 @@ fn iteration_range(records: &[IterationRecord]) -> (f64, f64) {
     }
 }
 
-fn placeholder<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, title: &str, text: &str) -> DrawResult {
+fn placeholder<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    title: &str,
+    text: &str,
+) -> DrawResult {
     let (w, h) = area.dim_in_pixel();
     area.draw(&Text::new(
         title.to_string(),
@@ -68,17 +72,22 @@ fn placeholder<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, title: &str, t
 /// points with enormous uncertainty (failed or distrusted fits): error bars
 /// count only when σ ≤ 5 × the median σ; the rest are clipped at the frame.
 pub fn robust_range(points: &[(f64, f64, f64)], extra: impl Iterator<Item = f64>) -> (f64, f64) {
-    let mut sig: Vec<f64> = points.iter().map(|p| p.2).filter(|s| s.is_finite()).collect();
+    let mut sig: Vec<f64> = points
+        .iter()
+        .map(|p| p.2)
+        .filter(|s| s.is_finite())
+        .collect();
     sig.sort_by(|a, b| a.total_cmp(b));
     let median = sig.get(sig.len() / 2).copied().unwrap_or(0.0);
     let limit = 5.0 * median;
-    let core = points
+    let trusted: Vec<&(f64, f64, f64)> = points
         .iter()
         .filter(|p| p.2 <= limit || p.2 == 0.0)
-        .flat_map(|&(_, v, s)| [v - s, v + s]);
-    // Values whose σ is huge still count, but not their error bars.
-    let vals = points.iter().map(|p| p.1);
-    padded_range(core.chain(vals).chain(extra), 0.08)
+        .collect();
+    let core = trusted.iter().flat_map(|&&(_, v, s)| [v - s, v + s]);
+    // Points with enormous σ (distrusted fits) are drawn but clipped at the frame.
+    let all = points.iter().map(|p| p.1).filter(|_| trusted.is_empty());
+    padded_range(core.chain(all).chain(extra), 0.08)
 }
 
 /// Tick label with a sensible number of digits (and no "-0").
@@ -151,7 +160,12 @@ pub fn draw_parameter<DB: DrawingBackend>(
     let unit = records
         .iter()
         .rev()
-        .find_map(|r| r.parameters.iter().find(|p| p.name == parameter).map(|p| p.unit.clone()))
+        .find_map(|r| {
+            r.parameters
+                .iter()
+                .find(|p| p.name == parameter)
+                .map(|p| p.unit.clone())
+        })
         .unwrap_or_default();
     let title = format!("{parameter} ({unit}) vs iteration");
     let points: Vec<(f64, f64, f64)> = records
@@ -168,7 +182,10 @@ pub fn draw_parameter<DB: DrawingBackend>(
     }
     let bands = target_segments(records, parameter);
     let (x0, x1) = iteration_range(records);
-    let (y0, y1) = robust_range(&points, bands.iter().flat_map(|&(_, _, t, tol)| [t - tol, t + tol]));
+    let (y0, y1) = robust_range(
+        &points,
+        bands.iter().flat_map(|&(_, _, t, tol)| [t - tol, t + tol]),
+    );
     let mut chart = ChartBuilder::on(area)
         .caption(&title, (FONT, 16))
         .margin(8)
@@ -190,7 +207,10 @@ pub fn draw_parameter<DB: DrawingBackend>(
     if !bands.is_empty() {
         chart
             .draw_series(bands.iter().map(|&(a, b, t, tol)| {
-                Rectangle::new([(a - 0.5, t - tol), (b + 0.5, t + tol)], BAND.mix(0.16).filled())
+                Rectangle::new(
+                    [(a - 0.5, t - tol), (b + 0.5, t + tol)],
+                    BAND.mix(0.16).filled(),
+                )
             }))
             .map_err(err)?
             .label("tolerance band")
@@ -205,14 +225,15 @@ pub fn draw_parameter<DB: DrawingBackend>(
     }
     let c = color(series);
     chart
-        .draw_series(LineSeries::new(points.iter().map(|&(k, v, _)| (k, v)), c.mix(0.5).stroke_width(1)))
+        .draw_series(LineSeries::new(
+            points.iter().map(|&(k, v, _)| (k, v)),
+            c.mix(0.5).stroke_width(1),
+        ))
         .map_err(err)?;
     chart
-        .draw_series(
-            points
-                .iter()
-                .map(|&(k, v, s)| ErrorBar::new_vertical(k, v - s, v, v + s, c.filled(), bar_width(points.len()))),
-        )
+        .draw_series(points.iter().map(|&(k, v, s)| {
+            ErrorBar::new_vertical(k, v - s, v, v + s, c.filled(), bar_width(points.len()))
+        }))
         .map_err(err)?
         .label("measured ±1σ")
         .legend(move |(x, y)| Circle::new((x + 8, y), 3, c.filled()));
@@ -281,7 +302,7 @@ pub fn draw_gradient<DB: DrawingBackend>(
             .x_desc("iteration")
             .y_desc(unit.as_str())
             .x_label_formatter(&int_label)
-        .y_label_formatter(&num_label)
+            .y_label_formatter(&num_label)
             .x_labels(6)
             .y_labels(6)
             .light_line_style(RGBColor(238, 238, 238))
@@ -291,20 +312,32 @@ pub fn draw_gradient<DB: DrawingBackend>(
             .map_err(err)?;
         let c = color(gi);
         chart
-            .draw_series(LineSeries::new(pts.iter().map(|&(k, v, _)| (k, v)), c.mix(0.5)))
+            .draw_series(LineSeries::new(
+                pts.iter().map(|&(k, v, _)| (k, v)),
+                c.mix(0.5),
+            ))
             .map_err(err)?;
         chart
-            .draw_series(
-                pts.iter()
-                    .map(|&(k, v, s)| ErrorBar::new_vertical(k, v - s, v, v + s, c.mix(0.55).filled(), bar_width(pts.len()))),
-            )
+            .draw_series(pts.iter().map(|&(k, v, s)| {
+                ErrorBar::new_vertical(
+                    k,
+                    v - s,
+                    v,
+                    v + s,
+                    c.mix(0.55).filled(),
+                    bar_width(pts.len()),
+                )
+            }))
             .map_err(err)?;
     }
     Ok(())
 }
 
 /// The tuning gates' voltages against iteration (one panel per gate).
-pub fn draw_gates<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, records: &[IterationRecord]) -> DrawResult {
+pub fn draw_gates<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    records: &[IterationRecord],
+) -> DrawResult {
     let Some(last) = records.last() else {
         return placeholder(area, "gate voltages", "waiting for data…");
     };
@@ -330,7 +363,7 @@ pub fn draw_gates<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, records: &[
             .x_desc("iteration")
             .y_desc("voltage (mV)")
             .x_label_formatter(&int_label)
-        .y_label_formatter(&num_label)
+            .y_label_formatter(&num_label)
             .x_labels(6)
             .y_labels(6)
             .light_line_style(RGBColor(238, 238, 238))
@@ -440,7 +473,10 @@ pub fn draw_scan<DB: DrawingBackend>(
 }
 
 /// Cumulative lab time (minutes) against iteration.
-pub fn draw_lab_time<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, records: &[IterationRecord]) -> DrawResult {
+pub fn draw_lab_time<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    records: &[IterationRecord],
+) -> DrawResult {
     if records.is_empty() {
         return placeholder(area, "lab time", "waiting for data…");
     }
@@ -470,7 +506,10 @@ pub fn draw_lab_time<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, records:
         .draw()
         .map_err(err)?;
     chart
-        .draw_series(LineSeries::new(pts.iter().copied(), color(6).stroke_width(2)))
+        .draw_series(LineSeries::new(
+            pts.iter().copied(),
+            color(6).stroke_width(2),
+        ))
         .map_err(err)?;
     chart
         .draw_series(
@@ -498,18 +537,25 @@ mod tests {
     use super::*;
     use crate::model::fake_records;
 
-    #[test]
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
     fn labels_and_robust_range() {
         assert_eq!(num_label(&-0.0001e-9), "0");
         assert_eq!(num_label(&-0.0), "0");
         assert_eq!(num_label(&270.0), "270");
         assert_eq!(num_label(&0.25), "0.250");
-        let pts = [(0.0, 10.0, 1.0), (1.0, 12.0, 1.0), (2.0, 11.0, 500.0)];
+        let pts = [
+            (0.0, 10.0, 1.0),
+            (1.0, 12.0, 1.0),
+            (2.0, 11.0, 500.0),
+            (3.0, 250.0, 600.0),
+        ];
         let (lo, hi) = robust_range(&pts, std::iter::empty());
         assert!(lo > -10.0 && hi < 30.0, "{lo} {hi}");
     }
 
-    #[test]
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
     fn target_segments_merge_constant_runs() {
         let mut recs = fake_records(5);
         recs[3].parameters[0].target = Some(70.0);

@@ -38,9 +38,13 @@ impl Mode {
 
 /// The whole page.
 #[component]
-pub fn App(#[prop(optional)] base: Option<ApiBase>, #[prop(optional)] mode: Option<Mode>) -> impl IntoView {
+pub fn App(
+    #[prop(optional)] base: Option<ApiBase>,
+    #[prop(optional)] mode: Option<Mode>,
+) -> impl IntoView {
     let base = base.unwrap_or_else(ApiBase::from_location);
-    let initial = mode.unwrap_or_else(|| Mode::from_hash(&window().location().hash().unwrap_or_default()));
+    let initial =
+        mode.unwrap_or_else(|| Mode::from_hash(&window().location().hash().unwrap_or_default()));
     let mode = RwSignal::new(initial);
     let go = move |m: Mode| {
         if m == Mode::Local {
@@ -69,3 +73,6 @@ pub fn start() {
     console_error_panic_hook::set_once();
     leptos::mount::mount_to_body(|| view! { <App /> });
 }
+
+#[cfg(all(test, target_arch = "wasm32"))]
+wasm_bindgen_test::wasm_bindgen_test_configure!(run_in_browser);

@@ -9,7 +9,9 @@ use std::time::Duration;
 use leptos::prelude::*;
 use send_wrapper::SendWrapper;
 use spintune::parameter::Tolerance;
-use spintune::protocol::{ClientMessage, ControlCommand, RunSummary, ServerMessage, PROTOCOL_VERSION};
+use spintune::protocol::{
+    ClientMessage, ControlCommand, RunSummary, ServerMessage, PROTOCOL_VERSION,
+};
 use wasm_bindgen::prelude::*;
 use web_sys::{CloseEvent, MessageEvent, WebSocket};
 
@@ -49,7 +51,10 @@ impl ConnState {
             ConnState::Connecting { attempt } => format!("reconnecting (attempt {attempt})…"),
             ConnState::Open => "live".into(),
             ConnState::Reconnecting { attempt, delay_ms } => {
-                format!("disconnected — retry {attempt} in {:.1} s", *delay_ms as f64 / 1000.0)
+                format!(
+                    "disconnected — retry {attempt} in {:.1} s",
+                    *delay_ms as f64 / 1000.0
+                )
             }
             ConnState::Closed { reason } => format!("closed: {reason}"),
         }
@@ -102,7 +107,11 @@ struct Session {
     base: ApiBase,
     sig: Signals,
     ws: Option<WebSocket>,
-    handlers: Option<(Handler<web_sys::Event>, Handler<MessageEvent>, Handler<CloseEvent>)>,
+    handlers: Option<(
+        Handler<web_sys::Event>,
+        Handler<MessageEvent>,
+        Handler<CloseEvent>,
+    )>,
     generation: u32,
     attempt: u32,
     retry: Option<gloo_timers::callback::Timeout>,
@@ -163,7 +172,9 @@ fn connect(sess: &SessionRef) {
         if sess.borrow().generation != gen {
             return;
         }
-        let Some(text) = ev.data().as_string() else { return };
+        let Some(text) = ev.data().as_string() else {
+            return;
+        };
         let resync = handle_message(&sess, &text);
         if resync {
             // A gap: start over from the next missing iteration, immediately.
@@ -192,7 +203,10 @@ fn connect(sess: &SessionRef) {
             return;
         }
         if ev.code() != 1000 && !ev.reason().is_empty() {
-            sess.borrow().sig.notice.set(Some(format!("socket closed: {}", ev.reason())));
+            sess.borrow()
+                .sig
+                .notice
+                .set(Some(format!("socket closed: {}", ev.reason())));
         }
         schedule_reconnect(&sess);
     });
@@ -230,7 +244,8 @@ fn handle_message(sess: &SessionRef, text: &str) -> bool {
     let msg: ServerMessage = match serde_json::from_str(text) {
         Ok(m) => m,
         Err(e) => {
-            sig.notice.set(Some(format!("undecodable message from server: {e}")));
+            sig.notice
+                .set(Some(format!("undecodable message from server: {e}")));
             return false;
         }
     };
@@ -285,7 +300,10 @@ fn handle_message(sess: &SessionRef, text: &str) -> bool {
 }
 
 fn send_on(s: &Session, msg: &ClientMessage) -> bool {
-    let Some(ws) = s.ws.as_ref().filter(|ws| ws.ready_state() == WebSocket::OPEN) else {
+    let Some(ws) =
+        s.ws.as_ref()
+            .filter(|ws| ws.ready_state() == WebSocket::OPEN)
+    else {
         return false;
     };
     match serde_json::to_string(msg) {
@@ -383,7 +401,10 @@ pub fn LiveMode(base: ApiBase) -> impl IntoView {
 
 fn initial_run_from_hash() -> Option<u64> {
     let hash = window().location().hash().ok()?;
-    hash.trim_start_matches('#').strip_prefix("live/")?.parse().ok()
+    hash.trim_start_matches('#')
+        .strip_prefix("live/")?
+        .parse()
+        .ok()
 }
 
 /// One run: connection state, summary, controls, plots.
@@ -423,7 +444,9 @@ pub fn RunView(run: u64, base: ApiBase) -> impl IntoView {
     let send = move |msg: ClientMessage| {
         sess.with_value(|s| {
             if !send_on(&s.borrow(), &msg) {
-                sig.notice.set(Some("not connected; try again when the badge says live".into()));
+                sig.notice.set(Some(
+                    "not connected; try again when the badge says live".into(),
+                ));
             }
         })
     };
@@ -446,7 +469,13 @@ pub fn RunView(run: u64, base: ApiBase) -> impl IntoView {
             None => format!("Run #{run}"),
         })
     };
-    let status = move || sig.summary.with(|s| s.as_ref().map(|s| status_label(&s.status)).unwrap_or_else(|| "…".into()));
+    let status = move || {
+        sig.summary.with(|s| {
+            s.as_ref()
+                .map(|s| status_label(&s.status))
+                .unwrap_or_else(|| "…".into())
+        })
+    };
     view! {
         <div class="run-view">
             <header class="run-head">
@@ -586,7 +615,8 @@ fn TargetEditor(
 mod tests {
     use super::*;
 
-    #[test]
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
     fn backoff_grows_and_caps() {
         assert_eq!(backoff_ms(1), 500);
         assert_eq!(backoff_ms(2), 1000);

@@ -143,8 +143,12 @@ impl LocalRunner {
     pub fn set_targets(&mut self, t_sr: f64, w: f64, tolerance: f64) -> Result<(), String> {
         let tol = Some(Tolerance::Relative(tolerance));
         let tuner = self.run.tuner_mut();
-        tuner.set_target("t_sr", Some(t_sr), tol).map_err(|e| e.to_string())?;
-        tuner.set_target("w", Some(w), tol).map_err(|e| e.to_string())?;
+        tuner
+            .set_target("t_sr", Some(t_sr), tol)
+            .map_err(|e| e.to_string())?;
+        tuner
+            .set_target("w", Some(w), tol)
+            .map_err(|e| e.to_string())?;
         self.tuned_at = None;
         self.targets_since = self.history.next_iteration();
         Ok(())
@@ -285,13 +289,20 @@ pub fn LocalMode() -> impl IntoView {
     let apply_targets = move || {
         let s = settings.get_untracked();
         let res = runner
-            .try_update_value(|r| r.as_mut().map(|r| r.set_targets(s.target_tsr, s.target_w, s.tolerance)))
+            .try_update_value(|r| {
+                r.as_mut()
+                    .map(|r| r.set_targets(s.target_tsr, s.target_w, s.tolerance))
+            })
             .flatten();
         match res {
             Some(Err(e)) => error.set(Some(e)),
             _ => {
                 tuned_at.set(None);
-                status.set(if running.get_untracked() { "running (new targets)".into() } else { "new targets set".into() });
+                status.set(if running.get_untracked() {
+                    "running (new targets)".into()
+                } else {
+                    "new targets set".into()
+                });
             }
         }
     };

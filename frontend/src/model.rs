@@ -80,7 +80,10 @@ impl History {
 
     /// Offer records in order; stops at the first gap and reports it.
     /// Returns the number appended.
-    pub fn extend(&mut self, records: impl IntoIterator<Item = IterationRecord>) -> Result<usize, Push> {
+    pub fn extend(
+        &mut self,
+        records: impl IntoIterator<Item = IterationRecord>,
+    ) -> Result<usize, Push> {
         let mut n = 0;
         for r in records {
             match self.push(r) {
@@ -167,7 +170,10 @@ pub fn padded_range(values: impl IntoIterator<Item = f64>, pad: f64) -> (f64, f6
 pub fn fake_records(n: u64) -> Vec<IterationRecord> {
     use spintune::protocol::{ParameterReport, RawScan, ScanKind, ScanReport, Trace};
     use std::collections::BTreeMap;
-    let gates: Vec<String> = ["N", "SA", "SB", "T"].iter().map(|s| s.to_string()).collect();
+    let gates: Vec<String> = ["N", "SA", "SB", "T"]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
     (0..n)
         .map(|k| {
             let kf = k as f64;
@@ -176,11 +182,24 @@ pub fn fake_records(n: u64) -> Vec<IterationRecord> {
             let w = 270.0 - 60.0 * decay + 4.0 * (kf * 0.7).cos();
             let mut voltages_mv = BTreeMap::new();
             for (i, g) in gates.iter().enumerate() {
-                voltages_mv.insert(g.clone(), -500.0 + 20.0 * i as f64 + 8.0 * (1.0 - decay) * (i as f64 - 1.5));
+                voltages_mv.insert(
+                    g.clone(),
+                    -500.0 + 20.0 * i as f64 + 8.0 * (1.0 - decay) * (i as f64 - 1.5),
+                );
             }
             let cov = |s: f64| {
                 (0..4)
-                    .map(|i| (0..4).map(|j| if i == j { s * s * (1.0 + 3.0 * decay) } else { 0.0 }).collect())
+                    .map(|i| {
+                        (0..4)
+                            .map(|j| {
+                                if i == j {
+                                    s * s * (1.0 + 3.0 * decay)
+                                } else {
+                                    0.0
+                                }
+                            })
+                            .collect()
+                    })
                     .collect()
             };
             let x: Vec<f64> = (0..60).map(|i| -3.0 + i as f64 * 0.1).collect();
@@ -229,7 +248,10 @@ pub fn fake_records(n: u64) -> Vec<IterationRecord> {
                 step_mv: vec![1.0, -1.0, 0.5, 0.0],
                 tuned: decay < 0.05,
                 lab_seconds: 60.0 * kf + 30.0,
-                scan_counts: BTreeMap::from([(ScanKind::TransitionWidth, k + 1), (ScanKind::ReloadTime, k + 1)]),
+                scan_counts: BTreeMap::from([
+                    (ScanKind::TransitionWidth, k + 1),
+                    (ScanKind::ReloadTime, k + 1),
+                ]),
                 failed_evaluations: 0,
                 scans: vec![ScanReport {
                     raw: RawScan {
@@ -248,7 +270,11 @@ pub fn fake_records(n: u64) -> Vec<IterationRecord> {
                         y: fit_y,
                     }],
                 }],
-                events: if k == 3 { vec!["step clipped to 10 mV".into()] } else { vec![] },
+                events: if k == 3 {
+                    vec!["step clipped to 10 mV".into()]
+                } else {
+                    vec![]
+                },
             }
         })
         .collect()
@@ -258,7 +284,8 @@ pub fn fake_records(n: u64) -> Vec<IterationRecord> {
 mod tests {
     use super::*;
 
-    #[test]
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
     fn history_dedups_and_detects_gaps() {
         let recs = fake_records(6);
         let mut h = History::new();
@@ -267,14 +294,21 @@ mod tests {
         // Reconnect overlap: 1..4 → 1, 2 duplicates, 3 appended.
         assert_eq!(h.extend(recs[1..4].iter().cloned()), Ok(1));
         assert_eq!(h.next_iteration(), 4);
-        assert_eq!(h.push(recs[5].clone()), Push::Gap { expected: 4, got: 5 });
+        assert_eq!(
+            h.push(recs[5].clone()),
+            Push::Gap {
+                expected: 4,
+                got: 5
+            }
+        );
         assert_eq!(h.len(), 4);
         assert_eq!(h.push(recs[4].clone()), Push::Appended);
         let its: Vec<u64> = h.records().iter().map(|r| r.iteration).collect();
         assert_eq!(its, vec![0, 1, 2, 3, 4]);
     }
 
-    #[test]
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
     fn sigma_from_covariance_diagonal() {
         let r = &fake_records(1)[0];
         let s = gradient_sigmas(&r.gradients[0]).unwrap();
@@ -282,7 +316,8 @@ mod tests {
         assert!((s[0] - 0.075 * 2.0).abs() < 1e-12);
     }
 
-    #[test]
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
     fn ranges_and_labels() {
         assert_eq!(padded_range([1.0, 3.0], 0.0), (1.0, 3.0));
         let (lo, hi) = padded_range([5.0, 5.0], 0.0);

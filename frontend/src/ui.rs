@@ -22,7 +22,9 @@ fn note_first_chart(iterations: usize) {
     }
     let w = window();
     let key = JsValue::from_str("spintuneFirstChartMs");
-    let already = js_sys::Reflect::get(&w, &key).map(|v| !v.is_undefined()).unwrap_or(true);
+    let already = js_sys::Reflect::get(&w, &key)
+        .map(|v| !v.is_undefined())
+        .unwrap_or(true);
     if !already {
         let now = w.performance().map(|p| p.now()).unwrap_or(f64::NAN);
         let _ = js_sys::Reflect::set(&w, &key, &JsValue::from_f64(now));
@@ -118,7 +120,12 @@ fn param_summary(p: &ParameterReport) -> impl IntoView {
 /// Headline numbers of a history.
 #[component]
 pub fn Stats(history: RwSignal<History>) -> impl IntoView {
-    let last = move || history.with(|h| h.last().map(|r| (r.iteration, r.lab_seconds, r.tuned, r.failed_evaluations)));
+    let last = move || {
+        history.with(|h| {
+            h.last()
+                .map(|r| (r.iteration, r.lab_seconds, r.tuned, r.failed_evaluations))
+        })
+    };
     view! {
         <div class="stats">
             {move || match last() {
@@ -143,7 +150,12 @@ pub fn Dashboard(history: RwSignal<History>) -> impl IntoView {
     let names = Memo::new(move |_| {
         history.with(|h| {
             h.last()
-                .map(|r| r.parameters.iter().map(|p| p.name.clone()).collect::<Vec<_>>())
+                .map(|r| {
+                    r.parameters
+                        .iter()
+                        .map(|p| p.name.clone())
+                        .collect::<Vec<_>>()
+                })
                 .unwrap_or_default()
         })
     });

@@ -57,14 +57,23 @@ fn protocol_frames_decode_in_wasm() {
         other => panic!("decoded as {other:?}"),
     }
     let failed = r#"{"type":"status","run":{"id":1,"name":"x","status":{"state":"failed","message":"device fault"},"iterations":0,"lab_seconds":0.0,"tuned":false}}"#;
-    assert!(matches!(serde_json::from_str::<ServerMessage>(failed).unwrap(), ServerMessage::Status { .. }));
+    assert!(matches!(
+        serde_json::from_str::<ServerMessage>(failed).unwrap(),
+        ServerMessage::Status { .. }
+    ));
     let history = ServerMessage::History {
         records: fake_records(3),
     };
     let json = serde_json::to_string(&history).unwrap();
-    assert_eq!(serde_json::from_str::<ServerMessage>(&json).unwrap(), history);
+    assert_eq!(
+        serde_json::from_str::<ServerMessage>(&json).unwrap(),
+        history
+    );
     for (json, msg) in [
-        (r#"{"type":"lagged","skipped":4}"#, ServerMessage::Lagged { skipped: 4 }),
+        (
+            r#"{"type":"lagged","skipped":4}"#,
+            ServerMessage::Lagged { skipped: 4 },
+        ),
         (r#"{"type":"auth_ok"}"#, ServerMessage::AuthOk),
     ] {
         assert_eq!(serde_json::from_str::<ServerMessage>(json).unwrap(), msg);
@@ -87,14 +96,18 @@ async fn dashboard_draws_every_chart_from_records() {
         h.extend(fake_records(12)).unwrap();
     });
     let charts = || el.query_selector_all("canvas.chart").unwrap();
-    wait_for("charts to draw 12 iterations", Duration::from_secs(10), || {
-        let list = charts();
-        list.length() >= 6
-            && (0..list.length()).all(|i| {
-                let c: web_sys::Element = list.get(i).unwrap().unchecked_into();
-                c.get_attribute("data-iterations").as_deref() == Some("12")
-            })
-    })
+    wait_for(
+        "charts to draw 12 iterations",
+        Duration::from_secs(10),
+        || {
+            let list = charts();
+            list.length() >= 6
+                && (0..list.length()).all(|i| {
+                    let c: web_sys::Element = list.get(i).unwrap().unchecked_into();
+                    c.get_attribute("data-iterations").as_deref() == Some("12")
+                })
+        },
+    )
     .await;
     let names: Vec<String> = (0..charts().length())
         .map(|i| {
@@ -102,8 +115,19 @@ async fn dashboard_draws_every_chart_from_records() {
             c.get_attribute("data-chart").unwrap()
         })
         .collect();
-    for expected in ["parameter-t_sr", "parameter-w", "gradient-t_sr", "gradient-w", "gates", "scan-0", "lab-time"] {
-        assert!(names.iter().any(|n| n == expected), "missing chart {expected} in {names:?}");
+    for expected in [
+        "parameter-t_sr",
+        "parameter-w",
+        "gradient-t_sr",
+        "gradient-w",
+        "gates",
+        "scan-0",
+        "lab-time",
+    ] {
+        assert!(
+            names.iter().any(|n| n == expected),
+            "missing chart {expected} in {names:?}"
+        );
     }
     let t = text(&el);
     assert!(t.contains("iteration 11"), "{t}");
@@ -111,7 +135,8 @@ async fn dashboard_draws_every_chart_from_records() {
     assert!(t.contains("step clipped"), "events listed: {t}");
     // Canvas got non-white pixels.
     let c: web_sys::HtmlCanvasElement = charts().get(0).unwrap().unchecked_into();
-    let ctx: web_sys::CanvasRenderingContext2d = c.get_context("2d").unwrap().unwrap().unchecked_into();
+    let ctx: web_sys::CanvasRenderingContext2d =
+        c.get_context("2d").unwrap().unwrap().unchecked_into();
     let data = ctx
         .get_image_data(0.0, 0.0, c.width() as f64, c.height() as f64)
         .unwrap()
@@ -125,11 +150,17 @@ async fn live_mode_without_server_is_read_only_and_retries() {
     // Port 9 (discard) is closed: every fetch and socket fails.
     let base = ApiBase::new("http://127.0.0.1:9");
     let b2 = base.clone();
-    let _h = leptos::mount::mount_to(el.clone(), move || view! { <App base=b2.clone() mode=Mode::Live /> });
+    let _h = leptos::mount::mount_to(
+        el.clone(),
+        move || view! { <App base=b2.clone() mode=Mode::Live /> },
+    );
     leptos::task::tick().await;
     assert!(text(&el).contains("Live runs"));
     assert!(text(&el).contains("In-browser simulation"));
-    wait_for("runs error", Duration::from_secs(10), || text(&el).contains("cannot reach the server")).await;
+    wait_for("runs error", Duration::from_secs(10), || {
+        text(&el).contains("cannot reach the server")
+    })
+    .await;
 
     // A run view (opened directly) shows the read-only banner and retries with backoff.
     let el2 = host();
@@ -139,8 +170,14 @@ async fn live_mode_without_server_is_read_only_and_retries() {
     leptos::task::tick().await;
     let t = text(&el2);
     assert!(t.contains("Read-only view"), "{t}");
-    assert!(el2.query_selector("[data-testid=controls]").unwrap().is_none());
-    wait_for("reconnect backoff", Duration::from_secs(10), || text(&el2).contains("retry")).await;
+    assert!(el2
+        .query_selector("[data-testid=controls]")
+        .unwrap()
+        .is_none());
+    wait_for("reconnect backoff", Duration::from_secs(10), || {
+        text(&el2).contains("retry")
+    })
+    .await;
 }
 
 #[wasm_bindgen_test]
@@ -158,7 +195,9 @@ async fn local_runner_reaches_a_new_target() {
         }
         sleep(0).await;
     }
-    let first = r.tuned_at.expect("tuned to (20 ns, 270 µV) within 60 iterations");
+    let first = r
+        .tuned_at
+        .expect("tuned to (20 ns, 270 µV) within 60 iterations");
     r.set_targets(70.0, 270.0, 0.1).unwrap();
     for _ in 0..60 {
         assert!(r.step().unwrap());
@@ -167,7 +206,9 @@ async fn local_runner_reaches_a_new_target() {
         }
         sleep(0).await;
     }
-    let second = r.tuned_at.expect("tuned to (70 ns, 270 µV) within 60 iterations");
+    let second = r
+        .tuned_at
+        .expect("tuned to (70 ns, 270 µV) within 60 iterations");
     assert!(second > first);
     let last = r.history.last().unwrap();
     let t_sr = last.parameters.iter().find(|p| p.name == "t_sr").unwrap();
@@ -181,7 +222,10 @@ async fn local_mode_runs_in_the_page_and_tunes() {
     leptos::task::tick().await;
     let t = text(&el);
     assert!(t.contains("What am I looking at?"), "{t}");
-    assert!(t.contains("kalman-adaptive-q"), "estimator choices listed: {t}");
+    assert!(
+        t.contains("kalman-adaptive-q"),
+        "estimator choices listed: {t}"
+    );
     let q = |sel: &str| -> web_sys::HtmlElement {
         el.query_selector(&format!("[data-testid={sel}]"))
             .unwrap()
@@ -191,17 +235,25 @@ async fn local_mode_runs_in_the_page_and_tunes() {
     // No pause between iterations: the loop still yields to the browser.
     let delay: web_sys::HtmlInputElement = q("local-delay").unchecked_into();
     delay.set_value("0");
-    delay.dispatch_event(&web_sys::Event::new("change").unwrap()).unwrap();
+    delay
+        .dispatch_event(&web_sys::Event::new("change").unwrap())
+        .unwrap();
     q("local-run").click();
     let start = js_sys::Date::now();
     let mut ticks = 0u32;
     wait_for("tuned", Duration::from_secs(120), || {
         ticks += 1;
-        q("local-tuned").inner_text().starts_with("tuned at iteration")
+        q("local-tuned")
+            .inner_text()
+            .starts_with("tuned at iteration")
     })
     .await;
     // The page was responsive: our own 20 ms polling timer ran many times meanwhile.
-    assert!(ticks > 3, "page froze: only {ticks} timer ticks in {} ms", js_sys::Date::now() - start);
+    assert!(
+        ticks > 3,
+        "page froze: only {ticks} timer ticks in {} ms",
+        js_sys::Date::now() - start
+    );
     q("local-pause").click();
     leptos::task::tick().await;
     assert!(q("local-status").inner_text().contains("paused"));

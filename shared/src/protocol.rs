@@ -384,3 +384,65 @@ pub enum ServerMessage {
         message: String,
     },
 }
+
+// ---------------------------------------------------------------------------
+// Lab bridge: an external measurement script serving as a run's device, over
+// the WebSocket `/api/runs/{id}/bridge` (added with protocol version 1; the
+// messages above are unchanged).
+// ---------------------------------------------------------------------------
+
+/// Messages from a lab bridge client (e.g. a QCoDeS script) to the server.
+///
+/// The first frame must be `Auth` with the control token; afterwards the
+/// client answers every [`BridgeServerMessage::Request`] with exactly one
+/// `Response` carrying the request's `id`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+pub enum BridgeClientMessage {
+    /// Present the control token (the same one `spintune serve` prints).
+    Auth {
+        /// The control token.
+        token: String,
+    },
+    /// The answer to request `id`: `voltages_set` for `set_voltages` (the
+    /// voltages actually applied, read back, mV), `scanned` for `measure`
+    /// (raw traces or evaluated values ± variance), or `error`.
+    Response {
+        /// The id of the request being answered.
+        id: u64,
+        /// The answer.
+        response: Response,
+    },
+}
+
+/// Messages from the server to a lab bridge client.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum BridgeServerMessage {
+    /// First frame on every bridge socket.
+    Hello {
+        /// [`PROTOCOL_VERSION`].
+        version: u32,
+        /// The run the bridge serves.
+        run: RunSummary,
+    },
+    /// The token was accepted; requests follow.
+    AuthOk,
+    /// Execute this request and answer with [`BridgeClientMessage::Response`]
+    /// carrying the same `id` within `timeout_s` seconds.
+    Request {
+        /// Request id (unique per server process and run, increasing).
+        id: u64,
+        /// What to do: `set_voltages` (absolute voltages, mV, already
+        /// checked against the safety limits) or `measure`.
+        request: Request,
+        /// Wall-clock time allowed for the answer, s; later answers are refused.
+        timeout_s: f64,
+    },
+    /// A frame was refused or the bridge is not (or no longer) accepted; the
+    /// text says why.
+    Error {
+        /// What was wrong.
+        message: String,
+    },
+}

@@ -35,7 +35,10 @@ fn target_dir() -> PathBuf {
 }
 
 fn workspace_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf()
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .unwrap()
+        .to_path_buf()
 }
 
 fn backend_binary() -> PathBuf {
@@ -72,7 +75,11 @@ fn dist_dir() -> PathBuf {
 }
 
 fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+    TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
 }
 
 /// A child process killed on drop.
@@ -87,7 +94,15 @@ impl Drop for Proc {
 
 fn start_server(port: u16, db: &Path) -> Proc {
     let mut child = Command::new(backend_binary())
-        .args(["serve", "--bind", &format!("127.0.0.1:{port}"), "--token", TOKEN, "--iteration-delay-ms", "250"])
+        .args([
+            "serve",
+            "--bind",
+            &format!("127.0.0.1:{port}"),
+            "--token",
+            TOKEN,
+            "--iteration-delay-ms",
+            "250",
+        ])
         .arg("--dist")
         .arg(dist_dir())
         .arg("--db")
@@ -123,7 +138,10 @@ fn start_chromedriver(port: u16) -> Proc {
         });
     let start = Instant::now();
     while TcpStream::connect(("127.0.0.1", port)).is_err() {
-        assert!(start.elapsed() < Duration::from_secs(20), "chromedriver did not listen on {port}");
+        assert!(
+            start.elapsed() < Duration::from_secs(20),
+            "chromedriver did not listen on {port}"
+        );
         std::thread::sleep(Duration::from_millis(100));
     }
     Proc(child)
@@ -133,7 +151,9 @@ fn start_chromedriver(port: u16) -> Proc {
 fn http(port: u16, method: &str, path: &str, auth: Option<&str>, body: &str) -> (u16, String) {
     let mut s = TcpStream::connect(("127.0.0.1", port)).expect("connect to backend");
     s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
-    let auth = auth.map(|t| format!("Authorization: Bearer {t}\r\n")).unwrap_or_default();
+    let auth = auth
+        .map(|t| format!("Authorization: Bearer {t}\r\n"))
+        .unwrap_or_default();
     write!(
         s,
         "{method} {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n{auth}Content-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
@@ -142,8 +162,15 @@ fn http(port: u16, method: &str, path: &str, auth: Option<&str>, body: &str) -> 
     .unwrap();
     let mut resp = String::new();
     s.read_to_string(&mut resp).unwrap();
-    let status = resp.split_whitespace().nth(1).and_then(|c| c.parse().ok()).unwrap_or(0);
-    let body = resp.split_once("\r\n\r\n").map(|x| x.1.to_string()).unwrap_or_default();
+    let status = resp
+        .split_whitespace()
+        .nth(1)
+        .and_then(|c| c.parse().ok())
+        .unwrap_or(0);
+    let body = resp
+        .split_once("\r\n\r\n")
+        .map(|x| x.1.to_string())
+        .unwrap_or_default();
     (status, body)
 }
 
@@ -166,7 +193,12 @@ async fn text(c: &Client, css: &str) -> Option<String> {
 }
 
 async fn attr(c: &Client, css: &str, name: &str) -> Option<String> {
-    c.find(Locator::Css(css)).await.ok()?.attr(name).await.ok()?
+    c.find(Locator::Css(css))
+        .await
+        .ok()?
+        .attr(name)
+        .await
+        .ok()?
 }
 
 async fn iterations_drawn(c: &Client) -> u64 {
@@ -183,15 +215,20 @@ async fn wait<T>(what: &str, secs: u64, mut check: impl AsyncFnMut() -> Option<T
         if let Some(v) = check().await {
             return v;
         }
-        assert!(start.elapsed() < Duration::from_secs(secs), "timed out after {secs} s waiting for {what}");
+        assert!(
+            start.elapsed() < Duration::from_secs(secs),
+            "timed out after {secs} s waiting for {what}"
+        );
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
 }
 
 async fn wait_text(c: &Client, css: &str, needle: &str, secs: u64) -> String {
-    wait(&format!("`{css}` to contain {needle:?}"), secs, async || {
-        text(c, css).await.filter(|t| t.contains(needle))
-    })
+    wait(
+        &format!("`{css}` to contain {needle:?}"),
+        secs,
+        async || text(c, css).await.filter(|t| t.contains(needle)),
+    )
     .await
 }
 
@@ -205,7 +242,10 @@ async fn click(c: &Client, css: &str) {
 }
 
 async fn type_into(c: &Client, css: &str, value: &str) {
-    let el = c.find(Locator::Css(css)).await.unwrap_or_else(|e| panic!("no {css}: {e}"));
+    let el = c
+        .find(Locator::Css(css))
+        .await
+        .unwrap_or_else(|e| panic!("no {css}: {e}"));
     el.clear().await.unwrap();
     el.send_keys(value).await.unwrap();
 }
@@ -264,14 +304,42 @@ async fn dashboard_live_control_reconnect_and_in_browser_mode() {
         Some(iterations_drawn(&c).await).filter(|n| *n >= 2)
     })
     .await;
-    wait("plots to update live", 60, async || Some(iterations_drawn(&c).await).filter(|n| *n > first)).await;
-    for chart in ["parameter-w", "gradient-t_sr", "gradient-w", "gates", "scan-0", "lab-time"] {
-        let n = attr(&c, &format!("canvas[data-chart={chart}]"), "data-iterations").await;
-        assert!(n.is_some_and(|n| n != "0"), "chart {chart} not drawn with data");
+    wait("plots to update live", 60, async || {
+        Some(iterations_drawn(&c).await).filter(|n| *n > first)
+    })
+    .await;
+    for chart in [
+        "parameter-w",
+        "gradient-t_sr",
+        "gradient-w",
+        "gates",
+        "scan-0",
+        "lab-time",
+    ] {
+        let n = attr(
+            &c,
+            &format!("canvas[data-chart={chart}]"),
+            "data-iterations",
+        )
+        .await;
+        assert!(
+            n.is_some_and(|n| n != "0"),
+            "chart {chart} not drawn with data"
+        );
     }
     // Read-only without the token.
     wait_text(&c, "[data-testid=readonly]", "Read-only view", 5).await;
-    assert!(c.find(Locator::Css("[data-testid=controls]")).await.is_err(), "controls visible without token");
+    assert!(
+        c.find(Locator::Css("[data-testid=controls]"))
+            .await
+            .is_err(),
+        "controls visible without token"
+    );
+    let first_chart_ms = c
+        .execute("return window.spintuneFirstChartMs ?? null", vec![])
+        .await
+        .unwrap();
+    eprintln!("budget: first chart with data drawn {first_chart_ms} ms after navigation start (live mode)");
     screenshot(&c, "live").await;
 
     // --- Control is refused without (or with a wrong) token -------------------
@@ -279,13 +347,29 @@ async fn dashboard_live_control_reconnect_and_in_browser_mode() {
     let control = format!("/api/runs/{run_id}/control");
     let (status, _) = http(port, "POST", &control, None, r#"{"action":"pause"}"#);
     assert_eq!(status, 401, "control without token must be refused");
-    let (status, _) = http(port, "POST", &control, Some("wrong"), r#"{"action":"pause"}"#);
-    assert!(status == 401 || status == 403, "control with a wrong token must be refused, got {status}");
+    let (status, _) = http(
+        port,
+        "POST",
+        &control,
+        Some("wrong"),
+        r#"{"action":"pause"}"#,
+    );
+    assert!(
+        status == 401 || status == 403,
+        "control with a wrong token must be refused, got {status}"
+    );
     type_into(&c, "[data-testid=token]", "wrong-token").await;
     click(&c, "[data-testid=unlock]").await;
     wait_text(&c, "[data-testid=auth-error]", "Token refused", 10).await;
-    assert!(c.find(Locator::Css("[data-testid=controls]")).await.is_err());
-    assert_eq!(run_iterations(port).2, "running", "a refused control must not change the run");
+    assert!(c
+        .find(Locator::Css("[data-testid=controls]"))
+        .await
+        .is_err());
+    assert_eq!(
+        run_iterations(port).2,
+        "running",
+        "a refused control must not change the run"
+    );
 
     // --- Server restart: reconnect and resume without duplicates or gaps -------
     drop(server);
@@ -294,31 +378,49 @@ async fn dashboard_live_control_reconnect_and_in_browser_mode() {
     wait_text(&c, "[data-testid=connection]", "live", 30).await;
     let (_, stored, state) = run_iterations(port);
     eprintln!("after restart: {stored} stored iterations, run {state}");
-    let drawn = wait("page to hold exactly the stored iterations", 20, async || {
-        let (_, stored, _) = run_iterations(port);
-        let n = iterations_drawn(&c).await;
-        (n == stored).then_some(n)
-    })
+    let drawn = wait(
+        "page to hold exactly the stored iterations",
+        20,
+        async || {
+            let (_, stored, _) = run_iterations(port);
+            let n = iterations_drawn(&c).await;
+            (n == stored).then_some(n)
+        },
+    )
     .await;
     wait_text(&c, "[data-testid=iteration]", &format!("{}", drawn - 1), 5).await;
 
     // --- With the token: resume, pause, step, target, stop ---------------------
     type_into(&c, "[data-testid=token]", TOKEN).await;
     click(&c, "[data-testid=unlock]").await;
-    wait("controls after a valid token", 10, async || c.find(Locator::Css("[data-testid=controls]")).await.ok()).await;
+    wait("controls after a valid token", 10, async || {
+        c.find(Locator::Css("[data-testid=controls]")).await.ok()
+    })
+    .await;
     if state != "running" {
         click(&c, "[data-testid=resume]").await;
     }
     wait_text(&c, "[data-testid=run-status]", "running", 10).await;
     let n0 = iterations_drawn(&c).await;
-    wait("iterations after resume", 30, async || Some(iterations_drawn(&c).await).filter(|n| *n > n0)).await;
+    wait("iterations after resume", 30, async || {
+        Some(iterations_drawn(&c).await).filter(|n| *n > n0)
+    })
+    .await;
     click(&c, "[data-testid=pause]").await;
     wait_text(&c, "[data-testid=run-status]", "paused", 15).await;
     tokio::time::sleep(Duration::from_millis(1200)).await;
     let paused_at = iterations_drawn(&c).await;
     tokio::time::sleep(Duration::from_millis(1500)).await;
-    assert_eq!(iterations_drawn(&c).await, paused_at, "iterations continued while paused");
-    assert_eq!(run_iterations(port).1, paused_at, "page and server disagree while paused");
+    assert_eq!(
+        iterations_drawn(&c).await,
+        paused_at,
+        "iterations continued while paused"
+    );
+    assert_eq!(
+        run_iterations(port).1,
+        paused_at,
+        "page and server disagree while paused"
+    );
     click(&c, "[data-testid=step]").await;
     wait("one more iteration after a single step", 30, async || {
         Some(iterations_drawn(&c).await).filter(|n| *n == paused_at + 1)
@@ -340,7 +442,11 @@ async fn dashboard_live_control_reconnect_and_in_browser_mode() {
     click(&c, "[data-testid=local-run]").await;
     let tuned = wait_text(&c, "[data-testid=local-tuned]", "tuned at iteration", 120).await;
     eprintln!("in-browser mode: {tuned}");
-    let k: u64 = tuned.trim_start_matches("tuned at iteration ").trim().parse().unwrap();
+    let k: u64 = tuned
+        .trim_start_matches("tuned at iteration ")
+        .trim()
+        .parse()
+        .unwrap();
     assert!(k <= 60, "in-browser tuning took {k} iterations");
     // Let a few more iterations draw, then pause and take the picture.
     tokio::time::sleep(Duration::from_millis(1500)).await;

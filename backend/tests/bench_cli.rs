@@ -13,14 +13,29 @@ fn bench_writes_json_with_the_documented_keys() {
     std::fs::create_dir_all(&dir).unwrap();
     let json = dir.join("bench.json");
     let out = bin()
-        .args(["bench", "--seeds", "1", "--strategies", "kalman,oracle", "--json"])
+        .args([
+            "bench",
+            "--seeds",
+            "1",
+            "--strategies",
+            "kalman,oracle",
+            "--json",
+        ])
         .arg(&json)
         .output()
         .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let table = String::from_utf8_lossy(&out.stdout);
-    assert!(table.contains("| kalman |") && table.contains("| oracle |"), "{table}");
-    let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert!(
+        table.contains("| kalman |") && table.contains("| oracle |"),
+        "{table}"
+    );
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     let strategies = v["strategies"].as_array().unwrap();
     assert_eq!(strategies.len(), 2);
     for s in strategies {
@@ -41,7 +56,10 @@ fn bench_writes_json_with_the_documented_keys() {
 
 #[test]
 fn bench_rejects_unknown_strategy_and_bad_device_file() {
-    let out = bin().args(["bench", "--seeds", "1", "--strategies", "kalmann"]).output().unwrap();
+    let out = bin()
+        .args(["bench", "--seeds", "1", "--strategies", "kalmann"])
+        .output()
+        .unwrap();
     assert_eq!(out.status.code(), Some(2));
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("unknown strategy \"kalmann\""), "{err}");
@@ -50,7 +68,11 @@ fn bench_rejects_unknown_strategy_and_bad_device_file() {
     std::fs::create_dir_all(&dir).unwrap();
     let dev = dir.join("device.toml");
     std::fs::write(&dev, "lever_arm_typo = 3.0\n").unwrap();
-    let out = bin().args(["bench", "--seeds", "1", "--device"]).arg(&dev).output().unwrap();
+    let out = bin()
+        .args(["bench", "--seeds", "1", "--device"])
+        .arg(&dev)
+        .output()
+        .unwrap();
     assert_eq!(out.status.code(), Some(2));
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("lever_arm_typo"), "{err}");

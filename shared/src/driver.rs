@@ -11,8 +11,8 @@ use crate::protocol::{IterationRecord, Request, Response, ScanKind};
 use crate::sim::{default_gates, DeviceConfig, SimulatedDevice};
 use crate::solver::SolverConfig;
 use crate::tuner::{
-    Action, Compensation, ConfigError, InitialGradient, LevelConfig, LevelKind, NewtonConfig, SensingDotConfig,
-    Tuner, TunerConfig, TunerError,
+    Action, Compensation, ConfigError, InitialGradient, LevelConfig, LevelKind, NewtonConfig,
+    SensingDotConfig, Tuner, TunerConfig, TunerError,
 };
 
 /// Everything needed for a simulated run.
@@ -157,7 +157,9 @@ impl SimulationConfig {
 
     /// Check the whole config; the error names the field.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        self.device.validate().map_err(|m| ConfigError::new("device", m))?;
+        self.device
+            .validate()
+            .map_err(|m| ConfigError::new("device", m))?;
         self.tuner.validate().map_err(|e| e.within("tuner"))
     }
 }
@@ -222,7 +224,9 @@ impl SimulationRun {
     /// Execute one request on the device, through the safety choke point.
     fn execute(&mut self, req: &Request) -> Result<Response, RunError> {
         if let Request::SetVoltages { voltages_mv } = req {
-            self.tuner.safety().check(self.device.voltages_mv(), voltages_mv)?;
+            self.tuner
+                .safety()
+                .check(self.device.voltages_mv(), voltages_mv)?;
         }
         Ok(self.device.execute(req))
     }

@@ -189,11 +189,7 @@ pub struct KalmanGradient {
 impl KalmanGradient {
     /// A filter with initial gradient `g0` (unit/mV), covariance `c0` ((unit/mV)²) and
     /// process noise `q`. No outlier gating, minimum step 1e-6 mV.
-    pub fn new(
-        g0: DVector<f64>,
-        c0: DMatrix<f64>,
-        q: ProcessNoise,
-    ) -> Result<Self, FilterError> {
+    pub fn new(g0: DVector<f64>, c0: DMatrix<f64>, q: ProcessNoise) -> Result<Self, FilterError> {
         let n = g0.len();
         for &x in g0.iter() {
             if !x.is_finite() {
@@ -338,8 +334,7 @@ impl KalmanGradient {
         let new_gradient = &self.gradient + &k * innovation;
         // Joseph form: (I − K H) C (I − K H)ᵀ + K Δz² Kᵀ + Q
         let ikh = DMatrix::identity(n, n) - &k * h.transpose();
-        let new_cov =
-            &ikh * &self.covariance * ikh.transpose() + (&k * k.transpose()) * dz2 + q;
+        let new_cov = &ikh * &self.covariance * ikh.transpose() + (&k * k.transpose()) * dz2 + q;
         self.gradient = new_gradient;
         self.covariance = symmetrise(new_cov);
         Ok(UpdateOutcome::Updated {
@@ -402,7 +397,8 @@ mod tests {
             ProcessNoise::isotropic(2, 0.1),
         )
         .unwrap();
-        f.update(&DVector::from_vec(vec![1.0, 1.0]), 5.0, 1.0).unwrap();
+        f.update(&DVector::from_vec(vec![1.0, 1.0]), 5.0, 1.0)
+            .unwrap();
         // H C Hᵀ = 5, S = 6, K = (4/6, 1/6), innovation = 5 − 3 = 2.
         let g = f.gradient();
         assert!((g[0] - (1.0 + 8.0 / 6.0)).abs() < 1e-12);
@@ -434,7 +430,8 @@ mod tests {
     #[test]
     fn noisy_measurement_barely_moves_gradient() {
         let mut f = filter(2);
-        f.update(&DVector::from_vec(vec![1.0, 0.0]), 10.0, 1e6).unwrap();
+        f.update(&DVector::from_vec(vec![1.0, 0.0]), 10.0, 1e6)
+            .unwrap();
         assert!(f.gradient().norm() < 1e-4);
     }
 
@@ -510,8 +507,9 @@ mod tests {
     #[test]
     fn rejects_bad_initial_state() {
         let bad_c = DMatrix::from_row_slice(2, 2, &[1.0, 0.0, 0.0, -1.0]);
-        assert!(KalmanGradient::new(DVector::zeros(2), bad_c, ProcessNoise::isotropic(2, 0.1))
-            .is_err());
+        assert!(
+            KalmanGradient::new(DVector::zeros(2), bad_c, ProcessNoise::isotropic(2, 0.1)).is_err()
+        );
         assert!(KalmanGradient::new(
             DVector::zeros(2),
             DMatrix::identity(2, 2),

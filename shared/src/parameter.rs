@@ -91,7 +91,9 @@ impl Tolerance {
         if x.is_finite() && x >= 0.0 {
             Ok(())
         } else {
-            Err(format!("tolerance must be finite and non-negative, got {x}"))
+            Err(format!(
+                "tolerance must be finite and non-negative, got {x}"
+            ))
         }
     }
 }

@@ -159,11 +159,23 @@ mod tests {
         let present = BTreeMap::from([("T".to_string(), -5.0)]);
         let req = |v: f64| BTreeMap::from([("T".to_string(), v)]);
         assert!(l.check(&present, &req(-10.0)).is_ok());
-        assert!(matches!(l.check(&present, &req(1.0)), Err(SafetyError::OutOfLimits { .. })));
-        assert!(matches!(l.check(&present, &req(-20.0)), Err(SafetyError::StepTooLarge { .. })));
-        assert!(matches!(l.check(&present, &req(f64::NAN)), Err(SafetyError::NotFinite { .. })));
+        assert!(matches!(
+            l.check(&present, &req(1.0)),
+            Err(SafetyError::OutOfLimits { .. })
+        ));
+        assert!(matches!(
+            l.check(&present, &req(-20.0)),
+            Err(SafetyError::StepTooLarge { .. })
+        ));
+        assert!(matches!(
+            l.check(&present, &req(f64::NAN)),
+            Err(SafetyError::NotFinite { .. })
+        ));
         let unknown = BTreeMap::from([("X".to_string(), 0.0)]);
-        assert!(matches!(l.check(&present, &unknown), Err(SafetyError::UnknownGate(_))));
+        assert!(matches!(
+            l.check(&present, &unknown),
+            Err(SafetyError::UnknownGate(_))
+        ));
         let msg = l.check(&present, &req(1.0)).unwrap_err().to_string();
         assert!(msg.contains("T") && msg.contains("mV"), "{msg}");
     }

@@ -49,7 +49,11 @@ pub struct NewtonStep {
 /// assert!((step.dv_mv[0] + 0.5).abs() < 1e-12);
 /// assert_eq!(step.dv_mv[1], 0.0);
 /// ```
-pub fn newton_step(jacobian: &DMatrix<f64>, delta: &DVector<f64>, cfg: &SolverConfig) -> NewtonStep {
+pub fn newton_step(
+    jacobian: &DMatrix<f64>,
+    delta: &DVector<f64>,
+    cfg: &SolverConfig,
+) -> NewtonStep {
     let n = jacobian.ncols();
     if jacobian.nrows() == 0 || n == 0 || jacobian.iter().any(|x| !x.is_finite()) {
         return NewtonStep {
@@ -109,7 +113,11 @@ mod tests {
     #[test]
     fn rank_deficient_does_not_blow_up() {
         let j = DMatrix::from_row_slice(2, 3, &[1.0, 1.0, 0.0, 2.0, 2.0, 0.0]);
-        let s = newton_step(&j, &DVector::from_vec(vec![1.0, 2.0]), &SolverConfig::default());
+        let s = newton_step(
+            &j,
+            &DVector::from_vec(vec![1.0, 2.0]),
+            &SolverConfig::default(),
+        );
         assert_eq!(s.rank, 1);
         assert!((&j * &s.dv_mv + DVector::from_vec(vec![1.0, 2.0])).norm() < 1e-9);
         assert_eq!(s.dv_mv[2], 0.0);
@@ -117,7 +125,11 @@ mod tests {
 
     #[test]
     fn zero_jacobian_gives_zero_step() {
-        let s = newton_step(&DMatrix::zeros(2, 4), &DVector::from_vec(vec![1.0, 1.0]), &SolverConfig::default());
+        let s = newton_step(
+            &DMatrix::zeros(2, 4),
+            &DVector::from_vec(vec![1.0, 1.0]),
+            &SolverConfig::default(),
+        );
         assert_eq!(s.dv_mv, DVector::zeros(4));
     }
 

@@ -12,7 +12,10 @@ fn run(seed: u64, iterations: u64) -> (SimulationRun, Vec<IterationRecord>) {
     let mut run = SimulationRun::new(cfg).unwrap();
     let mut recs = Vec::new();
     // SimulationRun refuses (with an error) any request outside the safety limits.
-    while let Some(r) = run.next_iteration().expect("no safety refusal, no device error") {
+    while let Some(r) = run
+        .next_iteration()
+        .expect("no safety refusal, no device error")
+    {
         recs.push(r);
     }
     (run, recs)
@@ -27,12 +30,22 @@ fn reaches_first_target_within_limits() {
         let k = first.unwrap_or_else(|| panic!("seed {seed}: never tuned; last {:?}", recs.last()));
         assert!(k <= 12, "seed {seed}: tuned only at iteration {k}");
         let r = &recs[k];
-        let val = |n: &str| r.parameters.iter().find(|p| p.name == n).unwrap().value.unwrap();
+        let val = |n: &str| {
+            r.parameters
+                .iter()
+                .find(|p| p.name == n)
+                .unwrap()
+                .value
+                .unwrap()
+        };
         assert!((val("t_sr") - t_sr).abs() <= 0.1 * t_sr);
         assert!((val("w") - w).abs() <= 0.1 * w);
         // the truth agrees (the measurement did not merely get lucky by much)
         let truth = run.device().truth();
-        assert!((truth.t_sr_ns - t_sr).abs() <= 0.2 * t_sr, "seed {seed}: {truth:?}");
+        assert!(
+            (truth.t_sr_ns - t_sr).abs() <= 0.2 * t_sr,
+            "seed {seed}: {truth:?}"
+        );
         assert!((truth.w_uv - w).abs() <= 0.2 * w, "seed {seed}: {truth:?}");
         for pair in recs.windows(2) {
             let norm: f64 = pair[0]
@@ -68,7 +81,10 @@ fn checkpoint_resume_is_bit_identical_with_the_simulator() {
     for _ in 0..4 {
         assert_eq!(a.next_iteration().unwrap(), b.next_iteration().unwrap());
     }
-    assert_eq!(serde_json::to_string(&a).unwrap(), serde_json::to_string(&b).unwrap());
+    assert_eq!(
+        serde_json::to_string(&a).unwrap(),
+        serde_json::to_string(&b).unwrap()
+    );
 }
 
 #[test]

@@ -35,7 +35,11 @@ fn hash(records: &[IterationRecord]) -> u64 {
         }
         for g in &r.gradients {
             g.gradient.iter().for_each(|&x| eat(x));
-            g.covariance.iter().flatten().flatten().for_each(|&x| eat(x));
+            g.covariance
+                .iter()
+                .flatten()
+                .flatten()
+                .for_each(|&x| eat(x));
         }
         r.step_mv.iter().for_each(|&x| eat(x));
     }
@@ -69,9 +73,12 @@ fn kalman_update_follows_the_paper() {
         ProcessNoise::isotropic(2, 0.0),
     )
     .unwrap();
-    f.update(&DVector::from_vec(vec![1.0, 1.0]), 5.0, 1.0).unwrap();
+    f.update(&DVector::from_vec(vec![1.0, 1.0]), 5.0, 1.0)
+        .unwrap();
     assert!((f.gradient()[0] - (1.0 + 8.0 / 6.0)).abs() < 1e-12);
-    assert!(f.update(&DVector::from_vec(vec![1.0, 1.0]), 5.0, f64::NAN).is_err());
+    assert!(f
+        .update(&DVector::from_vec(vec![1.0, 1.0]), 5.0, f64::NAN)
+        .is_err());
 }
 
 #[cfg_attr(not(target_arch = "wasm32"), native_test)]

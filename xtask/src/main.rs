@@ -46,9 +46,18 @@ fn run(server_args: &[String]) {
     install_tools(false);
     build_dashboard();
     step("start the server (Ctrl-C to stop)");
-    let mut args: Vec<String> = ["run", "--release", "-p", "spintune-server", "--", "serve", "--dist", "dist"]
-        .map(String::from)
-        .to_vec();
+    let mut args: Vec<String> = [
+        "run",
+        "--release",
+        "-p",
+        "spintune-server",
+        "--",
+        "serve",
+        "--dist",
+        "dist",
+    ]
+    .map(String::from)
+    .to_vec();
     args.extend(server_args.iter().cloned());
     cmd("cargo", &args);
 }
@@ -61,9 +70,31 @@ fn test(flags: &[String]) {
         step("formatting");
         cmd("cargo", &["fmt", "--all", "--", "--check"]);
         step("clippy (native)");
-        cmd("cargo", &["clippy", "--workspace", "--all-targets", "--", "-D", "warnings"]);
+        cmd(
+            "cargo",
+            &[
+                "clippy",
+                "--workspace",
+                "--all-targets",
+                "--",
+                "-D",
+                "warnings",
+            ],
+        );
         step("clippy (wasm dashboard)");
-        cmd("cargo", &["clippy", "-p", "spintune-web", "--target", WASM_TARGET, "--", "-D", "warnings"]);
+        cmd(
+            "cargo",
+            &[
+                "clippy",
+                "-p",
+                "spintune-web",
+                "--target",
+                WASM_TARGET,
+                "--",
+                "-D",
+                "warnings",
+            ],
+        );
     }
     build_dashboard();
     step("build the server binary for the end-to-end tests");
@@ -76,13 +107,33 @@ fn test(flags: &[String]) {
     step("wasm tests in headless Chromium (core + dashboard)");
     cmd(
         "cargo",
-        &["test", "--target", WASM_TARGET, "-p", "spintune", "--test", "wasm"],
+        &[
+            "test",
+            "--target",
+            WASM_TARGET,
+            "-p",
+            "spintune",
+            "--test",
+            "wasm",
+        ],
     );
     cmd(
         "cargo",
-        &["test", "--target", WASM_TARGET, "-p", "spintune-web", "--lib", "--bins", "--tests"],
+        &[
+            "test",
+            "--target",
+            WASM_TARGET,
+            "-p",
+            "spintune-web",
+            "--lib",
+            "--bins",
+            "--tests",
+        ],
     );
-    eprintln!("\nxtask test: all steps passed in {:.0} s", started.elapsed().as_secs_f64());
+    eprintln!(
+        "\nxtask test: all steps passed in {:.0} s",
+        started.elapsed().as_secs_f64()
+    );
 }
 
 fn build_dashboard() {
@@ -106,12 +157,21 @@ fn install_tools(browser: bool) {
         eprintln!("  wasm-bindgen-cli {wb}: present");
     } else {
         // Without --locked: its lockfile names a crate version the registry mirror lacks.
-        cmd("cargo", &["install", "wasm-bindgen-cli", "--version", &wb, "--force"]);
+        cmd(
+            "cargo",
+            &["install", "wasm-bindgen-cli", "--version", &wb, "--force"],
+        );
     }
-    if output("trunk", &["--version"]).unwrap_or_default().contains(TRUNK_VERSION) {
+    if output("trunk", &["--version"])
+        .unwrap_or_default()
+        .contains(TRUNK_VERSION)
+    {
         eprintln!("  trunk {TRUNK_VERSION}: present");
     } else {
-        cmd("cargo", &["install", "--locked", "trunk", "--version", TRUNK_VERSION]);
+        cmd(
+            "cargo",
+            &["install", "--locked", "trunk", "--version", TRUNK_VERSION],
+        );
     }
     if browser {
         if which("chromium") && which("chromedriver") {
@@ -136,7 +196,10 @@ fn wasm_bindgen_version() -> String {
     let mut lines = lock.lines();
     while let Some(l) = lines.next() {
         if l.trim() == "name = \"wasm-bindgen\"" {
-            if let Some(v) = lines.next().and_then(|v| v.trim().strip_prefix("version = \"")) {
+            if let Some(v) = lines
+                .next()
+                .and_then(|v| v.trim().strip_prefix("version = \""))
+            {
                 return v.trim_end_matches('"').to_string();
             }
         }
@@ -146,11 +209,16 @@ fn wasm_bindgen_version() -> String {
 }
 
 fn workspace_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("xtask lives in the workspace").to_path_buf()
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("xtask lives in the workspace")
+        .to_path_buf()
 }
 
 fn home() -> PathBuf {
-    env::var_os("HOME").map(PathBuf::from).unwrap_or_else(|| PathBuf::from("/tmp"))
+    env::var_os("HOME")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from("/tmp"))
 }
 
 fn target_dir() -> PathBuf {
@@ -189,9 +257,9 @@ fn step(what: &str) {
 
 fn output(program: &str, args: &[&str]) -> Option<String> {
     let out = Command::new(program).args(args).output().ok()?;
-    out.status
-        .success()
-        .then(|| String::from_utf8_lossy(&out.stdout).into_owned() + &String::from_utf8_lossy(&out.stderr))
+    out.status.success().then(|| {
+        String::from_utf8_lossy(&out.stdout).into_owned() + &String::from_utf8_lossy(&out.stderr)
+    })
 }
 
 fn cmd<S: AsRef<str>>(program: &str, args: &[S]) {

@@ -217,7 +217,10 @@ impl TunerConfig {
                 return Err(ConfigError::new(f("name"), "must not be empty"));
             }
             if self.gates[..i].iter().any(|o| o.name == g.name) {
-                return Err(ConfigError::new(f("name"), format!("duplicate gate {:?}", g.name)));
+                return Err(ConfigError::new(
+                    f("name"),
+                    format!("duplicate gate {:?}", g.name),
+                ));
             }
             for (name, v) in [
                 ("min_mv", g.min_mv),
@@ -235,7 +238,10 @@ impl TunerConfig {
             if !(g.min_mv..=g.max_mv).contains(&g.initial_mv) {
                 return Err(ConfigError::new(
                     f("initial_mv"),
-                    format!("{} mV is outside [{}, {}] mV", g.initial_mv, g.min_mv, g.max_mv),
+                    format!(
+                        "{} mV is outside [{}, {}] mV",
+                        g.initial_mv, g.min_mv, g.max_mv
+                    ),
                 ));
             }
             if g.max_step_mv <= 0.0 {
@@ -246,13 +252,19 @@ impl TunerConfig {
             return Err(ConfigError::new("levels", "at least one level is required"));
         }
         if !matches!(self.levels[0].kind, LevelKind::Newton(_)) {
-            return Err(ConfigError::new("levels[0].kind", "the top level must be `newton`"));
+            return Err(ConfigError::new(
+                "levels[0].kind",
+                "the top level must be `newton`",
+            ));
         }
         let has_gate = |name: &str| self.gates.iter().any(|g| g.name == name);
         for (li, level) in self.levels.iter().enumerate() {
             let lf = |x: &str| format!("levels[{li}].{x}");
             if self.levels[..li].iter().any(|o| o.name == level.name) {
-                return Err(ConfigError::new(lf("name"), format!("duplicate level {:?}", level.name)));
+                return Err(ConfigError::new(
+                    lf("name"),
+                    format!("duplicate level {:?}", level.name),
+                ));
             }
             for (ci, child) in level.after_move.iter().enumerate() {
                 match self.level_index(child) {
@@ -260,7 +272,10 @@ impl TunerConfig {
                     Some(_) => {
                         return Err(ConfigError::new(
                             lf(&format!("after_move[{ci}]")),
-                            format!("{child:?} must be listed after {:?} (no cycles)", level.name),
+                            format!(
+                                "{child:?} must be listed after {:?} (no cycles)",
+                                level.name
+                            ),
                         ))
                     }
                     None => {
@@ -274,7 +289,10 @@ impl TunerConfig {
             match &level.kind {
                 LevelKind::SensingDot(sd) => {
                     if !has_gate(&sd.gate) {
-                        return Err(ConfigError::new(lf("gate"), format!("unknown gate {:?}", sd.gate)));
+                        return Err(ConfigError::new(
+                            lf("gate"),
+                            format!("unknown gate {:?}", sd.gate),
+                        ));
                     }
                     if !(sd.half_width_mv.is_finite() && sd.half_width_mv > 0.0) {
                         return Err(ConfigError::new(lf("half_width_mv"), "must be > 0"));
@@ -283,7 +301,9 @@ impl TunerConfig {
                         return Err(ConfigError::new(lf("points"), "must be at least 5"));
                     }
                 }
-                LevelKind::Newton(n) => validate_newton(n, &has_gate).map_err(|e| e.within(&format!("levels[{li}]")))?,
+                LevelKind::Newton(n) => {
+                    validate_newton(n, &has_gate).map_err(|e| e.within(&format!("levels[{li}]")))?
+                }
             }
         }
         Ok(())
@@ -296,47 +316,79 @@ fn validate_newton(n: &NewtonConfig, has_gate: &dyn Fn(&str) -> bool) -> Result<
     }
     for (i, g) in n.gates.iter().enumerate() {
         if !has_gate(g) {
-            return Err(ConfigError::new(format!("gates[{i}]"), format!("unknown gate {g:?}")));
+            return Err(ConfigError::new(
+                format!("gates[{i}]"),
+                format!("unknown gate {g:?}"),
+            ));
         }
         if n.gates[..i].contains(g) {
-            return Err(ConfigError::new(format!("gates[{i}]"), format!("duplicate gate {g:?}")));
+            return Err(ConfigError::new(
+                format!("gates[{i}]"),
+                format!("duplicate gate {g:?}"),
+            ));
         }
     }
     if n.parameters.is_empty() {
-        return Err(ConfigError::new("parameters", "at least one parameter is required"));
+        return Err(ConfigError::new(
+            "parameters",
+            "at least one parameter is required",
+        ));
     }
     for (i, p) in n.parameters.iter().enumerate() {
         let f = |x: &str| format!("parameters[{i}].{x}");
         if n.parameters[..i].iter().any(|o| o.name == p.name) {
-            return Err(ConfigError::new(f("name"), format!("duplicate parameter {:?}", p.name)));
+            return Err(ConfigError::new(
+                f("name"),
+                format!("duplicate parameter {:?}", p.name),
+            ));
         }
         if let Some(t) = p.target {
             if !t.is_finite() {
                 return Err(ConfigError::new(f("target"), "must be a finite number"));
             }
             if p.transform == crate::parameter::Transform::Log && t <= 0.0 {
-                return Err(ConfigError::new(f("target"), "must be > 0 for a log-transformed parameter"));
+                return Err(ConfigError::new(
+                    f("target"),
+                    "must be > 0 for a log-transformed parameter",
+                ));
             }
         }
-        p.tolerance.validate().map_err(|m| ConfigError::new(f("tolerance"), m))?;
+        p.tolerance
+            .validate()
+            .map_err(|m| ConfigError::new(f("tolerance"), m))?;
         if !(p.process_noise_per_mv.is_finite() && p.process_noise_per_mv >= 0.0) {
-            return Err(ConfigError::new(f("process_noise_per_mv"), "must be finite and non-negative"));
+            return Err(ConfigError::new(
+                f("process_noise_per_mv"),
+                "must be finite and non-negative",
+            ));
         }
     }
     let (m, k) = (n.parameters.len(), n.gates.len());
     match &n.initial_gradient {
-        InitialGradient::FiniteDifference { step_mv, repetitions } => {
+        InitialGradient::FiniteDifference {
+            step_mv,
+            repetitions,
+        } => {
             if !(step_mv.is_finite() && *step_mv > 0.0) {
                 return Err(ConfigError::new("initial_gradient.step_mv", "must be > 0"));
             }
             if *repetitions == 0 {
-                return Err(ConfigError::new("initial_gradient.repetitions", "must be ≥ 1"));
+                return Err(ConfigError::new(
+                    "initial_gradient.repetitions",
+                    "must be ≥ 1",
+                ));
             }
         }
-        InitialGradient::Given { gradient, covariance } => {
+        InitialGradient::Given {
+            gradient,
+            covariance,
+        } => {
             check_rows(gradient, m, k, "initial_gradient.gradient")?;
             if covariance.len() != m {
-                return Err(ConfigError::new("initial_gradient.covariance", format!("needs {m} matrices")));
+                return Err(ConfigError::new(
+                    "initial_gradient.covariance",
+                    format!("needs {m} matrices"),
+                ));
             }
             for (i, c) in covariance.iter().enumerate() {
                 check_rows(c, k, k, &format!("initial_gradient.covariance[{i}]"))?;
@@ -346,10 +398,16 @@ fn validate_newton(n: &NewtonConfig, has_gate: &dyn Fn(&str) -> bool) -> Result<
                 })?;
             }
         }
-        InitialGradient::RoughGuess { gradient, relative_std } => {
+        InitialGradient::RoughGuess {
+            gradient,
+            relative_std,
+        } => {
             check_rows(gradient, m, k, "initial_gradient.gradient")?;
             if !(relative_std.is_finite() && *relative_std >= 0.0) {
-                return Err(ConfigError::new("initial_gradient.relative_std", "must be ≥ 0"));
+                return Err(ConfigError::new(
+                    "initial_gradient.relative_std",
+                    "must be ≥ 0",
+                ));
             }
         }
     }
@@ -361,7 +419,10 @@ fn validate_newton(n: &NewtonConfig, has_gate: &dyn Fn(&str) -> bool) -> Result<
     }
     if let Some(s) = n.outlier_sigma {
         if !(s.is_finite() && s > 0.0) {
-            return Err(ConfigError::new("outlier_sigma", "must be > 0 (or null for no gating)"));
+            return Err(ConfigError::new(
+                "outlier_sigma",
+                "must be > 0 (or null for no gating)",
+            ));
         }
     }
     if !(n.min_step_mv.is_finite() && n.min_step_mv >= 0.0) {
@@ -373,7 +434,10 @@ fn validate_newton(n: &NewtonConfig, has_gate: &dyn Fn(&str) -> bool) -> Result<
     if let Some(c) = &n.compensation {
         for (i, g) in c.gates.iter().enumerate() {
             if !has_gate(g) {
-                return Err(ConfigError::new(format!("compensation.gates[{i}]"), format!("unknown gate {g:?}")));
+                return Err(ConfigError::new(
+                    format!("compensation.gates[{i}]"),
+                    format!("unknown gate {g:?}"),
+                ));
             }
             if n.gates.contains(g) {
                 return Err(ConfigError::new(
@@ -389,14 +453,23 @@ fn validate_newton(n: &NewtonConfig, has_gate: &dyn Fn(&str) -> bool) -> Result<
 
 fn check_rows(rows: &[Vec<f64>], m: usize, n: usize, field: &str) -> Result<(), ConfigError> {
     if rows.len() != m {
-        return Err(ConfigError::new(field, format!("needs {m} rows, got {}", rows.len())));
+        return Err(ConfigError::new(
+            field,
+            format!("needs {m} rows, got {}", rows.len()),
+        ));
     }
     for (i, r) in rows.iter().enumerate() {
         if r.len() != n {
-            return Err(ConfigError::new(format!("{field}[{i}]"), format!("needs {n} entries, got {}", r.len())));
+            return Err(ConfigError::new(
+                format!("{field}[{i}]"),
+                format!("needs {n} entries, got {}", r.len()),
+            ));
         }
         if let Some(x) = r.iter().find(|x| !x.is_finite()) {
-            return Err(ConfigError::new(format!("{field}[{i}]"), format!("{x} is not a finite number")));
+            return Err(ConfigError::new(
+                format!("{field}[{i}]"),
+                format!("{x} is not a finite number"),
+            ));
         }
     }
     Ok(())

@@ -55,7 +55,13 @@ impl FiniteDifference {
     }
 
     /// Record the measurement with gate `gate` offset by `actual_offset_mv`.
-    pub fn record_point(&mut self, rep: usize, gate: usize, actual_offset_mv: f64, samples: Vec<Option<Sample>>) {
+    pub fn record_point(
+        &mut self,
+        rep: usize,
+        gate: usize,
+        actual_offset_mv: f64,
+        samples: Vec<Option<Sample>>,
+    ) {
         self.points[rep][gate] = Some((actual_offset_mv, samples));
     }
 
@@ -70,7 +76,9 @@ impl FiniteDifference {
                     let mut estimates = Vec::new();
                     let mut propagated = Vec::new();
                     for rep in 0..self.repetitions() {
-                        let (Some((y0, v0)), Some((dv, samples))) = (self.base[rep][i], &self.points[rep][j]) else {
+                        let (Some((y0, v0)), Some((dv, samples))) =
+                            (self.base[rep][i], &self.points[rep][j])
+                        else {
                             continue;
                         };
                         let Some((y1, v1)) = samples[i] else { continue };

@@ -12,7 +12,8 @@ use crate::estimator::{EstimatorKind, GradientEstimator};
 use crate::kalman::{ProcessNoise, UpdateOutcome};
 use crate::parameter::{ParameterSpec, Transform};
 use crate::protocol::{
-    GradientReport, IterationRecord, ParameterReport, ParameterValue, ScanKind, ScanReport, ScanRequest,
+    GradientReport, IterationRecord, ParameterReport, ParameterValue, ScanKind, ScanReport,
+    ScanRequest,
 };
 use crate::solver::newton_step;
 
@@ -61,16 +62,27 @@ impl NewtonState {
         let m = cfg.parameters.len();
         let estimators = match &cfg.initial_gradient {
             InitialGradient::FiniteDifference { .. } => None,
-            InitialGradient::Given { gradient, covariance } => {
+            InitialGradient::Given {
+                gradient,
+                covariance,
+            } => {
                 let k = cfg.gates.len();
                 let rows = gradient
                     .iter()
                     .zip(covariance)
-                    .map(|(g, c)| (DVector::from_column_slice(g), DMatrix::from_fn(k, k, |r, s| c[r][s])))
+                    .map(|(g, c)| {
+                        (
+                            DVector::from_column_slice(g),
+                            DMatrix::from_fn(k, k, |r, s| c[r][s]),
+                        )
+                    })
                     .collect();
                 Some(build_estimators(cfg, rows)?)
             }
-            InitialGradient::RoughGuess { gradient, relative_std } => {
+            InitialGradient::RoughGuess {
+                gradient,
+                relative_std,
+            } => {
                 let rows = gradient
                     .iter()
                     .map(|g| {
@@ -108,9 +120,11 @@ impl NewtonState {
     }
 
     pub(super) fn gradients(&self) -> Option<Vec<super::GradientRow>> {
-        self.estimators
-            .as_ref()
-            .map(|es| es.iter().map(|e| (e.gradient().clone(), e.covariance().cloned())).collect())
+        self.estimators.as_ref().map(|es| {
+            es.iter()
+                .map(|e| (e.gradient().clone(), e.covariance().cloned()))
+                .collect()
+        })
     }
 
     pub(super) fn absorb(&mut self, values: Vec<ParameterValue>, report: Option<ScanReport>) {
@@ -123,16 +137,26 @@ impl NewtonState {
     }
 
     /// Take this round's measurements as estimator-space samples, in parameter order.
-    fn take_samples(&mut self, cfg: &NewtonConfig) -> (Vec<Option<Sample>>, Vec<Option<ParameterValue>>) {
+    fn take_samples(
+        &mut self,
+        cfg: &NewtonConfig,
+    ) -> (Vec<Option<Sample>>, Vec<Option<ParameterValue>>) {
         let measured = std::mem::take(&mut self.measured);
-        let raw: Vec<Option<ParameterValue>> =
-            cfg.parameters.iter().map(|p| measured.get(&p.name).cloned()).collect();
+        let raw: Vec<Option<ParameterValue>> = cfg
+            .parameters
+            .iter()
+            .map(|p| measured.get(&p.name).cloned())
+            .collect();
         let mut samples = Vec::with_capacity(raw.len());
         for (p, v) in cfg.parameters.iter().zip(&raw) {
-            let s = v.as_ref().and_then(|v| p.transform.forward(v.value, v.variance));
+            let s = v
+                .as_ref()
+                .and_then(|v| p.transform.forward(v.value, v.variance));
             if v.is_some() && s.is_none() {
-                self.events
-                    .push(format!("{}: value not representable in {:?} space", p.name, p.transform));
+                self.events.push(format!(
+                    "{}: value not representable in {:?} space",
+                    p.name, p.transform
+                ));
             }
             samples.push(s);
         }
@@ -209,7 +233,11 @@ impl Tuner {
             return ops;
         }
         let (cfg, _) = self.newton(level);
-        let InitialGradient::FiniteDifference { step_mv, repetitions } = cfg.initial_gradient else {
+        let InitialGradient::FiniteDifference {
+            step_mv,
+            repetitions,
+        } = cfg.initial_gradient
+        else {
             return ops;
         };
         let base = self.level_voltages(level);
@@ -344,7 +372,9 @@ impl Tuner {
         let cfg = cfg_mut.clone();
         for (i, p) in cfg.parameters.iter().enumerate() {
             if raw[i].is_none() {
-                state.events.push(format!("{}: no valid measurement this iteration", p.name));
+                state
+                    .events
+                    .push(format!("{}: no valid measurement this iteration", p.name));
             }
         }
         // A value whose error bar is wider than its tolerance band says nothing about
@@ -413,7 +443,9 @@ impl Tuner {
                         state.references[i] = new_ref;
                         state.gated_in_a_row[i] = 0;
                     }
-                    Err(e) => state.events.push(format!("{}: update rejected: {e}", p.name)),
+                    Err(e) => state
+                        .events
+                        .push(format!("{}: update rejected: {e}", p.name)),
                 }
             }
         }
@@ -452,7 +484,8 @@ impl Tuner {
         }
         match cfg.estimator {
             EstimatorKind::FdNewton => {
-                let mut fd = FiniteDifference::new(cfg.parameters.len(), v_now.clone(), cfg.fd_step_mv, 1);
+                let mut fd =
+                    FiniteDifference::new(cfg.parameters.len(), v_now.clone(), cfg.fd_step_mv, 1);
                 fd.record_base(0, samples);
                 let (_, state) = self.newton_mut(level);
                 state.fd = Some(fd);
@@ -481,14 +514,19 @@ impl Tuner {
     fn step(&mut self, level: usize) {
         let cfg = self.newton(level).0.clone();
         let (_, state) = self.newton_mut(level);
-        let Some(snapshot) = state.snapshot.clone() else { return };
+        let Some(snapshot) = state.snapshot.clone() else {
+            return;
+        };
         // The oracle's Jacobian replaces the estimate (in estimator space).
         if let (Some((values, jac)), Some(es)) = (state.oracle.take(), &mut state.estimators) {
             for (i, (e, p)) in es.iter_mut().zip(&cfg.parameters).enumerate() {
                 if let (Some(row), Some(&val)) = (jac.get(i), values.get(i)) {
                     let f = p.transform.forward_gradient_factor(val);
                     let n = row.len();
-                    e.remeasured(DVector::from_iterator(n, row.iter().map(|x| x * f)), DMatrix::zeros(n, n));
+                    e.remeasured(
+                        DVector::from_iterator(n, row.iter().map(|x| x * f)),
+                        DMatrix::zeros(n, n),
+                    );
                 }
             }
         }
@@ -575,7 +613,9 @@ impl Tuner {
                         unit: gradient_unit(p),
                         gradient: e.gradient().iter().copied().collect(),
                         covariance: e.covariance().map(|c| {
-                            (0..c.nrows()).map(|r| (0..c.ncols()).map(|s| c[(r, s)]).collect()).collect()
+                            (0..c.nrows())
+                                .map(|r| (0..c.ncols()).map(|s| c[(r, s)]).collect())
+                                .collect()
                         }),
                     })
                     .collect()
@@ -600,11 +640,13 @@ impl Tuner {
         for (i, l) in self.levels.iter_mut().enumerate() {
             if let LevelState::Newton(s) = l {
                 let name = &self.config.levels[i].name;
-                events.extend(
-                    std::mem::take(&mut s.events)
-                        .into_iter()
-                        .map(|e| if i == 0 { e } else { format!("{name}: {e}") }),
-                );
+                events.extend(std::mem::take(&mut s.events).into_iter().map(|e| {
+                    if i == 0 {
+                        e
+                    } else {
+                        format!("{name}: {e}")
+                    }
+                }));
             }
         }
         let (_, state) = self.newton_mut(0);

@@ -33,7 +33,10 @@ struct Toy {
 impl Toy {
     fn new(gates: &[GateSpec], seed: u64) -> Self {
         Self {
-            v: gates.iter().map(|g| (g.name.clone(), g.initial_mv)).collect(),
+            v: gates
+                .iter()
+                .map(|g| (g.name.clone(), g.initial_mv))
+                .collect(),
             rng: ChaCha8Rng::seed_from_u64(seed),
             sigma: [0.3, 2.0],
             log: Vec::new(),
@@ -52,7 +55,10 @@ impl Toy {
     fn execute(&mut self, req: &Request) -> Response {
         match req {
             Request::SetVoltages { voltages_mv } => {
-                self.log.push(format!("set {}", voltages_mv.keys().cloned().collect::<Vec<_>>().join(",")));
+                self.log.push(format!(
+                    "set {}",
+                    voltages_mv.keys().cloned().collect::<Vec<_>>().join(",")
+                ));
                 for (g, v) in voltages_mv {
                     self.v.insert(g.clone(), *v);
                 }
@@ -66,7 +72,9 @@ impl Toy {
                 let (a, b, mu) = self.truth();
                 let values = match scan.kind {
                     ScanKind::ReloadTime => {
-                        let n = Normal::new(0.0, self.sigma[0]).unwrap().sample(&mut self.rng);
+                        let n = Normal::new(0.0, self.sigma[0])
+                            .unwrap()
+                            .sample(&mut self.rng);
                         vec![ParameterValue {
                             name: "t_sr".into(),
                             value: a + n,
@@ -75,7 +83,9 @@ impl Toy {
                     }
                     ScanKind::TransitionWidth => {
                         self.w_count += 1;
-                        let n = Normal::new(0.0, self.sigma[1]).unwrap().sample(&mut self.rng);
+                        let n = Normal::new(0.0, self.sigma[1])
+                            .unwrap()
+                            .sample(&mut self.rng);
                         let bogus = self.bogus_at == Some(self.w_count);
                         let nan = self.nan_at == Some(self.w_count);
                         vec![ParameterValue {
@@ -124,7 +134,10 @@ fn gates() -> Vec<GateSpec> {
         gate("SB", 0.0, 10.0),
         gate("T", 0.0, 10.0),
         gate("PA", 0.0, 20.0),
-        GateSpec { min_mv: -400.0, ..gate("SP", -300.0, 20.0) },
+        GateSpec {
+            min_mv: -400.0,
+            ..gate("SP", -300.0, 20.0)
+        },
     ]
 }
 
@@ -247,7 +260,10 @@ fn drive(tuner: &mut Tuner, dev: &mut Toy, max_records: usize) -> Vec<IterationR
         match tuner.poll() {
             Action::Request(req) => {
                 if let Request::SetVoltages { voltages_mv } = &req {
-                    tuner.safety().check(&dev.v, voltages_mv).expect("tuner emitted an unsafe request");
+                    tuner
+                        .safety()
+                        .check(&dev.v, voltages_mv)
+                        .expect("tuner emitted an unsafe request");
                 }
                 let resp = dev.execute(&req);
                 tuner.feed(resp).unwrap();
@@ -320,7 +336,8 @@ fn fd_newton_counts_its_extra_measurements() {
     let untuned = ra.iter().filter(|r| !r.tuned).count() as u64;
     // 4 extra measurements of each scan per untuned iteration
     assert!(
-        ra[5].scan_counts[&ScanKind::ReloadTime] >= rb[5].scan_counts[&ScanKind::ReloadTime] + 4 * (untuned - 1)
+        ra[5].scan_counts[&ScanKind::ReloadTime]
+            >= rb[5].scan_counts[&ScanKind::ReloadTime] + 4 * (untuned - 1)
     );
 }
 
@@ -372,13 +389,19 @@ fn checkpoint_resume_is_bit_identical() {
     let mut tuner = Tuner::new(cfg).unwrap();
     let mut dev = Toy::new(&gates(), 21);
     let _ = drive(&mut tuner, &mut dev, 5);
-    let saved = (serde_json::to_string(&tuner).unwrap(), serde_json::to_string(&dev).unwrap());
+    let saved = (
+        serde_json::to_string(&tuner).unwrap(),
+        serde_json::to_string(&dev).unwrap(),
+    );
     let straight = drive(&mut tuner, &mut dev, 8);
     let mut t2: Tuner = serde_json::from_str(&saved.0).unwrap();
     let mut d2: Toy = serde_json::from_str(&saved.1).unwrap();
     let resumed = drive(&mut t2, &mut d2, 8);
     assert_eq!(straight, resumed);
-    assert_eq!(serde_json::to_string(&tuner).unwrap(), serde_json::to_string(&t2).unwrap());
+    assert_eq!(
+        serde_json::to_string(&tuner).unwrap(),
+        serde_json::to_string(&t2).unwrap()
+    );
 }
 
 #[test]
@@ -396,7 +419,10 @@ fn targets_change_between_iterations() {
     let after = drive(&mut tuner, &mut dev, 10);
     assert_eq!(after[0].parameters[0].target, Some(30.0));
     assert!(!after[0].tuned);
-    assert!(after.iter().any(|r| r.tuned), "did not reach the new target");
+    assert!(
+        after.iter().any(|r| r.tuned),
+        "did not reach the new target"
+    );
 }
 
 #[test]
@@ -407,7 +433,11 @@ fn outlier_is_gated_and_does_not_move_gradient() {
     dev.bogus_at = Some(13);
     let recs = drive(&mut tuner, &mut dev, 4);
     let bad = &recs[2];
-    assert!(bad.events.iter().any(|e| e.contains("w: outlier gated")), "{:?}", bad.events);
+    assert!(
+        bad.events.iter().any(|e| e.contains("w: outlier gated")),
+        "{:?}",
+        bad.events
+    );
     assert_eq!(recs[1].gradients[1].gradient, bad.gradients[1].gradient);
 }
 
@@ -427,7 +457,9 @@ fn nan_variance_is_rejected_before_the_filter() {
 #[test]
 fn device_error_keeps_request_pending() {
     let mut tuner = Tuner::new(flat(EstimatorKind::Kalman)).unwrap();
-    let Action::Request(first) = tuner.poll() else { panic!() };
+    let Action::Request(first) = tuner.poll() else {
+        panic!()
+    };
     let before = tuner.clone();
     let err = tuner.feed(Response::Error {
         message: "bridge timed out".into(),
@@ -478,7 +510,10 @@ fn config_errors_name_the_field() {
     assert_eq!(Tuner::new(cfg).unwrap_err().field, "gates[0].initial_mv");
     let mut cfg = hierarchical();
     cfg.levels[2].after_move = vec!["qubit".into()];
-    assert!(Tuner::new(cfg).unwrap_err().field.starts_with("levels[2].after_move"));
+    assert!(Tuner::new(cfg)
+        .unwrap_err()
+        .field
+        .starts_with("levels[2].after_move"));
     let mut cfg = flat(EstimatorKind::Kalman);
     cfg.top_mut().parameters[0].process_noise_per_mv = -1.0;
     assert_eq!(
@@ -495,9 +530,15 @@ fn learned_gradients_seed_a_new_tuner() {
     let recs = drive(&mut tuner, &mut Toy::new(&gates(), 31), 10);
     assert!(recs.is_empty());
     let learned = tuner.config_with_learned_gradients();
-    assert!(matches!(learned.top().initial_gradient, InitialGradient::Given { .. }));
+    assert!(matches!(
+        learned.top().initial_gradient,
+        InitialGradient::Given { .. }
+    ));
     let t2 = Tuner::new(learned).unwrap();
-    assert_eq!(t2.gradients(0).unwrap()[0].0, tuner.gradients(0).unwrap()[0].0);
+    assert_eq!(
+        t2.gradients(0).unwrap()[0].0,
+        tuner.gradients(0).unwrap()[0].0
+    );
 }
 
 #[test]
@@ -507,6 +548,8 @@ fn config_round_trips_and_refuses_unknown_fields() {
     let back: TunerConfig = serde_json::from_str(&json).unwrap();
     assert_eq!(back, cfg);
     let bad = json.replacen("\"fd_step_mv\"", "\"fd_stepp_mv\"", 1);
-    let err = serde_json::from_str::<TunerConfig>(&bad).unwrap_err().to_string();
+    let err = serde_json::from_str::<TunerConfig>(&bad)
+        .unwrap_err()
+        .to_string();
     assert!(err.contains("fd_stepp_mv"), "{err}");
 }

@@ -6,6 +6,12 @@
 //! before it reaches [`Device::execute`]. A driver that can be checkpointed
 //! (the simulator: its RNG, drift and lab clock) returns its state from
 //! [`Device::checkpoint`]; resuming from that state continues bit-identically.
+//!
+//! Drivers: [`SimulatorDevice`] (default), [`crate::scpi::ScpiDevice`] (SCPI DC
+//! source over TCP; measurements from the simulator or the bridge) and
+//! [`crate::bridge::BridgeDevice`] (an external lab script over WebSocket).
+//! A driver reports faults as [`Response::Error`]: the run then pauses with
+//! the message and keeps the request, which is re-issued on resume.
 
 use std::future::Future;
 use std::pin::Pin;
@@ -14,7 +20,11 @@ use serde_json::Value;
 use spintune::protocol::{Request, Response};
 use spintune::sim::SimulatedDevice;
 
-use crate::config::DriverKind;
+use std::sync::Arc;
+
+use crate::bridge::{BridgeDevice, BridgeLink};
+use crate::config::{DriverKind, RunConfig};
+use crate::scpi::{MeasureSource, ScpiDevice, ScpiSource};
 
 /// A boxed, `Send` future (keeps [`Device`] usable as `Box<dyn Device>`).
 pub type BoxFuture<'a, T> = Pin<Box<dyn Future<Output = T> + Send + 'a>>;
@@ -30,6 +40,13 @@ pub trait Device: Send + Sync {
 
     /// Which driver this is.
     fn driver(&self) -> DriverKind;
+
+    /// After a fault ([`Response::Error`]) paused the run: resolves when the
+    /// device may work again without a user's `resume` (the lab bridge
+    /// reconnected). Called at the time of the fault. Default: never.
+    fn recovered(&self) -> BoxFuture<'static, ()> {
+        Box::pin(std::future::pending())
+    }
 }
 
 /// The embedded simulated double dot.
@@ -68,9 +85,45 @@ impl Device for SimulatorDevice {
     }
 }
 
-/// Restore a device of kind `driver` from its checkpoint.
-pub fn restore(driver: DriverKind, state: Value) -> Result<Box<dyn Device>, serde_json::Error> {
-    match driver {
-        DriverKind::Simulator => Ok(Box::new(SimulatorDevice::restore(state)?)),
+/// Open the device of `config` from its checkpoint `state` (the simulator's
+/// state for the simulator and for SCPI with simulated measurements; ignored
+/// otherwise). `bridge` is the run's bridge link (needed when
+/// [`crate::config::BackendSettings::uses_bridge`]).
+pub fn open(
+    config: &RunConfig,
+    state: Value,
+    bridge: Option<Arc<BridgeLink>>,
+) -> Result<Box<dyn Device>, String> {
+    let b = &config.backend;
+    let bridge_device = || {
+        bridge
+            .clone()
+            .map(|link| BridgeDevice::new(link, b.bridge.clone()))
+            .ok_or_else(|| {
+                "internal: the run uses the lab bridge but has no bridge link".to_string()
+            })
+    };
+    match b.driver {
+        DriverKind::Simulator => Ok(Box::new(
+            SimulatorDevice::restore(state).map_err(|e| e.to_string())?,
+        )),
+        DriverKind::Bridge => Ok(Box::new(bridge_device()?)),
+        DriverKind::Scpi => {
+            let scpi = b
+                .scpi
+                .clone()
+                .ok_or_else(|| "driver = \"scpi\" needs a [scpi] table".to_string())?;
+            let measure = scpi.measure;
+            let source = ScpiSource::new(scpi, &config.simulation.tuner.gates);
+            match measure {
+                MeasureSource::Simulator => Ok(Box::new(ScpiDevice::with_simulator(
+                    source,
+                    SimulatorDevice::restore(state).map_err(|e| e.to_string())?,
+                ))),
+                MeasureSource::Bridge => {
+                    Ok(Box::new(ScpiDevice::with_bridge(source, bridge_device()?)))
+                }
+            }
+        }
     }
 }

@@ -6,11 +6,13 @@
 
 pub mod bench;
 pub mod bench_server;
+pub mod bridge;
 pub mod cli;
 pub mod config;
 pub mod device;
 pub mod export;
 pub mod replay;
 pub mod run;
+pub mod scpi;
 pub mod server;
 pub mod store;

@@ -28,8 +28,9 @@ use spintune::protocol::{
 use spintune::tuner::{Action, Tuner};
 use tokio::sync::{broadcast, mpsc, oneshot};
 
+use crate::bridge::{BridgeLink, Links};
 use crate::config::RunConfig;
-use crate::device::{self, Device, SimulatorDevice};
+use crate::device::{self, BoxFuture, Device, SimulatorDevice};
 use crate::store::{Store, StoreError};
 
 /// One frame for a run's viewers: pre-serialized JSON of a [`ServerMessage`],
@@ -186,6 +187,7 @@ pub struct Manager {
     store: Arc<Store>,
     runs: Mutex<BTreeMap<u64, Arc<RunHandle>>>,
     options: ManagerOptions,
+    bridges: Links,
 }
 
 async fn blocking<T: Send + 'static>(
@@ -232,6 +234,7 @@ impl Manager {
             store,
             runs: Mutex::new(runs),
             options,
+            bridges: Links::default(),
         }))
     }
 
@@ -247,6 +250,19 @@ impl Manager {
     /// A run's handle.
     pub fn get(&self, id: u64) -> Result<Arc<RunHandle>, RunError> {
         self.runs().get(&id).cloned().ok_or(RunError::NotFound(id))
+    }
+
+    /// The lab bridge link of run `id` (created on first use). `Conflict` if
+    /// the run's device does not include the bridge.
+    pub fn bridge_link(&self, id: u64) -> Result<Arc<BridgeLink>, RunError> {
+        let handle = self.get(id)?;
+        if !handle.config.backend.uses_bridge() {
+            return Err(RunError::Conflict(format!(
+                "run {id} does not use the lab bridge (its driver is {:?}); create it with driver = \"bridge\" or scpi.measure = \"bridge\"",
+                handle.config.backend.driver
+            )));
+        }
+        Ok(self.bridges.get(id))
     }
 
     /// Summaries of all runs, by id.
@@ -480,6 +496,7 @@ impl Manager {
         }
         let store = self.store.clone();
         blocking(move || store.delete_run(id)).await?;
+        self.bridges.remove(id);
         if let Some(h) = self.runs().remove(&id) {
             let _ = h.tx.send(Frame::message(&ServerMessage::Error {
                 message: format!("run {id} was deleted"),
@@ -521,8 +538,13 @@ impl Manager {
             .map(Duration::from_millis)
             .unwrap_or(self.options.iteration_delay);
         let manager = self.clone();
+        let bridge = handle
+            .config
+            .backend
+            .uses_bridge()
+            .then(|| self.bridges.get(handle.id));
         tokio::spawn(async move {
-            let device = match device::restore(handle.config.backend.driver, checkpoint.device) {
+            let device = match device::open(&handle.config, checkpoint.device, bridge) {
                 Ok(d) => d,
                 Err(e) => {
                     let _ = manager
@@ -545,6 +567,7 @@ impl Manager {
                 mode,
                 delay,
                 deferred: Vec::new(),
+                recovery: None,
             };
             let end = task.run().await;
             // Close the control channel before the final status so that any
@@ -596,6 +619,10 @@ struct RunTask {
     delay: Duration,
     /// Target changes received mid-iteration, applied at the next boundary.
     deferred: Vec<ControlCommand>,
+    /// While paused by a device fault: resolves when the device recovered by
+    /// itself (the lab bridge reconnected), which resumes the run.
+    /// (In a `Mutex` only to make the task `Sync`; it is polled through `get_mut`.)
+    recovery: Option<Mutex<BoxFuture<'static, ()>>>,
 }
 
 impl RunTask {
@@ -619,13 +646,26 @@ impl RunTask {
                 }
             }
             while self.mode == Mode::Paused {
-                match self.control.recv().await {
-                    Some(msg) => {
+                let next = match self.recovery.as_mut() {
+                    Some(recovered) => tokio::select! {
+                        msg = self.control.recv() => Some(msg),
+                        _ = recovered.get_mut().unwrap_or_else(|p| p.into_inner()) => None,
+                    },
+                    None => Some(self.control.recv().await),
+                };
+                match next {
+                    Some(Some(msg)) => {
                         if let Flow::Stop = self.handle_control(msg, at_boundary).await {
                             return Some(RunStatus::Stopped);
                         }
                     }
-                    None => return None,
+                    Some(None) => return None,
+                    None => {
+                        // The device recovered by itself: re-issue the request.
+                        self.recovery = None;
+                        self.mode = Mode::Running;
+                        self.publish_status(RunStatus::Running).await;
+                    }
                 }
                 if at_boundary {
                     if let Err(e) = self.apply_deferred().await {
@@ -647,7 +687,9 @@ impl RunTask {
                     }
                     let response = self.device.execute(request).await;
                     if let Err(e) = self.tuner.feed(response) {
-                        return Some(failed(format!("tuner: {e}")));
+                        // The tuner keeps the request (its state is unchanged):
+                        // pause with the reason and re-issue it on resume.
+                        self.fault(e.to_string()).await;
                     }
                 }
                 Action::Iteration(record) => {
@@ -665,6 +707,19 @@ impl RunTask {
                 Action::Finished => return Some(RunStatus::Finished),
             }
         }
+    }
+
+    /// A device fault: pause with a clear message, keeping the tuner's
+    /// outstanding request and everything measured so far in this iteration.
+    async fn fault(&mut self, message: String) {
+        self.recovery = Some(Mutex::new(self.device.recovered()));
+        self.mode = Mode::Paused;
+        self.publish_status(RunStatus::Failed {
+            message: format!(
+                "paused by a device fault: {message} — the request is kept and re-issued on resume; no data lost"
+            ),
+        })
+        .await;
     }
 
     fn checkpoint_json(&self) -> Result<String, String> {
@@ -740,6 +795,8 @@ impl RunTask {
         let ControlMsg { command, reply } = msg;
         let (result, flow) = match command {
             ControlCommand::Pause => {
+                // A user's pause is not lifted by a device recovering.
+                self.recovery = None;
                 self.mode = Mode::Paused;
                 (
                     Ok(self.publish_status(RunStatus::Paused).await),
@@ -747,6 +804,7 @@ impl RunTask {
                 )
             }
             ControlCommand::Resume => {
+                self.recovery = None;
                 self.mode = Mode::Running;
                 (
                     Ok(self.publish_status(RunStatus::Running).await),
@@ -754,6 +812,7 @@ impl RunTask {
                 )
             }
             ControlCommand::Step => {
+                self.recovery = None;
                 self.mode = Mode::Step;
                 (
                     Ok(self.publish_status(RunStatus::Running).await),

@@ -16,6 +16,7 @@
 //! | POST 🔒 | `/api/runs/{id}/control` | `ControlCommand` → `RunSummary` (400 invalid, 409 not applicable) |
 //! | DELETE 🔒 | `/api/runs/{id}` | → 204 |
 //! | GET | `/api/runs/{id}/ws?from=N` | WebSocket, see below |
+//! | GET | `/api/runs/{id}/bridge` | WebSocket of the lab bridge (runs with `driver = "bridge"` or `scpi.measure = "bridge"`), see [`crate::bridge`] |
 //! | GET | `/*` | the dashboard (Trunk's `dist/`), or a note on how to build it |
 //!
 //! WebSocket (`ServerMessage` / `ClientMessage` JSON text frames): the server
@@ -173,7 +174,7 @@ pub fn parse_client_message(text: &str) -> Result<ClientMessage, String> {
 /// `deny_unknown_fields` on unit variants of internally tagged enums, e.g.
 /// `{"action":"pause","extra":1}`; comparing with the re-serialized value
 /// catches those.)
-fn parse_strict<T: serde::de::DeserializeOwned + serde::Serialize>(
+pub(crate) fn parse_strict<T: serde::de::DeserializeOwned + serde::Serialize>(
     text: &str,
 ) -> Result<T, String> {
     let de = &mut serde_json::Deserializer::from_str(text);
@@ -252,6 +253,7 @@ pub fn router(state: AppState, dist: PathBuf) -> Router {
         .route("/api/runs/{id}/export", get(export))
         .route("/api/runs/{id}/control", post(control))
         .route("/api/runs/{id}/ws", get(ws))
+        .route("/api/runs/{id}/bridge", get(bridge_ws))
         .with_state(state);
     if dist.join("index.html").is_file() {
         api.fallback_service(ServeDir::new(dist))
@@ -411,6 +413,17 @@ async fn ws(
             let _ = e;
         }
     }))
+}
+
+/// The lab bridge's socket (see [`crate::bridge`]).
+async fn bridge_ws(
+    State(s): State<AppState>,
+    Path(id): Path<String>,
+    upgrade: WebSocketUpgrade,
+) -> ApiResult<Response> {
+    let id = parse_id(&id)?;
+    s.manager.get(id)?;
+    Ok(upgrade.on_upgrade(move |socket| crate::bridge::serve_socket(s, id, socket)))
 }
 
 fn text_of(msg: &ServerMessage) -> Message {

@@ -1,0 +1,601 @@
+//! SCPI driver for a multi-channel DC voltage source over raw TCP
+//! (QDAC-II style; one command per line, `\n`-terminated).
+//!
+//! The subset used:
+//!
+//! | command | meaning |
+//! |---|---|
+//! | `sour{ch}:volt {V}` | set channel `ch` to `V` volts (no answer) |
+//! | `sour{ch}:volt?` | read channel `ch` back; answers one line, volts |
+//! | `sour{ch}:volt:slew {V/s}` | the instrument's own ramp rate, V/s (no answer) |
+//!
+//! The tuner works in mV, the instrument in V: every value is divided by
+//! 1000 on the way out (formatted with 6 decimals, i.e. 1 µV resolution) and
+//! multiplied by 1000 on the way back.
+//!
+//! Safety, on top of the run task's [`SafetyLimits::check`] (which compares
+//! with the tuner's idea of the voltages), enforced against the *instrument's*
+//! read-back state before any command is sent:
+//!
+//! 1. every gate must be mapped to a channel and have a [`GateSpec`];
+//! 2. the target must lie within the gate's `[min_mv, max_mv]`;
+//! 3. the change from the voltage last read back from the instrument must not
+//!    exceed the gate's `max_step_mv`;
+//! 4. the move is split into equal increments no larger than
+//!    [`ScpiConfig::ramp_step_mv`] (all gates of the request advance together);
+//!    every planned command is checked against the limits before the first is
+//!    sent;
+//! 5. after the last increment every channel is read back and compared with
+//!    the target ([`ScpiConfig::readback_tolerance_mv`]); a mismatch is an
+//!    error (the run pauses, nothing is retried silently).
+//!
+//! Any I/O error or timeout drops the connection and forgets the instrument
+//! state. The failed request is reported as an error (the run pauses with the
+//! message); nothing is re-sent by the driver. When the run is resumed the
+//! tuner re-issues the request, the driver reconnects, reads every channel
+//! back and ramps from wherever the instrument really is — after checking the
+//! step again.
+
+use std::collections::BTreeMap;
+use std::time::{Duration, Instant};
+
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+use spintune::protocol::{Request, Response};
+use spintune::safety::{GateSpec, SafetyLimits};
+use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
+use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
+use tokio::net::TcpStream;
+
+use crate::bridge::BridgeDevice;
+use crate::config::DriverKind;
+use crate::device::{BoxFuture, Device, SimulatorDevice};
+
+/// Where a SCPI run's measurements come from (the DC source only sets gates).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MeasureSource {
+    /// The embedded simulator, fed the voltages read back from the
+    /// instrument (dry runs against a real or fake source).
+    #[default]
+    Simulator,
+    /// The lab bridge (`/api/runs/{id}/bridge`): the lab's script measures,
+    /// spintune sets the DC gates itself.
+    Bridge,
+}
+
+/// `[scpi]` table of a run config.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ScpiConfig {
+    /// `host:port` of the instrument's raw SCPI socket, e.g. `"192.168.8.40:5025"`.
+    pub address: String,
+    /// Gate name → channel number (1-based), e.g. `{ SB = 4 }`.
+    pub channels: BTreeMap<String, u32>,
+    /// Largest change of any channel in one `sour{ch}:volt` command, mV.
+    #[serde(default = "default_ramp_step_mv")]
+    pub ramp_step_mv: f64,
+    /// Instrument ramp rate sent as `sour{ch}:volt:slew` at connect, V/s.
+    /// When set, the driver also waits `increment / slew` after each increment.
+    #[serde(default)]
+    pub slew_v_per_s: Option<f64>,
+    /// Largest accepted difference between target and read-back, mV.
+    #[serde(default = "default_readback_tolerance_mv")]
+    pub readback_tolerance_mv: f64,
+    /// Time allowed for connecting, each write and each answer, ms.
+    #[serde(default = "default_timeout_ms")]
+    pub timeout_ms: u64,
+    /// Wait after the last increment before reading back, ms.
+    #[serde(default)]
+    pub settle_ms: u64,
+    /// Source of measurements.
+    #[serde(default)]
+    pub measure: MeasureSource,
+}
+
+fn default_ramp_step_mv() -> f64 {
+    1.0
+}
+fn default_readback_tolerance_mv() -> f64 {
+    0.05
+}
+fn default_timeout_ms() -> u64 {
+    2000
+}
+
+impl ScpiConfig {
+    /// Check the settings against the tuner's gates; `Err((field, message))`.
+    pub fn validate(&self, gates: &[GateSpec]) -> Result<(), (String, String)> {
+        if self.address.trim().is_empty() || !self.address.contains(':') {
+            return Err((
+                "address".into(),
+                format!("expected \"host:port\", got {:?}", self.address),
+            ));
+        }
+        if self.channels.is_empty() {
+            return Err((
+                "channels".into(),
+                "map at least one gate to a channel".into(),
+            ));
+        }
+        let mut seen = BTreeMap::new();
+        for (gate, &ch) in &self.channels {
+            if !gates.iter().any(|g| &g.name == gate) {
+                let known: Vec<&str> = gates.iter().map(|g| g.name.as_str()).collect();
+                return Err((
+                    format!("channels.{gate}"),
+                    format!("{gate:?} is not a gate of `tuner.gates` (known: {known:?})"),
+                ));
+            }
+            if ch == 0 {
+                return Err((
+                    format!("channels.{gate}"),
+                    "channel numbers start at 1".into(),
+                ));
+            }
+            if let Some(other) = seen.insert(ch, gate) {
+                return Err((
+                    format!("channels.{gate}"),
+                    format!("channel {ch} is already used by {other:?}"),
+                ));
+            }
+        }
+        if !(self.ramp_step_mv.is_finite() && self.ramp_step_mv > 0.0) {
+            return Err((
+                "ramp_step_mv".into(),
+                "must be a positive number of mV".into(),
+            ));
+        }
+        if let Some(s) = self.slew_v_per_s {
+            if !(s.is_finite() && s > 0.0) {
+                return Err((
+                    "slew_v_per_s".into(),
+                    "must be a positive number of V/s".into(),
+                ));
+            }
+        }
+        if !(self.readback_tolerance_mv.is_finite() && self.readback_tolerance_mv >= 0.0) {
+            return Err((
+                "readback_tolerance_mv".into(),
+                "must be a non-negative number of mV".into(),
+            ));
+        }
+        if self.timeout_ms == 0 {
+            return Err(("timeout_ms".into(), "must be at least 1 ms".into()));
+        }
+        Ok(())
+    }
+}
+
+/// `sour{ch}:volt {V}` with the voltage given in mV.
+pub fn set_command(channel: u32, mv: f64) -> String {
+    format!("sour{channel}:volt {:.6}", mv / 1000.0)
+}
+
+/// `sour{ch}:volt?`.
+pub fn query_command(channel: u32) -> String {
+    format!("sour{channel}:volt?")
+}
+
+/// `sour{ch}:volt:slew {V/s}`.
+pub fn slew_command(channel: u32, v_per_s: f64) -> String {
+    format!("sour{channel}:volt:slew {v_per_s}")
+}
+
+/// Plan the ramp from `present` to `target` (gate → mV): equal increments no
+/// larger than `ramp_step_mv`, all gates advancing together. Returns the list
+/// of stages, each a list of (gate, voltage mV). Gates whose target equals the
+/// present voltage get no command.
+pub fn plan_ramp(
+    present: &BTreeMap<String, f64>,
+    target: &BTreeMap<String, f64>,
+    ramp_step_mv: f64,
+) -> Vec<Vec<(String, f64)>> {
+    let moves: Vec<(&String, f64, f64)> = target
+        .iter()
+        .filter_map(|(g, &t)| {
+            let p = present.get(g).copied().unwrap_or(t);
+            (t != p).then_some((g, p, t))
+        })
+        .collect();
+    let n = moves
+        .iter()
+        .map(|(_, p, t)| ((t - p).abs() / ramp_step_mv * (1.0 - 1e-12)).ceil() as usize)
+        .max()
+        .unwrap_or(0)
+        .max(usize::from(!moves.is_empty()));
+    (1..=n)
+        .map(|k| {
+            moves
+                .iter()
+                .map(|(g, p, t)| {
+                    let v = if k == n {
+                        *t
+                    } else {
+                        p + (t - p) * k as f64 / n as f64
+                    };
+                    ((*g).clone(), v)
+                })
+                .collect()
+        })
+        .collect()
+}
+
+struct Conn {
+    reader: BufReader<OwnedReadHalf>,
+    writer: OwnedWriteHalf,
+}
+
+/// A connection to the DC source plus what the driver knows of its state.
+pub struct ScpiSource {
+    cfg: ScpiConfig,
+    limits: SafetyLimits,
+    conn: Option<Conn>,
+    /// Voltages last read back from the instrument on this connection, mV.
+    known: BTreeMap<String, f64>,
+}
+
+impl ScpiSource {
+    /// A source for `cfg` with the tuner's gate limits. Does not connect yet.
+    pub fn new(cfg: ScpiConfig, gates: &[GateSpec]) -> Self {
+        Self {
+            cfg,
+            limits: SafetyLimits::new(gates),
+            conn: None,
+            known: BTreeMap::new(),
+        }
+    }
+
+    /// The settings.
+    pub fn config(&self) -> &ScpiConfig {
+        &self.cfg
+    }
+
+    /// Whether a connection is open.
+    pub fn is_connected(&self) -> bool {
+        self.conn.is_some()
+    }
+
+    fn timeout(&self) -> Duration {
+        Duration::from_millis(self.cfg.timeout_ms)
+    }
+
+    fn channel(&self, gate: &str) -> Result<u32, String> {
+        self.cfg.channels.get(gate).copied().ok_or_else(|| {
+            format!("gate {gate:?} has no channel in `scpi.channels`; refused, nothing sent")
+        })
+    }
+
+    fn drop_conn(&mut self) {
+        self.conn = None;
+        self.known.clear();
+    }
+
+    async fn write_line(&mut self, line: &str) -> Result<(), String> {
+        let t = self.timeout();
+        let Some(conn) = self.conn.as_mut() else {
+            return Err("not connected".into());
+        };
+        let data = format!("{line}\n");
+        let r = tokio::time::timeout(t, async {
+            conn.writer.write_all(data.as_bytes()).await?;
+            conn.writer.flush().await
+        })
+        .await;
+        match r {
+            Ok(Ok(())) => Ok(()),
+            Ok(Err(e)) => {
+                self.drop_conn();
+                Err(format!("sending `{line}` failed: {e}"))
+            }
+            Err(_) => {
+                self.drop_conn();
+                Err(format!(
+                    "sending `{line}` timed out after {} ms",
+                    t.as_millis()
+                ))
+            }
+        }
+    }
+
+    async fn query_mv(&mut self, channel: u32) -> Result<f64, String> {
+        let q = query_command(channel);
+        self.write_line(&q).await?;
+        let t = self.timeout();
+        let conn = self.conn.as_mut().ok_or("not connected")?;
+        let mut line = String::new();
+        let r = tokio::time::timeout(t, conn.reader.read_line(&mut line)).await;
+        let answer = match r {
+            Ok(Ok(0)) => {
+                self.drop_conn();
+                return Err(format!(
+                    "the instrument closed the connection before answering `{q}`"
+                ));
+            }
+            Ok(Ok(_)) => line.trim().to_string(),
+            Ok(Err(e)) => {
+                self.drop_conn();
+                return Err(format!("reading the answer to `{q}` failed: {e}"));
+            }
+            Err(_) => {
+                // A late answer would desynchronise the line protocol: drop it.
+                self.drop_conn();
+                return Err(format!("no answer to `{q}` within {} ms", t.as_millis()));
+            }
+        };
+        match answer.parse::<f64>() {
+            Ok(v) if v.is_finite() => Ok(v * 1000.0),
+            _ => {
+                self.drop_conn();
+                Err(format!("answer {answer:?} to `{q}` is not a voltage"))
+            }
+        }
+    }
+
+    /// Connect (if needed): open the socket, send the slew rate to every
+    /// mapped channel and read every channel back.
+    pub async fn ensure_connected(&mut self) -> Result<(), String> {
+        if self.conn.is_some() {
+            return Ok(());
+        }
+        let t = self.timeout();
+        let stream = match tokio::time::timeout(t, TcpStream::connect(&self.cfg.address)).await {
+            Ok(Ok(s)) => s,
+            Ok(Err(e)) => return Err(format!("cannot connect to {}: {e}", self.cfg.address)),
+            Err(_) => {
+                return Err(format!(
+                    "connecting to {} timed out after {} ms",
+                    self.cfg.address,
+                    t.as_millis()
+                ))
+            }
+        };
+        let _ = stream.set_nodelay(true);
+        let (r, w) = stream.into_split();
+        self.conn = Some(Conn {
+            reader: BufReader::new(r),
+            writer: w,
+        });
+        self.known.clear();
+        let channels: Vec<(String, u32)> = self
+            .cfg
+            .channels
+            .iter()
+            .map(|(g, &c)| (g.clone(), c))
+            .collect();
+        for (gate, ch) in channels {
+            if let Some(slew) = self.cfg.slew_v_per_s {
+                self.write_line(&slew_command(ch, slew)).await?;
+            }
+            let mv = self.query_mv(ch).await?;
+            self.known.insert(gate, mv);
+        }
+        Ok(())
+    }
+
+    /// Voltages last read back from the instrument, mV (empty when not connected).
+    pub fn known_mv(&self) -> &BTreeMap<String, f64> {
+        &self.known
+    }
+
+    /// Safely move the gates in `target` (gate → mV) and return the read-back
+    /// voltages (mV). See the module documentation for the checks.
+    pub async fn set(
+        &mut self,
+        target: &BTreeMap<String, f64>,
+    ) -> Result<BTreeMap<String, f64>, String> {
+        // Refuse what can be refused before touching the network.
+        for gate in target.keys() {
+            self.channel(gate)?;
+        }
+        self.limits
+            .check(&BTreeMap::new(), target)
+            .map_err(|e| format!("{e}; refused, nothing sent"))?;
+        self.ensure_connected().await?;
+        let present = self.known.clone();
+        // Step from where the instrument really is.
+        self.limits.check(&present, target).map_err(|e| {
+            format!("{e} (measured from the instrument's read-back); refused, nothing sent")
+        })?;
+        let stages = plan_ramp(&present, target, self.cfg.ramp_step_mv);
+        // Check every planned command before sending the first.
+        let mut last = present.clone();
+        for stage in &stages {
+            for (gate, v) in stage {
+                let single = BTreeMap::from([(gate.clone(), *v)]);
+                self.limits
+                    .check(&BTreeMap::new(), &single)
+                    .map_err(|e| format!("planned ramp: {e}; refused, nothing sent"))?;
+                let prev = last.get(gate).copied().unwrap_or(*v);
+                if (v - prev).abs() > self.cfg.ramp_step_mv * (1.0 + 1e-9) + 1e-12 {
+                    return Err(format!(
+                        "planned ramp of {gate}: increment {} mV exceeds ramp_step_mv {} mV; refused, nothing sent",
+                        (v - prev).abs(),
+                        self.cfg.ramp_step_mv
+                    ));
+                }
+                last.insert(gate.clone(), *v);
+            }
+        }
+        let n = stages.len();
+        let mut prev = present.clone();
+        for (k, stage) in stages.iter().enumerate() {
+            let mut largest = 0.0f64;
+            for (gate, v) in stage {
+                let ch = self.channel(gate)?;
+                let cmd = set_command(ch, *v);
+                if let Err(e) = self.write_line(&cmd).await {
+                    return Err(format!(
+                        "{e} during increment {} of {n} (gate {gate}, channel {ch}); the instrument state is unknown, \
+the connection was dropped and the step was NOT re-sent; on resume the driver reconnects, reads every channel back and ramps from there",
+                        k + 1
+                    ));
+                }
+                largest = largest.max((v - prev.get(gate).copied().unwrap_or(*v)).abs());
+                prev.insert(gate.clone(), *v);
+            }
+            if let Some(slew) = self.cfg.slew_v_per_s {
+                let wait = largest / 1000.0 / slew;
+                if wait > 0.0 {
+                    tokio::time::sleep(Duration::from_secs_f64(wait.min(60.0))).await;
+                }
+            }
+        }
+        if self.cfg.settle_ms > 0 {
+            tokio::time::sleep(Duration::from_millis(self.cfg.settle_ms)).await;
+        }
+        // Read every channel back first (so the driver knows the real state
+        // even when one of them disagrees), then compare.
+        let mut readback = BTreeMap::new();
+        for gate in target.keys() {
+            let ch = self.channel(gate)?;
+            let mv = match self.query_mv(ch).await {
+                Ok(mv) => mv,
+                Err(e) => {
+                    return Err(format!(
+                        "read-back after setting {gate} (channel {ch}) failed: {e}; the connection was dropped and nothing was re-sent"
+                    ))
+                }
+            };
+            self.known.insert(gate.clone(), mv);
+            readback.insert(gate.clone(), mv);
+        }
+        for (gate, &t) in target {
+            let mv = readback[gate];
+            if (mv - t).abs() > self.cfg.readback_tolerance_mv {
+                return Err(format!(
+                    "read-back mismatch on {gate} (channel {}): set {t:.6} mV, instrument reads {mv:.6} mV \
+(tolerance {} mV); nothing was re-sent",
+                    self.channel(gate)?,
+                    self.cfg.readback_tolerance_mv
+                ));
+            }
+        }
+        Ok(readback)
+    }
+}
+
+/// The measurement half of a SCPI run.
+enum Measurer {
+    Simulator(SimulatorDevice),
+    Bridge(BridgeDevice),
+}
+
+/// A SCPI DC source for the gates plus a measurement device ([`MeasureSource`]).
+pub struct ScpiDevice {
+    source: ScpiSource,
+    measurer: Measurer,
+}
+
+impl ScpiDevice {
+    /// Gates through `source`, measurements from the simulator (whose state is
+    /// the device checkpoint).
+    pub fn with_simulator(source: ScpiSource, simulator: SimulatorDevice) -> Self {
+        Self {
+            source,
+            measurer: Measurer::Simulator(simulator),
+        }
+    }
+
+    /// Gates through `source`, measurements from the lab bridge.
+    pub fn with_bridge(source: ScpiSource, bridge: BridgeDevice) -> Self {
+        Self {
+            source,
+            measurer: Measurer::Bridge(bridge),
+        }
+    }
+
+    async fn execute_inner(&mut self, request: Request) -> Response {
+        match request {
+            Request::SetVoltages { voltages_mv } => {
+                let start = Instant::now();
+                match self.source.set(&voltages_mv).await {
+                    Ok(readback) => {
+                        if let Measurer::Simulator(sim) = &mut self.measurer {
+                            // The simulated device follows the real voltages.
+                            if let Response::Error { message } = sim
+                                .execute(Request::SetVoltages {
+                                    voltages_mv: readback.clone(),
+                                })
+                                .await
+                            {
+                                return Response::Error {
+                                    message: format!(
+                                        "simulator refused the read-back voltages: {message}"
+                                    ),
+                                };
+                            }
+                        }
+                        Response::VoltagesSet {
+                            voltages_mv: readback,
+                            lab_seconds: start.elapsed().as_secs_f64(),
+                        }
+                    }
+                    Err(message) => Response::Error {
+                        message: format!("SCPI source {}: {message}", self.source.cfg.address),
+                    },
+                }
+            }
+            other => match &mut self.measurer {
+                Measurer::Simulator(sim) => sim.execute(other).await,
+                Measurer::Bridge(bridge) => bridge.execute(other).await,
+            },
+        }
+    }
+}
+
+impl Device for ScpiDevice {
+    fn execute(&mut self, request: Request) -> BoxFuture<'_, Response> {
+        Box::pin(self.execute_inner(request))
+    }
+
+    fn checkpoint(&self) -> Result<Value, serde_json::Error> {
+        match &self.measurer {
+            Measurer::Simulator(sim) => sim.checkpoint(),
+            Measurer::Bridge(_) => Ok(Value::Null),
+        }
+    }
+
+    fn driver(&self) -> DriverKind {
+        DriverKind::Scpi
+    }
+
+    fn recovered(&self) -> BoxFuture<'static, ()> {
+        match &self.measurer {
+            Measurer::Bridge(b) => b.recovered(),
+            Measurer::Simulator(_) => Box::pin(std::future::pending()),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ramp_increments_never_exceed_the_step_and_end_on_target() {
+        let present = BTreeMap::from([("A".to_string(), -780.0), ("B".to_string(), 10.0)]);
+        let target = BTreeMap::from([("A".to_string(), -777.5), ("B".to_string(), 10.0)]);
+        let stages = plan_ramp(&present, &target, 1.0);
+        assert_eq!(stages.len(), 3);
+        assert!(stages.iter().all(|s| s.len() == 1 && s[0].0 == "A"));
+        assert_eq!(stages[2][0].1, -777.5);
+        let mut prev = -780.0;
+        for s in &stages {
+            assert!((s[0].1 - prev).abs() <= 1.0 + 1e-12);
+            prev = s[0].1;
+        }
+        // exactly one step's worth: one command
+        let t = BTreeMap::from([("A".to_string(), -779.0)]);
+        assert_eq!(plan_ramp(&present, &t, 1.0).len(), 1);
+        // nothing to do
+        assert!(plan_ramp(&present, &present, 1.0).is_empty());
+    }
+
+    #[test]
+    fn commands_are_in_volts() {
+        assert_eq!(set_command(4, -777.5), "sour4:volt -0.777500");
+        assert_eq!(query_command(12), "sour12:volt?");
+        assert_eq!(slew_command(1, 0.5), "sour1:volt:slew 0.5");
+    }
+}

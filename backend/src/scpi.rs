@@ -463,10 +463,13 @@ the connection was dropped and the step was NOT re-sent; on resume the driver re
         for (gate, &t) in target {
             let mv = readback[gate];
             if (mv - t).abs() > self.cfg.readback_tolerance_mv {
+                let ch = self.channel(gate)?;
+                // An instrument that disagrees cannot be trusted as the start
+                // of the next ramp: forget everything, re-read on the next request.
+                self.drop_conn();
                 return Err(format!(
-                    "read-back mismatch on {gate} (channel {}): set {t:.6} mV, instrument reads {mv:.6} mV \
-(tolerance {} mV); nothing was re-sent",
-                    self.channel(gate)?,
+                    "read-back mismatch on {gate} (channel {ch}): set {t:.6} mV, instrument reads {mv:.6} mV \
+(tolerance {} mV); nothing was re-sent, the connection was dropped and every channel is re-read before the next command",
                     self.cfg.readback_tolerance_mv
                 ));
             }

@@ -1,0 +1,443 @@
+//! The SCPI DC-source driver against a simulated instrument: a TCP server on
+//! 127.0.0.1 that speaks the same SCPI subset (`sour{ch}:volt V`,
+//! `sour{ch}:volt?`, `sour{ch}:volt:slew V/s`), records every command and
+//! misbehaves on demand (drops the connection, answers late, reports a
+//! different voltage). Everything is bounded in time.
+
+mod common;
+
+use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use common::*;
+use serde_json::json;
+use spintune::protocol::{RunStatus, RunSummary};
+use spintune::safety::GateSpec;
+use spintune::sim::default_gates;
+use spintune_server::cli::Server;
+use spintune_server::config::{MeasureSource, ScpiConfig};
+use spintune_server::scpi::ScpiSource;
+use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
+use tokio::net::TcpListener;
+
+/// A misbehaviour, armed to happen after `after_sets` more set commands.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Fault {
+    /// Close the connection on receiving the set command, without applying it.
+    Drop,
+    /// Answer the next query only after this delay.
+    Late(Duration),
+    /// Answer the next query with the true value plus this offset, mV.
+    Offset(f64),
+}
+
+#[derive(Default)]
+struct InstrumentState {
+    /// Channel → volts.
+    volts: BTreeMap<u32, f64>,
+    /// (connection number, command) in arrival order.
+    log: Vec<(usize, String)>,
+    /// Set commands received so far.
+    sets: usize,
+    /// Fault and the set count at which it fires.
+    armed: Option<(Fault, usize)>,
+    /// A fault that fired and waits for the next query (Late/Offset).
+    query_fault: Option<Fault>,
+    /// Violations seen: commands outside limits or with too large increments.
+    violations: Vec<String>,
+}
+
+/// The simulated instrument.
+#[derive(Clone)]
+struct Instrument {
+    addr: std::net::SocketAddr,
+    state: Arc<Mutex<InstrumentState>>,
+}
+
+impl Instrument {
+    /// Start on an ephemeral loopback port with `volts` (channel → V).
+    /// `limits` (channel → (min, max) mV) and `ramp_step_mv` are checked on
+    /// every set command.
+    async fn start(
+        volts: BTreeMap<u32, f64>,
+        limits: BTreeMap<u32, (f64, f64)>,
+        ramp_step_mv: f64,
+    ) -> Self {
+        let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        let state = Arc::new(Mutex::new(InstrumentState {
+            volts,
+            ..Default::default()
+        }));
+        let st = state.clone();
+        tokio::spawn(async move {
+            let mut conn_no = 0;
+            loop {
+                let Ok((stream, _)) = listener.accept().await else {
+                    return;
+                };
+                conn_no += 1;
+                let st = st.clone();
+                let limits = limits.clone();
+                tokio::spawn(async move {
+                    let (r, mut w) = stream.into_split();
+                    let mut lines = BufReader::new(r).lines();
+                    while let Ok(Some(line)) = lines.next_line().await {
+                        let cmd = line.trim().to_string();
+                        let mut answer = None;
+                        let mut delay = None;
+                        {
+                            let mut s = st.lock().unwrap();
+                            s.log.push((conn_no, cmd.clone()));
+                            let (head, arg) = cmd.split_once(' ').unwrap_or((&cmd, ""));
+                            let ch: u32 = head
+                                .trim_start_matches("sour")
+                                .split(':')
+                                .next()
+                                .unwrap()
+                                .parse()
+                                .expect("channel number");
+                            if head.ends_with(":volt:slew") {
+                                // accepted, nothing to model
+                            } else if head.ends_with(":volt?") {
+                                let mut v = s.volts.get(&ch).copied().unwrap_or(0.0);
+                                match s.query_fault.take() {
+                                    Some(Fault::Late(d)) => delay = Some(d),
+                                    Some(Fault::Offset(mv)) => v += mv / 1000.0,
+                                    _ => {}
+                                }
+                                answer = Some(format!("{v}\n"));
+                            } else if head.ends_with(":volt") {
+                                s.sets += 1;
+                                let v: f64 = arg.parse().expect("volts");
+                                if let Some((fault, at)) = s.armed {
+                                    if s.sets >= at {
+                                        s.armed = None;
+                                        if fault == Fault::Drop {
+                                            return; // closes the connection, not applied
+                                        }
+                                        s.query_fault = Some(fault);
+                                    }
+                                }
+                                let old = s.volts.get(&ch).copied().unwrap_or(0.0);
+                                let (lo, hi) = limits[&ch];
+                                let mv = v * 1000.0;
+                                if mv < lo - 1e-9 || mv > hi + 1e-9 {
+                                    s.violations.push(format!("{cmd}: outside [{lo}, {hi}] mV"));
+                                }
+                                // 1 µV formatting resolution
+                                if ((v - old) * 1000.0).abs() > ramp_step_mv + 2e-3 {
+                                    s.violations.push(format!(
+                                        "{cmd}: increment {} mV from {} V",
+                                        (v - old) * 1000.0,
+                                        old
+                                    ));
+                                }
+                                s.volts.insert(ch, v);
+                            } else {
+                                panic!("unknown command {cmd:?}");
+                            }
+                        }
+                        if let Some(d) = delay {
+                            tokio::time::sleep(d).await;
+                        }
+                        if let Some(a) = answer {
+                            if w.write_all(a.as_bytes()).await.is_err() {
+                                return;
+                            }
+                        }
+                    }
+                });
+            }
+        });
+        Self { addr, state }
+    }
+
+    fn arm(&self, fault: Fault, after_sets: usize) {
+        let mut s = self.state.lock().unwrap();
+        let at = s.sets + after_sets;
+        s.armed = Some((fault, at));
+    }
+
+    fn log(&self) -> Vec<(usize, String)> {
+        self.state.lock().unwrap().log.clone()
+    }
+
+    fn commands(&self) -> Vec<String> {
+        self.log().into_iter().map(|(_, c)| c).collect()
+    }
+
+    fn violations(&self) -> Vec<String> {
+        self.state.lock().unwrap().violations.clone()
+    }
+
+    fn clear_log(&self) {
+        self.state.lock().unwrap().log.clear();
+    }
+}
+
+fn gates() -> Vec<GateSpec> {
+    default_gates()
+}
+
+/// Channel numbers 1… for all default gates, in their order.
+fn channel_map() -> BTreeMap<String, u32> {
+    gates()
+        .iter()
+        .enumerate()
+        .map(|(i, g)| (g.name.clone(), i as u32 + 1))
+        .collect()
+}
+
+fn instrument_at_initial() -> (BTreeMap<u32, f64>, BTreeMap<u32, (f64, f64)>) {
+    let map = channel_map();
+    let mut volts = BTreeMap::new();
+    let mut limits = BTreeMap::new();
+    for g in gates() {
+        let ch = map[&g.name];
+        volts.insert(ch, g.initial_mv / 1000.0);
+        limits.insert(ch, (g.min_mv, g.max_mv));
+    }
+    (volts, limits)
+}
+
+fn scpi_config(addr: std::net::SocketAddr, channels: BTreeMap<String, u32>) -> ScpiConfig {
+    ScpiConfig {
+        address: addr.to_string(),
+        channels,
+        ramp_step_mv: 1.0,
+        slew_v_per_s: Some(5.0),
+        readback_tolerance_mv: 0.05,
+        timeout_ms: 300,
+        settle_ms: 0,
+        measure: MeasureSource::Simulator,
+    }
+}
+
+#[tokio::test]
+async fn exact_command_sequence_and_refusals_send_nothing() {
+    let (volts, limits) = instrument_at_initial();
+    let inst = Instrument::start(volts, limits, 1.0).await;
+    let channels = BTreeMap::from([("N".to_string(), 1), ("SB".to_string(), 4)]);
+    let mut src = ScpiSource::new(scpi_config(inst.addr, channels), &gates());
+
+    // Refused before connecting: out of limits (SB: [-980, -580] mV), unmapped gate.
+    let e = src
+        .set(&BTreeMap::from([("SB".to_string(), -1000.0)]))
+        .await
+        .unwrap_err();
+    assert!(
+        e.contains("outside its limits") && e.contains("nothing sent"),
+        "{e}"
+    );
+    let e = src
+        .set(&BTreeMap::from([("T".to_string(), -650.0)]))
+        .await
+        .unwrap_err();
+    assert!(e.contains("no channel"), "{e}");
+    assert!(inst.commands().is_empty(), "{:?}", inst.commands());
+
+    // One gate, 2.5 mV in 1 mV increments: connect (slew + read back), ramp, read back.
+    let rb = src
+        .set(&BTreeMap::from([("SB".to_string(), -777.5)]))
+        .await
+        .unwrap();
+    assert!((rb["SB"] + 777.5).abs() < 1e-9, "{rb:?}");
+    assert_eq!(
+        inst.commands(),
+        [
+            "sour1:volt:slew 5",
+            "sour1:volt?",
+            "sour4:volt:slew 5",
+            "sour4:volt?",
+            "sour4:volt -0.779167",
+            "sour4:volt -0.778333",
+            "sour4:volt -0.777500",
+            "sour4:volt?",
+        ]
+    );
+    inst.clear_log();
+
+    // Two gates advance together; the larger move sets the number of increments.
+    src.set(&BTreeMap::from([
+        ("N".to_string(), -698.0),
+        ("SB".to_string(), -778.0),
+    ]))
+    .await
+    .unwrap();
+    assert_eq!(
+        inst.commands(),
+        [
+            "sour1:volt -0.699000",
+            "sour4:volt -0.777750",
+            "sour1:volt -0.698000",
+            "sour4:volt -0.778000",
+            "sour1:volt?",
+            "sour4:volt?",
+        ]
+    );
+    inst.clear_log();
+
+    // A jump larger than the gate's max_step (10 mV) from the instrument's
+    // read-back is refused without a command.
+    let e = src
+        .set(&BTreeMap::from([("SB".to_string(), -765.0)]))
+        .await
+        .unwrap_err();
+    assert!(
+        e.contains("exceeds its maximal step") && e.contains("nothing sent"),
+        "{e}"
+    );
+    assert!(inst.commands().is_empty(), "{:?}", inst.commands());
+
+    // Read-back mismatch: error, connection dropped; the next request re-reads
+    // every channel before sending anything.
+    inst.arm(Fault::Offset(3.0), 1);
+    let e = src
+        .set(&BTreeMap::from([("SB".to_string(), -779.0)]))
+        .await
+        .unwrap_err();
+    assert!(e.contains("read-back mismatch on SB (channel 4)"), "{e}");
+    assert!(!src.is_connected());
+    inst.clear_log();
+    src.set(&BTreeMap::from([("SB".to_string(), -779.5)]))
+        .await
+        .unwrap();
+    let cmds = inst.commands();
+    assert_eq!(
+        &cmds[..4],
+        [
+            "sour1:volt:slew 5",
+            "sour1:volt?",
+            "sour4:volt:slew 5",
+            "sour4:volt?"
+        ]
+    );
+    assert_eq!(&cmds[4..], ["sour4:volt -0.779500", "sour4:volt?"]);
+
+    // Late answer: timeout, connection dropped, nothing re-sent by the driver.
+    inst.arm(Fault::Late(Duration::from_millis(700)), 1);
+    inst.clear_log();
+    let e = src
+        .set(&BTreeMap::from([("SB".to_string(), -780.0)]))
+        .await
+        .unwrap_err();
+    assert!(e.contains("no answer") && e.contains("300 ms"), "{e}");
+    assert_eq!(inst.commands(), ["sour4:volt -0.780000", "sour4:volt?"]);
+    assert!(!src.is_connected());
+    assert!(inst.violations().is_empty(), "{:?}", inst.violations());
+}
+
+fn run_config(addr: std::net::SocketAddr, n: u64) -> serde_json::Value {
+    json!({
+        "name": "scpi",
+        "seed": 3,
+        "iteration_delay_ms": 0,
+        "driver": "scpi",
+        "scpi": {
+            "address": addr.to_string(),
+            "channels": channel_map(),
+            "ramp_step_mv": 2.0,
+            "timeout_ms": 300,
+            "measure": "simulator"
+        },
+        "tuner": { "max_iterations": n, "stop_when_tuned": false }
+    })
+}
+
+fn is_fault(r: &RunSummary) -> bool {
+    matches!(&r.status, RunStatus::Failed { message } if message.starts_with("paused by a device fault"))
+}
+
+fn fault_message(r: &RunSummary) -> String {
+    match &r.status {
+        RunStatus::Failed { message } => message.clone(),
+        other => panic!("expected a fault, got {other:?}"),
+    }
+}
+
+/// Wait until the run is faulted, then check nothing is sent while paused.
+async fn expect_fault(srv: &Server, inst: &Instrument, id: u64, needle: &str) -> RunSummary {
+    let r = wait_status(srv.addr, id, |r| {
+        is_fault(r) || matches!(r.status, RunStatus::Finished)
+    })
+    .await;
+    let msg = fault_message(&r);
+    assert!(msg.contains(needle), "expected {needle:?} in {msg:?}");
+    let before = inst.log().len();
+    tokio::time::sleep(Duration::from_millis(150)).await;
+    assert_eq!(
+        inst.log().len(),
+        before,
+        "commands were sent while the run was paused"
+    );
+    assert_eq!(get_run(srv.addr, id).await.status, r.status);
+    r
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn faults_pause_the_run_without_losing_data_and_limits_always_hold() {
+    let (volts, limits) = instrument_at_initial();
+    let inst = Instrument::start(volts, limits, 2.0).await;
+    let dir = TempDir::new("scpi");
+    let srv = server(&dir, 256).await;
+    let n = 4;
+
+    // 1. The connection drops in the middle of a ramp.
+    inst.arm(Fault::Drop, 40);
+    let run = create_run(srv.addr, &run_config(inst.addr, n)).await;
+    let r1 = expect_fault(&srv, &inst, run.id, "SCPI source").await;
+    let stored1 = records(srv.addr, run.id).await;
+    assert_eq!(stored1.len() as u64, r1.iterations);
+    let conn1 = inst.log().last().unwrap().0;
+
+    // 2. On resume the driver reconnects and reads every channel back before
+    //    any set command; then an answer comes late.
+    inst.arm(Fault::Late(Duration::from_millis(800)), 60);
+    let (s, b) = control(srv.addr, run.id, r#"{"action":"resume"}"#).await;
+    assert_eq!(s, 200, "{b}");
+    let r2 = expect_fault(&srv, &inst, run.id, "no answer").await;
+    let log = inst.log();
+    let first_new: Vec<&String> = log
+        .iter()
+        .filter(|(c, _)| *c == conn1 + 1)
+        .map(|(_, cmd)| cmd)
+        .take(channel_map().len())
+        .collect();
+    assert_eq!(first_new.len(), channel_map().len());
+    assert!(
+        first_new.iter().all(|c| c.ends_with(":volt?")),
+        "reconnect did not start by reading back: {first_new:?}"
+    );
+    assert!(r2.iterations >= r1.iterations);
+
+    // 3. The instrument reports a different voltage.
+    inst.arm(Fault::Offset(1.0), 30);
+    let (s, b) = control(srv.addr, run.id, r#"{"action":"resume"}"#).await;
+    assert_eq!(s, 200, "{b}");
+    let r3 = expect_fault(&srv, &inst, run.id, "read-back mismatch").await;
+    assert!(r3.iterations >= r2.iterations);
+
+    // Resume to the end: every iteration is there, once, in order.
+    let (s, b) = control(srv.addr, run.id, r#"{"action":"resume"}"#).await;
+    assert_eq!(s, 200, "{b}");
+    let done = wait_status(srv.addr, run.id, is_finished).await;
+    assert_eq!(done.iterations, n);
+    let stored = records(srv.addr, run.id).await;
+    assert_eq!(stored.len() as u64, n);
+    for (k, r) in stored.iter().enumerate() {
+        assert_eq!(r["iteration"], k as u64);
+    }
+    // Records committed before the faults are unchanged.
+    assert_eq!(stored[..stored1.len()], stored1[..]);
+
+    // No command ever left the limits or exceeded the ramp increment.
+    assert!(inst.violations().is_empty(), "{:?}", inst.violations());
+    let sets = inst
+        .commands()
+        .iter()
+        .filter(|c| c.contains(":volt ") && !c.contains("slew"))
+        .count();
+    assert!(sets > 100, "only {sets} set commands");
+}

@@ -1,0 +1,261 @@
+//! The lab bridge over a real WebSocket (tokio-tungstenite): a client serves
+//! as the run's device, answering from its own simulated double dot with raw
+//! traces. Faults (no bridge, disconnect, unanswered request) pause the run;
+//! reconnecting resumes it; the final records equal an uninterrupted
+//! simulator run bit for bit (nothing lost, nothing measured twice).
+
+mod common;
+
+use std::time::Duration;
+
+use common::*;
+use futures_util::{SinkExt, StreamExt};
+use serde_json::json;
+use spintune::driver::SimulationRun;
+use spintune::protocol::{
+    BridgeClientMessage, BridgeServerMessage, Request, Response, RunStatus, RunSummary,
+    PROTOCOL_VERSION,
+};
+use spintune::sim::SimulatedDevice;
+use spintune_server::config::RunConfig;
+use tokio_tungstenite::tungstenite::Message;
+
+async fn bridge_connect(addr: std::net::SocketAddr, id: u64) -> Ws {
+    let url = format!("ws://{addr}/api/runs/{id}/bridge");
+    let (ws, _) = tokio::time::timeout(STEP, tokio_tungstenite::connect_async(url))
+        .await
+        .expect("connect timed out")
+        .expect("connect");
+    ws
+}
+
+async fn next_bridge(ws: &mut Ws) -> BridgeServerMessage {
+    loop {
+        let m = tokio::time::timeout(STEP, ws.next())
+            .await
+            .expect("no bridge frame in time")
+            .expect("socket closed")
+            .expect("socket error");
+        match m {
+            Message::Text(t) => {
+                return serde_json::from_str(t.as_str())
+                    .unwrap_or_else(|e| panic!("bad bridge frame {t}: {e}"))
+            }
+            Message::Ping(_) | Message::Pong(_) => continue,
+            other => panic!("unexpected frame {other:?}"),
+        }
+    }
+}
+
+async fn send_msg(ws: &mut Ws, msg: &BridgeClientMessage) {
+    ws.send(Message::Text(serde_json::to_string(msg).unwrap().into()))
+        .await
+        .unwrap();
+}
+
+/// Connect and authenticate; panics unless `auth_ok` comes back.
+async fn bridge(addr: std::net::SocketAddr, id: u64) -> Ws {
+    let mut ws = bridge_connect(addr, id).await;
+    match next_bridge(&mut ws).await {
+        BridgeServerMessage::Hello { version, run } => {
+            assert_eq!(version, PROTOCOL_VERSION);
+            assert_eq!(run.id, id);
+        }
+        other => panic!("expected hello, got {other:?}"),
+    }
+    send_msg(
+        &mut ws,
+        &BridgeClientMessage::Auth {
+            token: TOKEN.into(),
+        },
+    )
+    .await;
+    assert_eq!(next_bridge(&mut ws).await, BridgeServerMessage::AuthOk);
+    ws
+}
+
+async fn next_request(ws: &mut Ws) -> (u64, Request) {
+    match next_bridge(ws).await {
+        BridgeServerMessage::Request { id, request, .. } => (id, request),
+        other => panic!("expected a request, got {other:?}"),
+    }
+}
+
+async fn answer(ws: &mut Ws, id: u64, response: Response) {
+    send_msg(ws, &BridgeClientMessage::Response { id, response }).await;
+}
+
+/// Serve `k` requests from `device`.
+async fn serve(ws: &mut Ws, device: &mut SimulatedDevice, k: usize) {
+    for _ in 0..k {
+        let (id, req) = next_request(ws).await;
+        let resp = device.execute(&req);
+        answer(ws, id, resp).await;
+    }
+}
+
+fn fault_contains(r: &RunSummary, needle: &str) -> bool {
+    matches!(&r.status, RunStatus::Failed { message } if message.starts_with("paused by a device fault") && message.contains(needle))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bridge_serves_a_run_and_faults_pause_it_without_losing_data() {
+    let dir = TempDir::new("bridge");
+    let srv = server(&dir, 256).await;
+    let n = 3;
+    let cfg = json!({
+        "name": "bridge",
+        "seed": 11,
+        "iteration_delay_ms": 0,
+        "driver": "bridge",
+        "bridge": { "request_timeout_s": 0.5 },
+        "tuner": { "max_iterations": n, "stop_when_tuned": false }
+    });
+    let parsed = RunConfig::from_json_str(&cfg.to_string()).unwrap();
+    let reference: Vec<serde_json::Value> = {
+        let mut sim = SimulationRun::new(parsed.simulation.clone()).unwrap();
+        let mut out = Vec::new();
+        while let Some(r) = sim.next_iteration().unwrap() {
+            out.push(serde_json::to_value(r).unwrap());
+        }
+        out
+    };
+    assert_eq!(reference.len() as u64, n);
+    // The lab's device: the same simulated dot the reference ran on.
+    let mut device = SimulationRun::new(parsed.simulation)
+        .unwrap()
+        .device()
+        .clone();
+
+    // A simulator run refuses bridges; a wrong token is refused.
+    let sim_run = create_run(srv.addr, &small_config("sim", 1, 0)).await;
+    let mut ws = bridge_connect(srv.addr, sim_run.id).await;
+    next_bridge(&mut ws).await;
+    send_msg(
+        &mut ws,
+        &BridgeClientMessage::Auth {
+            token: TOKEN.into(),
+        },
+    )
+    .await;
+    match next_bridge(&mut ws).await {
+        BridgeServerMessage::Error { message } => {
+            assert!(message.contains("does not use the lab bridge"), "{message}")
+        }
+        other => panic!("expected an error, got {other:?}"),
+    }
+
+    // No bridge yet: the run pauses at its first request.
+    let run = create_run(srv.addr, &cfg).await;
+    wait_status(srv.addr, run.id, |r| fault_contains(r, "no lab bridge")).await;
+    let mut bad = bridge_connect(srv.addr, run.id).await;
+    next_bridge(&mut bad).await;
+    send_msg(
+        &mut bad,
+        &BridgeClientMessage::Auth {
+            token: "wrong".into(),
+        },
+    )
+    .await;
+    assert_eq!(
+        next_bridge(&mut bad).await,
+        BridgeServerMessage::Error {
+            message: "invalid control token".into()
+        }
+    );
+    // A response before auth is refused too.
+    let mut early = bridge_connect(srv.addr, run.id).await;
+    next_bridge(&mut early).await;
+    early
+        .send(Message::Text(
+            r#"{"type":"response","id":1,"response":{"response":"error","message":"x"}}"#.into(),
+        ))
+        .await
+        .unwrap();
+    assert!(matches!(
+        next_bridge(&mut early).await,
+        BridgeServerMessage::Error { message } if message.contains("authenticate first")
+    ));
+    assert!(fault_contains(
+        &get_run(srv.addr, run.id).await,
+        "no lab bridge"
+    ));
+
+    // Connecting resumes the run by itself.
+    let mut ws = bridge(srv.addr, run.id).await;
+    serve(&mut ws, &mut device, 25).await;
+    assert_eq!(get_run(srv.addr, run.id).await.status, RunStatus::Running);
+
+    // Disconnect with a request outstanding (not executed): the run pauses...
+    let (_, pending) = next_request(&mut ws).await;
+    drop(ws);
+    let r = wait_status(srv.addr, run.id, |r| fault_contains(r, "disconnected")).await;
+    let before = records(srv.addr, run.id).await;
+    assert_eq!(before.len() as u64, r.iterations);
+    // ... and reconnecting resumes it with the same request.
+    let mut ws = bridge(srv.addr, run.id).await;
+    let (id, again) = next_request(&mut ws).await;
+    assert_eq!(again, pending, "the outstanding request was not re-issued");
+    let resp = device.execute(&again);
+    answer(&mut ws, id, resp).await;
+    serve(&mut ws, &mut device, 10).await;
+
+    // An unanswered request times out and pauses the run; a late answer is
+    // refused; `resume` re-issues the request under a new id.
+    let (late_id, unanswered) = next_request(&mut ws).await;
+    wait_status(srv.addr, run.id, |r| fault_contains(r, "did not answer")).await;
+    answer(
+        &mut ws,
+        late_id,
+        Response::Error {
+            message: "too late".into(),
+        },
+    )
+    .await;
+    assert!(matches!(
+        next_bridge(&mut ws).await,
+        BridgeServerMessage::Error { message } if message.contains("not outstanding")
+    ));
+    // Malformed frames get an error; the socket stays up.
+    ws.send(Message::Text(r#"{"type":"response","id":"x"}"#.into()))
+        .await
+        .unwrap();
+    assert!(matches!(
+        next_bridge(&mut ws).await,
+        BridgeServerMessage::Error { message } if message.contains("malformed")
+    ));
+    let (s, b) = control(srv.addr, run.id, r#"{"action":"resume"}"#).await;
+    assert_eq!(s, 200, "{b}");
+    let (id, again) = next_request(&mut ws).await;
+    assert!(id > late_id);
+    assert_eq!(again, unanswered);
+    let resp = device.execute(&again);
+    answer(&mut ws, id, resp).await;
+
+    // Serve until the run finishes.
+    let finished = tokio::time::timeout(Duration::from_secs(20), async {
+        loop {
+            tokio::select! {
+                frame = next_bridge(&mut ws) => {
+                    if let BridgeServerMessage::Request { id, request, .. } = frame {
+                        let resp = device.execute(&request);
+                        answer(&mut ws, id, resp).await;
+                    }
+                }
+                _ = tokio::time::sleep(Duration::from_millis(50)) => {
+                    if is_finished(&get_run(srv.addr, run.id).await) {
+                        return;
+                    }
+                }
+            }
+        }
+    })
+    .await;
+    assert!(finished.is_ok(), "the bridge run did not finish");
+    let stored = records(srv.addr, run.id).await;
+    assert_eq!(stored[..before.len()], before[..]);
+    assert_eq!(
+        stored, reference,
+        "bridge run differs from the uninterrupted simulator run"
+    );
+}

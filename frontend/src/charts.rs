@@ -78,7 +78,10 @@ pub fn robust_range(points: &[(f64, f64, f64)], extra: impl Iterator<Item = f64>
         .filter(|s| s.is_finite())
         .collect();
     sig.sort_by(|a, b| a.total_cmp(b));
-    let median = sig.get(sig.len() / 2).copied().unwrap_or(0.0);
+    let median = sig
+        .get(sig.len().saturating_sub(1) / 2)
+        .copied()
+        .unwrap_or(0.0);
     let limit = 5.0 * median;
     let trusted: Vec<&(f64, f64, f64)> = points
         .iter()

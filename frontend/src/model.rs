@@ -157,12 +157,13 @@ pub fn padded_range(values: impl IntoIterator<Item = f64>, pad: f64) -> (f64, f6
         return (0.0, 1.0);
     }
     let span = hi - lo;
-    let span = if span > 1e-12 * hi.abs().max(lo.abs()).max(1e-300) {
-        span
+    if span > 1e-12 * hi.abs().max(lo.abs()).max(1e-300) {
+        (lo - pad * span, hi + pad * span)
     } else {
-        hi.abs().max(1.0) * 0.1
-    };
-    (lo - pad * span, hi + pad * span)
+        // A single value: centre it in a small window.
+        let half = if hi.abs() > 0.0 { 0.1 * hi.abs() } else { 1.0 };
+        (lo - half, hi + half)
+    }
 }
 
 /// Deterministic fake records for tests and previews: two parameters over

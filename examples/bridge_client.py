@@ -1,0 +1,192 @@
+#!/usr/bin/env python3
+"""spintune lab bridge client: your measurement script as a run's device.
+
+The server sends requests ("set these gates", "measure scan X"); this script
+executes them with the lab's own instruments and answers. Here the answers
+come from a toy linear model so that the script runs anywhere; the two
+functions marked ``PLUG IN QCODES HERE`` are where a lab calls its
+instruments instead.
+
+Usage (one dependency: ``pip install websockets``)::
+
+    spintune serve --token SECRET &
+    curl -H 'Authorization: Bearer SECRET' -d '{"driver":"bridge"}' \\
+         http://127.0.0.1:8080/api/runs            # -> {"id": 1, ...}
+    python3 examples/bridge_client.py --url ws://127.0.0.1:8080/api/runs/1/bridge --token SECRET
+
+Protocol (JSON text frames, see docs/instruments.md):
+
+    server: {"type":"hello","version":1,"run":{...}}
+    client: {"type":"auth","token":"SECRET"}
+    server: {"type":"auth_ok"}
+    server: {"type":"request","id":7,"timeout_s":300.0,
+             "request":{"request":"set_voltages","voltages_mv":{"SB":-779.2}}}
+    client: {"type":"response","id":7,
+             "response":{"response":"voltages_set","voltages_mv":{"SB":-779.2},"lab_seconds":0.1}}
+    server: {"type":"request","id":8,"timeout_s":300.0,
+             "request":{"request":"measure","scan":{"kind":"transition_width","sweep":null}}}
+    client: {"type":"response","id":8,"response":{"response":"scanned","lab_seconds":28.0,
+             "outcome":{"kind":"evaluated","values":[{"name":"w","value":265.1,"variance":16.0}]}}}
+
+Units: voltages in mV; ``t_sr`` in ns; ``w`` in µV; line positions and the
+sensing-dot flank in mV; variances in the unit squared; lab time in s.
+
+If the connection drops, the run pauses; this script reconnects (unless
+``--once``) and the run resumes with the request that was outstanding.
+"""
+
+import argparse
+import asyncio
+import json
+import math
+import random
+import sys
+
+import websockets
+
+# --- toy device -------------------------------------------------------------
+# A linear model around a working point: parameter = p0 + sum_g J[g] * (V_g - V0_g).
+# Replace it by real measurements (see the two functions below).
+
+WORKING_POINT_MV = {"N": -700.0, "T": -650.0, "SA": -820.0, "SB": -780.0,
+                    "PA": -300.0, "PB": -320.0}
+MODEL = {
+    # name: (value at the working point, {gate: slope per mV}, standard deviation)
+    "t_sr": (40.0, {"N": -1.5, "T": 0.5, "SA": 0.8, "SB": 1.2}, 1.0),          # ns
+    "w": (230.0, {"N": 1.0, "T": 2.5, "SA": -1.5, "SB": -2.0}, 4.0),           # µV
+    "mu_a_mv": (0.0, {"PA": 0.8, "PB": 0.2, "N": 0.1, "SA": 0.1}, 0.05),      # mV
+    "mu_b_mv": (0.0, {"PA": 0.2, "PB": 0.8, "T": 0.1, "SB": 0.1}, 0.05),      # mV
+}
+SCAN_PARAMETERS = {
+    "transition_width": ["w"],
+    "reload_time": ["t_sr"],
+    "chemical_potential": ["mu_a_mv", "mu_b_mv"],
+}
+SCAN_LAB_SECONDS = {"sensing_dot": 17.0, "chemical_potential": 38.0,
+                    "transition_width": 28.0, "reload_time": 5.0}
+
+gates_mv = {}          # what the toy "instrument" is set to, mV
+rng = random.Random(1)
+
+
+def set_gates(voltages_mv):
+    """PLUG IN QCODES HERE: set DC gates, return what was applied (read back).
+
+    e.g. ``for g, v in voltages_mv.items(): station.dac.channels[CH[g]].volt(v / 1000)``
+    then read them back with ``...volt()`` * 1000. Always answer with the
+    read-back values in mV: the server compares them with the request.
+    """
+    gates_mv.update(voltages_mv)
+    return dict(voltages_mv), 0.1
+
+
+def measure(scan):
+    """PLUG IN QCODES HERE: run the scan, return a ScanOutcome and its lab time.
+
+    Either evaluated values ``{"kind":"evaluated","values":[{"name","value","variance"}]}``
+    (your own fits), or raw traces for the server's fits:
+    ``{"kind":"raw","scan":{"kind":..., "x_label":..., "y_label":...,
+    "traces":[{"label":..., "x":[...], "y":[...]}]}}``, or
+    ``{"kind":"failed","reason":"..."}`` when the measurement did not work.
+    """
+    kind = scan["kind"]
+    seconds = SCAN_LAB_SECONDS.get(kind, 1.0)
+    if kind == "sensing_dot":
+        # Park the sensing dot in the middle of the requested sweep.
+        sweep = scan.get("sweep")
+        if not sweep:
+            return {"kind": "failed", "reason": "sensing-dot scan without a sweep"}, seconds
+        centre = 0.5 * (sweep["from_mv"] + sweep["to_mv"])
+        values = [{"name": "sd_flank_mv", "value": centre, "variance": 0.01}]
+        return {"kind": "evaluated", "values": values}, seconds
+    values = []
+    for name in SCAN_PARAMETERS.get(kind, []):
+        p0, slopes, sigma = MODEL[name]
+        value = p0 + sum(s * (gates_mv.get(g, WORKING_POINT_MV.get(g, 0.0))
+                              - WORKING_POINT_MV.get(g, 0.0)) for g, s in slopes.items())
+        value += rng.gauss(0.0, sigma)
+        values.append({"name": name, "value": value, "variance": sigma * sigma})
+    if not values:
+        return {"kind": "failed", "reason": f"the toy model cannot measure {kind}"}, seconds
+    return {"kind": "evaluated", "values": values}, seconds
+
+
+def answer(request):
+    """Turn one protocol Request into a Response (both plain dicts)."""
+    what = request["request"]
+    try:
+        if what == "set_voltages":
+            applied, seconds = set_gates(request["voltages_mv"])
+            return {"response": "voltages_set", "voltages_mv": applied, "lab_seconds": seconds}
+        if what == "measure":
+            outcome, seconds = measure(request["scan"])
+            return {"response": "scanned", "outcome": outcome, "lab_seconds": seconds}
+        return {"response": "error", "message": f"this bridge does not support {what!r}"}
+    except Exception as e:  # an instrument error pauses the run with this message
+        return {"response": "error", "message": f"{type(e).__name__}: {e}"}
+
+
+# --- protocol ---------------------------------------------------------------
+
+class ExitAfter(Exception):
+    """--exit-after reached: leave with a request unanswered (tests reconnects)."""
+
+
+async def serve_once(url, token, budget):
+    """One connection: authenticate, then answer requests until it closes.
+
+    ``budget`` is a one-element list: requests still to answer (None: no limit).
+    """
+    async with websockets.connect(url, max_size=None) as ws:
+        hello = json.loads(await ws.recv())
+        if hello.get("type") != "hello":
+            raise RuntimeError(f"unexpected first frame: {hello}")
+        print(f"bridge: run {hello['run']['id']} ({hello['run']['name']}), "
+              f"protocol {hello['version']}", flush=True)
+        await ws.send(json.dumps({"type": "auth", "token": token}))
+        reply = json.loads(await ws.recv())
+        if reply.get("type") != "auth_ok":
+            raise RuntimeError(f"refused: {reply.get('message', reply)}")
+        print("bridge: authenticated, serving requests", flush=True)
+        async for text in ws:
+            msg = json.loads(text)
+            if msg["type"] == "request":
+                if budget[0] is not None:
+                    if budget[0] == 0:
+                        raise ExitAfter()
+                    budget[0] -= 1
+                response = answer(msg["request"])
+                await ws.send(json.dumps({"type": "response", "id": msg["id"],
+                                          "response": response}))
+            elif msg["type"] == "error":
+                print(f"bridge: server says: {msg['message']}", file=sys.stderr, flush=True)
+
+
+async def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--url", required=True, help="ws://HOST:PORT/api/runs/ID/bridge")
+    ap.add_argument("--token", required=True, help="control token of `spintune serve`")
+    ap.add_argument("--once", action="store_true", help="exit when the connection closes")
+    ap.add_argument("--exit-after", type=int, default=None, metavar="N",
+                    help="answer N requests, then exit leaving the next one unanswered "
+                         "(to try out pause and resume)")
+    args = ap.parse_args()
+    budget = [args.exit_after]
+    while True:
+        try:
+            await serve_once(args.url, args.token, budget)
+        except ExitAfter:
+            print(f"bridge: answered {args.exit_after} requests, exiting", flush=True)
+            return 0
+        except RuntimeError as e:  # refused: reconnecting would not help
+            print(f"bridge: {e}", file=sys.stderr, flush=True)
+            return 1
+        except (OSError, websockets.ConnectionClosed) as e:
+            print(f"bridge: connection lost ({e})", file=sys.stderr, flush=True)
+        if args.once:
+            return 0
+        await asyncio.sleep(1.0)
+
+
+if __name__ == "__main__":
+    sys.exit(asyncio.run(main()))

@@ -377,6 +377,13 @@ fn hierarchy_runs_children_after_each_move_in_order() {
         assert_eq!(log[i + 2], "set SP");
         assert_eq!(log[i + 3], "measure ChemicalPotential");
     }
+    // only the gates assigned to a level (and its compensation gates) ever move
+    for l in log.iter().filter(|l| l.starts_with("set ")) {
+        assert!(
+            ["set N,PA,SA,SB,T", "set SP", "set PA"].contains(&l.as_str()),
+            "unexpected set: {l}"
+        );
+    }
     // compensation + chemical level keep mu near 0 at every qubit measurement
     let (_, _, mu) = dev.truth();
     assert!(mu.abs() < 0.5, "mu = {mu}");
@@ -552,4 +559,22 @@ fn config_round_trips_and_refuses_unknown_fields() {
         .unwrap_err()
         .to_string();
     assert!(err.contains("fd_stepp_mv"), "{err}");
+}
+
+#[test]
+fn rough_guess_start_relearns_the_gradient() {
+    let mut cfg = flat(EstimatorKind::Kalman);
+    // deliberately wrong by a factor ~2 and with C(0) ~ g(0)² (paper supplement)
+    cfg.top_mut().initial_gradient = InitialGradient::RoughGuess {
+        gradient: vec![vec![-1.0, -0.2, 0.2, 0.0], vec![0.0, 3.0, 0.0, -1.6]],
+        relative_std: 1.0,
+    };
+    let mut tuner = Tuner::new(cfg).unwrap();
+    let c0 = tuner.gradients(0).unwrap()[0].1.clone().unwrap();
+    assert_eq!(c0[(0, 0)], 1.0);
+    assert!((c0[(1, 1)] - 0.04).abs() < 1e-15);
+    let recs = drive(&mut tuner, &mut Toy::new(&gates(), 37), usize::MAX);
+    // no finite-difference scans were spent, and the target is reached
+    assert_eq!(recs[0].scan_counts[&ScanKind::ReloadTime], 1);
+    assert!(recs.iter().any(|r| r.tuned));
 }

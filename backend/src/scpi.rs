@@ -480,7 +480,7 @@ the connection was dropped and the step was NOT re-sent; on resume the driver re
 
 /// The measurement half of a SCPI run.
 enum Measurer {
-    Simulator(SimulatorDevice),
+    Simulator(Box<SimulatorDevice>),
     Bridge(BridgeDevice),
 }
 
@@ -496,7 +496,7 @@ impl ScpiDevice {
     pub fn with_simulator(source: ScpiSource, simulator: SimulatorDevice) -> Self {
         Self {
             source,
-            measurer: Measurer::Simulator(simulator),
+            measurer: Measurer::Simulator(Box::new(simulator)),
         }
     }
 

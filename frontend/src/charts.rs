@@ -118,8 +118,8 @@ pub fn num_label(x: &f64) -> String {
 
 fn bar_width(n: usize) -> u32 {
     match n {
-        0..=30 => 5,
-        31..=80 => 3,
+        0..=20 => 5,
+        21..=40 => 3,
         _ => 0,
     }
 }
@@ -472,6 +472,129 @@ pub fn draw_scan<DB: DrawingBackend>(
         ))
         .map_err(err)?;
     }
+    Ok(())
+}
+
+/// Colour of a distance-to-target value (tolerance units): greens inside the
+/// band (≤ 1), then yellow → red → dark purple on a log scale up to 100.
+pub fn error_color(e: f64) -> RGBColor {
+    if !e.is_finite() {
+        return RGBColor(220, 220, 220);
+    }
+    let lerp = |a: (u8, u8, u8), b: (u8, u8, u8), t: f64| {
+        let t = t.clamp(0.0, 1.0);
+        let m = |x: u8, y: u8| (x as f64 + (y as f64 - x as f64) * t).round() as u8;
+        RGBColor(m(a.0, b.0), m(a.1, b.1), m(a.2, b.2))
+    };
+    if e <= 1.0 {
+        return lerp((0, 120, 85), (120, 205, 160), e);
+    }
+    let stops = [(255, 240, 170), (245, 150, 60), (200, 50, 60), (70, 20, 90)];
+    let t = (e.log10() / 2.0).clamp(0.0, 1.0) * (stops.len() - 1) as f64;
+    let i = (t.floor() as usize).min(stops.len() - 2);
+    lerp(stops[i], stops[i + 1], t - i as f64)
+}
+
+/// Heat map of the ground-truth distance to target over two gates, with the tuner's path.
+pub fn draw_landscape<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    land: Option<&crate::local::Landscape>,
+) -> DrawResult {
+    let Some(l) = land else {
+        return placeholder(
+            area,
+            "distance to target",
+            "press Run or Step to build the device",
+        );
+    };
+    let n = l.xs.len();
+    if n < 2 || l.ys.len() != n {
+        return Ok(());
+    }
+    let (dx, dy) = (l.xs[1] - l.xs[0], l.ys[1] - l.ys[0]);
+    let (x0, x1) = (l.xs[0] - dx / 2.0, l.xs[n - 1] + dx / 2.0);
+    let (y0, y1) = (l.ys[0] - dy / 2.0, l.ys[n - 1] + dy / 2.0);
+    let (main, bar) = area.split_horizontally(area.dim_in_pixel().0.saturating_sub(90));
+    let mut chart = ChartBuilder::on(&main)
+        .caption(
+            format!("distance to target over (V_{}, V_{})", l.gx, l.gy),
+            (FONT, 16),
+        )
+        .margin(8)
+        .x_label_area_size(36)
+        .y_label_area_size(62)
+        .build_cartesian_2d(x0..x1, y0..y1)
+        .map_err(err)?;
+    chart
+        .configure_mesh()
+        .disable_mesh()
+        .x_desc(format!("V_{} (mV)", l.gx))
+        .y_desc(format!("V_{} (mV)", l.gy))
+        .x_label_formatter(&num_label)
+        .y_label_formatter(&num_label)
+        .label_style((FONT, 12))
+        .axis_desc_style((FONT, 13))
+        .draw()
+        .map_err(err)?;
+    chart
+        .draw_series(l.ys.iter().enumerate().flat_map(|(j, y)| {
+            l.xs.iter().enumerate().map(move |(i, x)| {
+                Rectangle::new(
+                    [(x - dx / 2.0, y - dy / 2.0), (x + dx / 2.0, y + dy / 2.0)],
+                    error_color(l.error[j * n + i]).filled(),
+                )
+            })
+        }))
+        .map_err(err)?;
+    let in_view: Vec<(f64, f64)> = l
+        .path
+        .iter()
+        .copied()
+        .filter(|&(x, y)| (x0..=x1).contains(&x) && (y0..=y1).contains(&y))
+        .collect();
+    chart
+        .draw_series(LineSeries::new(
+            in_view.iter().copied(),
+            BLACK.stroke_width(2),
+        ))
+        .map_err(err)?;
+    chart
+        .draw_series(in_view.iter().map(|&p| Circle::new(p, 3, BLACK.filled())))
+        .map_err(err)?;
+    chart
+        .draw_series(std::iter::once(Circle::new(
+            l.now,
+            7,
+            WHITE.stroke_width(3),
+        )))
+        .map_err(err)?;
+    // Colour bar: 0.1 … 100 tolerance units, log scale.
+    let mut cb = ChartBuilder::on(&bar)
+        .margin_top(40)
+        .margin_bottom(44)
+        .margin_right(8)
+        .y_label_area_size(40)
+        .build_cartesian_2d(0.0..1.0, -1.0..2.0)
+        .map_err(err)?;
+    cb.configure_mesh()
+        .disable_mesh()
+        .disable_x_axis()
+        .y_desc("|p − p*| / tol")
+        .y_labels(4)
+        .y_label_formatter(&|v| format!("{}", 10f64.powf(*v)))
+        .label_style((FONT, 11))
+        .axis_desc_style((FONT, 12))
+        .draw()
+        .map_err(err)?;
+    cb.draw_series((0..60).map(|k| {
+        let a = -1.0 + 3.0 * k as f64 / 60.0;
+        let b = a + 3.0 / 60.0;
+        Rectangle::new(
+            [(0.0, a), (1.0, b)],
+            error_color(10f64.powf((a + b) / 2.0)).filled(),
+        )
+    }))
+    .map_err(err)?;
     Ok(())
 }
 

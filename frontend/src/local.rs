@@ -7,8 +7,9 @@ use spintune::driver::{SimulationConfig, SimulationRun};
 use spintune::estimator::EstimatorKind;
 use spintune::parameter::Tolerance;
 
+use crate::charts;
 use crate::model::History;
-use crate::ui::Dashboard;
+use crate::ui::{Area, Chart, Dashboard};
 
 /// What the student can choose.
 #[derive(Debug, Clone, PartialEq)]
@@ -94,6 +95,25 @@ impl LocalSettings {
     }
 }
 
+/// Ground truth on a 2-D voltage grid, for the heat map.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Landscape {
+    /// Gate on the x axis.
+    pub gx: String,
+    /// Gate on the y axis.
+    pub gy: String,
+    /// Grid voltages on x, mV.
+    pub xs: Vec<f64>,
+    /// Grid voltages on y, mV.
+    pub ys: Vec<f64>,
+    /// Row-major (y, x) distance to target in tolerance units.
+    pub error: Vec<f64>,
+    /// The run's path in this plane, mV.
+    pub path: Vec<(f64, f64)>,
+    /// Present voltages, mV.
+    pub now: (f64, f64),
+}
+
 /// Drives a [`SimulationRun`] and collects its records.
 pub struct LocalRunner {
     run: SimulationRun,
@@ -137,6 +157,55 @@ impl LocalRunner {
                 Ok(false)
             }
         }
+    }
+
+    /// The simulator's noiseless truth on an `n`×`n` grid in the (`gx`, `gy`)
+    /// plane, ±`half_mv` around the present voltages (other gates fixed):
+    /// the larger of `|p − p*| / tolerance` over t_sr and w (≤ 1: in band).
+    pub fn landscape(&self, gx: &str, gy: &str, half_mv: f64, n: usize) -> Option<Landscape> {
+        let device = self.run.device();
+        let v0 = device.voltages_mv().clone();
+        let (cx, cy) = (*v0.get(gx)?, *v0.get(gy)?);
+        let top = self.run.tuner().config().top();
+        let band = |name: &str| {
+            let p = top.parameters.iter().find(|p| p.name == name)?;
+            let t = p.target?;
+            Some((t, p.tolerance.half_width(t).max(1e-12)))
+        };
+        let (t_tsr, tol_tsr) = band("t_sr")?;
+        let (t_w, tol_w) = band("w")?;
+        let step = 2.0 * half_mv / (n.max(2) - 1) as f64;
+        let xs: Vec<f64> = (0..n).map(|i| cx - half_mv + step * i as f64).collect();
+        let ys: Vec<f64> = (0..n).map(|j| cy - half_mv + step * j as f64).collect();
+        let mut probe = device.clone();
+        let mut error = vec![f64::NAN; n * n];
+        for (j, y) in ys.iter().enumerate() {
+            for (i, x) in xs.iter().enumerate() {
+                let set = spintune::protocol::Request::SetVoltages {
+                    voltages_mv: [(gx.to_string(), *x), (gy.to_string(), *y)].into(),
+                };
+                if let spintune::protocol::Response::VoltagesSet { .. } = probe.execute(&set) {
+                    let t = probe.truth();
+                    error[j * n + i] =
+                        ((t.t_sr_ns - t_tsr).abs() / tol_tsr).max((t.w_uv - t_w).abs() / tol_w);
+                }
+            }
+        }
+        let path = self
+            .history
+            .records()
+            .iter()
+            .filter_map(|r| Some((*r.voltages_mv.get(gx)?, *r.voltages_mv.get(gy)?)))
+            .collect();
+        Some(Landscape {
+            gx: gx.to_string(),
+            gy: gy.to_string(),
+            xs,
+            ys,
+            error,
+            path,
+            now: (cx, cy),
+        })
     }
 
     /// Change both targets (and tolerance) of the running tuner.
@@ -375,6 +444,22 @@ pub fn LocalMode() -> impl IntoView {
             </aside>
             <section class="main">
                 <Dashboard history=history />
+                <h3>"Simulator ground truth " <small>"(what the tuner cannot see)"</small></h3>
+                <div class="grid2">
+                    <Chart
+                        name="landscape"
+                        height=340
+                        draw=move |a: &Area| {
+                            let n = history.with(|h| h.len());
+                            let land = runner.with_value(|r| r.as_ref().and_then(|r| r.landscape("SB", "T", 30.0, 25)));
+                            charts::draw_landscape(a, land.as_ref()).map(|_| n)
+                        }
+                    />
+                    <div class="explain landscape-text">
+                        <p><b>"Heat map."</b>" Colour: how far the true t_sr and w are from their targets, in units of the tolerance (the larger of the two), when only V_SB and V_T are changed from the present voltages. Inside the green region both parameters are in band."</p>
+                        <p>"The line is the tuner's path projected onto this plane (it also moves N and SA, so the map shifts as it goes). Light cells are far from the goal; the step limit keeps every move short because the map is curved: gradients measured here are wrong a few tens of mV away."</p>
+                    </div>
+                </div>
             </section>
         </div>
     }

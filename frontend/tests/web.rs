@@ -210,6 +210,11 @@ async fn local_runner_reaches_a_new_target() {
         .tuned_at
         .expect("tuned to (70 ns, 270 µV) within 60 iterations");
     assert!(second > first);
+    // The ground-truth heat map has an in-band region.
+    let land = r.landscape("SB", "T", 30.0, 21).unwrap();
+    assert_eq!(land.error.len(), 21 * 21);
+    assert!(land.error.iter().any(|e| *e <= 1.0), "no in-band cell");
+    assert!(land.error.iter().all(|e| e.is_finite()));
     let last = r.history.last().unwrap();
     let t_sr = last.parameters.iter().find(|p| p.name == "t_sr").unwrap();
     assert!((t_sr.value.unwrap() - 70.0).abs() <= 7.0 + 3.0 * t_sr.std.unwrap_or(0.0));
@@ -254,6 +259,13 @@ async fn local_mode_runs_in_the_page_and_tunes() {
         "page froze: only {ticks} timer ticks in {} ms",
         js_sys::Date::now() - start
     );
+    wait_for("heat map", Duration::from_secs(20), || {
+        el.query_selector("canvas[data-chart=landscape]")
+            .unwrap()
+            .and_then(|c| c.get_attribute("data-iterations"))
+            .is_some_and(|n| n != "0")
+    })
+    .await;
     q("local-pause").click();
     leptos::task::tick().await;
     assert!(q("local-status").inner_text().contains("paused"));

@@ -83,7 +83,14 @@ pub async fn get_json<T: DeserializeOwned>(url: &str) -> Result<T, String> {
         .as_string()
         .unwrap_or_default();
     if !(200..300).contains(&status) {
-        return Err(format!("HTTP {status}: {text}"));
+        let detail = text.trim();
+        return Err(
+            if detail.is_empty() || detail.starts_with('<') || detail.len() > 200 {
+                format!("HTTP {status}")
+            } else {
+                format!("HTTP {status}: {detail}")
+            },
+        );
     }
     serde_json::from_str(&text).map_err(|e| format!("unexpected reply: {e}"))
 }

@@ -46,6 +46,7 @@ pub fn App(
     let initial =
         mode.unwrap_or_else(|| Mode::from_hash(&window().location().hash().unwrap_or_default()));
     let mode = RwSignal::new(initial);
+    provide_context(mode);
     let go = move |m: Mode| {
         if m == Mode::Local {
             let _ = window().location().set_hash("local");

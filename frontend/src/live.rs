@@ -351,11 +351,30 @@ pub fn LiveMode(base: ApiBase) -> impl IntoView {
             }
         }
     });
+    let mode = use_context::<RwSignal<crate::Mode>>();
     let run_view = move || {
-        selected.get().map(|id| {
+        match selected.get() {
+        Some(id) => {
             let _ = window().location().set_hash(&format!("live/{id}"));
-            view! { <RunView run=id base=base.clone() /> }
-        })
+            view! { <RunView run=id base=base.clone() /> }.into_any()
+        }
+        None => view! {
+            <div class="empty">
+                {move || if error.with(|e| e.is_some()) {
+                    view! {
+                        <h2>"No spintune server answers at this address."</h2>
+                        <p>"Start one with "<code>"spintune serve"</code>" and open the address it prints, or run the whole tuner in this page:"</p>
+                        <button class="primary" data-testid="open-local" on:click=move |_| {
+                            let _ = window().location().set_hash("local");
+                            if let Some(m) = mode { m.set(crate::Mode::Local) }
+                        }>"Open the in-browser simulation"</button>
+                    }.into_any()
+                } else {
+                    view! { <p class="hint">"Select a run on the left."</p> }.into_any()
+                }}
+            </div>
+        }.into_any(),
+    }
     };
     view! {
         <div class="mode-live">
@@ -363,7 +382,6 @@ pub fn LiveMode(base: ApiBase) -> impl IntoView {
                 <h2>"Runs"</h2>
                 <Show when=move || error.with(|e| e.is_some())>
                     <p class="error">{move || error.get().unwrap_or_default()}</p>
-                    <p class="hint">"The in-browser mode works without a server."</p>
                 </Show>
                 <Show when=move || loaded.get() && error.with(|e| e.is_none()) && runs.with(|r| r.is_empty())>
                     <p class="hint">"The server has no runs."</p>

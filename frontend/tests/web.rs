@@ -161,6 +161,22 @@ async fn live_mode_without_server_is_read_only_and_retries() {
         text(&el).contains("cannot reach the server")
     })
     .await;
+    assert!(
+        text(&el).contains("No spintune server answers"),
+        "{}",
+        text(&el)
+    );
+    // The way out when the page is served statically: the in-browser mode.
+    let open: web_sys::HtmlElement = el
+        .query_selector("[data-testid=open-local]")
+        .unwrap()
+        .unwrap()
+        .unchecked_into();
+    open.click();
+    wait_for("in-browser mode", Duration::from_secs(5), || {
+        text(&el).contains("What am I looking at?")
+    })
+    .await;
 
     // A run view (opened directly) shows the read-only banner and retries with backoff.
     let el2 = host();

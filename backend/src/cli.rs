@@ -220,6 +220,13 @@ pub struct RunArgs {
 /// `spintune run --config FILE`: a full headless run with a progress display.
 pub async fn run(args: RunArgs) -> Result<(), CliError> {
     let config = load_config(&args.config)?;
+    if config.backend.uses_bridge() {
+        // The bridge client connects over the server's WebSocket, which `run` does not start.
+        return Err(CliError::input(format!(
+            "{}: a run that uses the lab bridge needs the server: start `spintune serve` and create the run there (see docs/instruments.md)",
+            args.config.display()
+        )));
+    }
     let store = Arc::new(
         Store::open(&args.db)
             .map_err(|e| CliError::runtime(format!("cannot open {}: {e}", args.db.display())))?,

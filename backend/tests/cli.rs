@@ -120,3 +120,22 @@ fn run_rejects_a_bad_config_naming_the_field() {
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("seed"));
 }
+
+#[test]
+fn headless_run_refuses_a_bridge_config() {
+    let dir = std::env::temp_dir().join(format!("spintune-cli-bridge-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let cfg = dir.join("bridge.toml");
+    std::fs::write(&cfg, "driver = \"bridge\"\n").unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_spintune"))
+        .args(["run", "--quiet", "--db"])
+        .arg(dir.join("x.db"))
+        .arg("--config")
+        .arg(&cfg)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("spintune serve"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -26,6 +26,10 @@ fn main() {
     // Child cargo/trunk processes share this target directory.
     env::set_var("CARGO_TARGET_DIR", &target_dir);
     env::set_var("TRUNK_SKIP_VERSION_CHECK", "true");
+    // The runner's timeout covers a whole test binary; cold runs on 2 cores need more than 20 s.
+    if env::var_os("WASM_BINDGEN_TEST_TIMEOUT").is_none() {
+        env::set_var("WASM_BINDGEN_TEST_TIMEOUT", "180");
+    }
     prepend_path(&cargo_bin_dir());
     match args.first().map(String::as_str) {
         Some("run") => run(&args[1..]),

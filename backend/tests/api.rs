@@ -70,10 +70,13 @@ async fn slow_viewer_is_told_it_lagged_and_still_sees_everything() {
     let dir = TempDir::new("lag");
     // A buffer of one frame: any viewer that does not read at once lags.
     let srv = server(&dir, 1).await;
-    let n = 6;
+    // Enough frames (each ~15 kB with its scans) to fill the socket buffers of a viewer
+    // that does not read, whatever the scheduling: the server's forwarder then blocks
+    // and its one-frame buffer overflows for certain.
+    let n = 80;
     let run = create_run(srv.addr, &small_config("lag", n, 0)).await;
     control(srv.addr, run.id, r#"{"action":"pause"}"#).await;
-    let mut ws = connect(srv.addr, run.id, None).await;
+    let mut ws = connect_small_buffer(srv.addr, run.id).await;
     assert!(matches!(
         next_msg(&mut ws).await,
         ServerMessage::Hello { .. }
@@ -370,4 +373,17 @@ impl SendBinary for Ws {
         .await
         .unwrap();
     }
+}
+
+/// A viewer whose TCP receive buffer is tiny, so a stalled reader backs up the server at once.
+async fn connect_small_buffer(addr: std::net::SocketAddr, id: u64) -> common::Ws {
+    let sock = tokio::net::TcpSocket::new_v4().unwrap();
+    sock.set_recv_buffer_size(4096).unwrap();
+    let stream = sock.connect(addr).await.unwrap();
+    let url = format!("ws://{addr}/api/runs/{id}/ws");
+    let (ws, _) =
+        tokio_tungstenite::client_async(url, tokio_tungstenite::MaybeTlsStream::Plain(stream))
+            .await
+            .expect("websocket handshake");
+    ws
 }

@@ -2,6 +2,7 @@
 //! page). Every function draws one figure into a drawing area and labels
 //! every axis with its unit.
 
+use plotters::coord::types::RangedCoordf64;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use spintune::protocol::{IterationRecord, ScanKind, ScanReport};
@@ -30,6 +31,49 @@ const TARGET: RGBColor = RGBColor(0, 110, 80);
 
 fn err<E: std::fmt::Debug>(e: E) -> String {
     format!("{e:?}")
+}
+
+/// A linear chart on `area` in the dashboard's style: caption, axis
+/// descriptions with units, light grid, number formatting. `small` is for the
+/// rows of per-gate panels; `integer_x` labels the x axis with whole numbers
+/// (iterations).
+#[allow(clippy::too_many_arguments)]
+fn styled_chart<'a, DB: DrawingBackend>(
+    area: &'a DrawingArea<DB, Shift>,
+    caption: &str,
+    x_desc: &str,
+    y_desc: &str,
+    x: std::ops::Range<f64>,
+    y: std::ops::Range<f64>,
+    small: bool,
+    integer_x: bool,
+) -> Result<ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>, String> {
+    let (caption_px, margin, x_area, y_area, label_px, desc_px) = if small {
+        (15, 6, 34, 58, 11, 12)
+    } else {
+        (16, 8, 36, 62, 12, 13)
+    };
+    let mut chart = ChartBuilder::on(area)
+        .caption(caption, (FONT, caption_px))
+        .margin(margin)
+        .x_label_area_size(x_area)
+        .y_label_area_size(y_area)
+        .build_cartesian_2d(x, y)
+        .map_err(err)?;
+    let x_fmt: &dyn Fn(&f64) -> String = if integer_x { &int_label } else { &num_label };
+    let mut mesh = chart.configure_mesh();
+    mesh.x_desc(x_desc)
+        .y_desc(y_desc)
+        .x_label_formatter(x_fmt)
+        .y_label_formatter(&num_label)
+        .light_line_style(RGBColor(238, 238, 238))
+        .label_style((FONT, label_px))
+        .axis_desc_style((FONT, desc_px));
+    if small {
+        mesh.x_labels(6).y_labels(6);
+    }
+    mesh.draw().map_err(err)?;
+    Ok(chart)
 }
 
 /// Colour of series `i`.
@@ -189,24 +233,16 @@ pub fn draw_parameter<DB: DrawingBackend>(
         &points,
         bands.iter().flat_map(|&(_, _, t, tol)| [t - tol, t + tol]),
     );
-    let mut chart = ChartBuilder::on(area)
-        .caption(&title, (FONT, 16))
-        .margin(8)
-        .x_label_area_size(36)
-        .y_label_area_size(62)
-        .build_cartesian_2d(x0..x1, y0..y1)
-        .map_err(err)?;
-    chart
-        .configure_mesh()
-        .x_desc("iteration")
-        .y_desc(format!("{parameter} ({unit})"))
-        .x_label_formatter(&int_label)
-        .y_label_formatter(&num_label)
-        .light_line_style(RGBColor(238, 238, 238))
-        .label_style((FONT, 12))
-        .axis_desc_style((FONT, 13))
-        .draw()
-        .map_err(err)?;
+    let mut chart = styled_chart(
+        area,
+        &title,
+        "iteration",
+        &format!("{parameter} ({unit})"),
+        x0..x1,
+        y0..y1,
+        false,
+        true,
+    )?;
     if !bands.is_empty() {
         chart
             .draw_series(bands.iter().map(|&(a, b, t, tol)| {
@@ -293,26 +329,16 @@ pub fn draw_gradient<DB: DrawingBackend>(
             })
             .collect();
         let (y0, y1) = robust_range(&pts, std::iter::empty());
-        let mut chart = ChartBuilder::on(panel)
-            .caption(format!("∂{parameter}/∂V_{gate}"), (FONT, 15))
-            .margin(6)
-            .x_label_area_size(34)
-            .y_label_area_size(54)
-            .build_cartesian_2d(x0..x1, y0..y1)
-            .map_err(err)?;
-        chart
-            .configure_mesh()
-            .x_desc("iteration")
-            .y_desc(unit.as_str())
-            .x_label_formatter(&int_label)
-            .y_label_formatter(&num_label)
-            .x_labels(6)
-            .y_labels(6)
-            .light_line_style(RGBColor(238, 238, 238))
-            .label_style((FONT, 11))
-            .axis_desc_style((FONT, 12))
-            .draw()
-            .map_err(err)?;
+        let mut chart = styled_chart(
+            panel,
+            &format!("∂{parameter}/∂V_{gate}"),
+            "iteration",
+            unit.as_str(),
+            x0..x1,
+            y0..y1,
+            true,
+            true,
+        )?;
         let c = color(gi);
         chart
             .draw_series(LineSeries::new(
@@ -354,26 +380,16 @@ pub fn draw_gates<DB: DrawingBackend>(
             .filter(|p| p.1.is_finite())
             .collect();
         let (y0, y1) = padded_range(pts.iter().map(|p| p.1), 0.1);
-        let mut chart = ChartBuilder::on(panel)
-            .caption(format!("V_{gate}"), (FONT, 15))
-            .margin(6)
-            .x_label_area_size(34)
-            .y_label_area_size(60)
-            .build_cartesian_2d(x0..x1, y0..y1)
-            .map_err(err)?;
-        chart
-            .configure_mesh()
-            .x_desc("iteration")
-            .y_desc("voltage (mV)")
-            .x_label_formatter(&int_label)
-            .y_label_formatter(&num_label)
-            .x_labels(6)
-            .y_labels(6)
-            .light_line_style(RGBColor(238, 238, 238))
-            .label_style((FONT, 11))
-            .axis_desc_style((FONT, 12))
-            .draw()
-            .map_err(err)?;
+        let mut chart = styled_chart(
+            panel,
+            &format!("V_{gate}"),
+            "iteration",
+            "voltage (mV)",
+            x0..x1,
+            y0..y1,
+            true,
+            true,
+        )?;
         let c = color(gi);
         chart
             .draw_series(LineSeries::new(pts.iter().copied(), c.stroke_width(2)))
@@ -411,24 +427,16 @@ pub fn draw_scan<DB: DrawingBackend>(
         Some(k) => format!("{} — iteration {k}", scan_title(scan.raw.kind)),
         None => scan_title(scan.raw.kind).to_string(),
     };
-    let mut chart = ChartBuilder::on(area)
-        .caption(title, (FONT, 16))
-        .margin(8)
-        .x_label_area_size(36)
-        .y_label_area_size(62)
-        .build_cartesian_2d(x0..x1, y0..y1)
-        .map_err(err)?;
-    chart
-        .configure_mesh()
-        .x_desc(scan.raw.x_label.as_str())
-        .x_label_formatter(&num_label)
-        .y_label_formatter(&num_label)
-        .y_desc(scan.raw.y_label.as_str())
-        .light_line_style(RGBColor(238, 238, 238))
-        .label_style((FONT, 12))
-        .axis_desc_style((FONT, 13))
-        .draw()
-        .map_err(err)?;
+    let mut chart = styled_chart(
+        area,
+        &title,
+        scan.raw.x_label.as_str(),
+        scan.raw.y_label.as_str(),
+        x0..x1,
+        y0..y1,
+        false,
+        false,
+    )?;
     for (i, t) in scan.raw.traces.iter().enumerate() {
         let c = color(i + 4);
         chart
@@ -613,24 +621,16 @@ pub fn draw_lab_time<DB: DrawingBackend>(
         .collect();
     let (x0, x1) = iteration_range(records);
     let (_, y1) = padded_range(pts.iter().map(|p| p.1).chain([0.0]), 0.05);
-    let mut chart = ChartBuilder::on(area)
-        .caption("cumulative lab time", (FONT, 16))
-        .margin(8)
-        .x_label_area_size(36)
-        .y_label_area_size(62)
-        .build_cartesian_2d(x0..x1, 0.0..y1)
-        .map_err(err)?;
-    chart
-        .configure_mesh()
-        .x_desc("iteration")
-        .y_desc("lab time (min)")
-        .x_label_formatter(&int_label)
-        .y_label_formatter(&num_label)
-        .light_line_style(RGBColor(238, 238, 238))
-        .label_style((FONT, 12))
-        .axis_desc_style((FONT, 13))
-        .draw()
-        .map_err(err)?;
+    let mut chart = styled_chart(
+        area,
+        "cumulative lab time",
+        "iteration",
+        "lab time (min)",
+        x0..x1,
+        0.0..y1,
+        false,
+        true,
+    )?;
     chart
         .draw_series(LineSeries::new(
             pts.iter().copied(),

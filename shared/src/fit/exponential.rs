@@ -72,22 +72,11 @@ pub fn fit_exponential(t: &[f64], y: &[f64]) -> Result<Exponential, FitError> {
         .unwrap_or(range / 3.0);
     // Amplitude at t = 0 when the scan starts later.
     let b0 = b0 * detmath::exp(t[0] / tau0);
-    let mut best: Option<lm::Fitted> = None;
-    let mut last_err = None;
-    for scale in [1.0, 2.5, 0.4] {
-        match lm::fit(&ExpModel, t, y, &[y_inf, b0, tau0 * scale]) {
-            Ok(f) => {
-                if best.as_ref().is_none_or(|b| f.ssr() < b.ssr()) {
-                    best = Some(f);
-                }
-                if scale == 1.0 {
-                    break;
-                }
-            }
-            Err(e) => last_err = Some(e),
-        }
-    }
-    let f = best.ok_or_else(|| last_err.unwrap_or(FitError::NotConverged("exponential".into())))?;
+    let guesses: Vec<Vec<f64>> = [1.0, 2.5, 0.4]
+        .iter()
+        .map(|s| vec![y_inf, b0, tau0 * s])
+        .collect();
+    let f = lm::fit_with_restarts(&ExpModel, t, y, &guesses, "exponential")?;
     let (asymptote, amplitude, tau) = (f.params[0], f.params[1], f.params[2]);
     if !(tau >= 0.2 * dt && tau <= 3.0 * range) {
         return Err(FitError::BadData(format!(

@@ -100,6 +100,33 @@ impl<M: Model> LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_, M> {
     }
 }
 
+/// Fit from `guesses[0]`; only if that fails, try the other starts and keep the
+/// converged fit with the smallest residual sum. `what` names the model in errors.
+pub(crate) fn fit_with_restarts<M: Model>(
+    model: &M,
+    x: &[f64],
+    y: &[f64],
+    guesses: &[Vec<f64>],
+    what: &str,
+) -> Result<Fitted, FitError> {
+    let mut best: Option<Fitted> = None;
+    let mut last_err = None;
+    for (i, p0) in guesses.iter().enumerate() {
+        match fit(model, x, y, p0) {
+            Ok(f) => {
+                if best.as_ref().is_none_or(|b| f.ssr() < b.ssr()) {
+                    best = Some(f);
+                }
+                if i == 0 {
+                    break;
+                }
+            }
+            Err(e) => last_err = Some(e),
+        }
+    }
+    best.ok_or_else(|| last_err.unwrap_or(FitError::NotConverged(what.into())))
+}
+
 /// Least-squares fit of `model` to `(x, y)` from the start `p0`.
 /// `Err(NotConverged)` unless LM reports success and all parameters are finite.
 pub(crate) fn fit<M: Model>(

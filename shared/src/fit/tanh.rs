@@ -122,22 +122,11 @@ pub fn fit_tanh_step(x: &[f64], y: &[f64]) -> Result<TanhStep, FitError> {
     };
     let x0 = x[best_i];
     let c0 = 0.5 * (left + right);
-    let mut best: Option<lm::Fitted> = None;
-    let mut last_err = None;
-    for scale in [1.0, 3.0, 0.4] {
-        match lm::fit(&TanhModel, x, y, &[c0, 0.0, a0, x0, w0 * scale]) {
-            Ok(f) => {
-                if best.as_ref().is_none_or(|b| f.ssr() < b.ssr()) {
-                    best = Some(f);
-                }
-                if scale == 1.0 {
-                    break;
-                }
-            }
-            Err(e) => last_err = Some(e),
-        }
-    }
-    let f = best.ok_or_else(|| last_err.unwrap_or(FitError::NotConverged("tanh step".into())))?;
+    let guesses: Vec<Vec<f64>> = [1.0, 3.0, 0.4]
+        .iter()
+        .map(|s| vec![c0, 0.0, a0, x0, w0 * s])
+        .collect();
+    let f = lm::fit_with_restarts(&TanhModel, x, y, &guesses, "tanh step")?;
     let p = &f.params;
     // tanh is odd: (A, w) and (−A, −w) are the same curve.
     let (height, width) = if p[4] < 0.0 {

@@ -33,6 +33,21 @@ fn err<E: std::fmt::Debug>(e: E) -> String {
     format!("{e:?}")
 }
 
+/// The legend box of a chart, in the dashboard's style.
+fn draw_legend<'a, DB: DrawingBackend + 'a>(
+    chart: &mut ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
+    position: SeriesLabelPosition,
+) -> DrawResult {
+    chart
+        .configure_series_labels()
+        .position(position)
+        .background_style(WHITE.mix(0.85))
+        .border_style(RGBColor(200, 200, 200))
+        .label_font((FONT, 12))
+        .draw()
+        .map_err(err)
+}
+
 /// A linear chart on `area` in the dashboard's style: caption, axis
 /// descriptions with units, light grid, number formatting. `small` is for the
 /// rows of per-gate panels; `integer_x` labels the x axis with whole numbers
@@ -276,14 +291,7 @@ pub fn draw_parameter<DB: DrawingBackend>(
         .map_err(err)?
         .label("measured ±1σ")
         .legend(move |(x, y)| Circle::new((x + 8, y), 3, c.filled()));
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperRight)
-        .background_style(WHITE.mix(0.85))
-        .border_style(RGBColor(200, 200, 200))
-        .label_font((FONT, 12))
-        .draw()
-        .map_err(err)?;
+    draw_legend(&mut chart, SeriesLabelPosition::UpperRight)?;
     Ok(())
 }
 
@@ -464,14 +472,7 @@ pub fn draw_scan<DB: DrawingBackend>(
             .label(t.label.clone())
             .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], c.stroke_width(2)));
     }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperRight)
-        .background_style(WHITE.mix(0.85))
-        .border_style(RGBColor(200, 200, 200))
-        .label_font((FONT, 12))
-        .draw()
-        .map_err(err)?;
+    draw_legend(&mut chart, SeriesLabelPosition::UpperRight)?;
     if scan.fit.is_empty() {
         area.draw(&Text::new(
             "fit failed",
@@ -647,14 +648,7 @@ pub fn draw_lab_time<DB: DrawingBackend>(
         .map_err(err)?
         .label("tuned")
         .legend(|(x, y)| Circle::new((x + 8, y), 3, BAND.filled()));
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperLeft)
-        .background_style(WHITE.mix(0.85))
-        .border_style(RGBColor(200, 200, 200))
-        .label_font((FONT, 12))
-        .draw()
-        .map_err(err)?;
+    draw_legend(&mut chart, SeriesLabelPosition::UpperLeft)?;
     Ok(())
 }
 

@@ -25,6 +25,27 @@ pub const PAPER_SET_POINTS: [(f64, f64); 5] = [
     (20.0, 270.0),
 ];
 
+/// The protocol's set points as a tuner schedule (`t_sr`, `w` change every
+/// `iterations_per_set_point` iterations, starting at iteration 0), e.g. for a
+/// live demo of the paper's Fig. 3.
+///
+/// ```
+/// let s = spintune::benchmark::paper_schedule(21);
+/// assert_eq!(s.len(), 5);
+/// assert_eq!(s[1].at_iteration, 21);
+/// assert_eq!(s[1].targets["t_sr"], 70.0);
+/// ```
+pub fn paper_schedule(iterations_per_set_point: u64) -> Vec<crate::tuner::ScheduledTargets> {
+    PAPER_SET_POINTS
+        .iter()
+        .enumerate()
+        .map(|(i, &(t_sr, w))| crate::tuner::ScheduledTargets {
+            at_iteration: i as u64 * iterations_per_set_point,
+            targets: [("t_sr".to_string(), t_sr), ("w".to_string(), w)].into(),
+        })
+        .collect()
+}
+
 /// A strategy: how the top level estimates its Jacobian.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub enum Strategy {

@@ -146,6 +146,7 @@ impl SimulationConfig {
             ],
             stop_when_tuned: false,
             max_iterations: None,
+            schedule: Vec::new(),
         };
         Self {
             name: "paper default".into(),

@@ -176,6 +176,20 @@ pub struct TunerConfig {
     /// Stop after this many top-level iterations (`None`: never).
     #[serde(default)]
     pub max_iterations: Option<u64>,
+    /// Target changes planned ahead (e.g. the paper's set-point cycle), applied
+    /// at the start of the given top-level iterations.
+    #[serde(default)]
+    pub schedule: Vec<ScheduledTargets>,
+}
+
+/// New targets for some parameters from a given top-level iteration on.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ScheduledTargets {
+    /// Iteration k at whose start the targets change.
+    pub at_iteration: u64,
+    /// Parameter name → new target (parameter units).
+    pub targets: std::collections::BTreeMap<String, f64>,
 }
 
 impl TunerConfig {
@@ -246,6 +260,27 @@ impl TunerConfig {
             }
             if g.max_step_mv <= 0.0 {
                 return Err(ConfigError::new(f("max_step_mv"), "must be > 0"));
+            }
+        }
+        for (i, entry) in self.schedule.iter().enumerate() {
+            for (name, &t) in &entry.targets {
+                let field = format!("schedule[{i}].targets.{name}");
+                let spec = self.levels.iter().find_map(|l| match &l.kind {
+                    LevelKind::Newton(n) => n.parameters.iter().find(|p| &p.name == name),
+                    LevelKind::SensingDot(_) => None,
+                });
+                let Some(spec) = spec else {
+                    return Err(ConfigError::new(
+                        field,
+                        format!("unknown parameter {name:?}"),
+                    ));
+                };
+                if spec.transform.forward_value(t).is_none() {
+                    return Err(ConfigError::new(
+                        field,
+                        "must be a finite number (> 0 in log space)",
+                    ));
+                }
             }
         }
         if self.levels.is_empty() {

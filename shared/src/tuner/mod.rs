@@ -40,7 +40,7 @@ use serde::{Deserialize, Serialize};
 
 pub use config::{
     Compensation, ConfigError, InitialGradient, LevelConfig, LevelKind, NewtonConfig,
-    SensingDotConfig, TunerConfig,
+    ScheduledTargets, SensingDotConfig, TunerConfig,
 };
 use newton::NewtonState;
 
@@ -359,6 +359,7 @@ impl Tuner {
                     self.finished = true;
                     continue;
                 }
+                self.apply_schedule();
                 self.push_level(0);
                 continue;
             };
@@ -482,6 +483,22 @@ impl Tuner {
         }
         self.pending = None;
         Ok(())
+    }
+
+    /// Targets scheduled for the iteration about to start (config already validated).
+    fn apply_schedule(&mut self) {
+        let due: Vec<(String, f64)> = self
+            .config
+            .schedule
+            .iter()
+            .filter(|s| s.at_iteration == self.iteration)
+            .flat_map(|s| s.targets.iter().map(|(p, t)| (p.clone(), *t)))
+            .collect();
+        for (parameter, target) in due {
+            if let Err(e) = self.set_target(&parameter, Some(target), None) {
+                self.note(0, format!("scheduled target not applied: {e}"));
+            }
+        }
     }
 
     fn add_lab_time(&mut self, s: f64) {

@@ -189,6 +189,7 @@ fn flat(estimator: EstimatorKind) -> TunerConfig {
         }],
         stop_when_tuned: false,
         max_iterations: Some(25),
+        schedule: Vec::new(),
     }
 }
 
@@ -250,6 +251,7 @@ fn hierarchical() -> TunerConfig {
         ],
         stop_when_tuned: false,
         max_iterations: Some(25),
+        schedule: Vec::new(),
     }
 }
 
@@ -577,4 +579,31 @@ fn rough_guess_start_relearns_the_gradient() {
     // no finite-difference scans were spent, and the target is reached
     assert_eq!(recs[0].scan_counts[&ScanKind::ReloadTime], 1);
     assert!(recs.iter().any(|r| r.tuned));
+}
+
+#[test]
+fn schedule_changes_targets_at_the_given_iterations() {
+    let mut cfg = flat(EstimatorKind::Kalman);
+    cfg.max_iterations = Some(20);
+    cfg.schedule = vec![ScheduledTargets {
+        at_iteration: 10,
+        targets: [("t_sr".to_string(), 30.0)].into(),
+    }];
+    let mut tuner = Tuner::new(cfg.clone()).unwrap();
+    let recs = drive(&mut tuner, &mut Toy::new(&gates(), 41), usize::MAX);
+    assert!(recs[..10]
+        .iter()
+        .all(|r| r.parameters[0].target == Some(20.0)));
+    assert!(recs[10..]
+        .iter()
+        .all(|r| r.parameters[0].target == Some(30.0)));
+    assert!(
+        recs[10..].iter().any(|r| r.tuned),
+        "did not reach the scheduled target"
+    );
+    cfg.schedule[0].targets.insert("nope".into(), 1.0);
+    assert_eq!(
+        Tuner::new(cfg).unwrap_err().field,
+        "schedule[0].targets.nope"
+    );
 }

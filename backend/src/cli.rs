@@ -39,6 +39,9 @@ impl CliError {
     }
 }
 
+/// Iterations of the built-in demo run (about 5 minutes at the default pace).
+const DEMO_MAX_ITERATIONS: u64 = 1000;
+
 /// When `serve` creates a demo run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum DemoMode {
@@ -71,7 +74,8 @@ pub struct ServeArgs {
     /// Live frames buffered per viewer before it is told it lagged.
     #[arg(long, default_value_t = 256)]
     pub viewer_buffer: usize,
-    /// Create a demo run on the embedded simulator (paper default config).
+    /// Create a demo run on the embedded simulator (paper default config cycling the
+    /// paper's set points, then holding the last one; 1000 iterations).
     #[arg(long, value_enum, default_value_t = DemoMode::Auto)]
     pub demo: DemoMode,
     /// Config of the demo run (TOML); default: the paper's default run.
@@ -122,7 +126,11 @@ pub async fn start_server(args: &ServeArgs) -> Result<Server, CliError> {
             None => RunConfig::paper_default(),
         };
         if args.demo_config.is_none() {
-            config.simulation.name = "demo".into();
+            // The paper's set-point cycle (its Fig. 3), then hold the last set point;
+            // bounded, so a demo left running does not grow the store forever.
+            config.simulation.name = "demo: paper set-point cycle".into();
+            config.simulation.tuner.schedule = spintune::benchmark::paper_schedule(21);
+            config.simulation.tuner.max_iterations = Some(DEMO_MAX_ITERATIONS);
         }
         manager
             .create(config, false)

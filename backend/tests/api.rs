@@ -70,10 +70,11 @@ async fn slow_viewer_is_told_it_lagged_and_still_sees_everything() {
     let dir = TempDir::new("lag");
     // A buffer of one frame: any viewer that does not read at once lags.
     let srv = server(&dir, 1).await;
-    // Enough frames (each ~15 kB with its scans) to fill the socket buffers of a viewer
+    // Enough frames (each ~15 kB with its scans: ~6 MB, beyond the 4 MB ceiling of
+    // Linux's send-buffer autotuning) to fill the socket buffers of a viewer
     // that does not read, whatever the scheduling: the server's forwarder then blocks
     // and its one-frame buffer overflows for certain.
-    let n = 80;
+    let n = 400;
     let run = create_run(srv.addr, &small_config("lag", n, 0)).await;
     control(srv.addr, run.id, r#"{"action":"pause"}"#).await;
     let mut ws = connect_small_buffer(srv.addr, run.id).await;

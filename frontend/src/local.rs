@@ -36,6 +36,8 @@ pub struct LocalSettings {
     pub max_iterations: u64,
     /// Pause between iterations, ms (0 still yields to the browser).
     pub delay_ms: u32,
+    /// Cycle the paper's set points (21 iterations each) instead of fixed targets.
+    pub paper_cycle: bool,
 }
 
 impl Default for LocalSettings {
@@ -52,6 +54,7 @@ impl Default for LocalSettings {
             tolerance: 0.1,
             max_iterations: 150,
             delay_ms: 150,
+            paper_cycle: false,
         }
     }
 }
@@ -85,6 +88,10 @@ impl LocalSettings {
                 }
                 _ => {}
             }
+        }
+        if self.paper_cycle {
+            // The paper's Fig. 3: the targets above are replaced at iterations 0, 21, 42, …
+            cfg.tuner.schedule = spintune::benchmark::paper_schedule(21);
         }
         cfg
     }
@@ -439,6 +446,12 @@ pub fn LocalMode() -> impl IntoView {
                     <NumberField label="seed" unit="" testid="local-seed" step="1" get=seed set=set_seed />
                     <NumberField label="iteration limit" unit="" testid="local-max-iterations" step="10" get=max_it set=set_max_it />
                     <NumberField label="pause between iterations" unit="ms" testid="local-delay" step="50" get=delay set=set_delay />
+                    <label class="field">
+                        <input type="checkbox" data-testid="local-paper-cycle"
+                            prop:checked=move || settings.with(|s| s.paper_cycle)
+                            on:change=move |ev| settings.update(|s| s.paper_cycle = event_target_checked(&ev)) />
+                        <span class="field-label">"cycle the paper's set points (21 iterations each, as in its Fig. 3)"</span>
+                    </label>
                 </fieldset>
                 <Explanation />
             </aside>
@@ -477,5 +490,36 @@ fn Explanation() -> impl IntoView {
             <p><b>"Step limit."</b>" The gradient is only valid near the present voltages (tunnel couplings depend exponentially on them), so each Newton step is cut to a maximal length, as in the paper (10 mV). Larger limits converge faster when the model is right and overshoot when it is not."</p>
             <p><b>"Noise."</b>" Each parameter comes from a fit to a noisy raw scan (bottom). More noise means larger measurement error bars and a filter that trusts each measurement less."</p>
         </details>
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn paper_cycle_switches_targets_at_iteration_21() {
+        let settings = LocalSettings {
+            paper_cycle: true,
+            max_iterations: 22,
+            ..LocalSettings::default()
+        };
+        assert_eq!(settings.to_config().tuner.schedule.len(), 5);
+        let mut run = settings.build().unwrap();
+        let mut records = Vec::new();
+        while let Some(r) = run.next_iteration().unwrap() {
+            records.push(r);
+        }
+        let t_sr_target = |k: usize| {
+            records[k]
+                .parameters
+                .iter()
+                .find(|p| p.name == "t_sr")
+                .unwrap()
+                .target
+        };
+        assert_eq!(t_sr_target(20), Some(20.0));
+        assert_eq!(t_sr_target(21), Some(70.0));
     }
 }

@@ -10,11 +10,12 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::driver::{SimulationConfig, SimulationRun};
+use crate::driver::{RunError, SimulationConfig, SimulationRun};
 use crate::estimator::EstimatorKind;
 use crate::parameter::{Tolerance, Transform};
-use crate::protocol::{IterationRecord, Request};
-use crate::tuner::{Action, InitialGradient, Tuner};
+use crate::protocol::{ControlCommand, FaultKind, IterationRecord};
+use crate::session::{RunSession, SessionConfig};
+use crate::tuner::{InitialGradient, Tuner};
 
 /// The paper's set-point cycle, `(t_sr ns, w µV)`.
 pub const PAPER_SET_POINTS: [(f64, f64); 5] = [
@@ -245,7 +246,10 @@ fn run_protocol(
     start_lab_seconds: f64,
     keep_records: bool,
 ) -> Result<SeedResult, String> {
-    let mut run = SimulationRun::from_parts(tuner, device);
+    let mut run = SimulationRun::from_parts(
+        RunSession::from_tuner(tuner, SessionConfig::default()),
+        device,
+    );
     let max_step = run.tuner().config().top().solver.max_step_mv;
     let mut violations = 0u64;
     let mut changes = Vec::new();
@@ -254,12 +258,14 @@ fn run_protocol(
     let mut lab_at_change = start_lab_seconds;
     for &(t_sr, w) in &protocol.set_points {
         let tol = Some(Tolerance::Relative(protocol.relative_tolerance));
-        run.tuner_mut()
-            .set_target("t_sr", Some(t_sr), tol)
+        for (parameter, target) in [("t_sr", t_sr), ("w", w)] {
+            run.control(&ControlCommand::SetTarget {
+                parameter: parameter.into(),
+                target: Some(target),
+                tolerance: tol,
+            })
             .map_err(|e| e.to_string())?;
-        run.tuner_mut()
-            .set_target("w", Some(w), tol)
-            .map_err(|e| e.to_string())?;
+        }
         let mut converged: Option<ChangeResult> = None;
         for k in 0..protocol.iterations_per_set_point {
             let rec = next_checked(&mut run, &mut violations)?;
@@ -301,27 +307,20 @@ fn run_protocol(
     })
 }
 
-/// Like [`SimulationRun::next_iteration`], but counts refused requests instead of stopping.
+/// [`SimulationRun::next_iteration`]; a fault (the guard refusing a request
+/// counts as a limit violation) ends the seed with an error: the benchmark
+/// never continues past a refused request.
 fn next_checked(run: &mut SimulationRun, violations: &mut u64) -> Result<IterationRecord, String> {
-    loop {
-        match run.tuner_mut().poll() {
-            Action::Request(req) => {
-                if let Request::SetVoltages { voltages_mv } = &req {
-                    if run
-                        .tuner()
-                        .safety()
-                        .check(run.device().voltages_mv(), voltages_mv)
-                        .is_err()
-                    {
-                        *violations += 1;
-                    }
-                }
-                let resp = run.device_mut().execute(&req);
-                run.tuner_mut().feed(resp).map_err(|e| e.to_string())?;
+    match run.next_iteration() {
+        Ok(Some(rec)) => Ok(rec),
+        Ok(None) => Err("tuner finished unexpectedly".into()),
+        Err(RunError::Fault(f)) => {
+            if f.kind == FaultKind::Safety {
+                *violations += 1;
             }
-            Action::Iteration(rec) => return Ok(rec),
-            Action::Finished => return Err("tuner finished unexpectedly".into()),
+            Err(format!("run faulted: {f}"))
         }
+        Err(e) => Err(e.to_string()),
     }
 }
 

@@ -1,18 +1,18 @@
-//! The synchronous driver that runs the tuner against the simulated double dot:
-//! used by the browser's teaching mode, the benchmarks and the tests. (The
-//! backend has its own async driver for real instruments, over the same
-//! [`Tuner`].)
+//! The synchronous driver that runs a [`RunSession`] against the simulated
+//! double dot: used by the browser's teaching mode, the benchmarks and the
+//! tests. (The backend drives the same session through async instruments.)
 
 use serde::{Deserialize, Serialize};
 
 use crate::estimator::EstimatorKind;
 use crate::parameter::{ParameterSpec, Tolerance, Transform};
-use crate::protocol::{IterationRecord, Request, Response, ScanKind};
+use crate::protocol::{ControlCommand, Fault, IterationRecord, RunStatus, ScanKind};
+use crate::session::{ControlError, Output, RunSession, SessionConfig, SessionError};
 use crate::sim::{default_gates, DeviceConfig, SimulatedDevice};
 use crate::solver::SolverConfig;
 use crate::tuner::{
-    Action, Compensation, ConfigError, InitialGradient, LevelConfig, LevelKind, NewtonConfig,
-    SensingDotConfig, Tuner, TunerConfig, TunerError,
+    Compensation, ConfigError, InitialGradient, LevelConfig, LevelKind, NewtonConfig,
+    SensingDotConfig, Tuner, TunerConfig,
 };
 
 /// Everything needed for a simulated run.
@@ -168,15 +168,23 @@ impl SimulationConfig {
 /// Why a simulated run could not continue.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum RunError {
-    /// The tuner refused a response (a bug in the device or the driver).
+    /// The session paused the run with a fault (device error, refused
+    /// read-back, a request the guard refused). Resumable with
+    /// [`SimulationRun::control`].
+    #[error("run faulted: {0}")]
+    Fault(Fault),
+    /// The run is paused: nothing happens until it is resumed or stepped.
+    #[error("the run is paused")]
+    Paused,
+    /// The driver broke the session's protocol (a bug).
     #[error(transparent)]
-    Tuner(#[from] TunerError),
-    /// The safety choke point refused a request (never expected from the tuner).
-    #[error("refused by safety limits: {0}")]
-    Safety(#[from] crate::safety::SafetyError),
+    Session(#[from] SessionError),
 }
 
-/// A tuner wired to a simulated device. Serializable as a whole (RNG and lab clock included).
+/// A run session wired to a simulated device: the driver of the browser's
+/// teaching mode, the benchmark and the tests. Serializable as a whole (RNG
+/// and lab clock included); a deserialized run reads every gate back before
+/// it moves one, like any restored session.
 ///
 /// ```
 /// use spintune::driver::{SimulationConfig, SimulationRun};
@@ -189,57 +197,63 @@ pub enum RunError {
 /// ```
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct SimulationRun {
-    tuner: Tuner,
+    session: RunSession,
     device: SimulatedDevice,
 }
 
 impl SimulationRun {
-    /// Validate the config and build tuner and device at the gates' initial voltages.
+    /// Validate the config and build session and device at the gates' initial voltages.
     pub fn new(cfg: SimulationConfig) -> Result<Self, ConfigError> {
         cfg.validate()?;
         let device = SimulatedDevice::new(cfg.device, &cfg.tuner.gates, cfg.seed)
             .map_err(|m| ConfigError::new("device", m))?;
-        let tuner = Tuner::new(cfg.tuner).map_err(|e| e.within("tuner"))?;
-        Ok(Self { tuner, device })
+        let session =
+            RunSession::new(cfg.tuner, SessionConfig::default()).map_err(|e| e.within("tuner"))?;
+        Ok(Self { session, device })
     }
 
     /// Assemble from parts (e.g. a device state cloned from another run).
-    pub fn from_parts(tuner: Tuner, device: SimulatedDevice) -> Self {
-        Self { tuner, device }
+    pub fn from_parts(session: RunSession, device: SimulatedDevice) -> Self {
+        Self { session, device }
     }
 
-    /// Run until the next top-level iteration completes; `None` when the tuner is finished.
+    /// Run until the next top-level iteration completes; `None` when the run
+    /// is over (finished or stopped). A fault or a pause is an `Err` (the
+    /// run can be resumed with [`SimulationRun::control`]).
     pub fn next_iteration(&mut self) -> Result<Option<IterationRecord>, RunError> {
         loop {
-            match self.tuner.poll() {
-                Action::Request(req) => {
-                    let resp = self.execute(&req)?;
-                    self.tuner.feed(resp)?;
+            match self.session.poll() {
+                Output::Execute(request) => {
+                    let response = self.device.execute(&request);
+                    self.session.feed(response)?;
                 }
-                Action::Iteration(rec) => return Ok(Some(rec)),
-                Action::Finished => return Ok(None),
+                Output::Commit(record) => return Ok(Some(*record)),
+                // nothing to persist, no wall clock to wait on
+                Output::Save | Output::Publish(_) | Output::Sleep { .. } => {}
+                Output::Wait => {
+                    return Err(match self.session.status() {
+                        RunStatus::Faulted { fault } => RunError::Fault(fault),
+                        _ => RunError::Paused,
+                    })
+                }
+                Output::Done(_) => return Ok(None),
             }
         }
     }
 
-    /// Execute one request on the device, through the safety choke point.
-    fn execute(&mut self, req: &Request) -> Result<Response, RunError> {
-        if let Request::SetVoltages { voltages_mv } = req {
-            self.tuner
-                .safety()
-                .check(self.device.voltages_mv(), voltages_mv)?;
-        }
-        Ok(self.device.execute(req))
+    /// Apply a control command (pause, resume, step, stop, target change).
+    pub fn control(&mut self, command: &ControlCommand) -> Result<RunStatus, ControlError> {
+        self.session.control(command)
+    }
+
+    /// The run session.
+    pub fn session(&self) -> &RunSession {
+        &self.session
     }
 
     /// The tuner.
     pub fn tuner(&self) -> &Tuner {
-        &self.tuner
-    }
-
-    /// The tuner, e.g. to change targets between iterations.
-    pub fn tuner_mut(&mut self) -> &mut Tuner {
-        &mut self.tuner
+        self.session.tuner()
     }
 
     /// The simulated device.
@@ -247,7 +261,7 @@ impl SimulationRun {
         &self.device
     }
 
-    /// The simulated device, mutably.
+    /// The simulated device, mutably (e.g. to move a gate behind the run's back in a test).
     pub fn device_mut(&mut self) -> &mut SimulatedDevice {
         &mut self.device
     }

@@ -24,6 +24,7 @@ pub mod kalman;
 pub mod parameter;
 pub mod protocol;
 pub mod safety;
+pub mod session;
 pub mod sim;
 pub mod solver;
 pub mod tuner;

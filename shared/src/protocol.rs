@@ -10,7 +10,12 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 
 /// Version of the wire format; bumped on any incompatible change.
-pub const PROTOCOL_VERSION: u32 = 1;
+///
+/// Version 2 added [`Request::ReadVoltages`], the typed [`RunStatus::Faulted`]
+/// and [`RunStatus::Stepping`] states and typed [`TunerEvent`]s. A client
+/// states the version it speaks when it connects (the server refuses any
+/// other with an error naming both versions).
+pub const PROTOCOL_VERSION: u32 = 2;
 
 /// The measurements a device can be asked for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
@@ -153,6 +158,14 @@ pub enum Request {
         /// Which scan and how.
         scan: ScanRequest,
     },
+    /// Read back the present output of these gates without changing them
+    /// (answered by [`Response::VoltagesRead`]). The run session asks this on
+    /// connect, on every resume and after a sweep, and checks the next step
+    /// against the answer, never against its own plan.
+    ReadVoltages {
+        /// Gates to read.
+        gates: Vec<String>,
+    },
     /// Simulator only: the true Jacobian of `parameters` w.r.t. `gates` (unit/mV)
     /// and the true parameter values, for the oracle baseline.
     TrueJacobian {
@@ -172,6 +185,15 @@ pub enum Response {
         /// Gate → read-back voltage, mV.
         voltages_mv: BTreeMap<String, f64>,
         /// Lab time the operation took, s.
+        lab_seconds: f64,
+    },
+    /// Answer to [`Request::ReadVoltages`]: the instrument's present output
+    /// of exactly the requested gates, mV.
+    VoltagesRead {
+        /// Gate → present voltage, mV.
+        voltages_mv: BTreeMap<String, f64>,
+        /// Lab time the read took, s.
+        #[serde(default)]
         lab_seconds: f64,
     },
     /// A scan finished (or failed).
@@ -260,32 +282,309 @@ pub struct IterationRecord {
     /// Latest scans of the top level's parameters, with their fits.
     pub scans: Vec<ScanReport>,
     /// Notable events of this iteration (gated outliers, failed fits, clipped steps).
-    pub events: Vec<String>,
+    pub events: Vec<TunerEvent>,
+}
+
+/// A notable event inside the tuner, attributed to the level it happened in.
+///
+/// ```
+/// use spintune::protocol::{EventKind, TunerEvent};
+/// let e = TunerEvent { level: "qubit".into(), kind: EventKind::StepLimited { from_mv: 14.2, to_mv: 10.0 } };
+/// assert_eq!(e.to_string(), "qubit: step limited from 14.20 mV to 10.00 mV");
+/// let json = serde_json::to_string(&e).unwrap();
+/// assert!(json.contains(r#""event":"step_limited""#));
+/// assert_eq!(serde_json::from_str::<TunerEvent>(&json).unwrap(), e);
+/// ```
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TunerEvent {
+    /// Name of the tuner level (e.g. `"qubit"`, `"chemical_potential"`).
+    pub level: String,
+    /// What happened.
+    #[serde(flatten)]
+    pub kind: EventKind,
+}
+
+impl std::fmt::Display for TunerEvent {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}: {}", self.level, self.kind)
+    }
+}
+
+/// The kinds of [`TunerEvent`]. Values are in the parameter's unit (`unit`)
+/// or mV as named.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "event", rename_all = "snake_case")]
+pub enum EventKind {
+    /// A measured value cannot be represented in the parameter's transform
+    /// (e.g. ≤ 0 for a log-transformed parameter); not used.
+    NotRepresentable {
+        /// Parameter name.
+        parameter: String,
+        /// The transform, e.g. `"Log"`.
+        transform: String,
+    },
+    /// Finite differences failed for every repetition of some gate; the
+    /// gradient starts unknown (0 ± 1).
+    FiniteDifferenceFailed {
+        /// Parameter name.
+        parameter: String,
+    },
+    /// The estimator refused the measured initial gradient; it starts from zero.
+    InitialGradientRejected {
+        /// Why.
+        reason: String,
+    },
+    /// A value whose error bar is wider than its tolerance band is not acted on.
+    TooUncertain {
+        /// Parameter name.
+        parameter: String,
+        /// Measured value (`unit`).
+        value: f64,
+        /// Its standard deviation (`unit`).
+        std: f64,
+        /// Unit of the parameter.
+        unit: String,
+    },
+    /// The filter's outlier gate refused a measurement.
+    OutlierGated {
+        /// Parameter name.
+        parameter: String,
+        /// Innovation `z − H g` (`unit`, estimator space).
+        innovation: f64,
+        /// Its predicted standard deviation (`unit`).
+        innovation_sigma: f64,
+        /// Unit of the parameter.
+        unit: String,
+    },
+    /// The Newton step was scaled down to the step limit.
+    StepLimited {
+        /// Norm of the unlimited step, mV.
+        from_mv: f64,
+        /// Norm after limiting, mV.
+        to_mv: f64,
+    },
+    /// No valid measurement of this parameter in this iteration.
+    NoMeasurement {
+        /// Parameter name.
+        parameter: String,
+    },
+    /// The estimator refused an update (e.g. a non-finite innovation).
+    UpdateRejected {
+        /// Parameter name.
+        parameter: String,
+        /// Why.
+        reason: String,
+    },
+    /// A scan could not be evaluated (fit failed, or the device reported a failure).
+    EvaluationFailed {
+        /// Which scan.
+        scan: ScanKind,
+        /// Why.
+        reason: String,
+    },
+    /// A target of the schedule was refused.
+    ScheduledTargetNotApplied {
+        /// Why.
+        reason: String,
+    },
+    /// The tuner's own check refused a planned move (nothing was sent).
+    MoveRefused {
+        /// Why.
+        reason: String,
+    },
+    /// The instrument's read-back differed from where the run expected the
+    /// gate; the tuner continues from the read-back.
+    InstrumentMoved {
+        /// Gate name.
+        gate: String,
+        /// Where the run expected it, mV.
+        expected_mv: f64,
+        /// Where the instrument reads, mV.
+        read_mv: f64,
+    },
+}
+
+impl std::fmt::Display for EventKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            EventKind::NotRepresentable {
+                parameter,
+                transform,
+            } => write!(f, "{parameter}: value not representable in {transform} space"),
+            EventKind::FiniteDifferenceFailed { parameter } => write!(
+                f,
+                "{parameter}: finite differences failed for every repetition of some gate; gradient unknown (0 ± 1)"
+            ),
+            EventKind::InitialGradientRejected { reason } => {
+                write!(f, "initial gradient rejected: {reason}")
+            }
+            EventKind::TooUncertain {
+                parameter,
+                value,
+                std,
+                unit,
+            } => write!(
+                f,
+                "{parameter}: {value:.3} ± {std:.3} {unit} is too uncertain to act on"
+            ),
+            EventKind::OutlierGated {
+                parameter,
+                innovation,
+                innovation_sigma,
+                unit,
+            } => write!(
+                f,
+                "{parameter}: outlier gated (innovation {innovation:.3} {unit} vs predicted σ {innovation_sigma:.3})"
+            ),
+            EventKind::StepLimited { from_mv, to_mv } => {
+                write!(f, "step limited from {from_mv:.2} mV to {to_mv:.2} mV")
+            }
+            EventKind::NoMeasurement { parameter } => {
+                write!(f, "{parameter}: no valid measurement this iteration")
+            }
+            EventKind::UpdateRejected { parameter, reason } => {
+                write!(f, "{parameter}: update rejected: {reason}")
+            }
+            EventKind::EvaluationFailed { scan, reason } => {
+                write!(f, "{scan:?} evaluation failed: {reason}")
+            }
+            EventKind::ScheduledTargetNotApplied { reason } => {
+                write!(f, "scheduled target not applied: {reason}")
+            }
+            EventKind::MoveRefused { reason } => write!(f, "move refused: {reason}"),
+            EventKind::InstrumentMoved {
+                gate,
+                expected_mv,
+                read_mv,
+            } => write!(
+                f,
+                "gate {gate} reads {read_mv:.3} mV, the run expected {expected_mv:.3} mV; continuing from the read-back"
+            ),
+        }
+    }
 }
 
 // ---------------------------------------------------------------------------
 // Server ⇄ viewer/controller messages (REST bodies and WebSocket frames).
 // ---------------------------------------------------------------------------
 
-/// Lifecycle of a run on the server.
+/// Lifecycle of a run: the modes of [`crate::session::RunSession`] plus
+/// what only a server knows (`Interrupted`, `Failed`).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(tag = "state", rename_all = "snake_case")]
 pub enum RunStatus {
     /// Iterating.
     Running,
+    /// Running one more iteration, then `Paused`.
+    Stepping,
     /// Waiting for resume or single step.
     Paused,
+    /// Stop acknowledged; no further request is issued, the answer to the one
+    /// already at the device is still recorded.
+    Stopping,
+    /// Paused by a fault (device error, lying read-back, refused request); the
+    /// request is kept and re-issued on resume, after the instrument is read back.
+    Faulted {
+        /// What went wrong.
+        fault: Fault,
+    },
     /// The tuner reached its goal or its iteration limit.
     Finished,
-    /// Stopped by a user.
+    /// Stopped by a user. Final.
     Stopped,
     /// The server went away while the run was active; can be resumed.
     Interrupted,
-    /// Stopped by an error (device fault, safety refusal, …); can be resumed after fixing.
+    /// The run cannot continue (store failure, unreadable checkpoint, invalid
+    /// config); resume retries from the last stored checkpoint.
     Failed {
         /// What went wrong.
         message: String,
     },
+}
+
+impl RunStatus {
+    /// Short name, as in the JSON `state` tag.
+    ///
+    /// ```
+    /// use spintune::protocol::{Fault, FaultKind, RunStatus};
+    /// let f = RunStatus::Faulted { fault: Fault { kind: FaultKind::Device, message: "timeout".into() } };
+    /// assert_eq!(f.name(), "faulted");
+    /// assert!(f.is_resumable() && !RunStatus::Stopped.is_resumable());
+    /// ```
+    pub fn name(&self) -> &'static str {
+        match self {
+            RunStatus::Running => "running",
+            RunStatus::Stepping => "stepping",
+            RunStatus::Paused => "paused",
+            RunStatus::Stopping => "stopping",
+            RunStatus::Faulted { .. } => "faulted",
+            RunStatus::Finished => "finished",
+            RunStatus::Stopped => "stopped",
+            RunStatus::Interrupted => "interrupted",
+            RunStatus::Failed { .. } => "failed",
+        }
+    }
+
+    /// Whether `resume`/`step` may continue the run from here.
+    pub fn is_resumable(&self) -> bool {
+        matches!(
+            self,
+            RunStatus::Paused
+                | RunStatus::Faulted { .. }
+                | RunStatus::Interrupted
+                | RunStatus::Failed { .. }
+        )
+    }
+
+    /// Whether the run is over for good (`finished` or `stopped`).
+    pub fn is_terminal(&self) -> bool {
+        matches!(self, RunStatus::Finished | RunStatus::Stopped)
+    }
+}
+
+/// Why a run was paused by a fault. Resumable: the instrument is read back
+/// first and the kept request is checked again.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Fault {
+    /// Which check failed.
+    pub kind: FaultKind,
+    /// What happened, for a person.
+    pub message: String,
+}
+
+impl std::fmt::Display for Fault {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{} fault: {}", self.kind.name(), self.message)
+    }
+}
+
+/// The kinds of [`Fault`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FaultKind {
+    /// The device (or its driver) reported an error or did not answer.
+    Device,
+    /// A read-back was refused: gates not requested, gates missing, non-finite
+    /// values, or a mismatch with the set value beyond the tolerance.
+    Readback,
+    /// The safety check refused a request before it reached the device
+    /// (limits, step from the last read-back, sweep points).
+    Safety,
+    /// The answer does not fit the request (wrong kind of response).
+    Response,
+}
+
+impl FaultKind {
+    /// Short name, as in JSON.
+    pub fn name(self) -> &'static str {
+        match self {
+            FaultKind::Device => "device",
+            FaultKind::Readback => "read-back",
+            FaultKind::Safety => "safety",
+            FaultKind::Response => "response",
+        }
+    }
 }
 
 /// A run as listed by the server.

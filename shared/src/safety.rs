@@ -1,5 +1,7 @@
-//! The one choke point every voltage passes before it reaches a device:
-//! per-gate limits and per-gate maximal step (DESIGN invariant 5).
+//! Per-gate limits and per-gate maximal step. The run session's guard
+//! ([`crate::session::guard`]) applies them against the instrument's last
+//! read-back (ARCHITECTURE.md, invariant 5); the tuner applies them to its
+//! own plans as well.
 //!
 //! All voltages in mV.
 
@@ -53,6 +55,20 @@ pub enum SafetyError {
         min_mv: f64,
         /// Upper limit, mV.
         max_mv: f64,
+    },
+    /// The gate's present voltage has not been read back from the instrument,
+    /// so no step from it can be checked.
+    #[error("gate {0}: present voltage unknown (not read back from the instrument)")]
+    PositionUnknown(String),
+    /// A sweep has too few or too many points.
+    #[error("gate {gate}: a sweep of {points} points (allowed 2 to {max_points})")]
+    SweepPoints {
+        /// Swept gate.
+        gate: String,
+        /// Requested number of points.
+        points: usize,
+        /// Upper bound.
+        max_points: usize,
     },
     /// The change from the present voltage exceeds the gate's maximal step.
     #[error("gate {gate}: step of {step_mv} mV exceeds its maximal step {max_step_mv} mV")]

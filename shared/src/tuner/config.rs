@@ -124,6 +124,9 @@ fn default_max_inner() -> u32 {
     3
 }
 
+/// Upper bound on [`SensingDotConfig::points`] (bounded by construction).
+pub const MAX_SWEEP_POINTS: usize = 10_000;
+
 /// A sensing-dot level: sweep one gate and park it on the steepest flank of the
 /// highest Coulomb peak.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -332,8 +335,24 @@ impl TunerConfig {
                     if !(sd.half_width_mv.is_finite() && sd.half_width_mv > 0.0) {
                         return Err(ConfigError::new(lf("half_width_mv"), "must be > 0"));
                     }
-                    if sd.points < 5 {
-                        return Err(ConfigError::new(lf("points"), "must be at least 5"));
+                    if !(5..=MAX_SWEEP_POINTS).contains(&sd.points) {
+                        return Err(ConfigError::new(
+                            lf("points"),
+                            format!("must be between 5 and {MAX_SWEEP_POINTS}"),
+                        ));
+                    }
+                    // The sweep starts half a width from the gate's present
+                    // voltage: that first point must be within one step.
+                    if let Some(g) = self.gates.iter().find(|g| g.name == sd.gate) {
+                        if sd.half_width_mv > g.max_step_mv {
+                            return Err(ConfigError::new(
+                                lf("half_width_mv"),
+                                format!(
+                                    "{} mV exceeds gate {}'s max_step_mv ({} mV): the sweep's first point would be farther than one step from the present voltage",
+                                    sd.half_width_mv, g.name, g.max_step_mv
+                                ),
+                            ));
+                        }
                     }
                 }
                 LevelKind::Newton(n) => {

@@ -40,14 +40,14 @@ use serde::{Deserialize, Serialize};
 
 pub use config::{
     Compensation, ConfigError, InitialGradient, LevelConfig, LevelKind, NewtonConfig,
-    ScheduledTargets, SensingDotConfig, TunerConfig,
+    ScheduledTargets, SensingDotConfig, TunerConfig, MAX_SWEEP_POINTS,
 };
 use newton::NewtonState;
 
 use crate::parameter::Tolerance;
 use crate::protocol::{
-    IterationRecord, ParameterValue, Request, Response, ScanKind, ScanOutcome, ScanReport,
-    ScanRequest, Sweep,
+    EventKind, IterationRecord, ParameterValue, Request, Response, ScanKind, ScanOutcome,
+    ScanReport, ScanRequest, Sweep, TunerEvent,
 };
 use crate::safety::SafetyLimits;
 
@@ -137,7 +137,9 @@ struct Frame {
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 enum Pending {
-    Set(Request),
+    /// A set request, with the operation (and its frame) that planned it, so
+    /// it can be re-planned when the instrument reads back elsewhere.
+    Set(Request, Op),
     Measure(Request, usize),
     Jacobian(Request, usize),
 }
@@ -145,7 +147,7 @@ enum Pending {
 impl Pending {
     fn request(&self) -> &Request {
         match self {
-            Pending::Set(r) | Pending::Measure(r, _) | Pending::Jacobian(r, _) => r,
+            Pending::Set(r, _) | Pending::Measure(r, _) | Pending::Jacobian(r, _) => r,
         }
     }
 }
@@ -171,6 +173,8 @@ pub struct Tuner {
     scan_counts: BTreeMap<ScanKind, u64>,
     failed_evaluations: u64,
     finished: bool,
+    /// Events since the last iteration record, oldest first.
+    events: Vec<TunerEvent>,
 }
 
 impl Tuner {
@@ -204,6 +208,7 @@ impl Tuner {
             scan_counts: BTreeMap::new(),
             failed_evaluations: 0,
             finished: false,
+            events: Vec::new(),
         })
     }
 
@@ -296,6 +301,29 @@ impl Tuner {
         target: Option<f64>,
         tolerance: Option<Tolerance>,
     ) -> Result<(), TunerError> {
+        let (level, index) = self.validate_target(parameter, target, tolerance)?;
+        if let LevelKind::Newton(n) = &mut self.config.levels[level].kind {
+            let p = &mut n.parameters[index];
+            p.target = target;
+            if let Some(tol) = tolerance {
+                p.tolerance = tol;
+            }
+        }
+        if self.config.stop_when_tuned {
+            // a new target may need more work; max_iterations still applies
+            self.finished = false;
+        }
+        Ok(())
+    }
+
+    /// Check a target change without applying it (as [`Tuner::set_target`]
+    /// would); returns the (level, parameter index) it would change.
+    pub fn validate_target(
+        &self,
+        parameter: &str,
+        target: Option<f64>,
+        tolerance: Option<Tolerance>,
+    ) -> Result<(usize, usize), TunerError> {
         let invalid = |m: &str| TunerError::InvalidTarget {
             parameter: parameter.to_string(),
             message: m.to_string(),
@@ -308,9 +336,10 @@ impl Tuner {
         if let Some(tol) = tolerance {
             tol.validate().map_err(|m| invalid(&m))?;
         }
-        for level in &mut self.config.levels {
-            if let LevelKind::Newton(n) = &mut level.kind {
-                if let Some(p) = n.parameters.iter_mut().find(|p| p.name == parameter) {
+        for (level, l) in self.config.levels.iter().enumerate() {
+            if let LevelKind::Newton(n) = &l.kind {
+                if let Some(index) = n.parameters.iter().position(|p| p.name == parameter) {
+                    let p = &n.parameters[index];
                     if let Some(t) = target {
                         if p.transform.forward_value(t).is_none() {
                             return Err(invalid(
@@ -318,19 +347,62 @@ impl Tuner {
                             ));
                         }
                     }
-                    p.target = target;
-                    if let Some(tol) = tolerance {
-                        p.tolerance = tol;
-                    }
-                    if self.config.stop_when_tuned {
-                        // a new target may need more work; max_iterations still applies
-                        self.finished = false;
-                    }
-                    return Ok(());
+                    return Ok((level, index));
                 }
             }
         }
         Err(TunerError::UnknownParameter(parameter.to_string()))
+    }
+
+    /// The request handed out by [`Tuner::poll`] and not yet answered.
+    pub fn pending_request(&self) -> Option<&Request> {
+        self.pending.as_ref().map(Pending::request)
+    }
+
+    /// The instrument read back `readback` (gate → mV): the tuner plans from
+    /// these values from now on. A gate whose belief changes by more than
+    /// `tolerance_mv` is reported as [`EventKind::InstrumentMoved`]. If an
+    /// outstanding set request was planned from a belief that changed, it is
+    /// withdrawn and re-planned from the read-back at the next [`Tuner::poll`]
+    /// (same goal, step clipped from where the gates really are). Returns
+    /// whether a request was withdrawn. Unknown gates and non-finite values
+    /// are ignored (the session refuses such read-backs before they get here).
+    pub fn adopt_readback(&mut self, readback: &BTreeMap<String, f64>, tolerance_mv: f64) -> bool {
+        let mut changed = Vec::new();
+        for (gate, &read) in readback {
+            let Some(belief) = self.voltages_mv.get_mut(gate) else {
+                continue;
+            };
+            if !read.is_finite() || *belief == read {
+                continue;
+            }
+            if (*belief - read).abs() > tolerance_mv {
+                let expected_mv = *belief;
+                self.events.push(TunerEvent {
+                    level: self.config.levels[0].name.clone(),
+                    kind: EventKind::InstrumentMoved {
+                        gate: gate.clone(),
+                        expected_mv,
+                        read_mv: read,
+                    },
+                });
+            }
+            *belief = read;
+            changed.push(gate.clone());
+        }
+        let replan = matches!(
+            &self.pending,
+            Some(Pending::Set(Request::SetVoltages { voltages_mv }, _))
+                if changed.iter().any(|g| voltages_mv.contains_key(g))
+        );
+        if replan {
+            if let Some(Pending::Set(_, op)) = self.pending.take() {
+                if let Some(frame) = self.stack.last_mut() {
+                    frame.ops.push_front(op);
+                }
+            }
+        }
+        replan
     }
 
     /// The next thing to do. Calling it again without [`Tuner::feed`] returns the
@@ -371,17 +443,17 @@ impl Tuner {
             match op {
                 Op::Move(target) => {
                     if let Some(req) = self.move_request(level, &target) {
-                        self.pending = Some(Pending::Set(req.clone()));
+                        self.pending = Some(Pending::Set(req.clone(), Op::Move(target)));
                         return Action::Request(req);
                     }
                 }
                 Op::SetGate(gate, v) => {
                     let present = self.voltages_mv.get(&gate).copied().unwrap_or(v);
-                    let v = self.safety.clip(&gate, present, v);
-                    let req = BTreeMap::from([(gate, v)]);
+                    let clipped = self.safety.clip(&gate, present, v);
+                    let req = BTreeMap::from([(gate.clone(), clipped)]);
                     if self.safety.check(&self.voltages_mv, &req).is_ok() {
                         let req = Request::SetVoltages { voltages_mv: req };
-                        self.pending = Some(Pending::Set(req.clone()));
+                        self.pending = Some(Pending::Set(req.clone(), Op::SetGate(gate, v)));
                         return Action::Request(req);
                     }
                 }
@@ -418,7 +490,7 @@ impl Tuner {
         }
         match (pending, response) {
             (
-                Pending::Set(_),
+                Pending::Set(..),
                 Response::VoltagesSet {
                     voltages_mv,
                     lab_seconds,
@@ -448,7 +520,13 @@ impl Tuner {
                 let (values, report) = evaluate_outcome(outcome);
                 if let Err(e) = &values {
                     self.failed_evaluations += 1;
-                    self.note(level, format!("{kind:?} evaluation failed: {e}"));
+                    self.note(
+                        level,
+                        EventKind::EvaluationFailed {
+                            scan: kind,
+                            reason: e.clone(),
+                        },
+                    );
                 }
                 match &mut self.levels[level] {
                     LevelState::Newton(n) => n.absorb(values.unwrap_or_default(), report),
@@ -465,7 +543,7 @@ impl Tuner {
                     n.oracle = Some((values, jacobian));
                 }
             }
-            (Pending::Set(_), _) => {
+            (Pending::Set(..), _) => {
                 return Err(TunerError::UnexpectedResponse {
                     expected: "set_voltages",
                 })
@@ -496,9 +574,20 @@ impl Tuner {
             .collect();
         for (parameter, target) in due {
             if let Err(e) = self.set_target(&parameter, Some(target), None) {
-                self.note(0, format!("scheduled target not applied: {e}"));
+                self.note(
+                    0,
+                    EventKind::ScheduledTargetNotApplied {
+                        reason: e.to_string(),
+                    },
+                );
             }
         }
+    }
+
+    /// Add lab time spent outside the tuner's own requests (e.g. the session's
+    /// read-backs), s. Non-finite or negative values are ignored.
+    pub fn charge_lab_time(&mut self, seconds: f64) {
+        self.add_lab_time(seconds);
     }
 
     fn add_lab_time(&mut self, s: f64) {
@@ -507,13 +596,12 @@ impl Tuner {
         }
     }
 
-    fn note(&mut self, level: usize, event: String) {
-        if let LevelState::Newton(n) = &mut self.levels[level] {
-            n.events.push(event);
-        } else if let LevelState::Newton(top) = &mut self.levels[0] {
-            top.events
-                .push(format!("{}: {event}", self.config.levels[level].name));
-        }
+    /// Record an event of `level` for the next iteration record.
+    fn note(&mut self, level: usize, kind: EventKind) {
+        self.events.push(TunerEvent {
+            level: self.config.levels[level].name.clone(),
+            kind,
+        });
     }
 
     fn push_level(&mut self, level: usize) {
@@ -593,7 +681,12 @@ impl Tuner {
         }
         // The choke point: never emit a request the limits refuse.
         if let Err(e) = self.safety.check(&self.voltages_mv, &req) {
-            self.note(level, format!("move refused: {e}"));
+            self.note(
+                level,
+                EventKind::MoveRefused {
+                    reason: e.to_string(),
+                },
+            );
             return None;
         }
         Some(Request::SetVoltages { voltages_mv: req })

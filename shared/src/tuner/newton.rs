@@ -12,8 +12,8 @@ use crate::estimator::{EstimatorKind, GradientEstimator};
 use crate::kalman::{ProcessNoise, UpdateOutcome};
 use crate::parameter::{ParameterSpec, Transform};
 use crate::protocol::{
-    GradientReport, IterationRecord, ParameterReport, ParameterValue, ScanKind, ScanReport,
-    ScanRequest,
+    EventKind, GradientReport, IterationRecord, ParameterReport, ParameterValue, ScanKind,
+    ScanReport, ScanRequest, TunerEvent,
 };
 use crate::solver::newton_step;
 
@@ -52,7 +52,7 @@ pub(super) struct NewtonState {
     fd: Option<FiniteDifference>,
     pub(super) oracle: Option<(Vec<f64>, Vec<Vec<f64>>)>,
     pub(super) iterations_this_call: u32,
-    pub(super) events: Vec<String>,
+    pub(super) events: Vec<EventKind>,
     snapshot: Option<Snapshot>,
     targets_held: bool,
 }
@@ -153,10 +153,10 @@ impl NewtonState {
                 .as_ref()
                 .and_then(|v| p.transform.forward(v.value, v.variance));
             if v.is_some() && s.is_none() {
-                self.events.push(format!(
-                    "{}: value not representable in {:?} space",
-                    p.name, p.transform
-                ));
+                self.events.push(EventKind::NotRepresentable {
+                    parameter: p.name.clone(),
+                    transform: format!("{:?}", p.transform),
+                });
             }
             samples.push(s);
         }
@@ -328,10 +328,9 @@ impl Tuner {
             .zip(&cfg.parameters)
             .map(|(r, p)| {
                 r.unwrap_or_else(|| {
-                    state.events.push(format!(
-                        "{}: finite differences failed for every repetition of some gate; gradient unknown (0 ± 1)",
-                        p.name
-                    ));
+                    state.events.push(EventKind::FiniteDifferenceFailed {
+                        parameter: p.name.clone(),
+                    });
                     (DVector::zeros(n), DMatrix::identity(n, n))
                 })
             })
@@ -346,7 +345,9 @@ impl Tuner {
                 Ok(es) => state.estimators = Some(es),
                 Err(e) => {
                     // An FD result that the filter refuses (e.g. non-finite) — start from zero.
-                    state.events.push(format!("initial gradient rejected: {e}"));
+                    state.events.push(EventKind::InitialGradientRejected {
+                        reason: e.to_string(),
+                    });
                     let zero = (0..cfg.parameters.len())
                         .map(|_| (DVector::zeros(n), DMatrix::identity(n, n)))
                         .collect();
@@ -372,9 +373,9 @@ impl Tuner {
         let cfg = cfg_mut.clone();
         for (i, p) in cfg.parameters.iter().enumerate() {
             if raw[i].is_none() {
-                state
-                    .events
-                    .push(format!("{}: no valid measurement this iteration", p.name));
+                state.events.push(EventKind::NoMeasurement {
+                    parameter: p.name.clone(),
+                });
             }
         }
         // A value whose error bar is wider than its tolerance band says nothing about
@@ -388,13 +389,12 @@ impl Tuner {
                 let v = v.as_ref()?;
                 match p.target {
                     Some(t) if v.variance.sqrt() > p.tolerance.half_width(t) => {
-                        state.events.push(format!(
-                            "{}: {:.3} ± {:.3} {} is too uncertain to act on",
-                            p.name,
-                            v.value,
-                            v.variance.sqrt(),
-                            p.unit
-                        ));
+                        state.events.push(EventKind::TooUncertain {
+                            parameter: p.name.clone(),
+                            value: v.value,
+                            std: v.variance.sqrt(),
+                            unit: p.unit.clone(),
+                        });
                         None
                     }
                     _ => Some(v.clone()),
@@ -430,10 +430,12 @@ impl Tuner {
                         innovation_sigma,
                     }) => {
                         state.gated_in_a_row[i] += 1;
-                        state.events.push(format!(
-                            "{}: outlier gated (innovation {innovation:.3} {} vs predicted σ {innovation_sigma:.3})",
-                            p.name, p.unit
-                        ));
+                        state.events.push(EventKind::OutlierGated {
+                            parameter: p.name.clone(),
+                            innovation,
+                            innovation_sigma,
+                            unit: p.unit.clone(),
+                        });
                         if state.gated_in_a_row[i] >= MAX_GATED_IN_A_ROW {
                             state.references[i] = new_ref;
                             state.gated_in_a_row[i] = 0;
@@ -443,9 +445,10 @@ impl Tuner {
                         state.references[i] = new_ref;
                         state.gated_in_a_row[i] = 0;
                     }
-                    Err(e) => state
-                        .events
-                        .push(format!("{}: update rejected: {e}", p.name)),
+                    Err(e) => state.events.push(EventKind::UpdateRejected {
+                        parameter: p.name.clone(),
+                        reason: e.to_string(),
+                    }),
                 }
             }
         }
@@ -562,10 +565,10 @@ impl Tuner {
             .collect();
         let (_, state) = self.newton_mut(level);
         if step.unlimited_norm_mv > cfg.solver.max_step_mv {
-            state.events.push(format!(
-                "step limited from {:.2} mV to {:.2} mV",
-                step.unlimited_norm_mv, cfg.solver.max_step_mv
-            ));
+            state.events.push(EventKind::StepLimited {
+                from_mv: step.unlimited_norm_mv,
+                to_mv: cfg.solver.max_step_mv,
+            });
         }
         if let Some(s) = &mut state.snapshot {
             s.step_mv = dv;
@@ -635,16 +638,15 @@ impl Tuner {
             scans: state.scans.values().cloned().collect(),
             events: Vec::new(),
         };
-        // Collect events of every level (inner levels prefixed with their name).
-        let mut events = Vec::new();
+        // Collect events of every level, attributed to their level.
+        let mut events = std::mem::take(&mut self.events);
         for (i, l) in self.levels.iter_mut().enumerate() {
             if let LevelState::Newton(s) = l {
                 let name = &self.config.levels[i].name;
-                events.extend(std::mem::take(&mut s.events).into_iter().map(|e| {
-                    if i == 0 {
-                        e
-                    } else {
-                        format!("{name}: {e}")
+                events.extend(std::mem::take(&mut s.events).into_iter().map(|kind| {
+                    TunerEvent {
+                        level: name.clone(),
+                        kind,
                     }
                 }));
             }

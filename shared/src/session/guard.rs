@@ -1,0 +1,416 @@
+//! The one safety choke point (ARCHITECTURE.md, invariant 5): every request
+//! is checked against the gate limits and against the instrument's last
+//! **read-back**, never against the tuner's plan.
+//!
+//! * A gate's position is known only from a read-back: the answer to a
+//!   [`Request::ReadVoltages`] or an accepted answer to a
+//!   [`Request::SetVoltages`]. Nothing is known at construction or after a
+//!   restore from a checkpoint (the read-backs are not serialized), after a
+//!   fault, or for a swept gate after its sweep.
+//! * A set answer is accepted only if it carries exactly the requested gates,
+//!   every value finite and within `readback_tolerance_mv` of the set value.
+//! * Every voltage a request can visit is checked: each gate of a move and
+//!   every point of a sweep lies within the gate's limits; a move's step and
+//!   a sweep's first point lie within `max_step_mv` of the read-back; the
+//!   spacing of sweep points is at most `max_step_mv`.
+//!
+//! All voltages in mV.
+
+use std::collections::{BTreeMap, BTreeSet};
+
+use serde::{Deserialize, Serialize};
+
+use crate::protocol::{Request, Sweep};
+use crate::safety::{SafetyError, SafetyLimits};
+use crate::tuner::MAX_SWEEP_POINTS;
+
+/// Why a read-back was refused. The gates concerned are forgotten (their
+/// position is unknown until read again).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ReadbackError {
+    /// The answer reports gates that were not requested (and so cannot have moved).
+    #[error("the answer reports gates that were not requested: {}", .0.join(", "))]
+    Unrequested(Vec<String>),
+    /// The answer lacks gates that were requested.
+    #[error("the answer lacks the read-back of {}", .0.join(", "))]
+    Missing(Vec<String>),
+    /// A read-back value is NaN or infinite.
+    #[error("gate {gate}: read-back {value_mv} mV is not a finite number")]
+    NotFinite {
+        /// Gate name.
+        gate: String,
+        /// Reported value, mV.
+        value_mv: f64,
+    },
+    /// The read-back differs from the set value by more than the tolerance.
+    #[error("gate {gate}: set {set_mv:.6} mV, read back {read_mv:.6} mV (tolerance {tolerance_mv} mV)")]
+    Mismatch {
+        /// Gate name.
+        gate: String,
+        /// Value that was set, mV.
+        set_mv: f64,
+        /// Value read back, mV.
+        read_mv: f64,
+        /// Allowed difference, mV.
+        tolerance_mv: f64,
+    },
+}
+
+/// Gate limits plus the instrument's last read-back of each gate.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Guard {
+    limits: SafetyLimits,
+    /// Largest accepted |read-back − set value|, mV.
+    tolerance_mv: f64,
+    /// Last accepted read-back per gate, mV. Not serialized: after a restore
+    /// the instrument must be asked again.
+    #[serde(skip)]
+    readback_mv: BTreeMap<String, f64>,
+}
+
+impl Guard {
+    /// A guard that knows no gate's position yet.
+    pub fn new(limits: SafetyLimits, tolerance_mv: f64) -> Self {
+        Self {
+            limits,
+            tolerance_mv,
+            readback_mv: BTreeMap::new(),
+        }
+    }
+
+    /// The limits.
+    pub fn limits(&self) -> &SafetyLimits {
+        &self.limits
+    }
+
+    /// Last accepted read-backs (gate → mV); gates not listed are unknown.
+    pub fn readback_mv(&self) -> &BTreeMap<String, f64> {
+        &self.readback_mv
+    }
+
+    /// Forget every read-back: the next request reads the instrument first.
+    pub fn forget_all(&mut self) {
+        self.readback_mv.clear();
+    }
+
+    /// Gates that `request` touches (moves and sweeps) whose position is unknown.
+    pub fn unknown_gates(&self, request: &Request) -> BTreeSet<String> {
+        touched_gates(request)
+            .into_iter()
+            .filter(|g| !self.readback_mv.contains_key(g))
+            .collect()
+    }
+
+    /// Check every voltage `request` can visit. `Err` means: do not send it.
+    pub fn check(&self, request: &Request) -> Result<(), SafetyError> {
+        match request {
+            Request::SetVoltages { voltages_mv } => {
+                for gate in voltages_mv.keys() {
+                    self.require_known(gate)?;
+                }
+                self.limits.check(&self.readback_mv, voltages_mv)
+            }
+            Request::Measure { scan } => match &scan.sweep {
+                Some(sweep) => self.check_sweep(sweep),
+                None => Ok(()),
+            },
+            Request::ReadVoltages { gates } => {
+                for g in gates {
+                    if self.limits.gate(g).is_none() {
+                        return Err(SafetyError::UnknownGate(g.clone()));
+                    }
+                }
+                Ok(())
+            }
+            Request::TrueJacobian { .. } => Ok(()),
+        }
+    }
+
+    fn require_known(&self, gate: &str) -> Result<(), SafetyError> {
+        if self.limits.gate(gate).is_none() {
+            return Err(SafetyError::UnknownGate(gate.to_string()));
+        }
+        if !self.readback_mv.contains_key(gate) {
+            return Err(SafetyError::PositionUnknown(gate.to_string()));
+        }
+        Ok(())
+    }
+
+    fn check_sweep(&self, sweep: &Sweep) -> Result<(), SafetyError> {
+        self.require_known(&sweep.gate)?;
+        let spec = self
+            .limits
+            .gate(&sweep.gate)
+            .ok_or_else(|| SafetyError::UnknownGate(sweep.gate.clone()))?;
+        if !(2..=MAX_SWEEP_POINTS).contains(&sweep.points) {
+            return Err(SafetyError::SweepPoints {
+                gate: sweep.gate.clone(),
+                points: sweep.points,
+                max_points: MAX_SWEEP_POINTS,
+            });
+        }
+        // The points lie on the segment [from, to]: both ends within limits
+        // means every point is; the first point is one step from the read-back.
+        let ends = BTreeMap::from([(sweep.gate.clone(), sweep.from_mv)]);
+        self.limits.check(&self.readback_mv, &ends)?;
+        let last = BTreeMap::from([(sweep.gate.clone(), sweep.to_mv)]);
+        self.limits.check(&BTreeMap::new(), &last)?;
+        let spacing_mv = (sweep.to_mv - sweep.from_mv).abs() / (sweep.points - 1) as f64;
+        if spacing_mv > spec.max_step_mv * (1.0 + 1e-9) + 1e-12 {
+            return Err(SafetyError::StepTooLarge {
+                gate: sweep.gate.clone(),
+                step_mv: spacing_mv,
+                max_step_mv: spec.max_step_mv,
+            });
+        }
+        Ok(())
+    }
+
+    /// Take the answer to a set request. On `Ok` the read-backs of exactly
+    /// the requested gates are known; on `Err` those gates (and any reported
+    /// extra gate) are forgotten.
+    pub fn accept_set(
+        &mut self,
+        requested: &BTreeMap<String, f64>,
+        answered: &BTreeMap<String, f64>,
+    ) -> Result<(), ReadbackError> {
+        let result = self.validate_set(requested, answered);
+        match &result {
+            Ok(()) => {
+                for (g, &v) in answered {
+                    self.readback_mv.insert(g.clone(), v);
+                }
+            }
+            Err(_) => {
+                for g in requested.keys().chain(answered.keys()) {
+                    self.readback_mv.remove(g);
+                }
+            }
+        }
+        result
+    }
+
+    fn validate_set(
+        &self,
+        requested: &BTreeMap<String, f64>,
+        answered: &BTreeMap<String, f64>,
+    ) -> Result<(), ReadbackError> {
+        same_gates(requested.keys(), answered)?;
+        for (gate, &set_mv) in requested {
+            let read_mv = answered[gate];
+            if !read_mv.is_finite() {
+                return Err(ReadbackError::NotFinite {
+                    gate: gate.clone(),
+                    value_mv: read_mv,
+                });
+            }
+            if (read_mv - set_mv).abs() > self.tolerance_mv {
+                return Err(ReadbackError::Mismatch {
+                    gate: gate.clone(),
+                    set_mv,
+                    read_mv,
+                    tolerance_mv: self.tolerance_mv,
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// Take the answer to a read request (exactly the requested gates, finite).
+    pub fn accept_read(
+        &mut self,
+        requested: &[String],
+        answered: &BTreeMap<String, f64>,
+    ) -> Result<(), ReadbackError> {
+        same_gates(requested.iter(), answered)?;
+        for (gate, &v) in answered {
+            if !v.is_finite() {
+                for g in requested {
+                    self.readback_mv.remove(g);
+                }
+                return Err(ReadbackError::NotFinite {
+                    gate: gate.clone(),
+                    value_mv: v,
+                });
+            }
+        }
+        for (g, &v) in answered {
+            self.readback_mv.insert(g.clone(), v);
+        }
+        Ok(())
+    }
+
+    /// A request went to the device and came back (or failed): a swept gate's
+    /// position is unknown until read again (the instrument may have left it
+    /// at any point of the sweep).
+    pub fn after_request(&mut self, request: &Request) {
+        if let Request::Measure { scan } = request {
+            if let Some(s) = &scan.sweep {
+                self.readback_mv.remove(&s.gate);
+            }
+        }
+    }
+}
+
+/// `Ok` if `answered` has exactly the gates in `requested`.
+fn same_gates<'a>(
+    requested: impl Iterator<Item = &'a String> + Clone,
+    answered: &BTreeMap<String, f64>,
+) -> Result<(), ReadbackError> {
+    let want: BTreeSet<&String> = requested.collect();
+    let extra: Vec<String> = answered
+        .keys()
+        .filter(|g| !want.contains(g))
+        .cloned()
+        .collect();
+    if !extra.is_empty() {
+        return Err(ReadbackError::Unrequested(extra));
+    }
+    let missing: Vec<String> = want
+        .into_iter()
+        .filter(|g| !answered.contains_key(*g))
+        .cloned()
+        .collect();
+    if !missing.is_empty() {
+        return Err(ReadbackError::Missing(missing));
+    }
+    Ok(())
+}
+
+/// Gates whose voltage a request changes (set gates, swept gate).
+pub fn touched_gates(request: &Request) -> Vec<String> {
+    match request {
+        Request::SetVoltages { voltages_mv } => voltages_mv.keys().cloned().collect(),
+        Request::Measure { scan } => scan.sweep.iter().map(|s| s.gate.clone()).collect(),
+        Request::ReadVoltages { .. } | Request::TrueJacobian { .. } => Vec::new(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::{ScanKind, ScanRequest};
+    use crate::safety::GateSpec;
+
+    fn guard() -> Guard {
+        let spec = |name: &str| GateSpec {
+            name: name.into(),
+            min_mv: -100.0,
+            max_mv: 100.0,
+            max_step_mv: 10.0,
+            initial_mv: 0.0,
+        };
+        Guard::new(SafetyLimits::new(&[spec("A"), spec("B")]), 0.05)
+    }
+
+    fn set(pairs: &[(&str, f64)]) -> BTreeMap<String, f64> {
+        pairs.iter().map(|(g, v)| (g.to_string(), *v)).collect()
+    }
+
+    fn sweep(from_mv: f64, to_mv: f64, points: usize) -> Request {
+        Request::Measure {
+            scan: ScanRequest {
+                kind: ScanKind::SensingDot,
+                sweep: Some(Sweep {
+                    gate: "A".into(),
+                    from_mv,
+                    to_mv,
+                    points,
+                }),
+            },
+        }
+    }
+
+    #[test]
+    fn a_move_needs_a_readback_and_is_checked_from_it() {
+        let mut g = guard();
+        let req = Request::SetVoltages {
+            voltages_mv: set(&[("A", 5.0)]),
+        };
+        assert_eq!(
+            g.check(&req),
+            Err(SafetyError::PositionUnknown("A".into()))
+        );
+        assert_eq!(g.unknown_gates(&req), BTreeSet::from(["A".to_string()]));
+        g.accept_read(&["A".into()], &set(&[("A", -8.0)])).unwrap();
+        // 13 mV from the read-back: refused although the plan started at 0 mV.
+        assert!(matches!(
+            g.check(&req),
+            Err(SafetyError::StepTooLarge { .. })
+        ));
+        g.accept_read(&["A".into()], &set(&[("A", -4.0)])).unwrap();
+        assert_eq!(g.check(&req), Ok(()));
+    }
+
+    #[test]
+    fn set_answers_with_extra_missing_nonfinite_or_far_gates_are_refused() {
+        let mut g = guard();
+        g.accept_read(&["A".into(), "B".into()], &set(&[("A", 0.0), ("B", 0.0)]))
+            .unwrap();
+        let want = set(&[("A", 5.0)]);
+        let err = g
+            .accept_set(&want, &set(&[("A", 5.0), ("B", 80.0)]))
+            .unwrap_err();
+        assert_eq!(err, ReadbackError::Unrequested(vec!["B".into()]));
+        // B's position is now unknown: its next move reads it first.
+        assert!(!g.readback_mv().contains_key("B"));
+        assert!(!g.readback_mv().contains_key("A"));
+        g.accept_read(&["A".into(), "B".into()], &set(&[("A", 0.0), ("B", 0.0)]))
+            .unwrap();
+        assert_eq!(
+            g.accept_set(&want, &BTreeMap::new()),
+            Err(ReadbackError::Missing(vec!["A".into()]))
+        );
+        g.accept_read(&["A".into()], &set(&[("A", 0.0)])).unwrap();
+        assert!(matches!(
+            g.accept_set(&want, &set(&[("A", f64::NAN)])),
+            Err(ReadbackError::NotFinite { .. })
+        ));
+        g.accept_read(&["A".into()], &set(&[("A", 0.0)])).unwrap();
+        assert!(matches!(
+            g.accept_set(&want, &set(&[("A", 5.2)])),
+            Err(ReadbackError::Mismatch { .. })
+        ));
+        g.accept_read(&["A".into()], &set(&[("A", 0.0)])).unwrap();
+        g.accept_set(&want, &set(&[("A", 5.01)])).unwrap();
+        assert_eq!(g.readback_mv()["A"], 5.01);
+        assert_eq!(g.readback_mv()["B"], 0.0);
+    }
+
+    #[test]
+    fn sweeps_are_checked_point_by_point_and_forget_the_gate() {
+        let mut g = guard();
+        g.accept_read(&["A".into()], &set(&[("A", 0.0)])).unwrap();
+        assert_eq!(g.check(&sweep(-10.0, 10.0, 21)), Ok(()));
+        // first point 15 mV from the read-back
+        assert!(matches!(
+            g.check(&sweep(-15.0, 5.0, 21)),
+            Err(SafetyError::StepTooLarge { .. })
+        ));
+        // last point outside the limits
+        g.accept_read(&["A".into()], &set(&[("A", 95.0)])).unwrap();
+        assert!(matches!(
+            g.check(&sweep(90.0, 110.0, 21)),
+            Err(SafetyError::OutOfLimits { .. })
+        ));
+        // points 20 mV apart
+        assert!(matches!(
+            g.check(&sweep(90.0, 50.0, 3)),
+            Err(SafetyError::StepTooLarge { .. })
+        ));
+        assert!(matches!(
+            g.check(&sweep(90.0, 80.0, 1)),
+            Err(SafetyError::SweepPoints { .. })
+        ));
+        g.after_request(&sweep(90.0, 80.0, 11));
+        assert!(!g.readback_mv().contains_key("A"));
+    }
+
+    #[test]
+    fn readbacks_are_not_serialized() {
+        let mut g = guard();
+        g.accept_read(&["A".into()], &set(&[("A", 1.0)])).unwrap();
+        let back: Guard = serde_json::from_str(&serde_json::to_string(&g).unwrap()).unwrap();
+        assert!(back.readback_mv().is_empty());
+    }
+}

@@ -1,0 +1,550 @@
+//! Model-based property test of the run session (`spintune::session`).
+//!
+//! A scripted instrument holds the *physical* gate voltages. Random scripts
+//! interleave control commands (pause, resume ×k, step, stop, target
+//! changes), device faults, lying / partial / extra read-backs, gates moved
+//! by hand while the run is paused, and crashes with a restore from the last
+//! committed checkpoint. Whatever the script, these must hold:
+//!
+//! 1. no request visits a voltage outside the gate limits;
+//! 2. no move, and no sweep's first point, is farther than `max_step_mv`
+//!    from the gate's **physical** voltage (so a lie never turns into a big
+//!    step), and sweep points are at most `max_step_mv` apart;
+//! 3. after `stop` is acknowledged, no request reaches the instrument;
+//! 4. committed iteration numbers are contiguous and unique (0, 1, 2, …),
+//!    across crashes.
+//!
+//! The number of generated steps is counted and asserted (≥ 10⁵ per run of
+//! the test binary), so the test cannot pass by generating nothing.
+
+use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use proptest::prelude::*;
+use spintune::driver::SimulationConfig;
+use spintune::parameter::Tolerance;
+use spintune::protocol::{
+    ControlCommand, ParameterValue, Request, Response, RunStatus, ScanKind, ScanOutcome,
+};
+use spintune::safety::GateSpec;
+use spintune::session::{Output, RunSession, SessionConfig};
+use spintune::tuner::{InitialGradient, LevelKind, SensingDotConfig, TunerConfig};
+
+/// Steps executed by all cases of this binary.
+static STEPS: AtomicU64 = AtomicU64::new(0);
+/// Iterations committed, faults published and requests executed, over all cases.
+static COMMITS: AtomicU64 = AtomicU64::new(0);
+static FAULTS: AtomicU64 = AtomicU64::new(0);
+static EXECUTED: AtomicU64 = AtomicU64::new(0);
+
+const CASES: u32 = 500;
+const MAX_SCRIPT: usize = 300;
+const MIN_TOTAL_STEPS: u64 = 100_000;
+
+fn gate(name: &str, min_mv: f64, max_mv: f64, max_step_mv: f64, initial_mv: f64) -> GateSpec {
+    GateSpec {
+        name: name.into(),
+        min_mv,
+        max_mv,
+        max_step_mv,
+        initial_mv,
+    }
+}
+
+/// The paper's hierarchy shape on a toy device: qubit level (N, SA, SB, T →
+/// t_sr, w), then a sensing-dot sweep of SD1. Built from the paper default so
+/// it follows any new config field.
+fn tuner_config() -> TunerConfig {
+    let mut t = SimulationConfig::paper_default().tuner;
+    t.gates = vec![
+        gate("N", -60.0, 60.0, 10.0, 0.0),
+        gate("SA", -60.0, 60.0, 10.0, 0.0),
+        gate("SB", -60.0, 60.0, 10.0, 0.0),
+        gate("T", -60.0, 60.0, 10.0, 0.0),
+        gate("SD1", -100.0, 100.0, 5.0, 0.0),
+        gate("X", -1.0, 1.0, 0.5, 0.0),
+    ];
+    let mut qubit = t.levels[0].clone();
+    if let LevelKind::Newton(n) = &mut qubit.kind {
+        n.compensation = None;
+        // a rough guess: iterations start at once (finite differences would
+        // spend most of a short script)
+        n.initial_gradient = InitialGradient::Given {
+            gradient: vec![vec![-0.4, -0.2, 0.05, 0.0], vec![0.3, 1.0, 0.0, -1.0]],
+            covariance: vec![
+                vec![
+                    vec![0.04, 0.0, 0.0, 0.0],
+                    vec![0.0, 0.04, 0.0, 0.0],
+                    vec![0.0, 0.0, 0.04, 0.0],
+                    vec![0.0, 0.0, 0.0, 0.04],
+                ];
+                2
+            ],
+        };
+        n.parameters[1].target = Some(230.0);
+    }
+    qubit.after_move = vec!["sensing_dot".into()];
+    let mut sd = t.levels[2].clone();
+    sd.kind = LevelKind::SensingDot(SensingDotConfig {
+        gate: "SD1".into(),
+        half_width_mv: 5.0,
+        points: 11,
+    });
+    t.levels = vec![qubit, sd];
+    t.max_iterations = Some(200);
+    t.schedule.clear();
+    t
+}
+
+/// How the instrument answers one request.
+#[derive(Debug, Clone, Copy)]
+enum Answer {
+    Honest,
+    /// Error, nothing applied.
+    Error,
+    /// Applies the first gate, then reports an error.
+    PartialError,
+    /// Honest answer plus a read-back of a gate that was not requested (a lie: it did not move).
+    ExtraGate(f64),
+    /// Applies everything, omits one gate from the answer.
+    MissingGate,
+    /// Applies `set + δ` and reports it honestly.
+    Mismatch(f64),
+    /// Applies, reports NaN for one gate.
+    NonFinite,
+    /// Answers with the wrong kind of response.
+    WrongKind,
+}
+
+#[derive(Debug, Clone)]
+enum Step {
+    Exec(Answer),
+    Pause,
+    Resume(usize),
+    StepOnce,
+    Stop,
+    SetTarget(f64),
+    BadTarget,
+    /// Someone turns a knob while the run is not moving gates (paused, faulted, crashed).
+    KnobTurn(usize, f64),
+    Crash,
+}
+
+fn answer() -> impl Strategy<Value = Answer> {
+    prop_oneof![
+        150 => Just(Answer::Honest),
+        2 => Just(Answer::Error),
+        1 => Just(Answer::PartialError),
+        2 => (-80.0..80.0f64).prop_map(Answer::ExtraGate),
+        1 => Just(Answer::MissingGate),
+        2 => (0.2..30.0f64).prop_map(Answer::Mismatch),
+        1 => Just(Answer::NonFinite),
+        1 => Just(Answer::WrongKind),
+    ]
+}
+
+fn step() -> impl Strategy<Value = Step> {
+    prop_oneof![
+        120 => answer().prop_map(Step::Exec),
+        2 => Just(Step::Pause),
+        4 => (1..4usize).prop_map(Step::Resume),
+        2 => Just(Step::StepOnce),
+        1 => Just(Step::Stop),
+        2 => (150.0..300.0f64).prop_map(Step::SetTarget),
+        1 => Just(Step::BadTarget),
+        2 => ((0..5usize), (-40.0..40.0f64)).prop_map(|(g, d)| Step::KnobTurn(g, d)),
+        1 => Just(Step::Crash),
+    ]
+}
+
+/// The scripted instrument: physical voltages and a toy physics.
+struct Instrument {
+    limits: BTreeMap<String, GateSpec>,
+    phys: BTreeMap<String, f64>,
+    noise: u64,
+}
+
+impl Instrument {
+    fn new(cfg: &TunerConfig) -> Self {
+        Self {
+            limits: cfg.gates.iter().map(|g| (g.name.clone(), g.clone())).collect(),
+            phys: cfg
+                .gates
+                .iter()
+                .map(|g| (g.name.clone(), g.initial_mv))
+                .collect(),
+            noise: 1,
+        }
+    }
+
+    fn jitter(&mut self) -> f64 {
+        // a tiny deterministic LCG: the property is about safety, not tuning
+        self.noise = self
+            .noise
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((self.noise >> 11) as f64 / (1u64 << 53) as f64) - 0.5
+    }
+
+    /// Invariants 1 and 2: every voltage the request can visit, against the physical state.
+    fn check_request(&self, req: &Request) -> Result<(), String> {
+        let within = |g: &str, v: f64| -> Result<(), String> {
+            let s = &self.limits[g];
+            if !(v >= s.min_mv && v <= s.max_mv) {
+                return Err(format!("{g}: {v} mV outside [{}, {}]", s.min_mv, s.max_mv));
+            }
+            Ok(())
+        };
+        let step_ok = |g: &str, v: f64| -> Result<(), String> {
+            let s = &self.limits[g];
+            let d = (v - self.phys[g]).abs();
+            if d > s.max_step_mv * (1.0 + 1e-9) + 1e-9 {
+                return Err(format!(
+                    "{g}: physical step {d} mV from {} mV (max {})",
+                    self.phys[g], s.max_step_mv
+                ));
+            }
+            Ok(())
+        };
+        match req {
+            Request::SetVoltages { voltages_mv } => {
+                for (g, &v) in voltages_mv {
+                    within(g, v)?;
+                    step_ok(g, v)?;
+                }
+            }
+            Request::Measure { scan } => {
+                if let Some(s) = &scan.sweep {
+                    within(&s.gate, s.from_mv)?;
+                    within(&s.gate, s.to_mv)?;
+                    step_ok(&s.gate, s.from_mv)?;
+                    let spacing = (s.to_mv - s.from_mv).abs() / (s.points as f64 - 1.0);
+                    if spacing > self.limits[&s.gate].max_step_mv + 1e-9 {
+                        return Err(format!("sweep spacing {spacing} mV"));
+                    }
+                }
+            }
+            Request::ReadVoltages { .. } | Request::TrueJacobian { .. } => {}
+        }
+        Ok(())
+    }
+
+    fn execute(&mut self, req: &Request, how: Answer) -> Response {
+        match req {
+            Request::SetVoltages { voltages_mv } => {
+                if matches!(how, Answer::Error) {
+                    return Response::Error {
+                        message: "scripted error".into(),
+                    };
+                }
+                if matches!(how, Answer::PartialError) {
+                    if let Some((g, v)) = voltages_mv.iter().next() {
+                        self.phys.insert(g.clone(), *v);
+                    }
+                    return Response::Error {
+                        message: "scripted error after one gate".into(),
+                    };
+                }
+                let mut answer = BTreeMap::new();
+                for (i, (g, &v)) in voltages_mv.iter().enumerate() {
+                    let applied = match how {
+                        Answer::Mismatch(d) if i == 0 => {
+                            let s = &self.limits[g];
+                            (v + d).clamp(s.min_mv, s.max_mv)
+                        }
+                        _ => v,
+                    };
+                    self.phys.insert(g.clone(), applied);
+                    answer.insert(g.clone(), applied);
+                }
+                match how {
+                    Answer::ExtraGate(lie) => {
+                        let extra = self
+                            .phys
+                            .keys()
+                            .find(|g| !voltages_mv.contains_key(*g))
+                            .cloned();
+                        if let Some(g) = extra {
+                            answer.insert(g, lie);
+                        }
+                    }
+                    Answer::MissingGate => {
+                        let first = answer.keys().next().cloned();
+                        if let Some(g) = first {
+                            answer.remove(&g);
+                        }
+                    }
+                    Answer::NonFinite => {
+                        if let Some(v) = answer.values_mut().next() {
+                            *v = f64::NAN;
+                        }
+                    }
+                    Answer::WrongKind => {
+                        return Response::Scanned {
+                            outcome: ScanOutcome::Failed {
+                                reason: "wrong kind".into(),
+                            },
+                            lab_seconds: 0.0,
+                        }
+                    }
+                    _ => {}
+                }
+                Response::VoltagesSet {
+                    voltages_mv: answer,
+                    lab_seconds: 0.1,
+                }
+            }
+            Request::ReadVoltages { gates } => {
+                let mut answer: BTreeMap<String, f64> =
+                    gates.iter().map(|g| (g.clone(), self.phys[g])).collect();
+                match how {
+                    Answer::Error | Answer::PartialError => {
+                        return Response::Error {
+                            message: "scripted read error".into(),
+                        }
+                    }
+                    Answer::ExtraGate(lie) => {
+                        if let Some(g) = self.phys.keys().find(|g| !gates.contains(g)).cloned() {
+                            answer.insert(g, lie);
+                        }
+                    }
+                    Answer::MissingGate => {
+                        let first = answer.keys().next().cloned();
+                        if let Some(g) = first {
+                            answer.remove(&g);
+                        }
+                    }
+                    Answer::NonFinite => {
+                        if let Some(v) = answer.values_mut().next() {
+                            *v = f64::INFINITY;
+                        }
+                    }
+                    Answer::WrongKind => {
+                        return Response::VoltagesSet {
+                            voltages_mv: answer,
+                            lab_seconds: 0.0,
+                        }
+                    }
+                    Answer::Honest | Answer::Mismatch(_) => {}
+                }
+                Response::VoltagesRead {
+                    voltages_mv: answer,
+                    lab_seconds: 0.0,
+                }
+            }
+            Request::Measure { scan } => {
+                match how {
+                    Answer::Error | Answer::PartialError => {
+                        return Response::Error {
+                            message: "scripted measurement error".into(),
+                        }
+                    }
+                    Answer::WrongKind => {
+                        return Response::VoltagesSet {
+                            voltages_mv: BTreeMap::new(),
+                            lab_seconds: 0.0,
+                        }
+                    }
+                    _ => {}
+                }
+                let phys = self.phys.clone();
+                let v = |g: &str| phys[g];
+                let t_sr = 30.0 * (-(v("N") + 0.5 * v("SA")) / 80.0).exp() + 0.05 * v("SB");
+                let w = 250.0 + 1.2 * v("SA") - 0.9 * v("T") + 0.3 * v("N");
+                let values = match scan.kind {
+                    ScanKind::ReloadTime => vec![ParameterValue {
+                        name: "t_sr".into(),
+                        value: t_sr + 0.2 * self.jitter(),
+                        variance: 0.04,
+                    }],
+                    ScanKind::TransitionWidth => vec![ParameterValue {
+                        name: "w".into(),
+                        value: w + 2.0 * self.jitter(),
+                        variance: 4.0,
+                    }],
+                    ScanKind::SensingDot => {
+                        let s = scan.sweep.as_ref().expect("sensing-dot scans sweep");
+                        // worst case for the next move: the sweep leaves the gate at its end
+                        self.phys.insert(s.gate.clone(), s.to_mv);
+                        // the flank near the sweep's start: parking there from
+                        // the sweep's end is a long way
+                        vec![ParameterValue {
+                            name: "sd_flank_mv".into(),
+                            value: s.from_mv.min(s.to_mv) + 0.5 + 0.01 * v("N").abs(),
+                            variance: 0.01,
+                        }]
+                    }
+                    ScanKind::ChemicalPotential => Vec::new(),
+                };
+                Response::Scanned {
+                    outcome: ScanOutcome::Evaluated { values },
+                    lab_seconds: 1.0,
+                }
+            }
+            Request::TrueJacobian { .. } => Response::Error {
+                message: "no oracle here".into(),
+            },
+        }
+    }
+}
+
+/// Drive `session` until it hands out a request, handling everything else
+/// like a server would (commit with checkpoint, save, publish). Returns the
+/// request, or `None` if the session waits or is done.
+fn next_request(
+    session: &mut RunSession,
+    committed: &mut Vec<u64>,
+    checkpoint: &mut String,
+) -> Result<Option<Request>, String> {
+    for _ in 0..10_000 {
+        match session.poll() {
+            Output::Execute(r) => return Ok(Some(r)),
+            Output::Commit(rec) => {
+                // invariant 4
+                if rec.iteration != committed.len() as u64 {
+                    return Err(format!(
+                        "iteration {} committed after {:?}",
+                        rec.iteration,
+                        committed.last()
+                    ));
+                }
+                committed.push(rec.iteration);
+                COMMITS.fetch_add(1, Ordering::Relaxed);
+                *checkpoint = serde_json::to_string(session).unwrap();
+            }
+            Output::Save => *checkpoint = serde_json::to_string(session).unwrap(),
+            Output::Publish(RunStatus::Faulted { .. }) => {
+                FAULTS.fetch_add(1, Ordering::Relaxed);
+            }
+            Output::Publish(_) | Output::Sleep { .. } => {}
+            Output::Wait | Output::Done(_) => return Ok(None),
+        }
+    }
+    Err("the session never settled".into())
+}
+
+fn run_script(script: &[Step]) -> Result<(), TestCaseError> {
+    let cfg = tuner_config();
+    let mut dev = Instrument::new(&cfg);
+    let mut session = RunSession::new(
+        cfg,
+        SessionConfig {
+            readback_tolerance_mv: 0.05,
+            iteration_delay_ms: 0,
+        },
+    )
+    .unwrap();
+    let mut committed = Vec::new();
+    let mut checkpoint = serde_json::to_string(&session).unwrap();
+    let mut stopped = false;
+    for step in script {
+        STEPS.fetch_add(1, Ordering::Relaxed);
+        match step {
+            Step::Exec(how) => {
+                let req = next_request(&mut session, &mut committed, &mut checkpoint)
+                    .map_err(TestCaseError::fail)?;
+                let Some(req) = req else { continue };
+                // invariant 3
+                prop_assert!(!stopped, "request after stop: {req:?}");
+                // invariants 1 and 2
+                dev.check_request(&req).map_err(TestCaseError::fail)?;
+                EXECUTED.fetch_add(1, Ordering::Relaxed);
+                let resp = dev.execute(&req, *how);
+                session.feed(resp).map_err(|e| TestCaseError::fail(e.to_string()))?;
+            }
+            Step::Pause => {
+                let _ = session.control(&ControlCommand::Pause);
+            }
+            Step::Resume(k) => {
+                for _ in 0..*k {
+                    let r = session.control(&ControlCommand::Resume);
+                    prop_assert_eq!(r.is_ok(), !stopped && !session.status().is_terminal());
+                }
+            }
+            Step::StepOnce => {
+                let _ = session.control(&ControlCommand::Step);
+            }
+            Step::Stop => {
+                let s = session.control(&ControlCommand::Stop).unwrap();
+                if s == RunStatus::Stopped || s == RunStatus::Stopping {
+                    stopped = true;
+                }
+            }
+            Step::SetTarget(w) => {
+                let r = session.control(&ControlCommand::SetTarget {
+                    parameter: "w".into(),
+                    target: Some(*w),
+                    tolerance: Some(Tolerance::Relative(0.05)),
+                });
+                prop_assert_eq!(r.is_ok(), !stopped);
+            }
+            Step::BadTarget => {
+                let r = session.control(&ControlCommand::SetTarget {
+                    parameter: "w".into(),
+                    target: Some(f64::NAN),
+                    tolerance: None,
+                });
+                prop_assert!(r.is_err());
+            }
+            Step::KnobTurn(g, d) => {
+                let moving = matches!(
+                    session.status(),
+                    RunStatus::Running | RunStatus::Stepping
+                );
+                if !moving {
+                    let name = ["N", "SA", "SB", "T", "SD1"][*g];
+                    let s = &dev.limits[name];
+                    let v = (dev.phys[name] + d).clamp(s.min_mv, s.max_mv);
+                    dev.phys.insert(name.to_string(), v);
+                }
+            }
+            Step::Crash => {
+                // Everything since the last commit is lost; the instrument
+                // stays where it is, and someone may have touched it.
+                session = serde_json::from_str(&checkpoint).unwrap();
+                let name = "T";
+                let s = &dev.limits[name];
+                let v = (dev.phys[name] + 17.0).clamp(s.min_mv, s.max_mv);
+                dev.phys.insert(name.to_string(), v);
+                // a restored run that was stopped stays stopped
+                stopped = session.status() == RunStatus::Stopped;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Runs [`CASES`] random scripts (proptest shrinks a failing one to a
+/// minimal counterexample) and checks that they added up to at least
+/// [`MIN_TOTAL_STEPS`] steps.
+#[test]
+fn session_holds_safety_and_lifecycle_invariants_over_1e5_random_steps() {
+    let mut runner = proptest::test_runner::TestRunner::new(ProptestConfig {
+        cases: CASES,
+        ..ProptestConfig::default()
+    });
+    let before = STEPS.load(Ordering::Relaxed);
+    let result = runner.run(
+        &prop::collection::vec(step(), MAX_SCRIPT / 2..=MAX_SCRIPT),
+        |script| run_script(&script),
+    );
+    if let Err(e) = result {
+        panic!("{e}");
+    }
+    let generated = STEPS.load(Ordering::Relaxed) - before;
+    let (commits, faults, executed) = (
+        COMMITS.load(Ordering::Relaxed),
+        FAULTS.load(Ordering::Relaxed),
+        EXECUTED.load(Ordering::Relaxed),
+    );
+    eprintln!("{generated} steps: {executed} requests executed, {commits} iterations committed, {faults} faults");
+    assert!(
+        generated >= MIN_TOTAL_STEPS,
+        "only {generated} steps generated"
+    );
+    // The scripts must really drive tuning and really provoke faults.
+    assert!(executed >= generated / 4, "{executed} requests executed");
+    assert!(commits >= u64::from(CASES) * 5, "{commits} iterations committed");
+    assert!(faults >= u64::from(CASES), "{faults} faults");
+}
+

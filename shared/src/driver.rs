@@ -5,6 +5,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::estimator::EstimatorKind;
+use crate::fit::uncertainty::SIMULATED_DEVICE_REFERENCES;
 use crate::parameter::{ParameterSpec, Tolerance, Transform};
 use crate::protocol::{ControlCommand, Fault, IterationRecord, RunStatus, ScanKind};
 use crate::session::{ControlError, Output, RunSession, SessionConfig, SessionError};
@@ -44,7 +45,10 @@ impl SimulationConfig {
     /// 10 mV step limit, initial gradient by finite differences), with a linear
     /// virtual-gate correction on PA/PB; after each move the sensing dot is
     /// re-tuned and the transition lines are held at 0 mV by a Kalman-tuned
-    /// PA/PB level. Targets: the paper's first set point.
+    /// PA/PB level. Targets: the paper's first set point. Fit uncertainties
+    /// use the references calibrated on this very device
+    /// ([`crate::fit::uncertainty::SIMULATED_DEVICE_REFERENCES`]); a changed
+    /// `device` needs its own (see [`crate::sim::calibrate_reference`]).
     pub fn paper_default() -> Self {
         let device = DeviceConfig::default();
         let gates = default_gates();
@@ -147,6 +151,8 @@ impl SimulationConfig {
             stop_when_tuned: false,
             max_iterations: None,
             schedule: Vec::new(),
+            // calibrated on exactly this device (`DeviceConfig::default()`)
+            fit_references: SIMULATED_DEVICE_REFERENCES,
         };
         Self {
             name: "paper default".into(),

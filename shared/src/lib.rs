@@ -7,7 +7,9 @@
 //! moves the gates in limited steps ([`solver`]), and a sans-IO state machine
 //! ([`tuner`]) runs the hierarchy sensing dot → chemical potentials → qubit
 //! parameters. [`sim`] is a simulated double dot producing raw scans that
-//! [`fit`] evaluates; [`driver`] wires tuner and simulator together.
+//! [`fit`] evaluates; [`driver`] wires tuner and simulator together. Both
+//! `sim` and `fit` compute with [`detmath`], so results are bit-identical
+//! natively and in wasm; `fit` does not depend on `sim`.
 //!
 //! This crate does no IO (no files, sockets, clocks or threads) and builds for
 //! `wasm32-unknown-unknown` unchanged.
@@ -17,6 +19,7 @@
 #![warn(missing_docs)]
 
 pub mod benchmark;
+pub mod detmath;
 pub mod driver;
 pub mod estimator;
 pub mod fit;

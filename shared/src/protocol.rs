@@ -127,7 +127,8 @@ impl ParameterValue {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
 pub enum ScanOutcome {
-    /// Raw traces; the tuner fits them with [`crate::fit::evaluate`].
+    /// Raw traces; the tuner fits them with [`crate::fit::evaluate_with`]
+    /// and its config's `fit_references`.
     Raw {
         /// The data.
         scan: RawScan,

@@ -8,7 +8,7 @@ use std::prelude::v1::test as native_test;
 #[cfg(target_arch = "wasm32")]
 use wasm_bindgen_test::wasm_bindgen_test as wasm_test;
 
-use spintune::fit::evaluate;
+use spintune::fit::{evaluate_with, uncertainty::SIMULATED_DEVICE_REFERENCES};
 use spintune::protocol::{Request, Response, ScanKind, ScanOutcome, ScanRequest};
 use spintune::sim::{default_gates, DeviceConfig, SimulatedDevice};
 
@@ -52,7 +52,7 @@ fn run(dev: &mut SimulatedDevice, requests: &[Request], hash: &mut u64) {
                 for t in &scan.traces {
                     t.x.iter().chain(&t.y).for_each(|&v| eat(v));
                 }
-                if let Ok(e) = evaluate(&scan) {
+                if let Ok(e) = evaluate_with(&scan, &SIMULATED_DEVICE_REFERENCES) {
                     for v in &e.values {
                         eat(v.value);
                         eat(v.variance);

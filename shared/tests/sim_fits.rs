@@ -1,8 +1,8 @@
 //! Fits against the simulator: coverage of the uncertainty rule, charge
 //! jumps, noiseless exactness, calibration constants.
 
-use spintune::fit::uncertainty::DEFAULT_REFERENCES;
-use spintune::fit::{evaluate, Evaluation, FitError};
+use spintune::fit::uncertainty::SIMULATED_DEVICE_REFERENCES;
+use spintune::fit::{evaluate_with, Evaluation, FitError};
 use spintune::protocol::{RawScan, Request, Response, ScanKind, ScanOutcome, ScanRequest};
 use spintune::sim::{calibrate_reference, default_gates, DeviceConfig, SimulatedDevice};
 
@@ -16,6 +16,11 @@ fn measure(dev: &mut SimulatedDevice, kind: ScanKind) -> RawScan {
         } => scan,
         other => panic!("{kind:?}: {other:?}"),
     }
+}
+
+/// These scans come from the default simulated device, so its calibration applies.
+fn evaluate(scan: &RawScan) -> Result<Evaluation, FitError> {
+    evaluate_with(scan, &SIMULATED_DEVICE_REFERENCES)
 }
 
 fn value(e: &Evaluation, name: &str) -> (f64, f64) {
@@ -53,7 +58,7 @@ fn one_sigma_coverage_of_w_and_t_sr() {
 #[test]
 fn reference_constants_match_calibration() {
     let r = calibrate_reference(&DeviceConfig::default(), &default_gates(), 2024, 400).unwrap();
-    let d = DEFAULT_REFERENCES;
+    let d = SIMULATED_DEVICE_REFERENCES;
     for (name, a, b) in [
         ("w.sigma0", d.w.sigma0, r.w.sigma0),
         ("w.delta_p0", d.w.delta_p0, r.w.delta_p0),
@@ -85,12 +90,12 @@ fn charge_jumps_fail_or_inflate_the_variance() {
             (
                 ScanKind::TransitionWidth,
                 "w",
-                DEFAULT_REFERENCES.w.delta_p0,
+                SIMULATED_DEVICE_REFERENCES.w.delta_p0,
             ),
             (
                 ScanKind::ReloadTime,
                 "t_sr",
-                DEFAULT_REFERENCES.t_sr.delta_p0,
+                SIMULATED_DEVICE_REFERENCES.t_sr.delta_p0,
             ),
         ] {
             let before = dev.drift().clone();
@@ -159,7 +164,7 @@ fn poor_contrast_gives_large_variance_or_error() {
         match evaluate(&measure(&mut dev, ScanKind::TransitionWidth)) {
             Err(FitError::BadData(_) | FitError::NotConverged(_)) => {}
             Err(e) => panic!("unexpected {e}"),
-            Ok(e) => assert!(value(&e, "w").1 > 2.0 * DEFAULT_REFERENCES.w.delta_p0),
+            Ok(e) => assert!(value(&e, "w").1 > 2.0 * SIMULATED_DEVICE_REFERENCES.w.delta_p0),
         }
     }
 }
@@ -176,7 +181,10 @@ fn off_centre_lines_degrade_the_width_scan() {
     for _ in 0..5 {
         if let Ok(e) = evaluate(&measure(&mut dev, ScanKind::TransitionWidth)) {
             let (w, dw) = value(&e, "w");
-            assert!(dw > 10.0 * DEFAULT_REFERENCES.w.delta_p0, "{w} ± {dw}");
+            assert!(
+                dw > 10.0 * SIMULATED_DEVICE_REFERENCES.w.delta_p0,
+                "{w} ± {dw}"
+            );
         }
     }
 }

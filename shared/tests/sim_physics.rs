@@ -224,7 +224,11 @@ fn sensing_dot_loses_contrast_until_retuned() {
         panic!()
     };
     assert_eq!(lab_seconds, 17.0);
-    let e = spintune::fit::evaluate(&scan).unwrap();
+    let e = spintune::fit::evaluate_with(
+        &scan,
+        &spintune::fit::uncertainty::SIMULATED_DEVICE_REFERENCES,
+    )
+    .unwrap();
     let flank = e.values[0].value;
     assert!((flank - dev.truth().sd_flank_mv).abs() < 0.1);
     set(&mut dev, &[("SD1", flank)]);

@@ -3,7 +3,7 @@
 use super::lm::{self, Model};
 use super::tanh::check_axis;
 use super::FitError;
-use crate::sim::detmath;
+use crate::detmath;
 
 struct ExpModel;
 

@@ -9,10 +9,15 @@
 //! | [`ScanKind::ChemicalPotential`] | [`tanh::fit_tanh_step`] per line | `mu_a_mv`, `mu_b_mv` (mV) |
 //!
 //! Variances: `w` and `t_sr` by the paper's residual rule
-//! ([`uncertainty`]); the others from the fit covariance. A fit that does
-//! not converge or whose result is implausible is an `Err`, never a value.
-//! All model functions use [`crate::sim::detmath`], so fits are
-//! bit-reproducible across targets.
+//! ([`uncertainty`]), with reference constants the caller passes in (a
+//! lab's own calibration; the tuner takes them from
+//! [`crate::tuner::TunerConfig::fit_references`]); the others from the fit
+//! covariance. A fit that does not converge or whose result is implausible
+//! is an `Err`, never a value. All model functions use [`crate::detmath`],
+//! so fits are bit-reproducible across targets.
+//!
+//! This module knows nothing about the simulator: it fits whatever raw scans
+//! it is given, from the simulator or from instruments.
 
 pub mod exponential;
 pub(crate) mod lm;
@@ -21,7 +26,7 @@ pub mod tanh;
 pub mod uncertainty;
 
 use crate::protocol::{ParameterValue, RawScan, ScanKind, Trace};
-use uncertainty::{scaled_residual_sum, References, DEFAULT_REFERENCES};
+use uncertainty::{scaled_residual_sum, References};
 
 /// Why a scan could not be evaluated.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -54,26 +59,33 @@ pub struct Evaluation {
     pub fit: Vec<Trace>,
 }
 
-/// Evaluates a raw scan with the reference constants of the default device
-/// ([`DEFAULT_REFERENCES`]).
+/// Evaluates a raw scan: fits the model of its [`ScanKind`] and returns the
+/// parameters with variances. `references` are the `σ₀`, `δp₀` constants of
+/// the `w` and `t_sr` uncertainties ([`uncertainty`]): a lab's own
+/// calibration from repeated scans at a fixed operating point.
+/// [`References::default`] is the calibration of the default simulated
+/// device ([`uncertainty::SIMULATED_DEVICE_REFERENCES`]) and is wrong for
+/// any other device.
 ///
 /// ```
-/// use spintune::protocol::{Request, Response, ScanKind, ScanOutcome, ScanRequest};
-/// use spintune::sim::{default_gates, DeviceConfig, SimulatedDevice};
-/// let mut dev = SimulatedDevice::new(DeviceConfig::default(), &default_gates(), 1).unwrap();
-/// let req = Request::Measure { scan: ScanRequest { kind: ScanKind::ReloadTime, sweep: None } };
-/// let Response::Scanned { outcome: ScanOutcome::Raw { scan }, .. } = dev.execute(&req) else { panic!() };
-/// let eval = spintune::fit::evaluate(&scan).unwrap();
-/// assert_eq!(eval.values[0].name, "t_sr");
-/// assert!((eval.values[0].value - dev.truth().t_sr_ns).abs() < 5.0);
+/// use spintune::fit::{evaluate_with, uncertainty::{Reference, References}};
+/// use spintune::protocol::{RawScan, ScanKind, Trace};
+/// let x: Vec<f64> = (0..100).map(|i| -2.0 + 4.0 * f64::from(i) / 99.0).collect();
+/// let y: Vec<f64> = x.iter().map(|&x| 0.5 * ((x + 0.4) / 0.25).tanh()).collect();
+/// let scan = RawScan {
+///     kind: ScanKind::TransitionWidth,
+///     x_label: "detuning (mV)".into(),
+///     y_label: "signal".into(),
+///     traces: vec![Trace { label: "data".into(), x, y }],
+/// };
+/// let lab = References {
+///     w: Reference { sigma0: 0.02, delta_p0: 5.0 },
+///     t_sr: Reference { sigma0: 0.01, delta_p0: 0.5 },
+/// };
+/// let eval = evaluate_with(&scan, &lab).unwrap();
+/// assert_eq!(eval.values[0].name, "w");
+/// assert!((eval.values[0].value - 250.0).abs() < 1e-6); // µV
 /// ```
-pub fn evaluate(scan: &RawScan) -> Result<Evaluation, FitError> {
-    evaluate_with(scan, &DEFAULT_REFERENCES)
-}
-
-/// Like [`evaluate`], with explicit reference constants for the `w` and
-/// `t_sr` uncertainties (e.g. from [`crate::sim::calibrate_reference`] or a
-/// lab's own repeated measurements).
 pub fn evaluate_with(scan: &RawScan, references: &References) -> Result<Evaluation, FitError> {
     match scan.kind {
         ScanKind::TransitionWidth => {
@@ -167,6 +179,10 @@ fn curve(label: &str, x: &[f64], f: impl Fn(f64) -> f64) -> Trace {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn evaluate(scan: &RawScan) -> Result<Evaluation, FitError> {
+        evaluate_with(scan, &References::default())
+    }
 
     fn scan(kind: ScanKind, x: Vec<f64>, y: Vec<f64>) -> RawScan {
         RawScan {

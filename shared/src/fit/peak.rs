@@ -6,11 +6,8 @@ use nalgebra::{DMatrix, DVector};
 use super::lm::{self, Model};
 use super::tanh::check_axis;
 use super::FitError;
-use crate::sim::config::STEEPEST_SECH2_OFFSET;
-use crate::sim::detmath;
-
-/// `max |d/dz sech²(z)| = 4/(3√3)`, reached at `z = ±atanh(1/√3)`.
-pub const MAX_SECH2_SLOPE: f64 = 0.769_800_358_919_501;
+use crate::detmath;
+use crate::detmath::{MAX_SECH2_SLOPE, STEEPEST_SECH2_OFFSET};
 
 struct PeakModel;
 

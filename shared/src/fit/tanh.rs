@@ -5,7 +5,7 @@
 
 use super::lm::{self, Model};
 use super::FitError;
-use crate::sim::detmath;
+use crate::detmath;
 
 struct TanhModel;
 

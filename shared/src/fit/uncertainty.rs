@@ -8,6 +8,12 @@
 //! standard deviation of `p` over many repeated measurements at a fixed
 //! operating point.
 //!
+//! The references belong to a measurement setup, not to this module: a lab
+//! calibrates its own (repeated scans at a fixed operating point) and passes
+//! them in, e.g. as [`crate::tuner::TunerConfig::fit_references`].
+//! [`SIMULATED_DEVICE_REFERENCES`] (also [`References::default`]) is the
+//! calibration of the default simulated device.
+//!
 //! Note that `σ` is a sum of squares, so `δp` grows with the square of the
 //! noise-to-signal ratio: at half the sensing-dot contrast `δp` is about
 //! four times `δp₀`, roughly twice the true scatter. The paper's rule is
@@ -40,6 +46,9 @@ impl Reference {
 }
 
 /// Reference constants for every parameter evaluated this way.
+///
+/// [`References::default`] is [`SIMULATED_DEVICE_REFERENCES`], the
+/// calibration of the default simulated device; a real device needs its own.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct References {
@@ -49,14 +58,17 @@ pub struct References {
     pub t_sr: Reference,
 }
 
-/// Reference constants of the default simulated device
-/// ([`crate::sim::DeviceConfig::default`] at the start point of
-/// [`crate::sim::default_gates`]), from
+/// Reference constants of the default simulated device (its default
+/// configuration, `DeviceConfig::default()`, at the start point of
+/// `default_gates()`, both in the simulator module), from
 /// `spintune::sim::calibrate_reference(&DeviceConfig::default(), &default_gates(), 2024, 400)`
 /// (400 scans of each kind, seed 2024), rounded to three significant digits.
 /// The test `reference_constants_match_calibration` in `shared/tests/sim_fits.rs`
 /// re-derives them and checks agreement within 1 %.
-pub const DEFAULT_REFERENCES: References = References {
+///
+/// Only valid for that simulated device; it is the default of
+/// [`References`] so that simulated runs need no calibration step.
+pub const SIMULATED_DEVICE_REFERENCES: References = References {
     w: Reference {
         sigma0: 0.0116,
         delta_p0: 4.67,
@@ -66,6 +78,13 @@ pub const DEFAULT_REFERENCES: References = References {
         delta_p0: 0.546,
     },
 };
+
+impl Default for References {
+    /// [`SIMULATED_DEVICE_REFERENCES`].
+    fn default() -> Self {
+        SIMULATED_DEVICE_REFERENCES
+    }
+}
 
 /// `σ = Σ (r_i/Θ)²` for residuals `r` and scale `Θ` (must be > 0).
 ///

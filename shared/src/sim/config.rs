@@ -9,6 +9,7 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 
 use super::gates::default_gates;
+use crate::detmath::STEEPEST_SECH2_OFFSET;
 
 /// A second-order term `coefficient · d_a · d_b` of a model (for `a == b`
 /// this is `coefficient · d_a²`). Unit: model unit per mV².
@@ -66,7 +67,7 @@ impl ExpModel {
             .map(|(g, c)| c * d.get(g).copied().unwrap_or(0.0))
             .sum();
         let quad: f64 = self.quadratic_per_mv2.iter().map(|t| t.eval(d)).sum();
-        super::detmath::ln(self.at_reference) + lin + quad
+        crate::detmath::ln(self.at_reference) + lin + quad
     }
 }
 
@@ -236,9 +237,6 @@ pub struct DeviceConfig {
 
 /// Boltzmann constant, µeV/mK.
 pub const K_B_UEV_PER_MK: f64 = 8.617_333_262e-2;
-
-/// `atanh(1/√3)`: position of the steepest point of `sech²` in units of its width.
-pub const STEEPEST_SECH2_OFFSET: f64 = 0.658_478_948_462_408_4;
 
 impl Default for DeviceConfig {
     fn default() -> Self {

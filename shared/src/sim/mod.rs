@@ -1,7 +1,7 @@
 //! The simulated double quantum dot: physics, raw scans, noise and the lab
 //! clock (DESIGN, "The simulated device"). No IO; randomness only from the
 //! seeded `ChaCha8Rng` inside [`SimulatedDevice`]; transcendental functions
-//! from [`detmath`] so data are bit-identical on native and wasm.
+//! from [`crate::detmath`] so data are bit-identical on native and wasm.
 //!
 //! Physics (all voltages mV, `d_g` = deviation from the reference):
 //! - t_c (µeV) and Γ (1/ns) are [`config::ExpModel`]s: exponentials of a
@@ -22,7 +22,6 @@
 pub mod calibration;
 pub mod clock;
 pub mod config;
-pub mod detmath;
 pub mod device;
 pub mod gates;
 pub(crate) mod model;

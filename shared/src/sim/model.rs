@@ -4,9 +4,8 @@
 
 use std::collections::BTreeMap;
 
-use super::config::{DeviceConfig, K_B_UEV_PER_MK, STEEPEST_SECH2_OFFSET};
-use super::detmath::{exp, sech2, tanh};
-use crate::fit::peak::MAX_SECH2_SLOPE;
+use super::config::{DeviceConfig, K_B_UEV_PER_MK};
+use crate::detmath::{exp, sech2, tanh, MAX_SECH2_SLOPE, STEEPEST_SECH2_OFFSET};
 use crate::fit::tanh::fit_tanh_step;
 
 /// Deviations `V_g − reference_g` (mV) of every gate that has a reference.

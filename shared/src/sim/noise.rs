@@ -6,7 +6,7 @@ use rand_distr::Distribution;
 use serde::{Deserialize, Serialize};
 
 use super::config::NoiseConfig;
-use super::detmath::{exp, StandardNormal};
+use crate::detmath::{exp, StandardNormal};
 
 /// The device's slowly varying disorder state. All start at 0.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]

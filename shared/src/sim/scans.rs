@@ -8,9 +8,9 @@
 
 use rand_distr::Distribution;
 
-use super::detmath::{exp, StandardNormal};
 use super::device::SimulatedDevice;
 use super::model;
+use crate::detmath::{exp, StandardNormal};
 use crate::protocol::{RawScan, ScanKind, ScanRequest, Sweep, Trace};
 
 /// Largest number of points a sensing-dot sweep may request.

@@ -5,6 +5,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::estimator::EstimatorKind;
+use crate::fit::uncertainty::References;
 use crate::parameter::ParameterSpec;
 use crate::safety::GateSpec;
 use crate::solver::SolverConfig;
@@ -183,6 +184,14 @@ pub struct TunerConfig {
     /// at the start of the given top-level iterations.
     #[serde(default)]
     pub schedule: Vec<ScheduledTargets>,
+    /// Reference constants `σ₀`, `δp₀` of the σ/σ₀ uncertainty rule
+    /// (`δp ≈ δp₀·σ/σ₀`, [`crate::fit::uncertainty`]) with which the tuner
+    /// evaluates raw `w` and `t_sr` scans. A lab calibrates its own (repeated
+    /// scans at a fixed operating point); the default is the calibration of
+    /// the default simulated device
+    /// ([`crate::fit::uncertainty::SIMULATED_DEVICE_REFERENCES`]).
+    #[serde(default)]
+    pub fit_references: References,
 }
 
 /// New targets for some parameters from a given top-level iteration on.
@@ -282,6 +291,19 @@ impl TunerConfig {
                     return Err(ConfigError::new(
                         field,
                         "must be a finite number (> 0 in log space)",
+                    ));
+                }
+            }
+        }
+        for (parameter, r) in [
+            ("w", &self.fit_references.w),
+            ("t_sr", &self.fit_references.t_sr),
+        ] {
+            for (name, v) in [("sigma0", r.sigma0), ("delta_p0", r.delta_p0)] {
+                if !(v.is_finite() && v > 0.0) {
+                    return Err(ConfigError::new(
+                        format!("fit_references.{parameter}.{name}"),
+                        "must be a finite number > 0",
                     ));
                 }
             }

@@ -517,7 +517,7 @@ impl Tuner {
                 };
                 *self.scan_counts.entry(kind).or_insert(0) += 1;
                 self.add_lab_time(lab_seconds);
-                let (values, report) = evaluate_outcome(outcome);
+                let (values, report) = evaluate_outcome(outcome, &self.config.fit_references);
                 if let Err(e) = &values {
                     self.failed_evaluations += 1;
                     self.note(
@@ -725,12 +725,14 @@ impl Tuner {
     }
 }
 
-/// Turn a device's scan outcome into validated parameter values and a display report.
+/// Turn a device's scan outcome into validated parameter values and a display
+/// report; raw scans are fitted with the config's `fit_references`.
 fn evaluate_outcome(
     outcome: ScanOutcome,
+    references: &crate::fit::uncertainty::References,
 ) -> (Result<Vec<ParameterValue>, String>, Option<ScanReport>) {
     match outcome {
-        ScanOutcome::Raw { scan } => match crate::fit::evaluate(&scan) {
+        ScanOutcome::Raw { scan } => match crate::fit::evaluate_with(&scan, references) {
             Ok(ev) => {
                 let values = validate_values(ev.values);
                 (

@@ -190,6 +190,7 @@ fn flat(estimator: EstimatorKind) -> TunerConfig {
         stop_when_tuned: false,
         max_iterations: Some(25),
         schedule: Vec::new(),
+        fit_references: Default::default(),
     }
 }
 
@@ -252,6 +253,7 @@ fn hierarchical() -> TunerConfig {
         stop_when_tuned: false,
         max_iterations: Some(25),
         schedule: Vec::new(),
+        fit_references: Default::default(),
     }
 }
 
@@ -531,6 +533,53 @@ fn config_errors_name_the_field() {
     assert_eq!(
         Tuner::new(cfg).unwrap_err().field,
         "levels[0].parameters[0].process_noise_per_mv"
+    );
+}
+
+#[test]
+fn non_positive_or_non_finite_fit_references_are_rejected_naming_the_field() {
+    type Set = fn(&mut TunerConfig, f64);
+    let cases: [(&str, Set); 4] = [
+        ("fit_references.w.sigma0", |c, x| {
+            c.fit_references.w.sigma0 = x
+        }),
+        ("fit_references.w.delta_p0", |c, x| {
+            c.fit_references.w.delta_p0 = x
+        }),
+        ("fit_references.t_sr.sigma0", |c, x| {
+            c.fit_references.t_sr.sigma0 = x
+        }),
+        ("fit_references.t_sr.delta_p0", |c, x| {
+            c.fit_references.t_sr.delta_p0 = x
+        }),
+    ];
+    for (field, set) in cases {
+        for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+            let mut cfg = hierarchical();
+            set(&mut cfg, bad);
+            let e = Tuner::new(cfg).unwrap_err();
+            assert_eq!(e.field, field, "{bad}");
+            assert!(e.to_string().contains("> 0"), "{e}");
+        }
+        let mut cfg = hierarchical();
+        set(&mut cfg, 1e-3);
+        assert!(Tuner::new(cfg).is_ok(), "{field}");
+    }
+}
+
+#[test]
+fn fit_references_default_when_absent_from_a_config() {
+    let cfg = hierarchical();
+    let mut json: serde_json::Value = serde_json::to_value(&cfg).unwrap();
+    assert!(json
+        .as_object_mut()
+        .unwrap()
+        .remove("fit_references")
+        .is_some());
+    let back: TunerConfig = serde_json::from_value(json).unwrap();
+    assert_eq!(
+        back.fit_references,
+        crate::fit::uncertainty::SIMULATED_DEVICE_REFERENCES
     );
 }
 

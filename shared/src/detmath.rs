@@ -1,17 +1,26 @@
-//! Bit-reproducible transcendental functions and Gaussian sampling.
+//! Deterministic maths shared by the simulator ([`crate::sim`]) and the fits
+//! ([`crate::fit`]): bit-reproducible transcendental functions, Gaussian
+//! sampling, and constants of the model shapes both use.
 //!
+//! Why it exists: the same tuning run must give bit-identical results
+//! natively (server, benchmarks, tests) and in wasm (the browser's local
+//! mode); the golden hashes in `shared/tests/wasm.rs` and
+//! `shared/tests/sim_determinism.rs` hold both targets to that.
 //! `f64::exp`, `ln` and `tanh` call the platform's libm: glibc natively,
 //! a Rust port of FreeBSD's msun on `wasm32-unknown-unknown`. Both are
-//! accurate to < 1 ulp but do not always round the same way, so a simulator
-//! built on them would produce traces that differ in the last bit between
-//! native and wasm. Everything here uses only IEEE-754 `+ − × ÷ sqrt` and
-//! exact bit manipulation, which are identical on every target, so the same
-//! seed gives bit-identical data everywhere.
+//! accurate to < 1 ulp but do not always round the same way, so simulated
+//! traces and fitted values built on them would differ in the last bit
+//! between native and wasm. Everything here uses only IEEE-754
+//! `+ − × ÷ sqrt` and exact bit manipulation, which are identical on every
+//! target, so the same seed gives bit-identical data and fits everywhere.
 //!
 //! For the same reason Gaussian noise is drawn with [`StandardNormal`]
 //! (Marsaglia's polar method on [`ln`]) instead of
 //! `rand_distr::StandardNormal`, whose ziggurat calls the platform's `exp`
 //! and `ln` in its wedge and tail.
+//!
+//! This module depends on nothing else in the crate, so `fit` can use it
+//! without depending on `sim`.
 
 // The polynomial coefficients below are the published FreeBSD/musl values,
 // kept verbatim (they round to the intended f64s) so they can be checked
@@ -33,7 +42,7 @@ fn pow2(k: i32) -> f64 {
 /// `e^x`, < 1 ulp (FreeBSD `e_exp.c` algorithm), identical on all targets.
 ///
 /// ```
-/// use spintune::sim::detmath::exp;
+/// use spintune::detmath::exp;
 /// assert!((exp(1.0) - std::f64::consts::E).abs() < 1e-15);
 /// assert_eq!(exp(0.0), 1.0);
 /// ```
@@ -76,7 +85,7 @@ pub fn exp(x: f64) -> f64 {
 /// all targets. `ln(0) = −∞`, `ln(x<0) = NaN`.
 ///
 /// ```
-/// use spintune::sim::detmath::ln;
+/// use spintune::detmath::ln;
 /// assert!((ln(10.0) - std::f64::consts::LN_10).abs() < 1e-15);
 /// assert_eq!(ln(1.0), 0.0);
 /// ```
@@ -129,7 +138,7 @@ pub fn ln(x: f64) -> f64 {
 /// Hyperbolic tangent (absolute error ≲ 2e-16), identical on all targets.
 ///
 /// ```
-/// use spintune::sim::detmath::tanh;
+/// use spintune::detmath::tanh;
 /// assert!((tanh(0.5) - 0.5f64.tanh()).abs() < 1e-15);
 /// assert_eq!(tanh(-30.0), -1.0);
 /// ```
@@ -166,7 +175,7 @@ pub fn tanh(x: f64) -> f64 {
 /// `sech²(x) = 1 − tanh²(x)`, computed without cancellation, identical on all targets.
 ///
 /// ```
-/// use spintune::sim::detmath::sech2;
+/// use spintune::detmath::sech2;
 /// assert_eq!(sech2(0.0), 1.0);
 /// assert!((sech2(1.0) - 1.0 / 1f64.cosh().powi(2)).abs() < 1e-15);
 /// ```
@@ -175,6 +184,29 @@ pub fn sech2(x: f64) -> f64 {
     4.0 * e / ((1.0 + e) * (1.0 + e))
 }
 
+/// `atanh(1/√3)`: position of the steepest point of `sech²(x/γ)` relative to
+/// its centre, in units of its width `γ` (where the second derivative
+/// vanishes: `tanh²(x/γ) = 1/3`). Used by the simulated sensing dot and by
+/// the sensing-dot peak fit.
+///
+/// ```
+/// use spintune::detmath::STEEPEST_SECH2_OFFSET;
+/// assert!((STEEPEST_SECH2_OFFSET - (1.0 / 3f64.sqrt()).atanh()).abs() < 1e-15);
+/// ```
+pub const STEEPEST_SECH2_OFFSET: f64 = 0.658_478_948_462_408_4;
+
+/// `max |d/dz sech²(z)| = 4/(3√3)`, reached at `z = ±`[`STEEPEST_SECH2_OFFSET`].
+/// Used by the simulated sensing dot and by the sensing-dot peak fit.
+///
+/// ```
+/// use spintune::detmath::{sech2, tanh, MAX_SECH2_SLOPE, STEEPEST_SECH2_OFFSET};
+/// assert!((MAX_SECH2_SLOPE - 4.0 / (3.0 * 3f64.sqrt())).abs() < 1e-15);
+/// // d/dz sech²(z) = −2 sech²(z) tanh(z)
+/// let z = STEEPEST_SECH2_OFFSET;
+/// assert!((2.0 * sech2(z) * tanh(z) - MAX_SECH2_SLOPE).abs() < 1e-15);
+/// ```
+pub const MAX_SECH2_SLOPE: f64 = 0.769_800_358_919_501;
+
 /// The standard normal distribution N(0, 1), sampled with Marsaglia's polar
 /// method using only [`ln`] and `sqrt`, so that samples are bit-identical on
 /// every target for the same RNG state.
@@ -182,7 +214,7 @@ pub fn sech2(x: f64) -> f64 {
 /// ```
 /// use rand::SeedableRng;
 /// use rand_distr::Distribution;
-/// use spintune::sim::detmath::StandardNormal;
+/// use spintune::detmath::StandardNormal;
 /// let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
 /// let x: f64 = StandardNormal.sample(&mut rng);
 /// assert!(x.is_finite());

@@ -16,9 +16,15 @@ Usage (one dependency: ``pip install websockets``)::
 
 Protocol (JSON text frames, see docs/instruments.md):
 
-    server: {"type":"hello","version":1,"run":{...}}
+    (the script adds ?protocol=2 to the URL: the server refuses clients
+    that do not state the protocol version they speak)
+    server: {"type":"hello","version":2,"run":{...}}
     client: {"type":"auth","token":"SECRET"}
     server: {"type":"auth_ok"}
+    server: {"type":"request","id":6,"timeout_s":300.0,
+             "request":{"request":"read_voltages","gates":["N","SB"]}}
+    client: {"type":"response","id":6,
+             "response":{"response":"voltages_read","voltages_mv":{"N":-700.0,"SB":-780.0},"lab_seconds":0.0}}
     server: {"type":"request","id":7,"timeout_s":300.0,
              "request":{"request":"set_voltages","voltages_mv":{"SB":-779.2}}}
     client: {"type":"response","id":7,
@@ -44,12 +50,16 @@ import sys
 
 import websockets
 
+# The wire protocol this script speaks (spintune::protocol::PROTOCOL_VERSION).
+PROTOCOL_VERSION = 2
+
 # --- toy device -------------------------------------------------------------
 # A linear model around a working point: parameter = p0 + sum_g J[g] * (V_g - V0_g).
 # Replace it by real measurements (see the two functions below).
 
 WORKING_POINT_MV = {"N": -700.0, "T": -650.0, "SA": -820.0, "SB": -780.0,
-                    "PA": -300.0, "PB": -320.0}
+                    "PA": -300.0, "PB": -320.0, "SD1": -600.0, "SP": -500.0,
+                    "SD2": -620.0, "RFA": 0.0, "RFB": 0.0}
 MODEL = {
     # name: (value at the working point, {gate: slope per mV}, standard deviation)
     "t_sr": (40.0, {"N": -1.5, "T": 0.5, "SA": 0.8, "SB": 1.2}, 1.0),          # ns
@@ -65,7 +75,7 @@ SCAN_PARAMETERS = {
 SCAN_LAB_SECONDS = {"sensing_dot": 17.0, "chemical_potential": 38.0,
                     "transition_width": 28.0, "reload_time": 5.0}
 
-gates_mv = {}          # what the toy "instrument" is set to, mV
+gates_mv = dict(WORKING_POINT_MV)   # what the toy "instrument" is set to, mV
 rng = random.Random(1)
 
 
@@ -78,6 +88,16 @@ def set_gates(voltages_mv):
     """
     gates_mv.update(voltages_mv)
     return dict(voltages_mv), 0.1
+
+
+def read_gates(gates):
+    """PLUG IN QCODES HERE: read the present output of these DC gates, mV.
+
+    e.g. ``{g: station.dac.channels[CH[g]].volt() * 1000 for g in gates}``.
+    Answer exactly the gates asked for: the server checks every step against
+    these values, never against its own plan.
+    """
+    return {g: gates_mv[g] for g in gates}, 0.0
 
 
 def measure(scan):
@@ -118,6 +138,9 @@ def answer(request):
         if what == "set_voltages":
             applied, seconds = set_gates(request["voltages_mv"])
             return {"response": "voltages_set", "voltages_mv": applied, "lab_seconds": seconds}
+        if what == "read_voltages":
+            present, seconds = read_gates(request["gates"])
+            return {"response": "voltages_read", "voltages_mv": present, "lab_seconds": seconds}
         if what == "measure":
             outcome, seconds = measure(request["scan"])
             return {"response": "scanned", "outcome": outcome, "lab_seconds": seconds}
@@ -137,6 +160,8 @@ async def serve_once(url, token, budget):
 
     ``budget`` is a one-element list: requests still to answer (None: no limit).
     """
+    if "protocol=" not in url:
+        url += ("&" if "?" in url else "?") + f"protocol={PROTOCOL_VERSION}"
     async with websockets.connect(url, max_size=None) as ws:
         hello = json.loads(await ws.recv())
         if hello.get("type") != "hello":

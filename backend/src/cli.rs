@@ -281,6 +281,7 @@ pub async fn run(args: RunArgs) -> Result<(), CliError> {
     );
     bar.set_message(format!("run {id} ({})", summary.name));
     let mut last: Option<spintune::protocol::IterationRecord> = None;
+    let mut fault: Option<spintune::protocol::Fault> = None;
     let interrupted = loop {
         tokio::select! {
             frame = rx.recv() => match frame {
@@ -291,11 +292,19 @@ pub async fn run(args: RunArgs) -> Result<(), CliError> {
                             bar.set_message(progress_line(&record));
                             last = Some(record);
                         }
-                        Ok(ServerMessage::Status { run })
-                            if !matches!(run.status, RunStatus::Running | RunStatus::Paused) =>
-                        {
-                            break false;
-                        }
+                        Ok(ServerMessage::Status { run }) => match run.status {
+                            // Nobody can resume a headless run: leave it
+                            // resumable in the store and say so.
+                            RunStatus::Faulted { fault: f } => {
+                                fault = Some(f);
+                                manager.detach(id).await.map_err(CliError::runtime)?;
+                                break false;
+                            }
+                            s if s.is_terminal() || matches!(s, RunStatus::Failed { .. }) => {
+                                break false
+                            }
+                            _ => {}
+                        },
                         _ => {}
                     }
                 }
@@ -305,6 +314,18 @@ pub async fn run(args: RunArgs) -> Result<(), CliError> {
             _ = tokio::signal::ctrl_c() => break true,
         }
     };
+    if let Some(f) = fault {
+        manager.wait_idle(id).await.map_err(CliError::runtime)?;
+        bar.abandon_with_message("faulted");
+        return Err(CliError {
+            code: 3,
+            message: format!(
+                "run {id} paused by a {f}\nNothing further was sent to the device. The run is stored in {} and stays resumable: fix the cause, then `spintune serve --db {}` and resume run {id}.",
+                args.db.display(),
+                args.db.display()
+            ),
+        });
+    }
     if interrupted {
         manager.mark_live_interrupted();
         bar.abandon_with_message("interrupted");
@@ -363,7 +384,8 @@ pub async fn run(args: RunArgs) -> Result<(), CliError> {
 fn describe_status(s: &RunStatus) -> String {
     match s {
         RunStatus::Failed { message } => format!("failed: {message}"),
-        other => crate::run::status_name(other).to_string(),
+        RunStatus::Faulted { fault } => format!("faulted ({fault})"),
+        other => other.name().to_string(),
     }
 }
 

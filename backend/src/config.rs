@@ -28,8 +28,8 @@ use serde_json::{Map, Value};
 use spintune::driver::SimulationConfig;
 use spintune::parameter::Tolerance;
 
-pub use crate::bridge::BridgeConfig;
-pub use crate::scpi::{MeasureSource, ScpiConfig};
+pub use crate::devices::bridge::BridgeConfig;
+pub use crate::devices::scpi::{MeasureSource, ScpiConfig};
 
 /// Which device a run drives.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -39,10 +39,10 @@ pub enum DriverKind {
     #[default]
     Simulator,
     /// A SCPI DC voltage source over raw TCP sets the gates
-    /// ([`crate::scpi`]); measurements come from `scpi.measure`.
+    /// ([`crate::devices::scpi`]); measurements come from `scpi.measure`.
     Scpi,
     /// An external lab script connected over WebSocket sets gates and
-    /// measures ([`crate::bridge`]).
+    /// measures ([`crate::devices::bridge`]).
     Bridge,
 }
 

@@ -6,13 +6,11 @@
 
 pub mod bench;
 pub mod bench_server;
-pub mod bridge;
 pub mod cli;
 pub mod config;
-pub mod device;
+pub mod devices;
 pub mod export;
 pub mod replay;
 pub mod run;
-pub mod scpi;
 pub mod server;
 pub mod store;

@@ -31,6 +31,17 @@ pub enum StoreError {
     /// No such run.
     #[error("no run with id {0}")]
     NotFound(u64),
+    /// The writer's task generation is no longer the run's: another task
+    /// has taken the run over. Nothing was written; the writer must exit.
+    #[error("run {run}: task generation {generation} is stale (the run is now driven by generation {current})")]
+    Stale {
+        /// Run id.
+        run: u64,
+        /// The writer's generation.
+        generation: u64,
+        /// The run's present generation.
+        current: u64,
+    },
     /// An iteration was committed out of order.
     #[error("run {run}: expected iteration seq {expected}, got {got}")]
     OutOfOrder {
@@ -68,7 +79,8 @@ CREATE TABLE IF NOT EXISTS runs (
     lab_seconds REAL    NOT NULL DEFAULT 0,
     tuned       INTEGER NOT NULL DEFAULT 0,
     checkpoint  TEXT    NOT NULL,
-    created_unix_s REAL NOT NULL
+    created_unix_s REAL NOT NULL,
+    generation  INTEGER NOT NULL DEFAULT 0
 );
 CREATE TABLE IF NOT EXISTS iterations (
     run_id INTEGER NOT NULL REFERENCES runs(id) ON DELETE CASCADE,
@@ -121,6 +133,15 @@ impl Store {
     pub fn open(path: &Path) -> Result<Self, StoreError> {
         let writer = open_conn(path)?;
         writer.execute_batch(SCHEMA)?;
+        // Stores written before task generations existed lack the column.
+        let has_generation = writer
+            .prepare("SELECT 1 FROM pragma_table_info('runs') WHERE name = 'generation'")?
+            .exists([])?;
+        if !has_generation {
+            writer.execute_batch(
+                "ALTER TABLE runs ADD COLUMN generation INTEGER NOT NULL DEFAULT 0",
+            )?;
+        }
         let reader = open_conn(path)?;
         Ok(Self {
             writer: Mutex::new(writer),
@@ -152,11 +173,57 @@ impl Store {
         Ok(conn.last_insert_rowid() as u64)
     }
 
+    /// Take run `id` over for a new task: bump and return its generation.
+    /// Every later write of an older generation fails with
+    /// [`StoreError::Stale`] (one driver per run, also across processes).
+    pub fn claim(&self, id: u64) -> Result<u64, StoreError> {
+        let conn = self.w();
+        let n = conn.execute(
+            "UPDATE runs SET generation = generation + 1 WHERE id = ?1",
+            params![id as i64],
+        )?;
+        if n == 0 {
+            return Err(StoreError::NotFound(id));
+        }
+        let g: i64 = conn.query_row(
+            "SELECT generation FROM runs WHERE id = ?1",
+            params![id as i64],
+            |r| r.get(0),
+        )?;
+        Ok(g as u64)
+    }
+
+    fn check_generation(
+        conn: &Connection,
+        id: u64,
+        generation: Option<u64>,
+    ) -> Result<(), StoreError> {
+        let current: Option<i64> = conn
+            .query_row(
+                "SELECT generation FROM runs WHERE id = ?1",
+                params![id as i64],
+                |r| r.get(0),
+            )
+            .optional()?;
+        let current = current.ok_or(StoreError::NotFound(id))? as u64;
+        match generation {
+            Some(g) if g != current => Err(StoreError::Stale {
+                run: id,
+                generation: g,
+                current,
+            }),
+            _ => Ok(()),
+        }
+    }
+
     /// Commit iteration `seq` of run `id` and the checkpoint taken right after it,
-    /// in one transaction.
+    /// in one transaction. With `generation`, only if the run is still driven
+    /// by that task generation ([`Store::claim`]).
+    #[allow(clippy::too_many_arguments)]
     pub fn commit_iteration(
         &self,
         id: u64,
+        generation: Option<u64>,
         seq: u64,
         record_json: &str,
         checkpoint_json: &str,
@@ -165,6 +232,7 @@ impl Store {
     ) -> Result<(), StoreError> {
         let mut conn = self.w();
         let tx = conn.transaction()?;
+        Self::check_generation(&tx, id, generation)?;
         let expected: Option<i64> = tx
             .query_row(
                 "SELECT iterations FROM runs WHERE id = ?1",
@@ -192,27 +260,40 @@ impl Store {
         Ok(())
     }
 
-    /// Replace the checkpoint of run `id` (e.g. after a target change between iterations).
-    pub fn save_checkpoint(&self, id: u64, checkpoint_json: &str) -> Result<(), StoreError> {
-        let n = self.w().execute(
+    /// Replace the checkpoint of run `id` (e.g. after a target change
+    /// between iterations); with `generation`, only for that task generation.
+    pub fn save_checkpoint(
+        &self,
+        id: u64,
+        generation: Option<u64>,
+        checkpoint_json: &str,
+    ) -> Result<(), StoreError> {
+        let mut conn = self.w();
+        let tx = conn.transaction()?;
+        Self::check_generation(&tx, id, generation)?;
+        tx.execute(
             "UPDATE runs SET checkpoint = ?2 WHERE id = ?1",
             params![id as i64, checkpoint_json],
         )?;
-        if n == 0 {
-            return Err(StoreError::NotFound(id));
-        }
+        tx.commit()?;
         Ok(())
     }
 
-    /// Set the status of run `id`.
-    pub fn set_status(&self, id: u64, status: &RunStatus) -> Result<(), StoreError> {
-        let n = self.w().execute(
+    /// Set the status of run `id`; with `generation`, only for that task generation.
+    pub fn set_status(
+        &self,
+        id: u64,
+        generation: Option<u64>,
+        status: &RunStatus,
+    ) -> Result<(), StoreError> {
+        let mut conn = self.w();
+        let tx = conn.transaction()?;
+        Self::check_generation(&tx, id, generation)?;
+        tx.execute(
             "UPDATE runs SET status = ?2 WHERE id = ?1",
             params![id as i64, serde_json::to_string(status)?],
         )?;
-        if n == 0 {
-            return Err(StoreError::NotFound(id));
-        }
+        tx.commit()?;
         Ok(())
     }
 
@@ -301,15 +382,23 @@ impl Store {
         Ok(())
     }
 
-    /// Mark every run left `running` or `paused` by a previous process as
-    /// `interrupted`; returns their ids. Call once at startup.
+    /// Mark every run left `running`, `stepping` or `paused` by a previous
+    /// process as `interrupted` (a `stopping` one as `stopped`: its stop was
+    /// acknowledged); returns the ids marked interrupted. Faulted runs keep
+    /// their fault. Call once at startup.
     pub fn mark_interrupted(&self) -> Result<Vec<u64>, StoreError> {
         let runs = self.list_runs()?;
         let mut ids = Vec::new();
         for r in runs {
-            if matches!(r.summary.status, RunStatus::Running | RunStatus::Paused) {
-                self.set_status(r.summary.id, &RunStatus::Interrupted)?;
-                ids.push(r.summary.id);
+            match r.summary.status {
+                RunStatus::Running | RunStatus::Stepping | RunStatus::Paused => {
+                    self.set_status(r.summary.id, None, &RunStatus::Interrupted)?;
+                    ids.push(r.summary.id);
+                }
+                RunStatus::Stopping => {
+                    self.set_status(r.summary.id, None, &RunStatus::Stopped)?;
+                }
+                _ => {}
             }
         }
         Ok(ids)
@@ -330,13 +419,29 @@ mod tests {
         let id = s
             .create_run("a", "{}", &RunStatus::Running, "{\"c\":0}")
             .unwrap();
-        s.commit_iteration(id, 0, "{\"k\":0}", "{\"c\":1}", 1.5, false)
+        let g = s.claim(id).unwrap();
+        s.commit_iteration(id, Some(g), 0, "{\"k\":0}", "{\"c\":1}", 1.5, false)
             .unwrap();
         assert!(matches!(
-            s.commit_iteration(id, 2, "{}", "{}", 0.0, false),
+            s.commit_iteration(id, Some(g), 2, "{}", "{}", 0.0, false),
             Err(StoreError::OutOfOrder { expected: 1, .. })
         ));
-        s.commit_iteration(id, 1, "{\"k\":1}", "{\"c\":2}", 3.0, true)
+        // another task takes the run over: the old one can no longer write
+        let g2 = s.claim(id).unwrap();
+        assert_eq!(g2, g + 1);
+        assert!(matches!(
+            s.commit_iteration(id, Some(g), 1, "{}", "{}", 0.0, false),
+            Err(StoreError::Stale { generation, current, .. }) if generation == g && current == g2
+        ));
+        assert!(matches!(
+            s.set_status(id, Some(g), &RunStatus::Stopped),
+            Err(StoreError::Stale { .. })
+        ));
+        assert!(matches!(
+            s.save_checkpoint(id, Some(g), "{}"),
+            Err(StoreError::Stale { .. })
+        ));
+        s.commit_iteration(id, Some(g2), 1, "{\"k\":1}", "{\"c\":2}", 3.0, true)
             .unwrap();
         assert_eq!(s.iterations_json(id, 1, None).unwrap(), vec!["{\"k\":1}"]);
         assert_eq!(s.checkpoint(id).unwrap(), "{\"c\":2}");

@@ -381,7 +381,10 @@ async fn connect_small_buffer(addr: std::net::SocketAddr, id: u64) -> common::Ws
     let sock = tokio::net::TcpSocket::new_v4().unwrap();
     sock.set_recv_buffer_size(4096).unwrap();
     let stream = sock.connect(addr).await.unwrap();
-    let url = format!("ws://{addr}/api/runs/{id}/ws");
+    let url = format!(
+        "ws://{addr}/api/runs/{id}/ws?protocol={}",
+        spintune::protocol::PROTOCOL_VERSION
+    );
     let (ws, _) =
         tokio_tungstenite::client_async(url, tokio_tungstenite::MaybeTlsStream::Plain(stream))
             .await

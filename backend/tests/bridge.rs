@@ -13,7 +13,7 @@ use futures_util::{SinkExt, StreamExt};
 use serde_json::json;
 use spintune::driver::SimulationRun;
 use spintune::protocol::{
-    BridgeClientMessage, BridgeServerMessage, Request, Response, RunStatus, RunSummary,
+    BridgeClientMessage, BridgeServerMessage, FaultKind, Request, Response, RunStatus, RunSummary,
     PROTOCOL_VERSION,
 };
 use spintune::sim::SimulatedDevice;
@@ -21,7 +21,7 @@ use spintune_server::config::RunConfig;
 use tokio_tungstenite::tungstenite::Message;
 
 async fn bridge_connect(addr: std::net::SocketAddr, id: u64) -> Ws {
-    let url = format!("ws://{addr}/api/runs/{id}/bridge");
+    let url = format!("ws://{addr}/api/runs/{id}/bridge?protocol={PROTOCOL_VERSION}");
     let (ws, _) = tokio::time::timeout(STEP, tokio_tungstenite::connect_async(url))
         .await
         .expect("connect timed out")
@@ -74,10 +74,25 @@ async fn bridge(addr: std::net::SocketAddr, id: u64) -> Ws {
     ws
 }
 
-async fn next_request(ws: &mut Ws) -> (u64, Request) {
+async fn next_any_request(ws: &mut Ws) -> (u64, Request) {
     match next_bridge(ws).await {
         BridgeServerMessage::Request { id, request, .. } => (id, request),
         other => panic!("expected a request, got {other:?}"),
+    }
+}
+
+/// The next request that is not a read-back, answering read-backs from
+/// `device` on the way (the run reads every gate on connect and resume, and
+/// the swept gate after each sweep).
+async fn next_request_reading(ws: &mut Ws, device: &mut SimulatedDevice) -> (u64, Request) {
+    loop {
+        let (id, req) = next_any_request(ws).await;
+        if matches!(req, Request::ReadVoltages { .. }) {
+            let resp = device.execute(&req);
+            answer(ws, id, resp).await;
+            continue;
+        }
+        return (id, req);
     }
 }
 
@@ -88,14 +103,14 @@ async fn answer(ws: &mut Ws, id: u64, response: Response) {
 /// Serve `k` requests from `device`.
 async fn serve(ws: &mut Ws, device: &mut SimulatedDevice, k: usize) {
     for _ in 0..k {
-        let (id, req) = next_request(ws).await;
+        let (id, req) = next_any_request(ws).await;
         let resp = device.execute(&req);
         answer(ws, id, resp).await;
     }
 }
 
 fn fault_contains(r: &RunSummary, needle: &str) -> bool {
-    matches!(&r.status, RunStatus::Failed { message } if message.starts_with("paused by a device fault") && message.contains(needle))
+    matches!(&r.status, RunStatus::Faulted { fault } if fault.kind == FaultKind::Device && fault.message.contains(needle))
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -187,14 +202,22 @@ async fn bridge_serves_a_run_and_faults_pause_it_without_losing_data() {
     assert_eq!(get_run(srv.addr, run.id).await.status, RunStatus::Running);
 
     // Disconnect with a request outstanding (not executed): the run pauses...
-    let (_, pending) = next_request(&mut ws).await;
+    let (_, pending) = next_request_reading(&mut ws, &mut device).await;
     drop(ws);
     let r = wait_status(srv.addr, run.id, |r| fault_contains(r, "disconnected")).await;
     let before = records(srv.addr, run.id).await;
     assert_eq!(before.len() as u64, r.iterations);
     // ... and reconnecting resumes it with the same request.
     let mut ws = bridge(srv.addr, run.id).await;
-    let (id, again) = next_request(&mut ws).await;
+    // The instrument is read back first, then the same request comes again.
+    let (id, first) = next_any_request(&mut ws).await;
+    assert!(
+        matches!(&first, Request::ReadVoltages { gates } if gates.len() == 11),
+        "expected a read-back of every gate first, got {first:?}"
+    );
+    let resp = device.execute(&first);
+    answer(&mut ws, id, resp).await;
+    let (id, again) = next_request_reading(&mut ws, &mut device).await;
     assert_eq!(again, pending, "the outstanding request was not re-issued");
     let resp = device.execute(&again);
     answer(&mut ws, id, resp).await;
@@ -202,7 +225,7 @@ async fn bridge_serves_a_run_and_faults_pause_it_without_losing_data() {
 
     // An unanswered request times out and pauses the run; a late answer is
     // refused; `resume` re-issues the request under a new id.
-    let (late_id, unanswered) = next_request(&mut ws).await;
+    let (late_id, unanswered) = next_request_reading(&mut ws, &mut device).await;
     wait_status(srv.addr, run.id, |r| fault_contains(r, "did not answer")).await;
     answer(
         &mut ws,
@@ -226,7 +249,7 @@ async fn bridge_serves_a_run_and_faults_pause_it_without_losing_data() {
     ));
     let (s, b) = control(srv.addr, run.id, r#"{"action":"resume"}"#).await;
     assert_eq!(s, 200, "{b}");
-    let (id, again) = next_request(&mut ws).await;
+    let (id, again) = next_request_reading(&mut ws, &mut device).await;
     assert!(id > late_id);
     assert_eq!(again, unanswered);
     let resp = device.execute(&again);

@@ -137,14 +137,14 @@ async fn python_bridge_client_serves_a_run_and_reconnects() {
     let mut first = Client::start(&url, pythonpath.as_deref(), &["--exit-after", "180"]);
     let paused = wait_status(srv.addr, run.id, |r| {
         // (Before the script connects the run waits, paused for lack of a bridge.)
-        matches!(&r.status, RunStatus::Failed { message } if message.contains("disconnected"))
+        matches!(&r.status, RunStatus::Faulted { fault } if fault.message.contains("disconnected"))
             || r.status == RunStatus::Finished
     })
     .await;
     match &paused.status {
-        RunStatus::Failed { message } => assert!(
-            message.contains("lab bridge disconnected while request 181"),
-            "{message}"
+        RunStatus::Faulted { fault } => assert!(
+            fault.message.contains("lab bridge disconnected while request 181"),
+            "{fault}"
         ),
         other => panic!("expected a pause, got {other:?}"),
     }

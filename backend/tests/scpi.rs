@@ -17,7 +17,7 @@ use spintune::safety::GateSpec;
 use spintune::sim::default_gates;
 use spintune_server::cli::Server;
 use spintune_server::config::{MeasureSource, ScpiConfig};
-use spintune_server::scpi::ScpiSource;
+use spintune_server::devices::scpi::ScpiSource;
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::net::TcpListener;
 
@@ -347,12 +347,12 @@ fn run_config(addr: std::net::SocketAddr, n: u64) -> serde_json::Value {
 }
 
 fn is_fault(r: &RunSummary) -> bool {
-    matches!(&r.status, RunStatus::Failed { message } if message.starts_with("paused by a device fault"))
+    matches!(&r.status, RunStatus::Faulted { .. })
 }
 
 fn fault_message(r: &RunSummary) -> String {
     match &r.status {
-        RunStatus::Failed { message } => message.clone(),
+        RunStatus::Faulted { fault } => fault.to_string(),
         other => panic!("expected a fault, got {other:?}"),
     }
 }

@@ -9,7 +9,7 @@ use std::time::Duration;
 
 use futures_util::{SinkExt, StreamExt};
 use serde_json::Value;
-use spintune::protocol::{IterationRecord, RunStatus, RunSummary, ServerMessage};
+use spintune::protocol::{IterationRecord, RunStatus, RunSummary, ServerMessage, PROTOCOL_VERSION};
 use spintune_server::cli::{start_server, DemoMode, ServeArgs, Server};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_tungstenite::tungstenite::Message;
@@ -180,8 +180,8 @@ pub fn small_config(name: &str, n: u64, delay_ms: u64) -> Value {
 }
 
 pub async fn connect(addr: SocketAddr, id: u64, from: Option<u64>) -> Ws {
-    let q = from.map(|f| format!("?from={f}")).unwrap_or_default();
-    let url = format!("ws://{addr}/api/runs/{id}/ws{q}");
+    let q = from.map(|f| format!("&from={f}")).unwrap_or_default();
+    let url = format!("ws://{addr}/api/runs/{id}/ws?protocol={PROTOCOL_VERSION}{q}");
     let (ws, _) = tokio::time::timeout(STEP, tokio_tungstenite::connect_async(url))
         .await
         .expect("connect timed out")

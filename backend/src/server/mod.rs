@@ -6,7 +6,7 @@
 //!
 //! | method | path | body → answer |
 //! |---|---|---|
-//! | GET | `/api/version` | → `{"protocol_version": 1}` |
+//! | GET | `/api/version` | → `{"protocol_version": 2}` |
 //! | GET | `/api/runs` | → `[RunSummary]` |
 //! | POST 🔒 | `/api/runs` | run config (JSON form of the TOML file, see [`crate::config`]; `{}` = paper default) → 201 `RunSummary` |
 //! | GET | `/api/runs/{id}` | → `RunSummary` |
@@ -15,9 +15,13 @@
 //! | GET | `/api/runs/{id}/export?format=csv\|json` | → the export table (see [`crate::export`]) |
 //! | POST 🔒 | `/api/runs/{id}/control` | `ControlCommand` → `RunSummary` (400 invalid, 409 not applicable) |
 //! | DELETE 🔒 | `/api/runs/{id}` | → 204 |
-//! | GET | `/api/runs/{id}/ws?from=N` | WebSocket, see below |
-//! | GET | `/api/runs/{id}/bridge` | WebSocket of the lab bridge (runs with `driver = "bridge"` or `scpi.measure = "bridge"`), see [`crate::bridge`] |
+//! | GET | `/api/runs/{id}/ws?protocol=2&from=N` | WebSocket, see below |
+//! | GET | `/api/runs/{id}/bridge?protocol=2` | WebSocket of the lab bridge (runs with `driver = "bridge"` or `scpi.measure = "bridge"`), see [`crate::devices::bridge`] |
 //! | GET | `/*` | the dashboard (Trunk's `dist/`), or a note on how to build it |
+//!
+//! Both WebSockets require `protocol=2` ([`PROTOCOL_VERSION`]) in the query;
+//! a client that omits it (every version-1 client) or states another version
+//! gets one `Error` frame naming both versions, and the socket closes.
 //!
 //! WebSocket (`ServerMessage` / `ClientMessage` JSON text frames): the server
 //! sends `Hello`, then `History` (stored records with seq ≥ `from`), then every
@@ -44,6 +48,8 @@ use serde_json::json;
 use spintune::protocol::{ClientMessage, ControlCommand, ServerMessage, PROTOCOL_VERSION};
 use tokio::sync::broadcast::error::RecvError;
 use tower_http::services::ServeDir;
+
+mod bridge_socket;
 
 use crate::config::RunConfig;
 use crate::run::{history_frame_text, Manager, RunError};
@@ -80,7 +86,7 @@ impl From<RunError> for ApiError {
             RunError::NotFound(_) => StatusCode::NOT_FOUND,
             RunError::Conflict(_) => StatusCode::CONFLICT,
             RunError::Invalid(_) => StatusCode::UNPROCESSABLE_ENTITY,
-            RunError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
+            RunError::Internal(_) | RunError::Store(_) => StatusCode::INTERNAL_SERVER_ERROR,
         };
         ApiError(status, e.to_string())
     }
@@ -407,6 +413,9 @@ async fn ws(
     // Client messages are small; a small read buffer keeps each (frequent,
     // usually empty) poll of the socket cheap, since tungstenite zeroes it.
     let upgrade = upgrade.read_buffer_size(4 * 1024);
+    if let Some(message) = version_mismatch(&q) {
+        return Ok(refuse_socket(upgrade, text_of(&ServerMessage::Error { message })));
+    }
     Ok(upgrade.on_upgrade(move |socket| async move {
         if let Err(e) = viewer(s, id, from, socket).await {
             // A viewer going away is normal; nothing else to do.
@@ -415,15 +424,44 @@ async fn ws(
     }))
 }
 
-/// The lab bridge's socket (see [`crate::bridge`]).
+/// The lab bridge's socket (see [`crate::devices::bridge`]).
 async fn bridge_ws(
     State(s): State<AppState>,
     Path(id): Path<String>,
+    Query(q): Query<HashMap<String, String>>,
     upgrade: WebSocketUpgrade,
 ) -> ApiResult<Response> {
     let id = parse_id(&id)?;
     s.manager.get(id)?;
-    Ok(upgrade.on_upgrade(move |socket| crate::bridge::serve_socket(s, id, socket)))
+    if let Some(message) = version_mismatch(&q) {
+        let frame = serde_json::to_string(&spintune::protocol::BridgeServerMessage::Error {
+            message,
+        })
+        .expect("BridgeServerMessage serializes");
+        return Ok(refuse_socket(upgrade, Message::Text(Utf8Bytes::from(frame))));
+    }
+    Ok(upgrade.on_upgrade(move |socket| bridge_socket::serve_socket(s, id, socket)))
+}
+
+/// `Some(error message)` unless the WebSocket URL states `protocol=`[`PROTOCOL_VERSION`].
+fn version_mismatch(q: &HashMap<String, String>) -> Option<String> {
+    match q.get("protocol").map(String::as_str) {
+        Some(v) if v == PROTOCOL_VERSION.to_string() => None,
+        Some(v) => Some(format!(
+            "this server speaks protocol version {PROTOCOL_VERSION}; the client speaks version {v}. Update the client (reload the dashboard, or use the bridge client of this release)."
+        )),
+        None => Some(format!(
+            "this server speaks protocol version {PROTOCOL_VERSION}; the client did not state a version (protocol version 1 clients do not). Connect with `?protocol={PROTOCOL_VERSION}` in the WebSocket URL after updating the client."
+        )),
+    }
+}
+
+/// Accept the upgrade only to send one error frame and close.
+fn refuse_socket(upgrade: WebSocketUpgrade, frame: Message) -> Response {
+    upgrade.on_upgrade(move |mut socket| async move {
+        let _ = socket.send(frame).await;
+        let _ = socket.send(Message::Close(None)).await;
+    })
 }
 
 fn text_of(msg: &ServerMessage) -> Message {

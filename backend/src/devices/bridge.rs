@@ -10,13 +10,19 @@
 //! 3. server → `request {id, request, timeout_s}`; client → `response {id, response}`,
 //!    one at a time.
 //!
-//! Faults pause the run (status `failed` with the reason; the tuner keeps the
+//! Requests are `set_voltages`, `read_voltages` (answer `voltages_read` with
+//! exactly the requested gates: the run asks on connect, on every resume and
+//! after each sweep) and `measure`.
+//!
+//! Faults pause the run (status `faulted` with the reason; the tuner keeps the
 //! request and re-issues it on resume, so no data is lost):
 //! * no bridge connected when a request is due;
 //! * no answer within [`BridgeConfig::request_timeout_s`] (a later answer is refused);
 //! * the bridge disconnecting while a request is outstanding;
-//! * an answer of the wrong kind, or read-back voltages that differ from the
-//!   request by more than [`BridgeConfig::readback_tolerance_mv`].
+//! * (checked by the run session's guard) an answer of the wrong kind, or
+//!   read-backs of gates that were not requested, missing or non-finite
+//!   read-backs, or read-back voltages that differ from the request by more
+//!   than [`BridgeConfig::readback_tolerance_mv`].
 //!
 //! A run paused by a bridge fault resumes by itself when a bridge
 //! (re)connects and authenticates; other pauses need `resume`.
@@ -26,17 +32,14 @@ use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use axum::extract::ws::{Message, Utf8Bytes, WebSocket};
+use axum::extract::ws::Utf8Bytes;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
-use spintune::protocol::{
-    BridgeClientMessage, BridgeServerMessage, Request, Response, PROTOCOL_VERSION,
-};
+use spintune::protocol::{BridgeServerMessage, Request, Response};
 use tokio::sync::{mpsc, oneshot, watch};
 
+use super::{BoxFuture, Device};
 use crate::config::DriverKind;
-use crate::device::{BoxFuture, Device};
-use crate::server::{parse_strict, token_eq, AppState};
 
 /// Time a freshly connected bridge has to authenticate, s.
 pub const AUTH_TIMEOUT_S: u64 = 10;
@@ -262,60 +265,23 @@ fn describe(request: &Request) -> String {
             format!("set_voltages {}", gates.join(","))
         }
         Request::Measure { scan } => format!("measure {:?}", scan.kind),
+        Request::ReadVoltages { gates } => format!("read_voltages {}", gates.join(",")),
         Request::TrueJacobian { .. } => "true_jacobian".into(),
     }
 }
 
-/// Check that `response` answers `request` plausibly.
-fn check_answer(request: &Request, response: Response, id: u64, tolerance_mv: f64) -> Response {
-    let fault = |message: String| Response::Error {
-        message: format!(
-            "lab bridge, request {id} ({}): {message}",
-            describe(request)
-        ),
-    };
-    match (request, response) {
-        (_, Response::Error { message }) => {
-            fault(format!("the bridge reported an error: {message}"))
-        }
-        (
-            Request::SetVoltages { voltages_mv: want },
-            Response::VoltagesSet {
-                voltages_mv: got,
-                lab_seconds,
-            },
-        ) => {
-            for (gate, &v) in want {
-                match got.get(gate) {
-                    None => {
-                        return fault(format!(
-                            "the answer lacks the read-back voltage of {gate}"
-                        ))
-                    }
-                    Some(&r) if !r.is_finite() || (r - v).abs() > tolerance_mv => {
-                        return fault(format!(
-                            "read-back mismatch on {gate}: set {v:.6} mV, bridge reports {r} mV (tolerance {tolerance_mv} mV)"
-                        ))
-                    }
-                    Some(_) => {}
-                }
-            }
-            Response::VoltagesSet {
-                voltages_mv: got,
-                lab_seconds,
-            }
-        }
-        (Request::Measure { .. }, r @ Response::Scanned { .. }) => r,
-        (Request::TrueJacobian { .. }, r @ Response::TrueJacobian { .. }) => r,
-        (_, other) => {
-            let kind = serde_json::to_value(&other)
-                .ok()
-                .and_then(|v| v.get("response").and_then(Value::as_str).map(String::from))
-                .unwrap_or_default();
-            fault(format!(
-                "answered with `{kind}`, which does not fit the request"
-            ))
-        }
+/// Attribute a bridge error to the request. Whether an answer fits its
+/// request, and whether its read-backs are believable, is checked by the
+/// run session's guard (the one choke point), not here.
+fn attribute(request: &Request, response: Response, id: u64) -> Response {
+    match response {
+        Response::Error { message } => Response::Error {
+            message: format!(
+                "lab bridge, request {id} ({}): the bridge reported an error: {message}",
+                describe(request)
+            ),
+        },
+        other => other,
     }
 }
 
@@ -338,9 +304,7 @@ impl BridgeDevice {
             Err(message) => return Response::Error { message },
         };
         match tokio::time::timeout(timeout, rx).await {
-            Ok(Ok(response)) => {
-                check_answer(&request, response, id, self.config.readback_tolerance_mv)
-            }
+            Ok(Ok(response)) => attribute(&request, response, id),
             Ok(Err(_)) => Response::Error {
                 message: format!(
                     "the lab bridge disconnected while request {id} ({}) was outstanding; the run continues when a bridge reconnects",
@@ -379,129 +343,6 @@ impl Device for BridgeDevice {
     }
 }
 
-fn frame(msg: &BridgeServerMessage) -> Message {
-    Message::Text(Utf8Bytes::from(
-        serde_json::to_string(msg).expect("BridgeServerMessage serializes"),
-    ))
-}
-
-fn error_frame(message: impl Into<String>) -> Message {
-    frame(&BridgeServerMessage::Error {
-        message: message.into(),
-    })
-}
-
-/// Serve one bridge socket of run `id` (the handler of `/api/runs/{id}/bridge`).
-pub async fn serve_socket(state: AppState, id: u64, mut socket: WebSocket) {
-    let _ = serve(&state, id, &mut socket).await;
-    let _ = socket.send(Message::Close(None)).await;
-}
-
-async fn serve(state: &AppState, id: u64, socket: &mut WebSocket) -> Result<(), axum::Error> {
-    let Ok(handle) = state.manager.get(id) else {
-        return socket
-            .send(error_frame(format!("no run with id {id}")))
-            .await;
-    };
-    socket
-        .send(frame(&BridgeServerMessage::Hello {
-            version: PROTOCOL_VERSION,
-            run: handle.summary(),
-        }))
-        .await?;
-    drop(handle);
-    // Authentication first.
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(AUTH_TIMEOUT_S);
-    loop {
-        let incoming = match tokio::time::timeout_at(deadline, socket.recv()).await {
-            Err(_) => {
-                return socket
-                    .send(error_frame(format!(
-                        "no auth frame within {AUTH_TIMEOUT_S} s; send {{\"type\":\"auth\",\"token\":\"…\"}} first"
-                    )))
-                    .await
-            }
-            Ok(None) => return Ok(()),
-            Ok(Some(m)) => m?,
-        };
-        let text = match incoming {
-            Message::Text(t) => t,
-            Message::Close(_) => return Ok(()),
-            Message::Ping(_) | Message::Pong(_) => continue,
-            Message::Binary(_) => {
-                return socket
-                    .send(error_frame(
-                        "binary frames are not supported; send JSON text",
-                    ))
-                    .await
-            }
-        };
-        match parse_strict::<BridgeClientMessage>(text.as_str()) {
-            Ok(BridgeClientMessage::Auth { token }) if token_eq(&token, &state.token) => break,
-            Ok(BridgeClientMessage::Auth { .. }) => {
-                return socket.send(error_frame("invalid control token")).await
-            }
-            Ok(BridgeClientMessage::Response { .. }) => return socket
-                .send(error_frame(
-                    "the bridge must authenticate first: send {\"type\":\"auth\",\"token\":\"…\"}",
-                ))
-                .await,
-            Err(message) => return socket.send(error_frame(message)).await,
-        }
-    }
-    let link = match state.manager.bridge_link(id) {
-        Ok(l) => l,
-        Err(e) => return socket.send(error_frame(e.to_string())).await,
-    };
-    socket.send(frame(&BridgeServerMessage::AuthOk)).await?;
-    let (generation, mut outbox) = link.attach();
-    let result = pump(&link, generation, &mut outbox, socket).await;
-    link.detach(generation);
-    result
-}
-
-async fn pump(
-    link: &BridgeLink,
-    generation: u64,
-    outbox: &mut mpsc::UnboundedReceiver<Utf8Bytes>,
-    socket: &mut WebSocket,
-) -> Result<(), axum::Error> {
-    loop {
-        tokio::select! {
-            out = outbox.recv() => match out {
-                Some(text) => socket.send(Message::Text(text)).await?,
-                None => {
-                    return socket
-                        .send(error_frame("replaced by a newer bridge connection for this run"))
-                        .await;
-                }
-            },
-            incoming = socket.recv() => {
-                let Some(incoming) = incoming else { return Ok(()) };
-                let reply = match incoming? {
-                    Message::Text(text) => match parse_strict::<BridgeClientMessage>(text.as_str()) {
-                        Ok(BridgeClientMessage::Response { id, response }) => {
-                            link.answer(generation, id, response).err().map(error_frame)
-                        }
-                        Ok(BridgeClientMessage::Auth { .. }) => {
-                            Some(frame(&BridgeServerMessage::AuthOk))
-                        }
-                        Err(message) => Some(error_frame(message)),
-                    },
-                    Message::Binary(_) => {
-                        Some(error_frame("binary frames are not supported; send JSON text"))
-                    }
-                    Message::Close(_) => return Ok(()),
-                    Message::Ping(_) | Message::Pong(_) => None,
-                };
-                if let Some(reply) = reply {
-                    socket.send(reply).await?;
-                }
-            }
-        }
-    }
-}
-
 /// Per-run links, kept by the manager so that they outlive run tasks.
 #[derive(Default)]
 pub struct Links(Mutex<BTreeMap<u64, Arc<BridgeLink>>>);
@@ -526,7 +367,6 @@ impl Links {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use spintune::protocol::{ScanKind, ScanRequest};
 
     #[tokio::test]
     async fn request_answer_timeout_and_disconnect() {
@@ -604,39 +444,8 @@ mod tests {
                 }
             )
             .is_err());
-        // a wrong kind of answer and a read-back mismatch are errors
-        let measure = Request::Measure {
-            scan: ScanRequest {
-                kind: ScanKind::ReloadTime,
-                sweep: None,
-            },
-        };
-        let bad = check_answer(
-            &measure,
-            Response::VoltagesSet {
-                voltages_mv: BTreeMap::new(),
-                lab_seconds: 0.0,
-            },
-            9,
-            0.05,
-        );
-        assert!(
-            matches!(&bad, Response::Error { message } if message.contains("voltages_set")),
-            "{bad:?}"
-        );
-        let bad = check_answer(
-            &req,
-            Response::VoltagesSet {
-                voltages_mv: BTreeMap::from([("SB".to_string(), -781.0)]),
-                lab_seconds: 0.0,
-            },
-            9,
-            0.05,
-        );
-        assert!(
-            matches!(&bad, Response::Error { message } if message.contains("mismatch")),
-            "{bad:?}"
-        );
+        // (whether an answer fits and its read-backs are believable is the
+        // session guard's job: see spintune::session::guard)
         // disconnect while outstanding
         let l3 = link.clone();
         tokio::spawn(async move {

@@ -1,15 +1,17 @@
-//! The async device interface the run task drives the tuner through, and the
-//! embedded simulator as its default implementation.
+//! The async device interface a run task drives its run session through,
+//! and the three drivers behind it.
 //!
-//! A driver executes [`Request`]s and returns [`Response`]s; the run task has
-//! already passed every `SetVoltages` through [`spintune::safety::SafetyLimits::check`]
-//! before it reaches [`Device::execute`]. A driver that can be checkpointed
+//! A driver executes [`Request`]s and returns [`Response`]s. Every request
+//! has passed the run session's guard against the instrument's last
+//! read-back before it reaches [`Device::execute`] (ARCHITECTURE.md,
+//! invariant 5); a driver may check again (the SCPI driver does, against
+//! its own read-back) but never relaxes. A driver that can be checkpointed
 //! (the simulator: its RNG, drift and lab clock) returns its state from
 //! [`Device::checkpoint`]; resuming from that state continues bit-identically.
 //!
-//! Drivers: [`SimulatorDevice`] (default), [`crate::scpi::ScpiDevice`] (SCPI DC
+//! Drivers: [`SimulatorDevice`] (default), [`scpi::ScpiDevice`] (SCPI DC
 //! source over TCP; measurements from the simulator or the bridge) and
-//! [`crate::bridge::BridgeDevice`] (an external lab script over WebSocket).
+//! [`bridge::BridgeDevice`] (an external lab script over WebSocket).
 //! A driver reports faults as [`Response::Error`]: the run then pauses with
 //! the message and keeps the request, which is re-issued on resume.
 
@@ -18,13 +20,18 @@ use std::pin::Pin;
 
 use serde_json::Value;
 use spintune::protocol::{Request, Response};
-use spintune::sim::SimulatedDevice;
 
 use std::sync::Arc;
 
-use crate::bridge::{BridgeDevice, BridgeLink};
+pub mod bridge;
+pub mod scpi;
+mod simulator;
+
+pub use simulator::SimulatorDevice;
+
+use bridge::{BridgeDevice, BridgeLink};
 use crate::config::{DriverKind, RunConfig};
-use crate::scpi::{MeasureSource, ScpiDevice, ScpiSource};
+use scpi::{MeasureSource, ScpiDevice, ScpiSource};
 
 /// A boxed, `Send` future (keeps [`Device`] usable as `Box<dyn Device>`).
 pub type BoxFuture<'a, T> = Pin<Box<dyn Future<Output = T> + Send + 'a>>;
@@ -46,42 +53,6 @@ pub trait Device: Send + Sync {
     /// reconnected). Called at the time of the fault. Default: never.
     fn recovered(&self) -> BoxFuture<'static, ()> {
         Box::pin(std::future::pending())
-    }
-}
-
-/// The embedded simulated double dot.
-pub struct SimulatorDevice {
-    device: SimulatedDevice,
-}
-
-impl SimulatorDevice {
-    /// Wrap a simulated device.
-    pub fn new(device: SimulatedDevice) -> Self {
-        Self { device }
-    }
-
-    /// Restore from a value produced by [`Device::checkpoint`].
-    pub fn restore(state: Value) -> Result<Self, serde_json::Error> {
-        Ok(Self {
-            device: serde_json::from_value(state)?,
-        })
-    }
-}
-
-impl Device for SimulatorDevice {
-    fn execute(&mut self, request: Request) -> BoxFuture<'_, Response> {
-        // The simulator is synchronous and fast (it generates raw traces; the
-        // tuner fits them): run it inline.
-        let response = self.device.execute(&request);
-        Box::pin(std::future::ready(response))
-    }
-
-    fn checkpoint(&self) -> Result<Value, serde_json::Error> {
-        serde_json::to_value(&self.device)
-    }
-
-    fn driver(&self) -> DriverKind {
-        DriverKind::Simulator
     }
 }
 

@@ -47,9 +47,9 @@ use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
 use tokio::net::TcpStream;
 
-use crate::bridge::BridgeDevice;
+use super::bridge::BridgeDevice;
 use crate::config::DriverKind;
-use crate::device::{BoxFuture, Device, SimulatorDevice};
+use super::{BoxFuture, Device, SimulatorDevice};
 
 /// Where a SCPI run's measurements come from (the DC source only sets gates).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -373,6 +373,31 @@ impl ScpiSource {
         Ok(())
     }
 
+    /// Ask the instrument for the present output of `gates` (one query per
+    /// channel, now — not a cached value), mV.
+    pub async fn read(&mut self, gates: &[String]) -> Result<BTreeMap<String, f64>, String> {
+        for gate in gates {
+            self.channel(gate)?;
+        }
+        let fresh = self.conn.is_none();
+        self.ensure_connected().await?;
+        let mut out = BTreeMap::new();
+        for gate in gates {
+            let mv = match (fresh, self.known.get(gate)) {
+                // just read on connecting
+                (true, Some(&v)) => v,
+                _ => {
+                    let ch = self.channel(gate)?;
+                    let v = self.query_mv(ch).await?;
+                    self.known.insert(gate.clone(), v);
+                    v
+                }
+            };
+            out.insert(gate.clone(), mv);
+        }
+        Ok(out)
+    }
+
     /// Voltages last read back from the instrument, mV (empty when not connected).
     pub fn known_mv(&self) -> &BTreeMap<String, f64> {
         &self.known
@@ -537,6 +562,37 @@ impl ScpiDevice {
                     Err(message) => Response::Error {
                         message: format!("SCPI source {}: {message}", self.source.cfg.address),
                     },
+                }
+            }
+            Request::ReadVoltages { gates } => {
+                // Mapped gates are read from the source; any other gate (not
+                // settable through SCPI) from the measuring side.
+                let start = Instant::now();
+                let (mapped, other): (Vec<String>, Vec<String>) = gates
+                    .into_iter()
+                    .partition(|g| self.source.cfg.channels.contains_key(g));
+                let mut voltages_mv = match self.source.read(&mapped).await {
+                    Ok(v) => v,
+                    Err(message) => {
+                        return Response::Error {
+                            message: format!("SCPI source {}: {message}", self.source.cfg.address),
+                        }
+                    }
+                };
+                if !other.is_empty() {
+                    let request = Request::ReadVoltages { gates: other };
+                    let answer = match &mut self.measurer {
+                        Measurer::Simulator(sim) => sim.execute(request).await,
+                        Measurer::Bridge(bridge) => bridge.execute(request).await,
+                    };
+                    match answer {
+                        Response::VoltagesRead { voltages_mv: v, .. } => voltages_mv.extend(v),
+                        other => return other,
+                    }
+                }
+                Response::VoltagesRead {
+                    voltages_mv,
+                    lab_seconds: start.elapsed().as_secs_f64(),
                 }
             }
             other => match &mut self.measurer {

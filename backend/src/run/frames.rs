@@ -1,0 +1,65 @@
+//! Frames for a run's viewers: pre-serialized JSON of a
+//! [`spintune::protocol::ServerMessage`], shared (not copied) between all
+//! viewers, and the hand-built `iteration`/`history` frames around records
+//! that are already serialized (the same bytes that were stored).
+
+use axum::extract::ws::Utf8Bytes;
+use spintune::protocol::ServerMessage;
+
+/// One frame for a run's viewers.
+#[derive(Debug, Clone)]
+pub struct Frame {
+    /// For `Iteration` frames: the record's position in the store (0-based).
+    pub seq: Option<u64>,
+    /// JSON text of the `ServerMessage`.
+    pub text: Utf8Bytes,
+}
+
+impl Frame {
+    /// A frame for any server message (no seq).
+    pub fn message(msg: &ServerMessage) -> Self {
+        Self {
+            seq: None,
+            text: Utf8Bytes::from(serde_json::to_string(msg).expect("ServerMessage serializes")),
+        }
+    }
+}
+
+/// `{"type":"iteration","record":…}` built around an already serialized record,
+/// identical to serializing `ServerMessage::Iteration`.
+pub fn iteration_frame_text(record_json: &str) -> String {
+    format!("{{\"type\":\"iteration\",\"record\":{record_json}}}")
+}
+
+/// `{"type":"history","records":[…]}` from serialized records.
+pub fn history_frame_text(records_json: &[String]) -> String {
+    let mut s = String::with_capacity(32 + records_json.iter().map(|r| r.len() + 1).sum::<usize>());
+    s.push_str("{\"type\":\"history\",\"records\":[");
+    for (i, r) in records_json.iter().enumerate() {
+        if i > 0 {
+            s.push(',');
+        }
+        s.push_str(r);
+    }
+    s.push_str("]}");
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::Value;
+
+    #[test]
+    fn hand_built_frames_match_serde() {
+        let rec = r#"{"iteration":3}"#;
+        let v: Value = serde_json::from_str(&iteration_frame_text(rec)).unwrap();
+        assert_eq!(v["type"], "iteration");
+        assert_eq!(v["record"]["iteration"], 3);
+        let h: Value =
+            serde_json::from_str(&history_frame_text(&[rec.to_string(), rec.to_string()])).unwrap();
+        assert_eq!(h["records"].as_array().unwrap().len(), 2);
+        let empty = serde_json::to_string(&ServerMessage::History { records: vec![] }).unwrap();
+        assert_eq!(history_frame_text(&[]), empty);
+    }
+}

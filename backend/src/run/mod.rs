@@ -1,0 +1,737 @@
+//! The run manager: many concurrent runs, each driven by at most one task
+//! ([`task`]) around the core's [`RunSession`].
+//!
+//! Per iteration the task (1) commits the record and the checkpoint (session
+//! + device state) to the [`Store`] in one transaction, (2) updates the run's
+//! summary, (3) broadcasts the pre-serialized `ServerMessage::Iteration`
+//! frame ([`frames`]) to the run's viewers over a bounded
+//! `tokio::sync::broadcast` channel. A slow viewer never blocks the run: it
+//! lags, is told so, and refills from the store (see [`crate::server`]).
+//!
+//! One run, one task (ARCHITECTURE.md, invariant 6): starting and resuming
+//! a run go through the run's lifecycle lock, so concurrent `resume`s start
+//! one task and hand the others to it; each task claims a new generation in
+//! the store ([`Store::claim`]) and every write it makes is checked against
+//! it, so a superseded task (also one in another process sharing the store)
+//! cannot write and exits. A task whose control channel closes exits too.
+//!
+//! A run without a live task (interrupted by a restart, faulted and detached,
+//! failed, paused after a restart) is restarted from its last stored
+//! checkpoint on `Resume`/`Step`; the restored session reads every gate back
+//! from the instrument before it moves one.
+
+mod frames;
+mod task;
+
+use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use axum::extract::ws::Utf8Bytes;
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+use spintune::protocol::{ControlCommand, IterationRecord, RunStatus, RunSummary, ServerMessage};
+use spintune::session::{RunSession, SessionConfig};
+use spintune::sim::SimulatedDevice;
+use spintune::tuner::Tuner;
+use tokio::sync::{broadcast, mpsc, oneshot};
+
+pub use frames::{history_frame_text, iteration_frame_text, Frame};
+
+use crate::config::{DriverKind, RunConfig};
+use crate::devices::bridge::{BridgeLink, Links};
+use crate::devices::{self, Device, SimulatorDevice};
+use crate::store::{Store, StoreError};
+
+/// Control commands queued for one run's task (bounded by construction).
+pub const CONTROL_QUEUE: usize = 16;
+
+/// Everything needed to continue a run: stored after every iteration.
+#[derive(Debug, Serialize, Deserialize)]
+pub struct Checkpoint {
+    /// The session's complete state (tuner, mode, deferred targets).
+    #[serde(default)]
+    pub session: Option<RunSession>,
+    /// A checkpoint written before run sessions existed holds the tuner only.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tuner: Option<Tuner>,
+    /// The device's state (`null` for devices without restorable state).
+    pub device: Value,
+}
+
+impl Checkpoint {
+    /// The session to continue from (an old tuner-only checkpoint gets a
+    /// fresh session around its tuner).
+    pub fn into_session(
+        self,
+        config: SessionConfig,
+    ) -> Result<(RunSession, Value), RunError> {
+        match (self.session, self.tuner) {
+            (Some(s), _) => Ok((s, self.device)),
+            (None, Some(t)) => Ok((RunSession::from_tuner(t, config), self.device)),
+            (None, None) => Err(RunError::Internal(
+                "checkpoint holds neither a session nor a tuner".into(),
+            )),
+        }
+    }
+}
+
+/// Why a control action or lookup failed; maps to an HTTP status.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum RunError {
+    /// No such run (404).
+    #[error("no run with id {0}")]
+    NotFound(u64),
+    /// The action does not apply in the run's present state (409).
+    #[error("{0}")]
+    Conflict(String),
+    /// The command's content is invalid (400 / 422), e.g. an unknown parameter.
+    #[error("{0}")]
+    Invalid(String),
+    /// The store failed (500; a stale task generation ends that task).
+    #[error("{0}")]
+    Store(StoreErrorKind),
+    /// Internal failure (500).
+    #[error("{0}")]
+    Internal(String),
+}
+
+/// The store failures a caller distinguishes.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum StoreErrorKind {
+    /// Another task drives the run now.
+    #[error("{0}")]
+    Stale(String),
+    /// Anything else.
+    #[error("{0}")]
+    Other(String),
+}
+
+impl From<StoreError> for RunError {
+    fn from(e: StoreError) -> Self {
+        match e {
+            StoreError::NotFound(id) => RunError::NotFound(id),
+            e @ StoreError::Stale { .. } => RunError::Store(StoreErrorKind::Stale(e.to_string())),
+            e => RunError::Store(StoreErrorKind::Other(e.to_string())),
+        }
+    }
+}
+
+impl RunError {
+    /// Whether this is a stale-generation refusal (another task drives the run).
+    pub fn is_stale(&self) -> bool {
+        matches!(self, RunError::Store(StoreErrorKind::Stale(_)))
+    }
+}
+
+struct ControlMsg {
+    command: ControlCommand,
+    reply: oneshot::Sender<Result<RunSummary, RunError>>,
+}
+
+/// A run known to the manager (live task or not).
+pub struct RunHandle {
+    /// Run id.
+    pub id: u64,
+    /// The run's configuration.
+    pub config: RunConfig,
+    summary: Mutex<RunSummary>,
+    tx: broadcast::Sender<Frame>,
+    control: Mutex<Option<mpsc::Sender<ControlMsg>>>,
+    /// Held while starting, resuming or controlling the run: at most one task.
+    lifecycle: tokio::sync::Mutex<()>,
+}
+
+impl RunHandle {
+    fn new(id: u64, config: RunConfig, summary: RunSummary, viewer_buffer: usize) -> Self {
+        Self {
+            id,
+            config,
+            summary: Mutex::new(summary),
+            tx: broadcast::channel(viewer_buffer.max(1)).0,
+            control: Mutex::new(None),
+            lifecycle: tokio::sync::Mutex::new(()),
+        }
+    }
+
+    /// Current summary.
+    pub fn summary(&self) -> RunSummary {
+        self.summary
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
+    }
+
+    /// Subscribe to the run's live frames.
+    pub fn subscribe(&self) -> broadcast::Receiver<Frame> {
+        self.tx.subscribe()
+    }
+
+    /// Number of connected viewers.
+    pub fn viewers(&self) -> usize {
+        self.tx.receiver_count()
+    }
+
+    /// Whether a task drives the run in this process.
+    pub fn is_live(&self) -> bool {
+        self.control_sender().is_some()
+    }
+
+    fn set_summary(&self, f: impl FnOnce(&mut RunSummary)) -> RunSummary {
+        let mut s = self.summary.lock().unwrap_or_else(|p| p.into_inner());
+        f(&mut s);
+        s.clone()
+    }
+
+    fn broadcast_status(&self, run: RunSummary) {
+        let _ = self.tx.send(Frame::message(&ServerMessage::Status { run }));
+    }
+
+    fn control_sender(&self) -> Option<mpsc::Sender<ControlMsg>> {
+        self.control
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .as_ref()
+            .filter(|s| !s.is_closed())
+            .cloned()
+    }
+
+    fn set_control(&self, sender: Option<mpsc::Sender<ControlMsg>>) {
+        *self.control.lock().unwrap_or_else(|p| p.into_inner()) = sender;
+    }
+}
+
+/// Manager settings.
+#[derive(Debug, Clone)]
+pub struct ManagerOptions {
+    /// Default wall-clock pause after each iteration (a run config may override it).
+    pub iteration_delay: Duration,
+    /// Live frames buffered per viewer before it is told it lagged.
+    pub viewer_buffer: usize,
+    /// At open, mark runs left `running`/`paused` by a previous process as
+    /// `interrupted` (the server does; a headless `run` sharing the store does not).
+    pub recover: bool,
+}
+
+impl Default for ManagerOptions {
+    fn default() -> Self {
+        Self {
+            iteration_delay: Duration::from_millis(0),
+            viewer_buffer: 256,
+            recover: true,
+        }
+    }
+}
+
+/// All runs of one server (or one headless `spintune run`).
+pub struct Manager {
+    store: Arc<Store>,
+    runs: Mutex<BTreeMap<u64, Arc<RunHandle>>>,
+    options: ManagerOptions,
+    bridges: Links,
+}
+
+async fn blocking<T: Send + 'static>(
+    f: impl FnOnce() -> Result<T, StoreError> + Send + 'static,
+) -> Result<T, RunError> {
+    tokio::task::spawn_blocking(f)
+        .await
+        .map_err(|e| RunError::Internal(format!("store task failed: {e}")))?
+        .map_err(RunError::from)
+}
+
+/// The session settings a run's driver implies.
+fn session_config(config: &RunConfig, default_delay: Duration) -> SessionConfig {
+    let b = &config.backend;
+    let readback_tolerance_mv = match b.driver {
+        DriverKind::Simulator => SessionConfig::default().readback_tolerance_mv,
+        DriverKind::Bridge => b.bridge.readback_tolerance_mv,
+        DriverKind::Scpi => b
+            .scpi
+            .as_ref()
+            .map_or(b.bridge.readback_tolerance_mv, |s| s.readback_tolerance_mv),
+    };
+    let delay_ms = b
+        .iteration_delay_ms
+        .unwrap_or(default_delay.as_millis() as u64)
+        .min(SessionConfig::MAX_ITERATION_DELAY_MS);
+    SessionConfig {
+        readback_tolerance_mv,
+        iteration_delay_ms: delay_ms,
+    }
+}
+
+impl Manager {
+    /// Load all runs from the store. Runs left running by a previous process are
+    /// marked `Interrupted`; no task is started for them until they are resumed.
+    pub fn open(store: Arc<Store>, options: ManagerOptions) -> Result<Arc<Self>, RunError> {
+        if options.recover {
+            store.mark_interrupted()?;
+        }
+        let mut runs = BTreeMap::new();
+        for stored in store.list_runs()? {
+            let config: RunConfig = match serde_json::from_str(&stored.config_json) {
+                Ok(c) => c,
+                Err(e) => {
+                    eprintln!(
+                        "warning: run {} has an unreadable config ({e}); skipped",
+                        stored.summary.id
+                    );
+                    continue;
+                }
+            };
+            let id = stored.summary.id;
+            runs.insert(
+                id,
+                Arc::new(RunHandle::new(
+                    id,
+                    config,
+                    stored.summary,
+                    options.viewer_buffer,
+                )),
+            );
+        }
+        Ok(Arc::new(Self {
+            store,
+            runs: Mutex::new(runs),
+            options,
+            bridges: Links::default(),
+        }))
+    }
+
+    /// The store.
+    pub fn store(&self) -> &Arc<Store> {
+        &self.store
+    }
+
+    fn runs(&self) -> std::sync::MutexGuard<'_, BTreeMap<u64, Arc<RunHandle>>> {
+        self.runs.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// A run's handle.
+    pub fn get(&self, id: u64) -> Result<Arc<RunHandle>, RunError> {
+        self.runs().get(&id).cloned().ok_or(RunError::NotFound(id))
+    }
+
+    /// The lab bridge link of run `id` (created on first use). `Conflict` if
+    /// the run's device does not include the bridge.
+    pub fn bridge_link(&self, id: u64) -> Result<Arc<BridgeLink>, RunError> {
+        let handle = self.get(id)?;
+        if !handle.config.backend.uses_bridge() {
+            return Err(RunError::Conflict(format!(
+                "run {id} does not use the lab bridge (its driver is {:?}); create it with driver = \"bridge\" or scpi.measure = \"bridge\"",
+                handle.config.backend.driver
+            )));
+        }
+        Ok(self.bridges.get(id))
+    }
+
+    /// Summaries of all runs, by id.
+    pub fn list(&self) -> Vec<RunSummary> {
+        self.runs().values().map(|h| h.summary()).collect()
+    }
+
+    /// Create a run from `config` and start it (or leave it paused).
+    pub async fn create(
+        self: &Arc<Self>,
+        config: RunConfig,
+        start_paused: bool,
+    ) -> Result<RunSummary, RunError> {
+        let sim = &config.simulation;
+        sim.validate()
+            .map_err(|e| RunError::Invalid(e.to_string()))?;
+        let scfg = session_config(&config, self.options.iteration_delay);
+        let mut session = RunSession::new(sim.tuner.clone(), scfg)
+            .map_err(|e| RunError::Invalid(e.to_string()))?;
+        if start_paused {
+            session
+                .control(&ControlCommand::Pause)
+                .map_err(|e| RunError::Internal(e.to_string()))?;
+        }
+        let device = SimulatedDevice::new(sim.device.clone(), &sim.tuner.gates, sim.seed)
+            .map_err(|m| RunError::Invalid(format!("invalid config at `device`: {m}")))?;
+        let checkpoint = Checkpoint {
+            session: Some(session),
+            tuner: None,
+            device: SimulatorDevice::new(device)
+                .checkpoint()
+                .map_err(|e| RunError::Internal(e.to_string()))?,
+        };
+        let checkpoint_json =
+            serde_json::to_string(&checkpoint).map_err(|e| RunError::Internal(e.to_string()))?;
+        let config_json =
+            serde_json::to_string(&config).map_err(|e| RunError::Internal(e.to_string()))?;
+        let status = if start_paused {
+            RunStatus::Paused
+        } else {
+            RunStatus::Running
+        };
+        let store = self.store.clone();
+        let name = config.name().to_string();
+        let st = status.clone();
+        let id =
+            blocking(move || store.create_run(&name, &config_json, &st, &checkpoint_json)).await?;
+        let summary = RunSummary {
+            id,
+            name: config.name().to_string(),
+            status,
+            iterations: 0,
+            lab_seconds: 0.0,
+            tuned: false,
+        };
+        let handle = Arc::new(RunHandle::new(
+            id,
+            config,
+            summary,
+            self.options.viewer_buffer,
+        ));
+        self.runs().insert(id, handle.clone());
+        {
+            let _lock = handle.lifecycle.lock().await;
+            self.start_task(&handle, checkpoint).await?;
+        }
+        Ok(handle.summary())
+    }
+
+    /// Apply a control command to run `id`: handed to its live task, or
+    /// applied to the stored run (resume and step start a task).
+    pub async fn control(
+        self: &Arc<Self>,
+        id: u64,
+        command: ControlCommand,
+    ) -> Result<RunSummary, RunError> {
+        let handle = self.get(id)?;
+        let _lock = handle.lifecycle.lock().await;
+        if let Some(sender) = handle.control_sender() {
+            let (reply, rx) = oneshot::channel();
+            if sender
+                .send(ControlMsg {
+                    command: command.clone(),
+                    reply,
+                })
+                .await
+                .is_ok()
+            {
+                if let Ok(result) = rx.await {
+                    return result;
+                }
+            }
+            // The task ended in between: its final status is stored; handle
+            // the command offline.
+        }
+        self.control_offline(&handle, command).await
+    }
+
+    /// Under the lifecycle lock, with no live task.
+    async fn control_offline(
+        self: &Arc<Self>,
+        handle: &Arc<RunHandle>,
+        command: ControlCommand,
+    ) -> Result<RunSummary, RunError> {
+        let status = handle.summary().status;
+        let conflict = |what: &str| {
+            RunError::Conflict(format!(
+                "run {} is {}: {what}",
+                handle.id,
+                status.name()
+            ))
+        };
+        match &command {
+            ControlCommand::Resume | ControlCommand::Step => {
+                match status {
+                    RunStatus::Stopped | RunStatus::Stopping => {
+                        return Err(conflict("a stopped run cannot be resumed"))
+                    }
+                    RunStatus::Finished => return Err(conflict("the run has finished")),
+                    _ => {}
+                }
+                let checkpoint = self.load_checkpoint(handle.id).await?;
+                let scfg = session_config(&handle.config, self.options.iteration_delay);
+                let (mut session, device) = checkpoint.into_session(scfg)?;
+                let new_status = session
+                    .control(&command)
+                    .map_err(|e| RunError::Conflict(e.to_string()))?;
+                handle.set_summary(|s| s.status = new_status);
+                self.start_task(
+                    handle,
+                    Checkpoint {
+                        session: Some(session),
+                        tuner: None,
+                        device,
+                    },
+                )
+                .await?;
+                Ok(handle.summary())
+            }
+            ControlCommand::Pause => match status {
+                RunStatus::Interrupted | RunStatus::Failed { .. } | RunStatus::Faulted { .. } => {
+                    self.set_status_offline(handle, RunStatus::Paused).await
+                }
+                RunStatus::Paused => Ok(handle.summary()),
+                _ => Err(conflict("only a running or resumable run can be paused")),
+            },
+            ControlCommand::Stop => match status {
+                RunStatus::Finished | RunStatus::Stopped => Ok(handle.summary()),
+                _ => self.set_status_offline(handle, RunStatus::Stopped).await,
+            },
+            ControlCommand::SetTarget { .. } => {
+                if status == RunStatus::Stopped {
+                    return Err(conflict("a stopped run takes no new targets"));
+                }
+                let checkpoint = self.load_checkpoint(handle.id).await?;
+                let scfg = session_config(&handle.config, self.options.iteration_delay);
+                let (mut session, device) = checkpoint.into_session(scfg)?;
+                session.control(&command).map_err(|e| match e {
+                    spintune::session::ControlError::Conflict { .. } => {
+                        RunError::Conflict(e.to_string())
+                    }
+                    e => RunError::Invalid(e.to_string()),
+                })?;
+                let json = serde_json::to_string(&Checkpoint {
+                    session: Some(session),
+                    tuner: None,
+                    device,
+                })
+                .map_err(|e| RunError::Internal(e.to_string()))?;
+                let store = self.store.clone();
+                let id = handle.id;
+                blocking(move || store.save_checkpoint(id, None, &json)).await?;
+                Ok(handle.summary())
+            }
+        }
+    }
+
+    async fn load_checkpoint(&self, id: u64) -> Result<Checkpoint, RunError> {
+        let store = self.store.clone();
+        let json = blocking(move || store.checkpoint(id)).await?;
+        serde_json::from_str(&json)
+            .map_err(|e| RunError::Internal(format!("run {id}: unreadable checkpoint: {e}")))
+    }
+
+    /// Store a status (with `generation`: only for that task), no broadcast.
+    async fn store_status(
+        &self,
+        handle: &RunHandle,
+        generation: Option<u64>,
+        status: RunStatus,
+    ) -> Result<(), RunError> {
+        let store = self.store.clone();
+        let id = handle.id;
+        blocking(move || store.set_status(id, generation, &status)).await
+    }
+
+    async fn set_status_offline(
+        &self,
+        handle: &RunHandle,
+        status: RunStatus,
+    ) -> Result<RunSummary, RunError> {
+        self.store_status(handle, None, status.clone()).await?;
+        let summary = handle.set_summary(|s| s.status = status);
+        handle.broadcast_status(summary.clone());
+        Ok(summary)
+    }
+
+    /// Commit one iteration record (JSON) with the checkpoint taken right after
+    /// it, then update the summary and broadcast it to the viewers. Returns the
+    /// record's seq. This is the only path by which iterations reach viewers.
+    async fn commit_and_broadcast(
+        &self,
+        handle: &RunHandle,
+        generation: Option<u64>,
+        record_json: String,
+        checkpoint_json: String,
+        lab_seconds: f64,
+        tuned: bool,
+    ) -> Result<u64, RunError> {
+        let seq = handle.summary().iterations;
+        let store = self.store.clone();
+        let id = handle.id;
+        let text = iteration_frame_text(&record_json);
+        blocking(move || {
+            store.commit_iteration(
+                id,
+                generation,
+                seq,
+                &record_json,
+                &checkpoint_json,
+                lab_seconds,
+                tuned,
+            )
+        })
+        .await?;
+        handle.set_summary(|s| {
+            s.iterations = seq + 1;
+            s.lab_seconds = lab_seconds;
+            s.tuned = tuned;
+        });
+        let _ = handle.tx.send(Frame {
+            seq: Some(seq),
+            text: Utf8Bytes::from(text),
+        });
+        Ok(seq)
+    }
+
+    /// Publish a record produced outside a run task (the load bench's synthetic
+    /// source) through the same commit-then-broadcast path. The run must have
+    /// no live task; `checkpoint_json` is stored as its checkpoint (pass the
+    /// present one, [`Store::checkpoint`], to keep it).
+    pub async fn publish_external(
+        &self,
+        id: u64,
+        record: &IterationRecord,
+        checkpoint_json: String,
+    ) -> Result<u64, RunError> {
+        let handle = self.get(id)?;
+        if handle.is_live() {
+            return Err(RunError::Conflict(format!(
+                "run {id} has a live task; stop it before publishing external records"
+            )));
+        }
+        let json = serde_json::to_string(record).map_err(|e| RunError::Internal(e.to_string()))?;
+        self.commit_and_broadcast(
+            &handle,
+            None,
+            json,
+            checkpoint_json,
+            record.lab_seconds,
+            record.tuned,
+        )
+        .await
+    }
+
+    /// Stop run `id` (if live) and delete it with its iterations.
+    pub async fn delete(self: &Arc<Self>, id: u64) -> Result<(), RunError> {
+        let handle = self.get(id)?;
+        if handle.is_live() {
+            // Stop the task first so it does not write after the delete.
+            let _ = self.control(id, ControlCommand::Stop).await;
+            self.wait_idle(id).await?;
+        }
+        let _lock = handle.lifecycle.lock().await;
+        handle.set_control(None);
+        let store = self.store.clone();
+        blocking(move || store.delete_run(id)).await?;
+        self.bridges.remove(id);
+        if let Some(h) = self.runs().remove(&id) {
+            let _ = h.tx.send(Frame::message(&ServerMessage::Error {
+                message: format!("run {id} was deleted"),
+            }));
+        }
+        Ok(())
+    }
+
+    /// Let go of run `id`'s task without changing its stored status (e.g. the
+    /// headless CLI leaving a faulted run resumable): its control channel
+    /// closes and the task exits.
+    pub async fn detach(&self, id: u64) -> Result<(), RunError> {
+        let handle = self.get(id)?;
+        let _lock = handle.lifecycle.lock().await;
+        handle.set_control(None);
+        Ok(())
+    }
+
+    /// Wait until run `id` has no live task. For the headless CLI and tests.
+    pub async fn wait_idle(&self, id: u64) -> Result<RunSummary, RunError> {
+        loop {
+            let handle = self.get(id)?;
+            if !handle.is_live() {
+                return Ok(handle.summary());
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    }
+
+    /// Mark every run with a live task `Interrupted` in the store (for a clean
+    /// shutdown on Ctrl-C; a crash leaves them `Running`, which the next start
+    /// turns into `Interrupted`).
+    pub fn mark_live_interrupted(&self) {
+        for h in self.runs().values() {
+            if h.is_live() {
+                let _ = self.store.set_status(h.id, None, &RunStatus::Interrupted);
+            }
+        }
+    }
+
+    /// Under the lifecycle lock: claim a new generation and spawn the run's
+    /// one task from `checkpoint`.
+    async fn start_task(
+        self: &Arc<Self>,
+        handle: &Arc<RunHandle>,
+        checkpoint: Checkpoint,
+    ) -> Result<(), RunError> {
+        let store = self.store.clone();
+        let id = handle.id;
+        let generation = blocking(move || store.claim(id)).await?;
+        let scfg = session_config(&handle.config, self.options.iteration_delay);
+        let (mut session, device_state) = checkpoint.into_session(scfg.clone())?;
+        session.set_iteration_delay_ms(scfg.iteration_delay_ms);
+        let bridge = handle
+            .config
+            .backend
+            .uses_bridge()
+            .then(|| self.bridges.get(handle.id));
+        let device: Box<dyn Device> = match devices::open(&handle.config, device_state, bridge) {
+            Ok(d) => d,
+            Err(e) => {
+                let status = RunStatus::Failed {
+                    message: format!("cannot open the device: {e}"),
+                };
+                self.set_status_offline(handle, status).await?;
+                return Ok(());
+            }
+        };
+        let (tx, rx) = mpsc::channel(CONTROL_QUEUE);
+        handle.set_control(Some(tx.clone()));
+        let task = task::RunTask {
+            manager: self.clone(),
+            handle: handle.clone(),
+            session,
+            device,
+            control: rx,
+            generation,
+        };
+        let h = handle.clone();
+        tokio::spawn(async move {
+            task.run().await;
+            // Only this task's channel is cleared (a detached task must not
+            // clear its successor's).
+            let mut control = h.control.lock().unwrap_or_else(|p| p.into_inner());
+            if control.as_ref().is_some_and(|c| c.same_channel(&tx)) {
+                *control = None;
+            }
+        });
+        Ok(())
+    }
+}
+
+/// Short name of a status.
+pub fn status_name(s: &RunStatus) -> &'static str {
+    s.name()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_tuner_only_checkpoint_of_an_older_release_still_resumes() {
+        let cfg = spintune::driver::SimulationConfig::paper_default();
+        let tuner = Tuner::new(cfg.tuner).unwrap();
+        let old = serde_json::json!({ "tuner": tuner, "device": null });
+        let cp: Checkpoint = serde_json::from_value(old).unwrap();
+        let (session, _) = cp.into_session(SessionConfig::default()).unwrap();
+        assert_eq!(session.tuner().iteration(), 0);
+        assert_eq!(session.status(), RunStatus::Running);
+    }
+
+    #[test]
+    fn stale_store_errors_are_told_apart() {
+        let e = RunError::from(StoreError::Stale {
+            run: 1,
+            generation: 1,
+            current: 2,
+        });
+        assert!(e.is_stale());
+        assert!(!RunError::from(StoreError::NotFound(1)).is_stale());
+    }
+}

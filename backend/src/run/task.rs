@@ -1,0 +1,185 @@
+//! A run's task: the async shell around the core's [`RunSession`]. It owns
+//! nothing of the run's logic — lifecycle, deferred targets, faults and the
+//! safety guard are the session's — and only does IO: execute requests on
+//! the device, commit records with checkpoints, publish statuses, sleep,
+//! and hand control commands to the session, also while a request is at the
+//! device. Every store write carries the task's generation: a task that has
+//! been superseded cannot write and exits, and so does a task whose control
+//! channel closes.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use serde::Serialize;
+use serde_json::Value;
+use spintune::protocol::{ControlCommand, Response, RunStatus};
+use spintune::session::{Output, RunSession};
+use tokio::sync::mpsc;
+
+use super::{ControlMsg, Manager, RunError, RunHandle};
+use crate::devices::Device;
+
+pub(super) struct RunTask {
+    pub manager: Arc<Manager>,
+    pub handle: Arc<RunHandle>,
+    pub session: RunSession,
+    pub device: Box<dyn Device>,
+    pub control: mpsc::Receiver<ControlMsg>,
+    pub generation: u64,
+}
+
+/// Why the task loop ended early.
+enum Exit {
+    /// Superseded or detached: leave the stored state alone.
+    Quiet,
+    /// The store refused a write: the run cannot continue.
+    Failed(String),
+}
+
+impl RunTask {
+    /// Drive the session until it is done; store `failed` if the store breaks.
+    pub async fn run(mut self) {
+        if let Err(Exit::Failed(message)) = self.drive().await {
+            let status = RunStatus::Failed { message };
+            // Memory first: even if the store is gone, nobody is told `running`.
+            let summary = self.handle.set_summary(|s| s.status = status.clone());
+            self.handle.broadcast_status(summary);
+            let _ = self
+                .manager
+                .store_status(&self.handle, Some(self.generation), status)
+                .await;
+        }
+    }
+
+    async fn drive(&mut self) -> Result<(), Exit> {
+        loop {
+            match self.session.poll() {
+                Output::Execute(request) => {
+                    let response = {
+                        let fut = self.device.execute(request);
+                        tokio::pin!(fut);
+                        loop {
+                            tokio::select! {
+                                r = &mut fut => break r,
+                                msg = self.control.recv() => {
+                                    let msg = msg.ok_or(Exit::Quiet)?;
+                                    if handle_control(&mut self.session, &self.handle, msg) {
+                                        // Stop: abandon the request (a ramp stops between
+                                        // stages); nothing further reaches the device.
+                                        break Response::Error {
+                                            message: "stopped while the request was at the device".into(),
+                                        };
+                                    }
+                                }
+                            }
+                        }
+                    };
+                    self.session
+                        .feed(response)
+                        .map_err(|e| Exit::Failed(format!("internal: {e}")))?;
+                }
+                Output::Commit(record) => {
+                    let checkpoint = self.checkpoint_json()?;
+                    let record_json = serde_json::to_string(&*record)
+                        .map_err(|e| Exit::Failed(format!("cannot serialize record: {e}")))?;
+                    self.manager
+                        .commit_and_broadcast(
+                            &self.handle,
+                            Some(self.generation),
+                            record_json,
+                            checkpoint,
+                            record.lab_seconds,
+                            record.tuned,
+                        )
+                        .await
+                        .map_err(exit)?;
+                }
+                Output::Save => {
+                    let checkpoint = self.checkpoint_json()?;
+                    let store = self.manager.store.clone();
+                    let (id, g) = (self.handle.id, self.generation);
+                    super::blocking(move || store.save_checkpoint(id, Some(g), &checkpoint))
+                        .await
+                        .map_err(exit)?;
+                }
+                Output::Publish(status) => {
+                    self.manager
+                        .store_status(&self.handle, Some(self.generation), status.clone())
+                        .await
+                        .map_err(exit)?;
+                    let summary = self.handle.set_summary(|s| s.status = status);
+                    self.handle.broadcast_status(summary);
+                }
+                Output::Sleep { ms } => {
+                    let deadline = tokio::time::Instant::now() + Duration::from_millis(ms);
+                    loop {
+                        tokio::select! {
+                            _ = tokio::time::sleep_until(deadline) => break,
+                            msg = self.control.recv() => {
+                                handle_control(&mut self.session, &self.handle, msg.ok_or(Exit::Quiet)?);
+                                if self.session.status() != RunStatus::Running {
+                                    break;
+                                }
+                            }
+                        }
+                    }
+                }
+                Output::Wait => {
+                    let faulted = matches!(self.session.status(), RunStatus::Faulted { .. });
+                    let recovered = self.device.recovered();
+                    tokio::select! {
+                        msg = self.control.recv() => {
+                            handle_control(&mut self.session, &self.handle, msg.ok_or(Exit::Quiet)?);
+                        }
+                        _ = recovered, if faulted => {
+                            self.session.device_recovered();
+                        }
+                    }
+                }
+                Output::Done(_) => return Ok(()),
+            }
+        }
+    }
+
+    fn checkpoint_json(&self) -> Result<String, Exit> {
+        let device = self
+            .device
+            .checkpoint()
+            .map_err(|e| Exit::Failed(format!("cannot serialize device state: {e}")))?;
+        #[derive(Serialize)]
+        struct CheckpointRef<'a> {
+            session: &'a RunSession,
+            device: Value,
+        }
+        serde_json::to_string(&CheckpointRef {
+            session: &self.session,
+            device,
+        })
+        .map_err(|e| Exit::Failed(format!("cannot serialize session state: {e}")))
+    }
+}
+
+fn exit(e: RunError) -> Exit {
+    if e.is_stale() || matches!(e, RunError::NotFound(_)) {
+        Exit::Quiet
+    } else {
+        Exit::Failed(format!("the store refused a write: {e}"))
+    }
+}
+
+/// Apply one control command to the session and answer it at once with the
+/// new status (it is stored and broadcast by the next `Publish`). Returns
+/// whether the command was a stop.
+fn handle_control(session: &mut RunSession, handle: &RunHandle, msg: ControlMsg) -> bool {
+    let ControlMsg { command, reply } = msg;
+    let stop = command == ControlCommand::Stop;
+    let result = session
+        .control(&command)
+        .map(|status| handle.set_summary(|s| s.status = status))
+        .map_err(|e| match e {
+            spintune::session::ControlError::Conflict { .. } => RunError::Conflict(e.to_string()),
+            e => RunError::Invalid(e.to_string()),
+        });
+    let _ = reply.send(result);
+    stop
+}

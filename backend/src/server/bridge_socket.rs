@@ -1,0 +1,137 @@
+//! The lab bridge's WebSocket `/api/runs/{id}/bridge`: authenticates a lab
+//! script and pumps frames between it and the run's
+//! [`crate::devices::bridge::BridgeLink`]. Wire protocol: see
+//! [`crate::devices::bridge`].
+
+use std::time::Duration;
+
+use axum::extract::ws::{Message, Utf8Bytes, WebSocket};
+use spintune::protocol::{BridgeClientMessage, BridgeServerMessage, PROTOCOL_VERSION};
+use tokio::sync::mpsc;
+
+use super::{parse_strict, token_eq, AppState};
+use crate::devices::bridge::{BridgeLink, AUTH_TIMEOUT_S};
+
+fn frame(msg: &BridgeServerMessage) -> Message {
+    Message::Text(Utf8Bytes::from(
+        serde_json::to_string(msg).expect("BridgeServerMessage serializes"),
+    ))
+}
+
+fn error_frame(message: impl Into<String>) -> Message {
+    frame(&BridgeServerMessage::Error {
+        message: message.into(),
+    })
+}
+
+/// Serve one bridge socket of run `id` (the handler of `/api/runs/{id}/bridge`).
+pub async fn serve_socket(state: AppState, id: u64, mut socket: WebSocket) {
+    let _ = serve(&state, id, &mut socket).await;
+    let _ = socket.send(Message::Close(None)).await;
+}
+
+async fn serve(state: &AppState, id: u64, socket: &mut WebSocket) -> Result<(), axum::Error> {
+    let Ok(handle) = state.manager.get(id) else {
+        return socket
+            .send(error_frame(format!("no run with id {id}")))
+            .await;
+    };
+    socket
+        .send(frame(&BridgeServerMessage::Hello {
+            version: PROTOCOL_VERSION,
+            run: handle.summary(),
+        }))
+        .await?;
+    drop(handle);
+    // Authentication first.
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(AUTH_TIMEOUT_S);
+    loop {
+        let incoming = match tokio::time::timeout_at(deadline, socket.recv()).await {
+            Err(_) => {
+                return socket
+                    .send(error_frame(format!(
+                        "no auth frame within {AUTH_TIMEOUT_S} s; send {{\"type\":\"auth\",\"token\":\"…\"}} first"
+                    )))
+                    .await
+            }
+            Ok(None) => return Ok(()),
+            Ok(Some(m)) => m?,
+        };
+        let text = match incoming {
+            Message::Text(t) => t,
+            Message::Close(_) => return Ok(()),
+            Message::Ping(_) | Message::Pong(_) => continue,
+            Message::Binary(_) => {
+                return socket
+                    .send(error_frame(
+                        "binary frames are not supported; send JSON text",
+                    ))
+                    .await
+            }
+        };
+        match parse_strict::<BridgeClientMessage>(text.as_str()) {
+            Ok(BridgeClientMessage::Auth { token }) if token_eq(&token, &state.token) => break,
+            Ok(BridgeClientMessage::Auth { .. }) => {
+                return socket.send(error_frame("invalid control token")).await
+            }
+            Ok(BridgeClientMessage::Response { .. }) => return socket
+                .send(error_frame(
+                    "the bridge must authenticate first: send {\"type\":\"auth\",\"token\":\"…\"}",
+                ))
+                .await,
+            Err(message) => return socket.send(error_frame(message)).await,
+        }
+    }
+    let link = match state.manager.bridge_link(id) {
+        Ok(l) => l,
+        Err(e) => return socket.send(error_frame(e.to_string())).await,
+    };
+    socket.send(frame(&BridgeServerMessage::AuthOk)).await?;
+    let (generation, mut outbox) = link.attach();
+    let result = pump(&link, generation, &mut outbox, socket).await;
+    link.detach(generation);
+    result
+}
+
+async fn pump(
+    link: &BridgeLink,
+    generation: u64,
+    outbox: &mut mpsc::UnboundedReceiver<Utf8Bytes>,
+    socket: &mut WebSocket,
+) -> Result<(), axum::Error> {
+    loop {
+        tokio::select! {
+            out = outbox.recv() => match out {
+                Some(text) => socket.send(Message::Text(text)).await?,
+                None => {
+                    return socket
+                        .send(error_frame("replaced by a newer bridge connection for this run"))
+                        .await;
+                }
+            },
+            incoming = socket.recv() => {
+                let Some(incoming) = incoming else { return Ok(()) };
+                let reply = match incoming? {
+                    Message::Text(text) => match parse_strict::<BridgeClientMessage>(text.as_str()) {
+                        Ok(BridgeClientMessage::Response { id, response }) => {
+                            link.answer(generation, id, response).err().map(error_frame)
+                        }
+                        Ok(BridgeClientMessage::Auth { .. }) => {
+                            Some(frame(&BridgeServerMessage::AuthOk))
+                        }
+                        Err(message) => Some(error_frame(message)),
+                    },
+                    Message::Binary(_) => {
+                        Some(error_frame("binary frames are not supported; send JSON text"))
+                    }
+                    Message::Close(_) => return Ok(()),
+                    Message::Ping(_) | Message::Pong(_) => None,
+                };
+                if let Some(reply) = reply {
+                    socket.send(reply).await?;
+                }
+            }
+        }
+    }
+}
+

@@ -391,3 +391,47 @@ async fn connect_small_buffer(addr: std::net::SocketAddr, id: u64) -> common::Ws
             .expect("websocket handshake");
     ws
 }
+
+/// A version-1 client (no `protocol` in the URL) and a client stating
+/// another version get one error frame naming both versions; the socket
+/// then closes. Bridges are held to the same rule.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn clients_of_another_protocol_version_get_a_clear_version_error() {
+    use futures_util::StreamExt;
+    use tokio_tungstenite::tungstenite::Message;
+    let dir = TempDir::new("version");
+    let srv = server(&dir, 64).await;
+    let run = create_run(srv.addr, &small_config("v", 1, 0)).await;
+    for path in [
+        format!("/api/runs/{}/ws", run.id),
+        format!("/api/runs/{}/ws?protocol=1&from=0", run.id),
+        format!("/api/runs/{}/bridge", run.id),
+    ] {
+        let url = format!("ws://{}{path}", srv.addr);
+        let (mut ws, _) = tokio::time::timeout(STEP, tokio_tungstenite::connect_async(url))
+            .await
+            .unwrap()
+            .unwrap();
+        let first = tokio::time::timeout(STEP, ws.next())
+            .await
+            .unwrap()
+            .expect("an error frame")
+            .unwrap();
+        let Message::Text(text) = first else {
+            panic!("{path}: expected a text frame, got {first:?}")
+        };
+        let v: Value = serde_json::from_str(text.as_str()).unwrap();
+        assert_eq!(v["type"], "error", "{path}: {v}");
+        let msg = v["message"].as_str().unwrap();
+        assert!(
+            msg.contains(&format!("protocol version {PROTOCOL_VERSION}")),
+            "{path}: {msg}"
+        );
+        // then the server closes the socket
+        let next = tokio::time::timeout(STEP, ws.next()).await.unwrap();
+        assert!(
+            matches!(next, None | Some(Ok(Message::Close(_))) | Some(Err(_))),
+            "{path}: {next:?}"
+        );
+    }
+}

@@ -282,3 +282,194 @@ async fn bridge_serves_a_run_and_faults_pause_it_without_losing_data() {
         "bridge run differs from the uninterrupted simulator run"
     );
 }
+
+/// Checks one request against the physical state of the scripted lab device
+/// (limits, and the step from where each gate really is). `Err` names the violation.
+fn physical_violation(device: &SimulatedDevice, req: &Request) -> Option<String> {
+    let gates = spintune::sim::default_gates();
+    let spec = |g: &str| gates.iter().find(|s| s.name == g).cloned().unwrap();
+    let check = |g: &str, v: f64, out: &mut Vec<String>| {
+        let s = spec(g);
+        let now = device.voltages_mv()[g];
+        if v < s.min_mv || v > s.max_mv {
+            out.push(format!("{g}: {v} mV outside its limits"));
+        }
+        if (v - now).abs() > s.max_step_mv + 1e-9 {
+            out.push(format!(
+                "{g}: physical step {} mV from {now} mV",
+                (v - now).abs()
+            ));
+        }
+    };
+    let mut out = Vec::new();
+    match req {
+        Request::SetVoltages { voltages_mv } => {
+            for (g, &v) in voltages_mv {
+                check(g, v, &mut out);
+            }
+        }
+        Request::Measure { scan } => {
+            if let Some(s) = &scan.sweep {
+                check(&s.gate, s.from_mv, &mut out);
+            }
+        }
+        _ => {}
+    }
+    (!out.is_empty()).then(|| out.join("; "))
+}
+
+/// The real binary, a scripted bridge that lies and an instrument moved
+/// during a crash. A `voltages_set` answer carrying a read-back of a gate that
+/// was not requested (N reported 150 mV away, not applied) faults the run and
+/// is not believed; after `kill -9` the gate T is moved by 18.5 mV, and the
+/// restarted run reads every gate back before moving one. No request ever
+/// steps a gate by more than its `max_step_mv` from where it physically is.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_lying_bridge_and_a_crash_never_cause_a_step_above_the_limit() {
+    let dir = TempDir::new("bridge-lie");
+    let db = dir.0.join("lie.db");
+    let cfg = json!({
+        "name": "lying bridge",
+        "seed": 4,
+        "iteration_delay_ms": 0,
+        "driver": "bridge",
+        "bridge": { "request_timeout_s": 5.0 },
+        "tuner": { "max_iterations": 6, "stop_when_tuned": false }
+    });
+    let parsed = RunConfig::from_json_str(&cfg.to_string()).unwrap();
+    let mut device = SimulationRun::new(parsed.simulation)
+        .unwrap()
+        .device()
+        .clone();
+    let mut violations = Vec::new();
+    // Serve honestly, checking every request physically, until `until` is true.
+    async fn serve_checked(
+        ws: &mut Ws,
+        device: &mut SimulatedDevice,
+        violations: &mut Vec<String>,
+        requests: usize,
+    ) -> Vec<Request> {
+        let mut seen = Vec::new();
+        for _ in 0..requests {
+            let (id, req) = next_any_request(ws).await;
+            if let Some(v) = physical_violation(device, &req) {
+                violations.push(v);
+            }
+            let resp = device.execute(&req);
+            answer(ws, id, resp).await;
+            seen.push(req);
+        }
+        seen
+    }
+
+    let (mut proc1, addr) = spawn_server(&db);
+    let run = create_run(addr, &cfg).await;
+    let mut ws = bridge(addr, run.id).await;
+    let first = serve_checked(&mut ws, &mut device, &mut violations, 30).await;
+    assert!(
+        matches!(&first[0], Request::ReadVoltages { gates } if gates.len() == 11),
+        "the run must read every gate before anything else: {:?}",
+        first[0]
+    );
+    // The lie: a set answer with an extra read-back of N, 150 mV away, not applied.
+    let (id, req) = loop {
+        let (id, req) = next_any_request(&mut ws).await;
+        if matches!(&req, Request::SetVoltages { voltages_mv } if !voltages_mv.contains_key("N")) {
+            break (id, req);
+        }
+        if let Some(v) = physical_violation(&device, &req) {
+            violations.push(v);
+        }
+        let resp = device.execute(&req);
+        answer(&mut ws, id, resp).await;
+    };
+    let Response::VoltagesSet {
+        mut voltages_mv,
+        lab_seconds,
+    } = device.execute(&req)
+    else {
+        panic!("the simulated device refused {req:?}")
+    };
+    let n_now = device.voltages_mv()["N"];
+    voltages_mv.insert("N".into(), n_now + 150.0);
+    answer(
+        &mut ws,
+        id,
+        Response::VoltagesSet {
+            voltages_mv,
+            lab_seconds,
+        },
+    )
+    .await;
+    let faulted = wait_status(addr, run.id, |r| {
+        matches!(r.status, RunStatus::Faulted { .. })
+    })
+    .await;
+    let RunStatus::Faulted { fault } = &faulted.status else {
+        unreachable!()
+    };
+    assert_eq!(fault.kind, FaultKind::Readback, "{fault}");
+    assert!(
+        fault.message.contains("not requested") && fault.message.contains('N'),
+        "{fault}"
+    );
+    let (s, b) = control(addr, run.id, r#"{"action":"resume"}"#).await;
+    assert_eq!(s, 200, "{b}");
+    let after = serve_checked(&mut ws, &mut device, &mut violations, 20).await;
+    assert!(
+        matches!(&after[0], Request::ReadVoltages { gates } if gates.len() == 11),
+        "resume must read every gate first: {:?}",
+        after[0]
+    );
+
+    // Crash; meanwhile someone moves T by 18.5 mV.
+    proc1.0.kill().unwrap();
+    proc1.0.wait().unwrap();
+    drop(proc1);
+    drop(ws);
+    let t = device.voltages_mv()["T"];
+    device.execute(&Request::SetVoltages {
+        voltages_mv: [("T".to_string(), t + 18.5)].into(),
+    });
+    let (_proc2, addr) = spawn_server(&db);
+    let mut ws = bridge(addr, run.id).await;
+    let (s, b) = control(addr, run.id, r#"{"action":"resume"}"#).await;
+    assert_eq!(s, 200, "{b}");
+    let finished = tokio::time::timeout(Duration::from_secs(60), async {
+        loop {
+            tokio::select! {
+                frame = next_bridge(&mut ws) => {
+                    if let BridgeServerMessage::Request { id, request, .. } = frame {
+                        if let Some(v) = physical_violation(&device, &request) {
+                            violations.push(v);
+                        }
+                        let resp = device.execute(&request);
+                        answer(&mut ws, id, resp).await;
+                    }
+                }
+                _ = tokio::time::sleep(Duration::from_millis(50)) => {
+                    if is_finished(&get_run(addr, run.id).await) {
+                        return;
+                    }
+                }
+            }
+        }
+    })
+    .await;
+    assert!(finished.is_ok(), "the run did not finish after the crash");
+    assert!(
+        violations.is_empty(),
+        "physical step violations: {violations:?}"
+    );
+    let recs = records(addr, run.id).await;
+    assert_eq!(recs.len(), 6);
+    // The moved gate shows up as an event of the first iteration after the crash.
+    let moved = recs.iter().any(|r| {
+        r["events"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|e| e["event"] == "instrument_moved" && e["gate"] == "T")
+    });
+    assert!(moved, "the 18.5 mV move of T was not reported");
+}

@@ -143,7 +143,9 @@ async fn python_bridge_client_serves_a_run_and_reconnects() {
     .await;
     match &paused.status {
         RunStatus::Faulted { fault } => assert!(
-            fault.message.contains("lab bridge disconnected while request 181"),
+            fault
+                .message
+                .contains("lab bridge disconnected while request 181"),
             "{fault}"
         ),
         other => panic!("expected a pause, got {other:?}"),

@@ -4,9 +4,7 @@
 
 mod common;
 
-use std::io::{BufRead, BufReader};
-use std::net::SocketAddr;
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 use common::*;
@@ -14,50 +12,6 @@ use serde_json::Value;
 use spintune::driver::SimulationRun;
 use spintune::protocol::RunStatus;
 use spintune_server::config::RunConfig;
-
-struct Proc(Child);
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-/// Start `spintune serve` on an ephemeral port; returns the process and its address.
-fn spawn_server(db: &std::path::Path) -> (Proc, SocketAddr) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_spintune"))
-        .args([
-            "serve",
-            "--bind",
-            "127.0.0.1:0",
-            "--demo",
-            "never",
-            "--token",
-            TOKEN,
-        ])
-        .arg("--db")
-        .arg(db)
-        .arg("--dist")
-        .arg(db.with_file_name("no-dist"))
-        .stdout(Stdio::piped())
-        .stderr(Stdio::inherit())
-        .spawn()
-        .expect("spawn spintune serve");
-    let stdout = child.stdout.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            if let Some(rest) = line.strip_prefix("Dashboard: http://") {
-                let _ = tx.send(rest.trim_end_matches('/').to_string());
-            }
-        }
-    });
-    let addr = rx
-        .recv_timeout(Duration::from_secs(20))
-        .expect("server did not print its address");
-    (Proc(child), addr.parse().unwrap())
-}
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn kill_9_mid_run_then_resume_continues_bit_identically() {

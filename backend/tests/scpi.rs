@@ -441,3 +441,123 @@ async fn faults_pause_the_run_without_losing_data_and_limits_always_hold() {
         .count();
     assert!(sets > 100, "only {sets} set commands");
 }
+
+/// The real binary as a process against the scripted instrument: `kill -9`
+/// mid-run, restart, eight concurrent `resume`s. Exactly one task may drive
+/// the run (one new instrument connection, paced iterations, contiguous
+/// unique iteration numbers), and after `stop` is acknowledged the
+/// instrument receives nothing.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn concurrent_resumes_after_kill_9_start_one_task_and_nothing_reaches_the_instrument_after_stop(
+) {
+    let (volts, limits) = instrument_at_initial();
+    let inst = Instrument::start(volts, limits, 2.0).await;
+    let dir = TempDir::new("scpi-kill");
+    let db = dir.0.join("kill.db");
+    let delay_ms = 100;
+    let mut cfg = run_config(inst.addr, 10_000);
+    cfg["iteration_delay_ms"] = json!(delay_ms);
+
+    let (mut proc1, addr) = spawn_server(&db);
+    let run = create_run(addr, &cfg).await;
+    wait_status(addr, run.id, |r| r.iterations >= 2).await;
+    proc1.0.kill().unwrap();
+    proc1.0.wait().unwrap();
+    drop(proc1);
+    let connections_before = inst.log().last().map_or(0, |(c, _)| *c);
+
+    let (_proc2, addr) = spawn_server(&db);
+    let stored = get_run(addr, run.id).await;
+    assert_eq!(stored.status, RunStatus::Interrupted, "{stored:?}");
+    let resumes = (0..8).map(|_| control(addr, run.id, r#"{"action":"resume"}"#));
+    for (s, body) in futures_util::future::join_all(resumes).await {
+        assert_eq!(s, 200, "{body}");
+    }
+    let t0 = std::time::Instant::now();
+    let start = get_run(addr, run.id).await.iterations;
+    wait_status(addr, run.id, |r| r.iterations >= start + 4).await;
+    tokio::time::sleep(Duration::from_millis(1000)).await;
+    let now = get_run(addr, run.id).await;
+    assert_eq!(now.status, RunStatus::Running);
+    // One paced task: at most one iteration per `delay_ms` (an orphan task
+    // would run unpaced, hundreds per second).
+    let ran = now.iterations - start;
+    let bound = t0.elapsed().as_millis() as u64 / delay_ms + 2;
+    assert!(ran <= bound, "{ran} iterations in {:?}", t0.elapsed());
+    // One task, one instrument connection after the restart.
+    let connections: std::collections::BTreeSet<usize> = inst
+        .log()
+        .iter()
+        .map(|(c, _)| *c)
+        .filter(|c| *c > connections_before)
+        .collect();
+    assert_eq!(connections.len(), 1, "{connections:?}");
+
+    // Stop: acknowledged, then silence on the instrument.
+    let (s, body) = control(addr, run.id, r#"{"action":"stop"}"#).await;
+    assert_eq!(s, 200, "{body}");
+    // bytes already in flight when the stop was acknowledged may still arrive
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let sent = inst.commands().len();
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    assert_eq!(
+        inst.commands().len(),
+        sent,
+        "commands reached the instrument after stop: {:?}",
+        &inst.commands()[sent..]
+    );
+    assert_eq!(get_run(addr, run.id).await.status, RunStatus::Stopped);
+    let (s, _) = control(addr, run.id, r#"{"action":"resume"}"#).await;
+    assert_eq!(s, 409, "a stopped run must not resume");
+    // Every stored iteration once, in order, across the crash.
+    let recs = records(addr, run.id).await;
+    for (k, r) in recs.iter().enumerate() {
+        assert_eq!(r["iteration"], k as u64);
+    }
+    assert!(inst.violations().is_empty(), "{:?}", inst.violations());
+}
+
+/// Headless `spintune run` against an instrument that is not there: the
+/// device fault is printed and the process exits non-zero (3) instead of
+/// hanging; the run stays resumable in the store.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn headless_run_exits_non_zero_on_a_device_fault_and_leaves_the_run_resumable() {
+    // a port nobody listens on
+    let closed = {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        l.local_addr().unwrap()
+    };
+    let dir = TempDir::new("headless-fault");
+    let toml_cfg = format!(
+        "name = \"headless\"\ndriver = \"scpi\"\n[scpi]\naddress = \"{closed}\"\ntimeout_ms = 300\nmeasure = \"simulator\"\n[scpi.channels]\nN = 1\nT = 2\nSA = 3\nSB = 4\n[tuner]\nmax_iterations = 3\n"
+    );
+    let cfg_path = dir.0.join("run.toml");
+    std::fs::write(&cfg_path, toml_cfg).unwrap();
+    let db = dir.0.join("h.db");
+    let out = tokio::task::spawn_blocking(move || {
+        std::process::Command::new(env!("CARGO_BIN_EXE_spintune"))
+            .args(["run", "--quiet", "--config"])
+            .arg(&cfg_path)
+            .arg("--db")
+            .arg(&db)
+            .output()
+            .unwrap()
+    });
+    let out = tokio::time::timeout(Duration::from_secs(60), out)
+        .await
+        .expect("headless run hung on a device fault")
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(3), "{stderr}");
+    assert!(stderr.contains("device fault"), "{stderr}");
+    assert!(stderr.contains("cannot connect"), "{stderr}");
+    assert!(stderr.contains("resumable"), "{stderr}");
+    let store = spintune_server::store::Store::open(&dir.0.join("h.db")).unwrap();
+    let run = store.list_runs().unwrap().pop().unwrap();
+    assert!(
+        matches!(run.summary.status, RunStatus::Faulted { .. }),
+        "{:?}",
+        run.summary.status
+    );
+    assert!(run.summary.status.is_resumable());
+}

@@ -167,7 +167,11 @@ struct Instrument {
 impl Instrument {
     fn new(cfg: &TunerConfig) -> Self {
         Self {
-            limits: cfg.gates.iter().map(|g| (g.name.clone(), g.clone())).collect(),
+            limits: cfg
+                .gates
+                .iter()
+                .map(|g| (g.name.clone(), g.clone()))
+                .collect(),
             phys: cfg
                 .gates
                 .iter()
@@ -450,7 +454,9 @@ fn run_script(script: &[Step]) -> Result<(), TestCaseError> {
                 dev.check_request(&req).map_err(TestCaseError::fail)?;
                 EXECUTED.fetch_add(1, Ordering::Relaxed);
                 let resp = dev.execute(&req, *how);
-                session.feed(resp).map_err(|e| TestCaseError::fail(e.to_string()))?;
+                session
+                    .feed(resp)
+                    .map_err(|e| TestCaseError::fail(e.to_string()))?;
             }
             Step::Pause => {
                 let _ = session.control(&ControlCommand::Pause);
@@ -487,10 +493,7 @@ fn run_script(script: &[Step]) -> Result<(), TestCaseError> {
                 prop_assert!(r.is_err());
             }
             Step::KnobTurn(g, d) => {
-                let moving = matches!(
-                    session.status(),
-                    RunStatus::Running | RunStatus::Stepping
-                );
+                let moving = matches!(session.status(), RunStatus::Running | RunStatus::Stepping);
                 if !moving {
                     let name = ["N", "SA", "SB", "T", "SD1"][*g];
                     let s = &dev.limits[name];
@@ -544,7 +547,9 @@ fn session_holds_safety_and_lifecycle_invariants_over_1e5_random_steps() {
     );
     // The scripts must really drive tuning and really provoke faults.
     assert!(executed >= generated / 4, "{executed} requests executed");
-    assert!(commits >= u64::from(CASES) * 5, "{commits} iterations committed");
+    assert!(
+        commits >= u64::from(CASES) * 5,
+        "{commits} iterations committed"
+    );
     assert!(faults >= u64::from(CASES), "{faults} faults");
 }
-

@@ -29,8 +29,8 @@ mod simulator;
 
 pub use simulator::SimulatorDevice;
 
-use bridge::{BridgeDevice, BridgeLink};
 use crate::config::{DriverKind, RunConfig};
+use bridge::{BridgeDevice, BridgeLink};
 use scpi::{MeasureSource, ScpiDevice, ScpiSource};
 
 /// A boxed, `Send` future (keeps [`Device`] usable as `Box<dyn Device>`).

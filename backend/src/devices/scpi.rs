@@ -48,8 +48,8 @@ use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
 use tokio::net::TcpStream;
 
 use super::bridge::BridgeDevice;
-use crate::config::DriverKind;
 use super::{BoxFuture, Device, SimulatorDevice};
+use crate::config::DriverKind;
 
 /// Where a SCPI run's measurements come from (the DC source only sets gates).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]

@@ -42,4 +42,3 @@ impl Device for SimulatorDevice {
         DriverKind::Simulator
     }
 }
-

@@ -62,10 +62,7 @@ pub struct Checkpoint {
 impl Checkpoint {
     /// The session to continue from (an old tuner-only checkpoint gets a
     /// fresh session around its tuner).
-    pub fn into_session(
-        self,
-        config: SessionConfig,
-    ) -> Result<(RunSession, Value), RunError> {
+    pub fn into_session(self, config: SessionConfig) -> Result<(RunSession, Value), RunError> {
         match (self.session, self.tuner) {
             (Some(s), _) => Ok((s, self.device)),
             (None, Some(t)) => Ok((RunSession::from_tuner(t, config), self.device)),
@@ -430,11 +427,7 @@ impl Manager {
     ) -> Result<RunSummary, RunError> {
         let status = handle.summary().status;
         let conflict = |what: &str| {
-            RunError::Conflict(format!(
-                "run {} is {}: {what}",
-                handle.id,
-                status.name()
-            ))
+            RunError::Conflict(format!("run {} is {}: {what}", handle.id, status.name()))
         };
         match &command {
             ControlCommand::Resume | ControlCommand::Step => {

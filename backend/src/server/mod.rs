@@ -414,7 +414,10 @@ async fn ws(
     // usually empty) poll of the socket cheap, since tungstenite zeroes it.
     let upgrade = upgrade.read_buffer_size(4 * 1024);
     if let Some(message) = version_mismatch(&q) {
-        return Ok(refuse_socket(upgrade, text_of(&ServerMessage::Error { message })));
+        return Ok(refuse_socket(
+            upgrade,
+            text_of(&ServerMessage::Error { message }),
+        ));
     }
     Ok(upgrade.on_upgrade(move |socket| async move {
         if let Err(e) = viewer(s, id, from, socket).await {
@@ -434,11 +437,13 @@ async fn bridge_ws(
     let id = parse_id(&id)?;
     s.manager.get(id)?;
     if let Some(message) = version_mismatch(&q) {
-        let frame = serde_json::to_string(&spintune::protocol::BridgeServerMessage::Error {
-            message,
-        })
-        .expect("BridgeServerMessage serializes");
-        return Ok(refuse_socket(upgrade, Message::Text(Utf8Bytes::from(frame))));
+        let frame =
+            serde_json::to_string(&spintune::protocol::BridgeServerMessage::Error { message })
+                .expect("BridgeServerMessage serializes");
+        return Ok(refuse_socket(
+            upgrade,
+            Message::Text(Utf8Bytes::from(frame)),
+        ));
     }
     Ok(upgrade.on_upgrade(move |socket| bridge_socket::serve_socket(s, id, socket)))
 }

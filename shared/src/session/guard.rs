@@ -43,7 +43,9 @@ pub enum ReadbackError {
         value_mv: f64,
     },
     /// The read-back differs from the set value by more than the tolerance.
-    #[error("gate {gate}: set {set_mv:.6} mV, read back {read_mv:.6} mV (tolerance {tolerance_mv} mV)")]
+    #[error(
+        "gate {gate}: set {set_mv:.6} mV, read back {read_mv:.6} mV (tolerance {tolerance_mv} mV)"
+    )]
     Mismatch {
         /// Gate name.
         gate: String,
@@ -327,10 +329,7 @@ mod tests {
         let req = Request::SetVoltages {
             voltages_mv: set(&[("A", 5.0)]),
         };
-        assert_eq!(
-            g.check(&req),
-            Err(SafetyError::PositionUnknown("A".into()))
-        );
+        assert_eq!(g.check(&req), Err(SafetyError::PositionUnknown("A".into())));
         assert_eq!(g.unknown_gates(&req), BTreeSet::from(["A".to_string()]));
         g.accept_read(&["A".into()], &set(&[("A", -8.0)])).unwrap();
         // 13 mV from the read-back: refused although the plan started at 0 mV.

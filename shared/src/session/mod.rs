@@ -167,7 +167,9 @@ pub enum ControlError {
     #[error(transparent)]
     Invalid(#[from] TunerError),
     /// Too many target changes are waiting for the iteration boundary.
-    #[error("{MAX_DEFERRED_TARGETS} target changes are already waiting for the end of the iteration")]
+    #[error(
+        "{MAX_DEFERRED_TARGETS} target changes are already waiting for the end of the iteration"
+    )]
     TooManyDeferred,
 }
 
@@ -356,7 +358,12 @@ impl RunSession {
                     // of them: every gate on start, restore and resume; after
                     // a sweep, the swept gate.
                     let gates: Vec<String> = if self.guard.readback_mv().is_empty() {
-                        self.tuner.config().gates.iter().map(|g| g.name.clone()).collect()
+                        self.tuner
+                            .config()
+                            .gates
+                            .iter()
+                            .map(|g| g.name.clone())
+                            .collect()
                     } else {
                         unknown.into_iter().collect()
                     };
@@ -554,8 +561,7 @@ impl RunSession {
                 if matches!(self.mode, Mode::Stopped | Mode::Stopping) {
                     return Err(conflict(self, "a stopped run takes no new targets"));
                 }
-                self.tuner
-                    .validate_target(parameter, *target, *tolerance)?;
+                self.tuner.validate_target(parameter, *target, *tolerance)?;
                 let change = TargetChange {
                     parameter: parameter.clone(),
                     target: *target,

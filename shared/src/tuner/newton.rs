@@ -643,12 +643,14 @@ impl Tuner {
         for (i, l) in self.levels.iter_mut().enumerate() {
             if let LevelState::Newton(s) = l {
                 let name = &self.config.levels[i].name;
-                events.extend(std::mem::take(&mut s.events).into_iter().map(|kind| {
-                    TunerEvent {
-                        level: name.clone(),
-                        kind,
-                    }
-                }));
+                events.extend(
+                    std::mem::take(&mut s.events)
+                        .into_iter()
+                        .map(|kind| TunerEvent {
+                            level: name.clone(),
+                            kind,
+                        }),
+                );
             }
         }
         let (_, state) = self.newton_mut(0);

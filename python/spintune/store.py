@@ -1,0 +1,175 @@
+"""Runs stored by the server and the CLI (``spintune serve``, ``spintune run``).
+
+The store is an SQLite file (schema: ``backend/src/store.rs``): a ``runs``
+table (config, status, counters, latest checkpoint) and an ``iterations``
+table holding each committed ``IterationRecord`` as JSON. This module only
+reads it, with Python's ``sqlite3`` (the file is opened read-only)::
+
+    store = spintune.open_store("spintune.db")
+    for run in store:
+        print(run.id, run.name, run.status["state"], run.iterations)
+    ds = store[1].to_xarray()
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sqlite3
+from typing import Any, Iterator, Optional
+
+
+class StoredRun:
+    """One stored run. Records are read from the file when first asked for.
+
+    Attributes:
+        id: the run's id (as in ``spintune export ID``).
+        name: the run's name.
+        status: status dict, e.g. ``{"state": "finished"}``.
+        iterations: number of committed iterations.
+        lab_seconds: cumulative lab time, s.
+        tuned: whether the last iteration was tuned.
+        config: the run config dict (``{"simulation": {...}, "backend": {...}}``).
+        created_unix_s: creation time, Unix seconds.
+    """
+
+    def __init__(self, store: "Store", row: tuple):
+        (
+            self.id,
+            self.name,
+            status,
+            self.iterations,
+            self.lab_seconds,
+            tuned,
+            config,
+            self.created_unix_s,
+        ) = row
+        self._store = store
+        self.status: dict = json.loads(status)
+        self.tuned = bool(tuned)
+        self.config: dict = json.loads(config)
+        self._records: Optional[list] = None
+
+    @property
+    def simulation_config(self) -> dict:
+        """The core part of the config (``name``, ``seed``, ``device``, ``tuner``),
+        as ``spintune.SimulationRun`` takes it."""
+        return self.config.get("simulation", self.config)
+
+    @property
+    def records(self) -> list:
+        """Every committed iteration record (list of dicts, JSON ``IterationRecord``), in order."""
+        if self._records is None:
+            with self._store._connect() as conn:
+                rows = conn.execute(
+                    "SELECT record FROM iterations WHERE run_id = ? ORDER BY seq", (self.id,)
+                ).fetchall()
+            self._records = [json.loads(r[0]) for r in rows]
+        return self._records
+
+    @property
+    def checkpoint(self) -> str:
+        """The latest checkpoint (JSON string: session and device state)."""
+        with self._store._connect() as conn:
+            (text,) = conn.execute("SELECT checkpoint FROM runs WHERE id = ?", (self.id,)).fetchone()
+        return text
+
+    def to_xarray(self):
+        """The records as an ``xarray.Dataset`` over ``iteration`` (see
+        ``SimulationRun.to_xarray`` for the variables and units)."""
+        from ._xarray import records_to_dataset
+
+        return records_to_dataset(
+            self.records,
+            {
+                "title": f"spintune run {self.id}: {self.name}",
+                "name": self.name,
+                "run_id": self.id,
+                "status": self.status.get("state", ""),
+                "spintune_config": json.dumps(self.config),
+            },
+        )
+
+    def to_netcdf(self, path) -> None:
+        """Write ``to_xarray()`` to a netCDF file."""
+        self.to_xarray().to_netcdf(path)
+
+    def __repr__(self) -> str:
+        return (
+            f"StoredRun(id={self.id}, name={self.name!r}, status={self.status.get('state')!r}, "
+            f"iterations={self.iterations})"
+        )
+
+
+class Store:
+    """A spintune store (SQLite file), read-only. Iterating yields the runs
+    (oldest first); ``store[id]`` is one run."""
+
+    def __init__(self, path: "str | os.PathLike[str]"):
+        self.path = os.fspath(path)
+        if not os.path.isfile(self.path):
+            raise FileNotFoundError(f"no spintune store at {self.path}")
+        with self._connect() as conn:
+            tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+        if not {"runs", "iterations"} <= tables:
+            raise ValueError(f"{self.path} is not a spintune store (no `runs`/`iterations` tables)")
+
+    def _connect(self) -> sqlite3.Connection:
+        uri = "file:" + os.path.abspath(self.path).replace("?", "%3f").replace("#", "%23") + "?mode=ro"
+        conn = sqlite3.connect(uri, uri=True, timeout=10.0)
+        return _Closing(conn)
+
+    @property
+    def runs(self) -> list:
+        """Every run, oldest first (fresh from the file)."""
+        with self._connect() as conn:
+            rows = conn.execute(
+                "SELECT id, name, status, iterations, lab_seconds, tuned, config, created_unix_s "
+                "FROM runs ORDER BY id"
+            ).fetchall()
+        return [StoredRun(self, row) for row in rows]
+
+    def run(self, run_id: int) -> StoredRun:
+        """The run with this id; ``KeyError`` if there is none."""
+        with self._connect() as conn:
+            row = conn.execute(
+                "SELECT id, name, status, iterations, lab_seconds, tuned, config, created_unix_s "
+                "FROM runs WHERE id = ?",
+                (int(run_id),),
+            ).fetchone()
+        if row is None:
+            raise KeyError(f"no run with id {run_id} in {self.path}")
+        return StoredRun(self, row)
+
+    def __getitem__(self, run_id: int) -> StoredRun:
+        return self.run(run_id)
+
+    def __iter__(self) -> Iterator[StoredRun]:
+        return iter(self.runs)
+
+    def __len__(self) -> int:
+        with self._connect() as conn:
+            return conn.execute("SELECT COUNT(*) FROM runs").fetchone()[0]
+
+    def __repr__(self) -> str:
+        return f"Store({self.path!r}, runs={len(self)})"
+
+
+class _Closing:
+    """``with`` a connection that closes it afterwards (sqlite3's own
+    context manager only commits)."""
+
+    def __init__(self, conn: sqlite3.Connection):
+        self._conn = conn
+
+    def __enter__(self) -> sqlite3.Connection:
+        return self._conn
+
+    def __exit__(self, *exc: Any) -> None:
+        self._conn.close()
+
+
+def open_store(path: "str | os.PathLike[str]") -> Store:
+    """Open a spintune store (the SQLite file of ``spintune serve --db`` /
+    ``spintune run --db``) for reading."""
+    return Store(path)

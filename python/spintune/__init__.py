@@ -27,6 +27,7 @@ from ._core import (
     default_config,
     newton_step,
     resolve_config,
+    resolve_tuner_config,
 )
 from .store import Store, StoredRun, open_store
 
@@ -43,6 +44,7 @@ __all__ = [
     "newton_step",
     "open_store",
     "resolve_config",
+    "resolve_tuner_config",
     "records_to_dataset",
 ]
 

@@ -20,6 +20,7 @@ fn core_module(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<kalman::PyKalmanGradient>()?;
     m.add_function(wrap_pyfunction!(kalman::newton_step, m)?)?;
     m.add_class::<session::PyRunSession>()?;
+    m.add_function(wrap_pyfunction!(session::resolve_tuner_config, m)?)?;
     m.add_class::<simulation::PySimulationRun>()?;
     m.add_class::<simulation::PySimulatedDevice>()?;
     m.add_function(wrap_pyfunction!(simulation::default_config, m)?)?;

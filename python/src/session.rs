@@ -220,3 +220,15 @@ impl PyRunSession {
         format!("RunSession(status={:?})", self.inner.status().name())
     }
 }
+
+/// A (partial) tuner config dict (the run config's ``tuner`` table) merged
+/// into the paper default's tuner and validated, as ``RunSession`` sees it.
+/// Raises ``ValueError`` naming the field.
+#[pyfunction]
+#[pyo3(signature = (tuner_config = None))]
+pub fn resolve_tuner_config<'py>(
+    py: Python<'py>,
+    tuner_config: Option<&Bound<'py, PyAny>>,
+) -> PyResult<Bound<'py, PyAny>> {
+    to_py(py, &crate::config::tuner_config(tuner_config)?)
+}

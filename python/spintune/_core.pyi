@@ -1,0 +1,152 @@
+"""Type stubs of the native part of spintune (``spintune._core``).
+
+Units: gate voltages in mV, t_sr in ns, w in µV, gradients in parameter unit
+per mV, variances in unit², lab time in s. Dicts have the JSON shape of the
+core's serde types (``protocol::Request``, ``Response``, ``IterationRecord``,
+``ControlCommand``, ``RunStatus``, the configs).
+"""
+
+from os import PathLike
+from typing import Any, Dict, Iterator, List, Mapping, Optional, Sequence, Union
+
+import numpy as np
+import numpy.typing as npt
+
+ArrayLike = Union[npt.ArrayLike, Sequence[float], Sequence[Sequence[float]]]
+JsonDict = Dict[str, Any]
+
+PROTOCOL_VERSION: int
+__version__: str
+
+class KalmanGradient:
+    """The paper's Kalman filter for one parameter's gradient over n gates
+    (constant process noise Q)."""
+
+    def __init__(
+        self,
+        gradient: ArrayLike,
+        covariance: ArrayLike,
+        process_noise: Union[ArrayLike, float],
+        *,
+        outlier_sigma: Optional[float] = None,
+        min_step_mv: float = 1e-6,
+    ) -> None:
+        """gradient: g(0), length n, unit/mV; covariance: C(0), n×n,
+        (unit/mV)²; process_noise: Q, n×n, (unit/mV)², or a scalar σ² for
+        Q = σ²·I. Raises ValueError for NaN, non-PSD covariance, wrong shapes."""
+    def update(self, dv: ArrayLike, dz: float, variance: float) -> JsonDict:
+        """dv: voltage step (mV, length n); dz: measured change (unit);
+        variance: Δz² of that change (unit²). Returns the outcome dict
+        (``kind`` = ``updated`` | ``gated`` | ``skipped_small_step``).
+        Raises ValueError (state unchanged) for bad input."""
+    @property
+    def gradient(self) -> npt.NDArray[np.float64]:
+        """Gradient estimate, 1-D (n,), unit/mV."""
+    @property
+    def covariance(self) -> npt.NDArray[np.float64]:
+        """Covariance, 2-D (n, n), (unit/mV)²."""
+    @property
+    def process_noise(self) -> npt.NDArray[np.float64]:
+        """Q, 2-D (n, n), (unit/mV)²."""
+    @property
+    def outlier_sigma(self) -> Optional[float]: ...
+    @property
+    def min_step_mv(self) -> float: ...
+    @property
+    def n(self) -> int:
+        """Number of gates."""
+    def copy(self) -> "KalmanGradient": ...
+    def __copy__(self) -> "KalmanGradient": ...
+    def __deepcopy__(self, memo: Any) -> "KalmanGradient": ...
+
+def newton_step(
+    jacobian: ArrayLike,
+    residual: ArrayLike,
+    max_step_mv: float = 10.0,
+    *,
+    rank_tolerance: float = 1e-9,
+) -> npt.NDArray[np.float64]:
+    """Δv = −J⁺Δ (minimum norm), limited to max_step_mv. jacobian m×n
+    (unit/mV), residual = measured − target (length m, unit); returns Δv
+    (length n, mV). Raises ValueError for bad input."""
+
+class RunSession:
+    """The sans-IO run session (poll / feed / control)."""
+
+    def __init__(
+        self,
+        tuner_config: Optional[Mapping[str, Any]] = None,
+        readback_tolerance_mv: float = 0.05,
+        iteration_delay_ms: int = 0,
+    ) -> None: ...
+    def poll(self) -> JsonDict:
+        """``{"output": "execute" | "commit" | "save" | "publish" | "sleep" | "wait" | "done", ...}``"""
+    def feed(self, response: Mapping[str, Any]) -> None:
+        """The device's answer (JSON of ``protocol::Response``)."""
+    def control(self, command: Mapping[str, Any]) -> JsonDict:
+        """A ``protocol::ControlCommand`` dict; returns the new status."""
+    def device_recovered(self) -> bool: ...
+    @property
+    def status(self) -> JsonDict: ...
+    @property
+    def has_request_in_flight(self) -> bool: ...
+    @property
+    def at_boundary(self) -> bool: ...
+    @property
+    def readback_mv(self) -> Dict[str, float]:
+        """Last accepted read-back per gate, mV."""
+    @property
+    def tuner_config(self) -> JsonDict: ...
+    @property
+    def readback_tolerance_mv(self) -> float: ...
+    def checkpoint(self) -> str:
+        """The session as JSON."""
+    @staticmethod
+    def restore(checkpoint: str) -> "RunSession": ...
+
+def resolve_tuner_config(tuner_config: Optional[Mapping[str, Any]] = None) -> JsonDict:
+    """A partial tuner config merged into the paper default and validated."""
+
+class SimulationRun:
+    """A run of the paper's setup on the simulated double dot; iterating
+    yields one IterationRecord dict per iteration."""
+
+    def __init__(self, config: Optional[Mapping[str, Any]] = None) -> None: ...
+    def __iter__(self) -> Iterator[JsonDict]: ...
+    def __next__(self) -> JsonDict: ...
+    def run(self, max_iterations: Optional[int] = None) -> List[JsonDict]:
+        """Run to the end (or at most max_iterations more); all records so far."""
+    @property
+    def records(self) -> List[JsonDict]: ...
+    @property
+    def config(self) -> JsonDict: ...
+    @property
+    def status(self) -> JsonDict: ...
+    def control(self, command: Mapping[str, Any]) -> JsonDict: ...
+    def truth(self) -> Dict[str, float]:
+        """Noiseless truth: w (µV), t_sr (ns), t_c_uev (µeV), gamma_per_ns (1/ns),
+        mu_a_mv, mu_b_mv, sd_flank_mv (mV), sd_contrast."""
+    @property
+    def voltages_mv(self) -> Dict[str, float]: ...
+    def to_xarray(self) -> Any:
+        """``xarray.Dataset`` over ``iteration`` (variables with ``units``)."""
+    def to_netcdf(self, path: Union[str, "PathLike[str]"]) -> None: ...
+
+class SimulatedDevice:
+    """The simulated double dot alone: ``execute(request) -> response``."""
+
+    def __init__(self, config: Optional[Mapping[str, Any]] = None, seed: Optional[int] = None) -> None: ...
+    def execute(self, request: Mapping[str, Any]) -> JsonDict: ...
+    @property
+    def voltages_mv(self) -> Dict[str, float]: ...
+    @property
+    def gates(self) -> List[JsonDict]: ...
+    @property
+    def lab_seconds(self) -> float: ...
+    def truth(self) -> Dict[str, float]: ...
+
+def default_config() -> JsonDict:
+    """The paper's default run config (name, seed, device, tuner)."""
+
+def resolve_config(config: Optional[Mapping[str, Any]] = None) -> JsonDict:
+    """A partial run config merged into the paper default and validated."""

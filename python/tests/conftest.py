@@ -1,0 +1,57 @@
+"""Shared helpers of the Python package tests (run by `cargo xtask test`,
+which installs the package into its virtual environment and sets
+SPINTUNE_BIN to the debug `spintune` binary)."""
+
+import hashlib
+import json
+import os
+import pathlib
+import subprocess
+
+import pytest
+
+REPO = pathlib.Path(__file__).resolve().parents[2]
+
+
+def canonical_hash(value) -> str:
+    """SHA-256 of canonical JSON (sorted keys, no NaN)."""
+    text = json.dumps(value, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+@pytest.fixture(scope="session")
+def spintune_bin() -> pathlib.Path:
+    """The `spintune` binary (the Rust core behind a CLI)."""
+    candidates = []
+    if os.environ.get("SPINTUNE_BIN"):
+        candidates.append(pathlib.Path(os.environ["SPINTUNE_BIN"]))
+    else:
+        target = os.environ.get(
+            "CARGO_TARGET_DIR", str(pathlib.Path.home() / ".cache/spintune/target")
+        )
+        candidates.append(pathlib.Path(target) / "debug" / "spintune")
+    for c in candidates:
+        if c.is_file():
+            return c
+    pytest.fail(
+        f"the spintune binary was not found ({', '.join(map(str, candidates))}); "
+        "run the tests with `cargo xtask test`, or build it (`cargo build -p spintune-server`) "
+        "and set SPINTUNE_BIN"
+    )
+
+
+@pytest.fixture(scope="session")
+def run_cli(spintune_bin):
+    def run(*args, cwd=None, input=None):
+        out = subprocess.run(
+            [str(spintune_bin), *map(str, args)],
+            cwd=cwd,
+            input=input,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        assert out.returncode == 0, f"spintune {args} failed ({out.returncode}):\n{out.stderr}"
+        return out.stdout
+
+    return run

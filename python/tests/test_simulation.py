@@ -1,0 +1,181 @@
+"""spintune.SimulationRun against the real `spintune run` binary (bit-identical
+records), the config rules, open_store and the xarray/netCDF export."""
+
+import json
+
+import numpy as np
+import pytest
+import xarray as xr
+
+import spintune
+from conftest import REPO, canonical_hash
+
+CONFIGS = [
+    # (TOML for `spintune run`, the same config as a Python dict)
+    (
+        'name = "bit-identity"\nseed = 3\n[tuner]\nmax_iterations = 4\nstop_when_tuned = false\n',
+        {"name": "bit-identity", "seed": 3, "tuner": {"max_iterations": 4, "stop_when_tuned": False}},
+    ),
+    (
+        'name = "other target"\nseed = 11\n[targets]\nt_sr = 30.0\nw = 250.0\n'
+        "[tolerances]\nw = { absolute = 10.0 }\n[tuner]\nmax_iterations = 5\n",
+        {
+            "name": "other target",
+            "seed": 11,
+            "targets": {"t_sr": 30.0, "w": 250.0},
+            "tolerances": {"w": {"absolute": 10.0}},
+            "tuner": {"max_iterations": 5},
+        },
+    ),
+]
+
+
+@pytest.mark.parametrize("toml,config", CONFIGS, ids=["paper-default-seed3", "targets-seed11"])
+def test_bit_identical_to_the_rust_run(tmp_path, run_cli, toml, config):
+    (tmp_path / "run.toml").write_text(toml)
+    db = tmp_path / "runs.db"
+    run_cli("run", "--config", tmp_path / "run.toml", "--db", db, "--quiet")
+    stored = spintune.open_store(db)
+    assert len(stored) == 1
+    (srun,) = stored.runs
+    assert srun.status == {"state": "finished"}
+    run = spintune.SimulationRun(config)
+    records = run.run()
+    assert len(records) == srun.iterations == config["tuner"]["max_iterations"]
+    assert canonical_hash(records) == canonical_hash(srun.records)
+    assert records == srun.records
+    # the same config, as the server stored it
+    assert canonical_hash(run.config) == canonical_hash(srun.simulation_config)
+    again = spintune.SimulationRun(srun.simulation_config)
+    assert canonical_hash(list(again)) == canonical_hash(srun.records)
+
+
+def test_example_toml_runs_from_python():
+    import tomllib
+
+    with open(REPO / "examples" / "paper-first-target.toml", "rb") as f:
+        config = tomllib.load(f)
+    config["tuner"]["max_iterations"] = 12
+    run = spintune.SimulationRun(config)
+    records = run.run()
+    assert records[-1]["tuned"]  # stop_when_tuned: it finished at the first tuned iteration
+    assert run.status == {"state": "finished"}
+    assert [p["target"] for p in records[-1]["parameters"]] == [20.0, 270.0]
+
+
+def test_record_fields_and_iteration_protocol():
+    run = spintune.SimulationRun({"tuner": {"max_iterations": 3}})
+    first = next(run)
+    assert set(first) == {
+        "iteration", "voltages_mv", "gates", "parameters", "gradients", "step_mv", "tuned",
+        "lab_seconds", "scan_counts", "failed_evaluations", "scans", "events",
+    }
+    assert first["iteration"] == 0 and first["gates"] == ["N", "SA", "SB", "T"]
+    assert [p["unit"] for p in first["parameters"]] == ["ns", "µV"]
+    # pause: iteration stops, the status says why, resume continues
+    assert run.control({"action": "pause"}) == {"state": "paused"}
+    assert list(run) == []
+    run.control({"action": "resume"})
+    run.control({"action": "set_target", "parameter": "w", "target": 300.0})
+    rest = list(run)
+    assert [r["iteration"] for r in rest] == [1, 2]
+    assert rest[-1]["parameters"][1]["target"] == 300.0
+    assert len(run.records) == 3 and run.status == {"state": "finished"}
+    with pytest.raises(RuntimeError, match="finished"):
+        run.control({"action": "resume"})
+    with pytest.raises(ValueError, match="action"):
+        run.control({"action": "explode"})
+    t = run.truth()
+    assert 5.0 < t["t_sr"] < 100.0 and 100.0 < t["w"] < 500.0
+    assert set(run.voltages_mv) >= {"N", "SA", "SB", "T", "PA", "PB"}
+
+
+def test_same_seed_same_records_other_seed_differs():
+    a = spintune.SimulationRun({"seed": 4, "tuner": {"max_iterations": 2}}).run()
+    b = spintune.SimulationRun({"seed": 4, "tuner": {"max_iterations": 2}}).run()
+    c = spintune.SimulationRun({"seed": 5, "tuner": {"max_iterations": 2}}).run()
+    assert canonical_hash(a) == canonical_hash(b) != canonical_hash(c)
+
+
+@pytest.mark.parametrize(
+    "config,field",
+    [
+        ({"seed": "abc"}, "seed"),
+        ({"bogus": 1}, "bogus"),
+        ({"targets": {"nope": 1.0}}, "targets.nope"),
+        ({"tolerances": {"w": {"relative": -1.0}}}, "tolerances.w"),
+        ({"driver": "scpi"}, "driver"),
+        ({"bridge": {}}, "bridge"),
+        ({"tuner": {"gates": []}}, "gates"),
+        ({"tuner": {"max_iterations": -1}}, "max_iterations"),
+        ({"tuner": {"levels": [{"name": "x", "kind": "newton"}]}}, "levels"),
+        ([1, 2], "dict"),
+    ],
+)
+def test_bad_config_raises_value_error_naming_the_field(config, field):
+    with pytest.raises(ValueError, match=field):
+        spintune.SimulationRun(config)
+
+
+def test_resolve_config_is_the_merge_of_the_run_config():
+    default = spintune.default_config()
+    assert spintune.resolve_config(None) == default
+    merged = spintune.resolve_config({"seed": 9, "device": {}, "tuner": {"max_iterations": 7}})
+    assert merged["seed"] == 9 and merged["tuner"]["max_iterations"] == 7
+    assert merged["tuner"]["levels"] == default["tuner"]["levels"]
+    assert spintune.resolve_tuner_config({"max_iterations": 7}) == merged["tuner"]
+
+
+def assert_units(ds):
+    for name, var in {**ds.data_vars, **ds.coords}.items():
+        assert "units" in var.attrs, name
+
+
+def test_to_xarray_round_trips_through_netcdf(tmp_path):
+    run = spintune.SimulationRun({"seed": 2, "tuner": {"max_iterations": 4}})
+    records = run.run()
+    ds = run.to_xarray()
+    assert ds.sizes["iteration"] == 4
+    assert list(ds["iteration"].values) == [0, 1, 2, 3]
+    assert ds["t_sr"].attrs["units"] == "ns" and ds["w"].attrs["units"] == "µV"
+    assert ds["t_sr_std"].attrs["units"] == "ns" and ds["w_target"].attrs["units"] == "µV"
+    assert ds["grad_t_sr"].attrs["units"] == "ns/mV" and ds["grad_w"].dims == ("iteration", "tuning_gate")
+    assert ds["voltage"].attrs["units"] == "mV" and ds["lab_seconds"].attrs["units"] == "s"
+    assert_units(ds)
+    np.testing.assert_array_equal(ds["t_sr"].values, [r["parameters"][0]["value"] for r in records])
+    np.testing.assert_array_equal(
+        ds["voltage"].sel(gate="SB").values, [r["voltages_mv"]["SB"] for r in records]
+    )
+    np.testing.assert_array_equal(
+        ds["grad_w"].sel(tuning_gate="T").values, [r["gradients"][1]["gradient"][3] for r in records]
+    )
+    assert json.loads(ds.attrs["spintune_config"]) == run.config
+    path = tmp_path / "run.nc"
+    run.to_netcdf(path)
+    with xr.open_dataset(path) as back:
+        back = back.load()
+    xr.testing.assert_identical(back, ds)
+    assert back["tuned"].dtype == bool
+
+
+def test_store_to_xarray(tmp_path, run_cli):
+    (tmp_path / "run.toml").write_text('seed = 6\n[tuner]\nmax_iterations = 3\n')
+    db = tmp_path / "s.db"
+    run_cli("run", "--config", tmp_path / "run.toml", "--db", db, "--quiet")
+    run_cli("run", "--config", tmp_path / "run.toml", "--db", db, "--quiet")
+    store = spintune.open_store(db)
+    assert [r.id for r in store] == [1, 2]
+    ds = store[2].to_xarray()
+    assert ds.sizes["iteration"] == 3 and ds.attrs["run_id"] == 2
+    assert_units(ds)
+    store[2].to_netcdf(tmp_path / "s.nc")
+    with xr.open_dataset(tmp_path / "s.nc") as back:
+        xr.testing.assert_identical(back.load(), ds)
+    assert json.loads(store[1].checkpoint)["session"] is not None
+    with pytest.raises(KeyError):
+        store[3]
+    with pytest.raises(FileNotFoundError):
+        spintune.open_store(tmp_path / "missing.db")
+    (tmp_path / "other.db").write_bytes(b"")
+    with pytest.raises(ValueError, match="not a spintune store"):
+        spintune.open_store(tmp_path / "other.db")

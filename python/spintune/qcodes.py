@@ -355,49 +355,53 @@ class QcodesTuner:
         columns = self._register(meas)
         committed = 0
         interrupted: Optional[BaseException] = None
-        with meas.run() as saver:
-            saver.dataset.add_metadata("spintune_tuner_config", json.dumps(self.tuner_config))
-            try:
-                while True:
-                    out = self.session.poll()
-                    kind = out["output"]
-                    if kind == "execute":
-                        request = out["request"]
-                        try:
-                            response = self._execute(request)
-                        except Exception as e:  # the instrument or a scan function failed
-                            self.session.feed(
-                                {
-                                    "response": "error",
-                                    "message": f"{request['request']}: {type(e).__name__}: {e}",
-                                }
-                            )
-                            raise
-                        self.session.feed(response)
-                    elif kind == "commit":
-                        record = out["record"]
-                        self.checkpoint = self.session.checkpoint()
-                        self.records.append(record)
-                        saver.add_result(*self._row(columns, record))
-                        committed += 1
-                        if on_iteration is not None:
-                            on_iteration(record)
-                        if iterations is not None and committed >= iterations:
-                            self.session.control({"action": "pause"})
-                    elif kind == "save":
-                        self.checkpoint = self.session.checkpoint()
-                    elif kind == "sleep":
-                        self._sleep(out["ms"] / 1000.0)
-                    elif kind in ("wait", "done"):
-                        break
-                    # "publish": the status is read from the session when needed
-            except KeyboardInterrupt as e:
-                self._interrupted()
-                interrupted = e
-            finally:
-                saver.dataset.add_metadata("spintune_status", json.dumps(self.session.status))
+        saver = None
+        try:
+            with meas.run() as saver:
+                saver.dataset.add_metadata("spintune_tuner_config", json.dumps(self.tuner_config))
+                try:
+                    while True:
+                        out = self.session.poll()
+                        kind = out["output"]
+                        if kind == "execute":
+                            request = out["request"]
+                            try:
+                                response = self._execute(request)
+                            except Exception as e:  # the instrument or a scan function failed
+                                self.session.feed(
+                                    {
+                                        "response": "error",
+                                        "message": f"{request['request']}: {type(e).__name__}: {e}",
+                                    }
+                                )
+                                raise
+                            self.session.feed(response)
+                        elif kind == "commit":
+                            record = out["record"]
+                            self.checkpoint = self.session.checkpoint()
+                            self.records.append(record)
+                            saver.add_result(*self._row(columns, record))
+                            committed += 1
+                            if on_iteration is not None:
+                                on_iteration(record)
+                            if iterations is not None and committed >= iterations:
+                                self.session.control({"action": "pause"})
+                        elif kind == "save":
+                            self.checkpoint = self.session.checkpoint()
+                        elif kind == "sleep":
+                            self._sleep(out["ms"] / 1000.0)
+                        elif kind in ("wait", "done"):
+                            break
+                        # "publish": the status is read from the session when needed
+                except KeyboardInterrupt as e:
+                    self._interrupted()
+                    interrupted = e
+                finally:
+                    saver.dataset.add_metadata("spintune_status", json.dumps(self.session.status))
+        finally:
+            if saver is not None:  # also an interrupted or failed segment
+                self.datasets.append(saver.dataset)
         dataset = saver.dataset
-        self.datasets.append(dataset)
         if interrupted is not None:
             raise interrupted
         status = self.session.status

@@ -4,7 +4,9 @@
 //!   Trunk, start the server on the embedded simulator and print its URL.
 //! * `cargo xtask test` — install what is missing, then run every check and
 //!   test: formatting, clippy, native tests (incl. server and browser
-//!   end-to-end tests) and the wasm tests in headless Chromium.
+//!   end-to-end tests), the Python package's tests (pytest, in a virtual
+//!   environment under `~/.cache/spintune/venv`) and the wasm tests in
+//!   headless Chromium.
 //!
 //! Every install step is skipped when the right version is already present.
 //! Builds go to `$CARGO_TARGET_DIR` (default `~/.cache/spintune/target`, outside
@@ -37,9 +39,18 @@ fn main() {
         Some("install") => {
             install_tools(true);
         }
+        Some("python-test") => {
+            // The Python step of `test` alone (it needs the debug server
+            // binary for its bit-identity tests: built unless SPINTUNE_BIN is set).
+            if env::var_os("SPINTUNE_BIN").is_none() {
+                cmd("cargo", &["build", "-p", "spintune-server"]);
+                env::set_var("SPINTUNE_BIN", target_dir.join("debug/spintune"));
+            }
+            python_tests();
+        }
         _ => {
             eprintln!(
-                "usage: cargo xtask <command>\n\n  run [server args]  build the dashboard and start the server on the simulator\n  test [--no-lint]   run formatting/lint checks and every test (native, browser, wasm)\n  install            install the tools only (wasm target, trunk, wasm-bindgen, chromium)"
+                "usage: cargo xtask <command>\n\n  run [server args]  build the dashboard and start the server on the simulator\n  test [--no-lint]   run formatting/lint checks and every test (native, browser, Python, wasm)\n  install            install the tools only (wasm target, trunk, wasm-bindgen, chromium)\n  python-test        only the Python package step of `test` (venv, maturin build, pytest)"
             );
             exit(2);
         }
@@ -108,6 +119,7 @@ fn test(flags: &[String]) {
     env::set_var("SPINTUNE_DIST", env::current_dir().unwrap().join("dist"));
     step("native tests (core, server, end-to-end incl. headless Chromium)");
     cmd("cargo", &["test", "--workspace"]);
+    python_tests();
     step("wasm tests in headless Chromium (core + dashboard)");
     cmd(
         "cargo",
@@ -136,6 +148,115 @@ fn test(flags: &[String]) {
     );
     eprintln!(
         "\nxtask test: all steps passed in {:.0} s",
+        started.elapsed().as_secs_f64()
+    );
+}
+
+/// Python packages the tests need: (import name, pip name).
+const PYTHON_DEPS: [(&str, &str); 6] = [
+    ("maturin", "maturin"),
+    ("pytest", "pytest"),
+    ("numpy", "numpy"),
+    ("xarray", "xarray"),
+    ("netCDF4", "netcdf4"),
+    ("qcodes", "qcodes"),
+];
+
+/// The Python package (`python/`): a virtual environment outside the clone
+/// (`$SPINTUNE_VENV`, default `~/.cache/spintune/venv`), the test
+/// dependencies installed only if missing, the package built by maturin into
+/// the shared `CARGO_TARGET_DIR` and installed, then pytest. Needs `python3`
+/// with `venv`; `SPINTUNE_SKIP_PYTHON=1` skips this step explicitly.
+fn python_tests() {
+    step("Python package (maturin build + pytest)");
+    if env::var("SPINTUNE_SKIP_PYTHON").is_ok_and(|v| v == "1") {
+        eprintln!("\n*** SKIPPED the Python package tests (SPINTUNE_SKIP_PYTHON=1) ***\n");
+        return;
+    }
+    let started = Instant::now();
+    let venv = env::var_os("SPINTUNE_VENV")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| home().join(".cache/spintune/venv"));
+    let python = venv.join("bin/python");
+    if python.is_file() {
+        eprintln!("  venv {}: present", venv.display());
+    } else {
+        if output("python3", &["--version"]).is_none() {
+            eprintln!(
+                "xtask: python3 was not found on PATH; the Python package tests need it \
+                 (or set SPINTUNE_SKIP_PYTHON=1 to skip them explicitly)"
+            );
+            exit(1);
+        }
+        std::fs::create_dir_all(venv.parent().unwrap_or(Path::new("."))).expect("cache dir");
+        cmd("python3", &["-m", "venv", &venv.to_string_lossy()]);
+    }
+    let python = python.to_string_lossy().into_owned();
+    let missing: Vec<&str> = PYTHON_DEPS
+        .iter()
+        .filter(|(module, _)| {
+            !Command::new(&python)
+                .args(["-c", &format!("import {module}")])
+                .stdout(std::process::Stdio::null())
+                .stderr(std::process::Stdio::null())
+                .status()
+                .is_ok_and(|s| s.success())
+        })
+        .map(|(_, pip)| *pip)
+        .collect();
+    if missing.is_empty() {
+        eprintln!("  maturin pytest numpy xarray netcdf4 qcodes: present");
+    } else {
+        let mut args = vec![
+            "-m",
+            "pip",
+            "install",
+            "--quiet",
+            "--disable-pip-version-check",
+        ];
+        args.extend(&missing);
+        cmd(&python, &args);
+    }
+    // maturin (the build backend, from the venv since the build is not
+    // isolated) must be on PATH; cargo builds into the shared target dir.
+    let venv_bin = venv.join("bin");
+    let path = env::join_paths(
+        std::iter::once(venv_bin).chain(env::split_paths(&env::var_os("PATH").unwrap_or_default())),
+    )
+    .expect("valid PATH");
+    let run = |args: &[&str]| {
+        eprintln!("  $ {python} {}", args.join(" "));
+        let status = Command::new(&python)
+            .args(args)
+            .env("PATH", &path)
+            .env("VIRTUAL_ENV", &venv)
+            .status();
+        match status {
+            Ok(s) if s.success() => {}
+            Ok(s) => {
+                eprintln!("xtask: `python {}` failed ({s})", args.join(" "));
+                exit(s.code().unwrap_or(1));
+            }
+            Err(e) => {
+                eprintln!("xtask: could not start {python}: {e}");
+                exit(1);
+            }
+        }
+    };
+    run(&[
+        "-m",
+        "pip",
+        "install",
+        "--quiet",
+        "--disable-pip-version-check",
+        "--no-build-isolation",
+        "--no-deps",
+        "--force-reinstall",
+        "./python",
+    ]);
+    run(&["-m", "pytest", "python/tests", "-q"]);
+    eprintln!(
+        "  Python package step: {:.0} s",
         started.elapsed().as_secs_f64()
     );
 }

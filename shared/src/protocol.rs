@@ -1,6 +1,6 @@
 //! Plain, serializable messages: what the tuner asks of a device, what the
 //! device answers, and the per-iteration record that is stored and streamed.
-//! Nothing else crosses a process boundary (DESIGN invariant 3).
+//! Nothing else crosses a process boundary (ARCHITECTURE.md, invariant 3).
 //!
 //! Units are in the field names: `_mv` millivolts, `_s` seconds, parameter
 //! values in the unit of their [`crate::parameter::ParameterSpec`].

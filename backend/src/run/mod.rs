@@ -2,7 +2,7 @@
 //! ([`task`]) around the core's [`RunSession`].
 //!
 //! Per iteration the task (1) commits the record and the checkpoint (session
-//! + device state) to the [`Store`] in one transaction, (2) updates the run's
+//! and device state) to the [`Store`] in one transaction, (2) updates the run's
 //! summary, (3) broadcasts the pre-serialized `ServerMessage::Iteration`
 //! frame ([`frames`]) to the run's viewers over a bounded
 //! `tokio::sync::broadcast` channel. A slow viewer never blocks the run: it
@@ -480,6 +480,9 @@ impl Manager {
                     }
                     e => RunError::Invalid(e.to_string()),
                 })?;
+                // a new target revives a run that finished because it was tuned
+                let revived =
+                    status == RunStatus::Finished && session.status() == RunStatus::Paused;
                 let json = serde_json::to_string(&Checkpoint {
                     session: Some(session),
                     tuner: None,
@@ -489,6 +492,9 @@ impl Manager {
                 let store = self.store.clone();
                 let id = handle.id;
                 blocking(move || store.save_checkpoint(id, None, &json)).await?;
+                if revived {
+                    return self.set_status_offline(handle, RunStatus::Paused).await;
+                }
                 Ok(handle.summary())
             }
         }

@@ -1,4 +1,4 @@
-//! The sans-IO tuner state machine (DESIGN invariant 2).
+//! The sans-IO tuner state machine (ARCHITECTURE.md, invariant 2).
 //!
 //! The tuner never calls a device. [`Tuner::poll`] returns the next
 //! [`Action`]: a [`Request`] for the driver to execute (and answer with

@@ -36,7 +36,7 @@ use spintune::sim::SimulatedDevice;
 use spintune::tuner::Tuner;
 use tokio::sync::{broadcast, mpsc, oneshot};
 
-pub use frames::{history_frame_text, iteration_frame_text, Frame};
+pub use frames::{history_frame_text, iteration_frame_text, Frame, FrameEvent};
 
 use crate::config::{DriverKind, RunConfig};
 use crate::devices::bridge::{BridgeLink, Links};
@@ -537,11 +537,11 @@ impl Manager {
         &self,
         handle: &RunHandle,
         generation: Option<u64>,
+        record: Arc<IterationRecord>,
         record_json: String,
         checkpoint_json: String,
-        lab_seconds: f64,
-        tuned: bool,
     ) -> Result<u64, RunError> {
+        let (lab_seconds, tuned) = (record.lab_seconds, record.tuned);
         let seq = handle.summary().iterations;
         let store = self.store.clone();
         let id = handle.id;
@@ -566,6 +566,7 @@ impl Manager {
         let _ = handle.tx.send(Frame {
             seq: Some(seq),
             text: Utf8Bytes::from(text),
+            event: FrameEvent::Iteration(record),
         });
         Ok(seq)
     }
@@ -590,10 +591,9 @@ impl Manager {
         self.commit_and_broadcast(
             &handle,
             None,
+            Arc::new(record.clone()),
             json,
             checkpoint_json,
-            record.lab_seconds,
-            record.tuned,
         )
         .await
     }

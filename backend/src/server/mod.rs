@@ -11,7 +11,7 @@
 //! | POST 🔒 | `/api/runs` | run config (JSON form of the TOML file, see [`crate::config`]; `{}` = paper default) → 201 `RunSummary` |
 //! | GET | `/api/runs/{id}` | → `RunSummary` |
 //! | GET | `/api/runs/{id}/config` | → the run's config (`{"simulation": …, "backend": …}`) |
-//! | GET | `/api/runs/{id}/iterations?from=N&limit=M` | → `[IterationRecord]` with seq ≥ N (default 0) |
+//! | GET | `/api/runs/{id}/iterations?from=N&limit=M` | → `[IterationRecord]` with seq ≥ N (default 0), at most M ([`DEFAULT_PAGE`] if not given, ≤ [`MAX_PAGE`]) |
 //! | GET | `/api/runs/{id}/export?format=csv\|json` | → the export table (see [`crate::export`]) |
 //! | POST 🔒 | `/api/runs/{id}/control` | `ControlCommand` → `RunSummary` (400 invalid, 409 not applicable) |
 //! | DELETE 🔒 | `/api/runs/{id}` | → 204 |
@@ -53,6 +53,16 @@ mod bridge_socket;
 
 use crate::config::RunConfig;
 use crate::run::{history_frame_text, Manager, RunError};
+
+/// Records per `GET /api/runs/{id}/iterations` page when no `limit` is given.
+pub const DEFAULT_PAGE: u64 = 1_000;
+/// Largest `limit` of `GET /api/runs/{id}/iterations`.
+pub const MAX_PAGE: u64 = 10_000;
+/// Largest frame a viewer may send (auth and control messages are tiny), bytes.
+pub const MAX_VIEWER_MESSAGE: usize = 64 * 1024;
+/// Largest frame a lab bridge may send (a raw scan: e.g. 4 traces of 100,000
+/// points as JSON numbers), bytes.
+pub const MAX_BRIDGE_MESSAGE: usize = 16 * 1024 * 1024;
 
 /// Shared state of the HTTP handlers.
 #[derive(Clone)]
@@ -336,10 +346,16 @@ async fn iterations(
 ) -> ApiResult<impl IntoResponse> {
     let id = parse_id(&id)?;
     let from = parse_u64(&q, "from")?.unwrap_or(0);
-    let limit = parse_u64(&q, "limit")?;
+    let limit = parse_u64(&q, "limit")?.unwrap_or(DEFAULT_PAGE);
+    if limit > MAX_PAGE {
+        return Err(ApiError(
+            StatusCode::BAD_REQUEST,
+            format!("limit {limit} exceeds the largest page, {MAX_PAGE} records; page with `from`"),
+        ));
+    }
     s.manager.get(id)?;
     let store = s.manager.store().clone();
-    let records = tokio::task::spawn_blocking(move || store.iterations_json(id, from, limit))
+    let records = tokio::task::spawn_blocking(move || store.iterations_json(id, from, Some(limit)))
         .await
         .map_err(|e| ApiError(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?
         .map_err(|e| ApiError::from(RunError::from(e)))?;
@@ -412,7 +428,10 @@ async fn ws(
     s.manager.get(id)?;
     // Client messages are small; a small read buffer keeps each (frequent,
     // usually empty) poll of the socket cheap, since tungstenite zeroes it.
-    let upgrade = upgrade.read_buffer_size(4 * 1024);
+    let upgrade = upgrade
+        .read_buffer_size(4 * 1024)
+        .max_message_size(MAX_VIEWER_MESSAGE)
+        .max_frame_size(MAX_VIEWER_MESSAGE);
     if let Some(message) = version_mismatch(&q) {
         return Ok(refuse_socket(
             upgrade,
@@ -436,6 +455,9 @@ async fn bridge_ws(
 ) -> ApiResult<Response> {
     let id = parse_id(&id)?;
     s.manager.get(id)?;
+    let upgrade = upgrade
+        .max_message_size(MAX_BRIDGE_MESSAGE)
+        .max_frame_size(MAX_BRIDGE_MESSAGE);
     if let Some(message) = version_mismatch(&q) {
         let frame =
             serde_json::to_string(&spintune::protocol::BridgeServerMessage::Error { message })

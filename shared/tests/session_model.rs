@@ -121,7 +121,8 @@ enum Step {
     Exec(Answer),
     Pause,
     Resume(usize),
-    StepOnce,
+    /// One step of a paused run (`ControlCommand::Step`).
+    Single,
     Stop,
     SetTarget(f64),
     BadTarget,
@@ -148,7 +149,7 @@ fn step() -> impl Strategy<Value = Step> {
         120 => answer().prop_map(Step::Exec),
         2 => Just(Step::Pause),
         4 => (1..4usize).prop_map(Step::Resume),
-        2 => Just(Step::StepOnce),
+        2 => Just(Step::Single),
         1 => Just(Step::Stop),
         2 => (150.0..300.0f64).prop_map(Step::SetTarget),
         1 => Just(Step::BadTarget),
@@ -467,7 +468,7 @@ fn run_script(script: &[Step]) -> Result<(), TestCaseError> {
                     prop_assert_eq!(r.is_ok(), !stopped && !session.status().is_terminal());
                 }
             }
-            Step::StepOnce => {
+            Step::Single => {
                 let _ = session.control(&ControlCommand::Step);
             }
             Step::Stop => {

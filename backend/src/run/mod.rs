@@ -2,7 +2,7 @@
 //! ([`task`]) around the core's [`RunSession`].
 //!
 //! Per iteration the task (1) commits the record and the checkpoint (session
-//! + device state) to the [`Store`] in one transaction, (2) updates the run's
+//! and device state) to the [`Store`] in one transaction, (2) updates the run's
 //! summary, (3) broadcasts the pre-serialized `ServerMessage::Iteration`
 //! frame ([`frames`]) to the run's viewers over a bounded
 //! `tokio::sync::broadcast` channel. A slow viewer never blocks the run: it

@@ -32,7 +32,6 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 use spintune::protocol::{ControlCommand, IterationRecord, RunStatus, RunSummary, ServerMessage};
 use spintune::session::{RunSession, SessionConfig};
-use spintune::sim::SimulatedDevice;
 use spintune::tuner::Tuner;
 use tokio::sync::{broadcast, mpsc, oneshot};
 
@@ -345,8 +344,9 @@ impl Manager {
                 .control(&ControlCommand::Pause)
                 .map_err(|e| RunError::Internal(e.to_string()))?;
         }
-        let device = SimulatedDevice::new(sim.device.clone(), &sim.tuner.gates, sim.seed)
-            .map_err(|m| RunError::Invalid(format!("invalid config at `device`: {m}")))?;
+        let device = sim
+            .simulated_device()
+            .map_err(|e| RunError::Invalid(e.to_string()))?;
         let checkpoint = Checkpoint {
             session: Some(session),
             tuner: None,

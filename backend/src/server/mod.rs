@@ -45,7 +45,9 @@ use axum::response::{Html, IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
 use serde_json::json;
-use spintune::protocol::{ClientMessage, ControlCommand, ServerMessage, PROTOCOL_VERSION};
+use spintune::protocol::{
+    ClientMessage, ControlCommand, ProtocolError, ServerMessage, PROTOCOL_VERSION,
+};
 use tokio::sync::broadcast::error::RecvError;
 use tower_http::services::ServeDir;
 
@@ -171,14 +173,14 @@ fn parse_id(id: &str) -> ApiResult<u64> {
 }
 
 /// Parse a `ControlCommand` from JSON text, naming the offending field on error.
-pub fn parse_control(text: &str) -> Result<ControlCommand, String> {
+pub fn parse_control(text: &str) -> Result<ControlCommand, ProtocolError> {
     let cmd: ControlCommand = parse_strict(text)?;
     validate_control(&cmd)?;
     Ok(cmd)
 }
 
 /// Parse a `ClientMessage` from JSON text, naming the offending field on error.
-pub fn parse_client_message(text: &str) -> Result<ClientMessage, String> {
+pub fn parse_client_message(text: &str) -> Result<ClientMessage, ProtocolError> {
     let msg: ClientMessage = parse_strict(text)?;
     if let ClientMessage::Control { command } = &msg {
         validate_control(command)?;
@@ -192,18 +194,11 @@ pub fn parse_client_message(text: &str) -> Result<ClientMessage, String> {
 /// catches those.)
 pub(crate) fn parse_strict<T: serde::de::DeserializeOwned + serde::Serialize>(
     text: &str,
-) -> Result<T, String> {
+) -> Result<T, ProtocolError> {
     let de = &mut serde_json::Deserializer::from_str(text);
-    let raw: serde_json::Value = serde_path_to_error::deserialize(de).map_err(|e| describe(&e))?;
-    let typed: T = serde_path_to_error::deserialize(raw.clone()).map_err(|e| {
-        let path = e.path().to_string();
-        if path == "." {
-            format!("malformed message: {}", e.inner())
-        } else {
-            format!("malformed message at `{path}`: {}", e.inner())
-        }
-    })?;
-    let back = serde_json::to_value(&typed).map_err(|e| e.to_string())?;
+    let raw: serde_json::Value = serde_path_to_error::deserialize(de).map_err(malformed)?;
+    let typed: T = serde_path_to_error::deserialize(raw.clone()).map_err(malformed)?;
+    let back = serde_json::to_value(&typed).map_err(|e| ProtocolError::malformed("", e))?;
     unknown_keys(&raw, &back, "")?;
     Ok(typed)
 }
@@ -212,7 +207,7 @@ fn unknown_keys(
     raw: &serde_json::Value,
     known: &serde_json::Value,
     path: &str,
-) -> Result<(), String> {
+) -> Result<(), ProtocolError> {
     if let (serde_json::Value::Object(r), serde_json::Value::Object(k)) = (raw, known) {
         for (key, v) in r {
             let here = if path.is_empty() {
@@ -221,7 +216,7 @@ fn unknown_keys(
                 format!("{path}.{key}")
             };
             match k.get(key) {
-                None => return Err(format!("malformed message: unknown field `{here}`")),
+                None => return Err(ProtocolError::UnknownField { field: here }),
                 Some(kv) => unknown_keys(v, kv, &here)?,
             }
         }
@@ -229,16 +224,11 @@ fn unknown_keys(
     Ok(())
 }
 
-fn describe(e: &serde_path_to_error::Error<serde_json::Error>) -> String {
-    let path = e.path().to_string();
-    if path == "." {
-        format!("malformed message: {}", e.inner())
-    } else {
-        format!("malformed message at `{path}`: {}", e.inner())
-    }
+fn malformed(e: serde_path_to_error::Error<serde_json::Error>) -> ProtocolError {
+    ProtocolError::malformed(&e.path().to_string(), e.inner())
 }
 
-fn validate_control(cmd: &ControlCommand) -> Result<(), String> {
+fn validate_control(cmd: &ControlCommand) -> Result<(), ProtocolError> {
     if let ControlCommand::SetTarget {
         parameter,
         target,
@@ -247,12 +237,18 @@ fn validate_control(cmd: &ControlCommand) -> Result<(), String> {
     {
         if let Some(t) = target {
             if !t.is_finite() {
-                return Err(format!("target of {parameter:?} must be a finite number"));
+                return Err(ProtocolError::NotFinite {
+                    field: format!("target of {parameter:?}"),
+                    value: *t,
+                });
             }
         }
         if let Some(tol) = tolerance {
             tol.validate()
-                .map_err(|m| format!("tolerance of {parameter:?}: {m}"))?;
+                .map_err(|error| ProtocolError::InvalidTolerance {
+                    parameter: parameter.clone(),
+                    error,
+                })?;
         }
     }
     Ok(())
@@ -402,7 +398,7 @@ async fn control(
     let id = parse_id(&id)?;
     let text = std::str::from_utf8(&body)
         .map_err(|_| ApiError(StatusCode::BAD_REQUEST, "body is not UTF-8".into()))?;
-    let cmd = parse_control(text).map_err(|m| ApiError(StatusCode::BAD_REQUEST, m))?;
+    let cmd = parse_control(text).map_err(|e| ApiError(StatusCode::BAD_REQUEST, e.to_string()))?;
     Ok(Json(s.manager.control(id, cmd).await?))
 }
 
@@ -595,7 +591,11 @@ async fn client_message(
 ) -> Option<ServerMessage> {
     let msg = match parse_client_message(text) {
         Ok(m) => m,
-        Err(message) => return Some(ServerMessage::Error { message }),
+        Err(e) => {
+            return Some(ServerMessage::Error {
+                message: e.to_string(),
+            })
+        }
     };
     Some(match msg {
         ClientMessage::Auth { token } => {

@@ -28,7 +28,7 @@ pub(crate) mod model;
 pub mod noise;
 pub mod scans;
 
-pub use calibration::calibrate_reference;
+pub use calibration::{calibrate_reference, CalibrationError};
 pub use clock::LabClock;
 pub use config::DeviceConfig;
 pub use device::{SimulatedDevice, Truth};

@@ -47,7 +47,8 @@ mod native {
         fn execute(&mut self, req: &Request) -> Response {
             match req {
                 Request::SetVoltages { voltages_mv } => {
-                    self.v.extend(voltages_mv.iter().map(|(k, v)| (k.clone(), *v)));
+                    self.v
+                        .extend(voltages_mv.iter().map(|(k, v)| (k.clone(), *v)));
                     Response::VoltagesSet {
                         voltages_mv: voltages_mv.clone(),
                         lab_seconds: 0.0,
@@ -105,13 +106,7 @@ mod native {
             .map(|g| (g.name.clone(), g.initial_mv))
             .collect();
         let session = RunSession::new(t, SessionConfig::default()).expect("valid config");
-        (
-            session,
-            Linear {
-                v: v0.clone(),
-                v0,
-            },
-        )
+        (session, Linear { v: v0.clone(), v0 })
     }
 
     /// Drive until the next committed iteration; returns the number of requests.

@@ -94,6 +94,9 @@ pub struct ScpiConfig {
     pub measure: MeasureSource,
 }
 
+/// Most `sour{ch}:volt` commands one move may take (bounds the planned ramp).
+pub const MAX_RAMP_STAGES: usize = 1_000;
+
 fn default_ramp_step_mv() -> f64 {
     1.0
 }
@@ -145,6 +148,22 @@ impl ScpiConfig {
             return Err(ConfigError::new(
                 "ramp_step_mv",
                 format!("must be a positive number of mV, got {}", self.ramp_step_mv),
+            ));
+        }
+        // Bounded by construction: one move ramps in at most MAX_RAMP_STAGES commands.
+        let largest_step_mv = gates
+            .iter()
+            .filter(|g| self.channels.contains_key(&g.name))
+            .map(|g| g.max_step_mv)
+            .fold(0.0, f64::max);
+        if largest_step_mv / self.ramp_step_mv > MAX_RAMP_STAGES as f64 {
+            return Err(ConfigError::new(
+                "ramp_step_mv",
+                format!(
+                    "{} mV would ramp a {largest_step_mv} mV step in more than {MAX_RAMP_STAGES} commands; use at least {} mV",
+                    self.ramp_step_mv,
+                    largest_step_mv / MAX_RAMP_STAGES as f64
+                ),
             ));
         }
         if let Some(s) = self.slew_v_per_s {
@@ -710,6 +729,10 @@ mod tests {
             e.to_string(),
             "invalid config at `ramp_step_mv`: must be a positive number of mV, got NaN"
         );
+        c.ramp_step_mv = 1e-7;
+        let e = c.validate(&gates).unwrap_err();
+        assert_eq!(e.field, "ramp_step_mv");
+        assert!(e.to_string().contains("more than 1000 commands"), "{e}");
         c.ramp_step_mv = 1.0;
         c.timeout_ms = 0;
         assert_eq!(c.validate(&gates).unwrap_err().field, "timeout_ms");

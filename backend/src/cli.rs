@@ -6,10 +6,10 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
 
-use spintune::protocol::{RunStatus, ServerMessage};
+use spintune::protocol::RunStatus;
 
 use crate::config::RunConfig;
-use crate::run::{Manager, ManagerOptions};
+use crate::run::{FrameEvent, Manager, ManagerOptions};
 use crate::server::{random_token, router, AppState};
 use crate::store::Store;
 
@@ -286,13 +286,13 @@ pub async fn run(args: RunArgs) -> Result<(), CliError> {
         tokio::select! {
             frame = rx.recv() => match frame {
                 Ok(frame) => {
-                    match serde_json::from_str::<ServerMessage>(frame.text.as_str()) {
-                        Ok(ServerMessage::Iteration { record }) => {
+                    match frame.event {
+                        FrameEvent::Iteration(record) => {
                             bar.set_position(record.iteration + 1);
                             bar.set_message(progress_line(&record));
-                            last = Some(record);
+                            last = Some((*record).clone());
                         }
-                        Ok(ServerMessage::Status { run }) => match run.status {
+                        FrameEvent::Status(run) => match run.status {
                             // Nobody can resume a headless run: leave it
                             // resumable in the store and say so.
                             RunStatus::Faulted { fault: f } => {

@@ -27,6 +27,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::{Map, Value};
 use spintune::driver::SimulationConfig;
 use spintune::parameter::Tolerance;
+use spintune::ConfigError;
 
 pub use crate::devices::bridge::BridgeConfig;
 pub use crate::devices::scpi::{MeasureSource, ScpiConfig};
@@ -107,6 +108,12 @@ pub struct RunConfig {
 #[error("{0}")]
 pub struct ConfigParseError(pub String);
 
+impl From<ConfigError> for ConfigParseError {
+    fn from(e: ConfigError) -> Self {
+        Self(e.to_string())
+    }
+}
+
 impl RunConfig {
     /// The paper's default run (default device, default tuner, seed and name).
     pub fn paper_default() -> Self {
@@ -162,9 +169,7 @@ impl RunConfig {
                 }
             })?;
         apply_targets(&mut simulation, &backend)?;
-        simulation
-            .validate()
-            .map_err(|e| ConfigParseError(e.to_string()))?;
+        simulation.validate()?;
         validate_drivers(&simulation, &backend)?;
         Ok(Self {
             simulation,
@@ -199,7 +204,7 @@ fn apply_targets(sim: &mut SimulationConfig, b: &BackendSettings) -> Result<(), 
     }
     for (name, &tol) in &b.tolerances {
         tol.validate()
-            .map_err(|m| ConfigParseError(format!("invalid config at `tolerances.{name}`: {m}")))?;
+            .map_err(|e| e.within(&format!("tolerances.{name}")))?;
         let p = top
             .parameters
             .iter_mut()
@@ -219,12 +224,10 @@ fn validate_drivers(sim: &SimulationConfig, b: &BackendSettings) -> Result<(), C
         }
         (_, Some(scpi)) => scpi
             .validate(&sim.tuner.gates)
-            .map_err(|(field, m)| ConfigParseError(format!("invalid config at `scpi.{field}`: {m}")))?,
+            .map_err(|e| e.within("scpi"))?,
         _ => {}
     }
-    b.bridge
-        .validate()
-        .map_err(|(field, m)| ConfigParseError(format!("invalid config at `bridge.{field}`: {m}")))
+    Ok(b.bridge.validate().map_err(|e| e.within("bridge"))?)
 }
 
 fn unknown_parameter(section: &str, name: &str, known: &[String]) -> ConfigParseError {
@@ -322,5 +325,22 @@ mod tests {
         assert!(c.backend.uses_bridge());
         let e = RunConfig::from_json_str("{\"tuner\": {\"gates\": []}}").unwrap_err();
         assert!(e.0.contains("gates"), "{e}");
+    }
+
+    #[test]
+    fn nested_validation_errors_carry_the_full_path() {
+        let e = RunConfig::from_toml_str("[tolerances]\nw = { relative = -1.0 }").unwrap_err();
+        assert!(e.0.contains("`tolerances.w.relative`"), "{e}");
+        assert!(e.0.contains("got -1"), "{e}");
+        let e = RunConfig::from_toml_str("[device]\nelectron_temperature_mk = 0.0").unwrap_err();
+        assert!(e.0.contains("`device.electron_temperature_mk`"), "{e}");
+        let e = RunConfig::from_toml_str(
+            "driver = \"scpi\"\n[scpi]\naddress = \"127.0.0.1:5025\"\nchannels = { N = 0 }",
+        )
+        .unwrap_err();
+        assert_eq!(
+            e.0,
+            "invalid config at `scpi.channels.N`: channel numbers start at 1"
+        );
     }
 }

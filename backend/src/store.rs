@@ -128,6 +128,16 @@ fn summary_from_row(row: &rusqlite::Row<'_>) -> rusqlite::Result<(RunSummary, St
     ))
 }
 
+/// A stored status; an unreadable one becomes `failed` with the reason
+/// (resumable from the last checkpoint) instead of an error for every caller.
+fn decode_status(text: &str) -> RunStatus {
+    serde_json::from_str(text).unwrap_or_else(|e| RunStatus::Failed {
+        message: format!(
+            "unreadable stored status {text:?} ({e}); resume retries from the last checkpoint"
+        ),
+    })
+}
+
 impl Store {
     /// Open (or create) the database at `path`.
     pub fn open(path: &Path) -> Result<Self, StoreError> {
@@ -318,8 +328,15 @@ impl Store {
         let rows = stmt.query_map([], summary_from_row)?;
         let mut out = Vec::new();
         for row in rows {
-            let (mut summary, status, config_json) = row?;
-            summary.status = serde_json::from_str(&status)?;
+            // One corrupt row must not keep the other runs (or the server) down.
+            let (mut summary, status, config_json) = match row {
+                Ok(r) => r,
+                Err(e) => {
+                    eprintln!("warning: skipped an unreadable run row: {e}");
+                    continue;
+                }
+            };
+            summary.status = decode_status(&status);
             out.push(StoredRun {
                 summary,
                 config_json,
@@ -340,7 +357,7 @@ impl Store {
             .optional()?
             .ok_or(StoreError::NotFound(id))?;
         let (mut summary, status, config_json) = row;
-        summary.status = serde_json::from_str(&status)?;
+        summary.status = decode_status(&status);
         Ok(StoredRun {
             summary,
             config_json,
@@ -453,6 +470,31 @@ mod tests {
             s.get_run(id).unwrap().summary.status,
             RunStatus::Interrupted
         );
+        // A corrupt status or a corrupt row keeps the others readable.
+        let other = s.create_run("b", "{}", &RunStatus::Paused, "{}").unwrap();
+        let third = s.create_run("c", "{}", &RunStatus::Paused, "{}").unwrap();
+        s.w()
+            .execute(
+                "UPDATE runs SET status = 'garbage' WHERE id = ?1",
+                params![other as i64],
+            )
+            .unwrap();
+        s.w()
+            .execute(
+                "UPDATE runs SET iterations = 'not a number' WHERE id = ?1",
+                params![third as i64],
+            )
+            .unwrap();
+        let listed = s.list_runs().unwrap();
+        let b = listed.iter().find(|r| r.summary.id == other).unwrap();
+        assert!(
+            matches!(&b.summary.status, RunStatus::Failed { message } if message.contains("unreadable")),
+            "{:?}",
+            b.summary.status
+        );
+        assert!(b.summary.status.is_resumable());
+        assert!(listed.iter().all(|r| r.summary.id != third));
+        assert!(listed.iter().any(|r| r.summary.id == id));
         s.delete_run(id).unwrap();
         assert!(s.get_run(id).is_err());
         std::fs::remove_dir_all(&dir).unwrap();

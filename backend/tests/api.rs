@@ -435,3 +435,62 @@ async fn clients_of_another_protocol_version_get_a_clear_version_error() {
         );
     }
 }
+
+/// Pages of `GET /iterations` are bounded (default and maximum), and a viewer
+/// frame above the inbound cap ends that socket without harming the run.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn iteration_pages_and_inbound_frames_are_bounded() {
+    use futures_util::{SinkExt, StreamExt};
+    use spintune_server::server::{MAX_PAGE, MAX_VIEWER_MESSAGE};
+    let dir = TempDir::new("bounds");
+    let srv = server(&dir, 64).await;
+    let run = create_run(srv.addr, &small_config("bounds", 3, 0)).await;
+    wait_status(srv.addr, run.id, is_finished).await;
+    let (s, body) = http(
+        srv.addr,
+        "GET",
+        &format!("/api/runs/{}/iterations?limit=2", run.id),
+        None,
+        None,
+    )
+    .await;
+    assert_eq!(s, 200);
+    assert_eq!(serde_json::from_str::<Vec<Value>>(&body).unwrap().len(), 2);
+    let (s, body) = http(
+        srv.addr,
+        "GET",
+        &format!("/api/runs/{}/iterations?limit={}", run.id, MAX_PAGE + 1),
+        None,
+        None,
+    )
+    .await;
+    assert_eq!(s, 400, "{body}");
+    assert!(body.contains("largest page"), "{body}");
+
+    let mut ws = connect(srv.addr, run.id, None).await;
+    assert!(matches!(
+        next_msg(&mut ws).await,
+        ServerMessage::Hello { .. }
+    ));
+    let huge = format!(
+        r#"{{"type":"auth","token":"{}"}}"#,
+        "x".repeat(MAX_VIEWER_MESSAGE + 1)
+    );
+    let _ = ws
+        .send(tokio_tungstenite::tungstenite::Message::Text(huge.into()))
+        .await;
+    // the server drops the socket instead of buffering the frame
+    let closed = tokio::time::timeout(STEP, async {
+        loop {
+            match ws.next().await {
+                None | Some(Err(_)) => return,
+                Some(Ok(tokio_tungstenite::tungstenite::Message::Close(_))) => return,
+                Some(Ok(_)) => continue,
+            }
+        }
+    })
+    .await;
+    assert!(closed.is_ok(), "an oversized frame did not end the socket");
+    // the server still serves
+    assert_eq!(get_run(srv.addr, run.id).await.id, run.id);
+}

@@ -18,6 +18,7 @@ use spintune::sim::default_gates;
 use spintune_server::cli::Server;
 use spintune_server::config::{MeasureSource, ScpiConfig};
 use spintune_server::devices::scpi::ScpiSource;
+use spintune_server::devices::DeviceError;
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::net::TcpListener;
 
@@ -227,6 +228,8 @@ async fn exact_command_sequence_and_refusals_send_nothing() {
         .set(&BTreeMap::from([("SB".to_string(), -1000.0)]))
         .await
         .unwrap_err();
+    assert!(matches!(e, DeviceError::Refused(_)), "{e:?}");
+    let e = e.to_string();
     assert!(
         e.contains("outside its limits") && e.contains("nothing sent"),
         "{e}"
@@ -235,7 +238,17 @@ async fn exact_command_sequence_and_refusals_send_nothing() {
         .set(&BTreeMap::from([("T".to_string(), -650.0)]))
         .await
         .unwrap_err();
-    assert!(e.contains("no channel"), "{e}");
+    assert_eq!(
+        e,
+        DeviceError::Unmapped {
+            gate: "T".to_string()
+        }
+    );
+    let e = e.to_string();
+    assert!(
+        e.contains("no channel") && e.contains("nothing sent"),
+        "{e}"
+    );
     assert!(inst.commands().is_empty(), "{:?}", inst.commands());
 
     // One gate, 2.5 mV in 1 mV increments: connect (slew + read back), ramp, read back.
@@ -285,6 +298,8 @@ async fn exact_command_sequence_and_refusals_send_nothing() {
         .set(&BTreeMap::from([("SB".to_string(), -765.0)]))
         .await
         .unwrap_err();
+    assert!(matches!(e, DeviceError::Refused(_)), "{e:?}");
+    let e = e.to_string();
     assert!(
         e.contains("exceeds its maximal step") && e.contains("nothing sent"),
         "{e}"
@@ -298,6 +313,11 @@ async fn exact_command_sequence_and_refusals_send_nothing() {
         .set(&BTreeMap::from([("SB".to_string(), -779.0)]))
         .await
         .unwrap_err();
+    assert!(
+        matches!(&e, DeviceError::ReadbackMismatch { gate, channel: 4, .. } if gate == "SB"),
+        "{e:?}"
+    );
+    let e = e.to_string();
     assert!(e.contains("read-back mismatch on SB (channel 4)"), "{e}");
     assert!(!src.is_connected());
     inst.clear_log();
@@ -323,6 +343,11 @@ async fn exact_command_sequence_and_refusals_send_nothing() {
         .set(&BTreeMap::from([("SB".to_string(), -780.0)]))
         .await
         .unwrap_err();
+    assert!(
+        matches!(&e, DeviceError::ReadbackFailed { error, .. } if matches!(**error, DeviceError::NoAnswer { ms: 300, .. })),
+        "{e:?}"
+    );
+    let e = e.to_string();
     assert!(e.contains("no answer") && e.contains("300 ms"), "{e}");
     assert_eq!(inst.commands(), ["sour4:volt -0.780000", "sour4:volt?"]);
     assert!(!src.is_connected());

@@ -1,6 +1,7 @@
 //! Talking to the backend: base URL, REST (fetch) and WebSocket URLs.
 
 use serde::de::DeserializeOwned;
+use spintune::protocol::PROTOCOL_VERSION;
 use wasm_bindgen::JsCast;
 use wasm_bindgen_futures::JsFuture;
 
@@ -53,9 +54,13 @@ impl ApiBase {
         format!("{base}{path}")
     }
 
-    /// WebSocket URL of a run's stream, resuming at iteration `from`.
+    /// WebSocket URL of a run's stream, resuming at iteration `from`. States
+    /// the protocol version this page speaks (`protocol=`), as the server
+    /// requires since protocol version 2.
     pub fn run_ws_url(&self, run: u64, from: u64) -> String {
-        self.ws_url(&format!("/api/runs/{run}/ws?from={from}"))
+        self.ws_url(&format!(
+            "/api/runs/{run}/ws?protocol={PROTOCOL_VERSION}&from={from}"
+        ))
     }
 }
 
@@ -106,8 +111,9 @@ mod tests {
         assert_eq!(b.url("/api/runs"), "http://127.0.0.1:8080/api/runs");
         assert_eq!(
             b.run_ws_url(3, 17),
-            "ws://127.0.0.1:8080/api/runs/3/ws?from=17"
+            "ws://127.0.0.1:8080/api/runs/3/ws?protocol=2&from=17"
         );
+        assert_eq!(PROTOCOL_VERSION, 2);
         assert_eq!(
             ApiBase::new("https://lab.example").ws_url("/x"),
             "wss://lab.example/x"

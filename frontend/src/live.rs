@@ -1,6 +1,11 @@
 //! Live mode: list the server's runs, stream one over its WebSocket (history,
 //! then live iterations), reconnect with backoff resuming at the next missing
 //! iteration, and — after the control token is accepted — control it.
+//!
+//! The socket URL states the protocol version this page speaks
+//! (`?protocol=2`); a server that refuses it answers with an error frame
+//! before its `hello` and closes the socket: the page then stops retrying and
+//! says why.
 
 use std::cell::RefCell;
 use std::rc::Rc;
@@ -10,14 +15,16 @@ use leptos::prelude::*;
 use send_wrapper::SendWrapper;
 use spintune::parameter::Tolerance;
 use spintune::protocol::{
-    ClientMessage, ControlCommand, RunSummary, ServerMessage, PROTOCOL_VERSION,
+    ClientMessage, ControlCommand, RunStatus, RunSummary, ServerMessage, PROTOCOL_VERSION,
 };
 use wasm_bindgen::prelude::*;
 use web_sys::{CloseEvent, MessageEvent, WebSocket};
 
 use crate::api::{get_json, ApiBase};
-use crate::model::{format_lab_time, status_is_final, status_label, History, Push};
-use crate::ui::Dashboard;
+use crate::model::{
+    format_lab_time, status_class, status_is_final, status_label, ControlsEnabled, History, Push,
+};
+use crate::ui::{Dashboard, StatusBadge, StatusNote};
 
 /// State of a run's WebSocket.
 #[derive(Debug, Clone, PartialEq)]
@@ -117,6 +124,8 @@ struct Session {
     retry: Option<gloo_timers::callback::Timeout>,
     shut_down: bool,
     token: Option<String>,
+    /// The server's `hello` arrived on the current socket.
+    hello_seen: bool,
 }
 
 type SessionRef = Rc<RefCell<Session>>;
@@ -139,6 +148,7 @@ fn connect(sess: &SessionRef) {
     }
     drop_socket(&mut s);
     s.retry = None;
+    s.hello_seen = false;
     let from = s.sig.history.with_untracked(|h| h.next_iteration());
     let url = s.base.run_ws_url(s.run, from);
     s.sig.conn.set(ConnState::Connecting { attempt: s.attempt });
@@ -175,10 +185,22 @@ fn connect(sess: &SessionRef) {
         let Some(text) = ev.data().as_string() else {
             return;
         };
-        let resync = handle_message(&sess, &text);
-        if resync {
+        match handle_message(&sess, &text) {
+            After::Continue => {}
             // A gap: start over from the next missing iteration, immediately.
-            connect(&sess);
+            After::Resync => connect(&sess),
+            After::Refused(message) => {
+                // Retrying cannot help (e.g. the server speaks another protocol
+                // version): stay closed and say why.
+                let mut s = sess.borrow_mut();
+                drop_socket(&mut s);
+                s.sig.conn.set(ConnState::Closed {
+                    reason: format!("refused by the server: {message}"),
+                });
+                s.sig.notice.set(Some(format!(
+                    "The server refused this page's connection: {message}. This page speaks protocol v{PROTOCOL_VERSION}; reload it (or use a matching server)."
+                )));
+            }
         }
     });
 
@@ -238,15 +260,27 @@ fn schedule_reconnect(sess: &SessionRef) {
     }));
 }
 
-/// Applies one server frame; returns true if the stream must be resubscribed.
-fn handle_message(sess: &SessionRef, text: &str) -> bool {
+/// What to do with the socket after a server frame.
+#[derive(Debug, Clone, PartialEq)]
+enum After {
+    /// Keep streaming.
+    Continue,
+    /// Iterations are missing: resubscribe from the next missing one.
+    Resync,
+    /// The server refused the connection before its `hello` (handshake
+    /// error, e.g. a protocol version it does not speak): do not retry.
+    Refused(String),
+}
+
+/// Applies one server frame.
+fn handle_message(sess: &SessionRef, text: &str) -> After {
     let sig = sess.borrow().sig;
     let msg: ServerMessage = match serde_json::from_str(text) {
         Ok(m) => m,
         Err(e) => {
             sig.notice
                 .set(Some(format!("undecodable message from server: {e}")));
-            return false;
+            return After::Continue;
         }
     };
     match msg {
@@ -257,12 +291,14 @@ fn handle_message(sess: &SessionRef, text: &str) -> bool {
                 )));
             }
             sig.summary.set(Some(run));
-            sess.borrow_mut().attempt = 0;
+            let mut s = sess.borrow_mut();
+            s.attempt = 0;
+            s.hello_seen = true;
         }
         ServerMessage::History { records } => {
             let mut gap = false;
             sig.history.update(|h| gap = h.extend(records).is_err());
-            return gap;
+            return if gap { After::Resync } else { After::Continue };
         }
         ServerMessage::Iteration { record } => {
             let mut res = Push::Duplicate;
@@ -278,7 +314,11 @@ fn handle_message(sess: &SessionRef, text: &str) -> bool {
                     }
                 });
             }
-            return matches!(res, Push::Gap { .. });
+            return if matches!(res, Push::Gap { .. }) {
+                After::Resync
+            } else {
+                After::Continue
+            };
         }
         ServerMessage::Status { run } => sig.summary.set(Some(run)),
         ServerMessage::Lagged { skipped } => {
@@ -288,6 +328,10 @@ fn handle_message(sess: &SessionRef, text: &str) -> bool {
         }
         ServerMessage::AuthOk => sig.auth.set(AuthState::Ok),
         ServerMessage::Error { message } => {
+            if !sess.borrow().hello_seen {
+                // The server sends its hello first on every accepted socket.
+                return After::Refused(message);
+            }
             if sig.auth.get_untracked() == AuthState::Pending {
                 sess.borrow_mut().token = None;
                 sig.auth.set(AuthState::Refused(message));
@@ -296,7 +340,7 @@ fn handle_message(sess: &SessionRef, text: &str) -> bool {
             }
         }
     }
-    false
+    After::Continue
 }
 
 fn send_on(s: &Session, msg: &ClientMessage) -> bool {
@@ -392,6 +436,7 @@ pub fn LiveMode(base: ApiBase) -> impl IntoView {
                         key=|r| (r.id, r.iterations, format!("{:?}", r.status))
                         children=move |r| {
                             let id = r.id;
+                            let state = r.status.name();
                             view! {
                                 <li>
                                     <button
@@ -402,7 +447,8 @@ pub fn LiveMode(base: ApiBase) -> impl IntoView {
                                     >
                                         <span class="run-name">{format!("#{} {}", r.id, r.name)}</span>
                                         <span class="run-meta">
-                                            {format!("{} · {} it · {}", status_label(&r.status), r.iterations, format_lab_time(r.lab_seconds))}
+                                            <span class=status_class(&r.status) data-state=state title=status_label(&r.status)>{status_label(&r.status)}</span>
+                                            {format!(" · {} it · {}", r.iterations, format_lab_time(r.lab_seconds))}
                                             {if r.tuned { " · tuned" } else { "" }}
                                         </span>
                                     </button>
@@ -446,6 +492,7 @@ pub fn RunView(run: u64, base: ApiBase) -> impl IntoView {
         retry: None,
         shut_down: false,
         token: None,
+        hello_seen: false,
     }));
     connect(&sess);
     {
@@ -487,27 +534,22 @@ pub fn RunView(run: u64, base: ApiBase) -> impl IntoView {
             None => format!("Run #{run}"),
         })
     };
-    let status = move || {
-        sig.summary.with(|s| {
-            s.as_ref()
-                .map(|s| status_label(&s.status))
-                .unwrap_or_else(|| "…".into())
-        })
-    };
+    let status = Signal::derive(move || sig.summary.with(|s| s.as_ref().map(|s| s.status.clone())));
     view! {
         <div class="run-view">
             <header class="run-head">
                 <h2>{title}</h2>
-                <span class="status" data-testid="run-status">{status}</span>
+                <StatusBadge status testid="run-status" unknown="…" />
                 <span class=move || sig.conn.with(|c| c.class()) data-testid="connection">{move || sig.conn.with(|c| c.label())}</span>
             </header>
             {move || sig.notice.get().map(|n| view! {
                 <p class="notice">{n} <button class="link" on:click=move |_| sig.notice.set(None)>"dismiss"</button></p>
             })}
+            <StatusNote status />
             <div class="control-panel">
                 {move || match sig.auth.get() {
                     AuthState::Ok => view! {
-                        <Controls history=sig.history on_command=Callback::new(control) />
+                        <Controls history=sig.history status on_command=Callback::new(control) />
                     }.into_any(),
                     state => view! {
                         <div class="readonly" data-testid="readonly">
@@ -533,8 +575,20 @@ pub fn RunView(run: u64, base: ApiBase) -> impl IntoView {
 }
 
 /// Control buttons and target/tolerance editors (shown after authentication).
+/// A button is enabled only where the run's status accepts it
+/// ([`ControlsEnabled::for_status`]; all while the status is unknown).
 #[component]
-fn Controls(history: RwSignal<History>, on_command: Callback<ControlCommand>) -> impl IntoView {
+fn Controls(
+    history: RwSignal<History>,
+    status: Signal<Option<RunStatus>>,
+    on_command: Callback<ControlCommand>,
+) -> impl IntoView {
+    let enabled = Memo::new(move |_| {
+        status.with(|s| {
+            s.as_ref()
+                .map_or(ControlsEnabled::ALL, ControlsEnabled::for_status)
+        })
+    });
     let params = Memo::new(move |_| {
         history.with(|h| {
             h.last()
@@ -550,10 +604,10 @@ fn Controls(history: RwSignal<History>, on_command: Callback<ControlCommand>) ->
     view! {
         <div class="controls" data-testid="controls">
             <span class="badge ok">"controls unlocked"</span>
-            <button data-testid="pause" on:click=move |_| on_command.run(ControlCommand::Pause)>"Pause"</button>
-            <button data-testid="resume" on:click=move |_| on_command.run(ControlCommand::Resume)>"Resume"</button>
-            <button data-testid="step" on:click=move |_| on_command.run(ControlCommand::Step)>"Single step"</button>
-            <button class="danger" data-testid="stop" on:click=move |_| {
+            <button data-testid="pause" disabled=move || !enabled.get().pause on:click=move |_| on_command.run(ControlCommand::Pause)>"Pause"</button>
+            <button data-testid="resume" disabled=move || !enabled.get().resume on:click=move |_| on_command.run(ControlCommand::Resume)>"Resume"</button>
+            <button data-testid="step" disabled=move || !enabled.get().step on:click=move |_| on_command.run(ControlCommand::Step)>"Single step"</button>
+            <button class="danger" data-testid="stop" disabled=move || !enabled.get().stop on:click=move |_| {
                 if window().confirm_with_message("Stop this run for good?").unwrap_or(false) {
                     on_command.run(ControlCommand::Stop);
                 }
@@ -563,7 +617,7 @@ fn Controls(history: RwSignal<History>, on_command: Callback<ControlCommand>) ->
                     each=move || params.get()
                     key=|p| p.0.clone()
                     children=move |(name, unit, target, tol)| view! {
-                        <TargetEditor name unit target tolerance=tol on_command />
+                        <TargetEditor name unit target tolerance=tol enabled=Signal::derive(move || enabled.get().targets) on_command />
                     }
                 />
             </div>
@@ -578,6 +632,7 @@ fn TargetEditor(
     unit: String,
     target: Option<f64>,
     tolerance: Option<f64>,
+    enabled: Signal<bool>,
     on_command: Callback<ControlCommand>,
 ) -> impl IntoView {
     let t = RwSignal::new(target.map(|t| format!("{t}")).unwrap_or_default());
@@ -623,7 +678,7 @@ fn TargetEditor(
                 prop:value=move || t.get() on:input=move |ev| t.set(event_target_value(&ev)) />{format!(" {unit}")}</label>
             <label>"± "<input type="number" step="any" min="0" data-testid=format!("tolerance-{name}")
                 prop:value=move || tol.get() on:input=move |ev| tol.set(event_target_value(&ev)) />{format!(" {unit}")}</label>
-            <button type="submit">"Apply"</button>
+            <button type="submit" disabled=move || !enabled.get()>"Apply"</button>
             {move || err.get().map(|e| view! { <span class="error">{e}</span> })}
         </form>
     }
@@ -641,5 +696,68 @@ mod tests {
         assert_eq!(backoff_ms(4), 4000);
         assert_eq!(backoff_ms(6), 10_000);
         assert_eq!(backoff_ms(60), 10_000);
+    }
+
+    fn test_session() -> SessionRef {
+        Rc::new(RefCell::new(Session {
+            run: 1,
+            base: ApiBase::new("http://127.0.0.1:9"),
+            sig: Signals {
+                history: RwSignal::new(History::new()),
+                summary: RwSignal::new(None),
+                conn: RwSignal::new(ConnState::Connecting { attempt: 0 }),
+                auth: RwSignal::new(AuthState::None),
+                notice: RwSignal::new(None),
+            },
+            ws: None,
+            handlers: None,
+            generation: 0,
+            attempt: 0,
+            retry: None,
+            shut_down: false,
+            token: None,
+            hello_seen: false,
+        }))
+    }
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn an_error_before_hello_is_a_refused_handshake() {
+        let sess = test_session();
+        let refusal =
+            r#"{"type":"error","message":"this server speaks protocol v3; the client stated v2"}"#;
+        assert_eq!(
+            handle_message(&sess, refusal),
+            After::Refused("this server speaks protocol v3; the client stated v2".into())
+        );
+        // After the hello, an error is a notice (or a refused token) and the socket stays.
+        let hello = format!(
+            r#"{{"type":"hello","version":{PROTOCOL_VERSION},"run":{{"id":1,"name":"demo","status":{{"state":"faulted","fault":{{"kind":"device","message":"timeout"}}}},"iterations":0,"lab_seconds":0.0,"tuned":false}}}}"#
+        );
+        assert_eq!(handle_message(&sess, &hello), After::Continue);
+        let sig = sess.borrow().sig;
+        assert_eq!(
+            sig.summary
+                .with_untracked(|s| s.as_ref().map(|s| status_label(&s.status))),
+            Some("faulted — device fault: timeout".into())
+        );
+        assert_eq!(
+            handle_message(&sess, r#"{"type":"error","message":"unknown parameter x"}"#),
+            After::Continue
+        );
+        assert_eq!(
+            sig.notice.get_untracked().as_deref(),
+            Some("server: unknown parameter x")
+        );
+        // A server of another version is named in a notice.
+        let old = hello.replace(
+            &format!(r#""version":{PROTOCOL_VERSION}"#),
+            r#""version":1"#,
+        );
+        assert_eq!(handle_message(&sess, &old), After::Continue);
+        assert!(sig
+            .notice
+            .get_untracked()
+            .is_some_and(|n| n.contains("protocol v1")));
     }
 }

@@ -1,15 +1,22 @@
-//! In-browser mode: the tuner and the simulated double dot from `spintune`
-//! run inside the page (no server). The loop yields to the browser between
-//! iterations so the page stays responsive.
+//! In-browser mode: the run session and the simulated double dot from
+//! `spintune` run inside the page (no server).
+//!
+//! The page is a thin driver of [`SimulationRun`]: pause, resume, single
+//! step, stop and target changes are [`ControlCommand`]s applied by the run
+//! session, which owns the run's status. The page keeps only its animation
+//! timer: each tick asks for the next iteration while the session is running
+//! or stepping, and yields to the browser in between so the page stays
+//! responsive.
 
 use leptos::prelude::*;
-use spintune::driver::{SimulationConfig, SimulationRun};
+use spintune::driver::{RunError, SimulationConfig, SimulationRun};
 use spintune::estimator::EstimatorKind;
 use spintune::parameter::Tolerance;
+use spintune::protocol::{ControlCommand, IterationRecord, RunStatus};
 
 use crate::charts;
-use crate::model::History;
-use crate::ui::{Area, Chart, Dashboard};
+use crate::model::{ControlsEnabled, History};
+use crate::ui::{Area, Chart, Dashboard, StatusBadge, StatusNote};
 
 /// What the student can choose.
 #[derive(Debug, Clone, PartialEq)]
@@ -121,49 +128,109 @@ pub struct Landscape {
     pub now: (f64, f64),
 }
 
-/// Drives a [`SimulationRun`] and collects its records.
+/// Drives a [`SimulationRun`] and collects its records. Every change of
+/// the run's course goes through the session ([`LocalRunner::control`]).
 pub struct LocalRunner {
     run: SimulationRun,
     /// Iterations so far.
     pub history: History,
-    /// First iteration at which every parameter was in band since the last target change.
+    /// First iteration at which every parameter was in band since the targets
+    /// last changed (by the user or by the schedule).
     pub tuned_at: Option<u64>,
-    /// Iteration of the last target change.
-    pub targets_since: u64,
-    /// The run has ended (iteration limit).
-    pub finished: bool,
 }
 
 impl LocalRunner {
-    /// Start from settings.
+    /// Start from settings (the session starts running).
     pub fn new(settings: &LocalSettings) -> Result<Self, String> {
-        Ok(Self {
-            run: settings.build()?,
-            history: History::new(),
-            tuned_at: None,
-            targets_since: 0,
-            finished: false,
-        })
+        Ok(Self::from_run(settings.build()?))
     }
 
-    /// One iteration. `Ok(false)` when the run has ended.
-    pub fn step(&mut self) -> Result<bool, String> {
-        if self.finished {
-            return Ok(false);
+    /// Drive an existing run (e.g. one with a specially prepared device).
+    pub fn from_run(run: SimulationRun) -> Self {
+        Self {
+            run,
+            history: History::new(),
+            tuned_at: None,
         }
-        match self.run.next_iteration().map_err(|e| e.to_string())? {
-            Some(rec) => {
-                if rec.tuned && self.tuned_at.is_none() && rec.iteration >= self.targets_since {
-                    self.tuned_at = Some(rec.iteration);
-                }
-                self.history.push(rec);
-                Ok(true)
-            }
-            None => {
-                self.finished = true;
-                Ok(false)
-            }
+    }
+
+    /// The run.
+    pub fn run(&self) -> &SimulationRun {
+        &self.run
+    }
+
+    /// The session's status.
+    pub fn status(&self) -> RunStatus {
+        self.run.session().status()
+    }
+
+    /// Whether the session wants iterations (running or stepping): the
+    /// animation timer ticks only then.
+    pub fn is_advancing(&self) -> bool {
+        matches!(self.status(), RunStatus::Running | RunStatus::Stepping)
+    }
+
+    /// One tick of the animation: [`SimulationRun::next_iteration`], with the
+    /// record kept. `Ok(Some(k))`: iteration `k` was recorded; `Ok(None)`: the
+    /// run is over (finished or stopped); `Err(RunError::Paused)`: paused
+    /// (also after a single step); `Err(RunError::Fault(_))`: the session
+    /// paused the run with a fault (resumable).
+    pub fn advance(&mut self) -> Result<Option<u64>, RunError> {
+        let Some(rec) = self.run.next_iteration()? else {
+            return Ok(None);
+        };
+        let k = rec.iteration;
+        self.record(rec);
+        Ok(Some(k))
+    }
+
+    fn record(&mut self, rec: IterationRecord) {
+        let targets = |r: &IterationRecord| {
+            r.parameters
+                .iter()
+                .map(|p| (p.target, p.tolerance))
+                .collect::<Vec<_>>()
+        };
+        if self
+            .history
+            .last()
+            .is_some_and(|prev| targets(prev) != targets(&rec))
+        {
+            self.tuned_at = None;
         }
+        if rec.tuned && self.tuned_at.is_none() {
+            self.tuned_at = Some(rec.iteration);
+        }
+        self.history.push(rec);
+    }
+
+    /// Apply a control command through the session; the new status, or why
+    /// the session refused it (nothing changed then).
+    pub fn control(&mut self, command: &ControlCommand) -> Result<RunStatus, String> {
+        self.run.control(command).map_err(|e| e.to_string())
+    }
+
+    /// Change both targets (and the relative tolerance) through the session
+    /// (they apply from the next iteration). Both are checked before either
+    /// is applied.
+    pub fn set_targets(&mut self, t_sr: f64, w: f64, tolerance: f64) -> Result<RunStatus, String> {
+        let tolerance = Some(Tolerance::Relative(tolerance));
+        let changes = [("t_sr", t_sr), ("w", w)];
+        for (parameter, target) in changes {
+            self.run
+                .tuner()
+                .validate_target(parameter, Some(target), tolerance)
+                .map_err(|e| e.to_string())?;
+        }
+        for (parameter, target) in changes {
+            self.control(&ControlCommand::SetTarget {
+                parameter: parameter.into(),
+                target: Some(target),
+                tolerance,
+            })?;
+        }
+        self.tuned_at = None;
+        Ok(self.status())
     }
 
     /// The simulator's noiseless truth on an `n`×`n` grid in the (`gx`, `gy`)
@@ -214,21 +281,6 @@ impl LocalRunner {
             now: (cx, cy),
         })
     }
-
-    /// Change both targets (and tolerance) of the running tuner.
-    pub fn set_targets(&mut self, t_sr: f64, w: f64, tolerance: f64) -> Result<(), String> {
-        let tol = Some(Tolerance::Relative(tolerance));
-        let tuner = self.run.tuner_mut();
-        tuner
-            .set_target("t_sr", Some(t_sr), tol)
-            .map_err(|e| e.to_string())?;
-        tuner
-            .set_target("w", Some(w), tol)
-            .map_err(|e| e.to_string())?;
-        self.tuned_at = None;
-        self.targets_since = self.history.next_iteration();
-        Ok(())
-    }
 }
 
 /// A labelled numeric input bound to a field of the settings.
@@ -263,18 +315,36 @@ fn NumberField(
 pub fn LocalMode() -> impl IntoView {
     let settings = RwSignal::new(LocalSettings::default());
     let history = RwSignal::new(History::new());
-    let running = RwSignal::new(false);
-    let status = RwSignal::new(String::from("ready: press Run"));
+    // Mirror of the session's status after each action (None: no run yet).
+    let status = RwSignal::new(None::<RunStatus>);
     let tuned_at = RwSignal::new(None::<u64>);
     let error = RwSignal::new(None::<String>);
+    let note = RwSignal::new(None::<String>);
     let runner = StoredValue::new_local(None::<LocalRunner>);
+    // The animation timer: whether a tick loop is alive, and which run it belongs to.
+    let ticking = StoredValue::new(false);
     let generation = StoredValue::new(0u64);
 
+    // Copy what changed in the runner into the signals.
     let sync = move || {
         runner.with_value(|r| {
-            if let Some(r) = r {
-                history.set(r.history.clone());
+            let Some(r) = r else { return };
+            let known = history.with_untracked(|h| h.len());
+            if r.history.len() != known {
+                history.update(|h| {
+                    if h.len() > r.history.len() {
+                        h.clear();
+                    }
+                    let n = h.len();
+                    let _ = h.extend(r.history.records()[n..].iter().cloned());
+                });
+            }
+            if tuned_at.get_untracked() != r.tuned_at {
                 tuned_at.set(r.tuned_at);
+            }
+            let s = Some(r.status());
+            if status.with_untracked(|old| *old != s) {
+                status.set(s);
             }
         })
     };
@@ -294,73 +364,95 @@ pub fn LocalMode() -> impl IntoView {
             }
         }
     };
-    // One iteration; false when the loop must stop.
-    let step_once = move || -> bool {
-        if !ensure() {
-            return false;
-        }
+    // A command for the session; a refusal is shown, nothing else changes.
+    let command = move |c: ControlCommand| {
         let res = runner
-            .try_update_value(|r| r.as_mut().map(|r| r.step()))
+            .try_update_value(|r| r.as_mut().map(|r| r.control(&c)))
             .flatten();
         match res {
-            Some(Ok(true)) => {
-                sync();
+            Some(Err(e)) => error.set(Some(e)),
+            Some(Ok(_)) => error.set(None),
+            None => {}
+        }
+        sync();
+    };
+    // One tick: the next iteration if the session wants one. Returns whether
+    // the timer should keep ticking.
+    let tick = move || -> bool {
+        let res = runner
+            .try_update_value(|r| r.as_mut().map(|r| r.advance()))
+            .flatten();
+        let broken = match res {
+            None => return false,
+            Some(Ok(Some(_))) => false,
+            // over, paused (also after a single step) or faulted: the
+            // session's status says which
+            Some(Ok(None) | Err(RunError::Paused | RunError::Fault(_))) => false,
+            // a bug in this driver: stop ticking rather than repeat it
+            Some(Err(e @ RunError::Session(_))) => {
+                error.set(Some(e.to_string()));
                 true
             }
-            Some(Ok(false)) => {
-                status.set("finished: iteration limit reached (Reset to start again)".into());
-                false
-            }
-            Some(Err(e)) => {
-                error.set(Some(e));
-                false
-            }
-            None => false,
-        }
+        };
+        sync();
+        !broken && runner.with_value(|r| r.as_ref().is_some_and(|r| r.is_advancing()))
     };
-    let run = move || {
-        if running.get_untracked() {
+    // Start the animation timer unless it is running.
+    let kick = move || {
+        if ticking.get_value()
+            || !runner.with_value(|r| r.as_ref().is_some_and(|r| r.is_advancing()))
+        {
             return;
         }
-        running.set(true);
-        status.set("running".into());
-        generation.update_value(|g| *g += 1);
+        ticking.set_value(true);
         let my_gen = generation.get_value();
         leptos::task::spawn_local(async move {
             loop {
                 // Yield first: lets the page paint between iterations.
                 let delay = settings.try_with_untracked(|s| s.delay_ms).unwrap_or(0);
                 gloo_timers::future::TimeoutFuture::new(delay).await;
-                let alive = running.try_get_untracked().unwrap_or(false)
-                    && generation.try_get_value() == Some(my_gen);
-                if !alive {
+                if generation.try_get_value() != Some(my_gen) {
+                    // reset (or unmounted): a new run owns the timer
                     break;
                 }
-                if !step_once() {
-                    let _ = running.try_set(false);
+                if !tick() {
+                    ticking.set_value(false);
                     break;
                 }
             }
         });
     };
-    let pause = move || {
-        running.set(false);
-        status.set("paused".into());
-    };
-    let step = move || {
-        pause();
-        if step_once() {
-            status.set("paused after a single step".into());
+    let run = move || {
+        note.set(None);
+        if runner.with_value(|r| r.is_none()) {
+            if !ensure() {
+                return;
+            }
+            sync();
+        } else {
+            command(ControlCommand::Resume);
         }
+        kick();
     };
+    let pause = move || command(ControlCommand::Pause);
+    let step = move || {
+        note.set(None);
+        if !ensure() {
+            return;
+        }
+        command(ControlCommand::Step);
+        kick();
+    };
+    let stop = move || command(ControlCommand::Stop);
     let reset = move || {
-        running.set(false);
         generation.update_value(|g| *g += 1);
+        ticking.set_value(false);
         runner.set_value(None);
         history.set(History::new());
+        status.set(None);
         tuned_at.set(None);
         error.set(None);
-        status.set("ready: press Run".into());
+        note.set(None);
     };
     let apply_targets = move || {
         let s = settings.get_untracked();
@@ -372,16 +464,30 @@ pub fn LocalMode() -> impl IntoView {
             .flatten();
         match res {
             Some(Err(e)) => error.set(Some(e)),
-            _ => {
-                tuned_at.set(None);
-                status.set(if running.get_untracked() {
-                    "running (new targets)".into()
-                } else {
-                    "new targets set".into()
-                });
+            Some(Ok(_)) => {
+                error.set(None);
+                note.set(Some(
+                    "new targets: they apply from the next iteration".into(),
+                ));
             }
+            None => note.set(Some("targets set: the run starts with them".into())),
         }
+        sync();
     };
+    let enabled = Memo::new(move |_| {
+        status.with(|s| match s {
+            // no run yet: Run and Step start one
+            None => ControlsEnabled {
+                pause: false,
+                resume: true,
+                step: true,
+                stop: false,
+                targets: true,
+            },
+            Some(s) => ControlsEnabled::for_status(s),
+        })
+    });
+    let started = move || status.with(|s| s.is_some());
 
     macro_rules! field {
         ($f:ident) => {
@@ -411,19 +517,31 @@ pub fn LocalMode() -> impl IntoView {
             <aside class="sidebar">
                 <h2>"Simulated double dot"</h2>
                 <div class="buttons">
-                    <button class="primary" data-testid="local-run" disabled=move || running.get() on:click=move |_| run()>"Run"</button>
-                    <button data-testid="local-pause" disabled=move || !running.get() on:click=move |_| pause()>"Pause"</button>
-                    <button data-testid="local-step" on:click=move |_| step()>"Step"</button>
+                    <button class="primary" data-testid="local-run" disabled=move || !enabled.get().resume on:click=move |_| run()>
+                        {move || if started() { "Resume" } else { "Run" }}
+                    </button>
+                    <button data-testid="local-pause" disabled=move || !enabled.get().pause on:click=move |_| pause()>"Pause"</button>
+                    <button data-testid="local-step" disabled=move || !enabled.get().step on:click=move |_| step()>"Step"</button>
+                    <button class="danger" data-testid="local-stop" disabled=move || !enabled.get().stop on:click=move |_| stop()>"Stop"</button>
                     <button data-testid="local-reset" on:click=move |_| reset()>"Reset"</button>
                 </div>
-                <p class="local-status" data-testid="local-status">{move || status.get()} " · " <b data-testid="local-tuned">{tuned_text}</b></p>
+                <p class="local-status" data-testid="local-status">
+                    {move || if started() {
+                        view! { <StatusBadge status=status testid="local-state" unknown="" /> }.into_any()
+                    } else {
+                        view! { <span class="status status-ready" data-state="ready" data-testid="local-state">"ready: press Run"</span> }.into_any()
+                    }}
+                    " · " <b data-testid="local-tuned">{tuned_text}</b>
+                </p>
+                <StatusNote status=status />
                 {move || error.get().map(|e| view! { <p class="error" data-testid="local-error">{e}</p> })}
+                {move || note.get().map(|n| view! { <p class="hint" data-testid="local-note">{n}</p> })}
                 <fieldset>
                     <legend>"Targets (apply any time)"</legend>
                     <NumberField label="t_sr target" unit="ns" testid="local-target-tsr" step="1" get=t_tsr set=set_t_tsr />
                     <NumberField label="w target" unit="µV" testid="local-target-w" step="5" get=t_w set=set_t_w />
                     <NumberField label="tolerance" unit="× target" testid="local-tolerance" step="0.01" get=tol set=set_tol />
-                    <button data-testid="local-apply-targets" on:click=move |_| apply_targets()>"Apply targets"</button>
+                    <button data-testid="local-apply-targets" disabled=move || !enabled.get().targets on:click=move |_| apply_targets()>"Apply targets"</button>
                 </fieldset>
                 <fieldset>
                     <legend>"Tuner and device (apply on Reset)"</legend>
@@ -521,5 +639,102 @@ mod tests {
         };
         assert_eq!(t_sr_target(20), Some(20.0));
         assert_eq!(t_sr_target(21), Some(70.0));
+    }
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn pause_step_resume_stop_go_through_the_session() {
+        let mut r = LocalRunner::new(&LocalSettings::default()).unwrap();
+        assert_eq!(r.status(), RunStatus::Running);
+        assert_eq!(r.advance(), Ok(Some(0)));
+        assert_eq!(r.advance(), Ok(Some(1)));
+
+        assert_eq!(r.control(&ControlCommand::Pause), Ok(RunStatus::Paused));
+        assert!(!r.is_advancing());
+        assert_eq!(r.advance(), Err(RunError::Paused));
+        assert_eq!(r.history.len(), 2);
+
+        // A single step: exactly one more iteration, then paused again.
+        assert_eq!(r.control(&ControlCommand::Step), Ok(RunStatus::Stepping));
+        assert!(r.is_advancing());
+        assert_eq!(r.advance(), Ok(Some(2)));
+        assert_eq!(r.status(), RunStatus::Paused);
+        assert_eq!(r.advance(), Err(RunError::Paused));
+        assert_eq!(r.history.len(), 3);
+
+        // A target change while paused goes through the session too.
+        assert_eq!(r.set_targets(70.0, 270.0, 0.1), Ok(RunStatus::Paused));
+        assert!(r.set_targets(f64::NAN, 270.0, 0.1).is_err());
+        assert!(r.set_targets(70.0, 270.0, -1.0).is_err());
+
+        assert_eq!(r.control(&ControlCommand::Resume), Ok(RunStatus::Running));
+        assert_eq!(r.advance(), Ok(Some(3)));
+        let t_sr = r.history.records()[3]
+            .parameters
+            .iter()
+            .find(|p| p.name == "t_sr")
+            .unwrap();
+        assert_eq!(t_sr.target, Some(70.0));
+
+        assert_eq!(r.control(&ControlCommand::Stop), Ok(RunStatus::Stopped));
+        assert_eq!(r.advance(), Ok(None));
+        assert!(r.control(&ControlCommand::Resume).is_err());
+        assert_eq!(r.status(), RunStatus::Stopped);
+        assert_eq!(r.history.len(), 4);
+        let its: Vec<u64> = r.history.records().iter().map(|r| r.iteration).collect();
+        assert_eq!(its, vec![0, 1, 2, 3]);
+    }
+
+    /// A run whose device refuses to move gate N more than 0.5 mV: the
+    /// session pauses the run with a device fault, which is resumable.
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn a_device_fault_pauses_the_run_and_is_resumable() {
+        use crate::model::{status_label, ControlsEnabled};
+        use spintune::protocol::FaultKind;
+        use spintune::session::{RunSession, SessionConfig};
+        use spintune::sim::SimulatedDevice;
+
+        let cfg = LocalSettings::default().to_config();
+        let mut gates = cfg.tuner.gates.clone();
+        let n = gates.iter_mut().find(|g| g.name == "N").unwrap();
+        n.min_mv = n.initial_mv - 0.5;
+        n.max_mv = n.initial_mv + 0.5;
+        let device = SimulatedDevice::new(cfg.device.clone(), &gates, cfg.seed).unwrap();
+        let session = RunSession::new(cfg.tuner, SessionConfig::default()).unwrap();
+        let mut r = LocalRunner::from_run(SimulationRun::from_parts(session, device));
+
+        let fault = match r.advance() {
+            Err(RunError::Fault(f)) => f,
+            other => panic!("expected a fault, got {other:?}"),
+        };
+        assert_eq!(fault.kind, FaultKind::Device);
+        assert!(fault.message.contains("\"N\""), "{}", fault.message);
+        let status = r.status();
+        assert_eq!(
+            status,
+            RunStatus::Faulted {
+                fault: fault.clone()
+            }
+        );
+        assert!(status.is_resumable() && !r.is_advancing());
+        let label = status_label(&status);
+        assert!(label.starts_with("faulted"), "{label}");
+        assert!(
+            label.contains("device fault") && label.contains(&fault.message),
+            "{label}"
+        );
+        assert!(ControlsEnabled::for_status(&status).resume);
+        assert!(r.history.is_empty());
+
+        // Resume: the session reads the gates back and retries the request,
+        // which this device refuses again.
+        assert_eq!(r.control(&ControlCommand::Resume), Ok(RunStatus::Running));
+        assert!(matches!(r.advance(), Err(RunError::Fault(f)) if f.kind == FaultKind::Device));
+        // A faulted run can be held (paused) or stopped by the user.
+        assert_eq!(r.control(&ControlCommand::Pause), Ok(RunStatus::Paused));
+        assert_eq!(r.advance(), Err(RunError::Paused));
+        assert_eq!(r.control(&ControlCommand::Stop), Ok(RunStatus::Stopped));
+        assert_eq!(r.advance(), Ok(None));
     }
 }

@@ -1,7 +1,7 @@
 //! Client-side state that does not depend on the DOM: the de-duplicated
 //! iteration history of one run, and helpers that turn records into series.
 
-use spintune::protocol::{GradientReport, IterationRecord, RunStatus};
+use spintune::protocol::{EventKind, GradientReport, IterationRecord, RunStatus};
 
 /// What happened when a record was offered to a [`History`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -115,11 +115,16 @@ pub fn gradient_sigmas(g: &GradientReport) -> Option<Vec<f64>> {
     )
 }
 
-/// Short human label of a run status.
+/// Short human label of a run status, as the run header, the run list and
+/// the in-browser mode show it. A fault names its kind and message.
 pub fn status_label(s: &RunStatus) -> String {
     match s {
         RunStatus::Running => "running".into(),
+        RunStatus::Stepping => "stepping (one iteration)".into(),
         RunStatus::Paused => "paused".into(),
+        RunStatus::Stopping => "stopping".into(),
+        // Fault's Display: "<kind> fault: <message>"
+        RunStatus::Faulted { fault } => format!("faulted — {fault}"),
         RunStatus::Finished => "finished".into(),
         RunStatus::Stopped => "stopped".into(),
         RunStatus::Interrupted => "interrupted".into(),
@@ -127,9 +132,110 @@ pub fn status_label(s: &RunStatus) -> String {
     }
 }
 
-/// Whether a run in this state will never produce new iterations by itself.
+/// CSS classes of a status badge: `status status-<name>` (e.g.
+/// `status status-faulted`), so every state can be styled on its own.
+pub fn status_class(s: &RunStatus) -> String {
+    format!("status status-{}", s.name())
+}
+
+/// A sentence explaining what a status means for the user, if it needs one.
+pub fn status_hint(s: &RunStatus) -> Option<&'static str> {
+    match s {
+        RunStatus::Running | RunStatus::Paused | RunStatus::Stopped => None,
+        RunStatus::Stepping => Some("Running one more iteration, then the run pauses."),
+        RunStatus::Stopping => {
+            Some("Stop acknowledged: the answer to the request at the device is still recorded; nothing new is sent.")
+        }
+        RunStatus::Faulted { .. } => Some(
+            "The run paused itself. Resume or Single step reads every gate back first, then checks and retries the request that failed.",
+        ),
+        RunStatus::Finished => Some("The tuner reached its goal or its iteration limit."),
+        RunStatus::Interrupted => {
+            Some("The server went away while this run was active; resume to continue from the last stored iteration.")
+        }
+        RunStatus::Failed { .. } => {
+            Some("The server cannot continue this run; resume retries from the last stored checkpoint.")
+        }
+    }
+}
+
+/// Whether a run in this state will never produce new iterations by itself
+/// (`finished` or `stopped`).
 pub fn status_is_final(s: &RunStatus) -> bool {
-    matches!(s, RunStatus::Finished | RunStatus::Stopped)
+    s.is_terminal()
+}
+
+/// Which run controls make sense in a status.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ControlsEnabled {
+    /// Pause (running, stepping, or a faulted run the user wants to hold).
+    pub pause: bool,
+    /// Resume (every resumable state, faulted included).
+    pub resume: bool,
+    /// Single step (resumable states; while running: finish this iteration, then pause).
+    pub step: bool,
+    /// Stop for good.
+    pub stop: bool,
+    /// Change targets (refused by a stopped or stopping run).
+    pub targets: bool,
+}
+
+impl ControlsEnabled {
+    /// Everything enabled (status unknown: the server decides).
+    pub const ALL: ControlsEnabled = ControlsEnabled {
+        pause: true,
+        resume: true,
+        step: true,
+        stop: true,
+        targets: true,
+    };
+
+    /// The controls that apply in status `s` (what the run session accepts).
+    pub fn for_status(s: &RunStatus) -> Self {
+        let over = s.is_terminal() || *s == RunStatus::Stopping;
+        ControlsEnabled {
+            pause: matches!(
+                s,
+                RunStatus::Running | RunStatus::Stepping | RunStatus::Faulted { .. }
+            ),
+            resume: s.is_resumable(),
+            step: s.is_resumable() || *s == RunStatus::Running,
+            stop: !over,
+            targets: !matches!(s, RunStatus::Stopped | RunStatus::Stopping),
+        }
+    }
+}
+
+/// The `snake_case` name of an event kind, as in its JSON `event` tag.
+pub fn event_name(e: &EventKind) -> &'static str {
+    match e {
+        EventKind::NotRepresentable { .. } => "not_representable",
+        EventKind::FiniteDifferenceFailed { .. } => "finite_difference_failed",
+        EventKind::InitialGradientRejected { .. } => "initial_gradient_rejected",
+        EventKind::TooUncertain { .. } => "too_uncertain",
+        EventKind::OutlierGated { .. } => "outlier_gated",
+        EventKind::StepLimited { .. } => "step_limited",
+        EventKind::NoMeasurement { .. } => "no_measurement",
+        EventKind::UpdateRejected { .. } => "update_rejected",
+        EventKind::EvaluationFailed { .. } => "evaluation_failed",
+        EventKind::ScheduledTargetNotApplied { .. } => "scheduled_target_not_applied",
+        EventKind::MoveRefused { .. } => "move_refused",
+        EventKind::InstrumentMoved { .. } => "instrument_moved",
+    }
+}
+
+/// Whether an event matters for the device's safety or the trust in a
+/// measurement (highlighted in the event list): the instrument was not where
+/// the run expected it, a move was refused, a scan could not be evaluated, or
+/// a measurement was gated as an outlier.
+pub fn event_is_safety_relevant(e: &EventKind) -> bool {
+    matches!(
+        e,
+        EventKind::InstrumentMoved { .. }
+            | EventKind::MoveRefused { .. }
+            | EventKind::EvaluationFailed { .. }
+            | EventKind::OutlierGated { .. }
+    )
 }
 
 /// Lab time for display, e.g. `"12.5 min"` or `"1 h 03 min"`.
@@ -169,7 +275,7 @@ pub fn padded_range(values: impl IntoIterator<Item = f64>, pad: f64) -> (f64, f6
 /// Deterministic fake records for tests and previews: two parameters over
 /// four gates, approaching their targets.
 pub fn fake_records(n: u64) -> Vec<IterationRecord> {
-    use spintune::protocol::{ParameterReport, RawScan, ScanKind, ScanReport, Trace};
+    use spintune::protocol::{ParameterReport, RawScan, ScanKind, ScanReport, Trace, TunerEvent};
     use std::collections::BTreeMap;
     let gates: Vec<String> = ["N", "SA", "SB", "T"]
         .iter()
@@ -271,10 +377,24 @@ pub fn fake_records(n: u64) -> Vec<IterationRecord> {
                         y: fit_y,
                     }],
                 }],
-                events: if k == 3 {
-                    vec!["step clipped to 10 mV".into()]
-                } else {
-                    vec![]
+                events: match k {
+                    3 => vec![TunerEvent {
+                        level: "qubit".into(),
+                        kind: EventKind::StepLimited {
+                            from_mv: 14.2,
+                            to_mv: 10.0,
+                        },
+                    }],
+                    5 => vec![TunerEvent {
+                        level: "qubit".into(),
+                        kind: EventKind::OutlierGated {
+                            parameter: "t_sr".into(),
+                            innovation: 9.5,
+                            innovation_sigma: 1.2,
+                            unit: "ns".into(),
+                        },
+                    }],
+                    _ => vec![],
                 },
             }
         })
@@ -326,5 +446,138 @@ mod tests {
         assert_eq!(padded_range([f64::NAN], 0.1), (0.0, 1.0));
         assert_eq!(format_lab_time(90.0), "1.5 min");
         assert_eq!(format_lab_time(3600.0 + 180.0), "1 h 03 min");
+    }
+
+    fn every_status() -> Vec<RunStatus> {
+        use spintune::protocol::{Fault, FaultKind};
+        vec![
+            RunStatus::Running,
+            RunStatus::Stepping,
+            RunStatus::Paused,
+            RunStatus::Stopping,
+            RunStatus::Faulted {
+                fault: Fault {
+                    kind: FaultKind::Readback,
+                    message: "gate SB reads -410 mV, set -400 mV".into(),
+                },
+            },
+            RunStatus::Finished,
+            RunStatus::Stopped,
+            RunStatus::Interrupted,
+            RunStatus::Failed {
+                message: "store is read-only".into(),
+            },
+        ]
+    }
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn every_status_has_its_own_label_and_class() {
+        let all = every_status();
+        let labels: Vec<String> = all.iter().map(status_label).collect();
+        for (s, l) in all.iter().zip(&labels) {
+            assert!(
+                l.starts_with(s.name()),
+                "{l:?} does not start with {:?}",
+                s.name()
+            );
+            assert_eq!(status_class(s), format!("status status-{}", s.name()));
+        }
+        let mut unique = labels.clone();
+        unique.sort();
+        unique.dedup();
+        assert_eq!(unique.len(), labels.len(), "{labels:?}");
+        // The end-to-end test waits for these words; no label may contain another state's word.
+        assert!(!status_label(&RunStatus::Stepping).contains("paused"));
+        assert!(!status_label(&RunStatus::Stopping).contains("stopped"));
+        assert_eq!(status_label(&all[8]), "failed: store is read-only");
+    }
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn faulted_status_is_labelled_with_kind_and_message_and_is_resumable() {
+        use spintune::protocol::{Fault, FaultKind};
+        let faulted = RunStatus::Faulted {
+            fault: Fault {
+                kind: FaultKind::Device,
+                message: "instrument timed out".into(),
+            },
+        };
+        let label = status_label(&faulted);
+        assert_eq!(label, "faulted — device fault: instrument timed out");
+        assert!(faulted.is_resumable() && !status_is_final(&faulted));
+        assert!(status_hint(&faulted).is_some());
+        let c = ControlsEnabled::for_status(&faulted);
+        assert!(
+            c.resume && c.step && c.pause && c.stop && c.targets,
+            "{c:?}"
+        );
+        // Failed is a different thing (red, not amber): its own class.
+        assert_ne!(
+            status_class(&faulted),
+            status_class(&RunStatus::Failed {
+                message: "x".into()
+            })
+        );
+    }
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn controls_follow_the_status() {
+        for s in every_status() {
+            let c = ControlsEnabled::for_status(&s);
+            assert_eq!(c.resume, s.is_resumable(), "{s:?}");
+            if s.is_terminal() {
+                assert!(!c.pause && !c.resume && !c.step && !c.stop, "{s:?}: {c:?}");
+            }
+        }
+        let running = ControlsEnabled::for_status(&RunStatus::Running);
+        assert!(running.pause && !running.resume && running.step && running.stop);
+        let paused = ControlsEnabled::for_status(&RunStatus::Paused);
+        assert!(!paused.pause && paused.resume && paused.step && paused.stop);
+        let stopping = ControlsEnabled::for_status(&RunStatus::Stopping);
+        assert_eq!(
+            stopping,
+            ControlsEnabled {
+                pause: false,
+                resume: false,
+                step: false,
+                stop: false,
+                targets: false
+            }
+        );
+        // A finished run may take a new target (it can revive a run that stopped when tuned).
+        assert!(ControlsEnabled::for_status(&RunStatus::Finished).targets);
+    }
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn safety_relevant_events() {
+        let recs = fake_records(6);
+        let step = &recs[3].events[0];
+        let gated = &recs[5].events[0];
+        assert_eq!(event_name(&step.kind), "step_limited");
+        assert!(!event_is_safety_relevant(&step.kind));
+        assert_eq!(event_name(&gated.kind), "outlier_gated");
+        assert!(event_is_safety_relevant(&gated.kind));
+        for kind in [
+            EventKind::InstrumentMoved {
+                gate: "SB".into(),
+                expected_mv: -400.0,
+                read_mv: -402.0,
+            },
+            EventKind::MoveRefused {
+                reason: "outside limits".into(),
+            },
+            EventKind::EvaluationFailed {
+                scan: spintune::protocol::ScanKind::ReloadTime,
+                reason: "fit diverged".into(),
+            },
+        ] {
+            assert!(event_is_safety_relevant(&kind), "{kind:?}");
+            // the name is the JSON tag
+            let json = serde_json::to_value(&kind).unwrap();
+            assert_eq!(json["event"], event_name(&kind));
+        }
     }
 }

@@ -8,10 +8,13 @@ use plotters::prelude::*;
 use plotters_canvas::CanvasBackend;
 use wasm_bindgen::JsValue;
 
-use spintune::protocol::ParameterReport;
+use spintune::protocol::{ParameterReport, RunStatus, TunerEvent};
 
 use crate::charts;
-use crate::model::{format_lab_time, History};
+use crate::model::{
+    event_is_safety_relevant, event_name, format_lab_time, status_class, status_hint, status_label,
+    History,
+};
 
 /// A drawing function for [`Chart`]: returns how many iterations it drew.
 pub type Area = DrawingArea<CanvasBackend, Shift>;
@@ -238,10 +241,98 @@ pub fn Dashboard(history: RwSignal<History>) -> impl IntoView {
             </div>
             <Show when=move || !events.with(|e| e.is_empty())>
                 <h3>"Recent events"</h3>
-                <ul class="events">
-                    {move || events.get().into_iter().map(|(k, e)| view! { <li><b>{format!("#{k} ")}</b>{e}</li> }).collect_view()}
+                <ul class="events" data-testid="events">
+                    {move || events.get().into_iter().map(|(k, e)| event_item(k, e)).collect_view()}
                 </ul>
             </Show>
         </div>
+    }
+}
+
+/// One line of the event list: iteration, level and the event's sentence
+/// (the text reads as the event's `Display`, `"<level>: <what>"`).
+/// Safety-relevant events (the instrument moved, a refused move, a failed
+/// evaluation, a gated outlier) carry the class `safety` and a warning sign.
+fn event_item(iteration: u64, e: TunerEvent) -> impl IntoView {
+    let safety = event_is_safety_relevant(&e.kind);
+    view! {
+        <li
+            class=if safety { "event safety" } else { "event" }
+            data-event=event_name(&e.kind)
+            data-level=e.level.clone()
+            title=if safety { "safety-relevant event" } else { "" }
+        >
+            <b>{format!("#{iteration} ")}</b>
+            {safety.then(|| view! { <span class="event-flag" aria-label="safety-relevant">"⚠ "</span> })}
+            <span class="event-level">{e.level.clone()}</span>
+            {format!(": {}", e.kind)}
+        </li>
+    }
+}
+
+/// A run status as a badge: `class="status status-<name>"` and
+/// `data-state="<name>"` (e.g. `status-faulted`, styled amber; `status-failed`, red).
+#[component]
+pub fn StatusBadge(
+    /// The status (`None`: not known yet).
+    #[prop(into)]
+    status: Signal<Option<RunStatus>>,
+    /// `data-testid` of the badge.
+    #[prop(into)]
+    testid: String,
+    /// Text while the status is not known.
+    #[prop(into)]
+    unknown: String,
+) -> impl IntoView {
+    view! {
+        <span
+            class=move || status.with(|s| s.as_ref().map_or_else(|| "status status-unknown".to_string(), status_class))
+            data-state=move || status.with(|s| s.as_ref().map_or("unknown", |s| s.name()))
+            data-testid=testid
+        >
+            {move || status.with(|s| s.as_ref().map_or_else(|| unknown.clone(), status_label))}
+        </span>
+    }
+}
+
+/// What a status means, under the run header: a fault (amber: the run paused
+/// itself and can be resumed) or a failure (red) with its message, or a
+/// one-line hint for the other states that need one.
+#[component]
+pub fn StatusNote(
+    /// The status (`None`: nothing shown).
+    #[prop(into)]
+    status: Signal<Option<RunStatus>>,
+) -> impl IntoView {
+    move || {
+        status.with(|s| {
+            let s = s.as_ref()?;
+            let hint = status_hint(s);
+            Some(match s {
+                RunStatus::Faulted { fault } => view! {
+                    <div class="status-note fault" role="alert" data-testid="fault" data-fault=fault.kind.name()>
+                        <b>{format!("⚠ Paused by a {} fault", fault.kind.name())}</b>
+                        {format!(": {}", fault.message)}
+                        <div class="hint">{hint}</div>
+                    </div>
+                }
+                .into_any(),
+                RunStatus::Failed { message } => view! {
+                    <div class="status-note failed" role="alert" data-testid="failed">
+                        <b>"Run failed"</b>
+                        {format!(": {message}")}
+                        <div class="hint">{hint}</div>
+                    </div>
+                }
+                .into_any(),
+                other => {
+                    let h = hint?;
+                    view! {
+                        <p class=format!("status-note {}", other.name()) data-testid="status-hint">{h}</p>
+                    }
+                    .into_any()
+                }
+            })
+        })
     }
 }

@@ -6,11 +6,13 @@
 use std::time::Duration;
 
 use leptos::prelude::*;
-use spintune::protocol::{ClientMessage, ControlCommand, ServerMessage, PROTOCOL_VERSION};
+use spintune::protocol::{
+    ClientMessage, ControlCommand, Fault, FaultKind, RunStatus, ServerMessage, PROTOCOL_VERSION,
+};
 use spintune_web::api::ApiBase;
 use spintune_web::local::{LocalRunner, LocalSettings};
 use spintune_web::model::{fake_records, History};
-use spintune_web::ui::Dashboard;
+use spintune_web::ui::{Dashboard, StatusBadge, StatusNote};
 use spintune_web::{App, Mode};
 use wasm_bindgen::JsCast;
 use wasm_bindgen_test::*;
@@ -61,6 +63,26 @@ fn protocol_frames_decode_in_wasm() {
         serde_json::from_str::<ServerMessage>(failed).unwrap(),
         ServerMessage::Status { .. }
     ));
+    let faulted = r#"{"type":"status","run":{"id":1,"name":"x","status":{"state":"faulted","fault":{"kind":"readback","message":"gate SB reads -410 mV"}},"iterations":4,"lab_seconds":9.0,"tuned":false}}"#;
+    match serde_json::from_str::<ServerMessage>(faulted).unwrap() {
+        ServerMessage::Status { run } => {
+            assert_eq!(
+                run.status,
+                RunStatus::Faulted {
+                    fault: Fault {
+                        kind: FaultKind::Readback,
+                        message: "gate SB reads -410 mV".into()
+                    }
+                }
+            );
+            assert!(run.status.is_resumable());
+        }
+        other => panic!("decoded as {other:?}"),
+    }
+    // The socket URL states the protocol version.
+    assert!(ApiBase::new("http://h:1")
+        .run_ws_url(2, 0)
+        .contains(&format!("protocol={PROTOCOL_VERSION}")));
     let history = ServerMessage::History {
         records: fake_records(3),
     };
@@ -132,7 +154,27 @@ async fn dashboard_draws_every_chart_from_records() {
     let t = text(&el);
     assert!(t.contains("iteration 11"), "{t}");
     assert!(t.contains("√diag C"), "{t}");
-    assert!(t.contains("step clipped"), "events listed: {t}");
+    assert!(
+        t.contains("qubit: step limited from 14.20 mV to 10.00 mV"),
+        "events listed with level and Display text: {t}"
+    );
+    // Safety-relevant events stand out; the others do not.
+    let gated = el
+        .query_selector("li.event.safety[data-event=outlier_gated]")
+        .unwrap()
+        .expect("outlier gated event highlighted");
+    let gated: web_sys::HtmlElement = gated.unchecked_into();
+    assert_eq!(gated.get_attribute("data-level").as_deref(), Some("qubit"));
+    assert!(
+        gated.inner_text().contains("t_sr: outlier gated"),
+        "{}",
+        gated.inner_text()
+    );
+    let limited = el
+        .query_selector("li.event[data-event=step_limited]")
+        .unwrap()
+        .expect("step limited event listed");
+    assert!(!limited.class_list().contains("safety"));
     // Canvas got non-white pixels.
     let c: web_sys::HtmlCanvasElement = charts().get(0).unwrap().unchecked_into();
     let ctx: web_sys::CanvasRenderingContext2d =
@@ -205,7 +247,7 @@ async fn local_runner_reaches_a_new_target() {
     let mut r = LocalRunner::new(&settings).unwrap();
     // Paper set point I first, then move t_sr to 70 ns (paper set point II).
     for _ in 0..60 {
-        assert!(r.step().unwrap());
+        assert!(r.advance().unwrap().is_some());
         if r.tuned_at.is_some() {
             break;
         }
@@ -214,9 +256,10 @@ async fn local_runner_reaches_a_new_target() {
     let first = r
         .tuned_at
         .expect("tuned to (20 ns, 270 µV) within 60 iterations");
-    r.set_targets(70.0, 270.0, 0.1).unwrap();
+    assert_eq!(r.set_targets(70.0, 270.0, 0.1), Ok(RunStatus::Running));
+    assert_eq!(r.tuned_at, None);
     for _ in 0..60 {
-        assert!(r.step().unwrap());
+        assert!(r.advance().unwrap().is_some());
         if r.tuned_at.is_some() {
             break;
         }
@@ -285,13 +328,136 @@ async fn local_mode_runs_in_the_page_and_tunes() {
     q("local-pause").click();
     leptos::task::tick().await;
     assert!(q("local-status").inner_text().contains("paused"));
+    assert_eq!(
+        q("local-state").get_attribute("data-state").as_deref(),
+        Some("paused")
+    );
     let k: u64 = q("local-tuned")
         .inner_text()
         .trim_start_matches("tuned at iteration ")
         .parse()
         .unwrap();
     assert!(k < 60, "took {k} iterations");
+    let disabled = |sel: &str| q(sel).has_attribute("disabled");
+    assert!(disabled("local-pause") && !disabled("local-run") && !disabled("local-step"));
+    assert_eq!(q("local-run").inner_text(), "Resume");
+
+    // Paused: no more iterations; a single step adds exactly one.
+    let iteration = || -> u64 { q("iteration").inner_text().trim().parse().unwrap() };
+    let paused_at = iteration();
+    sleep(300).await;
+    assert_eq!(iteration(), paused_at, "iterations continued while paused");
+    q("local-step").click();
+    wait_for("one more iteration", Duration::from_secs(20), || {
+        iteration() == paused_at + 1
+    })
+    .await;
+    wait_for("paused after the step", Duration::from_secs(5), || {
+        q("local-state").get_attribute("data-state").as_deref() == Some("paused")
+    })
+    .await;
+    sleep(300).await;
+    assert_eq!(iteration(), paused_at + 1, "a single step ran on");
+
+    // Resume, then stop for good: only Reset is left.
+    q("local-run").click();
+    wait_for("running again", Duration::from_secs(20), || {
+        iteration() > paused_at + 1
+    })
+    .await;
+    q("local-stop").click();
+    leptos::task::tick().await;
+    assert!(
+        q("local-status").inner_text().contains("stopped"),
+        "{}",
+        q("local-status").inner_text()
+    );
+    assert!(disabled("local-run") && disabled("local-pause") && disabled("local-step"));
+    assert!(disabled("local-stop") && !disabled("local-reset"));
+    let stopped_at = iteration();
+    sleep(300).await;
+    assert_eq!(iteration(), stopped_at, "iterations after stop");
+
     q("local-reset").click();
     leptos::task::tick().await;
     assert!(q("local-tuned").inner_text().contains("not tuned yet"));
+    assert!(q("local-status").inner_text().contains("ready"));
+    assert_eq!(q("local-run").inner_text(), "Run");
+}
+
+#[wasm_bindgen_test]
+async fn status_badge_and_note_show_every_state() {
+    let el = host();
+    let status = RwSignal::new(None::<RunStatus>);
+    let _h = leptos::mount::mount_to(el.clone(), move || {
+        view! {
+            <StatusBadge status testid="badge" unknown="…" />
+            <StatusNote status />
+        }
+    });
+    leptos::task::tick().await;
+    let badge = || -> web_sys::HtmlElement {
+        el.query_selector("[data-testid=badge]")
+            .unwrap()
+            .unwrap()
+            .unchecked_into()
+    };
+    assert_eq!(badge().inner_text(), "…");
+    assert_eq!(
+        badge().get_attribute("data-state").as_deref(),
+        Some("unknown")
+    );
+
+    status.set(Some(RunStatus::Faulted {
+        fault: Fault {
+            kind: FaultKind::Safety,
+            message: "step of 12 mV on SB exceeds 10 mV".into(),
+        },
+    }));
+    leptos::task::tick().await;
+    assert_eq!(
+        badge().inner_text(),
+        "faulted — safety fault: step of 12 mV on SB exceeds 10 mV"
+    );
+    assert!(badge().class_list().contains("status-faulted"));
+    let note: web_sys::HtmlElement = el
+        .query_selector("[data-testid=fault]")
+        .unwrap()
+        .expect("fault note")
+        .unchecked_into();
+    assert_eq!(note.get_attribute("data-fault").as_deref(), Some("safety"));
+    assert!(note.class_list().contains("fault"));
+    let t = note.inner_text();
+    assert!(
+        t.contains("safety fault") && t.contains("12 mV on SB"),
+        "{t}"
+    );
+    assert!(t.contains("Resume"), "{t}");
+
+    status.set(Some(RunStatus::Failed {
+        message: "store is read-only".into(),
+    }));
+    leptos::task::tick().await;
+    assert!(badge().class_list().contains("status-failed"));
+    assert!(el.query_selector("[data-testid=fault]").unwrap().is_none());
+    assert!(el
+        .query_selector("[data-testid=failed]")
+        .unwrap()
+        .is_some_and(|n| n.text_content().unwrap_or_default().contains("read-only")));
+
+    for (s, word) in [
+        (RunStatus::Running, "running"),
+        (RunStatus::Stepping, "stepping"),
+        (RunStatus::Paused, "paused"),
+        (RunStatus::Stopping, "stopping"),
+        (RunStatus::Finished, "finished"),
+        (RunStatus::Stopped, "stopped"),
+        (RunStatus::Interrupted, "interrupted"),
+    ] {
+        status.set(Some(s.clone()));
+        leptos::task::tick().await;
+        assert!(badge().inner_text().starts_with(word), "{s:?}");
+        assert_eq!(badge().get_attribute("data-state").as_deref(), Some(word));
+        assert!(el.query_selector("[data-testid=failed]").unwrap().is_none());
+    }
 }

@@ -164,10 +164,28 @@ impl SimulationConfig {
 
     /// Check the whole config; the error names the field.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        self.device
-            .validate()
-            .map_err(|m| ConfigError::new("device", m))?;
+        self.device.validate().map_err(|e| e.within("device"))?;
         self.tuner.validate().map_err(|e| e.within("tuner"))
+    }
+
+    /// The simulated device of this config (`device` with `tuner.gates`,
+    /// seeded with `seed`) at the gates' initial voltages; the error names
+    /// the field within this config (`device.…` or `tuner.gates[i]…`).
+    ///
+    /// ```
+    /// let mut cfg = spintune::driver::SimulationConfig::paper_default();
+    /// cfg.device.reference_mv.remove("SB");
+    /// let e = cfg.simulated_device().unwrap_err();
+    /// assert_eq!(e.field, "device.reference_mv");
+    /// ```
+    pub fn simulated_device(&self) -> Result<SimulatedDevice, ConfigError> {
+        SimulatedDevice::new(self.device.clone(), &self.tuner.gates, self.seed).map_err(|e| {
+            if e.field.starts_with("gates[") {
+                e.within("tuner")
+            } else {
+                e.within("device")
+            }
+        })
     }
 }
 
@@ -211,8 +229,7 @@ impl SimulationRun {
     /// Validate the config and build session and device at the gates' initial voltages.
     pub fn new(cfg: SimulationConfig) -> Result<Self, ConfigError> {
         cfg.validate()?;
-        let device = SimulatedDevice::new(cfg.device, &cfg.tuner.gates, cfg.seed)
-            .map_err(|m| ConfigError::new("device", m))?;
+        let device = cfg.simulated_device()?;
         let session =
             RunSession::new(cfg.tuner, SessionConfig::default()).map_err(|e| e.within("tuner"))?;
         Ok(Self { session, device })

@@ -19,6 +19,7 @@
 #![warn(missing_docs)]
 
 pub mod benchmark;
+pub mod config_error;
 pub mod detmath;
 pub mod driver;
 pub mod estimator;
@@ -31,3 +32,5 @@ pub mod session;
 pub mod sim;
 pub mod solver;
 pub mod tuner;
+
+pub use config_error::ConfigError;

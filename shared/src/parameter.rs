@@ -4,6 +4,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::config_error::ConfigError;
 use crate::protocol::ScanKind;
 
 /// Space in which the estimator and solver see a parameter.
@@ -82,17 +83,26 @@ impl Tolerance {
         (value - target).abs() <= self.half_width(target)
     }
 
-    /// Checks the tolerance is a finite, non-negative number.
-    pub fn validate(self) -> Result<(), String> {
-        let x = match self {
-            Tolerance::Absolute(a) => a,
-            Tolerance::Relative(r) => r,
+    /// Checks the tolerance is a finite, non-negative number. The error's
+    /// field is the variant's key (`absolute` or `relative`, as in
+    /// `{ relative = 0.1 }`); prefix it with [`ConfigError::within`].
+    ///
+    /// ```
+    /// use spintune::parameter::Tolerance;
+    /// let e = Tolerance::Relative(-1.0).validate().unwrap_err().within("tolerances.w");
+    /// assert_eq!(e.field, "tolerances.w.relative");
+    /// ```
+    pub fn validate(self) -> Result<(), ConfigError> {
+        let (field, x) = match self {
+            Tolerance::Absolute(a) => ("absolute", a),
+            Tolerance::Relative(r) => ("relative", r),
         };
         if x.is_finite() && x >= 0.0 {
             Ok(())
         } else {
-            Err(format!(
-                "tolerance must be finite and non-negative, got {x}"
+            Err(ConfigError::new(
+                field,
+                format!("must be finite and non-negative, got {x}"),
             ))
         }
     }
@@ -143,8 +153,15 @@ mod tests {
         assert!(Tolerance::Relative(0.1).contains(20.0, 21.9));
         assert!(!Tolerance::Relative(0.1).contains(20.0, 22.1));
         assert!(Tolerance::Absolute(5.0).contains(270.0, 266.0));
-        assert!(Tolerance::Absolute(-1.0).validate().is_err());
-        assert!(Tolerance::Relative(f64::NAN).validate().is_err());
+        assert_eq!(
+            Tolerance::Absolute(-1.0).validate().unwrap_err().field,
+            "absolute"
+        );
+        assert_eq!(
+            Tolerance::Relative(f64::NAN).validate().unwrap_err().field,
+            "relative"
+        );
+        assert!(Tolerance::Relative(0.0).validate().is_ok());
     }
 
     #[test]

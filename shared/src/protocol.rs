@@ -1,6 +1,6 @@
 //! Plain, serializable messages: what the tuner asks of a device, what the
 //! device answers, and the per-iteration record that is stored and streamed.
-//! Nothing else crosses a process boundary (DESIGN invariant 3).
+//! Nothing else crosses a process boundary (ARCHITECTURE.md, invariant 3).
 //!
 //! Units are in the field names: `_mv` millivolts, `_s` seconds, parameter
 //! values in the unit of their [`crate::parameter::ParameterSpec`].
@@ -16,6 +16,76 @@ use serde::{Deserialize, Serialize};
 /// states the version it speaks when it connects (the server refuses any
 /// other with an error naming both versions).
 pub const PROTOCOL_VERSION: u32 = 2;
+
+/// Why a message that crossed a boundary (a WebSocket frame, an HTTP body, a
+/// lab bridge's answer, a device's evaluated scan) was refused. The text
+/// names the field and, where there is one, the offending value.
+///
+/// ```
+/// use spintune::protocol::ProtocolError;
+/// let e = ProtocolError::malformed("command.target", "invalid type: string \"high\", expected f64");
+/// assert_eq!(
+///     e.to_string(),
+///     "malformed message at `command.target`: invalid type: string \"high\", expected f64"
+/// );
+/// ```
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ProtocolError {
+    /// Not JSON, or not of the expected shape (wrong type, unknown variant,
+    /// missing key).
+    #[error(
+        "malformed message{}: {message}",
+        field.as_ref().map(|f| format!(" at `{f}`")).unwrap_or_default()
+    )]
+    Malformed {
+        /// Path of the offending field; `None` for the message as a whole.
+        field: Option<String>,
+        /// What the parser objected to.
+        message: String,
+    },
+    /// A key the message type does not have.
+    #[error("malformed message: unknown field `{field}`")]
+    UnknownField {
+        /// Path of the key, e.g. `command.extra`.
+        field: String,
+    },
+    /// A number that must be finite is NaN or infinite.
+    #[error("{field} must be a finite number, got {value}")]
+    NotFinite {
+        /// What the number is, e.g. `target of "w"`.
+        field: String,
+        /// The value received.
+        value: f64,
+    },
+    /// A variance that is negative, NaN or infinite.
+    #[error("{field} must be finite and non-negative, got {value}")]
+    InvalidVariance {
+        /// What the variance is, e.g. `variance of "w"`.
+        field: String,
+        /// The value received.
+        value: f64,
+    },
+    /// A tolerance that is negative, NaN or infinite.
+    #[error("tolerance of {parameter:?}: {}", error.clause())]
+    InvalidTolerance {
+        /// The parameter whose tolerance it is.
+        parameter: String,
+        /// The tolerance's own validation error (its field: `absolute` or `relative`).
+        error: crate::config_error::ConfigError,
+    },
+}
+
+impl ProtocolError {
+    /// A [`ProtocolError::Malformed`] at `path`, as a JSON path printer
+    /// writes it (`""` or `"."`: the message as a whole).
+    pub fn malformed(path: &str, message: impl std::fmt::Display) -> Self {
+        let field = (!path.is_empty() && path != ".").then(|| path.to_string());
+        Self::Malformed {
+            field,
+            message: message.to_string(),
+        }
+    }
+}
 
 /// The measurements a device can be asked for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
@@ -108,16 +178,29 @@ pub struct ParameterValue {
 }
 
 impl ParameterValue {
-    /// `Err` naming the problem if value or variance is NaN/∞ or the variance negative.
-    pub fn validate(&self) -> Result<(), String> {
+    /// `Err` naming the parameter and the value if value or variance is
+    /// NaN/∞ or the variance negative.
+    ///
+    /// ```
+    /// use spintune::protocol::ParameterValue;
+    /// let v = ParameterValue { name: "w".into(), value: 210.0, variance: -1.0 };
+    /// assert_eq!(
+    ///     v.validate().unwrap_err().to_string(),
+    ///     "variance of \"w\" must be finite and non-negative, got -1"
+    /// );
+    /// ```
+    pub fn validate(&self) -> Result<(), ProtocolError> {
         if !self.value.is_finite() {
-            return Err(format!("{}: value {} is not finite", self.name, self.value));
+            return Err(ProtocolError::NotFinite {
+                field: format!("value of {:?}", self.name),
+                value: self.value,
+            });
         }
         if !(self.variance.is_finite() && self.variance >= 0.0) {
-            return Err(format!(
-                "{}: variance {} must be finite and non-negative",
-                self.name, self.variance
-            ));
+            return Err(ProtocolError::InvalidVariance {
+                field: format!("variance of {:?}", self.name),
+                value: self.variance,
+            });
         }
         Ok(())
     }
@@ -745,4 +828,66 @@ pub enum BridgeServerMessage {
         /// What was wrong.
         message: String,
     },
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::parameter::Tolerance;
+
+    #[test]
+    fn malformed_names_the_path_unless_top_level() {
+        assert_eq!(
+            ProtocolError::malformed(".", "expected value at line 1 column 1").to_string(),
+            "malformed message: expected value at line 1 column 1"
+        );
+        assert_eq!(
+            ProtocolError::malformed("", "x"),
+            ProtocolError::Malformed {
+                field: None,
+                message: "x".into()
+            }
+        );
+        assert_eq!(
+            ProtocolError::malformed("command", "unknown variant `fly`").to_string(),
+            "malformed message at `command`: unknown variant `fly`"
+        );
+        assert_eq!(
+            ProtocolError::UnknownField {
+                field: "command.extra".into()
+            }
+            .to_string(),
+            "malformed message: unknown field `command.extra`"
+        );
+    }
+
+    #[test]
+    fn invalid_values_name_field_and_value() {
+        let v = |value, variance| ParameterValue {
+            name: "t_sr".into(),
+            value,
+            variance,
+        };
+        assert_eq!(v(20.0, 0.0).validate(), Ok(()));
+        assert_eq!(
+            v(f64::NAN, 1.0).validate().unwrap_err().to_string(),
+            "value of \"t_sr\" must be a finite number, got NaN"
+        );
+        assert_eq!(
+            v(20.0, f64::INFINITY).validate(),
+            Err(ProtocolError::InvalidVariance {
+                field: "variance of \"t_sr\"".into(),
+                value: f64::INFINITY
+            })
+        );
+        let error = Tolerance::Absolute(-3.0).validate().unwrap_err();
+        let e = ProtocolError::InvalidTolerance {
+            parameter: "w".into(),
+            error,
+        };
+        assert_eq!(
+            e.to_string(),
+            "tolerance of \"w\": `absolute` must be finite and non-negative, got -3"
+        );
+    }
 }

@@ -117,11 +117,11 @@ enum Answer {
 }
 
 #[derive(Debug, Clone)]
-enum Step {
+enum Action {
     Exec(Answer),
     Pause,
     Resume(usize),
-    StepOnce,
+    Step,
     Stop,
     SetTarget(f64),
     BadTarget,
@@ -143,17 +143,17 @@ fn answer() -> impl Strategy<Value = Answer> {
     ]
 }
 
-fn step() -> impl Strategy<Value = Step> {
+fn action() -> impl Strategy<Value = Action> {
     prop_oneof![
-        120 => answer().prop_map(Step::Exec),
-        2 => Just(Step::Pause),
-        4 => (1..4usize).prop_map(Step::Resume),
-        2 => Just(Step::StepOnce),
-        1 => Just(Step::Stop),
-        2 => (150.0..300.0f64).prop_map(Step::SetTarget),
-        1 => Just(Step::BadTarget),
-        2 => ((0..5usize), (-40.0..40.0f64)).prop_map(|(g, d)| Step::KnobTurn(g, d)),
-        1 => Just(Step::Crash),
+        120 => answer().prop_map(Action::Exec),
+        2 => Just(Action::Pause),
+        4 => (1..4usize).prop_map(Action::Resume),
+        2 => Just(Action::Step),
+        1 => Just(Action::Stop),
+        2 => (150.0..300.0f64).prop_map(Action::SetTarget),
+        1 => Just(Action::BadTarget),
+        2 => ((0..5usize), (-40.0..40.0f64)).prop_map(|(g, d)| Action::KnobTurn(g, d)),
+        1 => Just(Action::Crash),
     ]
 }
 
@@ -427,7 +427,7 @@ fn next_request(
     Err("the session never settled".into())
 }
 
-fn run_script(script: &[Step]) -> Result<(), TestCaseError> {
+fn run_script(script: &[Action]) -> Result<(), TestCaseError> {
     let cfg = tuner_config();
     let mut dev = Instrument::new(&cfg);
     let mut session = RunSession::new(
@@ -444,7 +444,7 @@ fn run_script(script: &[Step]) -> Result<(), TestCaseError> {
     for step in script {
         STEPS.fetch_add(1, Ordering::Relaxed);
         match step {
-            Step::Exec(how) => {
+            Action::Exec(how) => {
                 let req = next_request(&mut session, &mut committed, &mut checkpoint)
                     .map_err(TestCaseError::fail)?;
                 let Some(req) = req else { continue };
@@ -458,25 +458,25 @@ fn run_script(script: &[Step]) -> Result<(), TestCaseError> {
                     .feed(resp)
                     .map_err(|e| TestCaseError::fail(e.to_string()))?;
             }
-            Step::Pause => {
+            Action::Pause => {
                 let _ = session.control(&ControlCommand::Pause);
             }
-            Step::Resume(k) => {
+            Action::Resume(k) => {
                 for _ in 0..*k {
                     let r = session.control(&ControlCommand::Resume);
                     prop_assert_eq!(r.is_ok(), !stopped && !session.status().is_terminal());
                 }
             }
-            Step::StepOnce => {
+            Action::Step => {
                 let _ = session.control(&ControlCommand::Step);
             }
-            Step::Stop => {
+            Action::Stop => {
                 let s = session.control(&ControlCommand::Stop).unwrap();
                 if s == RunStatus::Stopped || s == RunStatus::Stopping {
                     stopped = true;
                 }
             }
-            Step::SetTarget(w) => {
+            Action::SetTarget(w) => {
                 let r = session.control(&ControlCommand::SetTarget {
                     parameter: "w".into(),
                     target: Some(*w),
@@ -484,7 +484,7 @@ fn run_script(script: &[Step]) -> Result<(), TestCaseError> {
                 });
                 prop_assert_eq!(r.is_ok(), !stopped);
             }
-            Step::BadTarget => {
+            Action::BadTarget => {
                 let r = session.control(&ControlCommand::SetTarget {
                     parameter: "w".into(),
                     target: Some(f64::NAN),
@@ -492,7 +492,7 @@ fn run_script(script: &[Step]) -> Result<(), TestCaseError> {
                 });
                 prop_assert!(r.is_err());
             }
-            Step::KnobTurn(g, d) => {
+            Action::KnobTurn(g, d) => {
                 let moving = matches!(session.status(), RunStatus::Running | RunStatus::Stepping);
                 if !moving {
                     let name = ["N", "SA", "SB", "T", "SD1"][*g];
@@ -501,7 +501,7 @@ fn run_script(script: &[Step]) -> Result<(), TestCaseError> {
                     dev.phys.insert(name.to_string(), v);
                 }
             }
-            Step::Crash => {
+            Action::Crash => {
                 // Everything since the last commit is lost; the instrument
                 // stays where it is, and someone may have touched it.
                 session = serde_json::from_str(&checkpoint).unwrap();
@@ -528,7 +528,7 @@ fn session_holds_safety_and_lifecycle_invariants_over_1e5_random_steps() {
     });
     let before = STEPS.load(Ordering::Relaxed);
     let result = runner.run(
-        &prop::collection::vec(step(), MAX_SCRIPT / 2..=MAX_SCRIPT),
+        &prop::collection::vec(action(), MAX_SCRIPT / 2..=MAX_SCRIPT),
         |script| run_script(&script),
     );
     if let Err(e) = result {

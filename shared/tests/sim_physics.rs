@@ -303,11 +303,11 @@ fn bad_requests_are_refused() {
     assert!(matches!(r, Response::Error { .. }));
     let mut config = DeviceConfig::default();
     config.scans.load_points = 3;
-    assert!(config.validate().unwrap_err().contains("scans.load_points"));
+    assert_eq!(config.validate().unwrap_err().field, "scans.load_points");
     assert!(SimulatedDevice::new(config, &default_gates(), 0).is_err());
     let mut gates = default_gates();
     gates[0].name = "ZZ".into();
-    assert!(SimulatedDevice::new(DeviceConfig::default(), &gates, 0)
-        .unwrap_err()
-        .contains("ZZ"));
+    let e = SimulatedDevice::new(DeviceConfig::default(), &gates, 0).unwrap_err();
+    assert_eq!(e.field, "reference_mv");
+    assert!(e.to_string().contains("ZZ"), "{e}");
 }

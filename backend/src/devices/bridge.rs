@@ -36,9 +36,10 @@ use axum::extract::ws::Utf8Bytes;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 use spintune::protocol::{BridgeServerMessage, Request, Response};
+use spintune::ConfigError;
 use tokio::sync::{mpsc, oneshot, watch};
 
-use super::{BoxFuture, Device};
+use super::{BoxFuture, Device, DeviceError};
 use crate::config::DriverKind;
 
 /// Time a freshly connected bridge has to authenticate, s.
@@ -75,21 +76,28 @@ impl Default for BridgeConfig {
 }
 
 impl BridgeConfig {
-    /// Check the settings; `Err((field, message))`.
-    pub fn validate(&self) -> Result<(), (String, String)> {
+    /// Check the settings. The error's field is relative to the `[bridge]`
+    /// table; a run config prefixes it with `bridge`.
+    pub fn validate(&self) -> Result<(), ConfigError> {
         if !(self.request_timeout_s.is_finite()
             && self.request_timeout_s > 0.0
             && self.request_timeout_s <= 86_400.0)
         {
-            return Err((
-                "request_timeout_s".into(),
-                "must be a positive number of seconds (at most one day)".into(),
+            return Err(ConfigError::new(
+                "request_timeout_s",
+                format!(
+                    "must be a positive number of seconds (at most one day), got {}",
+                    self.request_timeout_s
+                ),
             ));
         }
         if !(self.readback_tolerance_mv.is_finite() && self.readback_tolerance_mv >= 0.0) {
-            return Err((
-                "readback_tolerance_mv".into(),
-                "must be a non-negative number of mV".into(),
+            return Err(ConfigError::new(
+                "readback_tolerance_mv",
+                format!(
+                    "must be a non-negative number of mV, got {}",
+                    self.readback_tolerance_mv
+                ),
             ));
         }
         Ok(())
@@ -180,7 +188,7 @@ impl BridgeLink {
     }
 
     /// An answer from the bridge of generation `generation`.
-    pub fn answer(&self, generation: u64, id: u64, response: Response) -> Result<(), String> {
+    pub fn answer(&self, generation: u64, id: u64, response: Response) -> Result<(), DeviceError> {
         let mut inner = self.inner();
         match inner.waiting.take() {
             Some(w) if w.id == id && w.generation == generation => {
@@ -191,9 +199,7 @@ impl BridgeLink {
             }
             other => {
                 inner.waiting = other;
-                Err(format!(
-                    "request {id} is not outstanding (answered already, timed out, or sent to another connection); answer ignored"
-                ))
+                Err(DeviceError::NotOutstanding { id })
             }
         }
     }
@@ -203,14 +209,10 @@ impl BridgeLink {
         &self,
         request: &Request,
         timeout_s: f64,
-    ) -> Result<(u64, oneshot::Receiver<Response>), String> {
+    ) -> Result<(u64, oneshot::Receiver<Response>), DeviceError> {
         let mut inner = self.inner();
         let Some((generation, tx)) = inner.conn.clone() else {
-            return Err(format!(
-                "no lab bridge is connected to run {}: connect a bridge client to /api/runs/{}/bridge \
-(e.g. examples/bridge_client.py); the run continues when it has authenticated",
-                self.run, self.run
-            ));
+            return Err(DeviceError::NoBridge { run: self.run });
         };
         let id = inner.next_id;
         inner.next_id += 1;
@@ -219,7 +221,7 @@ impl BridgeLink {
             request: request.clone(),
             timeout_s,
         })
-        .map_err(|e| format!("cannot serialize request: {e}"))?;
+        .map_err(|e| DeviceError::Protocol(format!("cannot serialize request {id}: {e}")))?;
         let (reply, rx) = oneshot::channel();
         inner.waiting = Some(Waiting {
             id,
@@ -228,10 +230,10 @@ impl BridgeLink {
         });
         if tx.send(Utf8Bytes::from(text)).is_err() {
             inner.waiting = None;
-            return Err(format!(
-                "the lab bridge of run {} went away before request {id} could be sent",
-                self.run
-            ));
+            return Err(DeviceError::Io {
+                what: format!("sending request {id} to the lab bridge of run {}", self.run),
+                error: "the bridge went away".into(),
+            });
         }
         Ok((id, rx))
     }
@@ -275,12 +277,12 @@ fn describe(request: &Request) -> String {
 /// run session's guard (the one choke point), not here.
 fn attribute(request: &Request, response: Response, id: u64) -> Response {
     match response {
-        Response::Error { message } => Response::Error {
-            message: format!(
-                "lab bridge, request {id} ({}): the bridge reported an error: {message}",
-                describe(request)
-            ),
-        },
+        Response::Error { message } => DeviceError::BridgeReported {
+            id,
+            request: describe(request),
+            message,
+        }
+        .into_response(),
         other => other,
     }
 }
@@ -301,25 +303,23 @@ impl BridgeDevice {
         let timeout = Duration::from_secs_f64(self.config.request_timeout_s);
         let (id, rx) = match self.link.send(&request, self.config.request_timeout_s) {
             Ok(x) => x,
-            Err(message) => return Response::Error { message },
+            Err(e) => return e.into_response(),
         };
         match tokio::time::timeout(timeout, rx).await {
             Ok(Ok(response)) => attribute(&request, response, id),
-            Ok(Err(_)) => Response::Error {
-                message: format!(
-                    "the lab bridge disconnected while request {id} ({}) was outstanding; the run continues when a bridge reconnects",
-                    describe(&request)
-                ),
-            },
+            Ok(Err(_)) => DeviceError::BridgeDisconnected {
+                id,
+                request: describe(&request),
+            }
+            .into_response(),
             Err(_) => {
                 self.link.cancel(id);
-                Response::Error {
-                    message: format!(
-                        "the lab bridge did not answer request {id} ({}) within {} s; resume to re-issue it (or reconnect the bridge)",
-                        describe(&request),
-                        self.config.request_timeout_s
-                    ),
+                DeviceError::BridgeTimeout {
+                    id,
+                    request: describe(&request),
+                    timeout_s: self.config.request_timeout_s,
                 }
+                .into_response()
             }
         }
     }
@@ -409,15 +409,16 @@ mod tests {
             )
             .unwrap();
             // a second answer to the same id is refused
-            assert!(l2
-                .answer(
+            assert_eq!(
+                l2.answer(
                     generation,
                     id,
                     Response::Error {
                         message: "x".into()
                     }
-                )
-                .is_err());
+                ),
+                Err(DeviceError::NotOutstanding { id })
+            );
             out
         });
         let r = dev.execute(req.clone()).await;

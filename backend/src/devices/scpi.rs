@@ -43,12 +43,13 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 use spintune::protocol::{Request, Response};
 use spintune::safety::{GateSpec, SafetyLimits};
+use spintune::ConfigError;
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
 use tokio::net::TcpStream;
 
 use super::bridge::BridgeDevice;
-use super::{BoxFuture, Device, SimulatorDevice};
+use super::{BoxFuture, Device, DeviceError, SimulatorDevice};
 use crate::config::DriverKind;
 
 /// Where a SCPI run's measurements come from (the DC source only sets gates).
@@ -93,6 +94,9 @@ pub struct ScpiConfig {
     pub measure: MeasureSource,
 }
 
+/// Most `sour{ch}:volt` commands one move may take (bounds the planned ramp).
+pub const MAX_RAMP_STAGES: usize = 1_000;
+
 fn default_ramp_step_mv() -> f64 {
     1.0
 }
@@ -104,64 +108,83 @@ fn default_timeout_ms() -> u64 {
 }
 
 impl ScpiConfig {
-    /// Check the settings against the tuner's gates; `Err((field, message))`.
-    pub fn validate(&self, gates: &[GateSpec]) -> Result<(), (String, String)> {
+    /// Check the settings against the tuner's gates. The error's field is
+    /// relative to the `[scpi]` table (`channels.SB`); a run config prefixes
+    /// it with `scpi`.
+    pub fn validate(&self, gates: &[GateSpec]) -> Result<(), ConfigError> {
         if self.address.trim().is_empty() || !self.address.contains(':') {
-            return Err((
-                "address".into(),
+            return Err(ConfigError::new(
+                "address",
                 format!("expected \"host:port\", got {:?}", self.address),
             ));
         }
         if self.channels.is_empty() {
-            return Err((
-                "channels".into(),
-                "map at least one gate to a channel".into(),
+            return Err(ConfigError::new(
+                "channels",
+                "map at least one gate to a channel",
             ));
         }
         let mut seen = BTreeMap::new();
         for (gate, &ch) in &self.channels {
+            let field = format!("channels.{gate}");
             if !gates.iter().any(|g| &g.name == gate) {
                 let known: Vec<&str> = gates.iter().map(|g| g.name.as_str()).collect();
-                return Err((
-                    format!("channels.{gate}"),
+                return Err(ConfigError::new(
+                    field,
                     format!("{gate:?} is not a gate of `tuner.gates` (known: {known:?})"),
                 ));
             }
             if ch == 0 {
-                return Err((
-                    format!("channels.{gate}"),
-                    "channel numbers start at 1".into(),
-                ));
+                return Err(ConfigError::new(field, "channel numbers start at 1"));
             }
             if let Some(other) = seen.insert(ch, gate) {
-                return Err((
-                    format!("channels.{gate}"),
+                return Err(ConfigError::new(
+                    field,
                     format!("channel {ch} is already used by {other:?}"),
                 ));
             }
         }
         if !(self.ramp_step_mv.is_finite() && self.ramp_step_mv > 0.0) {
-            return Err((
-                "ramp_step_mv".into(),
-                "must be a positive number of mV".into(),
+            return Err(ConfigError::new(
+                "ramp_step_mv",
+                format!("must be a positive number of mV, got {}", self.ramp_step_mv),
+            ));
+        }
+        // Bounded by construction: one move ramps in at most MAX_RAMP_STAGES commands.
+        let largest_step_mv = gates
+            .iter()
+            .filter(|g| self.channels.contains_key(&g.name))
+            .map(|g| g.max_step_mv)
+            .fold(0.0, f64::max);
+        if largest_step_mv / self.ramp_step_mv > MAX_RAMP_STAGES as f64 {
+            return Err(ConfigError::new(
+                "ramp_step_mv",
+                format!(
+                    "{} mV would ramp a {largest_step_mv} mV step in more than {MAX_RAMP_STAGES} commands; use at least {} mV",
+                    self.ramp_step_mv,
+                    largest_step_mv / MAX_RAMP_STAGES as f64
+                ),
             ));
         }
         if let Some(s) = self.slew_v_per_s {
             if !(s.is_finite() && s > 0.0) {
-                return Err((
-                    "slew_v_per_s".into(),
-                    "must be a positive number of V/s".into(),
+                return Err(ConfigError::new(
+                    "slew_v_per_s",
+                    format!("must be a positive number of V/s, got {s}"),
                 ));
             }
         }
         if !(self.readback_tolerance_mv.is_finite() && self.readback_tolerance_mv >= 0.0) {
-            return Err((
-                "readback_tolerance_mv".into(),
-                "must be a non-negative number of mV".into(),
+            return Err(ConfigError::new(
+                "readback_tolerance_mv",
+                format!(
+                    "must be a non-negative number of mV, got {}",
+                    self.readback_tolerance_mv
+                ),
             ));
         }
         if self.timeout_ms == 0 {
-            return Err(("timeout_ms".into(), "must be at least 1 ms".into()));
+            return Err(ConfigError::new("timeout_ms", "must be at least 1 ms"));
         }
         Ok(())
     }
@@ -260,10 +283,14 @@ impl ScpiSource {
         Duration::from_millis(self.cfg.timeout_ms)
     }
 
-    fn channel(&self, gate: &str) -> Result<u32, String> {
-        self.cfg.channels.get(gate).copied().ok_or_else(|| {
-            format!("gate {gate:?} has no channel in `scpi.channels`; refused, nothing sent")
-        })
+    fn channel(&self, gate: &str) -> Result<u32, DeviceError> {
+        self.cfg
+            .channels
+            .get(gate)
+            .copied()
+            .ok_or_else(|| DeviceError::Unmapped {
+                gate: gate.to_string(),
+            })
     }
 
     fn drop_conn(&mut self) {
@@ -271,10 +298,10 @@ impl ScpiSource {
         self.known.clear();
     }
 
-    async fn write_line(&mut self, line: &str) -> Result<(), String> {
+    async fn write_line(&mut self, line: &str) -> Result<(), DeviceError> {
         let t = self.timeout();
         let Some(conn) = self.conn.as_mut() else {
-            return Err("not connected".into());
+            return Err(DeviceError::NotConnected);
         };
         let data = format!("{line}\n");
         let r = tokio::time::timeout(t, async {
@@ -286,68 +313,84 @@ impl ScpiSource {
             Ok(Ok(())) => Ok(()),
             Ok(Err(e)) => {
                 self.drop_conn();
-                Err(format!("sending `{line}` failed: {e}"))
+                Err(DeviceError::Io {
+                    what: format!("sending `{line}`"),
+                    error: e.to_string(),
+                })
             }
             Err(_) => {
                 self.drop_conn();
-                Err(format!(
-                    "sending `{line}` timed out after {} ms",
-                    t.as_millis()
-                ))
+                Err(DeviceError::Timeout {
+                    what: format!("sending `{line}`"),
+                    ms: self.cfg.timeout_ms,
+                })
             }
         }
     }
 
-    async fn query_mv(&mut self, channel: u32) -> Result<f64, String> {
+    async fn query_mv(&mut self, channel: u32) -> Result<f64, DeviceError> {
         let q = query_command(channel);
         self.write_line(&q).await?;
         let t = self.timeout();
-        let conn = self.conn.as_mut().ok_or("not connected")?;
+        let conn = self.conn.as_mut().ok_or(DeviceError::NotConnected)?;
         let mut line = String::new();
         let r = tokio::time::timeout(t, conn.reader.read_line(&mut line)).await;
         let answer = match r {
             Ok(Ok(0)) => {
                 self.drop_conn();
-                return Err(format!(
-                    "the instrument closed the connection before answering `{q}`"
-                ));
+                return Err(DeviceError::Io {
+                    what: format!("reading the answer to `{q}`"),
+                    error: "the instrument closed the connection".into(),
+                });
             }
             Ok(Ok(_)) => line.trim().to_string(),
             Ok(Err(e)) => {
                 self.drop_conn();
-                return Err(format!("reading the answer to `{q}` failed: {e}"));
+                return Err(DeviceError::Io {
+                    what: format!("reading the answer to `{q}`"),
+                    error: e.to_string(),
+                });
             }
             Err(_) => {
                 // A late answer would desynchronise the line protocol: drop it.
                 self.drop_conn();
-                return Err(format!("no answer to `{q}` within {} ms", t.as_millis()));
+                return Err(DeviceError::NoAnswer {
+                    query: q,
+                    ms: self.cfg.timeout_ms,
+                });
             }
         };
         match answer.parse::<f64>() {
             Ok(v) if v.is_finite() => Ok(v * 1000.0),
             _ => {
                 self.drop_conn();
-                Err(format!("answer {answer:?} to `{q}` is not a voltage"))
+                Err(DeviceError::Protocol(format!(
+                    "answer {answer:?} to `{q}` is not a voltage"
+                )))
             }
         }
     }
 
     /// Connect (if needed): open the socket, send the slew rate to every
     /// mapped channel and read every channel back.
-    pub async fn ensure_connected(&mut self) -> Result<(), String> {
+    pub async fn ensure_connected(&mut self) -> Result<(), DeviceError> {
         if self.conn.is_some() {
             return Ok(());
         }
         let t = self.timeout();
         let stream = match tokio::time::timeout(t, TcpStream::connect(&self.cfg.address)).await {
             Ok(Ok(s)) => s,
-            Ok(Err(e)) => return Err(format!("cannot connect to {}: {e}", self.cfg.address)),
+            Ok(Err(e)) => {
+                return Err(DeviceError::Connect {
+                    address: self.cfg.address.clone(),
+                    error: e.to_string(),
+                })
+            }
             Err(_) => {
-                return Err(format!(
-                    "connecting to {} timed out after {} ms",
-                    self.cfg.address,
-                    t.as_millis()
-                ))
+                return Err(DeviceError::Timeout {
+                    what: format!("connecting to {}", self.cfg.address),
+                    ms: self.cfg.timeout_ms,
+                })
             }
         };
         let _ = stream.set_nodelay(true);
@@ -375,7 +418,7 @@ impl ScpiSource {
 
     /// Ask the instrument for the present output of `gates` (one query per
     /// channel, now — not a cached value), mV.
-    pub async fn read(&mut self, gates: &[String]) -> Result<BTreeMap<String, f64>, String> {
+    pub async fn read(&mut self, gates: &[String]) -> Result<BTreeMap<String, f64>, DeviceError> {
         for gate in gates {
             self.channel(gate)?;
         }
@@ -408,19 +451,19 @@ impl ScpiSource {
     pub async fn set(
         &mut self,
         target: &BTreeMap<String, f64>,
-    ) -> Result<BTreeMap<String, f64>, String> {
+    ) -> Result<BTreeMap<String, f64>, DeviceError> {
         // Refuse what can be refused before touching the network.
         for gate in target.keys() {
             self.channel(gate)?;
         }
         self.limits
             .check(&BTreeMap::new(), target)
-            .map_err(|e| format!("{e}; refused, nothing sent"))?;
+            .map_err(|e| DeviceError::Refused(e.to_string()))?;
         self.ensure_connected().await?;
         let present = self.known.clone();
         // Step from where the instrument really is.
         self.limits.check(&present, target).map_err(|e| {
-            format!("{e} (measured from the instrument's read-back); refused, nothing sent")
+            DeviceError::Refused(format!("{e} (measured from the instrument's read-back)"))
         })?;
         let stages = plan_ramp(&present, target, self.cfg.ramp_step_mv);
         // Check every planned command before sending the first.
@@ -430,14 +473,14 @@ impl ScpiSource {
                 let single = BTreeMap::from([(gate.clone(), *v)]);
                 self.limits
                     .check(&BTreeMap::new(), &single)
-                    .map_err(|e| format!("planned ramp: {e}; refused, nothing sent"))?;
+                    .map_err(|e| DeviceError::Refused(format!("planned ramp: {e}")))?;
                 let prev = last.get(gate).copied().unwrap_or(*v);
                 if (v - prev).abs() > self.cfg.ramp_step_mv * (1.0 + 1e-9) + 1e-12 {
-                    return Err(format!(
-                        "planned ramp of {gate}: increment {} mV exceeds ramp_step_mv {} mV; refused, nothing sent",
+                    return Err(DeviceError::Refused(format!(
+                        "planned ramp of {gate}: increment {} mV exceeds ramp_step_mv {} mV",
                         (v - prev).abs(),
                         self.cfg.ramp_step_mv
-                    ));
+                    )));
                 }
                 last.insert(gate.clone(), *v);
             }
@@ -450,11 +493,13 @@ impl ScpiSource {
                 let ch = self.channel(gate)?;
                 let cmd = set_command(ch, *v);
                 if let Err(e) = self.write_line(&cmd).await {
-                    return Err(format!(
-                        "{e} during increment {} of {n} (gate {gate}, channel {ch}); the instrument state is unknown, \
-the connection was dropped and the step was NOT re-sent; on resume the driver reconnects, reads every channel back and ramps from there",
-                        k + 1
-                    ));
+                    return Err(DeviceError::RampInterrupted {
+                        error: Box::new(e),
+                        increment: k + 1,
+                        increments: n,
+                        gate: gate.clone(),
+                        channel: ch,
+                    });
                 }
                 largest = largest.max((v - prev.get(gate).copied().unwrap_or(*v)).abs());
                 prev.insert(gate.clone(), *v);
@@ -477,9 +522,11 @@ the connection was dropped and the step was NOT re-sent; on resume the driver re
             let mv = match self.query_mv(ch).await {
                 Ok(mv) => mv,
                 Err(e) => {
-                    return Err(format!(
-                        "read-back after setting {gate} (channel {ch}) failed: {e}; the connection was dropped and nothing was re-sent"
-                    ))
+                    return Err(DeviceError::ReadbackFailed {
+                        gate: gate.clone(),
+                        channel: ch,
+                        error: Box::new(e),
+                    })
                 }
             };
             self.known.insert(gate.clone(), mv);
@@ -492,11 +539,13 @@ the connection was dropped and the step was NOT re-sent; on resume the driver re
                 // An instrument that disagrees cannot be trusted as the start
                 // of the next ramp: forget everything, re-read on the next request.
                 self.drop_conn();
-                return Err(format!(
-                    "read-back mismatch on {gate} (channel {ch}): set {t:.6} mV, instrument reads {mv:.6} mV \
-(tolerance {} mV); nothing was re-sent, the connection was dropped and every channel is re-read before the next command",
-                    self.cfg.readback_tolerance_mv
-                ));
+                return Err(DeviceError::ReadbackMismatch {
+                    gate: gate.clone(),
+                    channel: ch,
+                    set_mv: t,
+                    read_mv: mv,
+                    tolerance_mv: self.cfg.readback_tolerance_mv,
+                });
             }
         }
         Ok(readback)
@@ -533,6 +582,13 @@ impl ScpiDevice {
         }
     }
 
+    /// A fault of the DC source as the device's answer, naming the source.
+    fn source_fault(&self, e: DeviceError) -> Response {
+        Response::Error {
+            message: format!("SCPI source {}: {e}", self.source.cfg.address),
+        }
+    }
+
     async fn execute_inner(&mut self, request: Request) -> Response {
         match request {
             Request::SetVoltages { voltages_mv } => {
@@ -559,9 +615,7 @@ impl ScpiDevice {
                             lab_seconds: start.elapsed().as_secs_f64(),
                         }
                     }
-                    Err(message) => Response::Error {
-                        message: format!("SCPI source {}: {message}", self.source.cfg.address),
-                    },
+                    Err(e) => self.source_fault(e),
                 }
             }
             Request::ReadVoltages { gates } => {
@@ -573,11 +627,7 @@ impl ScpiDevice {
                     .partition(|g| self.source.cfg.channels.contains_key(g));
                 let mut voltages_mv = match self.source.read(&mapped).await {
                     Ok(v) => v,
-                    Err(message) => {
-                        return Response::Error {
-                            message: format!("SCPI source {}: {message}", self.source.cfg.address),
-                        }
-                    }
+                    Err(e) => return self.source_fault(e),
                 };
                 if !other.is_empty() {
                     let request = Request::ReadVoltages { gates: other };
@@ -649,6 +699,85 @@ mod tests {
         assert_eq!(plan_ramp(&present, &t, 1.0).len(), 1);
         // nothing to do
         assert!(plan_ramp(&present, &present, 1.0).is_empty());
+    }
+
+    #[test]
+    fn config_errors_name_the_field_within_the_scpi_table() {
+        let gates = spintune::sim::default_gates();
+        let cfg = |channels: &[(&str, u32)]| ScpiConfig {
+            address: "127.0.0.1:5025".into(),
+            channels: channels.iter().map(|(g, c)| (g.to_string(), *c)).collect(),
+            ramp_step_mv: default_ramp_step_mv(),
+            slew_v_per_s: None,
+            readback_tolerance_mv: default_readback_tolerance_mv(),
+            timeout_ms: default_timeout_ms(),
+            settle_ms: 0,
+            measure: MeasureSource::Simulator,
+        };
+        assert_eq!(cfg(&[("N", 1), ("SB", 4)]).validate(&gates), Ok(()));
+        let e = cfg(&[("NOPE", 1)]).validate(&gates).unwrap_err();
+        assert_eq!(e.field, "channels.NOPE");
+        assert!(e.message.contains("\"NOPE\" is not a gate"), "{e}");
+        let e = cfg(&[("N", 2), ("SB", 2)]).validate(&gates).unwrap_err();
+        assert_eq!(e.field, "channels.SB");
+        assert_eq!(e.message, "channel 2 is already used by \"N\"");
+        assert_eq!(e.within("scpi").field, "scpi.channels.SB");
+        let mut c = cfg(&[("N", 1)]);
+        c.ramp_step_mv = f64::NAN;
+        let e = c.validate(&gates).unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "invalid config at `ramp_step_mv`: must be a positive number of mV, got NaN"
+        );
+        c.ramp_step_mv = 1e-7;
+        let e = c.validate(&gates).unwrap_err();
+        assert_eq!(e.field, "ramp_step_mv");
+        assert!(e.to_string().contains("more than 1000 commands"), "{e}");
+        c.ramp_step_mv = 1.0;
+        c.timeout_ms = 0;
+        assert_eq!(c.validate(&gates).unwrap_err().field, "timeout_ms");
+        c.timeout_ms = 1;
+        c.address = "localhost".into();
+        assert_eq!(c.validate(&gates).unwrap_err().field, "address");
+    }
+
+    #[tokio::test]
+    async fn refusals_and_connection_failures_are_typed() {
+        let gates = spintune::sim::default_gates();
+        // A port nobody listens on (bound, then released).
+        let addr = std::net::TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap();
+        let cfg = ScpiConfig {
+            address: addr.to_string(),
+            channels: BTreeMap::from([("SB".to_string(), 4)]),
+            ramp_step_mv: 1.0,
+            slew_v_per_s: None,
+            readback_tolerance_mv: 0.05,
+            timeout_ms: 500,
+            settle_ms: 0,
+            measure: MeasureSource::Simulator,
+        };
+        let mut src = ScpiSource::new(cfg, &gates);
+        assert_eq!(
+            src.set(&BTreeMap::from([("N".to_string(), -700.0)])).await,
+            Err(DeviceError::Unmapped { gate: "N".into() })
+        );
+        assert!(matches!(
+            src.set(&BTreeMap::from([("SB".to_string(), 1e6)])).await,
+            Err(DeviceError::Refused(_))
+        ));
+        let e = src.read(&["SB".to_string()]).await.unwrap_err();
+        assert!(
+            matches!(&e, DeviceError::Connect { address, .. } if *address == addr.to_string()),
+            "{e:?}"
+        );
+        assert!(
+            e.to_string().starts_with("cannot connect to 127.0.0.1:"),
+            "{e}"
+        );
+        assert!(!src.is_connected());
     }
 
     #[test]

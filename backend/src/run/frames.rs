@@ -3,24 +3,47 @@
 //! viewers, and the hand-built `iteration`/`history` frames around records
 //! that are already serialized (the same bytes that were stored).
 
-use axum::extract::ws::Utf8Bytes;
-use spintune::protocol::ServerMessage;
+use std::sync::Arc;
 
-/// One frame for a run's viewers.
+use axum::extract::ws::Utf8Bytes;
+use spintune::protocol::{IterationRecord, RunSummary, ServerMessage};
+
+/// One frame for a run's viewers: the JSON text for sockets, and the same
+/// content typed for in-process observers (the headless CLI), so nobody
+/// re-parses JSON.
 #[derive(Debug, Clone)]
 pub struct Frame {
     /// For `Iteration` frames: the record's position in the store (0-based).
     pub seq: Option<u64>,
     /// JSON text of the `ServerMessage`.
     pub text: Utf8Bytes,
+    /// What the frame says, typed.
+    pub event: FrameEvent,
+}
+
+/// The typed content of a [`Frame`].
+#[derive(Debug, Clone)]
+pub enum FrameEvent {
+    /// A committed iteration.
+    Iteration(Arc<IterationRecord>),
+    /// The run's status changed.
+    Status(RunSummary),
+    /// Anything else (errors, notices).
+    Other,
 }
 
 impl Frame {
     /// A frame for any server message (no seq).
     pub fn message(msg: &ServerMessage) -> Self {
+        let event = match msg {
+            ServerMessage::Status { run } => FrameEvent::Status(run.clone()),
+            ServerMessage::Iteration { record } => FrameEvent::Iteration(Arc::new(record.clone())),
+            _ => FrameEvent::Other,
+        };
         Self {
             seq: None,
             text: Utf8Bytes::from(serde_json::to_string(msg).expect("ServerMessage serializes")),
+            event,
         }
     }
 }

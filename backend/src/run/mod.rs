@@ -2,7 +2,7 @@
 //! ([`task`]) around the core's [`RunSession`].
 //!
 //! Per iteration the task (1) commits the record and the checkpoint (session
-//! + device state) to the [`Store`] in one transaction, (2) updates the run's
+//! and device state) to the [`Store`] in one transaction, (2) updates the run's
 //! summary, (3) broadcasts the pre-serialized `ServerMessage::Iteration`
 //! frame ([`frames`]) to the run's viewers over a bounded
 //! `tokio::sync::broadcast` channel. A slow viewer never blocks the run: it
@@ -32,11 +32,10 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 use spintune::protocol::{ControlCommand, IterationRecord, RunStatus, RunSummary, ServerMessage};
 use spintune::session::{RunSession, SessionConfig};
-use spintune::sim::SimulatedDevice;
 use spintune::tuner::Tuner;
 use tokio::sync::{broadcast, mpsc, oneshot};
 
-pub use frames::{history_frame_text, iteration_frame_text, Frame};
+pub use frames::{history_frame_text, iteration_frame_text, Frame, FrameEvent};
 
 use crate::config::{DriverKind, RunConfig};
 use crate::devices::bridge::{BridgeLink, Links};
@@ -345,8 +344,9 @@ impl Manager {
                 .control(&ControlCommand::Pause)
                 .map_err(|e| RunError::Internal(e.to_string()))?;
         }
-        let device = SimulatedDevice::new(sim.device.clone(), &sim.tuner.gates, sim.seed)
-            .map_err(|m| RunError::Invalid(format!("invalid config at `device`: {m}")))?;
+        let device = sim
+            .simulated_device()
+            .map_err(|e| RunError::Invalid(e.to_string()))?;
         let checkpoint = Checkpoint {
             session: Some(session),
             tuner: None,
@@ -480,6 +480,9 @@ impl Manager {
                     }
                     e => RunError::Invalid(e.to_string()),
                 })?;
+                // a new target revives a run that finished because it was tuned
+                let revived =
+                    status == RunStatus::Finished && session.status() == RunStatus::Paused;
                 let json = serde_json::to_string(&Checkpoint {
                     session: Some(session),
                     tuner: None,
@@ -489,6 +492,9 @@ impl Manager {
                 let store = self.store.clone();
                 let id = handle.id;
                 blocking(move || store.save_checkpoint(id, None, &json)).await?;
+                if revived {
+                    return self.set_status_offline(handle, RunStatus::Paused).await;
+                }
                 Ok(handle.summary())
             }
         }
@@ -531,11 +537,11 @@ impl Manager {
         &self,
         handle: &RunHandle,
         generation: Option<u64>,
+        record: Arc<IterationRecord>,
         record_json: String,
         checkpoint_json: String,
-        lab_seconds: f64,
-        tuned: bool,
     ) -> Result<u64, RunError> {
+        let (lab_seconds, tuned) = (record.lab_seconds, record.tuned);
         let seq = handle.summary().iterations;
         let store = self.store.clone();
         let id = handle.id;
@@ -560,6 +566,7 @@ impl Manager {
         let _ = handle.tx.send(Frame {
             seq: Some(seq),
             text: Utf8Bytes::from(text),
+            event: FrameEvent::Iteration(record),
         });
         Ok(seq)
     }
@@ -584,10 +591,9 @@ impl Manager {
         self.commit_and_broadcast(
             &handle,
             None,
+            Arc::new(record.clone()),
             json,
             checkpoint_json,
-            record.lab_seconds,
-            record.tuned,
         )
         .await
     }

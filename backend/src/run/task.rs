@@ -86,10 +86,9 @@ impl RunTask {
                         .commit_and_broadcast(
                             &self.handle,
                             Some(self.generation),
+                            Arc::from(record),
                             record_json,
                             checkpoint,
-                            record.lab_seconds,
-                            record.tuned,
                         )
                         .await
                         .map_err(exit)?;

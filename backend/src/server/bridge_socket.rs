@@ -79,7 +79,7 @@ async fn serve(state: &AppState, id: u64, socket: &mut WebSocket) -> Result<(), 
                     "the bridge must authenticate first: send {\"type\":\"auth\",\"token\":\"…\"}",
                 ))
                 .await,
-            Err(message) => return socket.send(error_frame(message)).await,
+            Err(e) => return socket.send(error_frame(e.to_string())).await,
         }
     }
     let link = match state.manager.bridge_link(id) {
@@ -114,12 +114,15 @@ async fn pump(
                 let reply = match incoming? {
                     Message::Text(text) => match parse_strict::<BridgeClientMessage>(text.as_str()) {
                         Ok(BridgeClientMessage::Response { id, response }) => {
-                            link.answer(generation, id, response).err().map(error_frame)
+                            link
+                                .answer(generation, id, response)
+                                .err()
+                                .map(|e| error_frame(e.to_string()))
                         }
                         Ok(BridgeClientMessage::Auth { .. }) => {
                             Some(frame(&BridgeServerMessage::AuthOk))
                         }
-                        Err(message) => Some(error_frame(message)),
+                        Err(e) => Some(error_frame(e.to_string())),
                     },
                     Message::Binary(_) => {
                         Some(error_frame("binary frames are not supported; send JSON text"))

@@ -11,7 +11,7 @@
 //! | POST 🔒 | `/api/runs` | run config (JSON form of the TOML file, see [`crate::config`]; `{}` = paper default) → 201 `RunSummary` |
 //! | GET | `/api/runs/{id}` | → `RunSummary` |
 //! | GET | `/api/runs/{id}/config` | → the run's config (`{"simulation": …, "backend": …}`) |
-//! | GET | `/api/runs/{id}/iterations?from=N&limit=M` | → `[IterationRecord]` with seq ≥ N (default 0) |
+//! | GET | `/api/runs/{id}/iterations?from=N&limit=M` | → `[IterationRecord]` with seq ≥ N (default 0), at most M ([`DEFAULT_PAGE`] if not given, ≤ [`MAX_PAGE`]) |
 //! | GET | `/api/runs/{id}/export?format=csv\|json` | → the export table (see [`crate::export`]) |
 //! | POST 🔒 | `/api/runs/{id}/control` | `ControlCommand` → `RunSummary` (400 invalid, 409 not applicable) |
 //! | DELETE 🔒 | `/api/runs/{id}` | → 204 |
@@ -45,7 +45,9 @@ use axum::response::{Html, IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
 use serde_json::json;
-use spintune::protocol::{ClientMessage, ControlCommand, ServerMessage, PROTOCOL_VERSION};
+use spintune::protocol::{
+    ClientMessage, ControlCommand, ProtocolError, ServerMessage, PROTOCOL_VERSION,
+};
 use tokio::sync::broadcast::error::RecvError;
 use tower_http::services::ServeDir;
 
@@ -53,6 +55,16 @@ mod bridge_socket;
 
 use crate::config::RunConfig;
 use crate::run::{history_frame_text, Manager, RunError};
+
+/// Records per `GET /api/runs/{id}/iterations` page when no `limit` is given.
+pub const DEFAULT_PAGE: u64 = 1_000;
+/// Largest `limit` of `GET /api/runs/{id}/iterations`.
+pub const MAX_PAGE: u64 = 10_000;
+/// Largest frame a viewer may send (auth and control messages are tiny), bytes.
+pub const MAX_VIEWER_MESSAGE: usize = 64 * 1024;
+/// Largest frame a lab bridge may send (a raw scan: e.g. 4 traces of 100,000
+/// points as JSON numbers), bytes.
+pub const MAX_BRIDGE_MESSAGE: usize = 16 * 1024 * 1024;
 
 /// Shared state of the HTTP handlers.
 #[derive(Clone)]
@@ -161,14 +173,14 @@ fn parse_id(id: &str) -> ApiResult<u64> {
 }
 
 /// Parse a `ControlCommand` from JSON text, naming the offending field on error.
-pub fn parse_control(text: &str) -> Result<ControlCommand, String> {
+pub fn parse_control(text: &str) -> Result<ControlCommand, ProtocolError> {
     let cmd: ControlCommand = parse_strict(text)?;
     validate_control(&cmd)?;
     Ok(cmd)
 }
 
 /// Parse a `ClientMessage` from JSON text, naming the offending field on error.
-pub fn parse_client_message(text: &str) -> Result<ClientMessage, String> {
+pub fn parse_client_message(text: &str) -> Result<ClientMessage, ProtocolError> {
     let msg: ClientMessage = parse_strict(text)?;
     if let ClientMessage::Control { command } = &msg {
         validate_control(command)?;
@@ -182,18 +194,11 @@ pub fn parse_client_message(text: &str) -> Result<ClientMessage, String> {
 /// catches those.)
 pub(crate) fn parse_strict<T: serde::de::DeserializeOwned + serde::Serialize>(
     text: &str,
-) -> Result<T, String> {
+) -> Result<T, ProtocolError> {
     let de = &mut serde_json::Deserializer::from_str(text);
-    let raw: serde_json::Value = serde_path_to_error::deserialize(de).map_err(|e| describe(&e))?;
-    let typed: T = serde_path_to_error::deserialize(raw.clone()).map_err(|e| {
-        let path = e.path().to_string();
-        if path == "." {
-            format!("malformed message: {}", e.inner())
-        } else {
-            format!("malformed message at `{path}`: {}", e.inner())
-        }
-    })?;
-    let back = serde_json::to_value(&typed).map_err(|e| e.to_string())?;
+    let raw: serde_json::Value = serde_path_to_error::deserialize(de).map_err(malformed)?;
+    let typed: T = serde_path_to_error::deserialize(raw.clone()).map_err(malformed)?;
+    let back = serde_json::to_value(&typed).map_err(|e| ProtocolError::malformed("", e))?;
     unknown_keys(&raw, &back, "")?;
     Ok(typed)
 }
@@ -202,7 +207,7 @@ fn unknown_keys(
     raw: &serde_json::Value,
     known: &serde_json::Value,
     path: &str,
-) -> Result<(), String> {
+) -> Result<(), ProtocolError> {
     if let (serde_json::Value::Object(r), serde_json::Value::Object(k)) = (raw, known) {
         for (key, v) in r {
             let here = if path.is_empty() {
@@ -211,7 +216,7 @@ fn unknown_keys(
                 format!("{path}.{key}")
             };
             match k.get(key) {
-                None => return Err(format!("malformed message: unknown field `{here}`")),
+                None => return Err(ProtocolError::UnknownField { field: here }),
                 Some(kv) => unknown_keys(v, kv, &here)?,
             }
         }
@@ -219,16 +224,11 @@ fn unknown_keys(
     Ok(())
 }
 
-fn describe(e: &serde_path_to_error::Error<serde_json::Error>) -> String {
-    let path = e.path().to_string();
-    if path == "." {
-        format!("malformed message: {}", e.inner())
-    } else {
-        format!("malformed message at `{path}`: {}", e.inner())
-    }
+fn malformed(e: serde_path_to_error::Error<serde_json::Error>) -> ProtocolError {
+    ProtocolError::malformed(&e.path().to_string(), e.inner())
 }
 
-fn validate_control(cmd: &ControlCommand) -> Result<(), String> {
+fn validate_control(cmd: &ControlCommand) -> Result<(), ProtocolError> {
     if let ControlCommand::SetTarget {
         parameter,
         target,
@@ -237,12 +237,18 @@ fn validate_control(cmd: &ControlCommand) -> Result<(), String> {
     {
         if let Some(t) = target {
             if !t.is_finite() {
-                return Err(format!("target of {parameter:?} must be a finite number"));
+                return Err(ProtocolError::NotFinite {
+                    field: format!("target of {parameter:?}"),
+                    value: *t,
+                });
             }
         }
         if let Some(tol) = tolerance {
             tol.validate()
-                .map_err(|m| format!("tolerance of {parameter:?}: {m}"))?;
+                .map_err(|error| ProtocolError::InvalidTolerance {
+                    parameter: parameter.clone(),
+                    error,
+                })?;
         }
     }
     Ok(())
@@ -336,10 +342,16 @@ async fn iterations(
 ) -> ApiResult<impl IntoResponse> {
     let id = parse_id(&id)?;
     let from = parse_u64(&q, "from")?.unwrap_or(0);
-    let limit = parse_u64(&q, "limit")?;
+    let limit = parse_u64(&q, "limit")?.unwrap_or(DEFAULT_PAGE);
+    if limit > MAX_PAGE {
+        return Err(ApiError(
+            StatusCode::BAD_REQUEST,
+            format!("limit {limit} exceeds the largest page, {MAX_PAGE} records; page with `from`"),
+        ));
+    }
     s.manager.get(id)?;
     let store = s.manager.store().clone();
-    let records = tokio::task::spawn_blocking(move || store.iterations_json(id, from, limit))
+    let records = tokio::task::spawn_blocking(move || store.iterations_json(id, from, Some(limit)))
         .await
         .map_err(|e| ApiError(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?
         .map_err(|e| ApiError::from(RunError::from(e)))?;
@@ -386,7 +398,7 @@ async fn control(
     let id = parse_id(&id)?;
     let text = std::str::from_utf8(&body)
         .map_err(|_| ApiError(StatusCode::BAD_REQUEST, "body is not UTF-8".into()))?;
-    let cmd = parse_control(text).map_err(|m| ApiError(StatusCode::BAD_REQUEST, m))?;
+    let cmd = parse_control(text).map_err(|e| ApiError(StatusCode::BAD_REQUEST, e.to_string()))?;
     Ok(Json(s.manager.control(id, cmd).await?))
 }
 
@@ -412,7 +424,10 @@ async fn ws(
     s.manager.get(id)?;
     // Client messages are small; a small read buffer keeps each (frequent,
     // usually empty) poll of the socket cheap, since tungstenite zeroes it.
-    let upgrade = upgrade.read_buffer_size(4 * 1024);
+    let upgrade = upgrade
+        .read_buffer_size(4 * 1024)
+        .max_message_size(MAX_VIEWER_MESSAGE)
+        .max_frame_size(MAX_VIEWER_MESSAGE);
     if let Some(message) = version_mismatch(&q) {
         return Ok(refuse_socket(
             upgrade,
@@ -436,6 +451,9 @@ async fn bridge_ws(
 ) -> ApiResult<Response> {
     let id = parse_id(&id)?;
     s.manager.get(id)?;
+    let upgrade = upgrade
+        .max_message_size(MAX_BRIDGE_MESSAGE)
+        .max_frame_size(MAX_BRIDGE_MESSAGE);
     if let Some(message) = version_mismatch(&q) {
         let frame =
             serde_json::to_string(&spintune::protocol::BridgeServerMessage::Error { message })
@@ -573,7 +591,11 @@ async fn client_message(
 ) -> Option<ServerMessage> {
     let msg = match parse_client_message(text) {
         Ok(m) => m,
-        Err(message) => return Some(ServerMessage::Error { message }),
+        Err(e) => {
+            return Some(ServerMessage::Error {
+                message: e.to_string(),
+            })
+        }
     };
     Some(match msg {
         ClientMessage::Auth { token } => {

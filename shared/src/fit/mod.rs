@@ -164,7 +164,7 @@ fn value(name: &str, value: f64, variance: f64) -> Result<ParameterValue, FitErr
         value,
         variance,
     };
-    v.validate().map_err(FitError::BadData)?;
+    v.validate().map_err(|e| FitError::BadData(e.to_string()))?;
     Ok(v)
 }
 

@@ -2,11 +2,42 @@
 //! uncertainty rule from repeated simulated scans.
 
 use super::{DeviceConfig, SimulatedDevice};
+use crate::config_error::ConfigError;
 use crate::fit::tanh::fit_tanh_step;
 use crate::fit::uncertainty::{scaled_residual_sum, Reference, References};
 use crate::fit::{exponential::fit_exponential, FitError};
 use crate::protocol::{Request, Response, ScanKind, ScanOutcome, ScanRequest};
 use crate::safety::GateSpec;
+
+/// Why [`calibrate_reference`] could not derive the references.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CalibrationError {
+    /// The device config or the gates are invalid (see
+    /// [`SimulatedDevice::new`] for the field paths).
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    /// Fewer than 10 scans of each kind were asked for.
+    #[error("need at least 10 scans, got {0}")]
+    TooFewScans(usize),
+    /// The simulated device did not return a raw scan.
+    #[error("{kind:?} scan failed: {reason}")]
+    ScanFailed {
+        /// The scan.
+        kind: ScanKind,
+        /// What the device answered instead.
+        reason: String,
+    },
+    /// Fewer than half of the fits of either kind succeeded.
+    #[error("too many failed fits: w {w}/{scans}, t_sr {t_sr}/{scans}")]
+    TooManyFailedFits {
+        /// Successful `w` fits.
+        w: usize,
+        /// Successful `t_sr` fits.
+        t_sr: usize,
+        /// Scans of each kind.
+        scans: usize,
+    },
+}
 
 /// Mean and (sample) standard deviation.
 fn mean_std(v: &[f64]) -> (f64, f64) {
@@ -33,9 +64,9 @@ pub fn calibrate_reference(
     gates: &[GateSpec],
     seed: u64,
     scans: usize,
-) -> Result<References, String> {
+) -> Result<References, CalibrationError> {
     if scans < 10 {
-        return Err(format!("need at least 10 scans, got {scans}"));
+        return Err(CalibrationError::TooFewScans(scans));
     }
     // The reference set is taken on a quiet, well-tuned device: no charge
     // jumps (they would knock the sensing dot off its flank for the rest of
@@ -49,12 +80,22 @@ pub fn calibrate_reference(
             let request = Request::Measure {
                 scan: ScanRequest { kind, sweep: None },
             };
-            let Response::Scanned {
-                outcome: ScanOutcome::Raw { scan },
-                ..
-            } = device.execute(&request)
-            else {
-                return Err(format!("{kind:?} scan failed"));
+            let scan = match device.execute(&request) {
+                Response::Scanned {
+                    outcome: ScanOutcome::Raw { scan },
+                    ..
+                } => scan,
+                other => {
+                    let reason = match other {
+                        Response::Error { message } => message,
+                        Response::Scanned {
+                            outcome: ScanOutcome::Failed { reason },
+                            ..
+                        } => reason,
+                        _ => "the device answered without a raw scan".into(),
+                    };
+                    return Err(CalibrationError::ScanFailed { kind, reason });
+                }
             };
             let trace = &scan.traces[0];
             let fitted: Result<(), FitError> = match kind {
@@ -78,11 +119,11 @@ pub fn calibrate_reference(
         }
     }
     if 2 * w.len() < scans || 2 * t.len() < scans {
-        return Err(format!(
-            "too many failed fits: w {}/{scans}, t_sr {}/{scans}",
-            w.len(),
-            t.len()
-        ));
+        return Err(CalibrationError::TooManyFailedFits {
+            w: w.len(),
+            t_sr: t.len(),
+            scans,
+        });
     }
     let reference = |values: &[f64], sigmas: &[f64]| Reference {
         sigma0: mean_std(sigmas).0,
@@ -92,4 +133,31 @@ pub fn calibrate_reference(
         w: reference(&w, &w_sigma),
         t_sr: reference(&t, &t_sigma),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sim::default_gates;
+
+    #[test]
+    fn errors_name_the_problem() {
+        let gates = default_gates();
+        assert_eq!(
+            calibrate_reference(&DeviceConfig::default(), &gates, 1, 3),
+            Err(CalibrationError::TooFewScans(3))
+        );
+        let mut bad = DeviceConfig::default();
+        bad.scans.load_points = 3;
+        match calibrate_reference(&bad, &gates, 1, 10) {
+            Err(CalibrationError::Config(e)) => assert_eq!(e.field, "scans.load_points"),
+            other => panic!("{other:?}"),
+        }
+        let e = CalibrationError::TooManyFailedFits {
+            w: 2,
+            t_sr: 9,
+            scans: 10,
+        };
+        assert_eq!(e.to_string(), "too many failed fits: w 2/10, t_sr 9/10");
+    }
 }

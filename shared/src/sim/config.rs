@@ -9,6 +9,7 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 
 use super::gates::default_gates;
+use crate::config_error::ConfigError;
 use crate::detmath::STEEPEST_SECH2_OFFSET;
 
 /// A second-order term `coefficient · d_a · d_b` of a model (for `a == b`
@@ -377,57 +378,80 @@ impl Default for DeviceConfig {
     }
 }
 
-fn positive(name: &str, v: f64) -> Result<(), String> {
+fn positive(name: &str, v: f64) -> Result<(), ConfigError> {
     if v.is_finite() && v > 0.0 {
         Ok(())
     } else {
-        Err(format!("{name} must be a finite number > 0, got {v}"))
+        Err(ConfigError::new(
+            name,
+            format!("must be a finite number > 0, got {v}"),
+        ))
     }
 }
 
-fn non_negative(name: &str, v: f64) -> Result<(), String> {
+fn non_negative(name: &str, v: f64) -> Result<(), ConfigError> {
     if v.is_finite() && v >= 0.0 {
         Ok(())
     } else {
-        Err(format!("{name} must be a finite number ≥ 0, got {v}"))
+        Err(ConfigError::new(
+            name,
+            format!("must be a finite number ≥ 0, got {v}"),
+        ))
     }
 }
 
-fn finite_map(name: &str, m: &BTreeMap<String, f64>) -> Result<(), String> {
+fn finite(name: &str, v: f64) -> Result<(), ConfigError> {
+    if v.is_finite() {
+        Ok(())
+    } else {
+        Err(ConfigError::new(
+            name,
+            format!("must be a finite number, got {v}"),
+        ))
+    }
+}
+
+fn finite_map(name: &str, m: &BTreeMap<String, f64>) -> Result<(), ConfigError> {
     for (g, v) in m {
-        if !v.is_finite() {
-            return Err(format!("{name}[{g:?}] must be finite, got {v}"));
-        }
+        finite(&format!("{name}.{g}"), *v)?;
     }
     Ok(())
 }
 
-fn finite_terms(name: &str, terms: &[QuadraticTerm]) -> Result<(), String> {
+fn finite_terms(name: &str, terms: &[QuadraticTerm]) -> Result<(), ConfigError> {
     for (i, t) in terms.iter().enumerate() {
-        if !t.coefficient_per_mv2.is_finite() {
-            return Err(format!("{name}[{i}].coefficient_per_mv2 must be finite"));
-        }
+        finite(
+            &format!("{name}[{i}].coefficient_per_mv2"),
+            t.coefficient_per_mv2,
+        )?;
     }
     Ok(())
 }
 
-fn points(name: &str, n: usize) -> Result<(), String> {
+fn points(name: &str, n: usize) -> Result<(), ConfigError> {
     if (10..=100_000).contains(&n) {
         Ok(())
     } else {
-        Err(format!("{name} must be in 10..=100000, got {n}"))
+        Err(ConfigError::new(
+            name,
+            format!("must be in 10..=100000, got {n}"),
+        ))
     }
 }
 
 impl DeviceConfig {
-    /// `Err` naming the first bad field (non-finite, out-of-range, empty).
+    /// `Err` naming the first bad field (non-finite, out-of-range, empty);
+    /// the field path is relative to the device config (a
+    /// [`crate::driver::SimulationConfig`] prefixes it with `device`).
     ///
     /// ```
     /// let mut c = spintune::sim::DeviceConfig::default();
     /// c.electron_temperature_mk = -1.0;
-    /// assert!(c.validate().unwrap_err().contains("electron_temperature_mk"));
+    /// let e = c.validate().unwrap_err();
+    /// assert_eq!(e.field, "electron_temperature_mk");
+    /// assert!(e.to_string().contains("got -1"));
     /// ```
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), ConfigError> {
         finite_map("reference_mv", &self.reference_mv)?;
         positive("lever_arm_uev_per_uv", self.lever_arm_uev_per_uv)?;
         positive("electron_temperature_mk", self.electron_temperature_mk)?;
@@ -451,30 +475,30 @@ impl DeviceConfig {
         match sd.lever_per_mv.get(&sd.gate) {
             Some(l) if *l != 0.0 => {}
             _ => {
-                return Err(format!(
-                    "sensing_dot.lever_per_mv must have a non-zero entry for sensing_dot.gate {:?}",
-                    sd.gate
+                return Err(ConfigError::new(
+                    "sensing_dot.lever_per_mv",
+                    format!(
+                        "must have a non-zero entry for sensing_dot.gate {:?}",
+                        sd.gate
+                    ),
                 ))
             }
         }
         positive("sensing_dot.peak_spacing_mv", sd.peak_spacing_mv)?;
         positive("sensing_dot.peak_width_mv", sd.peak_width_mv)?;
-        if !sd.peak_offset_mv.is_finite() {
-            return Err("sensing_dot.peak_offset_mv must be finite".into());
-        }
+        finite("sensing_dot.peak_offset_mv", sd.peak_offset_mv)?;
         if sd.peak_heights.is_empty() {
-            return Err("sensing_dot.peak_heights must not be empty".into());
+            return Err(ConfigError::new(
+                "sensing_dot.peak_heights",
+                "must not be empty",
+            ));
         }
         for (i, h) in sd.peak_heights.iter().enumerate() {
             positive(&format!("sensing_dot.peak_heights[{i}]"), *h)?;
         }
-        if !sd.background.is_finite() {
-            return Err("sensing_dot.background must be finite".into());
-        }
+        finite("sensing_dot.background", sd.background)?;
         positive("sensing_dot.charge_shift_mv", sd.charge_shift_mv)?;
-        if !sd.rf_lever.is_finite() {
-            return Err("sensing_dot.rf_lever must be finite".into());
-        }
+        finite("sensing_dot.rf_lever", sd.rf_lever)?;
         let n = &self.noise;
         for (name, v) in [
             ("noise.white_sd", n.white_sd),
@@ -495,16 +519,19 @@ impl DeviceConfig {
         points("scans.detuning_points", s.detuning_points)?;
         non_negative("scans.load_from_ns", s.load_from_ns)?;
         if !(s.load_to_ns.is_finite() && s.load_to_ns > s.load_from_ns) {
-            return Err(format!(
-                "scans.load_to_ns must be finite and > scans.load_from_ns, got {}",
-                s.load_to_ns
+            return Err(ConfigError::new(
+                "scans.load_to_ns",
+                format!(
+                    "must be finite and > scans.load_from_ns ({} ns), got {}",
+                    s.load_from_ns, s.load_to_ns
+                ),
             ));
         }
         points("scans.load_points", s.load_points)?;
         if !(s.load_visibility > 0.0 && s.load_visibility <= 1.0) {
-            return Err(format!(
-                "scans.load_visibility must be in (0, 1], got {}",
-                s.load_visibility
+            return Err(ConfigError::new(
+                "scans.load_visibility",
+                format!("must be in (0, 1], got {}", s.load_visibility),
             ));
         }
         positive("scans.mu_half_range_mv", s.mu_half_range_mv)?;

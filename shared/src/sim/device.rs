@@ -11,6 +11,7 @@ use super::clock::LabClock;
 use super::config::DeviceConfig;
 use super::model;
 use super::noise::DriftState;
+use crate::config_error::ConfigError;
 use crate::protocol::{Request, Response, ScanOutcome};
 use crate::safety::GateSpec;
 
@@ -109,34 +110,48 @@ impl SimulatedDevice {
     /// A device at the gates' `initial_mv`, lab clock 0, drifts 0.
     /// `Err` if the config is invalid, gate names repeat, a gate's limits are
     /// inconsistent, a gate has no entry in [`DeviceConfig::reference_mv`], or
-    /// the sensing gate is missing.
-    pub fn new(config: DeviceConfig, gates: &[GateSpec], seed: u64) -> Result<Self, String> {
+    /// the sensing gate is missing. Field paths are relative to the device
+    /// config, except `gates[i]…`, which name the `gates` argument
+    /// ([`crate::driver::SimulationConfig::simulated_device`] places both).
+    pub fn new(config: DeviceConfig, gates: &[GateSpec], seed: u64) -> Result<Self, ConfigError> {
         config.validate()?;
         let mut voltages_mv = BTreeMap::new();
-        for g in gates {
+        for (i, g) in gates.iter().enumerate() {
             if !(g.min_mv.is_finite() && g.max_mv.is_finite() && g.initial_mv.is_finite()) {
-                return Err(format!(
-                    "gate {:?}: limits and initial voltage must be finite",
-                    g.name
+                return Err(ConfigError::new(
+                    format!("gates[{i}]"),
+                    format!(
+                        "gate {:?}: limits and initial voltage must be finite",
+                        g.name
+                    ),
                 ));
             }
             if !(g.min_mv <= g.initial_mv && g.initial_mv <= g.max_mv) {
-                return Err(format!(
-                    "gate {:?}: initial {} mV outside [{}, {}] mV",
-                    g.name, g.initial_mv, g.min_mv, g.max_mv
+                return Err(ConfigError::new(
+                    format!("gates[{i}].initial_mv"),
+                    format!(
+                        "gate {:?}: initial {} mV outside [{}, {}] mV",
+                        g.name, g.initial_mv, g.min_mv, g.max_mv
+                    ),
                 ));
             }
             if !config.reference_mv.contains_key(&g.name) {
-                return Err(format!("gate {:?} has no entry in reference_mv", g.name));
+                return Err(ConfigError::new(
+                    "reference_mv",
+                    format!("has no entry for gate {:?}", g.name),
+                ));
             }
             if voltages_mv.insert(g.name.clone(), g.initial_mv).is_some() {
-                return Err(format!("gate {:?} listed twice", g.name));
+                return Err(ConfigError::new(
+                    format!("gates[{i}].name"),
+                    format!("gate {:?} listed twice", g.name),
+                ));
             }
         }
         if !voltages_mv.contains_key(&config.sensing_dot.gate) {
-            return Err(format!(
-                "sensing_dot.gate {:?} is not among the gates",
-                config.sensing_dot.gate
+            return Err(ConfigError::new(
+                "sensing_dot.gate",
+                format!("{:?} is not among the gates", config.sensing_dot.gate),
             ));
         }
         let d = model::deviations(&config, &voltages_mv);

@@ -1,5 +1,5 @@
 //! The simulated double quantum dot: physics, raw scans, noise and the lab
-//! clock (DESIGN, "The simulated device"). No IO; randomness only from the
+//! clock (ARCHITECTURE.md, "The simulated device"). No IO; randomness only from the
 //! seeded `ChaCha8Rng` inside [`SimulatedDevice`]; transcendental functions
 //! from [`crate::detmath`] so data are bit-identical on native and wasm.
 //!
@@ -28,7 +28,7 @@ pub(crate) mod model;
 pub mod noise;
 pub mod scans;
 
-pub use calibration::calibrate_reference;
+pub use calibration::{calibrate_reference, CalibrationError};
 pub use clock::LabClock;
 pub use config::DeviceConfig;
 pub use device::{SimulatedDevice, Truth};

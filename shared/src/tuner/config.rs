@@ -4,37 +4,12 @@
 
 use serde::{Deserialize, Serialize};
 
+pub use crate::config_error::ConfigError;
 use crate::estimator::EstimatorKind;
 use crate::fit::uncertainty::References;
 use crate::parameter::ParameterSpec;
 use crate::safety::GateSpec;
 use crate::solver::SolverConfig;
-
-/// A config value that does not make sense, with the path of the field.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("invalid config at `{field}`: {message}")]
-pub struct ConfigError {
-    /// Dotted path of the offending field, e.g. `tuner.levels[0].gates[2]`.
-    pub field: String,
-    /// What is wrong with it.
-    pub message: String,
-}
-
-impl ConfigError {
-    /// New error for `field`.
-    pub fn new(field: impl Into<String>, message: impl Into<String>) -> Self {
-        Self {
-            field: field.into(),
-            message: message.into(),
-        }
-    }
-
-    /// Prefix the field path with `outer` (e.g. `tuner`).
-    pub fn within(mut self, outer: &str) -> Self {
-        self.field = format!("{outer}.{}", self.field);
-        self
-    }
-}
 
 /// How a Newton level obtains its initial gradient `g(0)` and covariance `C(0)`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -431,7 +406,7 @@ fn validate_newton(n: &NewtonConfig, has_gate: &dyn Fn(&str) -> bool) -> Result<
         }
         p.tolerance
             .validate()
-            .map_err(|m| ConfigError::new(f("tolerance"), m))?;
+            .map_err(|e| e.within(&f("tolerance")))?;
         if !(p.process_noise_per_mv.is_finite() && p.process_noise_per_mv >= 0.0) {
             return Err(ConfigError::new(
                 f("process_noise_per_mv"),

@@ -1,4 +1,4 @@
-//! The sans-IO tuner state machine (DESIGN invariant 2).
+//! The sans-IO tuner state machine (ARCHITECTURE.md, invariant 2).
 //!
 //! The tuner never calls a device. [`Tuner::poll`] returns the next
 //! [`Action`]: a [`Request`] for the driver to execute (and answer with
@@ -334,7 +334,8 @@ impl Tuner {
             }
         }
         if let Some(tol) = tolerance {
-            tol.validate().map_err(|m| invalid(&m))?;
+            tol.validate()
+                .map_err(|e| invalid(&format!("tolerance {}", e.clause())))?;
         }
         for (level, l) in self.config.levels.iter().enumerate() {
             if let LevelKind::Newton(n) = &l.kind {
@@ -759,7 +760,7 @@ fn evaluate_outcome(
 /// NaN, infinite or negative variances never reach an estimator.
 fn validate_values(values: Vec<ParameterValue>) -> Result<Vec<ParameterValue>, String> {
     for v in &values {
-        v.validate()?;
+        v.validate().map_err(|e| e.to_string())?;
     }
     Ok(values)
 }

@@ -144,8 +144,8 @@ fn apply_targets(
         p.target = Some(target);
     }
     for (name, &tol) in tolerances {
-        tol.validate().map_err(|m| {
-            PyValueError::new_err(format!("invalid config at `tolerances.{name}`: {m}"))
+        tol.validate().map_err(|e| {
+            PyValueError::new_err(e.within(&format!("tolerances.{name}")).to_string())
         })?;
         let p = top
             .parameters

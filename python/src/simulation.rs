@@ -234,10 +234,13 @@ impl PySimulatedDevice {
     #[new]
     #[pyo3(signature = (config = None, seed = None))]
     fn new(config: Option<&Bound<'_, PyAny>>, seed: Option<u64>) -> PyResult<Self> {
-        let cfg = simulation_config(config)?;
-        let device =
-            SimulatedDevice::new(cfg.device, &cfg.tuner.gates, seed.unwrap_or(cfg.seed))
-                .map_err(|m| PyValueError::new_err(format!("invalid config at `device`: {m}")))?;
+        let mut cfg = simulation_config(config)?;
+        if let Some(seed) = seed {
+            cfg.seed = seed;
+        }
+        let device = cfg
+            .simulated_device()
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
         Ok(Self { device })
     }
 

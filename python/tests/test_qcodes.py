@@ -9,7 +9,7 @@ from functools import partial
 import numpy as np
 import pytest
 
-qcodes = pytest.importorskip("qcodes")  # installed by `cargo xtask test`; required there
+import qcodes  # real QCoDeS from PyPI (installed by `cargo xtask test`)
 from qcodes.dataset import initialise_or_create_database_at, load_by_id, load_or_create_experiment
 from qcodes.instrument import Instrument
 from qcodes.station import Station

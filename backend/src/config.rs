@@ -25,6 +25,7 @@ use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 use serde_json::{Map, Value};
+use spintune::config_merge::merge;
 use spintune::driver::SimulationConfig;
 use spintune::parameter::Tolerance;
 use spintune::ConfigError;
@@ -234,35 +235,6 @@ fn unknown_parameter(section: &str, name: &str, known: &[String]) -> ConfigParse
     ConfigParseError(format!(
         "invalid config at `{section}.{name}`: the top tuner level has no parameter {name:?} (it has {known:?})"
     ))
-}
-
-/// Keys that name the variant of an internally tagged enum.
-const TAG_KEYS: [&str; 6] = ["kind", "type", "state", "action", "request", "response"];
-
-/// Merge `user` into `base`: objects key by key, everything else replaces.
-/// An object whose tag differs from the base's replaces it whole.
-fn merge(base: &mut Value, user: Value) {
-    match (base, user) {
-        (Value::Object(b), Value::Object(u)) => {
-            let other_variant = TAG_KEYS.iter().any(|k| match (b.get(*k), u.get(*k)) {
-                (Some(x), Some(y)) => x != y,
-                _ => false,
-            });
-            if other_variant {
-                *b = u;
-                return;
-            }
-            for (k, v) in u {
-                match b.get_mut(&k) {
-                    Some(slot) => merge(slot, v),
-                    None => {
-                        b.insert(k, v);
-                    }
-                }
-            }
-        }
-        (slot, u) => *slot = u,
-    }
 }
 
 #[cfg(test)]

@@ -9,40 +9,12 @@ use std::collections::BTreeMap;
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use serde_json::{Map, Value};
+use spintune::config_merge::merge;
 use spintune::driver::SimulationConfig;
 use spintune::parameter::Tolerance;
 use spintune::tuner::TunerConfig;
 
 use crate::convert::{from_py, from_value, to_value};
-
-/// Keys that name the variant of an internally tagged enum (as in the backend).
-const TAG_KEYS: [&str; 6] = ["kind", "type", "state", "action", "request", "response"];
-
-/// Merge `user` into `base`: objects key by key, everything else replaces.
-/// An object whose tag differs from the base's replaces it whole.
-pub fn merge(base: &mut Value, user: Value) {
-    match (base, user) {
-        (Value::Object(b), Value::Object(u)) => {
-            let other_variant = TAG_KEYS.iter().any(|k| match (b.get(*k), u.get(*k)) {
-                (Some(x), Some(y)) => x != y,
-                _ => false,
-            });
-            if other_variant {
-                *b = u;
-                return;
-            }
-            for (k, v) in u {
-                match b.get_mut(&k) {
-                    Some(slot) => merge(slot, v),
-                    None => {
-                        b.insert(k, v);
-                    }
-                }
-            }
-        }
-        (slot, u) => *slot = u,
-    }
-}
 
 fn user_object(config: Option<&Bound<'_, PyAny>>, what: &str) -> PyResult<Map<String, Value>> {
     match config {

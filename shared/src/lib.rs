@@ -20,6 +20,7 @@
 
 pub mod benchmark;
 pub mod config_error;
+pub mod config_merge;
 pub mod detmath;
 pub mod driver;
 pub mod estimator;

@@ -2,11 +2,9 @@
 //! serves a bridge run to the end; killing it pauses the run, starting it
 //! again resumes it, and every iteration is stored once.
 //!
-//! Needs `python3`. The client's one dependency (`websockets`) is
-//! pip-installed into a cache directory under the system temp dir if it is
-//! not importable. Without python3 (or when the install fails) this test
-//! FAILS with an explanation; set `SPINTUNE_SKIP_PYTHON=1` to skip it
-//! explicitly (it then says so on stderr).
+//! Needs a Python with `websockets` in `SPINTUNE_PYTHON` (the test command,
+//! `cargo xtask test`, sets up that environment first; nothing is installed
+//! here). Without it the test fails and says so.
 
 mod common;
 
@@ -17,75 +15,41 @@ use common::*;
 use serde_json::json;
 use spintune::protocol::RunStatus;
 
-fn skip_or_fail(why: &str) {
-    if std::env::var("SPINTUNE_SKIP_PYTHON").is_ok_and(|v| v == "1") {
-        eprintln!("\n*** SKIPPED bridge_client.py test: {why} (SPINTUNE_SKIP_PYTHON=1) ***\n");
-        return;
-    }
-    panic!(
-        "the bridge_client.py test cannot run: {why}.\n\
-         Install python3 (and let pip reach PyPI), or set SPINTUNE_SKIP_PYTHON=1 to skip this test explicitly."
+/// The interpreter prepared by the test command.
+fn python() -> PathBuf {
+    let p = std::env::var_os("SPINTUNE_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| {
+            panic!(
+            "SPINTUNE_PYTHON is not set: run the tests with `cargo xtask test`, or point it at a \
+             Python that has `websockets` installed"
+        )
+        });
+    assert!(
+        p.is_file(),
+        "SPINTUNE_PYTHON={} does not exist",
+        p.display()
     );
-}
-
-/// `PYTHONPATH` under which `import websockets` works, or why not.
-fn websockets_path() -> Result<Option<PathBuf>, String> {
-    let can_import = |path: Option<&Path>| {
-        let mut c = Command::new("python3");
-        c.args(["-c", "import websockets"]);
-        if let Some(p) = path {
-            c.env("PYTHONPATH", p);
-        }
-        c.stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .status()
-            .is_ok_and(|s| s.success())
-    };
-    if can_import(None) {
-        return Ok(None);
-    }
-    let dir = std::env::temp_dir().join("spintune-pydeps-websockets");
-    if can_import(Some(&dir)) {
-        return Ok(Some(dir));
-    }
-    eprintln!("installing `websockets` from PyPI into {}", dir.display());
-    let out = Command::new("python3")
-        .args([
-            "-m",
-            "pip",
-            "install",
-            "--quiet",
-            "--disable-pip-version-check",
-            "--target",
-        ])
-        .arg(&dir)
-        .arg("websockets")
-        .output()
-        .map_err(|e| format!("cannot run pip: {e}"))?;
-    if !out.status.success() || !can_import(Some(&dir)) {
-        return Err(format!(
-            "pip install websockets failed: {}",
-            String::from_utf8_lossy(&out.stderr).trim()
-        ));
-    }
-    Ok(Some(dir))
+    let ok = Command::new(&p)
+        .args(["-c", "import websockets"])
+        .status()
+        .is_ok_and(|s| s.success());
+    assert!(ok, "{} cannot import websockets", p.display());
+    p
 }
 
 /// Kills the client (a process this test started) when dropped.
 struct Client(Child);
 
 impl Client {
-    fn start(url: &str, pythonpath: Option<&Path>, extra: &[&str]) -> Self {
+    fn start(url: &str, python: &Path, extra: &[&str]) -> Self {
         let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/bridge_client.py");
-        let mut c = Command::new("python3");
+        let mut c = Command::new(python);
         c.arg(script)
             .args(["--url", url, "--token", TOKEN])
             .args(extra)
             .stdout(Stdio::null())
             .stderr(Stdio::null());
-        if let Some(p) = pythonpath {
-            c.env("PYTHONPATH", p);
-        }
         Self(c.spawn().expect("start bridge_client.py"))
     }
 
@@ -103,17 +67,7 @@ impl Drop for Client {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn python_bridge_client_serves_a_run_and_reconnects() {
-    let python = Command::new("python3")
-        .arg("--version")
-        .output()
-        .is_ok_and(|o| o.status.success());
-    if !python {
-        return skip_or_fail("python3 was not found on PATH");
-    }
-    let pythonpath = match websockets_path() {
-        Ok(p) => p,
-        Err(why) => return skip_or_fail(&why),
-    };
+    let python = python();
 
     let dir = TempDir::new("pybridge");
     let srv = server(&dir, 256).await;
@@ -134,7 +88,7 @@ async fn python_bridge_client_serves_a_run_and_reconnects() {
 
     // The lab script answers 180 requests (more than one iteration), then
     // goes away with the next one outstanding: the run pauses, saying why.
-    let mut first = Client::start(&url, pythonpath.as_deref(), &["--exit-after", "180"]);
+    let mut first = Client::start(&url, &python, &["--exit-after", "180"]);
     let paused = wait_status(srv.addr, run.id, |r| {
         // (Before the script connects the run waits, paused for lack of a bridge.)
         matches!(&r.status, RunStatus::Faulted { fault } if fault.message.contains("disconnected"))
@@ -154,7 +108,7 @@ async fn python_bridge_client_serves_a_run_and_reconnects() {
     first.stop();
     let before = records(srv.addr, run.id).await;
     // It comes back: the run resumes by itself and finishes.
-    let _client = Client::start(&url, pythonpath.as_deref(), &[]);
+    let _client = Client::start(&url, &python, &[]);
     let done = wait_status(srv.addr, run.id, is_finished).await;
     assert_eq!(done.iterations, n);
     let stored = records(srv.addr, run.id).await;

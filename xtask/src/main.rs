@@ -117,6 +117,8 @@ fn test(flags: &[String]) {
     let bin = PathBuf::from(env::var("CARGO_TARGET_DIR").unwrap()).join("debug/spintune");
     env::set_var("SPINTUNE_BIN", &bin);
     env::set_var("SPINTUNE_DIST", env::current_dir().unwrap().join("dist"));
+    step("Python test environment");
+    python_env();
     step("native tests (core, server, end-to-end incl. headless Chromium)");
     cmd("cargo", &["test", "--workspace"]);
     python_tests();
@@ -153,7 +155,8 @@ fn test(flags: &[String]) {
 }
 
 /// Python packages the tests need: (import name, pip name).
-const PYTHON_DEPS: [(&str, &str); 6] = [
+const PYTHON_DEPS: [(&str, &str); 7] = [
+    ("websockets", "websockets"),
     ("maturin", "maturin"),
     ("pytest", "pytest"),
     ("numpy", "numpy"),
@@ -162,18 +165,12 @@ const PYTHON_DEPS: [(&str, &str); 6] = [
     ("qcodes", "qcodes"),
 ];
 
-/// The Python package (`python/`): a virtual environment outside the clone
-/// (`$SPINTUNE_VENV`, default `~/.cache/spintune/venv`), the test
-/// dependencies installed only if missing, the package built by maturin into
-/// the shared `CARGO_TARGET_DIR` and installed, then pytest. Needs `python3`
-/// with `venv`; `SPINTUNE_SKIP_PYTHON=1` skips this step explicitly.
-fn python_tests() {
-    step("Python package (maturin build + pytest)");
-    if env::var("SPINTUNE_SKIP_PYTHON").is_ok_and(|v| v == "1") {
-        eprintln!("\n*** SKIPPED the Python package tests (SPINTUNE_SKIP_PYTHON=1) ***\n");
-        return;
-    }
-    let started = Instant::now();
+/// The Python environment of the tests: a virtual environment outside the
+/// clone (`$SPINTUNE_VENV`, default `~/.cache/spintune/venv`) with the test
+/// dependencies, installed only if missing. Exported as `SPINTUNE_PYTHON`
+/// (the interpreter) for the native tests that run Python (the lab bridge
+/// client); nothing is installed inside a test. Returns the venv directory.
+fn python_env() -> PathBuf {
     let venv = env::var_os("SPINTUNE_VENV")
         .map(PathBuf::from)
         .unwrap_or_else(|| home().join(".cache/spintune/venv"));
@@ -182,10 +179,7 @@ fn python_tests() {
         eprintln!("  venv {}: present", venv.display());
     } else {
         if output("python3", &["--version"]).is_none() {
-            eprintln!(
-                "xtask: python3 was not found on PATH; the Python package tests need it \
-                 (or set SPINTUNE_SKIP_PYTHON=1 to skip them explicitly)"
-            );
+            eprintln!("xtask: python3 was not found on PATH; the Python tests need it");
             exit(1);
         }
         std::fs::create_dir_all(venv.parent().unwrap_or(Path::new("."))).expect("cache dir");
@@ -205,7 +199,7 @@ fn python_tests() {
         .map(|(_, pip)| *pip)
         .collect();
     if missing.is_empty() {
-        eprintln!("  maturin pytest numpy xarray netcdf4 qcodes: present");
+        eprintln!("  Python test dependencies: present");
     } else {
         let mut args = vec![
             "-m",
@@ -217,6 +211,18 @@ fn python_tests() {
         args.extend(&missing);
         cmd(&python, &args);
     }
+    env::set_var("SPINTUNE_PYTHON", &python);
+    venv
+}
+
+/// The Python package (`python/`): built by maturin into the shared
+/// `CARGO_TARGET_DIR`, installed into the test venv ([`python_env`]), then
+/// pytest.
+fn python_tests() {
+    step("Python package (maturin build + pytest)");
+    let started = Instant::now();
+    let venv = python_env();
+    let python = venv.join("bin/python").to_string_lossy().into_owned();
     // maturin (the build backend, from the venv since the build is not
     // isolated) must be on PATH; cargo builds into the shared target dir.
     let venv_bin = venv.join("bin");

@@ -50,7 +50,7 @@ async fn two_viewers_receive_identical_streams_and_late_viewer_gets_history() {
         ServerMessage::Hello { .. }
     ));
     match next_msg(&mut late).await {
-        ServerMessage::History { records } => assert_eq!(records, ra),
+        ServerMessage::History { records, .. } => assert_eq!(records, ra),
         other => panic!("expected history, got {other:?}"),
     }
     // ... and `from` skips what it already has.
@@ -60,7 +60,7 @@ async fn two_viewers_receive_identical_streams_and_late_viewer_gets_history() {
         ServerMessage::Hello { .. }
     ));
     match next_msg(&mut partial).await {
-        ServerMessage::History { records } => assert_eq!(records, ra[4..].to_vec()),
+        ServerMessage::History { records, .. } => assert_eq!(records, ra[4..].to_vec()),
         other => panic!("expected history, got {other:?}"),
     }
 }
@@ -89,7 +89,7 @@ async fn slow_viewer_is_told_it_lagged_and_still_sees_everything() {
     let mut lagged = false;
     while got.len() < n as usize {
         match next_msg(&mut ws).await {
-            ServerMessage::History { records } => got.extend(records),
+            ServerMessage::History { records, .. } => got.extend(records),
             ServerMessage::Iteration { record } => got.push(record),
             ServerMessage::Lagged { skipped } => {
                 assert!(skipped > 0);

@@ -295,7 +295,7 @@ fn handle_message(sess: &SessionRef, text: &str) -> After {
             s.attempt = 0;
             s.hello_seen = true;
         }
-        ServerMessage::History { records } => {
+        ServerMessage::History { records, .. } => {
             let mut gap = false;
             sig.history.update(|h| gap = h.extend(records).is_err());
             return if gap { After::Resync } else { After::Continue };
@@ -339,6 +339,8 @@ fn handle_message(sess: &SessionRef, text: &str) -> After {
                 sig.notice.set(Some(format!("server: {message}")));
             }
         }
+        // Scans on request: not asked for yet by this page (issue 14).
+        ServerMessage::Scans { .. } => {}
     }
     After::Continue
 }

@@ -369,6 +369,25 @@ pub struct IterationRecord {
     pub events: Vec<TunerEvent>,
 }
 
+impl IterationRecord {
+    /// The record without its scans: what viewers receive by default.
+    ///
+    /// ```
+    /// # use spintune::protocol::IterationRecord;
+    /// # fn f(r: &IterationRecord) {
+    /// let s = r.summary();
+    /// assert!(s.scans.is_empty());
+    /// assert_eq!(s.iteration, r.iteration);
+    /// # }
+    /// ```
+    pub fn summary(&self) -> IterationRecord {
+        IterationRecord {
+            scans: Vec::new(),
+            ..self.clone()
+        }
+    }
+}
+
 /// A notable event inside the tuner, attributed to the level it happened in.
 ///
 /// ```
@@ -712,7 +731,32 @@ pub enum ControlCommand {
     },
 }
 
+/// Records in a [`ServerMessage::History`] page when the client names no
+/// `limit` (and the page the server sends unasked after `Hello`). At about
+/// 2 kB per summary record this keeps a page near 400 kB.
+pub const DEFAULT_HISTORY_PAGE: u32 = 200;
+
+/// The largest `limit` a [`ClientMessage::History`] may ask for (larger is
+/// refused with an `Error` naming the bound; the socket stays open).
+pub const MAX_HISTORY_PAGE: u32 = 2000;
+
 /// Messages from a browser (or script) to the server over a run's WebSocket.
+///
+/// Viewers get iteration *summaries* (records with `scans` empty); the raw
+/// scans and fits of one iteration are sent on request (`scans`), or with
+/// every live frame after `subscribe` with `scans: true`.
+///
+/// ```
+/// use spintune::protocol::ClientMessage;
+/// let m: ClientMessage = serde_json::from_str(r#"{"type":"history","before":1200,"limit":500}"#).unwrap();
+/// assert_eq!(m, ClientMessage::History { before: Some(1200), limit: Some(500) });
+/// let m: ClientMessage = serde_json::from_str(r#"{"type":"history"}"#).unwrap();
+/// assert_eq!(m, ClientMessage::History { before: None, limit: None });
+/// let m: ClientMessage = serde_json::from_str(r#"{"type":"scans","iteration":7}"#).unwrap();
+/// assert_eq!(m, ClientMessage::Scans { iteration: 7 });
+/// let m: ClientMessage = serde_json::from_str(r#"{"type":"subscribe","scans":true}"#).unwrap();
+/// assert_eq!(m, ClientMessage::Subscribe { scans: true });
+/// ```
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
 pub enum ClientMessage {
@@ -725,6 +769,31 @@ pub enum ClientMessage {
     Control {
         /// What to do.
         command: ControlCommand,
+    },
+    /// Ask for a page of stored iteration summaries; answered by
+    /// [`ServerMessage::History`]. No token needed.
+    History {
+        /// Only iterations numbered below this one; `None`: the newest.
+        #[serde(default)]
+        before: Option<u64>,
+        /// Page size, default [`DEFAULT_HISTORY_PAGE`], at most
+        /// [`MAX_HISTORY_PAGE`].
+        #[serde(default)]
+        limit: Option<u32>,
+    },
+    /// Ask for the scans (raw data and fits) of one stored iteration;
+    /// answered by [`ServerMessage::Scans`] (or `Error` if there is no such
+    /// iteration). No token needed.
+    Scans {
+        /// The iteration number ([`IterationRecord::iteration`]).
+        iteration: u64,
+    },
+    /// Choose what live `Iteration` frames carry on this socket: with
+    /// `scans: true` each carries its scans (the full record), otherwise a
+    /// summary (the default). No token needed.
+    Subscribe {
+        /// Include raw scans and fits in live frames.
+        scans: bool,
     },
 }
 
@@ -739,10 +808,25 @@ pub enum ServerMessage {
         /// The run.
         run: RunSummary,
     },
-    /// Stored iterations the viewer has not seen yet, oldest first.
+    /// A page of stored iteration summaries (`scans` empty), oldest first,
+    /// contiguous in iteration number. Sent unasked after `Hello` (the
+    /// newest [`DEFAULT_HISTORY_PAGE`] iterations) and after `Lagged` (the
+    /// newest page again: the client asks for older pages to fill any gap),
+    /// and as the answer to [`ClientMessage::History`].
     History {
-        /// Records.
+        /// Records, at most the page size.
         records: Vec<IterationRecord>,
+        /// Stored iterations older than the first record of this page exist
+        /// (or, for an empty page, older than `before`).
+        #[serde(default)]
+        more_before: bool,
+    },
+    /// The scans of one iteration, answering [`ClientMessage::Scans`].
+    Scans {
+        /// The iteration number.
+        iteration: u64,
+        /// Its scans with their fits (as [`IterationRecord::scans`]).
+        scans: Vec<ScanReport>,
     },
     /// One new iteration, live.
     Iteration {
@@ -754,7 +838,8 @@ pub enum ServerMessage {
         /// The run.
         run: RunSummary,
     },
-    /// The viewer fell behind; the server skipped ahead and resends from the store.
+    /// The viewer fell behind; the server dropped `skipped` live frames for
+    /// it and follows with the newest `History` page.
     Lagged {
         /// Number of live messages dropped for this viewer.
         skipped: u64,

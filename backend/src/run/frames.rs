@@ -54,8 +54,8 @@ pub fn iteration_frame_text(record_json: &str) -> String {
     format!("{{\"type\":\"iteration\",\"record\":{record_json}}}")
 }
 
-/// `{"type":"history","records":[…]}` from serialized records.
-pub fn history_frame_text(records_json: &[String]) -> String {
+/// `{"type":"history","records":[…],"more_before":…}` from serialized records.
+pub fn history_frame_text(records_json: &[String], more_before: bool) -> String {
     let mut s = String::with_capacity(32 + records_json.iter().map(|r| r.len() + 1).sum::<usize>());
     s.push_str("{\"type\":\"history\",\"records\":[");
     for (i, r) in records_json.iter().enumerate() {
@@ -64,7 +64,9 @@ pub fn history_frame_text(records_json: &[String]) -> String {
         }
         s.push_str(r);
     }
-    s.push_str("]}");
+    s.push_str("],\"more_before\":");
+    s.push_str(if more_before { "true" } else { "false" });
+    s.push('}');
     s
 }
 
@@ -79,10 +81,18 @@ mod tests {
         let v: Value = serde_json::from_str(&iteration_frame_text(rec)).unwrap();
         assert_eq!(v["type"], "iteration");
         assert_eq!(v["record"]["iteration"], 3);
-        let h: Value =
-            serde_json::from_str(&history_frame_text(&[rec.to_string(), rec.to_string()])).unwrap();
+        let h: Value = serde_json::from_str(&history_frame_text(
+            &[rec.to_string(), rec.to_string()],
+            true,
+        ))
+        .unwrap();
         assert_eq!(h["records"].as_array().unwrap().len(), 2);
-        let empty = serde_json::to_string(&ServerMessage::History { records: vec![] }).unwrap();
-        assert_eq!(history_frame_text(&[]), empty);
+        assert_eq!(h["more_before"], true);
+        let empty = serde_json::to_string(&ServerMessage::History {
+            records: vec![],
+            more_before: false,
+        })
+        .unwrap();
+        assert_eq!(history_frame_text(&[], false), empty);
     }
 }

@@ -508,7 +508,9 @@ async fn refill(
         .unwrap_or_default();
     let n = records.len() as u64;
     socket
-        .send(Message::Text(Utf8Bytes::from(history_frame_text(&records))))
+        .send(Message::Text(Utf8Bytes::from(history_frame_text(
+            &records, false,
+        ))))
         .await?;
     Ok(next + n)
 }
@@ -624,5 +626,11 @@ async fn client_message(
                 }
             }
         }
+        // TODO(issue 12): paged history, scans on request, summary frames.
+        ClientMessage::History { .. }
+        | ClientMessage::Scans { .. }
+        | ClientMessage::Subscribe { .. } => ServerMessage::Error {
+            message: "not implemented yet".into(),
+        },
     })
 }

@@ -218,7 +218,7 @@ pub async fn collect(ws: &mut Ws, n: usize) -> Vec<IterationRecord> {
     let mut out = Vec::new();
     while out.len() < n {
         match next_msg(ws).await {
-            ServerMessage::History { records } => out.extend(records),
+            ServerMessage::History { records, .. } => out.extend(records),
             ServerMessage::Iteration { record } => out.push(record),
             _ => {}
         }

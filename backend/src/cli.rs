@@ -81,6 +81,9 @@ pub struct ServeArgs {
     /// Config of the demo run (TOML); default: the paper's default run.
     #[arg(long)]
     pub demo_config: Option<PathBuf>,
+    /// Connection and viewer limits (timeouts, caps).
+    #[command(flatten)]
+    pub limits: crate::server::listener::LimitArgs,
 }
 
 /// A started server.
@@ -108,6 +111,7 @@ pub async fn start_server(args: &ServeArgs) -> Result<Server, CliError> {
             iteration_delay: Duration::from_millis(args.iteration_delay_ms),
             viewer_buffer: args.viewer_buffer,
             recover: true,
+            viewers: args.limits.viewer_limits(),
         },
     )
     .map_err(CliError::runtime)?;
@@ -148,16 +152,12 @@ pub async fn start_server(args: &ServeArgs) -> Result<Server, CliError> {
         },
         args.dist.clone(),
     );
-    // Small frames at high rates: do not let Nagle's algorithm hold them back.
-    use axum::serve::ListenerExt;
-    let listener = listener.tap_io(|tcp| {
-        let _ = tcp.set_nodelay(true);
-    });
-    let task = tokio::spawn(async move {
-        if let Err(e) = axum::serve(listener, app).await {
-            eprintln!("server error: {e}");
-        }
-    });
+    // Header timeout, connections per IP, TCP_NODELAY: see `server::listener`.
+    let task = tokio::spawn(crate::server::listener::serve(
+        listener,
+        app,
+        args.limits.connection_limits(),
+    ));
     Ok(Server {
         addr,
         token,
@@ -246,6 +246,7 @@ pub async fn run(args: RunArgs) -> Result<(), CliError> {
             iteration_delay: Duration::ZERO,
             viewer_buffer: 1 << 16,
             recover: false,
+            ..ManagerOptions::default()
         },
     )
     .map_err(CliError::runtime)?;

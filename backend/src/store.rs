@@ -63,6 +63,17 @@ pub struct StoredRun {
     pub config_json: String,
 }
 
+/// A page of iteration summaries ([`Store::summary_page`]).
+#[derive(Debug, Clone, Default)]
+pub struct SummaryPage {
+    /// Seq of the first record (`None`: empty page).
+    pub first_seq: Option<u64>,
+    /// Summary records as JSON, oldest first, contiguous.
+    pub records: Vec<String>,
+    /// Stored iterations older than the page exist.
+    pub more_before: bool,
+}
+
 /// The SQLite store: one connection for writes, one for reads.
 pub struct Store {
     writer: Mutex<Connection>,
@@ -381,6 +392,74 @@ impl Store {
             |r| r.get::<_, String>(0),
         )?;
         Ok(rows.collect::<Result<Vec<_>, _>>()?)
+    }
+
+    /// A page of stored iteration *summaries* of run `id` (each record with
+    /// `scans` replaced by `[]`, done by SQLite's JSON functions so no record
+    /// is parsed here): the newest at most `limit` with `seq < before`
+    /// (`None`: the newest overall), oldest first. Seq is contiguous from 0
+    /// ([`Store::commit_iteration`] refuses gaps), so `more_before` is
+    /// whether the page does not reach seq 0.
+    pub fn summary_page(
+        &self,
+        id: u64,
+        before: Option<u64>,
+        limit: u64,
+    ) -> Result<SummaryPage, StoreError> {
+        let conn = self.r();
+        let before_i = before.map_or(i64::MAX, |b| b.min(i64::MAX as u64) as i64);
+        let mut stmt = conn.prepare_cached(
+            "SELECT seq, json_set(record, '$.scans', json('[]')) FROM iterations \
+             WHERE run_id = ?1 AND seq < ?2 ORDER BY seq DESC LIMIT ?3",
+        )?;
+        let rows = stmt.query_map(
+            params![id as i64, before_i, limit.min(i64::MAX as u64) as i64],
+            |r| Ok((r.get::<_, i64>(0)?, r.get::<_, String>(1)?)),
+        )?;
+        let mut page = rows.collect::<Result<Vec<_>, _>>()?;
+        page.reverse();
+        let lowest = page.first().map_or(before_i, |(seq, _)| *seq);
+        let more_before: bool = conn
+            .prepare_cached(
+                "SELECT EXISTS(SELECT 1 FROM iterations WHERE run_id = ?1 AND seq < ?2)",
+            )?
+            .query_row(params![id as i64, lowest], |r| r.get(0))?;
+        Ok(SummaryPage {
+            first_seq: page.first().map(|(seq, _)| *seq as u64),
+            records: page.into_iter().map(|(_, r)| r).collect(),
+            more_before,
+        })
+    }
+
+    /// Stored iteration summaries (JSON, `scans` = `[]`) of run `id` with
+    /// `seq >= from`, at most `limit`, oldest first.
+    pub fn summaries_json(&self, id: u64, from: u64, limit: u64) -> Result<Vec<String>, StoreError> {
+        let conn = self.r();
+        let mut stmt = conn.prepare_cached(
+            "SELECT json_set(record, '$.scans', json('[]')) FROM iterations \
+             WHERE run_id = ?1 AND seq >= ?2 ORDER BY seq LIMIT ?3",
+        )?;
+        let rows = stmt.query_map(
+            params![
+                id as i64,
+                from.min(i64::MAX as u64) as i64,
+                limit.min(i64::MAX as u64) as i64
+            ],
+            |r| r.get::<_, String>(0),
+        )?;
+        Ok(rows.collect::<Result<Vec<_>, _>>()?)
+    }
+
+    /// The stored record (JSON) of iteration `seq` of run `id`, if any.
+    pub fn iteration_json(&self, id: u64, seq: u64) -> Result<Option<String>, StoreError> {
+        Ok(self
+            .r()
+            .prepare_cached("SELECT record FROM iterations WHERE run_id = ?1 AND seq = ?2")?
+            .query_row(
+                params![id as i64, seq.min(i64::MAX as u64) as i64],
+                |r| r.get(0),
+            )
+            .optional()?)
     }
 
     /// Delete run `id` and its iterations.

@@ -5,7 +5,7 @@ mod common;
 
 use common::*;
 use serde_json::{json, Value};
-use spintune::protocol::{RunStatus, ServerMessage, PROTOCOL_VERSION};
+use spintune::protocol::{IterationRecord, RunStatus, ServerMessage, PROTOCOL_VERSION};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn two_viewers_receive_identical_streams_and_late_viewer_gets_history() {
@@ -13,7 +13,8 @@ async fn two_viewers_receive_identical_streams_and_late_viewer_gets_history() {
     let srv = server(&dir, 256).await;
     let n = 6;
     // Start paused so both viewers are connected before anything happens.
-    let run = create_run(srv.addr, &small_config("viewers", n, 0)).await;
+    // Paced, so that the pause lands before the run is over.
+    let run = create_run(srv.addr, &small_config("viewers", n, 100)).await;
     let (s, b) = control(srv.addr, run.id, r#"{"action":"pause"}"#).await;
     assert_eq!(s, 200, "{b}");
     let mut a = connect(srv.addr, run.id, None).await;
@@ -39,11 +40,27 @@ async fn two_viewers_receive_identical_streams_and_late_viewer_gets_history() {
     let done = wait_status(srv.addr, run.id, is_finished).await;
     assert_eq!(done.iterations, n);
 
-    // The stream equals the store.
-    let stored = records(srv.addr, run.id).await;
-    assert_eq!(serde_json::to_value(&ra).unwrap(), Value::Array(stored));
+    // The stream is the store's records as summaries (scans on request).
+    let stored: Vec<IterationRecord> =
+        serde_json::from_value(Value::Array(records(srv.addr, run.id).await)).unwrap();
+    assert!(stored.iter().all(|r| !r.scans.is_empty()));
+    let summaries: Vec<IterationRecord> = stored.iter().map(IterationRecord::summary).collect();
+    assert_eq!(ra, summaries);
+    let (s, body) = http(
+        srv.addr,
+        "GET",
+        &format!("/api/runs/{}/iterations?scans=false", run.id),
+        None,
+        None,
+    )
+    .await;
+    assert_eq!(s, 200, "{body}");
+    assert_eq!(
+        serde_json::from_str::<Vec<IterationRecord>>(&body).unwrap(),
+        summaries
+    );
 
-    // A late viewer gets the whole history first, then nothing is missing.
+    // A late viewer gets the history (shorter than a page) first.
     let mut late = connect(srv.addr, run.id, None).await;
     assert!(matches!(
         next_msg(&mut late).await,
@@ -65,15 +82,22 @@ async fn two_viewers_receive_identical_streams_and_late_viewer_gets_history() {
     }
 }
 
+/// A viewer that stalls (for less than the send timeout) lags: it is told
+/// so, is sent the newest page, and by asking for the pages it missed it sees
+/// every iteration exactly once; the run never waits for it.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn slow_viewer_is_told_it_lagged_and_still_sees_everything() {
+async fn slow_viewer_is_told_it_lagged_and_can_page_back_to_every_iteration() {
+    use std::collections::BTreeMap;
     let dir = TempDir::new("lag");
-    // A buffer of one frame: any viewer that does not read at once lags.
-    let srv = server(&dir, 1).await;
-    // Enough frames (each ~15 kB with its scans: ~6 MB, beyond the 4 MB ceiling of
-    // Linux's send-buffer autotuning) to fill the socket buffers of a viewer
-    // that does not read, whatever the scheduling: the server's forwarder then blocks
-    // and its one-frame buffer overflows for certain.
+    // A buffer of one frame: any viewer that does not read at once lags. The
+    // send timeout is long: this viewer stalls, it is not dead.
+    let mut args = serve_args(&dir, 1);
+    args.limits.viewer_send_timeout_ms = 120_000;
+    let srv = spintune_server::cli::start_server(&args).await.unwrap();
+    // Enough full frames (each ~15 kB with its scans: ~6 MB, beyond the 4 MB
+    // ceiling of Linux's send-buffer autotuning) to fill the socket buffers of
+    // a viewer that does not read, whatever the scheduling: the server's
+    // forwarder then blocks and its one-frame buffer overflows for certain.
     let n = 400;
     let run = create_run(srv.addr, &small_config("lag", n, 0)).await;
     control(srv.addr, run.id, r#"{"action":"pause"}"#).await;
@@ -82,15 +106,30 @@ async fn slow_viewer_is_told_it_lagged_and_still_sees_everything() {
         next_msg(&mut ws).await,
         ServerMessage::Hello { .. }
     ));
+    // Full records in live frames; the answer to the history request shows
+    // the subscription was applied (messages are handled in order).
+    send(&mut ws, r#"{"type":"subscribe","scans":true}"#).await;
+    send(&mut ws, r#"{"type":"history","limit":1}"#).await;
+    for _ in 0..2 {
+        expect(&mut ws, |m| matches!(m, ServerMessage::History { .. })).await;
+    }
     control(srv.addr, run.id, r#"{"action":"resume"}"#).await;
     // Do not read until the run is over: the viewer stalls, the run does not.
     wait_status(srv.addr, run.id, is_finished).await;
-    let mut got = Vec::new();
+    let mut got: BTreeMap<u64, IterationRecord> = BTreeMap::new();
+    let insert = |got: &mut BTreeMap<u64, IterationRecord>, r: IterationRecord| {
+        let k = r.iteration;
+        assert!(got.insert(k, r).is_none(), "iteration {k} sent twice");
+    };
     let mut lagged = false;
-    while got.len() < n as usize {
+    while !got.contains_key(&(n - 1)) {
         match next_msg(&mut ws).await {
-            ServerMessage::History { records, .. } => got.extend(records),
-            ServerMessage::Iteration { record } => got.push(record),
+            ServerMessage::History { records, .. } => {
+                for r in records {
+                    insert(&mut got, r);
+                }
+            }
+            ServerMessage::Iteration { record } => insert(&mut got, record),
             ServerMessage::Lagged { skipped } => {
                 assert!(skipped > 0);
                 lagged = true;
@@ -99,8 +138,33 @@ async fn slow_viewer_is_told_it_lagged_and_still_sees_everything() {
         }
     }
     assert!(lagged, "the stalled viewer was not told it lagged");
-    let ks: Vec<u64> = got.iter().map(|r| r.iteration).collect();
-    assert_eq!(ks, (0..n).collect::<Vec<_>>());
+    // Fill every gap with the pages it missed.
+    let missing: Vec<u64> = (0..n).filter(|k| !got.contains_key(k)).collect();
+    // (Whether anything is missing depends on when the socket buffers filled:
+    // each `Lagged` is followed by up to a page of what was missed.)
+    for k in missing {
+        if got.contains_key(&k) {
+            continue;
+        }
+        let end = (k..n).find(|j| got.contains_key(j)).unwrap();
+        send(
+            &mut ws,
+            &format!(r#"{{"type":"history","before":{end},"limit":{}}}"#, end - k),
+        )
+        .await;
+        match expect(&mut ws, |m| matches!(m, ServerMessage::History { .. })).await {
+            ServerMessage::History { records, .. } => {
+                let ks: Vec<u64> = records.iter().map(|r| r.iteration).collect();
+                assert_eq!(ks, (k..end).collect::<Vec<_>>());
+                for r in records {
+                    assert!(r.scans.is_empty(), "pages carry summaries");
+                    insert(&mut got, r);
+                }
+            }
+            _ => unreachable!(),
+        }
+    }
+    assert_eq!(got.keys().copied().collect::<Vec<_>>(), (0..n).collect::<Vec<_>>());
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -2,6 +2,11 @@
 //! [`spintune::protocol::ServerMessage`], shared (not copied) between all
 //! viewers, and the hand-built `iteration`/`history` frames around records
 //! that are already serialized (the same bytes that were stored).
+//!
+//! An iteration is serialized twice, once: as a *summary* (the record with
+//! `scans` empty, what viewers get by default) and in full (for viewers that
+//! subscribed to scans). Both texts are `Utf8Bytes` (reference-counted):
+//! every viewer's socket is handed the same bytes.
 
 use std::sync::Arc;
 
@@ -15,8 +20,12 @@ use spintune::protocol::{IterationRecord, RunSummary, ServerMessage};
 pub struct Frame {
     /// For `Iteration` frames: the record's position in the store (0-based).
     pub seq: Option<u64>,
-    /// JSON text of the `ServerMessage`.
+    /// JSON text of the `ServerMessage`; for `Iteration` frames the
+    /// record's *summary* (`scans` empty).
     pub text: Utf8Bytes,
+    /// For `Iteration` frames: the frame with the full record (scans and
+    /// fits), for viewers that subscribed to scans.
+    pub full: Option<Utf8Bytes>,
     /// What the frame says, typed.
     pub event: FrameEvent,
 }
@@ -42,6 +51,7 @@ impl Frame {
         };
         Self {
             seq: None,
+            full: None,
             text: Utf8Bytes::from(serde_json::to_string(msg).expect("ServerMessage serializes")),
             event,
         }
@@ -55,14 +65,19 @@ pub fn iteration_frame_text(record_json: &str) -> String {
 }
 
 /// `{"type":"history","records":[…],"more_before":…}` from serialized records.
-pub fn history_frame_text(records_json: &[String], more_before: bool) -> String {
-    let mut s = String::with_capacity(32 + records_json.iter().map(|r| r.len() + 1).sum::<usize>());
+pub fn history_frame_text<S: AsRef<str>>(records_json: &[S], more_before: bool) -> String {
+    let mut s = String::with_capacity(
+        40 + records_json
+            .iter()
+            .map(|r| r.as_ref().len() + 1)
+            .sum::<usize>(),
+    );
     s.push_str("{\"type\":\"history\",\"records\":[");
     for (i, r) in records_json.iter().enumerate() {
         if i > 0 {
             s.push(',');
         }
-        s.push_str(r);
+        s.push_str(r.as_ref());
     }
     s.push_str("],\"more_before\":");
     s.push_str(if more_before { "true" } else { "false" });
@@ -93,6 +108,6 @@ mod tests {
             more_before: false,
         })
         .unwrap();
-        assert_eq!(history_frame_text(&[], false), empty);
+        assert_eq!(history_frame_text::<String>(&[], false), empty);
     }
 }

@@ -3,10 +3,12 @@
 //!
 //! Per iteration the task (1) commits the record and the checkpoint (session
 //! and device state) to the [`Store`] in one transaction, (2) updates the run's
-//! summary, (3) broadcasts the pre-serialized `ServerMessage::Iteration`
-//! frame ([`frames`]) to the run's viewers over a bounded
-//! `tokio::sync::broadcast` channel. A slow viewer never blocks the run: it
-//! lags, is told so, and refills from the store (see [`crate::server`]).
+//! summary and its ring of recent summaries ([`RECENT_SUMMARIES`]), (3)
+//! broadcasts the pre-serialized `ServerMessage::Iteration` frame
+//! ([`frames`]: summary and full text, shared by all viewers) over a bounded
+//! `tokio::sync::broadcast` channel ([`ManagerOptions::viewer_buffer`]
+//! frames). A slow viewer never blocks the run: it lags, is told so, and is
+//! sent the newest page of summaries (see [`crate::server`]).
 //!
 //! One run, one task (ARCHITECTURE.md, invariant 6): starting and resuming
 //! a run go through the run's lifecycle lock, so concurrent `resume`s start
@@ -23,7 +25,8 @@
 mod frames;
 mod task;
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, VecDeque};
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -44,6 +47,60 @@ use crate::store::{Store, StoreError};
 
 /// Control commands queued for one run's task (bounded by construction).
 pub const CONTROL_QUEUE: usize = 16;
+
+/// Summaries of the newest iterations each run keeps in memory (one default
+/// history page), so the page sent after `Hello`/`Lagged` needs no store read.
+pub const RECENT_SUMMARIES: usize = spintune::protocol::DEFAULT_HISTORY_PAGE as usize;
+
+/// Limits of a run's viewer WebSockets (see `crate::server` for the constants
+/// and what happens when one is reached).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ViewerLimits {
+    /// A send to a viewer that does not complete in this time disconnects it.
+    pub send_timeout: Duration,
+    /// The server pings every viewer this often.
+    pub ping_interval: Duration,
+    /// A viewer from which nothing (pong or any frame) arrived for this long
+    /// is disconnected (checked at each ping).
+    pub pong_timeout: Duration,
+    /// Open viewer WebSockets per run; one more is refused with 503.
+    pub max_viewers_per_run: usize,
+}
+
+impl Default for ViewerLimits {
+    fn default() -> Self {
+        Self {
+            send_timeout: crate::server::VIEWER_SEND_TIMEOUT,
+            ping_interval: crate::server::VIEWER_PING_INTERVAL,
+            pong_timeout: crate::server::VIEWER_PONG_TIMEOUT,
+            max_viewers_per_run: crate::server::MAX_VIEWERS_PER_RUN,
+        }
+    }
+}
+
+/// One open viewer socket of a run (counted until dropped; holds the count,
+/// not the run, so deleting the run still closes its channel).
+pub struct ViewerSlot(Arc<AtomicUsize>);
+
+impl Drop for ViewerSlot {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::AcqRel);
+    }
+}
+
+/// A page of summaries served from memory ([`RunHandle::recent_page`]).
+#[derive(Debug, Clone)]
+pub struct RecentPage {
+    /// Seq of the first record (`None`: empty page).
+    pub first_seq: Option<u64>,
+    /// Summary records as JSON, oldest first.
+    pub records: Vec<Utf8Bytes>,
+    /// Older iterations exist.
+    pub more_before: bool,
+    /// The seq after the page's range (the newest committed + 1 for a page
+    /// of the newest).
+    pub end: u64,
+}
 
 /// Everything needed to continue a run: stored after every iteration.
 #[derive(Debug, Serialize, Deserialize)]
@@ -136,6 +193,11 @@ pub struct RunHandle {
     control: Mutex<Option<mpsc::Sender<ControlMsg>>>,
     /// Held while starting, resuming or controlling the run: at most one task.
     lifecycle: tokio::sync::Mutex<()>,
+    /// (seq, summary JSON) of the newest committed iterations, at most
+    /// [`RECENT_SUMMARIES`].
+    recent: Mutex<VecDeque<(u64, Utf8Bytes)>>,
+    /// Open viewer sockets ([`RunHandle::add_viewer`]).
+    viewer_sockets: Arc<AtomicUsize>,
 }
 
 impl RunHandle {
@@ -147,7 +209,67 @@ impl RunHandle {
             tx: broadcast::channel(viewer_buffer.max(1)).0,
             control: Mutex::new(None),
             lifecycle: tokio::sync::Mutex::new(()),
+            recent: Mutex::new(VecDeque::with_capacity(RECENT_SUMMARIES)),
+            viewer_sockets: Arc::new(AtomicUsize::new(0)),
         }
+    }
+
+    /// Count one more open viewer socket, unless `max` are open already.
+    pub fn add_viewer(&self, max: usize) -> Option<ViewerSlot> {
+        self.viewer_sockets
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
+                (n < max).then_some(n + 1)
+            })
+            .ok()
+            .map(|_| ViewerSlot(self.viewer_sockets.clone()))
+    }
+
+    /// Open viewer sockets.
+    pub fn viewer_sockets(&self) -> usize {
+        self.viewer_sockets.load(Ordering::Acquire)
+    }
+
+    fn remember_summary(&self, seq: u64, summary: Utf8Bytes) {
+        let mut recent = self.recent.lock().unwrap_or_else(|p| p.into_inner());
+        if recent.back().is_some_and(|(s, _)| s + 1 != seq) {
+            recent.clear();
+        }
+        if recent.len() == RECENT_SUMMARIES {
+            recent.pop_front();
+        }
+        recent.push_back((seq, summary));
+    }
+
+    /// The page of summaries with seq in `[from.max(before - limit), before)`
+    /// (`before` `None`: up to the newest committed iteration), if the ring of
+    /// recent summaries holds all of it; `None`: ask the store.
+    pub fn recent_page(&self, before: Option<u64>, limit: u64, from: u64) -> Option<RecentPage> {
+        let recent = self.recent.lock().unwrap_or_else(|p| p.into_inner());
+        let committed = self.summary().iterations;
+        let end = before.map_or(committed, |b| b.min(committed));
+        let start = end.saturating_sub(limit).max(from);
+        if start >= end {
+            // Seq is contiguous from 0: older iterations exist iff end > 0.
+            return Some(RecentPage {
+                first_seq: None,
+                records: Vec::new(),
+                more_before: end > 0,
+                end,
+            });
+        }
+        let (first, _) = *recent.front()?;
+        let (last, _) = *recent.back()?;
+        if start < first || end - 1 > last {
+            return None;
+        }
+        let lo = (start - first) as usize;
+        let hi = (end - first) as usize;
+        Some(RecentPage {
+            first_seq: Some(start),
+            records: recent.range(lo..hi).map(|(_, t)| t.clone()).collect(),
+            more_before: start > 0,
+            end,
+        })
     }
 
     /// Current summary.
@@ -207,6 +329,8 @@ pub struct ManagerOptions {
     /// At open, mark runs left `running`/`paused` by a previous process as
     /// `interrupted` (the server does; a headless `run` sharing the store does not).
     pub recover: bool,
+    /// Limits of viewer sockets (send timeout, pings, sockets per run).
+    pub viewers: ViewerLimits,
 }
 
 impl Default for ManagerOptions {
@@ -215,6 +339,7 @@ impl Default for ManagerOptions {
             iteration_delay: Duration::from_millis(0),
             viewer_buffer: 256,
             recover: true,
+            viewers: ViewerLimits::default(),
         }
     }
 }
@@ -293,6 +418,11 @@ impl Manager {
             options,
             bridges: Links::default(),
         }))
+    }
+
+    /// The manager's settings.
+    pub fn options(&self) -> &ManagerOptions {
+        &self.options
     }
 
     /// The store.
@@ -545,7 +675,10 @@ impl Manager {
         let seq = handle.summary().iterations;
         let store = self.store.clone();
         let id = handle.id;
-        let text = iteration_frame_text(&record_json);
+        let full = iteration_frame_text(&record_json);
+        let summary_json = serde_json::to_string(&record.summary())
+            .map_err(|e| RunError::Internal(format!("cannot serialize a summary: {e}")))?;
+        let text = iteration_frame_text(&summary_json);
         blocking(move || {
             store.commit_iteration(
                 id,
@@ -563,9 +696,11 @@ impl Manager {
             s.lab_seconds = lab_seconds;
             s.tuned = tuned;
         });
+        handle.remember_summary(seq, Utf8Bytes::from(summary_json));
         let _ = handle.tx.send(Frame {
             seq: Some(seq),
             text: Utf8Bytes::from(text),
+            full: Some(Utf8Bytes::from(full)),
             event: FrameEvent::Iteration(record),
         });
         Ok(seq)

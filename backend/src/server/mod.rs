@@ -24,18 +24,35 @@
 //! gets one `Error` frame naming both versions, and the socket closes.
 //!
 //! WebSocket (`ServerMessage` / `ClientMessage` JSON text frames): the server
-//! sends `Hello`, then `History` (stored records with seq ≥ `from`), then every
-//! new `Iteration` live and a `Status` on every status change. A viewer whose
-//! buffer ([`crate::run::ManagerOptions::viewer_buffer`] frames) overflows gets
-//! `Lagged{skipped}` followed by a `History` refill from the store, so it
-//! still sees every iteration exactly once and in order. The client may send
-//! `Auth{token}` (→ `AuthOk` or `Error`) and then `Control{command}` (→ `Status`
-//! or `Error`). Malformed or unauthorised frames get an `Error`; the socket
-//! stays open.
+//! sends `Hello`, then one `History` page (the newest
+//! [`DEFAULT_HISTORY_PAGE`] iteration *summaries* — records with `scans`
+//! empty — not older than `from`, with `more_before`), then every new
+//! `Iteration` live (a summary; the full record after
+//! `{"type":"subscribe","scans":true}`) and a `Status` on every status change.
+//! The client pages back with `{"type":"history","before":K,"limit":L}` (L ≤
+//! [`MAX_HISTORY_PAGE`], larger → `Error`) and asks for one iteration's scans
+//! with `{"type":"scans","iteration":K}` (→ `Scans`). A viewer whose buffer
+//! ([`crate::run::ManagerOptions::viewer_buffer`] frames) overflows gets
+//! `Lagged{skipped}` followed by the newest page again (not older than what
+//! the socket was already sent); it pages back to fill the gap. The client
+//! may send `Auth{token}` (→ `AuthOk` or `Error`) and then `Control{command}`
+//! (→ `Status` or `Error`). Malformed or unauthorised frames get an `Error`;
+//! the socket stays open.
+//!
+//! Bounds (ARCHITECTURE.md, invariant 8): a send to a viewer that does not
+//! complete within [`VIEWER_SEND_TIMEOUT`] closes the socket (so a viewer
+//! that never reads holds at most one frame, a page of at most
+//! [`MAX_HISTORY_PAGE`] summaries, plus the shared broadcast ring); the
+//! server pings every [`VIEWER_PING_INTERVAL`] and closes a socket from which
+//! nothing arrived for [`VIEWER_PONG_TIMEOUT`]; inbound frames are capped at
+//! [`MAX_VIEWER_MESSAGE`] (viewer) and [`MAX_BRIDGE_MESSAGE`] (bridge); at
+//! most [`MAX_VIEWERS_PER_RUN`] viewer sockets per run (one more → 503).
+//! Connection limits (header read timeout, connections per IP): [`listener`].
 
 use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::Arc;
+use std::time::Duration;
 
 use axum::body::Bytes;
 use axum::extract::ws::{Message, Utf8Bytes, WebSocket, WebSocketUpgrade};
@@ -46,15 +63,17 @@ use axum::routing::{get, post};
 use axum::{Json, Router};
 use serde_json::json;
 use spintune::protocol::{
-    ClientMessage, ControlCommand, ProtocolError, ServerMessage, PROTOCOL_VERSION,
+    ClientMessage, ControlCommand, IterationRecord, ProtocolError, ServerMessage,
+    DEFAULT_HISTORY_PAGE, MAX_HISTORY_PAGE, PROTOCOL_VERSION,
 };
 use tokio::sync::broadcast::error::RecvError;
 use tower_http::services::ServeDir;
 
 mod bridge_socket;
+pub mod listener;
 
 use crate::config::RunConfig;
-use crate::run::{history_frame_text, Manager, RunError};
+use crate::run::{history_frame_text, Manager, RunError, ViewerSlot};
 
 /// Records per `GET /api/runs/{id}/iterations` page when no `limit` is given.
 pub const DEFAULT_PAGE: u64 = 1_000;
@@ -65,6 +84,21 @@ pub const MAX_VIEWER_MESSAGE: usize = 64 * 1024;
 /// Largest frame a lab bridge may send (a raw scan: e.g. 4 traces of 100,000
 /// points as JSON numbers), bytes.
 pub const MAX_BRIDGE_MESSAGE: usize = 16 * 1024 * 1024;
+/// A send to a viewer (one frame into the socket) that does not complete in
+/// this time closes the viewer's socket: a viewer that stops reading holds
+/// at most one frame for at most this long.
+pub const VIEWER_SEND_TIMEOUT: Duration = Duration::from_secs(10);
+/// The server pings every viewer this often.
+pub const VIEWER_PING_INTERVAL: Duration = Duration::from_secs(15);
+/// A viewer from which nothing (a pong or any frame) arrived for this long
+/// is disconnected; checked at each ping, so it goes within
+/// `VIEWER_PONG_TIMEOUT + VIEWER_PING_INTERVAL`.
+pub const VIEWER_PONG_TIMEOUT: Duration = Duration::from_secs(45);
+/// Open viewer WebSockets per run; one more is refused with 503.
+pub const MAX_VIEWERS_PER_RUN: usize = 1024;
+/// How long the server tries to send a close frame to a viewer it drops for
+/// a timeout.
+const CLOSE_GRACE: Duration = Duration::from_secs(1);
 
 /// Shared state of the HTTP handlers.
 #[derive(Clone)]
@@ -349,9 +383,25 @@ async fn iterations(
             format!("limit {limit} exceeds the largest page, {MAX_PAGE} records; page with `from`"),
         ));
     }
+    let scans = match q.get("scans").map(String::as_str) {
+        None | Some("true") => true,
+        Some("false") => false,
+        Some(other) => {
+            return Err(ApiError(
+                StatusCode::BAD_REQUEST,
+                format!("query parameter `scans` must be `true` or `false`, got {other:?}"),
+            ))
+        }
+    };
     s.manager.get(id)?;
     let store = s.manager.store().clone();
-    let records = tokio::task::spawn_blocking(move || store.iterations_json(id, from, Some(limit)))
+    let records = tokio::task::spawn_blocking(move || {
+        if scans {
+            store.iterations_json(id, from, Some(limit))
+        } else {
+            store.summaries_json(id, from, limit)
+        }
+    })
         .await
         .map_err(|e| ApiError(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?
         .map_err(|e| ApiError::from(RunError::from(e)))?;
@@ -424,6 +474,7 @@ async fn ws(
     s.manager.get(id)?;
     // Client messages are small; a small read buffer keeps each (frequent,
     // usually empty) poll of the socket cheap, since tungstenite zeroes it.
+    let handle = s.manager.get(id)?;
     let upgrade = upgrade
         .read_buffer_size(4 * 1024)
         .max_message_size(MAX_VIEWER_MESSAGE)
@@ -434,12 +485,15 @@ async fn ws(
             text_of(&ServerMessage::Error { message }),
         ));
     }
-    Ok(upgrade.on_upgrade(move |socket| async move {
-        if let Err(e) = viewer(s, id, from, socket).await {
-            // A viewer going away is normal; nothing else to do.
-            let _ = e;
-        }
-    }))
+    let max = s.manager.options().viewers.max_viewers_per_run;
+    let Some(slot) = handle.add_viewer(max) else {
+        return Err(ApiError(
+            StatusCode::SERVICE_UNAVAILABLE,
+            format!("run {id} already has {max} open viewer WebSockets, the most the server serves per run; try again later"),
+        ));
+    };
+    drop(handle);
+    Ok(upgrade.on_upgrade(move |socket| viewer(s, id, from, socket, slot)))
 }
 
 /// The lab bridge's socket (see [`crate::devices::bridge`]).
@@ -493,52 +547,174 @@ fn text_of(msg: &ServerMessage) -> Message {
     ))
 }
 
-/// Send stored records with seq ≥ `next` as one `History` frame; returns the new `next`.
-async fn refill(
-    state: &AppState,
-    id: u64,
-    next: u64,
-    socket: &mut WebSocket,
-) -> Result<u64, axum::Error> {
-    let store = state.manager.store().clone();
-    let records = tokio::task::spawn_blocking(move || store.iterations_json(id, next, None))
-        .await
-        .ok()
-        .and_then(Result::ok)
-        .unwrap_or_default();
-    let n = records.len() as u64;
-    socket
-        .send(Message::Text(Utf8Bytes::from(history_frame_text(
-            &records, false,
-        ))))
-        .await?;
-    Ok(next + n)
+/// What the viewer's socket loop answers itself (it needs the socket).
+enum ViewerRequest {
+    History { before: Option<u64>, limit: u32 },
+    Scans { iteration: u64 },
 }
 
-/// One viewer's socket: history, then live frames; answers client messages.
-async fn viewer(
-    state: AppState,
+/// Per-socket state that client messages change.
+#[derive(Default)]
+struct ViewerState {
+    /// Live `Iteration` frames carry the full record.
+    scans: bool,
+    /// A request for the socket loop.
+    request: Option<ViewerRequest>,
+}
+
+/// Why a viewer's socket ended.
+enum ViewerEnd {
+    /// The client went away, closed, or the run was deleted.
+    Gone,
+    /// A send did not complete within the send timeout.
+    SendTimeout(Duration),
+    /// Nothing arrived within the pong timeout.
+    Idle(Duration),
+}
+
+/// Send one frame within `timeout`.
+async fn send_within(
+    socket: &mut WebSocket,
+    msg: Message,
+    timeout: Duration,
+) -> Result<(), ViewerEnd> {
+    match tokio::time::timeout(timeout, socket.send(msg)).await {
+        Ok(Ok(())) => Ok(()),
+        Ok(Err(_)) => Err(ViewerEnd::Gone),
+        Err(_) => Err(ViewerEnd::SendTimeout(timeout)),
+    }
+}
+
+/// A `History` frame of summaries with seq in `[from.max(end - limit), end)`,
+/// `end` = `before` or the newest; with the page's `end` (see
+/// [`crate::run::RecentPage::end`]). From the run's ring of recent summaries
+/// when it holds the page, else from the store. `None`: the run is gone or
+/// the store failed.
+async fn history_page(
+    state: &AppState,
     id: u64,
+    before: Option<u64>,
+    limit: u64,
     from: u64,
-    mut socket: WebSocket,
-) -> Result<(), axum::Error> {
-    let Ok(handle) = state.manager.get(id) else {
-        return Ok(());
+) -> Option<(Message, u64)> {
+    let handle = state.manager.get(id).ok()?;
+    if let Some(page) = handle.recent_page(before, limit, from) {
+        let records: Vec<&str> = page.records.iter().map(Utf8Bytes::as_str).collect();
+        let text = history_frame_text(&records, page.more_before);
+        return Some((Message::Text(Utf8Bytes::from(text)), page.end));
+    }
+    drop(handle);
+    let store = state.manager.store().clone();
+    let page = tokio::task::spawn_blocking(move || store.summary_page(id, before, limit))
+        .await
+        .ok()?
+        .ok()?;
+    let first = page.first_seq.unwrap_or(0);
+    let len = page.records.len() as u64;
+    let end = page.first_seq.map_or(before.unwrap_or(0), |f| f + len);
+    let skip = from.saturating_sub(first).min(len);
+    let records = &page.records[skip as usize..];
+    // Seq is contiguous from 0: a page starting above 0 has older iterations.
+    let more_before = if skip > 0 {
+        first + skip > 0
+    } else {
+        page.more_before
     };
-    // Subscribe before reading the store so that nothing falls in between;
-    // duplicates are dropped by seq below.
+    let text = history_frame_text(records, more_before);
+    Some((Message::Text(Utf8Bytes::from(text)), end))
+}
+
+/// The answer to `Scans{iteration}`: the stored record's scans.
+async fn scans_of(state: &AppState, id: u64, iteration: u64) -> ServerMessage {
+    let store = state.manager.store().clone();
+    let stored = tokio::task::spawn_blocking(move || store.iteration_json(id, iteration))
+        .await
+        .map_err(|e| e.to_string())
+        .and_then(|r| r.map_err(|e| e.to_string()));
+    let record = match stored {
+        Ok(Some(json)) => serde_json::from_str::<IterationRecord>(&json).map_err(|e| e.to_string()),
+        Ok(None) => {
+            return ServerMessage::Error {
+                message: format!("run {id} has no stored iteration {iteration}"),
+            }
+        }
+        Err(e) => Err(e),
+    };
+    match record {
+        Ok(r) if r.iteration == iteration => ServerMessage::Scans {
+            iteration,
+            scans: r.scans,
+        },
+        Ok(r) => ServerMessage::Error {
+            message: format!(
+                "run {id}: the record stored at position {iteration} is iteration {}",
+                r.iteration
+            ),
+        },
+        Err(e) => ServerMessage::Error {
+            message: format!("run {id}: cannot read iteration {iteration}: {e}"),
+        },
+    }
+}
+
+/// One viewer's socket: the loop, then a close frame with the reason if the
+/// server ends it for a timeout. `_slot` counts the socket against
+/// [`MAX_VIEWERS_PER_RUN`] until it ends.
+async fn viewer(state: AppState, id: u64, from: u64, mut socket: WebSocket, _slot: ViewerSlot) {
+    let end = viewer_loop(&state, id, from, &mut socket).await;
+    let reason = match end {
+        ViewerEnd::Gone => return,
+        ViewerEnd::SendTimeout(t) => format!(
+            "send timed out after {} s: the viewer does not read",
+            t.as_secs_f64()
+        ),
+        ViewerEnd::Idle(t) => format!("nothing received for {} s (no pong)", t.as_secs_f64()),
+    };
+    eprintln!("viewer of run {id} disconnected: {reason}");
+    let close = Message::Close(Some(axum::extract::ws::CloseFrame {
+        code: axum::extract::ws::close_code::POLICY,
+        reason: Utf8Bytes::from(reason),
+    }));
+    let _ = tokio::time::timeout(CLOSE_GRACE, socket.send(close)).await;
+}
+
+/// Hello and the newest page, then live frames; answers client messages.
+async fn viewer_loop(state: &AppState, id: u64, from: u64, socket: &mut WebSocket) -> ViewerEnd {
+    let limits = state.manager.options().viewers;
+    let timeout = limits.send_timeout;
+    let Ok(handle) = state.manager.get(id) else {
+        return ViewerEnd::Gone;
+    };
+    // Subscribe before reading the page so that nothing falls in between;
+    // duplicates are dropped by seq below. Only the receiver is held: when
+    // the run is deleted the channel closes.
     let mut rx = handle.subscribe();
     let hello = text_of(&ServerMessage::Hello {
         version: PROTOCOL_VERSION,
         run: handle.summary(),
     });
     drop(handle);
-    socket.send(hello).await?;
-    // Only the receiver is held: when the run is deleted the channel closes.
-    let mut next = refill(&state, id, from, &mut socket).await?;
+    if let Err(e) = send_within(socket, hello, timeout).await {
+        return e;
+    }
+    let page = DEFAULT_HISTORY_PAGE as u64;
+    // `next`: the seq of the next live iteration this socket needs.
+    let Some((frame, mut next)) = history_page(state, id, None, page, from).await else {
+        return ViewerEnd::Gone;
+    };
+    if let Err(e) = send_within(socket, frame, timeout).await {
+        return e;
+    }
     let mut authed = false;
+    let mut view = ViewerState::default();
+    let mut last_heard = tokio::time::Instant::now();
+    let mut ping = tokio::time::interval_at(
+        tokio::time::Instant::now() + limits.ping_interval,
+        limits.ping_interval,
+    );
+    ping.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
-        tokio::select! {
+        let result = tokio::select! {
             frame = rx.recv() => match frame {
                 Ok(frame) => {
                     if let Some(seq) = frame.seq {
@@ -546,41 +722,82 @@ async fn viewer(
                             continue;
                         }
                         if seq > next {
-                            // Missed something (cannot normally happen): refill.
-                            next = refill(&state, id, next, &mut socket).await?;
-                            if seq < next {
-                                continue;
+                            // Missed something (cannot normally happen): send the gap.
+                            let Some((gap, _)) =
+                                history_page(state, id, Some(seq), seq - next, next).await
+                            else {
+                                return ViewerEnd::Gone;
+                            };
+                            if let Err(e) = send_within(socket, gap, timeout).await {
+                                return e;
                             }
                         }
                         next = seq + 1;
                     }
-                    socket.send(Message::Text(frame.text)).await?;
+                    let text = match (&frame.full, view.scans) {
+                        (Some(full), true) => full.clone(),
+                        _ => frame.text,
+                    };
+                    send_within(socket, Message::Text(text), timeout).await
                 }
                 Err(RecvError::Lagged(skipped)) => {
-                    socket.send(text_of(&ServerMessage::Lagged { skipped })).await?;
-                    next = refill(&state, id, next, &mut socket).await?;
+                    let lagged = text_of(&ServerMessage::Lagged { skipped });
+                    match send_within(socket, lagged, timeout).await {
+                        Ok(()) => match history_page(state, id, None, page, next).await {
+                            Some((frame, end)) => {
+                                next = next.max(end);
+                                send_within(socket, frame, timeout).await
+                            }
+                            None => Err(ViewerEnd::Gone),
+                        },
+                        Err(e) => Err(e),
+                    }
                 }
                 Err(RecvError::Closed) => {
-                    let _ = socket.send(Message::Close(None)).await;
-                    return Ok(());
+                    let _ = send_within(socket, Message::Close(None), CLOSE_GRACE).await;
+                    Err(ViewerEnd::Gone)
                 }
             },
             incoming = socket.recv() => {
-                let Some(incoming) = incoming else { return Ok(()) };
-                let reply = match incoming? {
+                let Some(Ok(incoming)) = incoming else { return ViewerEnd::Gone };
+                last_heard = tokio::time::Instant::now();
+                let reply = match incoming {
                     Message::Text(text) => {
-                        client_message(&state, id, text.as_str(), &mut authed).await
+                        client_message(state, id, text.as_str(), &mut authed, &mut view).await
                     }
                     Message::Binary(_) => Some(ServerMessage::Error {
                         message: "binary frames are not supported; send JSON text".into(),
                     }),
-                    Message::Close(_) => return Ok(()),
+                    Message::Close(_) => return ViewerEnd::Gone,
                     Message::Ping(_) | Message::Pong(_) => None,
                 };
-                if let Some(reply) = reply {
-                    socket.send(text_of(&reply)).await?;
+                let reply = match (reply, view.request.take()) {
+                    (Some(reply), _) => Some(text_of(&reply)),
+                    (None, Some(ViewerRequest::History { before, limit })) => {
+                        match history_page(state, id, before, limit as u64, 0).await {
+                            Some((frame, _)) => Some(frame),
+                            None => return ViewerEnd::Gone,
+                        }
+                    }
+                    (None, Some(ViewerRequest::Scans { iteration })) => {
+                        Some(text_of(&scans_of(state, id, iteration).await))
+                    }
+                    (None, None) => None,
+                };
+                match reply {
+                    Some(reply) => send_within(socket, reply, timeout).await,
+                    None => Ok(()),
                 }
             }
+            _ = ping.tick() => {
+                if last_heard.elapsed() >= limits.pong_timeout {
+                    return ViewerEnd::Idle(limits.pong_timeout);
+                }
+                send_within(socket, Message::Ping(Bytes::new()), timeout).await
+            }
+        };
+        if let Err(e) = result {
+            return e;
         }
     }
 }
@@ -590,6 +807,7 @@ async fn client_message(
     id: u64,
     text: &str,
     authed: &mut bool,
+    view: &mut ViewerState,
 ) -> Option<ServerMessage> {
     let msg = match parse_client_message(text) {
         Ok(m) => m,
@@ -626,11 +844,27 @@ async fn client_message(
                 }
             }
         }
-        // TODO(issue 12): paged history, scans on request, summary frames.
-        ClientMessage::History { .. }
-        | ClientMessage::Scans { .. }
-        | ClientMessage::Subscribe { .. } => ServerMessage::Error {
-            message: "not implemented yet".into(),
-        },
+        // Paging and scans are answered by the socket loop (`viewer_loop`).
+        ClientMessage::History { before, limit } => {
+            let limit = limit.unwrap_or(DEFAULT_HISTORY_PAGE);
+            if limit > MAX_HISTORY_PAGE {
+                ServerMessage::Error {
+                    message: format!(
+                        "history limit {limit} exceeds the largest page, {MAX_HISTORY_PAGE} records; ask for older pages with `before`"
+                    ),
+                }
+            } else {
+                view.request = Some(ViewerRequest::History { before, limit });
+                return None;
+            }
+        }
+        ClientMessage::Scans { iteration } => {
+            view.request = Some(ViewerRequest::Scans { iteration });
+            return None;
+        }
+        ClientMessage::Subscribe { scans } => {
+            view.scans = scans;
+            return None;
+        }
     })
 }

@@ -56,6 +56,7 @@ pub async fn server(dir: &TempDir, viewer_buffer: usize) -> Server {
         viewer_buffer,
         demo: DemoMode::Never,
         demo_config: None,
+        limits: Default::default(),
     })
     .await
     .unwrap_or_else(|e| panic!("server: {}", e.message))
@@ -269,4 +270,36 @@ pub fn spawn_server(db: &std::path::Path) -> (Proc, SocketAddr) {
         .recv_timeout(Duration::from_secs(20))
         .expect("server did not print its address");
     (Proc(child), addr.parse().unwrap())
+}
+
+/// `spintune serve` arguments as the command line would give them (every
+/// flag not named here at its default): loopback, ephemeral port, a fresh
+/// store in `dir`, no demo, no pacing, the given viewer buffer.
+pub fn serve_args(dir: &TempDir, viewer_buffer: usize) -> ServeArgs {
+    #[derive(clap::Parser)]
+    struct Cmd {
+        #[command(flatten)]
+        serve: ServeArgs,
+    }
+    let db = dir.0.join("test.db");
+    let dist = dir.0.join("dist");
+    let buffer = viewer_buffer.to_string();
+    <Cmd as clap::Parser>::parse_from([
+        "serve".as_ref(),
+        "--bind".as_ref(),
+        "127.0.0.1:0".as_ref(),
+        "--db".as_ref(),
+        db.as_os_str(),
+        "--dist".as_ref(),
+        dist.as_os_str(),
+        "--token".as_ref(),
+        TOKEN.as_ref(),
+        "--iteration-delay-ms".as_ref(),
+        "0".as_ref(),
+        "--viewer-buffer".as_ref(),
+        buffer.as_ref(),
+        "--demo".as_ref(),
+        "never".as_ref(),
+    ] as [&std::ffi::OsStr; 15])
+    .serve
 }

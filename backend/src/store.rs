@@ -433,7 +433,12 @@ impl Store {
 
     /// Stored iteration summaries (JSON, `scans` = `[]`) of run `id` with
     /// `seq >= from`, at most `limit`, oldest first.
-    pub fn summaries_json(&self, id: u64, from: u64, limit: u64) -> Result<Vec<String>, StoreError> {
+    pub fn summaries_json(
+        &self,
+        id: u64,
+        from: u64,
+        limit: u64,
+    ) -> Result<Vec<String>, StoreError> {
         let conn = self.r();
         let mut stmt = conn.prepare_cached(
             "SELECT json_set(record, '$.scans', json('[]')) FROM iterations \
@@ -455,10 +460,9 @@ impl Store {
         Ok(self
             .r()
             .prepare_cached("SELECT record FROM iterations WHERE run_id = ?1 AND seq = ?2")?
-            .query_row(
-                params![id as i64, seq.min(i64::MAX as u64) as i64],
-                |r| r.get(0),
-            )
+            .query_row(params![id as i64, seq.min(i64::MAX as u64) as i64], |r| {
+                r.get(0)
+            })
             .optional()?)
     }
 

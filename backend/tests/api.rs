@@ -164,7 +164,10 @@ async fn slow_viewer_is_told_it_lagged_and_can_page_back_to_every_iteration() {
             _ => unreachable!(),
         }
     }
-    assert_eq!(got.keys().copied().collect::<Vec<_>>(), (0..n).collect::<Vec<_>>());
+    assert_eq!(
+        got.keys().copied().collect::<Vec<_>>(),
+        (0..n).collect::<Vec<_>>()
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

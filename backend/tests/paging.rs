@@ -120,10 +120,18 @@ async fn newest_page_after_hello_then_older_pages_reach_iteration_zero_and_overs
     let mut more_before = more;
     while more_before {
         let before = all[0].iteration;
-        send(&mut ws, &format!(r#"{{"type":"history","before":{before}}}"#)).await;
+        send(
+            &mut ws,
+            &format!(r#"{{"type":"history","before":{before}}}"#),
+        )
+        .await;
         let (older, more) = page(&mut ws).await;
         assert!(!older.is_empty() && older.len() as u64 <= p);
-        assert_eq!(older.last().unwrap().iteration + 1, before, "not contiguous");
+        assert_eq!(
+            older.last().unwrap().iteration + 1,
+            before,
+            "not contiguous"
+        );
         more_before = more;
         all.splice(0..0, older);
     }
@@ -287,14 +295,20 @@ async fn viewers_beyond_the_per_run_cap_get_503_with_a_clear_reason() {
             let body = String::from_utf8_lossy(resp.body().as_deref().unwrap_or(&[])).to_string();
             let v: Value = serde_json::from_str(&body).unwrap();
             assert!(
-                v["error"].as_str().unwrap().contains("open viewer WebSockets"),
+                v["error"]
+                    .as_str()
+                    .unwrap()
+                    .contains("open viewer WebSockets"),
                 "{body}"
             );
         }
         other => panic!("the third viewer was not refused: {other:?}"),
     }
     // A viewer that leaves frees its place.
-    assert!(matches!(next_msg(&mut a).await, ServerMessage::Hello { .. }));
+    assert!(matches!(
+        next_msg(&mut a).await,
+        ServerMessage::Hello { .. }
+    ));
     a.close(None).await.unwrap();
     drop(a);
     let freed = tokio::time::timeout(STEP, async {

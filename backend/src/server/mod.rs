@@ -402,9 +402,9 @@ async fn iterations(
             store.summaries_json(id, from, limit)
         }
     })
-        .await
-        .map_err(|e| ApiError(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?
-        .map_err(|e| ApiError::from(RunError::from(e)))?;
+    .await
+    .map_err(|e| ApiError(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?
+    .map_err(|e| ApiError::from(RunError::from(e)))?;
     let body = format!("[{}]", records.join(","));
     Ok(([(header::CONTENT_TYPE, "application/json")], body))
 }

@@ -115,6 +115,7 @@ async fn measure(
         viewer_buffer: args.viewer_buffer,
         demo: DemoMode::Never,
         demo_config: None,
+        security: Default::default(),
     };
     let server = start_server(&serve).await?;
     let mut cfg = RunConfig::paper_default();

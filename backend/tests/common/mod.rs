@@ -56,6 +56,7 @@ pub async fn server(dir: &TempDir, viewer_buffer: usize) -> Server {
         viewer_buffer,
         demo: DemoMode::Never,
         demo_config: None,
+        security: Default::default(),
     })
     .await
     .unwrap_or_else(|e| panic!("server: {}", e.message))

@@ -110,7 +110,7 @@ async fn ws_with_origin(
 }
 
 async fn paused_run(addr: SocketAddr) -> u64 {
-    let run = create_run(addr, &small_config("access", 3, 0)).await;
+    let run = create_run(addr, &small_config("access", 1_000, 50)).await;
     let (s, b) = control(addr, run.id, r#"{"action":"pause"}"#).await;
     assert_eq!(s, 200, "{b}");
     run.id

@@ -351,7 +351,9 @@ async fn get_config(
     headers: HeaderMap,
 ) -> ApiResult<impl IntoResponse> {
     let id = parse_id(&id)?;
-    let config = s.manager.get(id)?.config.clone();
+    let handle = s.manager.get(id)?;
+    handle.readable()?;
+    let config = handle.config.clone();
     // Full with the token; instrument addresses, channel maps and secrets redacted without.
     if headers.contains_key(header::AUTHORIZATION) {
         authorize(&s, client, &headers)?;

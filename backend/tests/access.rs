@@ -124,8 +124,7 @@ async fn websocket_from_a_foreign_origin_is_refused_same_origin_and_scripts_acce
 
     let (status, body) = ws_with_origin(addr, id, Some("https://evil.example"))
         .await
-        .err()
-        .expect("a foreign origin's WebSocket was accepted");
+        .expect_err("a foreign origin's WebSocket was accepted");
     assert_eq!(status, 403, "{body}");
     assert!(
         body.contains("--allow-origin https://evil.example"),

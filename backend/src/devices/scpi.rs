@@ -96,6 +96,14 @@ pub struct ScpiConfig {
 
 /// Most `sour{ch}:volt` commands one move may take (bounds the planned ramp).
 pub const MAX_RAMP_STAGES: usize = 1_000;
+/// Largest `ramp_step_mv`, mV.
+pub const MAX_RAMP_STEP_MV: f64 = 1_000.0;
+/// Largest `slew_v_per_s`, V/s.
+pub const MAX_SLEW_V_PER_S: f64 = 1_000.0;
+/// Largest `readback_tolerance_mv` (SCPI and bridge), mV.
+pub const MAX_READBACK_TOLERANCE_MV: f64 = 100.0;
+/// Largest `timeout_ms` and `settle_ms`, ms (10 minutes).
+pub const MAX_TIMEOUT_MS: u64 = 600_000;
 
 fn default_ramp_step_mv() -> f64 {
     1.0
@@ -144,10 +152,16 @@ impl ScpiConfig {
                 ));
             }
         }
-        if !(self.ramp_step_mv.is_finite() && self.ramp_step_mv > 0.0) {
+        if !(self.ramp_step_mv.is_finite()
+            && self.ramp_step_mv > 0.0
+            && self.ramp_step_mv <= MAX_RAMP_STEP_MV)
+        {
             return Err(ConfigError::new(
                 "ramp_step_mv",
-                format!("must be a positive number of mV, got {}", self.ramp_step_mv),
+                format!(
+                    "must be a positive number of mV, at most {MAX_RAMP_STEP_MV}, got {}",
+                    self.ramp_step_mv
+                ),
             ));
         }
         // Bounded by construction: one move ramps in at most MAX_RAMP_STAGES commands.
@@ -167,24 +181,41 @@ impl ScpiConfig {
             ));
         }
         if let Some(s) = self.slew_v_per_s {
-            if !(s.is_finite() && s > 0.0) {
+            if !(s.is_finite() && s > 0.0 && s <= MAX_SLEW_V_PER_S) {
                 return Err(ConfigError::new(
                     "slew_v_per_s",
-                    format!("must be a positive number of V/s, got {s}"),
+                    format!(
+                        "must be a positive number of V/s, at most {MAX_SLEW_V_PER_S}, got {s}"
+                    ),
                 ));
             }
         }
-        if !(self.readback_tolerance_mv.is_finite() && self.readback_tolerance_mv >= 0.0) {
+        if !(self.readback_tolerance_mv.is_finite()
+            && self.readback_tolerance_mv >= 0.0
+            && self.readback_tolerance_mv <= MAX_READBACK_TOLERANCE_MV)
+        {
             return Err(ConfigError::new(
                 "readback_tolerance_mv",
                 format!(
-                    "must be a non-negative number of mV, got {}",
+                    "must be a non-negative number of mV, at most {MAX_READBACK_TOLERANCE_MV}, got {}",
                     self.readback_tolerance_mv
                 ),
             ));
         }
-        if self.timeout_ms == 0 {
-            return Err(ConfigError::new("timeout_ms", "must be at least 1 ms"));
+        if !(1..=MAX_TIMEOUT_MS).contains(&self.timeout_ms) {
+            return Err(ConfigError::new(
+                "timeout_ms",
+                format!("must be 1 to {MAX_TIMEOUT_MS} ms, got {}", self.timeout_ms),
+            ));
+        }
+        if self.settle_ms > MAX_TIMEOUT_MS {
+            return Err(ConfigError::new(
+                "settle_ms",
+                format!(
+                    "must be at most {MAX_TIMEOUT_MS} ms, got {}",
+                    self.settle_ms
+                ),
+            ));
         }
         Ok(())
     }
@@ -727,7 +758,7 @@ mod tests {
         let e = c.validate(&gates).unwrap_err();
         assert_eq!(
             e.to_string(),
-            "invalid config at `ramp_step_mv`: must be a positive number of mV, got NaN"
+            "invalid config at `ramp_step_mv`: must be a positive number of mV, at most 1000, got NaN"
         );
         c.ramp_step_mv = 1e-7;
         let e = c.validate(&gates).unwrap_err();

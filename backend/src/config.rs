@@ -31,7 +31,7 @@ use spintune::parameter::Tolerance;
 use spintune::ConfigError;
 
 pub use crate::devices::bridge::BridgeConfig;
-pub use crate::devices::scpi::{MeasureSource, ScpiConfig};
+pub use crate::devices::scpi::{MeasureSource, ScpiConfig, ScpiProfile};
 
 /// Which device a run drives.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]

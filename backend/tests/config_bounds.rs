@@ -29,7 +29,9 @@ fn full_config() -> Value {
             "readback_tolerance_mv": 0.05,
             "timeout_ms": 2000,
             "settle_ms": 0,
-            "measure": "bridge"
+            "measure": "bridge",
+            "profile": "qdac2",
+            "max_leakage_na": 100.0
         }),
     );
     obj.insert(
@@ -186,4 +188,21 @@ fn sweep_points_and_ramp_plans_are_bounded() {
         assert!(e.0.contains(&format!("`{path}`")), "{path}: {e}");
         v = full_config();
     }
+}
+
+#[test]
+fn the_leakage_check_needs_the_qdac2_profile() {
+    let e = RunConfig::from_toml_str(
+        "driver = \"scpi\"\n[scpi]\naddress = \"h:1\"\nchannels = { N = 1 }\nmax_leakage_na = 100.0",
+    )
+    .unwrap_err();
+    assert!(
+        e.0.contains("`scpi.max_leakage_na`") && e.0.contains("qdac2"),
+        "{e}"
+    );
+    let e = RunConfig::from_toml_str(
+        "driver = \"scpi\"\n[scpi]\naddress = \"h:1\"\nchannels = { N = 1 }\nprofile = \"keithley\"",
+    )
+    .unwrap_err();
+    assert!(e.0.contains("scpi.profile"), "{e}");
 }

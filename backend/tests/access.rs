@@ -119,7 +119,7 @@ async fn paused_run(addr: SocketAddr) -> u64 {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn websocket_from_a_foreign_origin_is_refused_same_origin_and_scripts_accepted() {
     let dir = TempDir::new("origin-ws");
-    let (_p, addr, _) = spawn(&["--token", TOKEN], &[], &dir.0.join("s.db"));
+    let (_p, addr, _) = spawn(&[], &[("SPINTUNE_TOKEN", TOKEN)], &dir.0.join("s.db"));
     let id = paused_run(addr).await;
 
     let (status, body) = ws_with_origin(addr, id, Some("https://evil.example"))
@@ -145,7 +145,7 @@ async fn websocket_from_a_foreign_origin_is_refused_same_origin_and_scripts_acce
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_foreign_origin_cannot_change_state_even_with_the_token() {
     let dir = TempDir::new("origin-post");
-    let (_p, addr, _) = spawn(&["--token", TOKEN], &[], &dir.0.join("s.db"));
+    let (_p, addr, _) = spawn(&[], &[("SPINTUNE_TOKEN", TOKEN)], &dir.0.join("s.db"));
     let id = paused_run(addr).await;
     let head = format!(
         "POST /api/runs/{id}/control HTTP/1.1\r\nHost: {addr}\r\nOrigin: https://evil.example\r\nAuthorization: Bearer {TOKEN}"
@@ -163,7 +163,7 @@ async fn a_foreign_origin_cannot_change_state_even_with_the_token() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_foreign_host_header_is_refused_naming_allow_host() {
     let dir = TempDir::new("host");
-    let (_p, addr, _) = spawn(&["--token", TOKEN], &[], &dir.0.join("s.db"));
+    let (_p, addr, _) = spawn(&[], &[("SPINTUNE_TOKEN", TOKEN)], &dir.0.join("s.db"));
     let (status, body) = raw(
         addr,
         None,
@@ -190,14 +190,12 @@ async fn allow_origin_and_allow_host_admit_the_named_page_and_name() {
     let dir = TempDir::new("allow");
     let (_p, addr, _) = spawn(
         &[
-            "--token",
-            TOKEN,
             "--allow-origin",
             "https://dash.lab.example",
             "--allow-host",
             "spintune.lab.example",
         ],
-        &[],
+        &[("SPINTUNE_TOKEN", TOKEN)],
         &dir.0.join("s.db"),
     );
     let id = paused_run(addr).await;
@@ -329,7 +327,7 @@ fn the_token_flag_still_works_but_warns_that_ps_shows_it() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn wrong_tokens_are_throttled_per_address_on_rest_and_sockets() {
     let dir = TempDir::new("throttle");
-    let (_p, addr, _) = spawn(&["--token", TOKEN], &[], &dir.0.join("s.db"));
+    let (_p, addr, _) = spawn(&[], &[("SPINTUNE_TOKEN", TOKEN)], &dir.0.join("s.db"));
     let id = paused_run(addr).await;
     let head = |token: &str| {
         format!(
@@ -367,6 +365,35 @@ async fn wrong_tokens_are_throttled_per_address_on_rest_and_sockets() {
             _ => {}
         }
     }
+    // … and the bridge socket's.
+    let url = format!("ws://{addr}/api/runs/{id}/bridge?protocol={PROTOCOL_VERSION}");
+    let (mut bridge, _) = tokio::time::timeout(STEP, tokio_tungstenite::connect_async(url))
+        .await
+        .expect("connect timed out")
+        .expect("bridge connect");
+    send(
+        &mut bridge,
+        &json!({"type":"auth","token":TOKEN}).to_string(),
+    )
+    .await;
+    let refusal = loop {
+        let m = tokio::time::timeout(STEP, futures_util::StreamExt::next(&mut bridge))
+            .await
+            .expect("no bridge frame in time")
+            .expect("bridge socket closed")
+            .expect("bridge socket error");
+        if let tokio_tungstenite::tungstenite::Message::Text(t) = m {
+            let v: Value = serde_json::from_str(t.as_str()).unwrap();
+            assert_ne!(
+                v["type"], "auth_ok",
+                "a throttled address was authenticated"
+            );
+            if v["type"] == "error" {
+                break v["message"].as_str().unwrap().to_string();
+            }
+        }
+    };
+    assert!(refusal.contains("too many wrong tokens"), "{refusal}");
     // Another address is not affected.
     let other: IpAddr = "127.0.0.2".parse().unwrap();
     let (s, body) = raw(addr, Some(other), &head(TOKEN), r#"{"action":"pause"}"#).await;

@@ -4,6 +4,9 @@
 //! viewer and bridge sockets) goes through [`Auth::check`], keyed by the
 //! client's IP address:
 //!
+//! * addresses are IPv4 addresses or IPv6 /64 prefixes; behind a reverse
+//!   proxy every client has the proxy's address (one blocked guesser then
+//!   blocks all: keep the proxy's own rate limits in front);
 //! * the first [`FREE_FAILURES`] wrong tokens from one address answer as
 //!   usual (403 / `Error`);
 //! * each further failure blocks the address for [`BASE_BLOCK`] · 2^(n−1)
@@ -113,6 +116,7 @@ impl Auth {
     }
 
     fn check_at(&self, ip: Option<IpAddr>, presented: &str, now: Instant) -> Result<(), Refusal> {
+        let ip = ip.map(client_key);
         let mut table = self.table.lock().unwrap_or_else(|p| p.into_inner());
         let key = if table.contains_key(&ip) {
             ip
@@ -160,6 +164,20 @@ impl Auth {
     /// Addresses tracked now (for tests of the bound).
     pub fn tracked(&self) -> usize {
         self.table.lock().unwrap_or_else(|p| p.into_inner()).len()
+    }
+}
+
+/// The address a client is throttled as: IPv4 as is (also IPv4-mapped IPv6),
+/// IPv6 by its /64 prefix (one host usually holds a whole /64).
+fn client_key(ip: IpAddr) -> IpAddr {
+    match ip {
+        IpAddr::V4(_) => ip,
+        IpAddr::V6(v6) => match v6.to_ipv4_mapped() {
+            Some(v4) => IpAddr::V4(v4),
+            None => IpAddr::V6(std::net::Ipv6Addr::from(
+                u128::from(v6) & !((1u128 << 64) - 1),
+            )),
+        },
     }
 }
 
@@ -218,6 +236,23 @@ mod tests {
         let later = t0 + BASE_BLOCK + Duration::from_millis(1);
         assert_eq!(auth.check_at(ip, "secret", later), Ok(()));
         assert_eq!(auth.tracked(), 0);
+    }
+
+    #[test]
+    fn ipv6_addresses_of_one_64_prefix_share_a_record() {
+        let auth = Auth::new("secret");
+        let now = Instant::now();
+        for i in 0..=FREE_FAILURES {
+            let ip: IpAddr = format!("2001:db8::{:x}", i + 1).parse().unwrap();
+            assert_eq!(auth.check_at(Some(ip), "guess", now), Err(Refusal::Wrong));
+        }
+        let same_64: IpAddr = "2001:db8::ffff:1".parse().unwrap();
+        assert!(matches!(
+            auth.check_at(Some(same_64), "secret", now),
+            Err(Refusal::Throttled(_))
+        ));
+        let other_64: IpAddr = "2001:db8:0:1::1".parse().unwrap();
+        assert_eq!(auth.check_at(Some(other_64), "secret", now), Ok(()));
     }
 
     #[test]

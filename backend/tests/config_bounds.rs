@@ -206,3 +206,38 @@ fn the_leakage_check_needs_the_qdac2_profile() {
     .unwrap_err();
     assert!(e.0.contains("scpi.profile"), "{e}");
 }
+
+/// The core's own validation (used by the Python package and the browser as
+/// well) bounds the gate limits and every number of the device model.
+#[test]
+fn the_core_validation_bounds_gates_and_the_device_model_itself() {
+    let base = serde_json::to_value(spintune::driver::SimulationConfig::paper_default()).unwrap();
+    let mut fields = Vec::new();
+    numbers(&base, String::new(), String::new(), &mut fields);
+    let mut accepted = Vec::new();
+    let mut checked = 0;
+    for (path, pointer) in &fields {
+        let is_gate_number = path.starts_with("tuner.gates[") && !path.ends_with("name");
+        if !(path.starts_with("device.") || is_gate_number)
+            || base.pointer(pointer).unwrap().is_u64()
+        {
+            continue;
+        }
+        for bad in [1e300, -1e300] {
+            let mut v = base.clone();
+            *v.pointer_mut(pointer).unwrap() = json!(bad);
+            let cfg: spintune::driver::SimulationConfig = serde_json::from_value(v).unwrap();
+            checked += 1;
+            match cfg.validate() {
+                Ok(()) => accepted.push(format!("{path} = {bad:e}")),
+                Err(e) => assert!(e.to_string().contains(path.as_str()), "{path}: {e}"),
+            }
+        }
+    }
+    assert!(checked > 100, "{checked}");
+    assert!(
+        accepted.is_empty(),
+        "the core accepted:\n{}",
+        accepted.join("\n")
+    );
+}

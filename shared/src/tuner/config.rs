@@ -100,6 +100,10 @@ fn default_max_inner() -> u32 {
     3
 }
 
+/// Largest magnitude of a gate's limits, initial voltage and step, mV
+/// (±100 V: beyond any DC source; bounded by construction).
+pub const MAX_GATE_MV: f64 = 100_000.0;
+
 /// Upper bound on [`SensingDotConfig::points`] (bounded by construction).
 pub const MAX_SWEEP_POINTS: usize = 10_000;
 
@@ -229,8 +233,11 @@ impl TunerConfig {
                 ("initial_mv", g.initial_mv),
                 ("max_step_mv", g.max_step_mv),
             ] {
-                if !v.is_finite() {
-                    return Err(ConfigError::new(f(name), "must be a finite number"));
+                if !(v.is_finite() && v.abs() <= MAX_GATE_MV) {
+                    return Err(ConfigError::new(
+                        f(name),
+                        format!("must be a finite number within ±{MAX_GATE_MV} mV, got {v}"),
+                    ));
                 }
             }
             if g.min_mv > g.max_mv {

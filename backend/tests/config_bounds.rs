@@ -241,3 +241,26 @@ fn the_core_validation_bounds_gates_and_the_device_model_itself() {
         accepted.join("\n")
     );
 }
+
+#[test]
+fn the_session_read_back_tolerance_is_bounded_in_the_core() {
+    use spintune::session::SessionConfig;
+    for bad in [
+        1e300,
+        SessionConfig::MAX_READBACK_TOLERANCE_MV * 1.01,
+        -1.0,
+        f64::NAN,
+    ] {
+        let cfg = SessionConfig {
+            readback_tolerance_mv: bad,
+            ..SessionConfig::default()
+        };
+        let e = cfg.validate().unwrap_err();
+        assert_eq!(e.field, "readback_tolerance_mv", "{bad}: {e}");
+    }
+    let ok = SessionConfig {
+        readback_tolerance_mv: SessionConfig::MAX_READBACK_TOLERANCE_MV,
+        ..SessionConfig::default()
+    };
+    assert_eq!(ok.validate(), Ok(()));
+}

@@ -124,7 +124,8 @@ pub const MAX_RAMP_STEP_MV: f64 = 1_000.0;
 /// Largest `slew_v_per_s`, V/s.
 pub const MAX_SLEW_V_PER_S: f64 = 1_000.0;
 /// Largest `readback_tolerance_mv` (SCPI and bridge), mV.
-pub const MAX_READBACK_TOLERANCE_MV: f64 = 100.0;
+pub const MAX_READBACK_TOLERANCE_MV: f64 =
+    spintune::session::SessionConfig::MAX_READBACK_TOLERANCE_MV;
 /// Largest `timeout_ms` and `settle_ms`, ms (10 minutes).
 pub const MAX_TIMEOUT_MS: u64 = 600_000;
 /// Largest `max_leakage_na`, nA (10 mA, the QDAC-II's high current range).

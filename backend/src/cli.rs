@@ -94,7 +94,7 @@ pub struct ServeArgs {
 #[derive(Debug, Clone, Default, clap::Args)]
 pub struct SecurityArgs {
     /// Read the control token from this file (contents trimmed).
-    #[arg(long, env = "SPINTUNE_TOKEN_FILE", conflicts_with = "token")]
+    #[arg(long, env = "SPINTUNE_TOKEN_FILE")]
     pub token_file: Option<PathBuf>,
     /// Also accept WebSocket connections and state-changing requests from web
     /// pages of this origin (scheme://host[:port]); repeatable.

@@ -437,3 +437,31 @@ async fn config_without_the_token_hides_the_instrument_address_and_channels() {
     let (s, _) = http(srv.addr, "GET", &path, Some("wrong"), None).await;
     assert_eq!(s, 403);
 }
+
+#[test]
+fn both_token_sources_at_once_are_refused_with_a_clear_message() {
+    let dir = TempDir::new("tok-both");
+    let file = dir.0.join("token");
+    std::fs::write(&file, "from-file").unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_spintune"))
+        .args([
+            "serve",
+            "--bind",
+            "127.0.0.1:0",
+            "--demo",
+            "never",
+            "--token-file",
+        ])
+        .arg(&file)
+        .arg("--db")
+        .arg(dir.0.join("s.db"))
+        .env("SPINTUNE_TOKEN", "from-env")
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("SPINTUNE_TOKEN") && err.contains("--token-file") && err.contains("not both"),
+        "{err}"
+    );
+}

@@ -612,6 +612,29 @@ impl Manager {
         Checkpoint::load(id, &json, &handle.config)
     }
 
+    /// Run a task's future; if it panics (e.g. on a restored state the core
+    /// cannot handle) the run is failed instead of being left `running`.
+    async fn supervise(
+        &self,
+        handle: &RunHandle,
+        generation: u64,
+        task: impl std::future::Future<Output = ()> + Send + 'static,
+    ) {
+        if let Err(e) = tokio::spawn(task).await {
+            let message = match e.try_into_panic() {
+                Ok(p) => format!(
+                    "internal error: the run task panicked: {}",
+                    p.downcast_ref::<&str>()
+                        .map(|s| s.to_string())
+                        .or_else(|| p.downcast_ref::<String>().cloned())
+                        .unwrap_or_default()
+                ),
+                Err(e) => format!("internal error: the run task ended: {e}"),
+            };
+            self.fail_run(handle, generation, message).await;
+        }
+    }
+
     /// A run task failed (the store refused a write, or the task panicked):
     /// the run is `failed` with `message`, in memory at once (nobody is told
     /// `running`) and in the store if it takes the write (a few attempts).
@@ -832,21 +855,7 @@ impl Manager {
         let h = handle.clone();
         let manager = self.clone();
         tokio::spawn(async move {
-            // A panic in the task (e.g. a restored state the core cannot
-            // handle) fails the run instead of leaving it `running`.
-            if let Err(e) = tokio::spawn(task.run()).await {
-                let message = match e.try_into_panic() {
-                    Ok(p) => format!(
-                        "internal error: the run task panicked: {}",
-                        p.downcast_ref::<&str>()
-                            .map(|s| s.to_string())
-                            .or_else(|| p.downcast_ref::<String>().cloned())
-                            .unwrap_or_default()
-                    ),
-                    Err(e) => format!("internal error: the run task ended: {e}"),
-                };
-                manager.fail_run(&h, generation, message).await;
-            }
+            manager.supervise(&h, generation, task.run()).await;
             // Only this task's channel is cleared (a detached task must not
             // clear its successor's).
             let mut control = h.control.lock().unwrap_or_else(|p| p.into_inner());
@@ -876,6 +885,34 @@ mod tests {
         let (session, _) = cp.into_session(SessionConfig::default()).unwrap();
         assert_eq!(session.tuner().iteration(), 0);
         assert_eq!(session.status(), RunStatus::Running);
+    }
+
+    #[tokio::test]
+    async fn a_panicking_run_task_fails_the_run_in_memory_and_in_the_store() {
+        let dir = std::env::temp_dir().join(format!("spintune-panic-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let store = Arc::new(Store::open(&dir.join("p.db")).unwrap());
+        let manager = Manager::open(store.clone(), ManagerOptions::default()).unwrap();
+        let id = manager
+            .create(RunConfig::paper_default(), true)
+            .await
+            .unwrap()
+            .id;
+        let handle = manager.get(id).unwrap();
+        // A new task generation takes the run over (the paused one goes stale).
+        let generation = store.claim(id).unwrap();
+        manager
+            .supervise(&handle, generation, async { panic!("boom") })
+            .await;
+        let failed = |s: &RunStatus| matches!(s, RunStatus::Failed { message } if message.contains("panicked: boom"));
+        assert!(
+            failed(&handle.summary().status),
+            "{:?}",
+            handle.summary().status
+        );
+        assert!(failed(&store.get_run(id).unwrap().summary.status));
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

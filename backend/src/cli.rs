@@ -97,7 +97,7 @@ pub struct SecurityArgs {
     #[arg(long, env = "SPINTUNE_TOKEN_FILE")]
     pub token_file: Option<PathBuf>,
     /// Also accept WebSocket connections and state-changing requests from web
-    /// pages of this origin (scheme://host[:port]); repeatable.
+    /// pages of this origin (`scheme://host[:port]`); repeatable.
     #[arg(long = "allow-origin", value_name = "ORIGIN")]
     pub allow_origin: Vec<String>,
     /// Also answer requests whose Host header is this name (how the server is

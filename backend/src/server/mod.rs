@@ -2,7 +2,9 @@
 //!
 //! All bodies are JSON; errors are `{"error": "<message naming the problem>"}`.
 //! Viewing is open; endpoints marked 🔒 need `Authorization: Bearer <token>`
-//! (401 without a token, 403 with a wrong one; nothing changes in either case).
+//! (401 without a token, 403 with a wrong one, 429 while the address is
+//! throttled, see [`auth`]; nothing changes in any case). Every request passes
+//! the Host and Origin checks of [`origin`] first (421 / 403).
 //!
 //! | method | path | body → answer |
 //! |---|---|---|
@@ -10,7 +12,7 @@
 //! | GET | `/api/runs` | → `[RunSummary]` |
 //! | POST 🔒 | `/api/runs` | run config (JSON form of the TOML file, see [`crate::config`]; `{}` = paper default) → 201 `RunSummary` |
 //! | GET | `/api/runs/{id}` | → `RunSummary` |
-//! | GET | `/api/runs/{id}/config` | → the run's config (`{"simulation": …, "backend": …}`) |
+//! | GET | `/api/runs/{id}/config` | → the run's config (`{"simulation": …, "backend": …}`; without a token instrument addresses, channel maps and secrets are `"<redacted>"`) |
 //! | GET | `/api/runs/{id}/iterations?from=N&limit=M` | → `[IterationRecord]` with seq ≥ N (default 0), at most M ([`DEFAULT_PAGE`] if not given, ≤ [`MAX_PAGE`]) |
 //! | GET | `/api/runs/{id}/export?format=csv\|json` | → the export table (see [`crate::export`]) |
 //! | POST 🔒 | `/api/runs/{id}/control` | `ControlCommand` → `RunSummary` (400 invalid, 409 not applicable) |

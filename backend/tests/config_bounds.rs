@@ -264,3 +264,36 @@ fn the_session_read_back_tolerance_is_bounded_in_the_core() {
     };
     assert_eq!(ok.validate(), Ok(()));
 }
+
+/// The core's tuner validation (also the Python package's) bounds every
+/// number of the tuner config itself, naming the field.
+#[test]
+fn the_core_validation_bounds_every_tuner_number_itself() {
+    let base =
+        serde_json::to_value(spintune::driver::SimulationConfig::paper_default().tuner).unwrap();
+    let mut fields = Vec::new();
+    numbers(&base, String::new(), String::new(), &mut fields);
+    let mut accepted = Vec::new();
+    let mut checked = 0;
+    for (path, pointer) in &fields {
+        if base.pointer(pointer).unwrap().is_u64() {
+            continue;
+        }
+        for bad in [1e300, -1e300] {
+            let mut v = base.clone();
+            *v.pointer_mut(pointer).unwrap() = json!(bad);
+            let cfg: spintune::tuner::TunerConfig = serde_json::from_value(v).unwrap();
+            checked += 1;
+            match cfg.validate() {
+                Ok(()) => accepted.push(format!("{path} = {bad:e}")),
+                Err(e) => assert!(e.to_string().contains(&format!("`{path}`")), "{path}: {e}"),
+            }
+        }
+    }
+    assert!(checked > 50, "{checked}");
+    assert!(
+        accepted.is_empty(),
+        "the core accepted:\n{}",
+        accepted.join("\n")
+    );
+}

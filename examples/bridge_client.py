@@ -9,10 +9,11 @@ instruments instead.
 
 Usage (one dependency: ``pip install websockets``)::
 
-    spintune serve --token SECRET &
-    curl -H 'Authorization: Bearer SECRET' -d '{"driver":"bridge"}' \\
+    export SPINTUNE_TOKEN=SECRET       # read by the server and by this script
+    spintune serve &
+    curl -H "Authorization: Bearer $SPINTUNE_TOKEN" -d '{"driver":"bridge"}' \\
          http://127.0.0.1:8080/api/runs            # -> {"id": 1, ...}
-    python3 examples/bridge_client.py --url ws://127.0.0.1:8080/api/runs/1/bridge --token SECRET
+    python3 examples/bridge_client.py --url ws://127.0.0.1:8080/api/runs/1/bridge
 
 Protocol (JSON text frames, see docs/instruments.md):
 
@@ -45,6 +46,7 @@ import argparse
 import asyncio
 import json
 import math
+import os
 import random
 import sys
 
@@ -190,12 +192,16 @@ async def serve_once(url, token, budget):
 async def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--url", required=True, help="ws://HOST:PORT/api/runs/ID/bridge")
-    ap.add_argument("--token", required=True, help="control token of `spintune serve`")
+    ap.add_argument("--token", default=os.environ.get("SPINTUNE_TOKEN"),
+                    help="control token of `spintune serve` (default: $SPINTUNE_TOKEN; "
+                         "a flag is visible to other users in `ps`)")
     ap.add_argument("--once", action="store_true", help="exit when the connection closes")
     ap.add_argument("--exit-after", type=int, default=None, metavar="N",
                     help="answer N requests, then exit leaving the next one unanswered "
                          "(to try out pause and resume)")
     args = ap.parse_args()
+    if not args.token:
+        ap.error("no token: set SPINTUNE_TOKEN (or pass --token)")
     budget = [args.exit_after]
     while True:
         try:

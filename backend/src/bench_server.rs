@@ -116,6 +116,7 @@ async fn measure(
         demo: DemoMode::Never,
         demo_config: None,
         limits: Default::default(),
+        security: Default::default(),
     };
     let server = start_server(&serve).await?;
     let mut cfg = RunConfig::paper_default();

@@ -10,6 +10,8 @@ use spintune::protocol::RunStatus;
 
 use crate::config::RunConfig;
 use crate::run::{FrameEvent, Manager, ManagerOptions};
+use crate::server::auth::{read_token_file, Auth, TokenSource};
+use crate::server::origin::Access;
 use crate::server::{random_token, router, AppState};
 use crate::store::Store;
 
@@ -65,9 +67,14 @@ pub struct ServeArgs {
     /// Directory of the built dashboard (Trunk's output).
     #[arg(long, default_value = "dist")]
     pub dist: PathBuf,
-    /// Control token (default: random, printed at start).
+    /// Control token. Prefer the SPINTUNE_TOKEN environment variable or
+    /// --token-file: a flag is visible to every user in `ps` (default: random,
+    /// printed at start).
     #[arg(long, env = "SPINTUNE_TOKEN", hide_env_values = true)]
     pub token: Option<String>,
+    /// Token file, origin and host options (`crate::server::auth`, `crate::server::origin`).
+    #[command(flatten)]
+    pub security: SecurityArgs,
     /// Wall-clock pause after each iteration, ms, so a human can watch (runs may override).
     #[arg(long, default_value_t = 300)]
     pub iteration_delay_ms: u64,
@@ -86,12 +93,57 @@ pub struct ServeArgs {
     pub limits: crate::server::listener::LimitArgs,
 }
 
+/// `serve` options of the token file and the Origin/Host checks.
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct SecurityArgs {
+    /// Read the control token from this file (contents trimmed).
+    #[arg(long, env = "SPINTUNE_TOKEN_FILE")]
+    pub token_file: Option<PathBuf>,
+    /// Also accept WebSocket connections and state-changing requests from web
+    /// pages of this origin (`scheme://host[:port]`); repeatable.
+    #[arg(long = "allow-origin", value_name = "ORIGIN")]
+    pub allow_origin: Vec<String>,
+    /// Also answer requests whose Host header is this name (how the server is
+    /// reached, e.g. through a reverse proxy); repeatable.
+    #[arg(long = "allow-host", value_name = "NAME")]
+    pub allow_host: Vec<String>,
+}
+
+/// Where the token of `args` comes from, and the token.
+pub fn resolve_token(args: &ServeArgs) -> Result<(String, TokenSource), CliError> {
+    let (token, source) = match (&args.token, &args.security.token_file) {
+        (Some(_), Some(_)) => return Err(CliError::input(
+            "give the control token one way: SPINTUNE_TOKEN (or --token) or --token-file, not both",
+        )),
+        (Some(t), None) => {
+            let from_env = std::env::var("SPINTUNE_TOKEN").is_ok_and(|e| &e == t);
+            let source = if from_env {
+                TokenSource::Env
+            } else {
+                TokenSource::Flag
+            };
+            (t.trim().to_string(), source)
+        }
+        (None, Some(path)) => (
+            read_token_file(path).map_err(CliError::input)?,
+            TokenSource::File(path.clone()),
+        ),
+        (None, None) => (random_token(), TokenSource::Random),
+    };
+    if token.is_empty() {
+        return Err(CliError::input("the control token must not be empty"));
+    }
+    Ok((token, source))
+}
+
 /// A started server.
 pub struct Server {
     /// The bound address.
     pub addr: SocketAddr,
     /// The control token.
     pub token: String,
+    /// Where the token came from.
+    pub token_source: TokenSource,
     /// The run manager.
     pub manager: Arc<Manager>,
     /// The serving task.
@@ -115,10 +167,7 @@ pub async fn start_server(args: &ServeArgs) -> Result<Server, CliError> {
         },
     )
     .map_err(CliError::runtime)?;
-    let token = args.token.clone().unwrap_or_else(random_token);
-    if token.trim().is_empty() {
-        return Err(CliError::input("the control token must not be empty"));
-    }
+    let (token, token_source) = resolve_token(args)?;
     let create_demo = match args.demo {
         DemoMode::Auto => was_empty,
         DemoMode::Always => true,
@@ -145,10 +194,18 @@ pub async fn start_server(args: &ServeArgs) -> Result<Server, CliError> {
         .await
         .map_err(|e| CliError::runtime(format!("cannot bind {}: {e}", args.bind)))?;
     let addr = listener.local_addr().map_err(CliError::runtime)?;
+    let access = Access::new(
+        Some(addr),
+        &args.security.allow_host,
+        &args.security.allow_origin,
+    )
+    .map_err(CliError::input)?;
     let app = router(
         AppState {
             manager: manager.clone(),
-            token: token.clone().into(),
+            auth: Arc::new(Auth::new(&token)),
+            access: Arc::new(access),
+            client: None,
         },
         args.dist.clone(),
     );
@@ -161,6 +218,7 @@ pub async fn start_server(args: &ServeArgs) -> Result<Server, CliError> {
     Ok(Server {
         addr,
         token,
+        token_source,
         manager,
         task,
     })
@@ -175,7 +233,17 @@ pub async fn serve(args: ServeArgs) -> Result<(), CliError> {
         server.addr.ip().to_string()
     };
     println!("Dashboard: http://{host}:{}/", server.addr.port());
-    println!("Control token: {}", server.token);
+    match &server.token_source {
+        TokenSource::Random => println!("Control token: {}", server.token),
+        TokenSource::Env => println!("Control token: from SPINTUNE_TOKEN"),
+        TokenSource::File(p) => println!("Control token: from {}", p.display()),
+        TokenSource::Flag => {
+            println!("Control token: from --token");
+            eprintln!(
+                "warning: --token puts the control token on the command line, where every user of this machine can read it (`ps`); set SPINTUNE_TOKEN or use --token-file instead"
+            );
+        }
+    }
     println!("Store: {}", args.db.display());
     if !args.dist.join("index.html").is_file() {
         println!(

@@ -11,12 +11,17 @@
 //! `synchronous = NORMAL` a committed transaction survives a crash or `kill -9`
 //! of the process (not necessarily a power loss).
 //!
+//! Write transactions are `IMMEDIATE`: they take the write lock before their
+//! first read, so a writer in another process (or a schema change) between
+//! a transaction's read and its write waits for the busy timeout instead of
+//! failing at once with a stale snapshot (`SQLITE_BUSY_SNAPSHOT`).
+//!
 //! The store is synchronous; async callers use `tokio::task::spawn_blocking`.
 
 use std::path::Path;
 use std::sync::Mutex;
 
-use rusqlite::{params, Connection, OptionalExtension};
+use rusqlite::{params, Connection, OptionalExtension, TransactionBehavior};
 use spintune::protocol::{RunStatus, RunSummary};
 
 /// Store errors (SQLite or corrupt rows).
@@ -61,6 +66,28 @@ pub struct StoredRun {
     pub summary: RunSummary,
     /// The run config as JSON (a [`crate::config::RunConfig`]).
     pub config_json: String,
+    /// Why the row could not be read (`Some`: the run is quarantined, its
+    /// summary holds only the id; the other runs are served).
+    pub unreadable: Option<String>,
+}
+
+impl StoredRun {
+    fn quarantined(id: u64, error: String) -> Self {
+        Self {
+            summary: RunSummary {
+                id,
+                name: format!("unreadable run {id}"),
+                status: RunStatus::Failed {
+                    message: format!("quarantined: the stored run is unreadable ({error})"),
+                },
+                iterations: 0,
+                lab_seconds: 0.0,
+                tuned: false,
+            },
+            config_json: String::new(),
+            unreadable: Some(error),
+        }
+    }
 }
 
 /// A page of iteration summaries ([`Store::summary_page`]).
@@ -252,7 +279,7 @@ impl Store {
         tuned: bool,
     ) -> Result<(), StoreError> {
         let mut conn = self.w();
-        let tx = conn.transaction()?;
+        let tx = conn.transaction_with_behavior(TransactionBehavior::Immediate)?;
         Self::check_generation(&tx, id, generation)?;
         let expected: Option<i64> = tx
             .query_row(
@@ -290,7 +317,7 @@ impl Store {
         checkpoint_json: &str,
     ) -> Result<(), StoreError> {
         let mut conn = self.w();
-        let tx = conn.transaction()?;
+        let tx = conn.transaction_with_behavior(TransactionBehavior::Immediate)?;
         Self::check_generation(&tx, id, generation)?;
         tx.execute(
             "UPDATE runs SET checkpoint = ?2 WHERE id = ?1",
@@ -308,7 +335,7 @@ impl Store {
         status: &RunStatus,
     ) -> Result<(), StoreError> {
         let mut conn = self.w();
-        let tx = conn.transaction()?;
+        let tx = conn.transaction_with_behavior(TransactionBehavior::Immediate)?;
         Self::check_generation(&tx, id, generation)?;
         tx.execute(
             "UPDATE runs SET status = ?2 WHERE id = ?1",
@@ -336,21 +363,26 @@ impl Store {
         let mut stmt = conn.prepare(
             "SELECT id, name, status, iterations, lab_seconds, tuned, config FROM runs ORDER BY id",
         )?;
-        let rows = stmt.query_map([], summary_from_row)?;
+        // The id is the INTEGER PRIMARY KEY (always readable); the rest may not be.
+        let rows = stmt.query_map([], |row| {
+            let id: i64 = row.get(0)?;
+            Ok((id as u64, summary_from_row(row)))
+        })?;
         let mut out = Vec::new();
         for row in rows {
-            // One corrupt row must not keep the other runs (or the server) down.
-            let (mut summary, status, config_json) = match row {
-                Ok(r) => r,
-                Err(e) => {
-                    eprintln!("warning: skipped an unreadable run row: {e}");
-                    continue;
+            // One corrupt row must not keep the other runs (or the server)
+            // down: it is listed as quarantined with its id and the error.
+            let (id, row) = row?;
+            out.push(match row {
+                Ok((mut summary, status, config_json)) => {
+                    summary.status = decode_status(&status);
+                    StoredRun {
+                        summary,
+                        config_json,
+                        unreadable: None,
+                    }
                 }
-            };
-            summary.status = decode_status(&status);
-            out.push(StoredRun {
-                summary,
-                config_json,
+                Err(e) => StoredRun::quarantined(id, e.to_string()),
             });
         }
         Ok(out)
@@ -372,6 +404,7 @@ impl Store {
         Ok(StoredRun {
             summary,
             config_json,
+            unreadable: None,
         })
     }
 
@@ -469,7 +502,7 @@ impl Store {
     /// Delete run `id` and its iterations.
     pub fn delete_run(&self, id: u64) -> Result<(), StoreError> {
         let mut conn = self.w();
-        let tx = conn.transaction()?;
+        let tx = conn.transaction_with_behavior(TransactionBehavior::Immediate)?;
         tx.execute(
             "DELETE FROM iterations WHERE run_id = ?1",
             params![id as i64],
@@ -489,7 +522,7 @@ impl Store {
     pub fn mark_interrupted(&self) -> Result<Vec<u64>, StoreError> {
         let runs = self.list_runs()?;
         let mut ids = Vec::new();
-        for r in runs {
+        for r in runs.into_iter().filter(|r| r.unreadable.is_none()) {
             match r.summary.status {
                 RunStatus::Running | RunStatus::Stepping | RunStatus::Paused => {
                     self.set_status(r.summary.id, None, &RunStatus::Interrupted)?;
@@ -576,7 +609,11 @@ mod tests {
             b.summary.status
         );
         assert!(b.summary.status.is_resumable());
-        assert!(listed.iter().all(|r| r.summary.id != third));
+        let c = listed.iter().find(|r| r.summary.id == third).unwrap();
+        assert!(
+            c.unreadable.is_some(),
+            "a corrupt row is listed as unreadable"
+        );
         assert!(listed.iter().any(|r| r.summary.id == id));
         s.delete_run(id).unwrap();
         assert!(s.get_run(id).is_err());

@@ -1,8 +1,12 @@
 //! The SCPI DC-source driver against a simulated instrument: a TCP server on
 //! 127.0.0.1 that speaks the same SCPI subset (`sour{ch}:volt V`,
-//! `sour{ch}:volt?`, `sour{ch}:volt:slew V/s`), records every command and
-//! misbehaves on demand (drops the connection, answers late, reports a
-//! different voltage). Everything is bounded in time.
+//! `sour{ch}:volt?`, `sour{ch}:volt:slew V/s`, and the QDAC-II's
+//! `sour{ch}:volt:mode fix`, `sour{ch}:volt:last?`, `read{ch}?`), records
+//! every command and misbehaves on demand (drops the connection, answers
+//! late, reports a different voltage, leaves a channel in list mode, leaks
+//! current). Like a QDAC-II, a channel in list mode keeps its output when
+//! `sour{ch}:volt` changes the fixed set point, and `volt?` echoes the set
+//! point while `volt:last?` reads the output. Everything is bounded in time.
 
 mod common;
 
@@ -16,7 +20,7 @@ use spintune::protocol::{RunStatus, RunSummary};
 use spintune::safety::GateSpec;
 use spintune::sim::default_gates;
 use spintune_server::cli::Server;
-use spintune_server::config::{MeasureSource, ScpiConfig};
+use spintune_server::config::{MeasureSource, ScpiConfig, ScpiProfile};
 use spintune_server::devices::scpi::ScpiSource;
 use spintune_server::devices::DeviceError;
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
@@ -35,8 +39,15 @@ enum Fault {
 
 #[derive(Default)]
 struct InstrumentState {
-    /// Channel → volts.
+    /// Channel → output, volts.
     volts: BTreeMap<u32, f64>,
+    /// Channel → fixed-mode set point, volts (`volt?` echoes it).
+    setpoint: BTreeMap<u32, f64>,
+    /// Channels in list mode: their output ignores the set point until
+    /// `sour{ch}:volt:mode fix`.
+    list_mode: std::collections::BTreeSet<u32>,
+    /// Channel → the current it sources, A (`read{ch}?`; default 1 pA).
+    current_a: BTreeMap<u32, f64>,
     /// (connection number, command) in arrival order.
     log: Vec<(usize, String)>,
     /// Set commands received so far.
@@ -68,6 +79,7 @@ impl Instrument {
         let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
         let addr = listener.local_addr().unwrap();
         let state = Arc::new(Mutex::new(InstrumentState {
+            setpoint: volts.clone(),
             volts,
             ..Default::default()
         }));
@@ -91,53 +103,80 @@ impl Instrument {
                         {
                             let mut s = st.lock().unwrap();
                             s.log.push((conn_no, cmd.clone()));
-                            let (head, arg) = cmd.split_once(' ').unwrap_or((&cmd, ""));
-                            let ch: u32 = head
-                                .trim_start_matches("sour")
-                                .split(':')
-                                .next()
-                                .unwrap()
-                                .parse()
-                                .expect("channel number");
-                            if head.ends_with(":volt:slew") {
-                                // accepted, nothing to model
-                            } else if head.ends_with(":volt?") {
-                                let mut v = s.volts.get(&ch).copied().unwrap_or(0.0);
-                                match s.query_fault.take() {
-                                    Some(Fault::Late(d)) => delay = Some(d),
-                                    Some(Fault::Offset(mv)) => v += mv / 1000.0,
-                                    _ => {}
+                            'cmd: {
+                                if let Some(rest) = cmd.strip_prefix("read") {
+                                    let ch: u32 =
+                                        rest.trim_end_matches('?').parse().expect("channel");
+                                    let i = s.current_a.get(&ch).copied().unwrap_or(1e-12);
+                                    // QDAC-II answers a comma-separated list.
+                                    answer = Some(format!("{},{i}\n", i / 2.0));
+                                    break 'cmd;
                                 }
-                                answer = Some(format!("{v}\n"));
-                            } else if head.ends_with(":volt") {
-                                s.sets += 1;
-                                let v: f64 = arg.parse().expect("volts");
-                                if let Some((fault, at)) = s.armed {
-                                    if s.sets >= at {
-                                        s.armed = None;
-                                        if fault == Fault::Drop {
-                                            return; // closes the connection, not applied
-                                        }
-                                        s.query_fault = Some(fault);
+                                let (head, arg) = cmd.split_once(' ').unwrap_or((&cmd, ""));
+                                let ch: u32 = head
+                                    .trim_start_matches("sour")
+                                    .split(':')
+                                    .next()
+                                    .unwrap()
+                                    .parse()
+                                    .expect("channel number");
+                                if head.ends_with(":volt:slew") {
+                                    // accepted, nothing to model
+                                } else if head.ends_with(":volt:mode") {
+                                    assert_eq!(arg, "fix", "only fixed mode is ever requested");
+                                    if s.list_mode.remove(&ch) {
+                                        // The output jumps to the fixed set point.
+                                        let sp = s.setpoint.get(&ch).copied().unwrap_or(0.0);
+                                        s.volts.insert(ch, sp);
                                     }
+                                } else if head.ends_with(":volt?") || head.ends_with(":volt:last?")
+                                {
+                                    let map = if head.ends_with(":volt:last?") {
+                                        &s.volts
+                                    } else {
+                                        &s.setpoint
+                                    };
+                                    let mut v = map.get(&ch).copied().unwrap_or(0.0);
+                                    match s.query_fault.take() {
+                                        Some(Fault::Late(d)) => delay = Some(d),
+                                        Some(Fault::Offset(mv)) => v += mv / 1000.0,
+                                        _ => {}
+                                    }
+                                    answer = Some(format!("{v}\n"));
+                                } else if head.ends_with(":volt") {
+                                    s.sets += 1;
+                                    let v: f64 = arg.parse().expect("volts");
+                                    if let Some((fault, at)) = s.armed {
+                                        if s.sets >= at {
+                                            s.armed = None;
+                                            if fault == Fault::Drop {
+                                                return; // closes the connection, not applied
+                                            }
+                                            s.query_fault = Some(fault);
+                                        }
+                                    }
+                                    let old = s.volts.get(&ch).copied().unwrap_or(0.0);
+                                    let (lo, hi) = limits[&ch];
+                                    let mv = v * 1000.0;
+                                    if mv < lo - 1e-9 || mv > hi + 1e-9 {
+                                        s.violations
+                                            .push(format!("{cmd}: outside [{lo}, {hi}] mV"));
+                                    }
+                                    // 1 µV formatting resolution
+                                    if ((v - old) * 1000.0).abs() > ramp_step_mv + 2e-3 {
+                                        s.violations.push(format!(
+                                            "{cmd}: increment {} mV from {} V",
+                                            (v - old) * 1000.0,
+                                            old
+                                        ));
+                                    }
+                                    s.setpoint.insert(ch, v);
+                                    if !s.list_mode.contains(&ch) {
+                                        s.volts.insert(ch, v);
+                                    }
+                                } else {
+                                    panic!("unknown command {cmd:?}");
                                 }
-                                let old = s.volts.get(&ch).copied().unwrap_or(0.0);
-                                let (lo, hi) = limits[&ch];
-                                let mv = v * 1000.0;
-                                if mv < lo - 1e-9 || mv > hi + 1e-9 {
-                                    s.violations.push(format!("{cmd}: outside [{lo}, {hi}] mV"));
-                                }
-                                // 1 µV formatting resolution
-                                if ((v - old) * 1000.0).abs() > ramp_step_mv + 2e-3 {
-                                    s.violations.push(format!(
-                                        "{cmd}: increment {} mV from {} V",
-                                        (v - old) * 1000.0,
-                                        old
-                                    ));
-                                }
-                                s.volts.insert(ch, v);
-                            } else {
-                                panic!("unknown command {cmd:?}");
                             }
                         }
                         if let Some(d) = delay {
@@ -171,6 +210,18 @@ impl Instrument {
 
     fn violations(&self) -> Vec<String> {
         self.state.lock().unwrap().violations.clone()
+    }
+
+    fn set_list_mode(&self, channel: u32) {
+        self.state.lock().unwrap().list_mode.insert(channel);
+    }
+
+    fn set_current(&self, channel: u32, amps: f64) {
+        self.state.lock().unwrap().current_a.insert(channel, amps);
+    }
+
+    fn output_mv(&self, channel: u32) -> f64 {
+        self.state.lock().unwrap().volts[&channel] * 1000.0
     }
 
     fn clear_log(&self) {
@@ -213,6 +264,8 @@ fn scpi_config(addr: std::net::SocketAddr, channels: BTreeMap<String, u32>) -> S
         timeout_ms: 300,
         settle_ms: 0,
         measure: MeasureSource::Simulator,
+        profile: Default::default(),
+        max_leakage_na: None,
     }
 }
 
@@ -585,4 +638,127 @@ async fn headless_run_exits_non_zero_on_a_device_fault_and_leaves_the_run_resuma
         run.summary.status
     );
     assert!(run.summary.status.is_resumable());
+}
+
+fn qdac2_config(addr: std::net::SocketAddr, channels: BTreeMap<String, u32>) -> ScpiConfig {
+    ScpiConfig {
+        profile: ScpiProfile::Qdac2,
+        ..scpi_config(addr, channels)
+    }
+}
+
+#[tokio::test]
+async fn qdac2_profile_fixes_a_list_mode_channel_before_moving_it_and_reads_the_output() {
+    let channels = BTreeMap::from([("N".to_string(), 1), ("SB".to_string(), 4)]);
+
+    // The generic profile cannot see a channel left in list mode: `volt?`
+    // echoes the set point while the output stays where it was.
+    let (volts, limits) = instrument_at_initial();
+    let generic = Instrument::start(volts, limits, 1.0).await;
+    generic.set_list_mode(4);
+    let mut src = ScpiSource::new(scpi_config(generic.addr, channels.clone()), &gates());
+    src.set(&BTreeMap::from([("SB".to_string(), -777.5)]))
+        .await
+        .unwrap();
+    assert!(
+        (generic.output_mv(4) + 780.0).abs() < 1e-9,
+        "{}",
+        generic.output_mv(4)
+    );
+
+    // QDAC-II: fixed mode for every channel on connect, before the read-back
+    // and any set; `volt:last?` reads the output; the channel really moves.
+    let (volts, limits) = instrument_at_initial();
+    let inst = Instrument::start(volts, limits, 1.0).await;
+    inst.set_list_mode(4);
+    let mut src = ScpiSource::new(qdac2_config(inst.addr, channels), &gates());
+    let rb = src
+        .set(&BTreeMap::from([("SB".to_string(), -777.5)]))
+        .await
+        .unwrap();
+    assert!((rb["SB"] + 777.5).abs() < 1e-9, "{rb:?}");
+    assert!(
+        (inst.output_mv(4) + 777.5).abs() < 1e-9,
+        "{}",
+        inst.output_mv(4)
+    );
+    assert_eq!(
+        inst.commands(),
+        [
+            "sour1:volt:mode fix",
+            "sour1:volt:slew 5",
+            "sour1:volt:last?",
+            "sour4:volt:mode fix",
+            "sour4:volt:slew 5",
+            "sour4:volt:last?",
+            "sour4:volt -0.779167",
+            "sour4:volt -0.778333",
+            "sour4:volt -0.777500",
+            "sour4:volt:last?",
+        ]
+    );
+    // A channel switched to list mode behind the driver's back does not
+    // move: `volt:last?` shows it, and the move is a read-back fault.
+    inst.set_list_mode(4);
+    let e = src
+        .set(&BTreeMap::from([("SB".to_string(), -778.5)]))
+        .await
+        .unwrap_err();
+    assert!(
+        matches!(&e, DeviceError::ReadbackMismatch { gate, channel: 4, .. } if gate == "SB"),
+        "{e:?}"
+    );
+    assert!(inst.violations().is_empty(), "{:?}", inst.violations());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_leaking_gate_faults_the_run_with_channel_and_current_and_nothing_further_is_set() {
+    let (volts, limits) = instrument_at_initial();
+    let inst = Instrument::start(volts, limits, 2.0).await;
+    // SB (channel 4) sources 0.5 µA: far above a 100 nA limit.
+    let sb = channel_map()["SB"];
+    inst.set_current(sb, 5e-7);
+    let dir = TempDir::new("scpi-leak");
+    let srv = server(&dir, 256).await;
+    let mut config = run_config(inst.addr, 50);
+    config["scpi"]["profile"] = json!("qdac2");
+    config["scpi"]["max_leakage_na"] = json!(100.0);
+    let run = create_run(srv.addr, &config).await;
+    let r = expect_fault(
+        &srv,
+        &inst,
+        run.id,
+        &format!("leakage on SB (channel {sb})"),
+    )
+    .await;
+    let RunStatus::Faulted { fault } = &r.status else {
+        unreachable!()
+    };
+    assert_eq!(fault.kind, spintune::protocol::FaultKind::Device, "{fault}");
+    assert!(
+        fault.message.contains("500.000 nA") && fault.message.contains("100 nA"),
+        "{fault}"
+    );
+    // Nothing was set after SB's current was read.
+    let cmds = inst.commands();
+    let read = cmds
+        .iter()
+        .rposition(|c| c == &format!("read{sb}?"))
+        .expect("SB's current was never read");
+    let after: Vec<&String> = cmds[read + 1..]
+        .iter()
+        .filter(|c| c.contains(":volt "))
+        .collect();
+    assert!(after.is_empty(), "set after the leak: {after:?}");
+    // The check follows a move (the request's gates are read, moved or not).
+    assert!(
+        cmds[..read].iter().any(|c| c.contains(":volt -")),
+        "the current was read before any move"
+    );
+    // Other channels under the limit were read too (their moves passed), and
+    // the run is resumable: a resume reads the current again and faults again.
+    let (s, b) = control(srv.addr, run.id, r#"{"action":"resume"}"#).await;
+    assert_eq!(s, 200, "{b}");
+    expect_fault(&srv, &inst, run.id, "leakage on SB").await;
+    assert!(inst.violations().is_empty(), "{:?}", inst.violations());
 }

@@ -91,11 +91,15 @@ impl BridgeConfig {
                 ),
             ));
         }
-        if !(self.readback_tolerance_mv.is_finite() && self.readback_tolerance_mv >= 0.0) {
+        let max = super::scpi::MAX_READBACK_TOLERANCE_MV;
+        if !(self.readback_tolerance_mv.is_finite()
+            && self.readback_tolerance_mv >= 0.0
+            && self.readback_tolerance_mv <= max)
+        {
             return Err(ConfigError::new(
                 "readback_tolerance_mv",
                 format!(
-                    "must be a non-negative number of mV, got {}",
+                    "must be a non-negative number of mV, at most {max}, got {}",
                     self.readback_tolerance_mv
                 ),
             ));

@@ -109,6 +109,22 @@ pub enum DeviceError {
         /// The accepted difference, mV.
         tolerance_mv: f64,
     },
+    /// A gate leaks: the current its channel sources after a move exceeds
+    /// `scpi.max_leakage_na` (QDAC-II profile). The run pauses; nothing
+    /// further is set.
+    #[error(
+        "leakage on {gate} (channel {channel}): {current_na:.3} nA exceeds max_leakage_na = {max_na} nA after the move; nothing further was set (check the gate for a leak into the 2DEG before resuming)"
+    )]
+    Leakage {
+        /// The gate.
+        gate: String,
+        /// Its channel.
+        channel: u32,
+        /// The current read, nA (absolute value).
+        current_na: f64,
+        /// The configured limit, nA.
+        max_na: f64,
+    },
     /// Sending one increment of a ramp failed: the instrument state is unknown.
     #[error(
         "{error} during increment {increment} of {increments} (gate {gate}, channel {channel}); the instrument state is unknown, \

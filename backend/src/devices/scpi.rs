@@ -1,13 +1,16 @@
 //! SCPI driver for a multi-channel DC voltage source over raw TCP
 //! (QDAC-II style; one command per line, `\n`-terminated).
 //!
-//! The subset used:
+//! The subset used (`scpi.profile`, [`ScpiProfile`]):
 //!
-//! | command | meaning |
-//! |---|---|
-//! | `sour{ch}:volt {V}` | set channel `ch` to `V` volts (no answer) |
-//! | `sour{ch}:volt?` | read channel `ch` back; answers one line, volts |
-//! | `sour{ch}:volt:slew {V/s}` | the instrument's own ramp rate, V/s (no answer) |
+//! | command | profile | meaning |
+//! |---|---|---|
+//! | `sour{ch}:volt:mode fix` | qdac2 | on connect: fixed DC mode (a channel left in list/sweep mode does not follow `sour{ch}:volt`) |
+//! | `sour{ch}:volt:slew {V/s}` | both | the instrument's own ramp rate, V/s (no answer) |
+//! | `sour{ch}:volt?` | generic | read channel `ch` back; answers one line, volts |
+//! | `sour{ch}:volt:last?` | qdac2 | the present output of `ch`, volts (`volt?` may echo the set point) |
+//! | `sour{ch}:volt {V}` | both | set channel `ch` to `V` volts (no answer) |
+//! | `read{ch}?` | qdac2 with `max_leakage_na` | after every move, for every moved channel: the current it sources, A (comma-separated list; the largest magnitude counts) |
 //!
 //! The tuner works in mV, the instrument in V: every value is divided by
 //! 1000 on the way out (formatted with 6 decimals, i.e. 1 µV resolution) and
@@ -65,6 +68,18 @@ pub enum MeasureSource {
     Bridge,
 }
 
+/// The instrument dialect of a SCPI source.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ScpiProfile {
+    /// `sour{ch}:volt` / `sour{ch}:volt?` only.
+    #[default]
+    Generic,
+    /// QDevil QDAC-II: fixed mode on connect, `volt:last?` read-back, and the
+    /// optional leakage check (`read{ch}?`).
+    Qdac2,
+}
+
 /// `[scpi]` table of a run config.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -92,10 +107,29 @@ pub struct ScpiConfig {
     /// Source of measurements.
     #[serde(default)]
     pub measure: MeasureSource,
+    /// Instrument dialect (default `generic`).
+    #[serde(default)]
+    pub profile: ScpiProfile,
+    /// QDAC-II only: after every move, the current each moved channel
+    /// sources must not exceed this, nA; above it the run pauses as a device
+    /// fault (a gate leaking into the 2DEG). `None`: no check.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_leakage_na: Option<f64>,
 }
 
 /// Most `sour{ch}:volt` commands one move may take (bounds the planned ramp).
 pub const MAX_RAMP_STAGES: usize = 1_000;
+/// Largest `ramp_step_mv`, mV.
+pub const MAX_RAMP_STEP_MV: f64 = 1_000.0;
+/// Largest `slew_v_per_s`, V/s.
+pub const MAX_SLEW_V_PER_S: f64 = 1_000.0;
+/// Largest `readback_tolerance_mv` (SCPI and bridge), mV.
+pub const MAX_READBACK_TOLERANCE_MV: f64 =
+    spintune::session::SessionConfig::MAX_READBACK_TOLERANCE_MV;
+/// Largest `timeout_ms` and `settle_ms`, ms (10 minutes).
+pub const MAX_TIMEOUT_MS: u64 = 600_000;
+/// Largest `max_leakage_na`, nA (10 mA, the QDAC-II's high current range).
+pub const MAX_LEAKAGE_NA: f64 = 1e7;
 
 fn default_ramp_step_mv() -> f64 {
     1.0
@@ -144,10 +178,16 @@ impl ScpiConfig {
                 ));
             }
         }
-        if !(self.ramp_step_mv.is_finite() && self.ramp_step_mv > 0.0) {
+        if !(self.ramp_step_mv.is_finite()
+            && self.ramp_step_mv > 0.0
+            && self.ramp_step_mv <= MAX_RAMP_STEP_MV)
+        {
             return Err(ConfigError::new(
                 "ramp_step_mv",
-                format!("must be a positive number of mV, got {}", self.ramp_step_mv),
+                format!(
+                    "must be a positive number of mV, at most {MAX_RAMP_STEP_MV}, got {}",
+                    self.ramp_step_mv
+                ),
             ));
         }
         // Bounded by construction: one move ramps in at most MAX_RAMP_STAGES commands.
@@ -167,24 +207,55 @@ impl ScpiConfig {
             ));
         }
         if let Some(s) = self.slew_v_per_s {
-            if !(s.is_finite() && s > 0.0) {
+            if !(s.is_finite() && s > 0.0 && s <= MAX_SLEW_V_PER_S) {
                 return Err(ConfigError::new(
                     "slew_v_per_s",
-                    format!("must be a positive number of V/s, got {s}"),
+                    format!(
+                        "must be a positive number of V/s, at most {MAX_SLEW_V_PER_S}, got {s}"
+                    ),
                 ));
             }
         }
-        if !(self.readback_tolerance_mv.is_finite() && self.readback_tolerance_mv >= 0.0) {
+        if !(self.readback_tolerance_mv.is_finite()
+            && self.readback_tolerance_mv >= 0.0
+            && self.readback_tolerance_mv <= MAX_READBACK_TOLERANCE_MV)
+        {
             return Err(ConfigError::new(
                 "readback_tolerance_mv",
                 format!(
-                    "must be a non-negative number of mV, got {}",
+                    "must be a non-negative number of mV, at most {MAX_READBACK_TOLERANCE_MV}, got {}",
                     self.readback_tolerance_mv
                 ),
             ));
         }
-        if self.timeout_ms == 0 {
-            return Err(ConfigError::new("timeout_ms", "must be at least 1 ms"));
+        if !(1..=MAX_TIMEOUT_MS).contains(&self.timeout_ms) {
+            return Err(ConfigError::new(
+                "timeout_ms",
+                format!("must be 1 to {MAX_TIMEOUT_MS} ms, got {}", self.timeout_ms),
+            ));
+        }
+        if let Some(na) = self.max_leakage_na {
+            if self.profile != ScpiProfile::Qdac2 {
+                return Err(ConfigError::new(
+                    "max_leakage_na",
+                    "the leakage check reads the current with the QDAC-II's `read{ch}?`: set profile = \"qdac2\"",
+                ));
+            }
+            if !(na.is_finite() && na > 0.0 && na <= MAX_LEAKAGE_NA) {
+                return Err(ConfigError::new(
+                    "max_leakage_na",
+                    format!("must be a positive number of nA, at most {MAX_LEAKAGE_NA}, got {na}"),
+                ));
+            }
+        }
+        if self.settle_ms > MAX_TIMEOUT_MS {
+            return Err(ConfigError::new(
+                "settle_ms",
+                format!(
+                    "must be at most {MAX_TIMEOUT_MS} ms, got {}",
+                    self.settle_ms
+                ),
+            ));
         }
         Ok(())
     }
@@ -198,6 +269,25 @@ pub fn set_command(channel: u32, mv: f64) -> String {
 /// `sour{ch}:volt?`.
 pub fn query_command(channel: u32) -> String {
     format!("sour{channel}:volt?")
+}
+
+/// The read-back query of `profile`: `sour{ch}:volt?` (generic) or
+/// `sour{ch}:volt:last?` (QDAC-II: the present output, not the set point).
+pub fn readback_command(profile: ScpiProfile, channel: u32) -> String {
+    match profile {
+        ScpiProfile::Generic => query_command(channel),
+        ScpiProfile::Qdac2 => format!("sour{channel}:volt:last?"),
+    }
+}
+
+/// `sour{ch}:volt:mode fix` (QDAC-II).
+pub fn fixed_mode_command(channel: u32) -> String {
+    format!("sour{channel}:volt:mode fix")
+}
+
+/// `read{ch}?` (QDAC-II): the current the channel sources, A.
+pub fn current_command(channel: u32) -> String {
+    format!("read{channel}?")
 }
 
 /// `sour{ch}:volt:slew {V/s}`.
@@ -329,7 +419,41 @@ impl ScpiSource {
     }
 
     async fn query_mv(&mut self, channel: u32) -> Result<f64, DeviceError> {
-        let q = query_command(channel);
+        let q = readback_command(self.cfg.profile, channel);
+        let answer = self.query_line(&q).await?;
+        match answer.parse::<f64>() {
+            Ok(v) if v.is_finite() => Ok(v * 1000.0),
+            _ => {
+                self.drop_conn();
+                Err(DeviceError::Protocol(format!(
+                    "answer {answer:?} to `{q}` is not a voltage"
+                )))
+            }
+        }
+    }
+
+    /// The largest magnitude of the current(s) `read{ch}?` answers, nA.
+    async fn query_current_na(&mut self, channel: u32) -> Result<f64, DeviceError> {
+        let q = current_command(channel);
+        let answer = self.query_line(&q).await?;
+        let values: Option<Vec<f64>> = answer
+            .split(',')
+            .map(|x| x.trim().parse::<f64>().ok().filter(|v| v.is_finite()))
+            .collect();
+        match values {
+            Some(v) if !v.is_empty() => Ok(v.iter().fold(0.0f64, |m, x| m.max(x.abs())) * 1e9),
+            _ => {
+                self.drop_conn();
+                Err(DeviceError::Protocol(format!(
+                    "answer {answer:?} to `{q}` is not a current"
+                )))
+            }
+        }
+    }
+
+    /// Send query `q` and return its one-line answer, trimmed.
+    async fn query_line(&mut self, q: &str) -> Result<String, DeviceError> {
+        let q = q.to_string();
         self.write_line(&q).await?;
         let t = self.timeout();
         let conn = self.conn.as_mut().ok_or(DeviceError::NotConnected)?;
@@ -360,15 +484,7 @@ impl ScpiSource {
                 });
             }
         };
-        match answer.parse::<f64>() {
-            Ok(v) if v.is_finite() => Ok(v * 1000.0),
-            _ => {
-                self.drop_conn();
-                Err(DeviceError::Protocol(format!(
-                    "answer {answer:?} to `{q}` is not a voltage"
-                )))
-            }
-        }
+        Ok(answer)
     }
 
     /// Connect (if needed): open the socket, send the slew rate to every
@@ -407,6 +523,11 @@ impl ScpiSource {
             .map(|(g, &c)| (g.clone(), c))
             .collect();
         for (gate, ch) in channels {
+            if self.cfg.profile == ScpiProfile::Qdac2 {
+                // Before anything else: a channel in list/sweep mode ignores
+                // `sour{ch}:volt`. The read-back below is taken after it.
+                self.write_line(&fixed_mode_command(ch)).await?;
+            }
             if let Some(slew) = self.cfg.slew_v_per_s {
                 self.write_line(&slew_command(ch, slew)).await?;
             }
@@ -546,6 +667,20 @@ impl ScpiSource {
                     read_mv: mv,
                     tolerance_mv: self.cfg.readback_tolerance_mv,
                 });
+            }
+        }
+        if let Some(max_na) = self.cfg.max_leakage_na {
+            for gate in target.keys() {
+                let ch = self.channel(gate)?;
+                let current_na = self.query_current_na(ch).await?;
+                if current_na > max_na {
+                    return Err(DeviceError::Leakage {
+                        gate: gate.clone(),
+                        channel: ch,
+                        current_na,
+                        max_na,
+                    });
+                }
             }
         }
         Ok(readback)
@@ -713,6 +848,8 @@ mod tests {
             timeout_ms: default_timeout_ms(),
             settle_ms: 0,
             measure: MeasureSource::Simulator,
+            profile: Default::default(),
+            max_leakage_na: None,
         };
         assert_eq!(cfg(&[("N", 1), ("SB", 4)]).validate(&gates), Ok(()));
         let e = cfg(&[("NOPE", 1)]).validate(&gates).unwrap_err();
@@ -727,7 +864,7 @@ mod tests {
         let e = c.validate(&gates).unwrap_err();
         assert_eq!(
             e.to_string(),
-            "invalid config at `ramp_step_mv`: must be a positive number of mV, got NaN"
+            "invalid config at `ramp_step_mv`: must be a positive number of mV, at most 1000, got NaN"
         );
         c.ramp_step_mv = 1e-7;
         let e = c.validate(&gates).unwrap_err();
@@ -758,6 +895,8 @@ mod tests {
             timeout_ms: 500,
             settle_ms: 0,
             measure: MeasureSource::Simulator,
+            profile: Default::default(),
+            max_leakage_na: None,
         };
         let mut src = ScpiSource::new(cfg, &gates);
         assert_eq!(

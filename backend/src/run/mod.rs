@@ -102,9 +102,23 @@ pub struct RecentPage {
     pub end: u64,
 }
 
+/// Waits before each attempt to store a run's `failed` status, ms.
+const FAILED_STATUS_RETRY_MS: [u64; 3] = [0, 200, 1_000];
+
+/// Schema version of [`Checkpoint`] written by this release. Checkpoints
+/// without a version were written by older releases (read as version 1).
+pub const CHECKPOINT_VERSION: u32 = 2;
+
+fn legacy_checkpoint_version() -> u32 {
+    1
+}
+
 /// Everything needed to continue a run: stored after every iteration.
 #[derive(Debug, Serialize, Deserialize)]
 pub struct Checkpoint {
+    /// Schema version ([`CHECKPOINT_VERSION`]); checked on load.
+    #[serde(default = "legacy_checkpoint_version")]
+    pub version: u32,
     /// The session's complete state (tuner, mode, deferred targets).
     #[serde(default)]
     pub session: Option<RunSession>,
@@ -116,6 +130,69 @@ pub struct Checkpoint {
 }
 
 impl Checkpoint {
+    /// A checkpoint of this release.
+    pub fn new(session: RunSession, device: Value) -> Self {
+        Self {
+            version: CHECKPOINT_VERSION,
+            session: Some(session),
+            tuner: None,
+            device,
+        }
+    }
+
+    /// Parse and check a stored checkpoint of run `id`: malformed JSON, an
+    /// unknown schema version or a state that does not belong to the run's
+    /// config (other gates or limits: invariant 5 rests on them) is an error
+    /// naming the problem, never a panic.
+    pub fn load(id: u64, json: &str, config: &RunConfig) -> Result<Self, RunError> {
+        let unusable = |why: String| {
+            RunError::Conflict(format!(
+                "run {id} cannot continue: its stored checkpoint {why}"
+            ))
+        };
+        let raw: Value =
+            serde_json::from_str(json).map_err(|e| unusable(format!("is not JSON ({e})")))?;
+        let version = match raw.get("version") {
+            None => legacy_checkpoint_version(),
+            Some(v) => v
+                .as_u64()
+                .and_then(|v| u32::try_from(v).ok())
+                .ok_or_else(|| unusable(format!("has an invalid schema version {v}")))?,
+        };
+        if version == 0 || version > CHECKPOINT_VERSION {
+            return Err(unusable(format!(
+                "has schema version {version}; this server reads versions 1 to {CHECKPOINT_VERSION}"
+            )));
+        }
+        let cp: Checkpoint = serde_path_to_error::deserialize(raw)
+            .map_err(|e| unusable(format!("is malformed at `{}`: {}", e.path(), e.inner())))?;
+        let tuner = match (&cp.session, &cp.tuner) {
+            (Some(s), _) => s.tuner(),
+            (None, Some(t)) => t,
+            (None, None) => return Err(unusable("holds neither a session nor a tuner".into())),
+        };
+        let want = &config.simulation.tuner.gates;
+        let have = &tuner.config().gates;
+        let same = want.len() == have.len()
+            && want.iter().zip(have).all(|(a, b)| {
+                a.name == b.name
+                    && a.min_mv == b.min_mv
+                    && a.max_mv == b.max_mv
+                    && a.max_step_mv == b.max_step_mv
+            });
+        if !same {
+            return Err(unusable(
+                "has other gates or gate limits than the run's config".into(),
+            ));
+        }
+        if let Some((gate, v)) = tuner.voltages_mv().iter().find(|(_, v)| !v.is_finite()) {
+            return Err(unusable(format!(
+                "holds a non-finite voltage {v} for {gate}"
+            )));
+        }
+        Ok(cp)
+    }
+
     /// The session to continue from (an old tuner-only checkpoint gets a
     /// fresh session around its tuner).
     pub fn into_session(self, config: SessionConfig) -> Result<(RunSession, Value), RunError> {
@@ -191,6 +268,8 @@ pub struct RunHandle {
     summary: Mutex<RunSummary>,
     tx: broadcast::Sender<Frame>,
     control: Mutex<Option<mpsc::Sender<ControlMsg>>>,
+    /// Why the stored run is unreadable (`Some`: quarantined; listed, never driven).
+    quarantine: Option<String>,
     /// Held while starting, resuming or controlling the run: at most one task.
     lifecycle: tokio::sync::Mutex<()>,
     /// (seq, summary JSON) of the newest committed iterations, at most
@@ -208,6 +287,7 @@ impl RunHandle {
             summary: Mutex::new(summary),
             tx: broadcast::channel(viewer_buffer.max(1)).0,
             control: Mutex::new(None),
+            quarantine: None,
             lifecycle: tokio::sync::Mutex::new(()),
             recent: Mutex::new(VecDeque::with_capacity(RECENT_SUMMARIES)),
             viewer_sockets: Arc::new(AtomicUsize::new(0)),
@@ -270,6 +350,26 @@ impl RunHandle {
             more_before: start > 0,
             end,
         })
+    }
+
+    /// A run whose stored row or config is unreadable: listed with the
+    /// error, refused for control, config and bridges; deletable.
+    fn quarantined(id: u64, summary: RunSummary, error: String, viewer_buffer: usize) -> Self {
+        Self {
+            quarantine: Some(error),
+            ..Self::new(id, RunConfig::paper_default(), summary, viewer_buffer)
+        }
+    }
+
+    /// `Conflict` naming the error if the run is quarantined.
+    pub fn readable(&self) -> Result<(), RunError> {
+        match &self.quarantine {
+            None => Ok(()),
+            Some(e) => Err(RunError::Conflict(format!(
+                "run {} is quarantined: its stored data is unreadable ({e}); delete it or repair the store",
+                self.id
+            ))),
+        }
     }
 
     /// Current summary.
@@ -391,17 +491,32 @@ impl Manager {
         }
         let mut runs = BTreeMap::new();
         for stored in store.list_runs()? {
-            let config: RunConfig = match serde_json::from_str(&stored.config_json) {
+            let id = stored.summary.id;
+            let config = match &stored.unreadable {
+                Some(e) => Err(e.clone()),
+                None => serde_json::from_str::<RunConfig>(&stored.config_json)
+                    .map_err(|e| format!("unreadable config: {e}")),
+            };
+            let config = match config {
                 Ok(c) => c,
                 Err(e) => {
-                    eprintln!(
-                        "warning: run {} has an unreadable config ({e}); skipped",
-                        stored.summary.id
+                    eprintln!("warning: run {id} is quarantined: {e}");
+                    let mut summary = stored.summary;
+                    summary.status = RunStatus::Failed {
+                        message: format!("quarantined: the stored run is unreadable ({e})"),
+                    };
+                    runs.insert(
+                        id,
+                        Arc::new(RunHandle::quarantined(
+                            id,
+                            summary,
+                            e,
+                            options.viewer_buffer,
+                        )),
                     );
                     continue;
                 }
             };
-            let id = stored.summary.id;
             runs.insert(
                 id,
                 Arc::new(RunHandle::new(
@@ -443,6 +558,7 @@ impl Manager {
     /// the run's device does not include the bridge.
     pub fn bridge_link(&self, id: u64) -> Result<Arc<BridgeLink>, RunError> {
         let handle = self.get(id)?;
+        handle.readable()?;
         if !handle.config.backend.uses_bridge() {
             return Err(RunError::Conflict(format!(
                 "run {id} does not use the lab bridge (its driver is {:?}); create it with driver = \"bridge\" or scpi.measure = \"bridge\"",
@@ -477,13 +593,12 @@ impl Manager {
         let device = sim
             .simulated_device()
             .map_err(|e| RunError::Invalid(e.to_string()))?;
-        let checkpoint = Checkpoint {
-            session: Some(session),
-            tuner: None,
-            device: SimulatorDevice::new(device)
+        let checkpoint = Checkpoint::new(
+            session,
+            SimulatorDevice::new(device)
                 .checkpoint()
                 .map_err(|e| RunError::Internal(e.to_string()))?,
-        };
+        );
         let checkpoint_json =
             serde_json::to_string(&checkpoint).map_err(|e| RunError::Internal(e.to_string()))?;
         let config_json =
@@ -528,6 +643,7 @@ impl Manager {
         command: ControlCommand,
     ) -> Result<RunSummary, RunError> {
         let handle = self.get(id)?;
+        handle.readable()?;
         let _lock = handle.lifecycle.lock().await;
         if let Some(sender) = handle.control_sender() {
             let (reply, rx) = oneshot::channel();
@@ -568,22 +684,15 @@ impl Manager {
                     RunStatus::Finished => return Err(conflict("the run has finished")),
                     _ => {}
                 }
-                let checkpoint = self.load_checkpoint(handle.id).await?;
+                let checkpoint = self.load_checkpoint(handle).await?;
                 let scfg = session_config(&handle.config, self.options.iteration_delay);
                 let (mut session, device) = checkpoint.into_session(scfg)?;
                 let new_status = session
                     .control(&command)
                     .map_err(|e| RunError::Conflict(e.to_string()))?;
                 handle.set_summary(|s| s.status = new_status);
-                self.start_task(
-                    handle,
-                    Checkpoint {
-                        session: Some(session),
-                        tuner: None,
-                        device,
-                    },
-                )
-                .await?;
+                self.start_task(handle, Checkpoint::new(session, device))
+                    .await?;
                 Ok(handle.summary())
             }
             ControlCommand::Pause => match status {
@@ -601,7 +710,7 @@ impl Manager {
                 if status == RunStatus::Stopped {
                     return Err(conflict("a stopped run takes no new targets"));
                 }
-                let checkpoint = self.load_checkpoint(handle.id).await?;
+                let checkpoint = self.load_checkpoint(handle).await?;
                 let scfg = session_config(&handle.config, self.options.iteration_delay);
                 let (mut session, device) = checkpoint.into_session(scfg)?;
                 session.control(&command).map_err(|e| match e {
@@ -613,12 +722,8 @@ impl Manager {
                 // a new target revives a run that finished because it was tuned
                 let revived =
                     status == RunStatus::Finished && session.status() == RunStatus::Paused;
-                let json = serde_json::to_string(&Checkpoint {
-                    session: Some(session),
-                    tuner: None,
-                    device,
-                })
-                .map_err(|e| RunError::Internal(e.to_string()))?;
+                let json = serde_json::to_string(&Checkpoint::new(session, device))
+                    .map_err(|e| RunError::Internal(e.to_string()))?;
                 let store = self.store.clone();
                 let id = handle.id;
                 blocking(move || store.save_checkpoint(id, None, &json)).await?;
@@ -630,11 +735,69 @@ impl Manager {
         }
     }
 
-    async fn load_checkpoint(&self, id: u64) -> Result<Checkpoint, RunError> {
+    async fn load_checkpoint(&self, handle: &RunHandle) -> Result<Checkpoint, RunError> {
         let store = self.store.clone();
+        let id = handle.id;
         let json = blocking(move || store.checkpoint(id)).await?;
-        serde_json::from_str(&json)
-            .map_err(|e| RunError::Internal(format!("run {id}: unreadable checkpoint: {e}")))
+        Checkpoint::load(id, &json, &handle.config)
+    }
+
+    /// Run a task's future; if it panics (e.g. on a restored state the core
+    /// cannot handle) the run is failed instead of being left `running`.
+    async fn supervise(
+        &self,
+        handle: &RunHandle,
+        generation: u64,
+        task: impl std::future::Future<Output = ()> + Send + 'static,
+    ) {
+        if let Err(e) = tokio::spawn(task).await {
+            let message = match e.try_into_panic() {
+                Ok(p) => format!(
+                    "internal error: the run task panicked: {}",
+                    p.downcast_ref::<&str>()
+                        .map(|s| s.to_string())
+                        .or_else(|| p.downcast_ref::<String>().cloned())
+                        .unwrap_or_default()
+                ),
+                Err(e) => format!("internal error: the run task ended: {e}"),
+            };
+            self.fail_run(handle, generation, message).await;
+        }
+    }
+
+    /// A run task failed (the store refused a write, or the task panicked):
+    /// the run is `failed` with `message`, in memory at once (nobody is told
+    /// `running`) and in the store if it takes the write (a few attempts).
+    /// If it does not, the message says so; a restart then lists the run as
+    /// `interrupted`, never `running`.
+    async fn fail_run(&self, handle: &RunHandle, generation: u64, message: String) {
+        let status = RunStatus::Failed {
+            message: message.clone(),
+        };
+        let summary = handle.set_summary(|s| s.status = status.clone());
+        handle.broadcast_status(summary);
+        let mut last = None;
+        for wait_ms in FAILED_STATUS_RETRY_MS {
+            tokio::time::sleep(Duration::from_millis(wait_ms)).await;
+            match self
+                .store_status(handle, Some(generation), status.clone())
+                .await
+            {
+                Ok(()) => return,
+                // Another task drives the run now, or it was deleted: not ours to mark.
+                Err(e) if e.is_stale() || matches!(e, RunError::NotFound(_)) => return,
+                Err(e) => last = Some(e),
+            }
+        }
+        if let Some(e) = last {
+            let status = RunStatus::Failed {
+                message: format!(
+                    "{message}; this status could not be stored either ({e}): after a restart the run is listed as interrupted"
+                ),
+            };
+            let summary = handle.set_summary(|s| s.status = status);
+            handle.broadcast_status(summary);
+        }
     }
 
     /// Store a status (with `generation`: only for that task), no broadcast.
@@ -825,8 +988,9 @@ impl Manager {
             generation,
         };
         let h = handle.clone();
+        let manager = self.clone();
         tokio::spawn(async move {
-            task.run().await;
+            manager.supervise(&h, generation, task.run()).await;
             // Only this task's channel is cleared (a detached task must not
             // clear its successor's).
             let mut control = h.control.lock().unwrap_or_else(|p| p.into_inner());
@@ -856,6 +1020,34 @@ mod tests {
         let (session, _) = cp.into_session(SessionConfig::default()).unwrap();
         assert_eq!(session.tuner().iteration(), 0);
         assert_eq!(session.status(), RunStatus::Running);
+    }
+
+    #[tokio::test]
+    async fn a_panicking_run_task_fails_the_run_in_memory_and_in_the_store() {
+        let dir = std::env::temp_dir().join(format!("spintune-panic-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let store = Arc::new(Store::open(&dir.join("p.db")).unwrap());
+        let manager = Manager::open(store.clone(), ManagerOptions::default()).unwrap();
+        let id = manager
+            .create(RunConfig::paper_default(), true)
+            .await
+            .unwrap()
+            .id;
+        let handle = manager.get(id).unwrap();
+        // A new task generation takes the run over (the paused one goes stale).
+        let generation = store.claim(id).unwrap();
+        manager
+            .supervise(&handle, generation, async { panic!("boom") })
+            .await;
+        let failed = |s: &RunStatus| matches!(s, RunStatus::Failed { message } if message.contains("panicked: boom"));
+        assert!(
+            failed(&handle.summary().status),
+            "{:?}",
+            handle.summary().status
+        );
+        assert!(failed(&store.get_run(id).unwrap().summary.status));
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

@@ -40,13 +40,8 @@ impl RunTask {
     /// Drive the session until it is done; store `failed` if the store breaks.
     pub async fn run(mut self) {
         if let Err(Exit::Failed(message)) = self.drive().await {
-            let status = RunStatus::Failed { message };
-            // Memory first: even if the store is gone, nobody is told `running`.
-            let summary = self.handle.set_summary(|s| s.status = status.clone());
-            self.handle.broadcast_status(summary);
-            let _ = self
-                .manager
-                .store_status(&self.handle, Some(self.generation), status)
+            self.manager
+                .fail_run(&self.handle, self.generation, message)
                 .await;
         }
     }
@@ -147,10 +142,12 @@ impl RunTask {
             .map_err(|e| Exit::Failed(format!("cannot serialize device state: {e}")))?;
         #[derive(Serialize)]
         struct CheckpointRef<'a> {
+            version: u32,
             session: &'a RunSession,
             device: Value,
         }
         serde_json::to_string(&CheckpointRef {
+            version: super::CHECKPOINT_VERSION,
             session: &self.session,
             device,
         })

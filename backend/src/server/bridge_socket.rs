@@ -9,7 +9,7 @@ use axum::extract::ws::{Message, Utf8Bytes, WebSocket};
 use spintune::protocol::{BridgeClientMessage, BridgeServerMessage, PROTOCOL_VERSION};
 use tokio::sync::mpsc;
 
-use super::{parse_strict, token_eq, AppState};
+use super::{parse_strict, AppState};
 use crate::devices::bridge::{BridgeLink, AUTH_TIMEOUT_S};
 
 fn frame(msg: &BridgeServerMessage) -> Message {
@@ -70,10 +70,11 @@ async fn serve(state: &AppState, id: u64, socket: &mut WebSocket) -> Result<(), 
             }
         };
         match parse_strict::<BridgeClientMessage>(text.as_str()) {
-            Ok(BridgeClientMessage::Auth { token }) if token_eq(&token, &state.token) => break,
-            Ok(BridgeClientMessage::Auth { .. }) => {
-                return socket.send(error_frame("invalid control token")).await
-            }
+            Ok(BridgeClientMessage::Auth { token }) => match state.auth.check(state.client, &token)
+            {
+                Ok(()) => break,
+                Err(refusal) => return socket.send(error_frame(refusal.message())).await,
+            },
             Ok(BridgeClientMessage::Response { .. }) => return socket
                 .send(error_frame(
                     "the bridge must authenticate first: send {\"type\":\"auth\",\"token\":\"…\"}",

@@ -20,6 +20,7 @@ use std::sync::{Arc, Mutex};
 use std::task::{Context, Poll};
 use std::time::Duration;
 
+use axum::extract::ConnectInfo;
 use axum::Router;
 use hyper_util::rt::{TokioIo, TokioTimer};
 use hyper_util::service::TowerToHyperService;
@@ -213,7 +214,12 @@ pub async fn serve(listener: TcpListener, app: Router, limits: ConnectionLimits)
             continue;
         };
         let _ = tcp.set_nodelay(true);
-        let service = TowerToHyperService::new(app.clone());
+        // The peer address for handlers and middleware (`ConnectInfo`), as
+        // `into_make_service_with_connect_info` would provide it.
+        let service = TowerToHyperService::new(
+            app.clone()
+                .layer(axum::Extension(ConnectInfo::<std::net::SocketAddr>(peer))),
+        );
         let io = Counted {
             io: tcp,
             _slot: slot,

@@ -2,7 +2,9 @@
 //!
 //! All bodies are JSON; errors are `{"error": "<message naming the problem>"}`.
 //! Viewing is open; endpoints marked 🔒 need `Authorization: Bearer <token>`
-//! (401 without a token, 403 with a wrong one; nothing changes in either case).
+//! (401 without a token, 403 with a wrong one, 429 while the address is
+//! throttled, see [`auth`]; nothing changes in any case). Every request passes
+//! the Host and Origin checks of [`origin`] first (421 / 403).
 //!
 //! | method | path | body → answer |
 //! |---|---|---|
@@ -10,7 +12,7 @@
 //! | GET | `/api/runs` | → `[RunSummary]` |
 //! | POST 🔒 | `/api/runs` | run config (JSON form of the TOML file, see [`crate::config`]; `{}` = paper default) → 201 `RunSummary` |
 //! | GET | `/api/runs/{id}` | → `RunSummary` |
-//! | GET | `/api/runs/{id}/config` | → the run's config (`{"simulation": …, "backend": …}`) |
+//! | GET | `/api/runs/{id}/config` | → the run's config (`{"simulation": …, "backend": …}`; without a token instrument addresses, channel maps and secrets are `"<redacted>"`) |
 //! | GET | `/api/runs/{id}/iterations?from=N&limit=M` | → `[IterationRecord]` with seq ≥ N (default 0), at most M ([`DEFAULT_PAGE`] if not given, ≤ [`MAX_PAGE`]) |
 //! | GET | `/api/runs/{id}/export?format=csv\|json` | → the export table (see [`crate::export`]) |
 //! | POST 🔒 | `/api/runs/{id}/control` | `ControlCommand` → `RunSummary` (400 invalid, 409 not applicable) |
@@ -56,7 +58,7 @@ use std::time::Duration;
 
 use axum::body::Bytes;
 use axum::extract::ws::{Message, Utf8Bytes, WebSocket, WebSocketUpgrade};
-use axum::extract::{Path, Query, State};
+use axum::extract::{Extension, Path, Query, State};
 use axum::http::{header, HeaderMap, StatusCode};
 use axum::response::{Html, IntoResponse, Response};
 use axum::routing::{get, post};
@@ -69,8 +71,11 @@ use spintune::protocol::{
 use tokio::sync::broadcast::error::RecvError;
 use tower_http::services::ServeDir;
 
+pub mod auth;
 mod bridge_socket;
 pub mod listener;
+pub mod origin;
+mod redact;
 
 use crate::config::RunConfig;
 use crate::run::{history_frame_text, Manager, RunError, ViewerSlot};
@@ -105,8 +110,23 @@ const CLOSE_GRACE: Duration = Duration::from_secs(1);
 pub struct AppState {
     /// The run manager.
     pub manager: Arc<Manager>,
-    /// The control token.
-    pub token: Arc<str>,
+    /// The control token and the failed-auth throttle ([`auth`]).
+    pub auth: Arc<auth::Auth>,
+    /// Accepted Hosts and Origins ([`origin`]).
+    pub access: Arc<origin::Access>,
+    /// The client of the present request (set by the socket handlers for the
+    /// throttle; `None` in the shared state).
+    pub client: Option<std::net::IpAddr>,
+}
+
+impl AppState {
+    /// The state for one client's socket (its address feeds the auth throttle).
+    pub fn for_client(self, client: auth::ClientIp) -> Self {
+        Self {
+            client: client.0,
+            ..self
+        }
+    }
 }
 
 /// An API error: status + `{"error": message}`.
@@ -163,7 +183,7 @@ pub fn random_token() -> String {
     buf.iter().map(|b| format!("{b:02x}")).collect()
 }
 
-fn authorize(state: &AppState, headers: &HeaderMap) -> ApiResult<()> {
+fn authorize(state: &AppState, client: auth::ClientIp, headers: &HeaderMap) -> ApiResult<()> {
     let Some(value) = headers.get(header::AUTHORIZATION) else {
         return Err(ApiError(
             StatusCode::UNAUTHORIZED,
@@ -175,14 +195,10 @@ fn authorize(state: &AppState, headers: &HeaderMap) -> ApiResult<()> {
         .strip_prefix("Bearer ")
         .or_else(|| value.strip_prefix("bearer "))
         .unwrap_or("");
-    if token_eq(token.trim(), &state.token) {
-        Ok(())
-    } else {
-        Err(ApiError(
-            StatusCode::FORBIDDEN,
-            "invalid control token".into(),
-        ))
-    }
+    state.auth.check(client.0, token).map_err(|r| match r {
+        auth::Refusal::Wrong => ApiError(StatusCode::FORBIDDEN, r.message()),
+        auth::Refusal::Throttled(_) => ApiError(StatusCode::TOO_MANY_REQUESTS, r.message()),
+    })
 }
 
 fn parse_u64(q: &HashMap<String, String>, key: &str) -> ApiResult<Option<u64>> {
@@ -290,6 +306,7 @@ fn validate_control(cmd: &ControlCommand) -> Result<(), ProtocolError> {
 
 /// Build the router. `dist` is the dashboard directory (Trunk output).
 pub fn router(state: AppState, dist: PathBuf) -> Router {
+    let access = state.access.clone();
     let api = Router::new()
         .route("/api/version", get(version))
         .route("/api/runs", get(list_runs).post(create_run))
@@ -301,7 +318,7 @@ pub fn router(state: AppState, dist: PathBuf) -> Router {
         .route("/api/runs/{id}/ws", get(ws))
         .route("/api/runs/{id}/bridge", get(bridge_ws))
         .with_state(state);
-    if dist.join("index.html").is_file() {
+    let app = if dist.join("index.html").is_file() {
         api.fallback_service(ServeDir::new(dist))
     } else {
         let note = dashboard_missing_note(&dist);
@@ -309,7 +326,8 @@ pub fn router(state: AppState, dist: PathBuf) -> Router {
             let note = note.clone();
             async move { Html(note) }
         })
-    }
+    };
+    origin::guard(app, access)
 }
 
 fn dashboard_missing_note(dist: &std::path::Path) -> String {
@@ -340,10 +358,11 @@ async fn list_runs(State(s): State<AppState>) -> impl IntoResponse {
 
 async fn create_run(
     State(s): State<AppState>,
+    Extension(client): Extension<auth::ClientIp>,
     headers: HeaderMap,
     body: Bytes,
 ) -> ApiResult<impl IntoResponse> {
-    authorize(&s, &headers)?;
+    authorize(&s, client, &headers)?;
     let text = std::str::from_utf8(&body)
         .map_err(|_| ApiError(StatusCode::BAD_REQUEST, "body is not UTF-8".into()))?;
     let text = if text.trim().is_empty() { "{}" } else { text };
@@ -363,10 +382,22 @@ async fn get_run(
 
 async fn get_config(
     State(s): State<AppState>,
+    Extension(client): Extension<auth::ClientIp>,
     Path(id): Path<String>,
+    headers: HeaderMap,
 ) -> ApiResult<impl IntoResponse> {
     let id = parse_id(&id)?;
-    Ok(Json(s.manager.get(id)?.config.clone()))
+    let handle = s.manager.get(id)?;
+    handle.readable()?;
+    let config = handle.config.clone();
+    // Full with the token; instrument addresses, channel maps and secrets redacted without.
+    if headers.contains_key(header::AUTHORIZATION) {
+        authorize(&s, client, &headers)?;
+        return Ok(Json(serde_json::to_value(config).map_err(|e| {
+            ApiError(StatusCode::INTERNAL_SERVER_ERROR, e.to_string())
+        })?));
+    }
+    Ok(Json(redact::config(&config)))
 }
 
 async fn iterations(
@@ -441,10 +472,11 @@ async fn export(
 async fn control(
     State(s): State<AppState>,
     Path(id): Path<String>,
+    Extension(client): Extension<auth::ClientIp>,
     headers: HeaderMap,
     body: Bytes,
 ) -> ApiResult<impl IntoResponse> {
-    authorize(&s, &headers)?;
+    authorize(&s, client, &headers)?;
     let id = parse_id(&id)?;
     let text = std::str::from_utf8(&body)
         .map_err(|_| ApiError(StatusCode::BAD_REQUEST, "body is not UTF-8".into()))?;
@@ -455,9 +487,10 @@ async fn control(
 async fn delete_run(
     State(s): State<AppState>,
     Path(id): Path<String>,
+    Extension(client): Extension<auth::ClientIp>,
     headers: HeaderMap,
 ) -> ApiResult<impl IntoResponse> {
-    authorize(&s, &headers)?;
+    authorize(&s, client, &headers)?;
     let id = parse_id(&id)?;
     s.manager.delete(id).await?;
     Ok(StatusCode::NO_CONTENT)
@@ -465,6 +498,7 @@ async fn delete_run(
 
 async fn ws(
     State(s): State<AppState>,
+    Extension(client): Extension<auth::ClientIp>,
     Path(id): Path<String>,
     Query(q): Query<HashMap<String, String>>,
     upgrade: WebSocketUpgrade,
@@ -472,6 +506,7 @@ async fn ws(
     let id = parse_id(&id)?;
     let from = parse_u64(&q, "from")?.unwrap_or(0);
     s.manager.get(id)?;
+    let s = s.for_client(client);
     // Client messages are small; a small read buffer keeps each (frequent,
     // usually empty) poll of the socket cheap, since tungstenite zeroes it.
     let handle = s.manager.get(id)?;
@@ -499,12 +534,14 @@ async fn ws(
 /// The lab bridge's socket (see [`crate::devices::bridge`]).
 async fn bridge_ws(
     State(s): State<AppState>,
+    Extension(client): Extension<auth::ClientIp>,
     Path(id): Path<String>,
     Query(q): Query<HashMap<String, String>>,
     upgrade: WebSocketUpgrade,
 ) -> ApiResult<Response> {
     let id = parse_id(&id)?;
     s.manager.get(id)?;
+    let s = s.for_client(client);
     let upgrade = upgrade
         .max_message_size(MAX_BRIDGE_MESSAGE)
         .max_frame_size(MAX_BRIDGE_MESSAGE);
@@ -818,16 +855,15 @@ async fn client_message(
         }
     };
     Some(match msg {
-        ClientMessage::Auth { token } => {
-            if token_eq(&token, &state.token) {
+        ClientMessage::Auth { token } => match state.auth.check(state.client, &token) {
+            Ok(()) => {
                 *authed = true;
                 ServerMessage::AuthOk
-            } else {
-                ServerMessage::Error {
-                    message: "invalid control token".into(),
-                }
             }
-        }
+            Err(refusal) => ServerMessage::Error {
+                message: refusal.message(),
+            },
+        },
         ClientMessage::Control { command } => {
             if !*authed {
                 ServerMessage::Error {

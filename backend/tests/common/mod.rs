@@ -57,6 +57,7 @@ pub async fn server(dir: &TempDir, viewer_buffer: usize) -> Server {
         demo: DemoMode::Never,
         demo_config: None,
         limits: Default::default(),
+        security: Default::default(),
     })
     .await
     .unwrap_or_else(|e| panic!("server: {}", e.message))

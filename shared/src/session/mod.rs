@@ -97,13 +97,19 @@ impl Default for SessionConfig {
 impl SessionConfig {
     /// Upper bound of [`SessionConfig::iteration_delay_ms`] (one hour).
     pub const MAX_ITERATION_DELAY_MS: u64 = 3_600_000;
+    /// Upper bound of [`SessionConfig::readback_tolerance_mv`], mV (a wider
+    /// tolerance would let the guard accept any read-back: invariant 5).
+    pub const MAX_READBACK_TOLERANCE_MV: f64 = 100.0;
 
     /// Check the values; the error names the field.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        if !(self.readback_tolerance_mv.is_finite() && self.readback_tolerance_mv >= 0.0) {
+        if !(0.0..=Self::MAX_READBACK_TOLERANCE_MV).contains(&self.readback_tolerance_mv) {
             return Err(ConfigError::new(
                 "readback_tolerance_mv",
-                "must be a finite number ≥ 0 (mV)",
+                format!(
+                    "must be a finite number ≥ 0 (mV), at most {} mV",
+                    Self::MAX_READBACK_TOLERANCE_MV
+                ),
             ));
         }
         if self.iteration_delay_ms > Self::MAX_ITERATION_DELAY_MS {

@@ -378,35 +378,40 @@ impl Default for DeviceConfig {
     }
 }
 
+/// Largest magnitude of any number of the device model, in its unit
+/// (bounded by construction: far from overflow in the model's exponentials
+/// and products).
+pub const MAX_MAGNITUDE: f64 = 1e6;
+
 fn positive(name: &str, v: f64) -> Result<(), ConfigError> {
-    if v.is_finite() && v > 0.0 {
+    if v.is_finite() && v > 0.0 && v <= MAX_MAGNITUDE {
         Ok(())
     } else {
         Err(ConfigError::new(
             name,
-            format!("must be a finite number > 0, got {v}"),
+            format!("must be a finite number > 0, at most {MAX_MAGNITUDE:e}, got {v}"),
         ))
     }
 }
 
 fn non_negative(name: &str, v: f64) -> Result<(), ConfigError> {
-    if v.is_finite() && v >= 0.0 {
+    if (0.0..=MAX_MAGNITUDE).contains(&v) {
         Ok(())
     } else {
         Err(ConfigError::new(
             name,
-            format!("must be a finite number ≥ 0, got {v}"),
+            format!("must be a finite number ≥ 0, at most {MAX_MAGNITUDE:e}, got {v}"),
         ))
     }
 }
 
 fn finite(name: &str, v: f64) -> Result<(), ConfigError> {
-    if v.is_finite() {
+    if v.is_finite() && v.abs() <= MAX_MAGNITUDE {
         Ok(())
     } else {
         Err(ConfigError::new(
             name,
-            format!("must be a finite number, got {v}"),
+            format!("must be a finite number within ±{MAX_MAGNITUDE:e}, got {v}"),
         ))
     }
 }
@@ -518,11 +523,14 @@ impl DeviceConfig {
         positive("scans.detuning_half_range_mv", s.detuning_half_range_mv)?;
         points("scans.detuning_points", s.detuning_points)?;
         non_negative("scans.load_from_ns", s.load_from_ns)?;
-        if !(s.load_to_ns.is_finite() && s.load_to_ns > s.load_from_ns) {
+        if !(s.load_to_ns.is_finite()
+            && s.load_to_ns > s.load_from_ns
+            && s.load_to_ns <= MAX_MAGNITUDE)
+        {
             return Err(ConfigError::new(
                 "scans.load_to_ns",
                 format!(
-                    "must be finite and > scans.load_from_ns ({} ns), got {}",
+                    "must be finite, > scans.load_from_ns ({} ns) and at most 1e6 ns, got {}",
                     s.load_from_ns, s.load_to_ns
                 ),
             ));

@@ -100,6 +100,40 @@ fn default_max_inner() -> u32 {
     3
 }
 
+/// Largest magnitude of any non-integer number of a tuner config, in its
+/// unit (mV, ns, µV, …); gate voltages are bounded tighter ([`MAX_GATE_MV`]).
+pub const MAX_MAGNITUDE: f64 = 1e6;
+
+fn check_magnitudes(v: &serde_json::Value, path: &str) -> Result<(), ConfigError> {
+    use serde_json::Value;
+    match v {
+        Value::Number(n) if n.is_f64() => match n.as_f64() {
+            Some(x) if x.is_finite() && x.abs() <= MAX_MAGNITUDE => Ok(()),
+            _ => Err(ConfigError::new(
+                path,
+                format!("{n} is out of range (a finite number within ±{MAX_MAGNITUDE:e})"),
+            )),
+        },
+        Value::Object(m) => m.iter().try_for_each(|(k, x)| {
+            let p = if path.is_empty() {
+                k.clone()
+            } else {
+                format!("{path}.{k}")
+            };
+            check_magnitudes(x, &p)
+        }),
+        Value::Array(a) => a
+            .iter()
+            .enumerate()
+            .try_for_each(|(i, x)| check_magnitudes(x, &format!("{path}[{i}]"))),
+        _ => Ok(()),
+    }
+}
+
+/// Largest magnitude of a gate's limits, initial voltage and step, mV
+/// (±100 V: beyond any DC source; bounded by construction).
+pub const MAX_GATE_MV: f64 = 100_000.0;
+
 /// Upper bound on [`SensingDotConfig::points`] (bounded by construction).
 pub const MAX_SWEEP_POINTS: usize = 10_000;
 
@@ -209,6 +243,11 @@ impl TunerConfig {
 
     /// Check the config; the error names the offending field.
     pub fn validate(&self) -> Result<(), ConfigError> {
+        // Every non-integer number first: within ±MAX_MAGNITUDE in its unit
+        // (bounded by construction; the checks below add each field's range).
+        if let Ok(v) = serde_json::to_value(self) {
+            check_magnitudes(&v, "")?;
+        }
         if self.gates.is_empty() {
             return Err(ConfigError::new("gates", "at least one gate is required"));
         }
@@ -229,8 +268,11 @@ impl TunerConfig {
                 ("initial_mv", g.initial_mv),
                 ("max_step_mv", g.max_step_mv),
             ] {
-                if !v.is_finite() {
-                    return Err(ConfigError::new(f(name), "must be a finite number"));
+                if !(v.is_finite() && v.abs() <= MAX_GATE_MV) {
+                    return Err(ConfigError::new(
+                        f(name),
+                        format!("must be a finite number within ±{MAX_GATE_MV} mV, got {v}"),
+                    ));
                 }
             }
             if g.min_mv > g.max_mv {

@@ -283,6 +283,18 @@ impl TunerConfig {
                 }
             }
         }
+        for (parameter, r) in [
+            ("w", &self.fit_references.w),
+            ("t_sr", &self.fit_references.t_sr),
+        ] {
+            let floor = r.relative_floor;
+            if !(floor.is_finite() && (0.0..1.0).contains(&floor)) {
+                return Err(ConfigError::new(
+                    format!("fit_references.{parameter}.relative_floor"),
+                    "must be a finite number in [0, 1)",
+                ));
+            }
+        }
         if self.levels.is_empty() {
             return Err(ConfigError::new("levels", "at least one level is required"));
         }

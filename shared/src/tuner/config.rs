@@ -50,7 +50,20 @@ pub struct Compensation {
     /// Compensating gates (rows), e.g. `["PA", "PB"]`.
     pub gates: Vec<String>,
     /// Rows: compensating gates; columns: the level's gates (dimensionless, mV/mV).
+    /// Configuration a lab supplies (e.g. from the slopes of charge-stability
+    /// diagrams); never derived from the simulator's truth (invariant 7).
     pub matrix: Vec<Vec<f64>>,
+    /// Relative 1σ uncertainty of each matrix element as the lab knows it
+    /// (dimensionless, 0 ≤ u ≤ 10; default 0.2). Documentation for the
+    /// operator and the benchmark's perturbation scale: the tuner does not
+    /// rely on the matrix being exact, the chemical-potential level re-centres
+    /// the lines after every move.
+    #[serde(default = "default_compensation_uncertainty")]
+    pub relative_uncertainty: f64,
+}
+
+fn default_compensation_uncertainty() -> f64 {
+    0.2
 }
 
 /// A quasi-Newton level: parameters driven by gates through an estimated Jacobian.
@@ -510,6 +523,13 @@ fn validate_newton(n: &NewtonConfig, has_gate: &dyn Fn(&str) -> bool) -> Result<
             }
         }
         check_rows(&c.matrix, c.gates.len(), k, "compensation.matrix")?;
+        let u = c.relative_uncertainty;
+        if !(u.is_finite() && (0.0..=10.0).contains(&u)) {
+            return Err(ConfigError::new(
+                "compensation.relative_uncertainty",
+                "must be a finite number in [0, 10]",
+            ));
+        }
     }
     Ok(())
 }

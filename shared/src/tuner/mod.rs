@@ -42,6 +42,7 @@ pub use config::{
     Compensation, ConfigError, InitialGradient, LevelConfig, LevelKind, NewtonConfig,
     ScheduledTargets, SensingDotConfig, TunerConfig, MAX_SWEEP_POINTS,
 };
+pub use newton::Consistency;
 use newton::NewtonState;
 
 use crate::parameter::Tolerance;
@@ -262,6 +263,25 @@ impl Tuner {
     pub fn gradients(&self, level: usize) -> Option<Vec<GradientRow>> {
         match self.levels.get(level)? {
             LevelState::Newton(n) => n.gradients(),
+            LevelState::SensingDot { .. } => None,
+        }
+    }
+
+    /// The last values a Newton level measured (its parameters in config
+    /// order, parameter units; `None` where the last scan gave none), e.g.
+    /// the start values of the initial finite-difference measurement.
+    pub fn last_measured(&self, level: usize) -> Option<&[Option<ParameterValue>]> {
+        match self.levels.get(level)? {
+            LevelState::Newton(n) => Some(n.last_measured()),
+            LevelState::SensingDot { .. } => None,
+        }
+    }
+
+    /// Filter consistency (normalised innovations squared) of a Newton
+    /// level's estimators, per parameter in config order.
+    pub fn consistency(&self, level: usize) -> Option<&[Consistency]> {
+        match self.levels.get(level)? {
+            LevelState::Newton(n) => Some(n.consistency()),
             LevelState::SensingDot { .. } => None,
         }
     }

@@ -55,6 +55,57 @@ pub(super) struct NewtonState {
     pub(super) events: Vec<EventKind>,
     snapshot: Option<Snapshot>,
     targets_held: bool,
+    /// The last measured values, in parameter order (parameter units);
+    /// `None` where the last scan gave none.
+    #[serde(default)]
+    last_raw: Vec<Option<ParameterValue>>,
+    /// Filter consistency per parameter (parameter order).
+    #[serde(default)]
+    consistency: Vec<Consistency>,
+}
+
+/// Running statistics of a filter's normalised innovations squared (NIS),
+/// `(z − Δv·g)² / (Δv C Δvᵀ + Δz²)`, over every update it was offered
+/// (gated outliers included). For a consistent filter the mean is 1 and
+/// 4.6 % of the innovations lie beyond 2σ.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct Consistency {
+    /// Number of innovations.
+    pub count: u64,
+    /// Sum of the NIS values (dimensionless).
+    pub nis_sum: f64,
+    /// Innovations beyond 2 predicted standard deviations.
+    pub beyond_2sigma: u64,
+}
+
+impl Consistency {
+    /// Add one innovation (estimator units) with its predicted standard deviation.
+    /// Ignored unless both are finite and the standard deviation is > 0.
+    pub fn add(&mut self, innovation: f64, innovation_sigma: f64) {
+        if innovation.is_finite() && innovation_sigma.is_finite() && innovation_sigma > 0.0 {
+            let r = innovation / innovation_sigma;
+            self.count += 1;
+            self.nis_sum += r * r;
+            self.beyond_2sigma += u64::from(r.abs() > 2.0);
+        }
+    }
+
+    /// Merge another set of statistics.
+    pub fn merge(&mut self, other: &Consistency) {
+        self.count += other.count;
+        self.nis_sum += other.nis_sum;
+        self.beyond_2sigma += other.beyond_2sigma;
+    }
+
+    /// Mean NIS (`None` without innovations).
+    pub fn nis_mean(&self) -> Option<f64> {
+        (self.count > 0).then(|| self.nis_sum / self.count as f64)
+    }
+
+    /// Fraction of innovations beyond 2σ (`None` without innovations).
+    pub fn beyond_2sigma_fraction(&self) -> Option<f64> {
+        (self.count > 0).then(|| self.beyond_2sigma as f64 / self.count as f64)
+    }
 }
 
 impl NewtonState {
@@ -106,7 +157,19 @@ impl NewtonState {
             events: Vec::new(),
             snapshot: None,
             targets_held: false,
+            last_raw: vec![None; m],
+            consistency: vec![Consistency::default(); m],
         })
+    }
+
+    /// The last measured values (parameter order, parameter units).
+    pub(super) fn last_measured(&self) -> &[Option<ParameterValue>] {
+        &self.last_raw
+    }
+
+    /// Filter consistency per parameter (parameter order).
+    pub(super) fn consistency(&self) -> &[Consistency] {
+        &self.consistency
     }
 
     /// Drop every reference point: the next measurement is a new baseline.
@@ -147,6 +210,7 @@ impl NewtonState {
             .iter()
             .map(|p| measured.get(&p.name).cloned())
             .collect();
+        self.last_raw = raw.clone();
         let mut samples = Vec::with_capacity(raw.len());
         for (p, v) in cfg.parameters.iter().zip(&raw) {
             let s = v
@@ -424,7 +488,25 @@ impl Tuner {
                     value: y,
                     variance: var,
                 });
-                match estimators[i].observe(&dv, z, dz2) {
+                let outcome = estimators[i].observe(&dv, z, dz2);
+                if let Ok(
+                    UpdateOutcome::Gated {
+                        innovation,
+                        innovation_sigma,
+                    }
+                    | UpdateOutcome::Updated {
+                        innovation,
+                        innovation_sigma,
+                    },
+                ) = outcome
+                {
+                    if state.consistency.len() != cfg.parameters.len() {
+                        // a checkpoint from before these statistics existed
+                        state.consistency = vec![Consistency::default(); cfg.parameters.len()];
+                    }
+                    state.consistency[i].add(innovation, innovation_sigma);
+                }
+                match outcome {
                     Ok(UpdateOutcome::Gated {
                         innovation,
                         innovation_sigma,

@@ -25,7 +25,7 @@ pub struct BenchArgs {
     #[arg(long, default_value_t = 100)]
     pub seeds: u64,
     /// Comma-separated strategies (default: all): kalman, kalman-adaptive-q,
-    /// kalman-log, broyden, fixed-jacobian, fd-newton, oracle.
+    /// kalman-log, broyden, fixed-jacobian, fd-newton, oracle, oracle-log.
     #[arg(long, value_delimiter = ',')]
     pub strategies: Vec<String>,
     /// Device description (TOML or JSON) overriding the simulator's defaults.
@@ -192,11 +192,12 @@ pub fn markdown_table(
         protocol.iterations_per_set_point,
         protocol.relative_tolerance * 100.0
     );
-    s.push_str("| strategy | iterations/change median | p90 | max | lab min/change median | p90 | not converged | limit violations | failed fits | ratio to oracle |\n");
-    s.push_str("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
+    s.push_str("| strategy | iterations/change median | p90 | max | lab min/change median | p90 | not converged | limit violations | failed fits | ratio to oracle | ratio to oracle-log | truth queries |\n");
+    s.push_str("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
+    let ratio = |x: Option<f64>| x.map_or("–".to_string(), |x| format!("{x:.2}"));
     for r in summary {
         s.push_str(&format!(
-            "| {} | {:.1} | {:.1} | {:.0} | {:.1} | {:.1} | {} / {} | {} | {} | {} |\n",
+            "| {} | {:.1} | {:.1} | {:.0} | {:.1} | {:.1} | {} / {} | {} | {} | {} | {} | {} |\n",
             r.name,
             r.iterations_per_change.median,
             r.iterations_per_change.p90,
@@ -207,9 +208,28 @@ pub fn markdown_table(
             r.changes,
             r.limit_violations,
             r.failed_fits,
-            r.ratio_to_oracle
-                .map_or("–".to_string(), |x| format!("{x:.2}")),
+            ratio(r.ratio_to_oracle),
+            ratio(r.ratio_to_oracle_log),
+            r.truth_queries,
         ));
+    }
+    let kalman: Vec<&StrategySummary> =
+        summary.iter().filter(|r| r.consistency.is_some()).collect();
+    if !kalman.is_empty() {
+        s.push_str("\nFilter consistency (normalised innovation squared; ideal mean 1, 4.6 % beyond 2σ):\n\n");
+        s.push_str("| strategy | parameter | NIS mean | beyond 2σ | innovations |\n");
+        s.push_str("|---|---|---:|---:|---:|\n");
+        for r in kalman {
+            for (p, c) in r.consistency.iter().flatten() {
+                s.push_str(&format!(
+                    "| {} | {p} | {:.2} | {:.1} % | {} |\n",
+                    r.name,
+                    c.nis_mean,
+                    100.0 * c.beyond_2sigma,
+                    c.count
+                ));
+            }
+        }
     }
     s
 }

@@ -198,6 +198,10 @@ pub struct SeedResult {
     pub strategy: Strategy,
     /// Seed.
     pub seed: u64,
+    /// Which device (0: the base device; `k`: the random device drawn with seed `k`,
+    /// see [`draw_devices`]). Set by the caller; [`run_seed`] leaves 0.
+    #[serde(default)]
+    pub device: u64,
     /// One entry per set point.
     pub changes: Vec<ChangeResult>,
     /// Requests the safety limits refused, plus iteration steps above the step limit.
@@ -471,6 +475,7 @@ fn run_protocol(
     Ok(SeedResult {
         strategy,
         seed,
+        device: 0,
         changes,
         limit_violations: violations,
         failed_fits: run.tuner().failed_evaluations(),
@@ -508,6 +513,11 @@ pub struct StrategySummary {
     pub lab_minutes_per_change: Quantiles,
     /// Changes not reached within the block.
     pub not_converged: u64,
+    /// Changes not reached within the block where an oracle run (`oracle` or
+    /// `oracle-log`) on the same device and seed did reach it (`None`
+    /// without an oracle run).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub not_converged_where_oracle_converged: Option<u64>,
     /// Must be 0.
     pub limit_violations: u64,
     /// Failed fits over all seeds.
@@ -598,6 +608,7 @@ pub fn summarize(
                 iterations_per_change: quantiles(&iters),
                 lab_minutes_per_change: quantiles(&minutes),
                 not_converged: changes.iter().filter(|c| c.iterations.is_none()).count() as u64,
+                not_converged_where_oracle_converged: oracle_missed(results, &mine),
                 limit_violations: mine.iter().map(|r| r.limit_violations).sum(),
                 failed_fits: mine.iter().map(|r| r.failed_fits).sum(),
                 ratio_to_oracle: None,
@@ -632,6 +643,79 @@ pub fn summarize(
         s.ratio_to_oracle_log = log.map(|o| ratio(m, o));
     }
     out
+}
+
+/// Changes of `mine` not converged where an oracle run of the same device and
+/// seed converged; `None` if `results` hold no oracle run.
+fn oracle_missed(results: &[SeedResult], mine: &[&SeedResult]) -> Option<u64> {
+    let oracle_done: std::collections::BTreeSet<(u64, u64, usize)> = results
+        .iter()
+        .filter(|r| r.strategy.is_oracle())
+        .flat_map(|r| {
+            r.changes
+                .iter()
+                .enumerate()
+                .filter(|(_, c)| c.iterations.is_some())
+                .map(move |(i, _)| (r.device, r.seed, i))
+        })
+        .collect();
+    if !results.iter().any(|r| r.strategy.is_oracle()) {
+        return None;
+    }
+    Some(
+        mine.iter()
+            .flat_map(|r| {
+                r.changes
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, c)| c.iterations.is_none())
+                    .map(move |(i, _)| (r.device, r.seed, i))
+            })
+            .filter(|k| oracle_done.contains(k))
+            .count() as u64,
+    )
+}
+
+/// Draw `n` plausible devices around `base.device` with device seeds
+/// `first_seed, first_seed + 1, …`
+/// ([`crate::sim::random::random_device`]), rejecting those whose set
+/// points cannot be reached within the gate limits
+/// ([`crate::sim::random::targets_reachable`], tuning gates and plungers of
+/// the top level and its compensation). Returns the accepted `(device
+/// seed, device)` pairs and the number rejected; gives up after `20·n`
+/// draws.
+pub fn draw_devices(
+    base: &SimulationConfig,
+    protocol: &BenchmarkProtocol,
+    n: usize,
+    first_seed: u64,
+) -> (Vec<(u64, DeviceConfig)>, u64) {
+    let top = base.tuner.top();
+    let tuning: Vec<&str> = top.gates.iter().map(String::as_str).collect();
+    let plungers: Vec<&str> = top
+        .compensation
+        .as_ref()
+        .map(|c| c.gates.iter().map(String::as_str).collect())
+        .unwrap_or_default();
+    let mut accepted = Vec::new();
+    let mut rejected = 0;
+    let mut seed = first_seed;
+    while accepted.len() < n && seed < first_seed + 20 * n as u64 {
+        let d = crate::sim::random::random_device(&base.device, seed);
+        if crate::sim::random::targets_reachable(
+            &d,
+            &base.tuner.gates,
+            &tuning,
+            &plungers,
+            &protocol.set_points,
+        ) {
+            accepted.push((seed, d));
+        } else {
+            rejected += 1;
+        }
+        seed += 1;
+    }
+    (accepted, rejected)
 }
 
 fn consistency_summary(results: &[&SeedResult]) -> BTreeMap<String, ConsistencySummary> {
@@ -672,6 +756,7 @@ mod tests {
         let r = |s, its: Vec<Option<u32>>| SeedResult {
             strategy: s,
             seed: 0,
+            device: 0,
             changes: its
                 .into_iter()
                 .map(|i| ChangeResult {

@@ -62,6 +62,10 @@ pub(super) struct NewtonState {
     /// Filter consistency per parameter (parameter order).
     #[serde(default)]
     consistency: Vec<Consistency>,
+    /// The level's gate voltages (mV) at the last evaluation that gave every
+    /// targeted parameter: where a failed evaluation retreats toward.
+    #[serde(default)]
+    last_good_mv: Option<Vec<f64>>,
 }
 
 /// Running statistics of a filter's normalised innovations squared (NIS),
@@ -159,6 +163,7 @@ impl NewtonState {
             targets_held: false,
             last_raw: vec![None; m],
             consistency: vec![Consistency::default(); m],
+            last_good_mv: None,
         })
     }
 
@@ -552,6 +557,9 @@ impl Tuner {
             tuned,
             step_mv: vec![0.0; v_now.len()],
         });
+        if !missing_targeted {
+            state.last_good_mv = Some(v_now.clone());
+        }
         let top = level == 0;
         if tuned {
             if top {
@@ -560,9 +568,29 @@ impl Tuner {
             return;
         }
         if missing_targeted {
-            // Do not step blind: re-tune the lower levels (sensor contrast, transition
+            // Do not step blind. As qtune does, retreat half-way toward the last
+            // point where the evaluation worked (within the step limit and the
+            // gate limits; the move goes through the session's guard like any
+            // other), re-tune the lower levels (sensor contrast, transition
             // lines — the usual reasons a scan fails) and measure again next round.
-            let mut ops = self.after_move_ops(level);
+            let retreat = state
+                .last_good_mv
+                .clone()
+                .and_then(|good| retreat_target(&v_now, &good, cfg.solver.max_step_mv));
+            let mut ops = Vec::new();
+            if let Some(mut target) = retreat {
+                for (j, g) in cfg.gates.iter().enumerate() {
+                    if let Some(spec) = self.safety.gate(g) {
+                        target[j] = target[j].clamp(spec.min_mv, spec.max_mv);
+                    }
+                }
+                let (_, state) = self.newton_mut(level);
+                if let Some(s) = &mut state.snapshot {
+                    s.step_mv = target.iter().zip(&v_now).map(|(a, b)| a - b).collect();
+                }
+                ops.push(Op::Move(target));
+            }
+            ops.extend(self.after_move_ops(level));
             ops.push(Op::Decide(Decision::EndIteration));
             self.push_ops(ops);
             return;
@@ -738,5 +766,46 @@ impl Tuner {
         let (_, state) = self.newton_mut(0);
         state.scans.clear();
         Some(IterationRecord { events, ..record })
+    }
+}
+
+/// Half-way from `now` toward `good` (mV, per gate), the step's norm capped
+/// at `max_step_mv`; `None` if `good` is within 0.01 mV of `now` or the
+/// inputs are not finite.
+///
+/// (qtune's rule after a failed evaluation: go back half-way toward the last
+/// parameters that could be evaluated.)
+fn retreat_target(now: &[f64], good: &[f64], max_step_mv: f64) -> Option<Vec<f64>> {
+    if now.len() != good.len() {
+        return None;
+    }
+    let half: Vec<f64> = now.iter().zip(good).map(|(a, b)| 0.5 * (b - a)).collect();
+    let norm = half.iter().map(|d| d * d).sum::<f64>().sqrt();
+    if !norm.is_finite() || norm < 0.005 {
+        return None;
+    }
+    let scale = if norm > max_step_mv {
+        max_step_mv / norm
+    } else {
+        1.0
+    };
+    Some(now.iter().zip(&half).map(|(a, d)| a + d * scale).collect())
+}
+
+#[cfg(test)]
+mod retreat_tests {
+    use super::retreat_target;
+
+    #[test]
+    fn retreat_goes_half_way_back_within_the_step_limit() {
+        let t = retreat_target(&[0.0, 0.0], &[4.0, -2.0], 10.0).unwrap();
+        assert_eq!(t, vec![2.0, -1.0]);
+        // a long way back is capped at the step limit
+        let t = retreat_target(&[0.0, 0.0], &[60.0, 80.0], 10.0).unwrap();
+        assert!((t[0] - 6.0).abs() < 1e-12 && (t[1] - 8.0).abs() < 1e-12);
+        // already there, or nonsense: no move
+        assert!(retreat_target(&[1.0], &[1.0], 10.0).is_none());
+        assert!(retreat_target(&[1.0], &[f64::NAN], 10.0).is_none());
+        assert!(retreat_target(&[1.0], &[1.0, 2.0], 10.0).is_none());
     }
 }

@@ -94,8 +94,10 @@ impl Reference {
     /// assert!((d - (9.0f64 + 1.0).sqrt()).abs() < 1e-12);
     /// ```
     pub fn delta_from_fit(&self, value: f64, std_err: f64, residuals: &[f64]) -> f64 {
-        let k = correlation_inflation(residuals);
-        ((k * std_err).powi(2) + (self.relative_floor * value).powi(2)).sqrt()
+        // basic IEEE operations only (bit-identical on wasm32 and native)
+        let fit = correlation_inflation(residuals) * std_err;
+        let floor = self.relative_floor * value;
+        (fit * fit + floor * floor).sqrt()
     }
 }
 

@@ -13,7 +13,7 @@ use crate::sim::{default_gates, DeviceConfig, SimulatedDevice};
 use crate::solver::SolverConfig;
 use crate::tuner::{
     Compensation, ConfigError, InitialGradient, LevelConfig, LevelKind, NewtonConfig,
-    SensingDotConfig, Tuner, TunerConfig,
+    SensingDotConfig, SensingDotFallback, Tuner, TunerConfig,
 };
 
 /// Everything needed for a simulated run.
@@ -144,6 +144,11 @@ impl SimulationConfig {
             gate: device.sensing_dot.gate.clone(),
             half_width_mv: device.sensing_dot.sweep_half_range_mv,
             points: device.sensing_dot.sweep_points,
+            // the paper's 2-D scan as a raster: SP in 6 mV steps, 6 sweeps ≈ 100 s
+            fallback: Some(SensingDotFallback {
+                gate: "SP".into(),
+                offsets_mv: vec![-15.0, -9.0, -3.0, 3.0, 9.0, 15.0],
+            }),
         };
         let tuner = TunerConfig {
             gates,

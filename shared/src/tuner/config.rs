@@ -127,6 +127,30 @@ pub struct SensingDotConfig {
     pub half_width_mv: f64,
     /// Points per sweep.
     pub points: usize,
+    /// What to do when the sweep finds no flank (`None`: park nowhere and
+    /// carry on, as before).
+    #[serde(default)]
+    pub fallback: Option<SensingDotFallback>,
+}
+
+/// Upper bound on [`SensingDotFallback::offsets_mv`] (bounded by construction).
+pub const MAX_FALLBACK_SWEEPS: usize = 16;
+
+/// The paper's 2-D sensing-dot scan, as a raster of 1-D sweeps: when the
+/// sweep of [`SensingDotConfig::gate`] finds no flank, step a second gate
+/// through `offsets_mv` (relative to its present voltage) and sweep again at
+/// each, stopping at the first sweep with a flank (park both gates there);
+/// if none has one, the second gate goes back. Each sweep is a scan the
+/// device charges its lab time (the default simulator: 6 sweeps × 17 s ≈
+/// the paper's 100 s 2-D scan). Every set goes through the guard.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SensingDotFallback {
+    /// Second gate stepped between sweeps, e.g. `"SP"`.
+    pub gate: String,
+    /// Offsets from its present voltage, mV, in order
+    /// (1..=[`MAX_FALLBACK_SWEEPS`] entries, each finite and |offset| ≤ 1000 mV).
+    pub offsets_mv: Vec<f64>,
 }
 
 /// What a level does.
@@ -372,6 +396,30 @@ impl TunerConfig {
                                 format!(
                                     "{} mV exceeds gate {}'s max_step_mv ({} mV): the sweep's first point would be farther than one step from the present voltage",
                                     sd.half_width_mv, g.name, g.max_step_mv
+                                ),
+                            ));
+                        }
+                    }
+                    if let Some(fb) = &sd.fallback {
+                        if !has_gate(&fb.gate) || fb.gate == sd.gate {
+                            return Err(ConfigError::new(
+                                lf("fallback.gate"),
+                                format!(
+                                    "{:?} must be a known gate other than the swept one",
+                                    fb.gate
+                                ),
+                            ));
+                        }
+                        if !(1..=MAX_FALLBACK_SWEEPS).contains(&fb.offsets_mv.len())
+                            || fb
+                                .offsets_mv
+                                .iter()
+                                .any(|o| !(o.is_finite() && o.abs() <= 1000.0))
+                        {
+                            return Err(ConfigError::new(
+                                lf("fallback.offsets_mv"),
+                                format!(
+                                    "needs 1 to {MAX_FALLBACK_SWEEPS} finite offsets of at most 1000 mV"
                                 ),
                             ));
                         }

@@ -382,7 +382,9 @@ impl Tuner {
                 None
             }
             Decision::EndIteration => self.end_iteration(level),
-            Decision::SdPark => None,
+            Decision::SdPark
+            | Decision::SdFallbackPoint { .. }
+            | Decision::SdFallbackFinish { .. } => None,
         }
     }
 

@@ -247,6 +247,7 @@ fn hierarchical() -> TunerConfig {
                     gate: "SP".into(),
                     half_width_mv: 10.0,
                     points: 50,
+                    fallback: None,
                 }),
                 after_move: vec![],
             },

@@ -3,7 +3,6 @@
 //! flank it finds (instead of carrying on blind).
 
 use spintune::driver::{SimulationConfig, SimulationRun};
-use spintune::protocol::ScanKind;
 use spintune::tuner::LevelKind;
 
 /// Sparse Coulomb peaks (40 mV apart) and the sensing gate parked 25 mV off

@@ -10,7 +10,7 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 use spintune::benchmark::{
-    run_seed, summarize, BenchmarkProtocol, SeedResult, Strategy, StrategySummary,
+    draw_devices, run_seed, summarize, BenchmarkProtocol, SeedResult, Strategy, StrategySummary,
 };
 use spintune::driver::SimulationConfig;
 use spintune::protocol::IterationRecord;
@@ -25,7 +25,7 @@ pub struct BenchArgs {
     #[arg(long, default_value_t = 100)]
     pub seeds: u64,
     /// Comma-separated strategies (default: all): kalman, kalman-adaptive-q,
-    /// kalman-log, broyden, fixed-jacobian, fd-newton, oracle.
+    /// kalman-log, broyden, fixed-jacobian, fd-newton, oracle, oracle-log.
     #[arg(long, value_delimiter = ',')]
     pub strategies: Vec<String>,
     /// Device description (TOML or JSON) overriding the simulator's defaults.
@@ -46,6 +46,24 @@ pub struct BenchArgs {
     /// Seed and strategy drawn by `--plot`.
     #[arg(long, default_value_t = 1)]
     pub plot_seed: u64,
+    /// Benchmark N plausible devices drawn around the (default or `--device`)
+    /// device instead of that device alone, each with every seed
+    /// (distribution: `spintune::sim::random`; devices whose targets lie
+    /// outside the gate limits are rejected and redrawn).
+    #[arg(long)]
+    pub random_devices: Option<usize>,
+    /// Device seed of the first random device (then +1, +2, …).
+    #[arg(long, default_value_t = 1)]
+    pub device_seed: u64,
+}
+
+/// Which random devices were benchmarked.
+#[derive(Debug, Serialize)]
+pub struct RandomDevices {
+    /// Device seeds of the accepted devices.
+    pub device_seeds: Vec<u64>,
+    /// Devices drawn and rejected (targets outside the gate limits).
+    pub rejected: u64,
 }
 
 /// The JSON report.
@@ -57,6 +75,9 @@ pub struct BenchReport {
     pub protocol: BenchmarkProtocol,
     /// One object per strategy.
     pub strategies: Vec<StrategySummary>,
+    /// With `--random-devices`: the devices (statistics are over devices × seeds).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub random_devices: Option<RandomDevices>,
 }
 
 /// Run the benchmark.
@@ -79,8 +100,36 @@ pub fn run(args: BenchArgs) -> Result<(), CliError> {
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
         .max(1);
-    let seeds: Vec<u64> = (1..=args.seeds).collect();
-    let bar = ProgressBar::new(seeds.len() as u64);
+    let (devices, random_devices) = match args.random_devices {
+        None => (vec![(0, base.clone())], None),
+        Some(n) => {
+            let (drawn, rejected) = draw_devices(&base, &protocol, n, args.device_seed);
+            if drawn.len() < n {
+                return Err(CliError::runtime(format!(
+                    "only {} of {n} random devices have reachable targets ({rejected} rejected)",
+                    drawn.len()
+                )));
+            }
+            eprintln!("{n} random devices ({rejected} rejected: targets outside the gate limits)");
+            let report = RandomDevices {
+                device_seeds: drawn.iter().map(|(k, _)| *k).collect(),
+                rejected,
+            };
+            let configs = drawn
+                .into_iter()
+                .map(|(k, device)| {
+                    let mut cfg = base.clone();
+                    cfg.device = device;
+                    (k, cfg)
+                })
+                .collect();
+            (configs, Some(report))
+        }
+    };
+    let work: Vec<(usize, u64)> = (0..devices.len())
+        .flat_map(|d| (1..=args.seeds).map(move |s| (d, s)))
+        .collect();
+    let bar = ProgressBar::new(work.len() as u64);
     bar.set_style(
         ProgressStyle::with_template(
             "{spinner} seeds {pos}/{len} [{bar:30}] {elapsed} (eta {eta}) {msg}",
@@ -95,10 +144,17 @@ pub fn run(args: BenchArgs) -> Result<(), CliError> {
         for _ in 0..threads {
             scope.spawn(|| loop {
                 let i = next.fetch_add(1, Ordering::Relaxed);
-                let Some(&seed) = seeds.get(i) else { break };
-                match run_seed(&base, &protocol, &strategies, seed, false) {
-                    Ok(r) => results.lock().unwrap().extend(r),
-                    Err(e) => failures.lock().unwrap().push(e.to_string()),
+                let Some(&(d, seed)) = work.get(i) else { break };
+                let (device, cfg) = &devices[d];
+                match run_seed(cfg, &protocol, &strategies, seed, false) {
+                    Ok(mut r) => {
+                        r.iter_mut().for_each(|x| x.device = *device);
+                        results.lock().unwrap().extend(r)
+                    }
+                    Err(e) => failures
+                        .lock()
+                        .unwrap()
+                        .push(format!("device {device}: {e}")),
                 }
                 bar.inc(1);
             });
@@ -106,7 +162,13 @@ pub fn run(args: BenchArgs) -> Result<(), CliError> {
     });
     bar.finish_and_clear();
     let mut results = results.into_inner().unwrap();
-    results.sort_by_key(|r| (r.seed, Strategy::ALL.iter().position(|s| *s == r.strategy)));
+    results.sort_by_key(|r| {
+        (
+            r.device,
+            r.seed,
+            Strategy::ALL.iter().position(|s| *s == r.strategy),
+        )
+    });
     let failures = failures.into_inner().unwrap();
     for f in &failures {
         eprintln!("warning: {f}");
@@ -114,13 +176,18 @@ pub fn run(args: BenchArgs) -> Result<(), CliError> {
     let summary = summarize(&results, &strategies, protocol.iterations_per_set_point);
     println!(
         "{}",
-        markdown_table(&summary, args.seeds - failures.len() as u64, &protocol)
+        markdown_table(
+            &summary,
+            work.len() as u64 - failures.len() as u64,
+            &protocol
+        )
     );
     if let Some(path) = &args.json {
         let report = BenchReport {
             seeds: args.seeds,
             protocol: protocol.clone(),
             strategies: summary,
+            random_devices,
         };
         let text = serde_json::to_string_pretty(&report).expect("serializable report");
         std::fs::write(path, text)
@@ -187,16 +254,18 @@ pub fn markdown_table(
     protocol: &BenchmarkProtocol,
 ) -> String {
     let mut s = format!(
-        "Seeds: {seeds}; {} set-point changes per seed, {} iterations each, tolerance ±{:.0} %.\n\n",
+        "Runs (devices × seeds): {seeds}; {} set-point changes per run, {} iterations each, tolerance ±{:.0} %, virtual-gate matrix error ±{:.0} %.\n\n",
         protocol.set_points.len(),
         protocol.iterations_per_set_point,
-        protocol.relative_tolerance * 100.0
+        protocol.relative_tolerance * 100.0,
+        protocol.compensation_error * 100.0
     );
-    s.push_str("| strategy | iterations/change median | p90 | max | lab min/change median | p90 | not converged | limit violations | failed fits | ratio to oracle |\n");
-    s.push_str("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
+    s.push_str("| strategy | iterations/change median | p90 | max | lab min/change median | p90 | not converged | limit violations | failed fits | not converged where an oracle converged | ratio to oracle | ratio to oracle-log | truth queries |\n");
+    s.push_str("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
+    let ratio = |x: Option<f64>| x.map_or("–".to_string(), |x| format!("{x:.2}"));
     for r in summary {
         s.push_str(&format!(
-            "| {} | {:.1} | {:.1} | {:.0} | {:.1} | {:.1} | {} / {} | {} | {} | {} |\n",
+            "| {} | {:.1} | {:.1} | {:.0} | {:.1} | {:.1} | {} / {} | {} | {} | {} | {} | {} | {} |\n",
             r.name,
             r.iterations_per_change.median,
             r.iterations_per_change.p90,
@@ -207,9 +276,30 @@ pub fn markdown_table(
             r.changes,
             r.limit_violations,
             r.failed_fits,
-            r.ratio_to_oracle
-                .map_or("–".to_string(), |x| format!("{x:.2}")),
+            r.not_converged_where_oracle_converged
+                .map_or("–".to_string(), |x| x.to_string()),
+            ratio(r.ratio_to_oracle),
+            ratio(r.ratio_to_oracle_log),
+            r.truth_queries,
         ));
+    }
+    let kalman: Vec<&StrategySummary> =
+        summary.iter().filter(|r| r.consistency.is_some()).collect();
+    if !kalman.is_empty() {
+        s.push_str("\nFilter consistency (normalised innovation squared; ideal mean 1, 4.6 % beyond 2σ):\n\n");
+        s.push_str("| strategy | parameter | NIS mean | beyond 2σ | innovations |\n");
+        s.push_str("|---|---|---:|---:|---:|\n");
+        for r in kalman {
+            for (p, c) in r.consistency.iter().flatten() {
+                s.push_str(&format!(
+                    "| {} | {p} | {:.2} | {:.1} % | {} |\n",
+                    r.name,
+                    c.nis_mean,
+                    100.0 * c.beyond_2sigma,
+                    c.count
+                ));
+            }
+        }
     }
     s
 }

@@ -18,7 +18,7 @@ fn bench_writes_json_with_the_documented_keys() {
             "--seeds",
             "1",
             "--strategies",
-            "kalman,oracle",
+            "kalman,oracle,oracle-log",
             "--json",
         ])
         .arg(&json)
@@ -37,7 +37,7 @@ fn bench_writes_json_with_the_documented_keys() {
     let v: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     let strategies = v["strategies"].as_array().unwrap();
-    assert_eq!(strategies.len(), 2);
+    assert_eq!(strategies.len(), 3);
     for s in strategies {
         for key in ["iterations_per_change", "lab_minutes_per_change"] {
             assert!(s[key]["median"].is_number(), "{key} in {s}");
@@ -48,9 +48,25 @@ fn bench_writes_json_with_the_documented_keys() {
         assert_eq!(s["limit_violations"].as_u64(), Some(0), "{s}");
         assert!(s["failed_fits"].is_u64());
         assert!(s["ratio_to_oracle"].is_number());
+        assert!(s["ratio_to_oracle_log"].is_number());
     }
     assert_eq!(strategies[0]["name"], "kalman");
     assert_eq!(strategies[1]["ratio_to_oracle"].as_f64(), Some(1.0));
+    assert_eq!(strategies[2]["ratio_to_oracle_log"].as_f64(), Some(1.0));
+    // no strategy but the oracles reads the truth; the oracles do
+    assert_eq!(strategies[0]["truth_queries"].as_u64(), Some(0));
+    assert!(strategies[1]["truth_queries"].as_u64().unwrap() > 0);
+    // the Kalman strategy reports its filter consistency, the oracles do not
+    for p in ["t_sr", "w"] {
+        let c = &strategies[0]["consistency"][p];
+        assert!(c["nis_mean"].as_f64().unwrap() > 0.0, "{c}");
+        assert!(
+            (0.0..=1.0).contains(&c["beyond_2sigma"].as_f64().unwrap()),
+            "{c}"
+        );
+    }
+    assert!(strategies[1].get("consistency").is_none());
+    assert!(table.contains("NIS mean"), "{table}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -7,15 +7,34 @@
 //! dot, chemical-potential compensation) in the loop and the lab clock
 //! running. Every strategy of a seed starts from the same device state and the
 //! same initial finite-difference gradient measurement.
+//!
+//! # What a strategy may know (ARCHITECTURE.md invariant 7)
+//! The benchmark plays two roles. As the *world* it builds the simulated
+//! lab: the device, and the lab's imperfect configuration — the virtual-gate
+//! (compensation) matrix is the device's first-order crosstalk perturbed per
+//! seed ([`perturbed_compensation`], ±[`BenchmarkProtocol::compensation_error`]
+//! relative, uniform, per element). As the *experimenter* it configures each
+//! strategy from [`LabKnowledge`] only (the configuration and the initial
+//! finite-difference measurement), in [`configure_strategy`], which has no
+//! device in scope. Each non-oracle strategy then runs against a device
+//! whose truth is sealed ([`SimulatedDevice::seal_truth`]): a request for the
+//! true Jacobian would fault the run, and [`SeedResult::truth_queries`]
+//! counts every such request (0 for every non-oracle strategy; the test
+//! `non_oracle_strategies_never_query_the_truth` holds it).
 
+use std::collections::BTreeMap;
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::driver::{RunError, SimulationConfig, SimulationRun};
 use crate::estimator::EstimatorKind;
 use crate::parameter::{Tolerance, Transform};
-use crate::protocol::{ControlCommand, FaultKind, IterationRecord};
+use crate::protocol::{ControlCommand, FaultKind, IterationRecord, ParameterValue};
 use crate::session::{RunSession, SessionConfig};
-use crate::tuner::{InitialGradient, Tuner};
+use crate::sim::{DeviceConfig, SimulatedDevice};
+use crate::tuner::{Consistency, InitialGradient, LevelKind, Tuner, TunerConfig};
 
 /// The paper's set-point cycle, `(t_sr ns, w µV)`.
 pub const PAPER_SET_POINTS: [(f64, f64); 5] = [
@@ -62,13 +81,16 @@ pub enum Strategy {
     FixedJacobian,
     /// Jacobian re-measured every iteration.
     FdNewton,
-    /// The simulator's true Jacobian.
+    /// The simulator's true Jacobian (linear space).
     Oracle,
+    /// The simulator's true Jacobian with `t_sr` and `w` in log space: the
+    /// strongest fair reference (same step limit).
+    OracleLog,
 }
 
 impl Strategy {
     /// All strategies in report order.
-    pub const ALL: [Strategy; 7] = [
+    pub const ALL: [Strategy; 8] = [
         Strategy::Kalman,
         Strategy::KalmanAdaptiveQ,
         Strategy::KalmanLog,
@@ -76,6 +98,7 @@ impl Strategy {
         Strategy::FixedJacobian,
         Strategy::FdNewton,
         Strategy::Oracle,
+        Strategy::OracleLog,
     ];
 
     /// Command-line name.
@@ -88,6 +111,7 @@ impl Strategy {
             Strategy::FixedJacobian => "fixed-jacobian",
             Strategy::FdNewton => "fd-newton",
             Strategy::Oracle => "oracle",
+            Strategy::OracleLog => "oracle-log",
         }
     }
 
@@ -103,8 +127,26 @@ impl Strategy {
             Strategy::Broyden => EstimatorKind::Broyden,
             Strategy::FixedJacobian => EstimatorKind::FixedJacobian,
             Strategy::FdNewton => EstimatorKind::FdNewton,
-            Strategy::Oracle => EstimatorKind::Oracle,
+            Strategy::Oracle | Strategy::OracleLog => EstimatorKind::Oracle,
         }
+    }
+
+    /// Whether this strategy may read the simulator's truth (only the oracles).
+    pub fn is_oracle(self) -> bool {
+        matches!(self, Strategy::Oracle | Strategy::OracleLog)
+    }
+
+    /// Whether the top level runs a Kalman filter (consistency is reported).
+    pub fn is_kalman(self) -> bool {
+        matches!(
+            self,
+            Strategy::Kalman | Strategy::KalmanAdaptiveQ | Strategy::KalmanLog
+        )
+    }
+
+    /// Whether `t_sr` and `w` are tuned in log space.
+    pub fn log_space(self) -> bool {
+        matches!(self, Strategy::KalmanLog | Strategy::OracleLog)
     }
 }
 
@@ -117,6 +159,15 @@ pub struct BenchmarkProtocol {
     pub iterations_per_set_point: u32,
     /// Relative tolerance band of both parameters (0.1 = ±10 %).
     pub relative_tolerance: f64,
+    /// Relative error of the lab's virtual-gate matrix: each element is the
+    /// device's first-order value times `1 + u`, `u` uniform in
+    /// `[−e, +e]` drawn per seed (0.2 = ±20 %; 0 = exact).
+    #[serde(default = "default_compensation_error")]
+    pub compensation_error: f64,
+}
+
+fn default_compensation_error() -> f64 {
+    0.2
 }
 
 impl Default for BenchmarkProtocol {
@@ -125,6 +176,7 @@ impl Default for BenchmarkProtocol {
             set_points: PAPER_SET_POINTS.to_vec(),
             iterations_per_set_point: 21,
             relative_tolerance: 0.1,
+            compensation_error: default_compensation_error(),
         }
     }
 }
@@ -146,14 +198,111 @@ pub struct SeedResult {
     pub strategy: Strategy,
     /// Seed.
     pub seed: u64,
+    /// Which device (0: the base device; `k`: the random device drawn with seed `k`,
+    /// see [`draw_devices`]). Set by the caller; [`run_seed`] leaves 0.
+    #[serde(default)]
+    pub device: u64,
     /// One entry per set point.
     pub changes: Vec<ChangeResult>,
     /// Requests the safety limits refused, plus iteration steps above the step limit.
     pub limit_violations: u64,
     /// Failed or rejected evaluations (all scans, all levels).
     pub failed_fits: u64,
+    /// Requests for the simulator's truth this run made (0 unless an oracle).
+    pub truth_queries: u64,
+    /// Top-level filter consistency per parameter name (every strategy with
+    /// innovations; meaningful for the Kalman strategies).
+    pub consistency: BTreeMap<String, Consistency>,
     /// All top-level records (for plots); empty unless requested.
     pub records: Vec<IterationRecord>,
+}
+
+/// What a lab has after the initial finite-difference measurement, and all
+/// that [`configure_strategy`] may use: the (lab's) configuration with the
+/// learned gradients, and the values measured at the start.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LabKnowledge {
+    /// The tuner configuration, initial gradients as measured.
+    pub config: TunerConfig,
+    /// The top level's last measured values (config order, parameter units).
+    pub start_values: Vec<Option<ParameterValue>>,
+}
+
+/// The configuration of one strategy, from what a lab knows only.
+/// Log-space strategies rescale the measured gradient, its covariance and Q
+/// by the measured start values (falling back to the target where a start
+/// value is missing).
+pub fn configure_strategy(strategy: Strategy, lab: &LabKnowledge) -> TunerConfig {
+    let mut tcfg = lab.config.clone();
+    tcfg.max_iterations = None;
+    let top = tcfg.top_mut();
+    top.estimator = strategy.estimator();
+    if strategy.log_space() {
+        let values: Vec<f64> = top
+            .parameters
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                lab.start_values
+                    .get(i)
+                    .and_then(|v| v.as_ref())
+                    .map(|v| v.value)
+                    .filter(|v| v.is_finite() && *v > 0.0)
+                    .or(p.target)
+                    .unwrap_or(1.0)
+            })
+            .collect();
+        for (p, typical) in top.parameters.iter_mut().zip(&values) {
+            p.transform = Transform::Log;
+            p.process_noise_per_mv /= typical;
+        }
+        if let InitialGradient::Given {
+            gradient,
+            covariance,
+        } = &mut top.initial_gradient
+        {
+            for ((row, cov), value) in gradient.iter_mut().zip(covariance.iter_mut()).zip(&values) {
+                row.iter_mut().for_each(|g| *g /= value);
+                cov.iter_mut().flatten().for_each(|c| *c /= value * value);
+            }
+        }
+    }
+    tcfg
+}
+
+/// The lab's virtual-gate matrix for one seed: the device's first-order
+/// compensation ([`DeviceConfig::nominal_compensation`], the world's truth)
+/// with every element multiplied by `1 + u`, `u` uniform in
+/// `[−relative_error, +relative_error]` from a ChaCha8 stream seeded by
+/// `seed` (deterministic). Rows: `plungers`; columns: `tuning`.
+///
+/// ```
+/// use spintune::benchmark::perturbed_compensation;
+/// let d = spintune::sim::DeviceConfig::default();
+/// let exact = d.nominal_compensation(&["N", "T"], &["PA", "PB"]);
+/// let m = perturbed_compensation(&d, &["N", "T"], &["PA", "PB"], 0.2, 7);
+/// for (r, e) in m.iter().flatten().zip(exact.iter().flatten()) {
+///     assert!((r - e).abs() <= 0.2 * e.abs() + 1e-15);
+/// }
+/// assert_eq!(m, perturbed_compensation(&d, &["N", "T"], &["PA", "PB"], 0.2, 7));
+/// ```
+pub fn perturbed_compensation(
+    device: &DeviceConfig,
+    tuning: &[&str],
+    plungers: &[&str],
+    relative_error: f64,
+    seed: u64,
+) -> Vec<Vec<f64>> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x7669_7274_7561_6c67); // "virtualg"
+    device
+        .nominal_compensation(tuning, plungers)
+        .into_iter()
+        .map(|row| {
+            row.into_iter()
+                .map(|m| m * (1.0 + relative_error * rng.gen_range(-1.0..=1.0)))
+                .collect()
+        })
+        .collect()
 }
 
 /// Why a seed could not be benchmarked.
@@ -175,59 +324,68 @@ pub fn run_seed(
     keep_records: bool,
 ) -> Result<Vec<SeedResult>, BenchmarkError> {
     let err = |m: String| BenchmarkError { seed, message: m };
+    // --- the world: the simulated lab and its imperfect configuration ---
     let mut cfg = base.clone();
     cfg.seed = seed;
     cfg.tuner.max_iterations = Some(0);
     cfg.tuner.stop_when_tuned = false;
+    let device_config = cfg.device.clone();
+    for level in &mut cfg.tuner.levels {
+        if let LevelKind::Newton(n) = &mut level.kind {
+            let tuning: Vec<&str> = n.gates.iter().map(String::as_str).collect();
+            if let Some(c) = &mut n.compensation {
+                let plungers: Vec<&str> = c.gates.iter().map(String::as_str).collect();
+                c.matrix = perturbed_compensation(
+                    &device_config,
+                    &tuning,
+                    &plungers,
+                    protocol.compensation_error,
+                    seed,
+                );
+                c.relative_uncertainty = protocol.compensation_error;
+            }
+        }
+    }
     let top = cfg.tuner.top_mut();
     top.estimator = EstimatorKind::Kalman;
     for p in &mut top.parameters {
         p.tolerance = Tolerance::Relative(protocol.relative_tolerance);
     }
-    // The shared starting point: initial finite-difference measurement of every level.
+    // --- the experimenter: the shared starting point, on a sealed device ---
     let mut init = SimulationRun::new(cfg).map_err(|e| err(e.to_string()))?;
+    init.device_mut().seal_truth();
     while init
         .next_iteration()
         .map_err(|e| err(e.to_string()))?
         .is_some()
     {}
-    let learned = init.tuner().config_with_learned_gradients();
-    let device = init.device().clone();
+    let lab = LabKnowledge {
+        config: init.tuner().config_with_learned_gradients(),
+        start_values: init.tuner().last_measured(0).unwrap_or_default().to_vec(),
+    };
     let start_lab_seconds = init.tuner().lab_seconds();
+    if init.device().truth_queries() != 0 {
+        return Err(err("the initial measurement queried the truth".into()));
+    }
+    // The world hands on the device state after the initial measurement
+    // (RNG, drifts, clock); only the oracles get it with the truth unsealed.
+    let mut after_init = init.device().clone();
+    after_init.truth_sealed = false;
 
     strategies
         .iter()
         .map(|&strategy| {
-            let mut tcfg = learned.clone();
-            tcfg.max_iterations = None;
-            let top = tcfg.top_mut();
-            top.estimator = strategy.estimator();
-            if strategy == Strategy::KalmanLog {
-                let truth = device.truth();
-                let values = [truth.t_sr_ns, truth.w_uv];
-                for (p, typical) in top.parameters.iter_mut().zip(values) {
-                    p.transform = Transform::Log;
-                    p.process_noise_per_mv /= typical;
-                }
-                if let InitialGradient::Given {
-                    gradient,
-                    covariance,
-                } = &mut top.initial_gradient
-                {
-                    for ((row, cov), value) in
-                        gradient.iter_mut().zip(covariance.iter_mut()).zip(values)
-                    {
-                        row.iter_mut().for_each(|g| *g /= value);
-                        cov.iter_mut().flatten().for_each(|c| *c /= value * value);
-                    }
-                }
-            }
+            let tcfg = configure_strategy(strategy, &lab);
             let tuner = Tuner::new(tcfg).map_err(|e| err(format!("{}: {e}", strategy.name())))?;
+            let mut dev = after_init.clone();
+            if !strategy.is_oracle() {
+                dev.seal_truth();
+            }
             run_protocol(
                 strategy,
                 seed,
                 tuner,
-                device.clone(),
+                dev,
                 protocol,
                 start_lab_seconds,
                 keep_records,
@@ -241,7 +399,7 @@ fn run_protocol(
     strategy: Strategy,
     seed: u64,
     tuner: Tuner,
-    device: crate::sim::SimulatedDevice,
+    device: SimulatedDevice,
     protocol: &BenchmarkProtocol,
     start_lab_seconds: f64,
     keep_records: bool,
@@ -297,12 +455,32 @@ fn run_protocol(
             lab_minutes: None,
         }));
     }
+    let names = run
+        .tuner()
+        .config()
+        .top()
+        .parameters
+        .iter()
+        .map(|p| p.name.clone());
+    let consistency = names
+        .zip(
+            run.tuner()
+                .consistency(0)
+                .unwrap_or_default()
+                .iter()
+                .copied(),
+        )
+        .filter(|(_, c)| c.count > 0)
+        .collect();
     Ok(SeedResult {
         strategy,
         seed,
+        device: 0,
         changes,
         limit_violations: violations,
         failed_fits: run.tuner().failed_evaluations(),
+        truth_queries: run.device().truth_queries(),
+        consistency,
         records,
     })
 }
@@ -335,14 +513,41 @@ pub struct StrategySummary {
     pub lab_minutes_per_change: Quantiles,
     /// Changes not reached within the block.
     pub not_converged: u64,
+    /// Changes not reached within the block where an oracle run (`oracle` or
+    /// `oracle-log`) on the same device and seed did reach it (`None`
+    /// without an oracle run).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub not_converged_where_oracle_converged: Option<u64>,
     /// Must be 0.
     pub limit_violations: u64,
     /// Failed fits over all seeds.
     pub failed_fits: u64,
-    /// Median iterations ÷ the oracle's median iterations (`None` without an oracle run).
+    /// Median iterations ÷ the (linear) oracle's median iterations (`None` without an oracle run).
     pub ratio_to_oracle: Option<f64>,
+    /// Median iterations ÷ the log-space oracle's median (`None` without an `oracle-log` run).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ratio_to_oracle_log: Option<f64>,
     /// Number of changes measured.
     pub changes: u64,
+    /// Requests for the simulator's truth over all seeds (must be 0 unless an oracle).
+    #[serde(default)]
+    pub truth_queries: u64,
+    /// Filter consistency per parameter (Kalman strategies only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub consistency: Option<BTreeMap<String, ConsistencySummary>>,
+}
+
+/// Filter consistency of one parameter over all seeds: normalised innovation
+/// squared `(z − Δv·g)²/(Δv C Δvᵀ + Δz²)` of the filter's predicted change
+/// against the measured change (ideal mean 1, 4.6 % beyond 2σ).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ConsistencySummary {
+    /// Mean NIS.
+    pub nis_mean: f64,
+    /// Fraction of innovations beyond 2 predicted σ.
+    pub beyond_2sigma: f64,
+    /// Number of innovations.
+    pub count: u64,
 }
 
 /// Order statistics.
@@ -403,29 +608,136 @@ pub fn summarize(
                 iterations_per_change: quantiles(&iters),
                 lab_minutes_per_change: quantiles(&minutes),
                 not_converged: changes.iter().filter(|c| c.iterations.is_none()).count() as u64,
+                not_converged_where_oracle_converged: oracle_missed(results, &mine),
                 limit_violations: mine.iter().map(|r| r.limit_violations).sum(),
                 failed_fits: mine.iter().map(|r| r.failed_fits).sum(),
                 ratio_to_oracle: None,
+                ratio_to_oracle_log: None,
                 changes: changes.len() as u64,
+                truth_queries: mine.iter().map(|r| r.truth_queries).sum(),
+                consistency: s.is_kalman().then(|| consistency_summary(&mine)),
             }
         })
         .collect();
-    if let Some(oracle) = out
-        .iter()
-        .find(|s| s.name == Strategy::Oracle.name())
-        .cloned()
-    {
-        for s in &mut out {
-            s.ratio_to_oracle = Some(if oracle.iterations_per_change.median > 0.0 {
-                s.iterations_per_change.median / oracle.iterations_per_change.median
-            } else if s.iterations_per_change.median == 0.0 {
-                1.0
-            } else {
-                f64::INFINITY
-            });
+    let ratio = |mine: f64, oracle: f64| {
+        if oracle > 0.0 {
+            mine / oracle
+        } else if mine == 0.0 {
+            1.0
+        } else {
+            f64::INFINITY
         }
+    };
+    let median_of = |out: &[StrategySummary], s: Strategy| {
+        out.iter()
+            .find(|x| x.name == s.name())
+            .map(|x| x.iterations_per_change.median)
+    };
+    let (lin, log) = (
+        median_of(&out, Strategy::Oracle),
+        median_of(&out, Strategy::OracleLog),
+    );
+    for s in &mut out {
+        let m = s.iterations_per_change.median;
+        s.ratio_to_oracle = lin.map(|o| ratio(m, o));
+        s.ratio_to_oracle_log = log.map(|o| ratio(m, o));
     }
     out
+}
+
+/// Changes of `mine` not converged where an oracle run of the same device and
+/// seed converged; `None` if `results` hold no oracle run.
+fn oracle_missed(results: &[SeedResult], mine: &[&SeedResult]) -> Option<u64> {
+    let oracle_done: std::collections::BTreeSet<(u64, u64, usize)> = results
+        .iter()
+        .filter(|r| r.strategy.is_oracle())
+        .flat_map(|r| {
+            r.changes
+                .iter()
+                .enumerate()
+                .filter(|(_, c)| c.iterations.is_some())
+                .map(move |(i, _)| (r.device, r.seed, i))
+        })
+        .collect();
+    if !results.iter().any(|r| r.strategy.is_oracle()) {
+        return None;
+    }
+    Some(
+        mine.iter()
+            .flat_map(|r| {
+                r.changes
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, c)| c.iterations.is_none())
+                    .map(move |(i, _)| (r.device, r.seed, i))
+            })
+            .filter(|k| oracle_done.contains(k))
+            .count() as u64,
+    )
+}
+
+/// Draw `n` plausible devices around `base.device` with device seeds
+/// `first_seed, first_seed + 1, …`
+/// ([`crate::sim::random::random_device`]), rejecting those whose set
+/// points cannot be reached within the gate limits
+/// ([`crate::sim::random::targets_reachable`], tuning gates and plungers of
+/// the top level and its compensation). Returns the accepted `(device
+/// seed, device)` pairs and the number rejected; gives up after `20·n`
+/// draws.
+pub fn draw_devices(
+    base: &SimulationConfig,
+    protocol: &BenchmarkProtocol,
+    n: usize,
+    first_seed: u64,
+) -> (Vec<(u64, DeviceConfig)>, u64) {
+    let top = base.tuner.top();
+    let tuning: Vec<&str> = top.gates.iter().map(String::as_str).collect();
+    let plungers: Vec<&str> = top
+        .compensation
+        .as_ref()
+        .map(|c| c.gates.iter().map(String::as_str).collect())
+        .unwrap_or_default();
+    let mut accepted = Vec::new();
+    let mut rejected = 0;
+    let mut seed = first_seed;
+    while accepted.len() < n && seed < first_seed + 20 * n as u64 {
+        let d = crate::sim::random::random_device(&base.device, seed);
+        if crate::sim::random::targets_reachable(
+            &d,
+            &base.tuner.gates,
+            &tuning,
+            &plungers,
+            &protocol.set_points,
+        ) {
+            accepted.push((seed, d));
+        } else {
+            rejected += 1;
+        }
+        seed += 1;
+    }
+    (accepted, rejected)
+}
+
+fn consistency_summary(results: &[&SeedResult]) -> BTreeMap<String, ConsistencySummary> {
+    let mut total: BTreeMap<String, Consistency> = BTreeMap::new();
+    for r in results {
+        for (name, c) in &r.consistency {
+            total.entry(name.clone()).or_default().merge(c);
+        }
+    }
+    total
+        .into_iter()
+        .filter_map(|(name, c)| {
+            Some((
+                name,
+                ConsistencySummary {
+                    nis_mean: c.nis_mean()?,
+                    beyond_2sigma: c.beyond_2sigma_fraction()?,
+                    count: c.count,
+                },
+            ))
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -444,6 +756,7 @@ mod tests {
         let r = |s, its: Vec<Option<u32>>| SeedResult {
             strategy: s,
             seed: 0,
+            device: 0,
             changes: its
                 .into_iter()
                 .map(|i| ChangeResult {
@@ -453,6 +766,8 @@ mod tests {
                 .collect(),
             limit_violations: 0,
             failed_fits: 1,
+            truth_queries: 0,
+            consistency: BTreeMap::new(),
             records: vec![],
         };
         let results = vec![

@@ -89,6 +89,7 @@ fn tuner_config() -> TunerConfig {
         gate: "SD1".into(),
         half_width_mv: 5.0,
         points: 11,
+        fallback: None,
     });
     t.levels = vec![qubit, sd];
     t.max_iterations = Some(200);

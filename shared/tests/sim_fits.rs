@@ -64,6 +64,12 @@ fn reference_constants_match_calibration() {
         ("w.delta_p0", d.w.delta_p0, r.w.delta_p0),
         ("t_sr.sigma0", d.t_sr.sigma0, r.t_sr.sigma0),
         ("t_sr.delta_p0", d.t_sr.delta_p0, r.t_sr.delta_p0),
+        ("w.relative_floor", d.w.relative_floor, r.w.relative_floor),
+        (
+            "t_sr.relative_floor",
+            d.t_sr.relative_floor,
+            r.t_sr.relative_floor,
+        ),
     ] {
         assert!(
             (a / b - 1.0).abs() < 0.01,

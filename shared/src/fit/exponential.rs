@@ -28,6 +28,9 @@ pub struct Exponential {
     pub amplitude: f64,
     /// `τ > 0`: decay time, t units.
     pub tau: f64,
+    /// Standard error of `tau` from the fit covariance `s²·(JᵀJ)⁻¹`
+    /// (`s²` the reduced residual sum of squares), t units; ∞ if singular.
+    pub tau_std: f64,
     /// Residuals `f(t_i) − y_i`.
     pub residuals: Vec<f64>,
 }
@@ -96,6 +99,7 @@ pub fn fit_exponential(t: &[f64], y: &[f64]) -> Result<Exponential, FitError> {
         asymptote,
         amplitude,
         tau,
+        tau_std: f.std_err(2),
         residuals: f.residuals,
     })
 }

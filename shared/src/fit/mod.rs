@@ -8,8 +8,9 @@
 //! | [`ScanKind::SensingDot`] | [`peak::fit_highest_peak`] | `sd_flank_mv` (mV), `sd_contrast` (0..1) |
 //! | [`ScanKind::ChemicalPotential`] | [`tanh::fit_tanh_step`] per line | `mu_a_mv`, `mu_b_mv` (mV) |
 //!
-//! Variances: `w` and `t_sr` by the paper's residual rule
-//! ([`uncertainty`]), with reference constants the caller passes in (a
+//! Variances: `w` and `t_sr` by the rule of [`uncertainty`] (default: fit
+//! covariance scaled by the residual, inflated for correlated residuals, plus
+//! a calibrated relative floor; or the paper's residual rule), with reference constants the caller passes in (a
 //! lab's own calibration; the tuner takes them from
 //! [`crate::tuner::TunerConfig::fit_references`]); the others from the fit
 //! covariance. A fit that does not converge or whose result is implausible
@@ -26,7 +27,7 @@ pub mod tanh;
 pub mod uncertainty;
 
 use crate::protocol::{ParameterValue, RawScan, ScanKind, Trace};
-use uncertainty::{scaled_residual_sum, References};
+use uncertainty::{scaled_residual_sum, References, UncertaintyRule};
 
 /// Why a scan could not be evaluated.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -79,8 +80,9 @@ pub struct Evaluation {
 ///     traces: vec![Trace { label: "data".into(), x, y }],
 /// };
 /// let lab = References {
-///     w: Reference { sigma0: 0.02, delta_p0: 5.0 },
-///     t_sr: Reference { sigma0: 0.01, delta_p0: 0.5 },
+///     w: Reference { sigma0: 0.02, delta_p0: 5.0, relative_floor: 0.0 },
+///     t_sr: Reference { sigma0: 0.01, delta_p0: 0.5, relative_floor: 0.01 },
+///     rule: Default::default(),
 /// };
 /// let eval = evaluate_with(&scan, &lab).unwrap();
 /// assert_eq!(eval.values[0].name, "w");
@@ -91,8 +93,16 @@ pub fn evaluate_with(scan: &RawScan, references: &References) -> Result<Evaluati
         ScanKind::TransitionWidth => {
             let t = single_trace(scan)?;
             let f = tanh::fit_tanh_step(&t.x, &t.y)?;
-            let sigma = scaled_residual_sum(&f.residuals, f.height.abs());
-            let delta = references.w.delta(sigma);
+            let delta = match references.rule {
+                UncertaintyRule::Paper => references
+                    .w
+                    .delta(scaled_residual_sum(&f.residuals, f.height.abs())),
+                UncertaintyRule::FitCovariance => references.w.delta_from_fit(
+                    1000.0 * f.width,
+                    1000.0 * f.width_std,
+                    &f.residuals,
+                ),
+            };
             Ok(Evaluation {
                 values: vec![value("w", 1000.0 * f.width, delta * delta)?],
                 fit: vec![curve("fit", &t.x, |x| f.value(x))],
@@ -106,8 +116,16 @@ pub fn evaluate_with(scan: &RawScan, references: &References) -> Result<Evaluati
                     .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
                         (l.min(v), h.max(v))
                     });
-            let sigma = scaled_residual_sum(&f.residuals, hi - lo);
-            let delta = references.t_sr.delta(sigma);
+            let delta = match references.rule {
+                UncertaintyRule::Paper => references
+                    .t_sr
+                    .delta(scaled_residual_sum(&f.residuals, hi - lo)),
+                UncertaintyRule::FitCovariance => {
+                    references
+                        .t_sr
+                        .delta_from_fit(f.tau, f.tau_std, &f.residuals)
+                }
+            };
             Ok(Evaluation {
                 values: vec![value("t_sr", f.tau, delta * delta)?],
                 fit: vec![curve("fit", &t.x, |x| f.value(x))],

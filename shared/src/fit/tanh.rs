@@ -40,6 +40,9 @@ pub struct TanhStep {
     pub width: f64,
     /// Standard error of `center` from the fit covariance, x units.
     pub center_std: f64,
+    /// Standard error of `width` from the fit covariance `s²·(JᵀJ)⁻¹`
+    /// (`s²` the reduced residual sum of squares), x units; ∞ if singular.
+    pub width_std: f64,
     /// Residuals `f(x_i) − y_i`.
     pub residuals: Vec<f64>,
 }
@@ -162,6 +165,7 @@ pub fn fit_tanh_step(x: &[f64], y: &[f64]) -> Result<TanhStep, FitError> {
         center: p[3],
         width,
         center_std: f.std_err(3),
+        width_std: f.std_err(4),
         residuals: f.residuals,
     })
 }

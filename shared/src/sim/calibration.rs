@@ -4,7 +4,9 @@
 use super::{DeviceConfig, SimulatedDevice};
 use crate::config_error::ConfigError;
 use crate::fit::tanh::fit_tanh_step;
-use crate::fit::uncertainty::{scaled_residual_sum, Reference, References};
+use crate::fit::uncertainty::{
+    correlation_inflation, scaled_residual_sum, Reference, References, UncertaintyRule,
+};
 use crate::fit::{exponential::fit_exponential, FitError};
 use crate::protocol::{Request, Response, ScanKind, ScanOutcome, ScanRequest};
 use crate::safety::GateSpec;
@@ -50,7 +52,10 @@ fn mean_std(v: &[f64]) -> (f64, f64) {
 /// The paper's calibration: at the start voltages, measure `w` and `t_sr`
 /// `scans` times each (alternating, as a tuner would), fit each scan, and
 /// take `σ₀` = mean scaled residual sum and `δp₀` = standard deviation of
-/// the fitted values (µV for `w`, ns for `t_sr`). Failed fits are skipped;
+/// the fitted values (µV for `w`, ns for `t_sr`), and the relative floor
+/// `r = √max(0, δp₀² − mean((κ·s_p)²)) / mean(p)` of
+/// [`crate::fit::uncertainty::UncertaintyRule::FitCovariance`] (the scatter the
+/// fits' own errors do not explain). Failed fits are skipped;
 /// Charge jumps are switched off for the reference series. `Err` if fewer
 /// than half of either kind succeed or `scans < 10`.
 ///
@@ -75,6 +80,8 @@ pub fn calibrate_reference(
     quiet.noise.charge_jump_rate_per_s = 0.0;
     let mut device = SimulatedDevice::new(quiet, gates, seed)?;
     let (mut w, mut w_sigma, mut t, mut t_sigma) = (vec![], vec![], vec![], vec![]);
+    // (κ·s_p)² of each fit: the part of the scatter a single scan shows
+    let (mut w_fit_var, mut t_fit_var) = (vec![], vec![]);
     for _ in 0..scans {
         for kind in [ScanKind::TransitionWidth, ScanKind::ReloadTime] {
             let request = Request::Measure {
@@ -101,6 +108,8 @@ pub fn calibrate_reference(
             let fitted: Result<(), FitError> = match kind {
                 ScanKind::TransitionWidth => fit_tanh_step(&trace.x, &trace.y).map(|f| {
                     w.push(1000.0 * f.width);
+                    w_fit_var
+                        .push((1000.0 * f.width_std * correlation_inflation(&f.residuals)).powi(2));
                     w_sigma.push(scaled_residual_sum(&f.residuals, f.height.abs()));
                 }),
                 _ => fit_exponential(&trace.x, &trace.y).map(|f| {
@@ -111,6 +120,7 @@ pub fn calibrate_reference(
                             (l.min(v), h.max(v))
                         });
                     t.push(f.tau);
+                    t_fit_var.push((f.tau_std * correlation_inflation(&f.residuals)).powi(2));
                     t_sigma.push(scaled_residual_sum(&f.residuals, hi - lo));
                 }),
             };
@@ -125,13 +135,20 @@ pub fn calibrate_reference(
             scans,
         });
     }
-    let reference = |values: &[f64], sigmas: &[f64]| Reference {
-        sigma0: mean_std(sigmas).0,
-        delta_p0: mean_std(values).1,
+    let reference = |values: &[f64], sigmas: &[f64], fit_var: &[f64]| {
+        let (mean, sd) = mean_std(values);
+        // What the fits' own errors do not explain, relative to the value.
+        let unexplained = sd * sd - mean_std(fit_var).0;
+        Reference {
+            sigma0: mean_std(sigmas).0,
+            delta_p0: sd,
+            relative_floor: unexplained.max(0.0).sqrt() / mean.abs(),
+        }
     };
     Ok(References {
-        w: reference(&w, &w_sigma),
-        t_sr: reference(&t, &t_sigma),
+        w: reference(&w, &w_sigma, &w_fit_var),
+        t_sr: reference(&t, &t_sigma, &t_fit_var),
+        rule: UncertaintyRule::FitCovariance,
     })
 }
 

@@ -104,6 +104,13 @@ pub struct SimulatedDevice {
     pub(crate) drift: DriftState,
     pub(crate) clock: LabClock,
     pub(crate) rng: ChaCha8Rng,
+    /// Whether [`Request::TrueJacobian`] is answered (the oracle's
+    /// capability; see [`SimulatedDevice::seal_truth`]). Default open.
+    #[serde(default)]
+    pub(crate) truth_sealed: bool,
+    /// [`Request::TrueJacobian`] requests received, answered or refused.
+    #[serde(default)]
+    pub(crate) truth_queries: u64,
 }
 
 impl SimulatedDevice {
@@ -164,6 +171,8 @@ impl SimulatedDevice {
             drift: DriftState::default(),
             clock: LabClock::default(),
             rng: ChaCha8Rng::seed_from_u64(seed),
+            truth_sealed: false,
+            truth_queries: 0,
         })
     }
 
@@ -185,6 +194,35 @@ impl SimulatedDevice {
     /// Cumulative simulated lab time, s.
     pub fn lab_seconds(&self) -> f64 {
         self.clock.seconds()
+    }
+
+    /// Take the oracle's capability away (ARCHITECTURE.md invariant 7): from
+    /// now on [`Request::TrueJacobian`] is answered with an error (and still
+    /// counted in [`SimulatedDevice::truth_queries`]). Irreversible for this
+    /// value; the benchmark hands every non-oracle strategy a sealed device.
+    ///
+    /// ```
+    /// use spintune::protocol::{Request, Response};
+    /// use spintune::sim::{default_gates, DeviceConfig, SimulatedDevice};
+    /// let mut dev = SimulatedDevice::new(DeviceConfig::default(), &default_gates(), 1).unwrap();
+    /// dev.seal_truth();
+    /// let r = dev.execute(&Request::TrueJacobian { gates: vec!["T".into()], parameters: vec!["w".into()] });
+    /// assert!(matches!(r, Response::Error { .. }));
+    /// assert_eq!(dev.truth_queries(), 1);
+    /// ```
+    pub fn seal_truth(&mut self) {
+        self.truth_sealed = true;
+    }
+
+    /// Whether [`SimulatedDevice::seal_truth`] was called.
+    pub fn is_truth_sealed(&self) -> bool {
+        self.truth_sealed
+    }
+
+    /// How many [`Request::TrueJacobian`] requests this device received
+    /// (answered or refused): 0 for every run that never asked the oracle.
+    pub fn truth_queries(&self) -> u64 {
+        self.truth_queries
     }
 
     /// Present drift and charge-jump state (what [`SimulatedDevice::truth`] leaves out).
@@ -234,7 +272,16 @@ impl SimulatedDevice {
                     lab_seconds: 0.0,
                 },
             },
+            Request::TrueJacobian { .. } if self.truth_sealed => {
+                self.truth_queries += 1;
+                Response::Error {
+                    message: "the true Jacobian is sealed on this device: only the oracle \
+                        may read the simulator's truth (ARCHITECTURE.md invariant 7)"
+                        .into(),
+                }
+            }
             Request::TrueJacobian { gates, parameters } => {
+                self.truth_queries += 1;
                 let g: Vec<&str> = gates.iter().map(String::as_str).collect();
                 let p: Vec<&str> = parameters.iter().map(String::as_str).collect();
                 let truth = self.truth();

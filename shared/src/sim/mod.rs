@@ -26,6 +26,7 @@ pub mod device;
 pub mod gates;
 pub(crate) mod model;
 pub mod noise;
+pub mod random;
 pub mod scans;
 
 pub use calibration::{calibrate_reference, CalibrationError};

@@ -50,7 +50,20 @@ pub struct Compensation {
     /// Compensating gates (rows), e.g. `["PA", "PB"]`.
     pub gates: Vec<String>,
     /// Rows: compensating gates; columns: the level's gates (dimensionless, mV/mV).
+    /// Configuration a lab supplies (e.g. from the slopes of charge-stability
+    /// diagrams); never derived from the simulator's truth (invariant 7).
     pub matrix: Vec<Vec<f64>>,
+    /// Relative 1σ uncertainty of each matrix element as the lab knows it
+    /// (dimensionless, 0 ≤ u ≤ 10; default 0.2). Documentation for the
+    /// operator and the benchmark's perturbation scale: the tuner does not
+    /// rely on the matrix being exact, the chemical-potential level re-centres
+    /// the lines after every move.
+    #[serde(default = "default_compensation_uncertainty")]
+    pub relative_uncertainty: f64,
+}
+
+fn default_compensation_uncertainty() -> f64 {
+    0.2
 }
 
 /// A quasi-Newton level: parameters driven by gates through an estimated Jacobian.
@@ -148,6 +161,30 @@ pub struct SensingDotConfig {
     pub half_width_mv: f64,
     /// Points per sweep.
     pub points: usize,
+    /// What to do when the sweep finds no flank (`None`: park nowhere and
+    /// carry on, as before).
+    #[serde(default)]
+    pub fallback: Option<SensingDotFallback>,
+}
+
+/// Upper bound on [`SensingDotFallback::offsets_mv`] (bounded by construction).
+pub const MAX_FALLBACK_SWEEPS: usize = 16;
+
+/// The paper's 2-D sensing-dot scan, as a raster of 1-D sweeps: when the
+/// sweep of [`SensingDotConfig::gate`] finds no flank, step a second gate
+/// through `offsets_mv` (relative to its present voltage) and sweep again at
+/// each, stopping at the first sweep with a flank (park both gates there);
+/// if none has one, the second gate goes back. Each sweep is a scan the
+/// device charges its lab time (the default simulator: 6 sweeps × 17 s ≈
+/// the paper's 100 s 2-D scan). Every set goes through the guard.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SensingDotFallback {
+    /// Second gate stepped between sweeps, e.g. `"SP"`.
+    pub gate: String,
+    /// Offsets from its present voltage, mV, in order
+    /// (1..=[`MAX_FALLBACK_SWEEPS`] entries, each finite and |offset| ≤ 1000 mV).
+    pub offsets_mv: Vec<f64>,
 }
 
 /// What a level does.
@@ -325,6 +362,18 @@ impl TunerConfig {
                 }
             }
         }
+        for (parameter, r) in [
+            ("w", &self.fit_references.w),
+            ("t_sr", &self.fit_references.t_sr),
+        ] {
+            let floor = r.relative_floor;
+            if !(floor.is_finite() && (0.0..1.0).contains(&floor)) {
+                return Err(ConfigError::new(
+                    format!("fit_references.{parameter}.relative_floor"),
+                    "must be a finite number in [0, 1)",
+                ));
+            }
+        }
         if self.levels.is_empty() {
             return Err(ConfigError::new("levels", "at least one level is required"));
         }
@@ -389,6 +438,30 @@ impl TunerConfig {
                                 format!(
                                     "{} mV exceeds gate {}'s max_step_mv ({} mV): the sweep's first point would be farther than one step from the present voltage",
                                     sd.half_width_mv, g.name, g.max_step_mv
+                                ),
+                            ));
+                        }
+                    }
+                    if let Some(fb) = &sd.fallback {
+                        if !has_gate(&fb.gate) || fb.gate == sd.gate {
+                            return Err(ConfigError::new(
+                                lf("fallback.gate"),
+                                format!(
+                                    "{:?} must be a known gate other than the swept one",
+                                    fb.gate
+                                ),
+                            ));
+                        }
+                        if !(1..=MAX_FALLBACK_SWEEPS).contains(&fb.offsets_mv.len())
+                            || fb
+                                .offsets_mv
+                                .iter()
+                                .any(|o| !(o.is_finite() && o.abs() <= 1000.0))
+                        {
+                            return Err(ConfigError::new(
+                                lf("fallback.offsets_mv"),
+                                format!(
+                                    "needs 1 to {MAX_FALLBACK_SWEEPS} finite offsets of at most 1000 mV"
                                 ),
                             ));
                         }
@@ -540,6 +613,13 @@ fn validate_newton(n: &NewtonConfig, has_gate: &dyn Fn(&str) -> bool) -> Result<
             }
         }
         check_rows(&c.matrix, c.gates.len(), k, "compensation.matrix")?;
+        let u = c.relative_uncertainty;
+        if !(u.is_finite() && (0.0..=10.0).contains(&u)) {
+            return Err(ConfigError::new(
+                "compensation.relative_uncertainty",
+                "must be a finite number in [0, 10]",
+            ));
+        }
     }
     Ok(())
 }

@@ -40,8 +40,10 @@ use serde::{Deserialize, Serialize};
 
 pub use config::{
     Compensation, ConfigError, InitialGradient, LevelConfig, LevelKind, NewtonConfig,
-    ScheduledTargets, SensingDotConfig, TunerConfig, MAX_SWEEP_POINTS,
+    ScheduledTargets, SensingDotConfig, SensingDotFallback, TunerConfig, MAX_FALLBACK_SWEEPS,
+    MAX_SWEEP_POINTS,
 };
+pub use newton::Consistency;
 use newton::NewtonState;
 
 use crate::parameter::Tolerance;
@@ -127,6 +129,11 @@ enum Decision {
     EndIteration,
     /// Sensing-dot sweep is in: park the gate on the flank.
     SdPark,
+    /// A sweep of the 2-D fallback is in (`base_mv`: the second gate's voltage
+    /// before the fallback): park on a flank if found and stop the raster.
+    SdFallbackPoint { base_mv: f64 },
+    /// No sweep of the fallback found a flank: the second gate goes back to `base_mv`.
+    SdFallbackFinish { base_mv: f64 },
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -262,6 +269,25 @@ impl Tuner {
     pub fn gradients(&self, level: usize) -> Option<Vec<GradientRow>> {
         match self.levels.get(level)? {
             LevelState::Newton(n) => n.gradients(),
+            LevelState::SensingDot { .. } => None,
+        }
+    }
+
+    /// The last values a Newton level measured (its parameters in config
+    /// order, parameter units; `None` where the last scan gave none), e.g.
+    /// the start values of the initial finite-difference measurement.
+    pub fn last_measured(&self, level: usize) -> Option<&[Option<ParameterValue>]> {
+        match self.levels.get(level)? {
+            LevelState::Newton(n) => Some(n.last_measured()),
+            LevelState::SensingDot { .. } => None,
+        }
+    }
+
+    /// Filter consistency (normalised innovations squared) of a Newton
+    /// level's estimators, per parameter in config order.
+    pub fn consistency(&self, level: usize) -> Option<&[Consistency]> {
+        match self.levels.get(level)? {
+            LevelState::Newton(n) => Some(n.consistency()),
             LevelState::SensingDot { .. } => None,
         }
     }
@@ -605,26 +631,27 @@ impl Tuner {
         });
     }
 
+    /// The sensing-dot sweep of `sd` around its gate's present voltage.
+    fn sd_sweep(&self, sd: &SensingDotConfig) -> Op {
+        let present = self.voltages_mv.get(&sd.gate).copied().unwrap_or(0.0);
+        let spec = self.safety.gate(&sd.gate);
+        let lo = spec.map_or(f64::NEG_INFINITY, |s| s.min_mv);
+        let hi = spec.map_or(f64::INFINITY, |s| s.max_mv);
+        Op::Measure(ScanRequest {
+            kind: ScanKind::SensingDot,
+            sweep: Some(Sweep {
+                gate: sd.gate.clone(),
+                from_mv: (present - sd.half_width_mv).max(lo),
+                to_mv: (present + sd.half_width_mv).min(hi),
+                points: sd.points,
+            }),
+        })
+    }
+
     fn push_level(&mut self, level: usize) {
         let ops = match &self.config.levels[level].kind {
             LevelKind::SensingDot(sd) => {
-                let present = self.voltages_mv.get(&sd.gate).copied().unwrap_or(0.0);
-                let spec = self.safety.gate(&sd.gate);
-                let lo = spec.map_or(f64::NEG_INFINITY, |s| s.min_mv);
-                let hi = spec.map_or(f64::INFINITY, |s| s.max_mv);
-                let sweep = Sweep {
-                    gate: sd.gate.clone(),
-                    from_mv: (present - sd.half_width_mv).max(lo),
-                    to_mv: (present + sd.half_width_mv).min(hi),
-                    points: sd.points,
-                };
-                VecDeque::from([
-                    Op::Measure(ScanRequest {
-                        kind: ScanKind::SensingDot,
-                        sweep: Some(sweep),
-                    }),
-                    Op::Decide(Decision::SdPark),
-                ])
+                VecDeque::from([self.sd_sweep(sd), Op::Decide(Decision::SdPark)])
             }
             LevelKind::Newton(_) => {
                 let mut ops = self.init_ops(level);
@@ -711,14 +738,47 @@ impl Tuner {
     }
 
     fn decide(&mut self, level: usize, d: Decision) -> Option<IterationRecord> {
-        if d == Decision::SdPark {
+        if let Decision::SdPark
+        | Decision::SdFallbackPoint { .. }
+        | Decision::SdFallbackFinish { .. } = d
+        {
             let LevelKind::SensingDot(sd) = &self.config.levels[level].kind else {
                 return None;
             };
-            let gate = sd.gate.clone();
-            if let LevelState::SensingDot { last: Some(p) } = &self.levels[level] {
-                let v = p.value;
-                self.push_ops([Op::SetGate(gate, v)]);
+            let sd = sd.clone();
+            let flank = match &self.levels[level] {
+                LevelState::SensingDot { last: Some(p) } => Some(p.value),
+                _ => None,
+            };
+            match (d, flank) {
+                (Decision::SdPark, Some(v)) => self.push_ops([Op::SetGate(sd.gate, v)]),
+                (Decision::SdPark, None) => {
+                    // No flank in the 1-D sweep: the 2-D raster, if configured.
+                    if let Some(fb) = &sd.fallback {
+                        let base_mv = self.voltages_mv.get(&fb.gate).copied().unwrap_or(0.0);
+                        let mut ops = Vec::new();
+                        for o in &fb.offsets_mv {
+                            ops.push(Op::SetGate(fb.gate.clone(), base_mv + o));
+                            ops.push(self.sd_sweep(&sd));
+                            ops.push(Op::Decide(Decision::SdFallbackPoint { base_mv }));
+                        }
+                        ops.push(Op::Decide(Decision::SdFallbackFinish { base_mv }));
+                        self.push_ops(ops);
+                    }
+                }
+                (Decision::SdFallbackPoint { .. }, Some(v)) => {
+                    // found: stop the raster here and park
+                    if let Some(frame) = self.stack.last_mut() {
+                        frame.ops.clear();
+                    }
+                    self.push_ops([Op::SetGate(sd.gate, v)]);
+                }
+                (Decision::SdFallbackFinish { base_mv }, _) => {
+                    if let Some(fb) = &sd.fallback {
+                        self.push_ops([Op::SetGate(fb.gate.clone(), base_mv)]);
+                    }
+                }
+                _ => {}
             }
             return None;
         }

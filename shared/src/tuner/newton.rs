@@ -55,6 +55,61 @@ pub(super) struct NewtonState {
     pub(super) events: Vec<EventKind>,
     snapshot: Option<Snapshot>,
     targets_held: bool,
+    /// The last measured values, in parameter order (parameter units);
+    /// `None` where the last scan gave none.
+    #[serde(default)]
+    last_raw: Vec<Option<ParameterValue>>,
+    /// Filter consistency per parameter (parameter order).
+    #[serde(default)]
+    consistency: Vec<Consistency>,
+    /// The level's gate voltages (mV) at the last evaluation that gave every
+    /// targeted parameter: where a failed evaluation retreats toward.
+    #[serde(default)]
+    last_good_mv: Option<Vec<f64>>,
+}
+
+/// Running statistics of a filter's normalised innovations squared (NIS),
+/// `(z − Δv·g)² / (Δv C Δvᵀ + Δz²)`, over every update it was offered
+/// (gated outliers included). For a consistent filter the mean is 1 and
+/// 4.6 % of the innovations lie beyond 2σ.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct Consistency {
+    /// Number of innovations.
+    pub count: u64,
+    /// Sum of the NIS values (dimensionless).
+    pub nis_sum: f64,
+    /// Innovations beyond 2 predicted standard deviations.
+    pub beyond_2sigma: u64,
+}
+
+impl Consistency {
+    /// Add one innovation (estimator units) with its predicted standard deviation.
+    /// Ignored unless both are finite and the standard deviation is > 0.
+    pub fn add(&mut self, innovation: f64, innovation_sigma: f64) {
+        if innovation.is_finite() && innovation_sigma.is_finite() && innovation_sigma > 0.0 {
+            let r = innovation / innovation_sigma;
+            self.count += 1;
+            self.nis_sum += r * r;
+            self.beyond_2sigma += u64::from(r.abs() > 2.0);
+        }
+    }
+
+    /// Merge another set of statistics.
+    pub fn merge(&mut self, other: &Consistency) {
+        self.count += other.count;
+        self.nis_sum += other.nis_sum;
+        self.beyond_2sigma += other.beyond_2sigma;
+    }
+
+    /// Mean NIS (`None` without innovations).
+    pub fn nis_mean(&self) -> Option<f64> {
+        (self.count > 0).then(|| self.nis_sum / self.count as f64)
+    }
+
+    /// Fraction of innovations beyond 2σ (`None` without innovations).
+    pub fn beyond_2sigma_fraction(&self) -> Option<f64> {
+        (self.count > 0).then(|| self.beyond_2sigma as f64 / self.count as f64)
+    }
 }
 
 impl NewtonState {
@@ -106,7 +161,20 @@ impl NewtonState {
             events: Vec::new(),
             snapshot: None,
             targets_held: false,
+            last_raw: vec![None; m],
+            consistency: vec![Consistency::default(); m],
+            last_good_mv: None,
         })
+    }
+
+    /// The last measured values (parameter order, parameter units).
+    pub(super) fn last_measured(&self) -> &[Option<ParameterValue>] {
+        &self.last_raw
+    }
+
+    /// Filter consistency per parameter (parameter order).
+    pub(super) fn consistency(&self) -> &[Consistency] {
+        &self.consistency
     }
 
     /// Drop every reference point: the next measurement is a new baseline.
@@ -147,6 +215,7 @@ impl NewtonState {
             .iter()
             .map(|p| measured.get(&p.name).cloned())
             .collect();
+        self.last_raw = raw.clone();
         let mut samples = Vec::with_capacity(raw.len());
         for (p, v) in cfg.parameters.iter().zip(&raw) {
             let s = v
@@ -313,7 +382,9 @@ impl Tuner {
                 None
             }
             Decision::EndIteration => self.end_iteration(level),
-            Decision::SdPark => None,
+            Decision::SdPark
+            | Decision::SdFallbackPoint { .. }
+            | Decision::SdFallbackFinish { .. } => None,
         }
     }
 
@@ -424,7 +495,25 @@ impl Tuner {
                     value: y,
                     variance: var,
                 });
-                match estimators[i].observe(&dv, z, dz2) {
+                let outcome = estimators[i].observe(&dv, z, dz2);
+                if let Ok(
+                    UpdateOutcome::Gated {
+                        innovation,
+                        innovation_sigma,
+                    }
+                    | UpdateOutcome::Updated {
+                        innovation,
+                        innovation_sigma,
+                    },
+                ) = outcome
+                {
+                    if state.consistency.len() != cfg.parameters.len() {
+                        // a checkpoint from before these statistics existed
+                        state.consistency = vec![Consistency::default(); cfg.parameters.len()];
+                    }
+                    state.consistency[i].add(innovation, innovation_sigma);
+                }
+                match outcome {
                     Ok(UpdateOutcome::Gated {
                         innovation,
                         innovation_sigma,
@@ -470,6 +559,9 @@ impl Tuner {
             tuned,
             step_mv: vec![0.0; v_now.len()],
         });
+        if !missing_targeted {
+            state.last_good_mv = Some(v_now.clone());
+        }
         let top = level == 0;
         if tuned {
             if top {
@@ -478,9 +570,29 @@ impl Tuner {
             return;
         }
         if missing_targeted {
-            // Do not step blind: re-tune the lower levels (sensor contrast, transition
+            // Do not step blind. As qtune does, retreat half-way toward the last
+            // point where the evaluation worked (within the step limit and the
+            // gate limits; the move goes through the session's guard like any
+            // other), re-tune the lower levels (sensor contrast, transition
             // lines — the usual reasons a scan fails) and measure again next round.
-            let mut ops = self.after_move_ops(level);
+            let retreat = state
+                .last_good_mv
+                .clone()
+                .and_then(|good| retreat_target(&v_now, &good, cfg.solver.max_step_mv));
+            let mut ops = Vec::new();
+            if let Some(mut target) = retreat {
+                for (j, g) in cfg.gates.iter().enumerate() {
+                    if let Some(spec) = self.safety.gate(g) {
+                        target[j] = target[j].clamp(spec.min_mv, spec.max_mv);
+                    }
+                }
+                let (_, state) = self.newton_mut(level);
+                if let Some(s) = &mut state.snapshot {
+                    s.step_mv = target.iter().zip(&v_now).map(|(a, b)| a - b).collect();
+                }
+                ops.push(Op::Move(target));
+            }
+            ops.extend(self.after_move_ops(level));
             ops.push(Op::Decide(Decision::EndIteration));
             self.push_ops(ops);
             return;
@@ -656,5 +768,46 @@ impl Tuner {
         let (_, state) = self.newton_mut(0);
         state.scans.clear();
         Some(IterationRecord { events, ..record })
+    }
+}
+
+/// Half-way from `now` toward `good` (mV, per gate), the step's norm capped
+/// at `max_step_mv`; `None` if `good` is within 0.01 mV of `now` or the
+/// inputs are not finite.
+///
+/// (qtune's rule after a failed evaluation: go back half-way toward the last
+/// parameters that could be evaluated.)
+fn retreat_target(now: &[f64], good: &[f64], max_step_mv: f64) -> Option<Vec<f64>> {
+    if now.len() != good.len() {
+        return None;
+    }
+    let half: Vec<f64> = now.iter().zip(good).map(|(a, b)| 0.5 * (b - a)).collect();
+    let norm = half.iter().map(|d| d * d).sum::<f64>().sqrt();
+    if !norm.is_finite() || norm < 0.005 {
+        return None;
+    }
+    let scale = if norm > max_step_mv {
+        max_step_mv / norm
+    } else {
+        1.0
+    };
+    Some(now.iter().zip(&half).map(|(a, d)| a + d * scale).collect())
+}
+
+#[cfg(test)]
+mod retreat_tests {
+    use super::retreat_target;
+
+    #[test]
+    fn retreat_goes_half_way_back_within_the_step_limit() {
+        let t = retreat_target(&[0.0, 0.0], &[4.0, -2.0], 10.0).unwrap();
+        assert_eq!(t, vec![2.0, -1.0]);
+        // a long way back is capped at the step limit
+        let t = retreat_target(&[0.0, 0.0], &[60.0, 80.0], 10.0).unwrap();
+        assert!((t[0] - 6.0).abs() < 1e-12 && (t[1] - 8.0).abs() < 1e-12);
+        // already there, or nonsense: no move
+        assert!(retreat_target(&[1.0], &[1.0], 10.0).is_none());
+        assert!(retreat_target(&[1.0], &[f64::NAN], 10.0).is_none());
+        assert!(retreat_target(&[1.0], &[1.0, 2.0], 10.0).is_none());
     }
 }

@@ -199,6 +199,7 @@ fn hierarchical() -> TunerConfig {
     q.compensation = Some(Compensation {
         gates: vec!["PA".into()],
         matrix: vec![vec![-0.3, -0.2, -0.1, -0.1]],
+        relative_uncertainty: 0.2,
     });
     let chem = NewtonConfig {
         gates: vec!["PA".into()],
@@ -246,6 +247,7 @@ fn hierarchical() -> TunerConfig {
                     gate: "SP".into(),
                     half_width_mv: 10.0,
                     points: 50,
+                    fallback: None,
                 }),
                 after_move: vec![],
             },

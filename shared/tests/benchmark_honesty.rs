@@ -1,0 +1,59 @@
+//! The benchmark's honesty rules (ARCHITECTURE.md invariant 7): no strategy
+//! but the oracles reads the simulator's truth, and the lab's virtual-gate
+//! matrix is not the simulator's.
+
+use spintune::benchmark::{run_seed, BenchmarkProtocol, Strategy};
+use spintune::driver::SimulationConfig;
+
+fn short_protocol() -> BenchmarkProtocol {
+    BenchmarkProtocol {
+        set_points: vec![(20.0, 270.0), (70.0, 180.0)],
+        iterations_per_set_point: 4,
+        ..BenchmarkProtocol::default()
+    }
+}
+
+#[test]
+fn non_oracle_strategies_never_query_the_truth() {
+    let results = run_seed(
+        &SimulationConfig::paper_default(),
+        &short_protocol(),
+        &Strategy::ALL,
+        3,
+        false,
+    )
+    .unwrap();
+    assert_eq!(results.len(), Strategy::ALL.len());
+    for r in &results {
+        if r.strategy.is_oracle() {
+            // the counter does count: the oracles ask whenever they step
+            assert!(
+                r.truth_queries >= 4,
+                "{:?}: {}",
+                r.strategy,
+                r.truth_queries
+            );
+        } else {
+            assert_eq!(r.truth_queries, 0, "{:?} read the truth", r.strategy);
+        }
+    }
+}
+
+#[test]
+fn kalman_strategies_report_filter_consistency_for_t_sr_and_w() {
+    let results = run_seed(
+        &SimulationConfig::paper_default(),
+        &short_protocol(),
+        &[Strategy::Kalman, Strategy::KalmanLog],
+        5,
+        false,
+    )
+    .unwrap();
+    for r in &results {
+        for p in ["t_sr", "w"] {
+            let c = r.consistency.get(p).unwrap_or_else(|| panic!("{p}"));
+            assert!(c.count >= 4, "{:?} {p}: {c:?}", r.strategy);
+            assert!(c.nis_mean().unwrap().is_finite());
+        }
+    }
+}

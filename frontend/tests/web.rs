@@ -10,8 +10,9 @@ use spintune::protocol::{
     ClientMessage, ControlCommand, Fault, FaultKind, RunStatus, ServerMessage, PROTOCOL_VERSION,
 };
 use spintune_web::api::ApiBase;
+use spintune_web::history::RunHistory;
 use spintune_web::local::{LocalRunner, LocalSettings};
-use spintune_web::model::{fake_records, History};
+use spintune_web::model::fake_records;
 use spintune_web::ui::{Dashboard, StatusBadge, StatusNote};
 use spintune_web::{App, Mode};
 use wasm_bindgen::JsCast;
@@ -85,6 +86,7 @@ fn protocol_frames_decode_in_wasm() {
         .contains(&format!("protocol={PROTOCOL_VERSION}")));
     let history = ServerMessage::History {
         records: fake_records(3),
+        more_before: true,
     };
     let json = serde_json::to_string(&history).unwrap();
     assert_eq!(
@@ -110,12 +112,12 @@ fn protocol_frames_decode_in_wasm() {
 #[wasm_bindgen_test]
 async fn dashboard_draws_every_chart_from_records() {
     let el = host();
-    let history = RwSignal::new(History::new());
+    let history = RwSignal::new(RunHistory::new());
     let _h = leptos::mount::mount_to(el.clone(), move || view! { <Dashboard history=history /> });
     leptos::task::tick().await;
     assert!(text(&el).contains("Waiting for the first iteration"));
     history.update(|h| {
-        h.extend(fake_records(12)).unwrap();
+        h.insert(fake_records(12));
     });
     let charts = || el.query_selector_all("canvas.chart").unwrap();
     wait_for(

@@ -259,10 +259,13 @@ pub fn error_color(e: f64) -> RGBColor {
     lerp(stops[i], stops[i + 1], t - i as f64)
 }
 
-/// Heat map of the ground-truth distance to target over two gates, with the tuner's path.
+/// Heat map of the ground-truth distance to target over two gates, with the
+/// tuner's path (black) and optionally a second run's path (`other`, mV,
+/// orange dashes of dots: the estimator race).
 pub fn draw_landscape<DB: DrawingBackend>(
     area: &DrawingArea<DB, Shift>,
     land: Option<&crate::local::Landscape>,
+    other: &[(f64, f64)],
 ) -> DrawResult {
     let Some(l) = land else {
         return placeholder(
@@ -324,6 +327,22 @@ pub fn draw_landscape<DB: DrawingBackend>(
         .map_err(err)?;
     chart
         .draw_series(in_view.iter().map(|&p| Circle::new(p, 3, BLACK.filled())))
+        .map_err(err)?;
+    let other: Vec<(f64, f64)> = other
+        .iter()
+        .copied()
+        .filter(|&(x, y)| (x0..=x1).contains(&x) && (y0..=y1).contains(&y))
+        .collect();
+    let oc = PALETTE[1];
+    chart
+        .draw_series(LineSeries::new(other.iter().copied(), oc.stroke_width(2)))
+        .map_err(err)?;
+    chart
+        .draw_series(
+            other
+                .iter()
+                .map(|&p| TriangleMarker::new(p, 4, oc.filled())),
+        )
         .map_err(err)?;
     chart
         .draw_series(std::iter::once(Circle::new(

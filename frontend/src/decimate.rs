@@ -25,6 +25,9 @@ fn column(x: f64, x0: f64, x1: f64, columns: usize) -> Option<usize> {
     Some((((x - x0) / span * columns as f64) as usize).min(columns - 1))
 }
 
+/// One pixel column of [`min_max`]: (column, first, min, max, last point).
+type Column = (usize, (f64, f64), (f64, f64), (f64, f64), (f64, f64));
+
 /// M4 decimation of `points` (sorted by x; non-finite y are skipped) to at
 /// most 4 points per pixel column over the x range `[x0, x1]` (points outside
 /// are dropped). Within each column the output is in x order and contains
@@ -44,10 +47,8 @@ pub fn min_max(points: &[(f64, f64)], x0: f64, x1: f64, columns: usize) -> Vec<(
         return inside().collect();
     }
     let mut out = Vec::with_capacity(4 * columns);
-    // (column, first, min, max, last) as indices into the filtered order.
-    let mut cur: Option<(usize, (f64, f64), (f64, f64), (f64, f64), (f64, f64))> = None;
-    let flush = |c: &(usize, (f64, f64), (f64, f64), (f64, f64), (f64, f64)),
-                 out: &mut Vec<(f64, f64)>| {
+    let mut cur: Option<Column> = None;
+    let flush = |c: &Column, out: &mut Vec<(f64, f64)>| {
         let (_, first, lo, hi, last) = *c;
         let mut pts = [first, lo, hi, last];
         pts.sort_by(|a, b| a.0.total_cmp(&b.0));

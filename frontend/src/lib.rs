@@ -11,6 +11,7 @@ pub mod live;
 pub mod local;
 pub mod metrics;
 pub mod model;
+pub mod race;
 pub mod series;
 pub mod ui;
 pub mod zoom;

@@ -236,6 +236,15 @@ impl LocalRunner {
         Ok(self.status())
     }
 
+    /// The run's path in the (`gx`, `gy`) plane, mV.
+    pub fn landscape_path(&self, gx: &str, gy: &str) -> Vec<(f64, f64)> {
+        self.history
+            .records()
+            .iter()
+            .filter_map(|r| Some((*r.voltages_mv.get(gx)?, *r.voltages_mv.get(gy)?)))
+            .collect()
+    }
+
     /// The simulator's noiseless truth on an `n`×`n` grid in the (`gx`, `gy`)
     /// plane, ±`half_mv` around the present voltages (other gates fixed):
     /// the larger of `|p − p*| / tolerance` over t_sr and w (≤ 1: in band).
@@ -268,12 +277,7 @@ impl LocalRunner {
                 }
             }
         }
-        let path = self
-            .history
-            .records()
-            .iter()
-            .filter_map(|r| Some((*r.voltages_mv.get(gx)?, *r.voltages_mv.get(gy)?)))
-            .collect();
+        let path = self.landscape_path(gx, gy);
         Some(Landscape {
             gx: gx.to_string(),
             gy: gy.to_string(),
@@ -588,7 +592,7 @@ pub fn LocalMode() -> impl IntoView {
                         draw=move |a: &Area| {
                             let n = history.with(|h| h.len());
                             let land = runner.with_value(|r| r.as_ref().and_then(|r| r.landscape("SB", "T", 30.0, 25)));
-                            charts::draw_landscape(a, land.as_ref()).map(|_| Drawn { iterations: n, ..Drawn::default() })
+                            charts::draw_landscape(a, land.as_ref(), &[]).map(|_| Drawn { iterations: n, ..Drawn::default() })
                         }
                     />
                     <div class="explain landscape-text">
@@ -596,6 +600,7 @@ pub fn LocalMode() -> impl IntoView {
                         <p>"The line is the tuner's path projected onto this plane (it also moves N and SA, so the map shifts as it goes). Light cells are far from the goal; the step limit keeps every move short because the map is curved: gradients measured here are wrong a few tens of mV away."</p>
                     </div>
                 </div>
+                <crate::race::RacePanel settings=settings />
             </section>
         </div>
     }

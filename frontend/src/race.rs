@@ -357,6 +357,7 @@ mod tests {
         while race.step().unwrap() {}
         assert!(race.done());
         let [a, b] = race.outcomes();
+        eprintln!("race outcomes: A {a:?}, B {b:?}");
         let k = a
             .tuned_at
             .expect("Kalman reaches the target within 80 iterations");

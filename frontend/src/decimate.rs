@@ -25,8 +25,110 @@ fn column(x: f64, x0: f64, x1: f64, columns: usize) -> Option<usize> {
     Some((((x - x0) / span * columns as f64) as usize).min(columns - 1))
 }
 
-/// One pixel column of [`min_max`]: (column, first, min, max, last point).
-type Column = (usize, (f64, f64), (f64, f64), (f64, f64), (f64, f64));
+/// Streaming decimation in one pass, without intermediate vectors: push
+/// points (sorted by x) with an optional band `[lo, hi]`; per pixel column it
+/// keeps the M4 points of the values (first, min, max, last) and the band's
+/// envelope (mean x, smallest lo, largest hi). [`min_max`] and [`envelope`]
+/// are this with all points at once.
+#[derive(Debug, Clone)]
+pub struct Columns {
+    x0: f64,
+    x1: f64,
+    columns: usize,
+    line: Vec<(f64, f64)>,
+    bands: Vec<(f64, f64, f64)>,
+    cur: Option<Col>,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Col {
+    index: usize,
+    first: (f64, f64),
+    min: (f64, f64),
+    max: (f64, f64),
+    last: (f64, f64),
+    sum_x: f64,
+    n: usize,
+    lo: f64,
+    hi: f64,
+}
+
+impl Columns {
+    /// Decimate over `[x0, x1]` into `columns` pixel columns.
+    pub fn new(x0: f64, x1: f64, columns: usize) -> Self {
+        Self {
+            x0,
+            x1,
+            columns: columns.max(1),
+            line: Vec::with_capacity(4 * columns),
+            bands: Vec::with_capacity(columns),
+            cur: None,
+        }
+    }
+
+    fn flush(&mut self) {
+        let Some(c) = self.cur.take() else { return };
+        let mut pts = [c.first, c.min, c.max, c.last];
+        pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+        for p in pts {
+            if self.line.last() != Some(&p) {
+                self.line.push(p);
+            }
+        }
+        if c.lo.is_finite() && c.hi.is_finite() {
+            self.bands.push((c.sum_x / c.n as f64, c.lo, c.hi));
+        }
+    }
+
+    /// Add a point `(x, y)` with band `[lo, hi]` (NaN: no band). Points with
+    /// a non-finite x or y, or outside the range, are ignored.
+    #[inline]
+    pub fn push(&mut self, x: f64, y: f64, lo: f64, hi: f64) {
+        if !y.is_finite() {
+            return;
+        }
+        let Some(index) = column(x, self.x0, self.x1, self.columns) else {
+            return;
+        };
+        let p = (x, y);
+        match &mut self.cur {
+            Some(c) if c.index == index => {
+                if y < c.min.1 {
+                    c.min = p;
+                }
+                if y > c.max.1 {
+                    c.max = p;
+                }
+                c.last = p;
+                c.sum_x += x;
+                c.n += 1;
+                c.lo = c.lo.min(lo);
+                c.hi = c.hi.max(hi);
+            }
+            _ => {
+                self.flush();
+                self.cur = Some(Col {
+                    index,
+                    first: p,
+                    min: p,
+                    max: p,
+                    last: p,
+                    sum_x: x,
+                    n: 1,
+                    lo,
+                    hi,
+                });
+            }
+        }
+    }
+
+    /// The decimated line (at most 4 points per column, in x order) and the
+    /// band envelope (one per column with a finite band).
+    pub fn finish(mut self) -> (Vec<(f64, f64)>, Vec<(f64, f64, f64)>) {
+        self.flush();
+        (self.line, self.bands)
+    }
+}
 
 /// M4 decimation of `points` (sorted by x; non-finite y are skipped) to at
 /// most 4 points per pixel column over the x range `[x0, x1]` (points outside
@@ -42,48 +144,14 @@ pub fn min_max(points: &[(f64, f64)], x0: f64, x1: f64, columns: usize) -> Vec<(
             .copied()
             .filter(|&(x, y)| y.is_finite() && x.is_finite() && x >= x0 && x <= x1)
     };
-    let n = inside().count();
-    if n <= 2 * columns.max(1) {
+    if inside().count() <= 2 * columns.max(1) {
         return inside().collect();
     }
-    let mut out = Vec::with_capacity(4 * columns);
-    let mut cur: Option<Column> = None;
-    let flush = |c: &Column, out: &mut Vec<(f64, f64)>| {
-        let (_, first, lo, hi, last) = *c;
-        let mut pts = [first, lo, hi, last];
-        pts.sort_by(|a, b| a.0.total_cmp(&b.0));
-        for p in pts {
-            if out.last() != Some(&p) {
-                out.push(p);
-            }
-        }
-    };
-    for p in inside() {
-        let Some(col) = column(p.0, x0, x1, columns) else {
-            continue;
-        };
-        match &mut cur {
-            Some(c) if c.0 == col => {
-                if p.1 < c.2 .1 {
-                    c.2 = p;
-                }
-                if p.1 > c.3 .1 {
-                    c.3 = p;
-                }
-                c.4 = p;
-            }
-            _ => {
-                if let Some(c) = &cur {
-                    flush(c, &mut out);
-                }
-                cur = Some((col, p, p, p, p));
-            }
-        }
+    let mut c = Columns::new(x0, x1, columns);
+    for (x, y) in points {
+        c.push(*x, *y, f64::NAN, f64::NAN);
     }
-    if let Some(c) = &cur {
-        flush(c, &mut out);
-    }
-    out
+    c.finish().0
 }
 
 /// Band decimation: `points` are `(x, lower, upper)` sorted by x. Per pixel
@@ -101,35 +169,14 @@ pub fn envelope(
             x.is_finite() && lo.is_finite() && hi.is_finite() && x >= x0 && x <= x1
         })
     };
-    let n = inside().count();
-    if n <= 2 * columns.max(1) {
+    if inside().count() <= 2 * columns.max(1) {
         return inside().collect();
     }
-    let mut out: Vec<(f64, f64, f64)> = Vec::with_capacity(columns);
-    let mut cur: Option<(usize, f64, usize, f64, f64)> = None; // col, Σx, count, lo, hi
+    let mut c = Columns::new(x0, x1, columns);
     for (x, lo, hi) in inside() {
-        let Some(col) = column(x, x0, x1, columns) else {
-            continue;
-        };
-        match &mut cur {
-            Some(c) if c.0 == col => {
-                c.1 += x;
-                c.2 += 1;
-                c.3 = c.3.min(lo);
-                c.4 = c.4.max(hi);
-            }
-            _ => {
-                if let Some(c) = cur {
-                    out.push((c.1 / c.2 as f64, c.3, c.4));
-                }
-                cur = Some((col, x, 1, lo, hi));
-            }
-        }
+        c.push(x, (lo + hi) / 2.0, lo, hi);
     }
-    if let Some(c) = cur {
-        out.push((c.1 / c.2 as f64, c.3, c.4));
-    }
-    out
+    c.finish().1
 }
 
 #[cfg(test)]

@@ -13,7 +13,7 @@ use plotters::prelude::*;
 use crate::charts::{
     bar_width, color, err, int_label, num_label, placeholder, styled_chart, BAND, TARGET,
 };
-use crate::decimate::{envelope, min_max};
+use crate::decimate::{min_max, Columns};
 use crate::history::{Row, RunHistory};
 use crate::model::padded_range;
 use crate::zoom::Window;
@@ -123,6 +123,52 @@ fn plot_columns<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, y_area: u32) 
     (area.dim_in_pixel().0.saturating_sub(y_area + 20) as usize).max(50)
 }
 
+/// The series at data offset `o` of `rows` (σ at `o + 1` when `sigma`):
+/// `(line, bands, points)`. Up to `2 × cols` rows are returned as they are
+/// (`points`: `(x, value, σ)` for error bars); more are decimated in one
+/// pass per pixel column ([`Columns`]: min/max of the values, envelope of
+/// value ± σ) and `points` is `None`.
+#[allow(clippy::type_complexity)]
+fn series_of(
+    rows: &[Row],
+    o: usize,
+    sigma: bool,
+    axis: XAxis,
+    (x0, x1): (f64, f64),
+    cols: usize,
+) -> (
+    Vec<(f64, f64)>,
+    Vec<(f64, f64, f64)>,
+    Option<Vec<(f64, f64, f64)>>,
+) {
+    let sd = |r: &Row| {
+        let s = if sigma { r.data[o + 1] } else { 0.0 };
+        if s.is_finite() {
+            s
+        } else {
+            0.0
+        }
+    };
+    if rows.len() <= 2 * cols {
+        let pts: Vec<(f64, f64, f64)> = rows
+            .iter()
+            .filter(|r| r.data[o].is_finite())
+            .map(|r| (axis.x(r), r.data[o], sd(r)))
+            .collect();
+        let line = pts.iter().map(|&(x, v, _)| (x, v)).collect();
+        let bands = pts.iter().map(|&(x, v, s)| (x, v - s, v + s)).collect();
+        return (line, bands, Some(pts));
+    }
+    let mut c = Columns::new(x0, x1, cols);
+    for r in rows {
+        let v = r.data[o];
+        let s = sd(r);
+        c.push(axis.x(r), v, v - s, v + s);
+    }
+    let (line, bands) = c.finish();
+    (line, bands, None)
+}
+
 /// Segments of constant (target, tolerance) over rows: `(x from, x to, target, half-width)`.
 pub fn target_segments(rows: &[Row], offset: usize, axis: XAxis) -> Vec<(f64, f64, f64, f64)> {
     let mut out: Vec<(f64, f64, f64, f64)> = Vec::new();
@@ -180,24 +226,13 @@ pub fn draw_parameter<DB: DrawingBackend>(
     let rows = f.rows();
     let (x0, x1) = f.x_range();
     let cols = plot_columns(area, 62);
-    let pts: Vec<(f64, f64, f64)> = rows
-        .iter()
-        .filter(|r| r.data[o].is_finite())
-        .map(|r| {
-            let s = r.data[o + 1];
-            (f.axis.x(r), r.data[o], if s.is_finite() { s } else { 0.0 })
-        })
-        .collect();
-    if pts.is_empty() {
+    let (line, bands, pts) = series_of(rows, o, true, f.axis, (x0, x1), cols);
+    if line.is_empty() {
         return placeholder(area, &title, "waiting for measurements…").map(|_| Drawn {
             iterations: rows.len(),
             ..Drawn::default()
         });
     }
-    let xy: Vec<(f64, f64)> = pts.iter().map(|&(x, v, _)| (x, v)).collect();
-    let line = min_max(&xy, x0, x1, cols);
-    let band_pts: Vec<(f64, f64, f64)> = pts.iter().map(|&(x, v, s)| (x, v - s, v + s)).collect();
-    let bands = envelope(&band_pts, x0, x1, cols);
     let targets = target_segments(rows, o, f.axis);
     let overlay: Vec<(f64, f64)> = f
         .overlay
@@ -259,17 +294,7 @@ pub fn draw_parameter<DB: DrawingBackend>(
             .map_err(err)?;
     }
     let c = color(series);
-    let decimated = line.len() < pts.len();
-    if decimated {
-        chart
-            .draw_series(bands.iter().map(|&(x, lo, hi)| {
-                PathElement::new(vec![(x, lo), (x, hi)], c.mix(0.25).stroke_width(1))
-            }))
-            .map_err(err)?;
-        chart
-            .draw_series(LineSeries::new(line.iter().copied(), c.stroke_width(1)))
-            .map_err(err)?;
-    } else {
+    if let Some(pts) = &pts {
         chart
             .draw_series(LineSeries::new(
                 line.iter().copied(),
@@ -280,6 +305,15 @@ pub fn draw_parameter<DB: DrawingBackend>(
             .draw_series(pts.iter().map(|&(k, v, s)| {
                 ErrorBar::new_vertical(k, v - s, v, v + s, c.filled(), bar_width(pts.len()))
             }))
+            .map_err(err)?;
+    } else {
+        chart
+            .draw_series(bands.iter().map(|&(x, lo, hi)| {
+                PathElement::new(vec![(x, lo), (x, hi)], c.mix(0.25).stroke_width(1))
+            }))
+            .map_err(err)?;
+        chart
+            .draw_series(LineSeries::new(line.iter().copied(), c.stroke_width(1)))
             .map_err(err)?;
     }
     let px = chart.plotting_area().get_pixel_range().0;
@@ -315,19 +349,7 @@ pub fn draw_gradient<DB: DrawingBackend>(
     for (gi, (gate, panel)) in layout.gates.iter().zip(panels.iter()).enumerate() {
         let o = layout.grad(g, gi);
         let cols = plot_columns(panel, 58);
-        let pts: Vec<(f64, f64, f64)> = rows
-            .iter()
-            .filter(|r| r.data[o].is_finite())
-            .map(|r| {
-                let s = r.data[o + 1];
-                (f.axis.x(r), r.data[o], if s.is_finite() { s } else { 0.0 })
-            })
-            .collect();
-        let xy: Vec<(f64, f64)> = pts.iter().map(|&(x, v, _)| (x, v)).collect();
-        let line = min_max(&xy, x0, x1, cols);
-        let band_pts: Vec<(f64, f64, f64)> =
-            pts.iter().map(|&(x, v, s)| (x, v - s, v + s)).collect();
-        let bands = envelope(&band_pts, x0, x1, cols);
+        let (line, bands, pts) = series_of(rows, o, true, f.axis, (x0, x1), cols);
         let (y0, y1) = value_range(&line, &bands, std::iter::empty());
         let mut chart = styled_chart(
             panel,
@@ -340,13 +362,7 @@ pub fn draw_gradient<DB: DrawingBackend>(
             f.x_fmt(),
         )?;
         let c = color(gi);
-        if line.len() < pts.len() {
-            chart
-                .draw_series(bands.iter().map(|&(x, lo, hi)| {
-                    PathElement::new(vec![(x, lo), (x, hi)], c.mix(0.25).stroke_width(1))
-                }))
-                .map_err(err)?;
-        } else {
+        if let Some(pts) = &pts {
             chart
                 .draw_series(pts.iter().map(|&(k, v, s)| {
                     ErrorBar::new_vertical(
@@ -357,6 +373,12 @@ pub fn draw_gradient<DB: DrawingBackend>(
                         c.mix(0.55).filled(),
                         bar_width(pts.len()),
                     )
+                }))
+                .map_err(err)?;
+        } else {
+            chart
+                .draw_series(bands.iter().map(|&(x, lo, hi)| {
+                    PathElement::new(vec![(x, lo), (x, hi)], c.mix(0.25).stroke_width(1))
                 }))
                 .map_err(err)?;
         }
@@ -391,8 +413,7 @@ pub fn draw_gates<DB: DrawingBackend>(
     for (gi, (gate, panel)) in layout.gates.iter().zip(panels.iter()).enumerate() {
         let o = layout.gate(gi);
         let cols = plot_columns(panel, 58);
-        let xy: Vec<(f64, f64)> = rows.iter().map(|r| (f.axis.x(r), r.data[o])).collect();
-        let line = min_max(&xy, x0, x1, cols);
+        let (line, _, _) = series_of(rows, o, false, f.axis, (x0, x1), cols);
         let (y0, y1) = padded_range(line.iter().map(|p| p.1), 0.1);
         let mut chart = styled_chart(
             panel,

@@ -3,14 +3,16 @@
 //! arriving in any order, and a compact numeric form of each record.
 //!
 //! **Memory bound.** A record is not kept as such: each iteration becomes a
-//! [`Row`] of plain numbers in the run's [`Layout`] (per parameter value, σ,
-//! target, tolerance; per gradient element value and σ; per gate voltage and
-//! step) — 4·P + 2·P·G + 2·G + 2 `f64`s (P parameters, G gates; 42 numbers,
-//! about 400 B with the row's header for the paper's 2 parameters and 4
-//! gates), and its events (usually none). Raw scans (tens of kB per
+//! [`Row`] (iteration, lab time, tuned) and one number in each of the
+//! history's columns, laid out by the run's [`Layout`] (per parameter value,
+//! σ, target, tolerance; per gradient element value and σ; per gate voltage
+//! and step) — 4·P + 2·P·G + 2·G `f64`s (P parameters, G gates: 32 numbers,
+//! 256 B, plus the 24 B row, for the paper's 2 parameters and 4 gates), and
+//! its events (usually none). Columns are contiguous, so a chart reading one
+//! series of 100,000 iterations streams through 800 kB of memory. Raw scans (tens of kB per
 //! iteration) are kept for two iterations only: the latest live one and the
 //! one being inspected. At most [`MAX_ROWS`] rows are held (the oldest are
-//! dropped beyond it): ≈ 40 MB for 100,000 iterations.
+//! dropped beyond it): ≈ 28 MB for 100,000 iterations.
 
 use std::collections::BTreeMap;
 
@@ -32,7 +34,7 @@ pub struct Layout {
     pub gates: Vec<String>,
 }
 
-/// Offsets of the parts of a row's `data`.
+/// Column indices of the numbers of an iteration.
 impl Layout {
     fn from_record(r: &IterationRecord) -> Self {
         Self {
@@ -57,17 +59,17 @@ impl Layout {
             + 2 * self.gates.len()
     }
 
-    /// Index of parameter `p`'s (value, σ, target, tolerance) in `data`.
+    /// Column of parameter `p`'s value; σ, target and tolerance follow.
     pub fn param(&self, p: usize) -> usize {
         4 * p
     }
 
-    /// Index of gradient `g`'s element for gate `gate`: (value, σ).
+    /// Column of gradient `g`'s element for gate `gate`; its σ follows.
     pub fn grad(&self, g: usize, gate: usize) -> usize {
         4 * self.parameters.len() + 2 * (g * self.gates.len() + gate)
     }
 
-    /// Index of gate `gate`'s (voltage mV, step mV).
+    /// Column of gate `gate`'s voltage (mV); its step (mV) follows.
     pub fn gate(&self, gate: usize) -> usize {
         4 * self.parameters.len() + 2 * self.gradients.len() * self.gates.len() + 2 * gate
     }
@@ -78,7 +80,7 @@ impl Layout {
     }
 
     /// The numbers of a record in this layout (NaN where absent).
-    fn row(&self, r: &IterationRecord) -> Row {
+    fn row(&self, r: &IterationRecord) -> (Row, Vec<f64>) {
         let mut data = vec![f64::NAN; self.width()];
         for (i, (name, _)) in self.parameters.iter().enumerate() {
             if let Some(p) = r.parameters.iter().find(|p| &p.name == name) {
@@ -117,17 +119,19 @@ impl Layout {
                 .and_then(|c| r.step_mv.get(c).copied())
                 .unwrap_or(f64::NAN);
         }
-        Row {
-            iteration: r.iteration,
-            lab_seconds: r.lab_seconds,
-            tuned: r.tuned,
-            data: data.into_boxed_slice(),
-        }
+        (
+            Row {
+                iteration: r.iteration,
+                lab_seconds: r.lab_seconds,
+                tuned: r.tuned,
+            },
+            data,
+        )
     }
 }
 
-/// One iteration, as numbers in the history's [`Layout`].
-#[derive(Debug, Clone, PartialEq)]
+/// One iteration (its numbers are in the history's columns, same index).
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Row {
     /// Iteration number.
     pub iteration: u64,
@@ -135,8 +139,6 @@ pub struct Row {
     pub lab_seconds: f64,
     /// All targeted parameters in band.
     pub tuned: bool,
-    /// The numbers (see [`Layout`]); NaN where the record had none.
-    pub data: Box<[f64]>,
 }
 
 /// How a page or a live record changed the history.
@@ -153,6 +155,9 @@ pub struct Merge {
 pub struct RunHistory {
     layout: Layout,
     rows: Vec<Row>,
+    /// `columns[c][i]`: number `c` of the [`Layout`] for `rows[i]` (NaN where
+    /// the record had none).
+    columns: Vec<Vec<f64>>,
     events: BTreeMap<u64, Vec<TunerEvent>>,
     /// The newest record received (summary or full), for the headline numbers.
     latest: Option<IterationRecord>,
@@ -221,6 +226,17 @@ impl RunHistory {
             self.total = total;
             self.version += 1;
         }
+    }
+
+    /// Column `c` of the [`Layout`], one number per row.
+    pub fn column(&self, c: usize) -> &[f64] {
+        self.columns.get(c).map_or(&[], Vec::as_slice)
+    }
+
+    /// All numbers of iteration `k` (indexed by the [`Layout`]).
+    pub fn values(&self, k: u64) -> Option<Vec<f64>> {
+        let i = self.rows.binary_search_by_key(&k, |r| r.iteration).ok()?;
+        Some(self.columns.iter().map(|c| c[i]).collect())
     }
 
     /// The row of iteration `k`.
@@ -307,11 +323,12 @@ impl RunHistory {
     /// iterations are ignored; a record carrying scans that is the newest
     /// becomes the latest scans. Returns what changed.
     pub fn insert(&mut self, records: impl IntoIterator<Item = IterationRecord>) -> Merge {
-        let mut new_rows: Vec<Row> = Vec::new();
+        let mut new_rows: Vec<(Row, Vec<f64>)> = Vec::new();
         let mut merge = Merge::default();
         for mut r in records {
             if self.layout.gates.is_empty() && self.layout.parameters.is_empty() {
                 self.layout = Layout::from_record(&r);
+                self.columns = vec![Vec::new(); self.layout.width()];
             }
             if self.row(r.iteration).is_some() {
                 merge.duplicates += 1;
@@ -337,40 +354,60 @@ impl RunHistory {
         if new_rows.is_empty() {
             return merge;
         }
-        new_rows.sort_by_key(|r| r.iteration);
-        new_rows.dedup_by_key(|r| r.iteration);
+        new_rows.sort_by_key(|r| r.0.iteration);
+        new_rows.dedup_by_key(|r| r.0.iteration);
         merge.added = new_rows.len();
         let appending = self
             .rows
             .last()
-            .is_none_or(|l| l.iteration < new_rows[0].iteration);
+            .is_none_or(|l| l.iteration < new_rows[0].0.iteration);
         if appending {
-            self.rows.extend(new_rows);
-        } else {
-            // Merge two sorted lists in O(n + m).
-            let old = std::mem::take(&mut self.rows);
-            let mut out = Vec::with_capacity(old.len() + new_rows.len());
-            let (mut a, mut b) = (old.into_iter().peekable(), new_rows.into_iter().peekable());
-            loop {
-                match (a.peek(), b.peek()) {
-                    (Some(x), Some(y)) => {
-                        if x.iteration <= y.iteration {
-                            out.push(a.next().unwrap());
-                        } else {
-                            out.push(b.next().unwrap());
-                        }
-                    }
-                    (Some(_), None) => out.push(a.next().unwrap()),
-                    (None, Some(_)) => out.push(b.next().unwrap()),
-                    (None, None) => break,
+            for (row, values) in new_rows {
+                self.rows.push(row);
+                for (c, v) in self.columns.iter_mut().zip(values) {
+                    c.push(v);
                 }
             }
-            self.rows = out;
+        } else {
+            // Merge two sorted lists in O(n + m): the order once, then every column.
+            let (n, m) = (self.rows.len(), new_rows.len());
+            let mut order: Vec<(bool, usize)> = Vec::with_capacity(n + m);
+            let (mut i, mut j) = (0, 0);
+            while i < n || j < m {
+                let take_old =
+                    j == m || (i < n && self.rows[i].iteration <= new_rows[j].0.iteration);
+                if take_old {
+                    order.push((false, i));
+                    i += 1;
+                } else {
+                    order.push((true, j));
+                    j += 1;
+                }
+            }
+            let pick_row = |&(new, k): &(bool, usize)| {
+                if new {
+                    new_rows[k].0
+                } else {
+                    self.rows[k]
+                }
+            };
+            let rows: Vec<Row> = order.iter().map(pick_row).collect();
+            for (ci, col) in self.columns.iter_mut().enumerate() {
+                let merged: Vec<f64> = order
+                    .iter()
+                    .map(|&(new, k)| if new { new_rows[k].1[ci] } else { col[k] })
+                    .collect();
+                *col = merged;
+            }
+            self.rows = rows;
         }
         if self.rows.len() > MAX_ROWS {
             let drop = self.rows.len() - MAX_ROWS;
             let cut = self.rows[drop].iteration;
             self.rows.drain(..drop);
+            for c in &mut self.columns {
+                c.drain(..drop);
+            }
             self.events = self.events.split_off(&cut);
             self.floor = self.floor.max(cut);
         }
@@ -478,6 +515,13 @@ mod tests {
         assert_eq!(h.next_page(2000), None);
         assert_eq!(its(&h), (0..101).collect::<Vec<_>>());
         assert_eq!(h.latest().unwrap().iteration, 100);
+        // Every column was merged in the same order as the rows.
+        let src = fake_records(101);
+        let (p, g) = (h.layout().param(1), h.layout().gate(2));
+        for (i, r) in src.iter().enumerate() {
+            assert_eq!(h.column(p)[i], r.parameters[1].value.unwrap(), "w at {i}");
+            assert_eq!(h.column(g)[i], r.voltages_mv["SB"], "V_SB at {i}");
+        }
     }
 
     #[cfg_attr(not(target_arch = "wasm32"), test)]
@@ -504,18 +548,19 @@ mod tests {
         let l = h.layout().clone();
         assert_eq!(l.parameters[0], ("t_sr".to_string(), "ns".to_string()));
         assert_eq!(l.gates, vec!["N", "SA", "SB", "T"]);
-        let r = h.row(5).unwrap();
+        let r = h.values(5).unwrap();
         let src = &fake_records(6)[5];
-        assert_eq!(r.data[l.param(0)], src.parameters[0].value.unwrap());
-        assert_eq!(r.data[l.param(1) + 2], 270.0); // w target
-        assert_eq!(r.data[l.grad(1, 2)], src.gradients[1].gradient[2]);
+        assert_eq!(h.column(l.param(0)).len(), 8);
+        assert_eq!(r[l.param(0)], src.parameters[0].value.unwrap());
+        assert_eq!(r[l.param(1) + 2], 270.0); // w target
+        assert_eq!(r[l.grad(1, 2)], src.gradients[1].gradient[2]);
         assert!(
-            (r.data[l.grad(0, 0) + 1] - 0.075 * (1.0 + 3.0 * (-5.0f64 / 6.0).exp()).sqrt()).abs()
+            (r[l.grad(0, 0) + 1] - 0.075 * (1.0 + 3.0 * (-5.0f64 / 6.0).exp()).sqrt()).abs()
                 < 1e-12
         );
-        assert_eq!(r.data[l.gate(3)], src.voltages_mv["T"]);
-        assert_eq!(r.data[l.gate(1) + 1], -1.0); // step on SA
-                                                 // Only the newest record's scans are held; the others were dropped.
+        assert_eq!(r[l.gate(3)], src.voltages_mv["T"]);
+        assert_eq!(r[l.gate(1) + 1], -1.0); // step on SA
+                                            // Only the newest record's scans are held; the others were dropped.
         assert_eq!(h.latest_scans().map(|s| s.0), Some(7));
         assert!(h.scans(5).is_none());
         h.set_inspected_scans(5, src.scans.clone());

@@ -69,9 +69,17 @@ pub struct Frame<'a> {
 }
 
 impl Frame<'_> {
+    fn range(&self) -> std::ops::Range<usize> {
+        self.history.range(self.window.lo, self.window.hi)
+    }
+
     fn rows(&self) -> &[Row] {
-        let r = self.history.range(self.window.lo, self.window.hi);
-        &self.history.rows()[r]
+        &self.history.rows()[self.range()]
+    }
+
+    /// Column `c` of the history over the rows in the window.
+    fn column(&self, c: usize) -> &[f64] {
+        self.history.column(c).get(self.range()).unwrap_or(&[])
     }
 
     /// The x range drawn.
@@ -130,10 +138,9 @@ fn plot_columns<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, y_area: u32) 
 /// value ± σ) and `points` is `None`.
 #[allow(clippy::type_complexity)]
 fn series_of(
-    rows: &[Row],
+    f: &Frame<'_>,
     o: usize,
     sigma: bool,
-    axis: XAxis,
     (x0, x1): (f64, f64),
     cols: usize,
 ) -> (
@@ -141,28 +148,26 @@ fn series_of(
     Vec<(f64, f64, f64)>,
     Option<Vec<(f64, f64, f64)>>,
 ) {
-    let sd = |r: &Row| {
-        let s = if sigma { r.data[o + 1] } else { 0.0 };
-        if s.is_finite() {
-            s
-        } else {
-            0.0
-        }
-    };
+    let rows = f.rows();
+    let vals = f.column(o);
+    let sds = if sigma { f.column(o + 1) } else { &[] };
+    let sd = |i: usize| sds.get(i).copied().filter(|s| s.is_finite()).unwrap_or(0.0);
+    let axis = f.axis;
     if rows.len() <= 2 * cols {
         let pts: Vec<(f64, f64, f64)> = rows
             .iter()
-            .filter(|r| r.data[o].is_finite())
-            .map(|r| (axis.x(r), r.data[o], sd(r)))
+            .zip(vals)
+            .enumerate()
+            .filter(|(_, (_, v))| v.is_finite())
+            .map(|(i, (r, v))| (axis.x(r), *v, sd(i)))
             .collect();
         let line = pts.iter().map(|&(x, v, _)| (x, v)).collect();
         let bands = pts.iter().map(|&(x, v, s)| (x, v - s, v + s)).collect();
         return (line, bands, Some(pts));
     }
     let mut c = Columns::new(x0, x1, cols);
-    for r in rows {
-        let v = r.data[o];
-        let s = sd(r);
+    for (i, (r, &v)) in rows.iter().zip(vals).enumerate() {
+        let s = sd(i);
         c.push(axis.x(r), v, v - s, v + s);
     }
     let (line, bands) = c.finish();
@@ -170,16 +175,19 @@ fn series_of(
 }
 
 /// Segments of constant (target, tolerance) over rows: `(x from, x to, target, half-width)`.
-pub fn target_segments(rows: &[Row], offset: usize, axis: XAxis) -> Vec<(f64, f64, f64, f64)> {
+/// `targets` and `tolerances` are the parameter's columns over `rows`.
+pub fn target_segments(
+    rows: &[Row],
+    targets: &[f64],
+    tolerances: &[f64],
+    axis: XAxis,
+) -> Vec<(f64, f64, f64, f64)> {
     let mut out: Vec<(f64, f64, f64, f64)> = Vec::new();
-    for r in rows {
-        let t = r.data[offset + 2];
+    for ((r, &t), &tol) in rows.iter().zip(targets).zip(tolerances) {
         if !t.is_finite() {
             continue;
         }
-        let tol = Some(r.data[offset + 3])
-            .filter(|x| x.is_finite())
-            .unwrap_or(0.0);
+        let tol = if tol.is_finite() { tol } else { 0.0 };
         let x = axis.x(r);
         match out.last_mut() {
             Some(last) if last.2 == t && last.3 == tol => last.1 = x,
@@ -226,23 +234,24 @@ pub fn draw_parameter<DB: DrawingBackend>(
     let rows = f.rows();
     let (x0, x1) = f.x_range();
     let cols = plot_columns(area, 62);
-    let (line, bands, pts) = series_of(rows, o, true, f.axis, (x0, x1), cols);
+    let (line, bands, pts) = series_of(f, o, true, (x0, x1), cols);
     if line.is_empty() {
         return placeholder(area, &title, "waiting for measurements…").map(|_| Drawn {
             iterations: rows.len(),
             ..Drawn::default()
         });
     }
-    let targets = target_segments(rows, o, f.axis);
+    let targets = target_segments(rows, f.column(o + 2), f.column(o + 3), f.axis);
     let overlay: Vec<(f64, f64)> = f
         .overlay
         .and_then(|h| {
             let q = h.layout().param_index(name)?;
             let oo = h.layout().param(q);
             let r = h.range(f.window.lo, f.window.hi);
-            let xy: Vec<(f64, f64)> = h.rows()[r]
+            let xy: Vec<(f64, f64)> = h.rows()[r.clone()]
                 .iter()
-                .map(|r| (f.axis.x(r), r.data[oo]))
+                .zip(&h.column(oo)[r])
+                .map(|(row, v)| (f.axis.x(row), *v))
                 .collect();
             Some(min_max(&xy, x0, x1, cols))
         })
@@ -349,7 +358,7 @@ pub fn draw_gradient<DB: DrawingBackend>(
     for (gi, (gate, panel)) in layout.gates.iter().zip(panels.iter()).enumerate() {
         let o = layout.grad(g, gi);
         let cols = plot_columns(panel, 58);
-        let (line, bands, pts) = series_of(rows, o, true, f.axis, (x0, x1), cols);
+        let (line, bands, pts) = series_of(f, o, true, (x0, x1), cols);
         let (y0, y1) = value_range(&line, &bands, std::iter::empty());
         let mut chart = styled_chart(
             panel,
@@ -413,7 +422,7 @@ pub fn draw_gates<DB: DrawingBackend>(
     for (gi, (gate, panel)) in layout.gates.iter().zip(panels.iter()).enumerate() {
         let o = layout.gate(gi);
         let cols = plot_columns(panel, 58);
-        let (line, _, _) = series_of(rows, o, false, f.axis, (x0, x1), cols);
+        let (line, _, _) = series_of(f, o, false, (x0, x1), cols);
         let (y0, y1) = padded_range(line.iter().map(|p| p.1), 0.1);
         let mut chart = styled_chart(
             panel,
@@ -518,9 +527,10 @@ mod tests {
         let mut h = RunHistory::new();
         h.insert(recs);
         let o = h.layout().param(0);
-        let segs = target_segments(h.rows(), o, XAxis::Iteration);
+        let (t, tol) = (h.column(o + 2), h.column(o + 3));
+        let segs = target_segments(h.rows(), t, tol, XAxis::Iteration);
         assert_eq!(segs, vec![(0.0, 2.0, 20.0, 2.0), (3.0, 4.0, 70.0, 2.0)]);
-        let segs = target_segments(h.rows(), o, XAxis::LabTime);
+        let segs = target_segments(h.rows(), t, tol, XAxis::LabTime);
         assert_eq!(segs[1].0, (60.0 * 3.0 + 30.0) / 3600.0);
     }
 }

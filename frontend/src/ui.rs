@@ -522,7 +522,7 @@ pub fn Dashboard(
 
 /// Values of iteration `k` with units, for the hover read-out.
 pub fn readout_text(h: &RunHistory, k: u64) -> String {
-    let Some(r) = h.row(k) else {
+    let (Some(r), Some(d)) = (h.row(k), h.values(k)) else {
         return format!("iteration {k}: not loaded");
     };
     let l = h.layout();
@@ -532,7 +532,7 @@ pub fn readout_text(h: &RunHistory, k: u64) -> String {
     ];
     for (i, (name, unit)) in l.parameters.iter().enumerate() {
         let o = l.param(i);
-        let (v, s) = (r.data[o], r.data[o + 1]);
+        let (v, s) = (d[o], d[o + 1]);
         if v.is_finite() {
             parts.push(format!("{name} {} ± {} {unit}", fmt_num(v), fmt_num(s)));
         } else {
@@ -540,7 +540,7 @@ pub fn readout_text(h: &RunHistory, k: u64) -> String {
         }
     }
     for (i, gate) in l.gates.iter().enumerate() {
-        parts.push(format!("V_{gate} {} mV", fmt_num(r.data[l.gate(i)])));
+        parts.push(format!("V_{gate} {} mV", fmt_num(d[l.gate(i)])));
     }
     parts.join(" · ")
 }
@@ -576,7 +576,7 @@ fn Inspector(history: RwSignal<RunHistory>, inspected: RwSignal<Option<u64>>) ->
     let details = move || {
         let k = k();
         history.with(|h| {
-            let Some(r) = h.row(k) else {
+            let (Some(r), Some(d)) = (h.row(k), h.values(k)) else {
                 return view! { <p class="hint">{format!("iteration {k} is not loaded yet")}</p> }.into_any();
             };
             let l = h.layout();
@@ -586,7 +586,6 @@ fn Inspector(history: RwSignal<RunHistory>, inspected: RwSignal<Option<u64>>) ->
                 .enumerate()
                 .map(|(i, (name, unit))| {
                     let o = l.param(i);
-                    let d = &r.data;
                     format!(
                         "{name}: {} ± {} {unit} (target {} ± {} {unit})",
                         fmt_num(d[o]),
@@ -600,7 +599,7 @@ fn Inspector(history: RwSignal<RunHistory>, inspected: RwSignal<Option<u64>>) ->
                 .gates
                 .iter()
                 .enumerate()
-                .map(|(i, g)| format!("ΔV_{g} {} mV", fmt_num(r.data[l.gate(i) + 1])))
+                .map(|(i, g)| format!("ΔV_{g} {} mV", fmt_num(d[l.gate(i) + 1])))
                 .collect::<Vec<_>>()
                 .join(", ");
             let events = h.events(k).to_vec();

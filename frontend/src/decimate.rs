@@ -25,6 +25,9 @@ fn column(x: f64, x0: f64, x1: f64, columns: usize) -> Option<usize> {
     Some((((x - x0) / span * columns as f64) as usize).min(columns - 1))
 }
 
+/// A band column: (x, lower, upper).
+pub type Band = (f64, f64, f64);
+
 /// Streaming decimation in one pass, without intermediate vectors: push
 /// points (sorted by x) with an optional band `[lo, hi]`; per pixel column it
 /// keeps the M4 points of the values (first, min, max, last) and the band's
@@ -124,7 +127,7 @@ impl Columns {
 
     /// The decimated line (at most 4 points per column, in x order) and the
     /// band envelope (one per column with a finite band).
-    pub fn finish(mut self) -> (Vec<(f64, f64)>, Vec<(f64, f64, f64)>) {
+    pub fn finish(mut self) -> (Vec<(f64, f64)>, Vec<Band>) {
         self.flush();
         (self.line, self.bands)
     }

@@ -77,6 +77,21 @@ async fn dashboard_live_control_reconnect_and_in_browser_mode() {
         .await
         .unwrap();
     eprintln!("budget: first chart with data drawn {first_chart_ms} ms after navigation start (live mode)");
+    let metrics = c
+        .execute("return window.__spintune_metrics ?? null", vec![])
+        .await
+        .unwrap();
+    eprintln!(
+        "budget: live updates (demo run, {} iterations): latest {} ms, largest {} ms of chart drawing per update; wasm memory {} B",
+        iterations_drawn(&c).await,
+        metrics["updateMs"],
+        metrics["maxUpdateMs"],
+        metrics["wasmMemoryBytes"]
+    );
+    assert!(
+        metrics["updates"].as_f64().is_some_and(|n| n >= 2.0),
+        "no live updates measured: {metrics}"
+    );
     screenshot(&c, "live").await;
 
     // --- Control is refused without (or with a wrong) token -------------------

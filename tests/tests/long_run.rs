@@ -216,15 +216,36 @@ async fn long_run_pages_decimates_zooms_inspects_and_races() {
     screenshot(&c, "long-whole-run").await;
 
     // --- Main-thread time of a full redraw (what a live update costs) -------------
-    let redraw_ms = update_ms_after(&c, async || {
-        select(&c, "[data-testid=window-last]", "10000").await;
-    })
-    .await;
-    let redraw_all_ms = update_ms_after(&c, async || {
-        click(&c, "[data-testid=zoom-reset]").await;
-    })
-    .await;
-    eprintln!("budget: long run: redraw of every chart {redraw_all_ms:.1} ms with all {N} iterations in view, {redraw_ms:.1} ms with the last 10,000");
+    // Three times each, alternating the window; the median is reported.
+    let mut all_ms = Vec::new();
+    let mut last_ms = Vec::new();
+    for _ in 0..3 {
+        last_ms.push(
+            update_ms_after(&c, async || {
+                select(&c, "[data-testid=window-last]", "10000").await;
+            })
+            .await,
+        );
+        all_ms.push(
+            update_ms_after(&c, async || {
+                click(&c, "[data-testid=zoom-reset]").await;
+            })
+            .await,
+        );
+    }
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(|a, b| a.total_cmp(b));
+        v[v.len() / 2]
+    };
+    eprintln!(
+        "budget: long run: redraw of every chart, median of 3: {:.1} ms with all {N} iterations in view ({all_ms:.1?}), {:.1} ms with the last 10,000 ({last_ms:.1?})",
+        median(&mut all_ms.clone()),
+        median(&mut last_ms.clone())
+    );
+    assert!(
+        all_ms.iter().all(|ms| ms.is_finite() && *ms > 0.0),
+        "{all_ms:?}"
+    );
     assert_eq!(in_view(&c).await, N);
 
     // --- Zoom: buttons, keys, last N, drag, double-click ---------------------------

@@ -51,15 +51,23 @@ where
         let t0 = metrics::now_ms();
         let ratio = window().device_pixel_ratio().clamp(1.0, 2.0);
         let css_w = canvas.client_width().max(280) as f64;
-        canvas.set_width((css_w * ratio) as u32);
-        canvas.set_height((height as f64 * ratio) as u32);
+        // Resize only when the size changed: writing the size resets the
+        // canvas and invalidates the page's layout, which the next chart's
+        // `client_width` would then recompute (once per chart per update).
+        let (w, h) = ((css_w * ratio) as u32, (height as f64 * ratio) as u32);
+        if canvas.width() != w {
+            canvas.set_width(w);
+        }
+        if canvas.height() != h {
+            canvas.set_height(h);
+        }
         let Some(backend) = CanvasBackend::with_canvas_object(canvas.clone()) else {
             return;
         };
         if let Ok(Some(ctx)) = canvas.get_context("2d") {
             use wasm_bindgen::JsCast;
             if let Ok(ctx) = ctx.dyn_into::<web_sys::CanvasRenderingContext2d>() {
-                let _ = ctx.scale(ratio, ratio);
+                let _ = ctx.set_transform(ratio, 0.0, 0.0, ratio, 0.0, 0.0);
             }
         }
         let root = backend.into_drawing_area();

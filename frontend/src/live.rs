@@ -144,6 +144,9 @@ enum Pending {
     Control,
     History,
     Scans(u64),
+    /// `subscribe` has no answer when accepted; an `error` while it is first
+    /// in the queue is its refusal (a server without it sends full records).
+    Subscribe,
 }
 
 struct Session {
@@ -172,8 +175,6 @@ struct Session {
     last_page: Option<((u64, u32), usize)>,
     /// Iterations the server holds, from the run list (for the first `from`).
     total_hint: u64,
-    /// Live frames with scans were asked for on this socket.
-    subscribed: bool,
 }
 
 type SessionRef = Rc<RefCell<Session>>;
@@ -189,7 +190,6 @@ fn drop_socket(s: &mut Session) {
     s.handlers = None;
     s.pending.clear();
     s.page_in_flight = None;
-    s.subscribed = false;
 }
 
 fn connect(sess: &SessionRef) {
@@ -349,6 +349,10 @@ fn handle_message(sess: &SessionRef, text: &str) -> After {
             let mut s = sess.borrow_mut();
             s.attempt = 0;
             s.hello_seen = true;
+            // Live frames with scans: the latest iteration's scans are drawn.
+            if send_on(&s, &ClientMessage::Subscribe { scans: true }) {
+                s.pending.push_back(Pending::Subscribe);
+            }
         }
         ServerMessage::History {
             records,
@@ -374,14 +378,8 @@ fn handle_message(sess: &SessionRef, text: &str) -> After {
                     None => h.insert(records).added,
                 };
             });
-            let mut s = sess.borrow_mut();
             if let Some(req) = answer {
-                s.last_page = Some((req, added));
-                if !s.subscribed {
-                    // The server pages: it also sends scans with live frames on request.
-                    s.subscribed = true;
-                    send_on(&s, &ClientMessage::Subscribe { scans: true });
-                }
+                sess.borrow_mut().last_page = Some((req, added));
             }
         }
         ServerMessage::Iteration { record } => {
@@ -411,7 +409,8 @@ fn handle_message(sess: &SessionRef, text: &str) -> After {
                     .iter()
                     .position(|p| *p == Pending::Scans(iteration))
                 {
-                    s.pending.remove(i);
+                    // Answers come in order: what was asked before was answered.
+                    s.pending.drain(..=i);
                 }
             }
             sig.history
@@ -456,6 +455,8 @@ fn handle_message(sess: &SessionRef, text: &str) -> After {
                     sig.paging.set(PagingMode::Http);
                     fetch_scans_http(sess, k);
                 }
+                // Refused subscription: this server sends full records anyway.
+                Some(Pending::Subscribe) => {}
                 Some(Pending::Control) | None => {
                     sig.notice.set(Some(format!("server: {message}")));
                 }
@@ -770,7 +771,6 @@ pub fn RunView(
         page_in_flight: None,
         last_page: None,
         total_hint: total_hint.unwrap_or(0),
-        subscribed: false,
     }));
     match total_hint {
         Some(_) => connect(&sess),
@@ -1062,7 +1062,6 @@ mod tests {
             page_in_flight: None,
             last_page: None,
             total_hint: 0,
-            subscribed: false,
         }))
     }
 
@@ -1105,5 +1104,99 @@ mod tests {
             .notice
             .get_untracked()
             .is_some_and(|n| n.contains("protocol v1")));
+    }
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn pages_scans_live_gaps_and_an_old_server_refusing() {
+        use crate::model::fake_records;
+        let sess = test_session();
+        let recs = fake_records(106);
+        let frame = |m: ServerMessage| serde_json::to_string(&m).unwrap();
+        let hello = format!(
+            r#"{{"type":"hello","version":{PROTOCOL_VERSION},"run":{{"id":1,"name":"demo","status":{{"state":"running"}},"iterations":100,"lab_seconds":0.0,"tuned":false}}}}"#
+        );
+        assert_eq!(handle_message(&sess, &hello), After::Continue);
+        let sig = sess.borrow().sig;
+        assert_eq!(sig.history.with_untracked(|h| h.total()), 100);
+        // The newest page, unasked after hello.
+        let page = |a: usize, b: usize, more: bool| {
+            frame(ServerMessage::History {
+                records: recs[a..b].iter().map(|r| r.summary()).collect(),
+                more_before: more,
+            })
+        };
+        handle_message(&sess, &page(80, 100, true));
+        assert_eq!(
+            sig.history
+                .with_untracked(|h| h.next_page(MAX_HISTORY_PAGE)),
+            Some((80, 80))
+        );
+        // The answer to our request (as `request_more` queues it on an open
+        // socket): the server holds nothing older than 30.
+        {
+            let mut s = sess.borrow_mut();
+            s.pending.push_back(Pending::History);
+            s.page_in_flight = Some((80, 80));
+        }
+        handle_message(&sess, &page(30, 80, false));
+        assert_eq!(
+            sig.history.with_untracked(|h| (h.len(), h.gaps())),
+            (70, vec![])
+        );
+        assert!(sess.borrow().pending.is_empty() && sess.borrow().page_in_flight.is_none());
+        // Scans on request go to the inspected iteration.
+        sess.borrow_mut().pending.push_back(Pending::Scans(42));
+        handle_message(
+            &sess,
+            &frame(ServerMessage::Scans {
+                iteration: 42,
+                scans: recs[42].scans.clone(),
+            }),
+        );
+        assert_eq!(
+            sig.history.with_untracked(|h| h.scans(42).map(|s| s.len())),
+            Some(1)
+        );
+        assert!(sess.borrow().pending.is_empty());
+        // A live frame after a gap (e.g. after `lagged`): kept, the gap is asked for next.
+        handle_message(
+            &sess,
+            &frame(ServerMessage::Iteration {
+                record: recs[105].clone(),
+            }),
+        );
+        assert_eq!(
+            sig.history
+                .with_untracked(|h| h.next_page(MAX_HISTORY_PAGE)),
+            Some((105, 5))
+        );
+        assert_eq!(
+            sig.summary
+                .with_untracked(|s| s.as_ref().map(|s| s.iterations)),
+            Some(106)
+        );
+        // A server without socket paging refuses `subscribe` and `history`:
+        // the first error is the subscription's (ignored), the second moves
+        // paging to HTTP with a notice; the socket stays.
+        {
+            let mut s = sess.borrow_mut();
+            s.pending.push_back(Pending::Subscribe);
+            s.pending.push_back(Pending::History);
+            s.page_in_flight = Some((105, 5));
+        }
+        let refusal = frame(ServerMessage::Error {
+            message: "not implemented yet".into(),
+        });
+        assert_eq!(handle_message(&sess, &refusal), After::Continue);
+        assert_eq!(sig.paging.get_untracked(), PagingMode::Socket);
+        assert_eq!(sig.notice.get_untracked(), None);
+        assert_eq!(handle_message(&sess, &refusal), After::Continue);
+        assert_eq!(sig.paging.get_untracked(), PagingMode::Http);
+        assert!(sess.borrow().page_in_flight.is_none());
+        assert!(sig
+            .notice
+            .get_untracked()
+            .is_some_and(|n| n.contains("over HTTP") && n.contains("not implemented yet")));
     }
 }

@@ -121,6 +121,8 @@ pub struct Drawn {
     pub points: usize,
     /// Largest value of the main series drawn (NaN if none).
     pub y_max: f64,
+    /// Points of the compared run drawn (parameter charts).
+    pub overlay_points: usize,
     /// Pixel columns `[left, right]` of the plot area (CSS px), if it has one.
     pub plot_px: Option<(f64, f64)>,
     /// Data x range of the plot area.
@@ -330,6 +332,7 @@ pub fn draw_parameter<DB: DrawingBackend>(
         iterations: rows.len(),
         points: line.len(),
         y_max: line.iter().map(|p| p.1).fold(f64::NAN, f64::max),
+        overlay_points: overlay.len(),
         plot_px: Some((px.start as f64, px.end as f64)),
         x_range: (x0, x1),
     })
@@ -500,6 +503,7 @@ pub fn draw_lab_time<DB: DrawingBackend>(
         iterations: rows.len(),
         points: line.len(),
         y_max: line.iter().map(|p| p.1).fold(f64::NAN, f64::max),
+        overlay_points: 0,
         plot_px: Some((px.start as f64, px.end as f64)),
         x_range: (x0, x1),
     })

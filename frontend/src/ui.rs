@@ -25,7 +25,8 @@ pub type Area = DrawingArea<CanvasBackend, Shift>;
 /// The canvas takes the width of its container and the given height.
 /// After each draw it carries `data-iterations` (iterations in view),
 /// `data-points` (points of the main series after decimation), `data-ymax`
-/// (largest value drawn), `data-draws` (number of draws) and, for charts with
+/// (largest value drawn), `data-overlay-points` (points of a compared run),
+/// `data-draws` (number of draws) and, for charts with
 /// one plot area, `data-px0`/`data-px1` (its pixel columns, CSS px) and
 /// `data-x0`/`data-x1` (its data x range), which the mouse handlers and the
 /// end-to-end test read. Each draw's time goes to [`metrics::note_draw`].
@@ -88,6 +89,7 @@ where
         set("data-iterations", drawn.iterations.to_string());
         set("data-points", drawn.points.to_string());
         set("data-ymax", drawn.y_max.to_string());
+        set("data-overlay-points", drawn.overlay_points.to_string());
         set("data-draws", draws.get_value().to_string());
         if let Some((a, b)) = drawn.plot_px {
             set("data-px0", a.to_string());

@@ -50,31 +50,42 @@ fn real_records(n: usize) -> Vec<IterationRecord> {
         .collect()
 }
 
-/// Write the long run into a fresh store at `db`; returns its id.
+/// Iterations of the second (compared) run.
+const N2: u64 = 3_000;
+
+/// Write the long run (and a shorter second run to compare with) into a
+/// fresh store at `db`; returns the long run's id.
 fn write_long_run(db: &Path) -> u64 {
     let started = Instant::now();
     let real = real_records(40);
-    let per_iteration_s = real[39].lab_seconds / 40.0;
     let store = Store::open(db).expect("open store");
+    let id = write_run(&store, &real, "long run (100,000 iterations)", N, true);
+    write_run(&store, &real, "night run (3,000 iterations)", N2, false);
+    eprintln!(
+        "fixture: {N} + {N2} iterations written in {:.1} s",
+        started.elapsed().as_secs_f64()
+    );
+    id
+}
+
+/// One finished run of `n` iterations cycling `real[10..40]`; the newest 20
+/// keep their scans; with `spike`, t_sr at [`SPIKE_AT`] is [`SPIKE_NS`].
+fn write_run(store: &Store, real: &[IterationRecord], name: &str, n: u64, spike: bool) -> u64 {
+    let per_iteration_s = real[39].lab_seconds / 40.0;
     let config = serde_json::to_string(&RunConfig::paper_default()).unwrap();
     let id = store
-        .create_run(
-            "long run (100,000 iterations)",
-            &config,
-            &RunStatus::Finished,
-            "{}",
-        )
+        .create_run(name, &config, &RunStatus::Finished, "{}")
         .expect("create run");
-    for k in 0..N {
+    for k in 0..n {
         let src = &real[10 + (k as usize % 30)];
-        let mut r = if k + 20 >= N {
+        let mut r = if k + 20 >= n {
             src.clone()
         } else {
             src.summary()
         };
         r.iteration = k;
         r.lab_seconds = per_iteration_s * (k + 1) as f64;
-        if k == SPIKE_AT {
+        if spike && k == SPIKE_AT {
             let p = r.parameters.iter_mut().find(|p| p.name == "t_sr").unwrap();
             p.value = Some(SPIKE_NS);
         }
@@ -83,10 +94,6 @@ fn write_long_run(db: &Path) -> u64 {
             .commit_iteration(id, None, k, &json, "{}", r.lab_seconds, r.tuned)
             .expect("commit");
     }
-    eprintln!(
-        "fixture: {N} iterations written in {:.1} s",
-        started.elapsed().as_secs_f64()
-    );
     id
 }
 
@@ -324,6 +331,41 @@ async fn long_run_pages_decimates_zooms_inspects_and_races() {
         (in_view(&c).await == N).then_some(())
     })
     .await;
+
+    // --- Compare with another run; export ------------------------------------------
+    select(&c, "[data-testid=overlay]", "2").await;
+    let overlay = wait("the compared run on the t_sr chart", 30, async || {
+        num_attr(&c, TSR, "data-overlay-points")
+            .await
+            .filter(|n| *n > 0.0)
+    })
+    .await;
+    eprintln!("compared run: {overlay} points on the t_sr chart");
+    screenshot(&c, "long-compare").await;
+    select(&c, "[data-testid=overlay]", "").await;
+    wait("the comparison removed", 10, async || {
+        (num_attr(&c, TSR, "data-overlay-points").await == Some(0.0)).then_some(())
+    })
+    .await;
+    // The links name this run's export; the route is fetched for the short
+    // run (exporting 100,000 iterations from a debug server takes long).
+    for (format, needle) in [("csv", "iteration"), ("json", "[")] {
+        let href = attr(&c, &format!("[data-testid=export-{format}]"), "href")
+            .await
+            .unwrap();
+        assert!(
+            href.ends_with(&format!("/api/runs/{run}/export?format={format}")),
+            "{href}"
+        );
+        let path = format!("/api/runs/2/export?format={format}");
+        let (status, body) = http(port, "GET", &path, None, "");
+        assert_eq!(status, 200, "{path}");
+        assert!(
+            body.contains(needle),
+            "{path}: {}",
+            &body[..body.len().min(200)]
+        );
+    }
 
     // --- Inspect an iteration: its numbers, step and scans ---------------------------
     select(&c, "[data-testid=window-last]", "100").await;

@@ -270,7 +270,10 @@ pub fn draw_parameter<DB: DrawingBackend>(
         area,
         &format!(
             "{title} vs {}",
-            f.axis.desc().split(' ').next().unwrap_or("")
+            match f.axis {
+                XAxis::Iteration => "iteration",
+                XAxis::LabTime => "lab time",
+            }
         ),
         f.axis.desc(),
         &title,

@@ -5,14 +5,14 @@
 use plotters::coord::types::RangedCoordf64;
 use plotters::coord::Shift;
 use plotters::prelude::*;
-use spintune::protocol::{IterationRecord, ScanKind, ScanReport};
+use spintune::protocol::{ScanKind, ScanReport};
 
-use crate::model::{gradient_sigmas, padded_range};
+use crate::model::padded_range;
 
 /// Result of drawing a figure.
 pub type DrawResult = Result<(), String>;
 
-const FONT: &str = "sans-serif";
+pub(crate) const FONT: &str = "sans-serif";
 
 /// Series colours (colour-blind friendly, Okabe–Ito).
 pub const PALETTE: [RGBColor; 8] = [
@@ -26,34 +26,19 @@ pub const PALETTE: [RGBColor; 8] = [
     RGBColor(0, 0, 0),
 ];
 
-const BAND: RGBColor = RGBColor(0, 158, 115);
-const TARGET: RGBColor = RGBColor(0, 110, 80);
+pub(crate) const BAND: RGBColor = RGBColor(0, 158, 115);
+pub(crate) const TARGET: RGBColor = RGBColor(0, 110, 80);
 
-fn err<E: std::fmt::Debug>(e: E) -> String {
+pub(crate) fn err<E: std::fmt::Debug>(e: E) -> String {
     format!("{e:?}")
-}
-
-/// The legend box of a chart, in the dashboard's style.
-fn draw_legend<'a, DB: DrawingBackend + 'a>(
-    chart: &mut ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
-    position: SeriesLabelPosition,
-) -> DrawResult {
-    chart
-        .configure_series_labels()
-        .position(position)
-        .background_style(WHITE.mix(0.85))
-        .border_style(RGBColor(200, 200, 200))
-        .label_font((FONT, 12))
-        .draw()
-        .map_err(err)
 }
 
 /// A linear chart on `area` in the dashboard's style: caption, axis
 /// descriptions with units, light grid, number formatting. `small` is for the
-/// rows of per-gate panels; `integer_x` labels the x axis with whole numbers
-/// (iterations).
+/// rows of per-gate panels; `x_fmt` labels the x axis (e.g. whole
+/// iterations or lab time h:mm).
 #[allow(clippy::too_many_arguments)]
-fn styled_chart<'a, DB: DrawingBackend>(
+pub(crate) fn styled_chart<'a, DB: DrawingBackend>(
     area: &'a DrawingArea<DB, Shift>,
     caption: &str,
     x_desc: &str,
@@ -61,7 +46,7 @@ fn styled_chart<'a, DB: DrawingBackend>(
     x: std::ops::Range<f64>,
     y: std::ops::Range<f64>,
     small: bool,
-    integer_x: bool,
+    x_fmt: &dyn Fn(&f64) -> String,
 ) -> Result<ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>, String> {
     let (caption_px, margin, x_area, y_area, label_px, desc_px) = if small {
         (15, 6, 34, 58, 11, 12)
@@ -75,13 +60,16 @@ fn styled_chart<'a, DB: DrawingBackend>(
         .y_label_area_size(y_area)
         .build_cartesian_2d(x, y)
         .map_err(err)?;
-    let x_fmt: &dyn Fn(&f64) -> String = if integer_x { &int_label } else { &num_label };
     let mut mesh = chart.configure_mesh();
     mesh.x_desc(x_desc)
         .y_desc(y_desc)
         .x_label_formatter(x_fmt)
         .y_label_formatter(&num_label)
         .light_line_style(RGBColor(238, 238, 238))
+        // One light line between labels at most: each line is a canvas
+        // stroke, and ten per interval (plotters' default) made the grid
+        // the largest part of a redraw.
+        .max_light_lines(if small { 0 } else { 1 })
         .label_style((FONT, label_px))
         .axis_desc_style((FONT, desc_px));
     if small {
@@ -96,17 +84,7 @@ pub fn color(i: usize) -> RGBColor {
     PALETTE[i % PALETTE.len()]
 }
 
-fn iteration_range(records: &[IterationRecord]) -> (f64, f64) {
-    match (records.first(), records.last()) {
-        (Some(a), Some(b)) => {
-            let (a, b) = (a.iteration as f64, b.iteration as f64);
-            (a - 0.5, b.max(a + 4.0) + 0.5)
-        }
-        _ => (-0.5, 10.5),
-    }
-}
-
-fn placeholder<DB: DrawingBackend>(
+pub(crate) fn placeholder<DB: DrawingBackend>(
     area: &DrawingArea<DB, Shift>,
     title: &str,
     text: &str,
@@ -175,7 +153,7 @@ pub fn num_label(x: &f64) -> String {
     }
 }
 
-fn bar_width(n: usize) -> u32 {
+pub(crate) fn bar_width(n: usize) -> u32 {
     match n {
         0..=20 => 5,
         21..=40 => 3,
@@ -183,230 +161,12 @@ fn bar_width(n: usize) -> u32 {
     }
 }
 
-fn int_label(x: &f64) -> String {
+pub(crate) fn int_label(x: &f64) -> String {
     if (x - x.round()).abs() < 1e-9 {
         format!("{x:.0}")
     } else {
         String::new()
     }
-}
-
-/// Segments of constant (target, tolerance): `(first iteration, last iteration, target, half-width)`.
-pub fn target_segments(records: &[IterationRecord], parameter: &str) -> Vec<(f64, f64, f64, f64)> {
-    let mut out: Vec<(f64, f64, f64, f64)> = Vec::new();
-    for r in records {
-        let Some(p) = r.parameters.iter().find(|p| p.name == parameter) else {
-            continue;
-        };
-        let Some(t) = p.target.filter(|t| t.is_finite()) else {
-            continue;
-        };
-        let tol = p.tolerance.filter(|x| x.is_finite()).unwrap_or(0.0);
-        let k = r.iteration as f64;
-        match out.last_mut() {
-            Some(last) if last.2 == t && last.3 == tol && k - last.1 <= 1.0 => last.1 = k,
-            _ => out.push((k, k, t, tol)),
-        }
-    }
-    out
-}
-
-/// One parameter against iteration: measured values with ±1σ error bars,
-/// the target line and its tolerance band.
-pub fn draw_parameter<DB: DrawingBackend>(
-    area: &DrawingArea<DB, Shift>,
-    records: &[IterationRecord],
-    parameter: &str,
-    series: usize,
-) -> DrawResult {
-    let unit = records
-        .iter()
-        .rev()
-        .find_map(|r| {
-            r.parameters
-                .iter()
-                .find(|p| p.name == parameter)
-                .map(|p| p.unit.clone())
-        })
-        .unwrap_or_default();
-    let title = format!("{parameter} ({unit}) vs iteration");
-    let points: Vec<(f64, f64, f64)> = records
-        .iter()
-        .filter_map(|r| {
-            let p = r.parameters.iter().find(|p| p.name == parameter)?;
-            let v = p.value.filter(|v| v.is_finite())?;
-            let s = p.std.filter(|s| s.is_finite()).unwrap_or(0.0);
-            Some((r.iteration as f64, v, s))
-        })
-        .collect();
-    if points.is_empty() {
-        return placeholder(area, &title, "waiting for measurements…");
-    }
-    let bands = target_segments(records, parameter);
-    let (x0, x1) = iteration_range(records);
-    let (y0, y1) = robust_range(
-        &points,
-        bands.iter().flat_map(|&(_, _, t, tol)| [t - tol, t + tol]),
-    );
-    let mut chart = styled_chart(
-        area,
-        &title,
-        "iteration",
-        &format!("{parameter} ({unit})"),
-        x0..x1,
-        y0..y1,
-        false,
-        true,
-    )?;
-    if !bands.is_empty() {
-        chart
-            .draw_series(bands.iter().map(|&(a, b, t, tol)| {
-                Rectangle::new(
-                    [(a - 0.5, t - tol), (b + 0.5, t + tol)],
-                    BAND.mix(0.16).filled(),
-                )
-            }))
-            .map_err(err)?
-            .label("tolerance band")
-            .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 16, y + 5)], BAND.mix(0.3).filled()));
-        chart
-            .draw_series(bands.iter().map(|&(a, b, t, _)| {
-                PathElement::new(vec![(a - 0.5, t), (b + 0.5, t)], TARGET.stroke_width(2))
-            }))
-            .map_err(err)?
-            .label("target")
-            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], TARGET.stroke_width(2)));
-    }
-    let c = color(series);
-    chart
-        .draw_series(LineSeries::new(
-            points.iter().map(|&(k, v, _)| (k, v)),
-            c.mix(0.5).stroke_width(1),
-        ))
-        .map_err(err)?;
-    chart
-        .draw_series(points.iter().map(|&(k, v, s)| {
-            ErrorBar::new_vertical(k, v - s, v, v + s, c.filled(), bar_width(points.len()))
-        }))
-        .map_err(err)?
-        .label("measured ±1σ")
-        .legend(move |(x, y)| Circle::new((x + 8, y), 3, c.filled()));
-    draw_legend(&mut chart, SeriesLabelPosition::UpperRight)?;
-    Ok(())
-}
-
-/// Every element of one parameter's gradient against iteration, with ±1σ
-/// error bars `√diag C` (one panel per gate, like the paper's Fig. 3b).
-pub fn draw_gradient<DB: DrawingBackend>(
-    area: &DrawingArea<DB, Shift>,
-    records: &[IterationRecord],
-    parameter: &str,
-) -> DrawResult {
-    let Some(last) = records
-        .iter()
-        .rev()
-        .find(|r| r.gradients.iter().any(|g| g.parameter == parameter))
-    else {
-        return placeholder(
-            area,
-            &format!("gradient of {parameter}"),
-            "waiting for a gradient estimate…",
-        );
-    };
-    let gates = last.gates.clone();
-    let unit = last
-        .gradients
-        .iter()
-        .find(|g| g.parameter == parameter)
-        .map(|g| g.unit.clone())
-        .unwrap_or_default();
-    let panels = area.split_evenly((1, gates.len().max(1)));
-    let (x0, x1) = iteration_range(records);
-    for (gi, (gate, panel)) in gates.iter().zip(panels.iter()).enumerate() {
-        let pts: Vec<(f64, f64, f64)> = records
-            .iter()
-            .filter_map(|r| {
-                let g = r.gradients.iter().find(|g| g.parameter == parameter)?;
-                let col = r.gates.iter().position(|x| x == gate)?;
-                let v = *g.gradient.get(col)?;
-                let s = gradient_sigmas(g)
-                    .and_then(|s| s.get(col).copied())
-                    .filter(|s| s.is_finite())
-                    .unwrap_or(0.0);
-                v.is_finite().then_some((r.iteration as f64, v, s))
-            })
-            .collect();
-        let (y0, y1) = robust_range(&pts, std::iter::empty());
-        let mut chart = styled_chart(
-            panel,
-            &format!("∂{parameter}/∂V_{gate}"),
-            "iteration",
-            unit.as_str(),
-            x0..x1,
-            y0..y1,
-            true,
-            true,
-        )?;
-        let c = color(gi);
-        chart
-            .draw_series(LineSeries::new(
-                pts.iter().map(|&(k, v, _)| (k, v)),
-                c.mix(0.5),
-            ))
-            .map_err(err)?;
-        chart
-            .draw_series(pts.iter().map(|&(k, v, s)| {
-                ErrorBar::new_vertical(
-                    k,
-                    v - s,
-                    v,
-                    v + s,
-                    c.mix(0.55).filled(),
-                    bar_width(pts.len()),
-                )
-            }))
-            .map_err(err)?;
-    }
-    Ok(())
-}
-
-/// The tuning gates' voltages against iteration (one panel per gate).
-pub fn draw_gates<DB: DrawingBackend>(
-    area: &DrawingArea<DB, Shift>,
-    records: &[IterationRecord],
-) -> DrawResult {
-    let Some(last) = records.last() else {
-        return placeholder(area, "gate voltages", "waiting for data…");
-    };
-    let gates = last.gates.clone();
-    let panels = area.split_evenly((1, gates.len().max(1)));
-    let (x0, x1) = iteration_range(records);
-    for (gi, (gate, panel)) in gates.iter().zip(panels.iter()).enumerate() {
-        let pts: Vec<(f64, f64)> = records
-            .iter()
-            .filter_map(|r| r.voltages_mv.get(gate).map(|v| (r.iteration as f64, *v)))
-            .filter(|p| p.1.is_finite())
-            .collect();
-        let (y0, y1) = padded_range(pts.iter().map(|p| p.1), 0.1);
-        let mut chart = styled_chart(
-            panel,
-            &format!("V_{gate}"),
-            "iteration",
-            "voltage (mV)",
-            x0..x1,
-            y0..y1,
-            true,
-            true,
-        )?;
-        let c = color(gi);
-        chart
-            .draw_series(LineSeries::new(pts.iter().copied(), c.stroke_width(2)))
-            .map_err(err)?;
-        chart
-            .draw_series(pts.iter().map(|&p| Circle::new(p, 2, c.filled())))
-            .map_err(err)?;
-    }
-    Ok(())
 }
 
 /// Title of a scan kind.
@@ -443,7 +203,7 @@ pub fn draw_scan<DB: DrawingBackend>(
         x0..x1,
         y0..y1,
         false,
-        false,
+        &num_label,
     )?;
     for (i, t) in scan.raw.traces.iter().enumerate() {
         let c = color(i + 4);
@@ -472,7 +232,6 @@ pub fn draw_scan<DB: DrawingBackend>(
             .label(t.label.clone())
             .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], c.stroke_width(2)));
     }
-    draw_legend(&mut chart, SeriesLabelPosition::UpperRight)?;
     if scan.fit.is_empty() {
         area.draw(&Text::new(
             "fit failed",
@@ -504,10 +263,13 @@ pub fn error_color(e: f64) -> RGBColor {
     lerp(stops[i], stops[i + 1], t - i as f64)
 }
 
-/// Heat map of the ground-truth distance to target over two gates, with the tuner's path.
+/// Heat map of the ground-truth distance to target over two gates, with the
+/// tuner's path (black) and optionally a second run's path (`other`, mV,
+/// orange dashes of dots: the estimator race).
 pub fn draw_landscape<DB: DrawingBackend>(
     area: &DrawingArea<DB, Shift>,
     land: Option<&crate::local::Landscape>,
+    other: &[(f64, f64)],
 ) -> DrawResult {
     let Some(l) = land else {
         return placeholder(
@@ -570,6 +332,22 @@ pub fn draw_landscape<DB: DrawingBackend>(
     chart
         .draw_series(in_view.iter().map(|&p| Circle::new(p, 3, BLACK.filled())))
         .map_err(err)?;
+    let other: Vec<(f64, f64)> = other
+        .iter()
+        .copied()
+        .filter(|&(x, y)| (x0..=x1).contains(&x) && (y0..=y1).contains(&y))
+        .collect();
+    let oc = PALETTE[1];
+    chart
+        .draw_series(LineSeries::new(other.iter().copied(), oc.stroke_width(2)))
+        .map_err(err)?;
+    chart
+        .draw_series(
+            other
+                .iter()
+                .map(|&p| TriangleMarker::new(p, 4, oc.filled())),
+        )
+        .map_err(err)?;
     chart
         .draw_series(std::iter::once(Circle::new(
             l.now,
@@ -607,55 +385,9 @@ pub fn draw_landscape<DB: DrawingBackend>(
     Ok(())
 }
 
-/// Cumulative lab time (minutes) against iteration.
-pub fn draw_lab_time<DB: DrawingBackend>(
-    area: &DrawingArea<DB, Shift>,
-    records: &[IterationRecord],
-) -> DrawResult {
-    if records.is_empty() {
-        return placeholder(area, "lab time", "waiting for data…");
-    }
-    let pts: Vec<(f64, f64)> = records
-        .iter()
-        .map(|r| (r.iteration as f64, r.lab_seconds / 60.0))
-        .filter(|p| p.1.is_finite())
-        .collect();
-    let (x0, x1) = iteration_range(records);
-    let (_, y1) = padded_range(pts.iter().map(|p| p.1).chain([0.0]), 0.05);
-    let mut chart = styled_chart(
-        area,
-        "cumulative lab time",
-        "iteration",
-        "lab time (min)",
-        x0..x1,
-        0.0..y1,
-        false,
-        true,
-    )?;
-    chart
-        .draw_series(LineSeries::new(
-            pts.iter().copied(),
-            color(6).stroke_width(2),
-        ))
-        .map_err(err)?;
-    chart
-        .draw_series(
-            records
-                .iter()
-                .filter(|r| r.tuned)
-                .map(|r| Circle::new((r.iteration as f64, r.lab_seconds / 60.0), 3, BAND.filled())),
-        )
-        .map_err(err)?
-        .label("tuned")
-        .legend(|(x, y)| Circle::new((x + 8, y), 3, BAND.filled()));
-    draw_legend(&mut chart, SeriesLabelPosition::UpperLeft)?;
-    Ok(())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::fake_records;
 
     #[cfg_attr(not(target_arch = "wasm32"), test)]
     #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
@@ -672,15 +404,5 @@ mod tests {
         ];
         let (lo, hi) = robust_range(&pts, std::iter::empty());
         assert!(lo > -10.0 && hi < 30.0, "{lo} {hi}");
-    }
-
-    #[cfg_attr(not(target_arch = "wasm32"), test)]
-    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
-    fn target_segments_merge_constant_runs() {
-        let mut recs = fake_records(5);
-        recs[3].parameters[0].target = Some(70.0);
-        recs[4].parameters[0].target = Some(70.0);
-        let segs = target_segments(&recs, "t_sr");
-        assert_eq!(segs, vec![(0.0, 2.0, 20.0, 2.0), (3.0, 4.0, 70.0, 2.0)]);
     }
 }

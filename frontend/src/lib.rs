@@ -5,10 +5,16 @@
 
 pub mod api;
 pub mod charts;
+pub mod decimate;
+pub mod history;
 pub mod live;
 pub mod local;
+pub mod metrics;
 pub mod model;
+pub mod race;
+pub mod series;
 pub mod ui;
+pub mod zoom;
 
 use leptos::prelude::*;
 

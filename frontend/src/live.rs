@@ -1,6 +1,18 @@
-//! Live mode: list the server's runs, stream one over its WebSocket (history,
-//! then live iterations), reconnect with backoff resuming at the next missing
-//! iteration, and — after the control token is accepted — control it.
+//! Live mode: list the server's runs, stream one over its WebSocket (the
+//! newest page of history, then live iterations, then older pages fetched in
+//! the background from the newest backwards), reconnect with backoff
+//! resuming at the next missing iteration, and — after the control token is
+//! accepted — control it.
+//!
+//! Paging (protocol v2): the server sends the newest page of iteration
+//! summaries after `hello`; the page asks for older pages with
+//! `history {before, limit}` until every gap in [`RunHistory::gaps`] is
+//! filled, asks for one iteration's scans with `scans {iteration}` and, once
+//! the server has answered a page, subscribes to live frames with scans. A
+//! server that answers these requests with an `error` (one without paged
+//! history) gets a notice and the same pages are fetched over HTTP instead
+//! (`GET /api/runs/{id}/iterations?from=&limit=`; scans are dropped on
+//! arrival, see [`crate::history`] for the memory bound).
 //!
 //! The socket URL states the protocol version this page speaks
 //! (`?protocol=2`); a server that refuses it answers with an error frame
@@ -8,6 +20,7 @@
 //! says why.
 
 use std::cell::RefCell;
+use std::collections::VecDeque;
 use std::rc::Rc;
 use std::time::Duration;
 
@@ -15,16 +28,19 @@ use leptos::prelude::*;
 use send_wrapper::SendWrapper;
 use spintune::parameter::Tolerance;
 use spintune::protocol::{
-    ClientMessage, ControlCommand, RunStatus, RunSummary, ServerMessage, PROTOCOL_VERSION,
+    ClientMessage, ControlCommand, IterationRecord, RunStatus, RunSummary, ServerMessage,
+    DEFAULT_HISTORY_PAGE, MAX_HISTORY_PAGE, PROTOCOL_VERSION,
 };
 use wasm_bindgen::prelude::*;
 use web_sys::{CloseEvent, MessageEvent, WebSocket};
 
 use crate::api::{get_json, ApiBase};
+use crate::history::RunHistory;
+use crate::metrics;
 use crate::model::{
-    format_lab_time, status_class, status_is_final, status_label, ControlsEnabled, History, Push,
+    format_lab_time, list_state, status_class, status_is_final, status_label, ControlsEnabled,
 };
-use crate::ui::{Dashboard, StatusBadge, StatusNote};
+use crate::ui::{Dashboard, DashboardHooks, StatusBadge, StatusNote};
 
 /// State of a run's WebSocket.
 #[derive(Debug, Clone, PartialEq)]
@@ -100,7 +116,9 @@ pub enum AuthState {
 /// Reactive outputs of a run session.
 #[derive(Clone, Copy)]
 struct Signals {
-    history: RwSignal<History>,
+    history: RwSignal<RunHistory>,
+    /// How older pages are fetched (shown next to the progress).
+    paging: RwSignal<PagingMode>,
     summary: RwSignal<Option<RunSummary>>,
     conn: RwSignal<ConnState>,
     auth: RwSignal<AuthState>,
@@ -108,6 +126,28 @@ struct Signals {
 }
 
 type Handler<T> = Closure<dyn FnMut(T)>;
+
+/// How history pages and scans are fetched.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PagingMode {
+    /// Over the run's WebSocket (`history`, `scans`), the protocol's way.
+    Socket,
+    /// Over HTTP (`/api/runs/{id}/iterations`), after the server refused a
+    /// socket request (a server without paged history).
+    Http,
+}
+
+/// A request on the socket whose answer (or `error`) is still due; the
+/// server answers in order.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Pending {
+    Control,
+    History,
+    Scans(u64),
+    /// `subscribe` has no answer when accepted; an `error` while it is first
+    /// in the queue is its refusal (a server without it sends full records).
+    Subscribe,
+}
 
 struct Session {
     run: u64,
@@ -126,6 +166,15 @@ struct Session {
     token: Option<String>,
     /// The server's `hello` arrived on the current socket.
     hello_seen: bool,
+    /// Requests on the current socket awaiting their answer.
+    pending: VecDeque<Pending>,
+    /// The older page being fetched: (before, limit).
+    page_in_flight: Option<(u64, u32)>,
+    /// The last page asked for and how many rows it added (stops a loop on
+    /// a server that keeps answering nothing for a gap).
+    last_page: Option<((u64, u32), usize)>,
+    /// Iterations the server holds, from the run list (for the first `from`).
+    total_hint: u64,
 }
 
 type SessionRef = Rc<RefCell<Session>>;
@@ -139,6 +188,8 @@ fn drop_socket(s: &mut Session) {
         let _ = ws.close();
     }
     s.handlers = None;
+    s.pending.clear();
+    s.page_in_flight = None;
 }
 
 fn connect(sess: &SessionRef) {
@@ -149,7 +200,14 @@ fn connect(sess: &SessionRef) {
     drop_socket(&mut s);
     s.retry = None;
     s.hello_seen = false;
-    let from = s.sig.history.with_untracked(|h| h.next_iteration());
+    // Resume after the newest held iteration; on the first connection ask
+    // for the newest page only (a server that ignores paging sends
+    // everything from `from`, so `from` keeps that to one page too).
+    let from = s.sig.history.with_untracked(|h| {
+        h.extent()
+            .map(|(_, last)| last + 1)
+            .unwrap_or_else(|| s.total_hint.saturating_sub(DEFAULT_HISTORY_PAGE as u64))
+    });
     let url = s.base.run_ws_url(s.run, from);
     s.sig.conn.set(ConnState::Connecting { attempt: s.attempt });
     let ws = match WebSocket::new(&url) {
@@ -186,9 +244,7 @@ fn connect(sess: &SessionRef) {
             return;
         };
         match handle_message(&sess, &text) {
-            After::Continue => {}
-            // A gap: start over from the next missing iteration, immediately.
-            After::Resync => connect(&sess),
+            After::Continue => request_more(&sess),
             After::Refused(message) => {
                 // Retrying cannot help (e.g. the server speaks another protocol
                 // version): stay closed and say why.
@@ -263,10 +319,8 @@ fn schedule_reconnect(sess: &SessionRef) {
 /// What to do with the socket after a server frame.
 #[derive(Debug, Clone, PartialEq)]
 enum After {
-    /// Keep streaming.
+    /// Keep streaming (and fetch older pages if any are missing).
     Continue,
-    /// Iterations are missing: resubscribe from the next missing one.
-    Resync,
     /// The server refused the connection before its `hello` (handshake
     /// error, e.g. a protocol version it does not speak): do not retry.
     Refused(String),
@@ -290,22 +344,54 @@ fn handle_message(sess: &SessionRef, text: &str) -> After {
                     "server speaks protocol v{version}, this page v{PROTOCOL_VERSION}; reload the page"
                 )));
             }
+            sig.history.update(|h| h.set_total(run.iterations));
             sig.summary.set(Some(run));
             let mut s = sess.borrow_mut();
             s.attempt = 0;
             s.hello_seen = true;
+            // Live frames with scans: the latest iteration's scans are drawn.
+            if send_on(&s, &ClientMessage::Subscribe { scans: true }) {
+                s.pending.push_back(Pending::Subscribe);
+            }
         }
-        ServerMessage::History { records, .. } => {
-            let mut gap = false;
-            sig.history.update(|h| gap = h.extend(records).is_err());
-            return if gap { After::Resync } else { After::Continue };
+        ServerMessage::History {
+            records,
+            more_before,
+        } => {
+            let answer = {
+                let mut s = sess.borrow_mut();
+                match s.pending.iter().position(|p| *p == Pending::History) {
+                    Some(i) => {
+                        s.pending.drain(..=i);
+                        s.page_in_flight.take()
+                    }
+                    None => None,
+                }
+            };
+            metrics::begin_update();
+            let mut added = 0;
+            sig.history.update(|h| {
+                added = match answer {
+                    // The answer to our request: `more_before` is about it.
+                    Some((before, _)) => h.insert_page(records, more_before, Some(before)).added,
+                    // Unasked (after hello or lagged): take the records only.
+                    None => h.insert(records).added,
+                };
+            });
+            if let Some(req) = answer {
+                sess.borrow_mut().last_page = Some((req, added));
+            }
         }
         ServerMessage::Iteration { record } => {
-            let mut res = Push::Duplicate;
             let tuned = record.tuned;
             let (k, lab) = (record.iteration, record.lab_seconds);
-            sig.history.update(|h| res = h.push(record));
-            if res == Push::Appended {
+            metrics::begin_update();
+            let mut added = 0;
+            sig.history.update(|h| {
+                added = h.insert([record]).added;
+                h.set_total(h.total().max(k + 1));
+            });
+            if added > 0 {
                 sig.summary.update(|s| {
                     if let Some(s) = s {
                         s.iterations = s.iterations.max(k + 1);
@@ -314,13 +400,32 @@ fn handle_message(sess: &SessionRef, text: &str) -> After {
                     }
                 });
             }
-            return if matches!(res, Push::Gap { .. }) {
-                After::Resync
-            } else {
-                After::Continue
-            };
         }
-        ServerMessage::Status { run } => sig.summary.set(Some(run)),
+        ServerMessage::Scans { iteration, scans } => {
+            {
+                let mut s = sess.borrow_mut();
+                if let Some(i) = s
+                    .pending
+                    .iter()
+                    .position(|p| *p == Pending::Scans(iteration))
+                {
+                    // Answers come in order: what was asked before was answered.
+                    s.pending.drain(..=i);
+                }
+            }
+            sig.history
+                .update(|h| h.set_inspected_scans(iteration, scans));
+        }
+        ServerMessage::Status { run } => {
+            {
+                let mut s = sess.borrow_mut();
+                if s.pending.front() == Some(&Pending::Control) {
+                    s.pending.pop_front();
+                }
+            }
+            sig.history.update(|h| h.set_total(run.iterations));
+            sig.summary.set(Some(run));
+        }
         ServerMessage::Lagged { skipped } => {
             sig.notice.set(Some(format!(
                 "this viewer fell behind ({skipped} live messages skipped); catching up from the store"
@@ -335,14 +440,142 @@ fn handle_message(sess: &SessionRef, text: &str) -> After {
             if sig.auth.get_untracked() == AuthState::Pending {
                 sess.borrow_mut().token = None;
                 sig.auth.set(AuthState::Refused(message));
-            } else {
-                sig.notice.set(Some(format!("server: {message}")));
+                return After::Continue;
+            }
+            let refused = sess.borrow_mut().pending.pop_front();
+            match refused {
+                Some(Pending::History) => {
+                    sess.borrow_mut().page_in_flight = None;
+                    sig.paging.set(PagingMode::Http);
+                    sig.notice.set(Some(format!(
+                        "this server does not send history pages over the socket ({message}); loading older iterations over HTTP instead"
+                    )));
+                }
+                Some(Pending::Scans(k)) => {
+                    sig.paging.set(PagingMode::Http);
+                    fetch_scans_http(sess, k);
+                }
+                // Refused subscription: this server sends full records anyway.
+                Some(Pending::Subscribe) => {}
+                Some(Pending::Control) | None => {
+                    sig.notice.set(Some(format!("server: {message}")));
+                }
             }
         }
-        // Scans on request: not asked for yet by this page (issue 14).
-        ServerMessage::Scans { .. } => {}
     }
     After::Continue
+}
+
+/// Ask for the next older page if one is missing and none is on its way.
+fn request_more(sess: &SessionRef) {
+    let mut s = sess.borrow_mut();
+    if s.page_in_flight.is_some() || !s.hello_seen || s.shut_down {
+        return;
+    }
+    let Some(req) = s
+        .sig
+        .history
+        .with_untracked(|h| h.next_page(MAX_HISTORY_PAGE))
+    else {
+        return;
+    };
+    if s.last_page == Some((req, 0)) {
+        // The same request added nothing last time: the server has no more.
+        return;
+    }
+    let (before, limit) = req;
+    match s.sig.paging.get_untracked() {
+        PagingMode::Socket => {
+            if send_on(
+                &s,
+                &ClientMessage::History {
+                    before: Some(before),
+                    limit: Some(limit),
+                },
+            ) {
+                s.pending.push_back(Pending::History);
+                s.page_in_flight = Some(req);
+            }
+        }
+        PagingMode::Http => {
+            s.page_in_flight = Some(req);
+            let url = s.base.url(&format!(
+                "/api/runs/{}/iterations?from={}&limit={limit}",
+                s.run,
+                before - limit as u64
+            ));
+            let weak = Rc::downgrade(sess);
+            drop(s);
+            leptos::task::spawn_local(async move {
+                let result = get_json::<Vec<IterationRecord>>(&url).await;
+                let Some(sess) = weak.upgrade() else { return };
+                let sig = sess.borrow().sig;
+                let ok = match result {
+                    Ok(mut records) => {
+                        records.retain(|r| r.iteration < before);
+                        metrics::begin_update();
+                        let more = !records.is_empty();
+                        let mut added = 0;
+                        let _ = sig.history.try_update(|h| {
+                            added = h.insert_page(records, more, Some(before)).added
+                        });
+                        sess.borrow_mut().last_page = Some((req, added));
+                        true
+                    }
+                    Err(e) => {
+                        let _ = sig
+                            .notice
+                            .try_set(Some(format!("cannot load older iterations: {e}")));
+                        false
+                    }
+                };
+                sess.borrow_mut().page_in_flight = None;
+                if ok {
+                    request_more(&sess);
+                }
+            });
+        }
+    }
+}
+
+/// Fetch the scans of iteration `k` over HTTP (the stored full record).
+fn fetch_scans_http(sess: &SessionRef, k: u64) {
+    let s = sess.borrow();
+    let url = s
+        .base
+        .url(&format!("/api/runs/{}/iterations?from={k}&limit=1", s.run));
+    let sig = s.sig;
+    drop(s);
+    leptos::task::spawn_local(async move {
+        match get_json::<Vec<IterationRecord>>(&url).await {
+            Ok(records) => {
+                let scans = records
+                    .into_iter()
+                    .find(|r| r.iteration == k)
+                    .map(|r| r.scans)
+                    .unwrap_or_default();
+                let _ = sig.history.try_update(|h| h.set_inspected_scans(k, scans));
+            }
+            Err(e) => {
+                let _ = sig
+                    .notice
+                    .try_set(Some(format!("cannot load the scans of iteration {k}: {e}")));
+            }
+        }
+    });
+}
+
+/// Ask for the scans of iteration `k` (the inspector shows them).
+fn request_scans(sess: &SessionRef, k: u64) {
+    let mode = sess.borrow().sig.paging.get_untracked();
+    if mode == PagingMode::Socket {
+        let mut s = sess.borrow_mut();
+        if send_on(&s, &ClientMessage::Scans { iteration: k }) {
+            s.pending.push_back(Pending::Scans(k));
+            return;
+        }
+    }
+    fetch_scans_http(sess, k);
 }
 
 fn send_on(s: &Session, msg: &ClientMessage) -> bool {
@@ -402,7 +635,8 @@ pub fn LiveMode(base: ApiBase) -> impl IntoView {
         match selected.get() {
         Some(id) => {
             let _ = window().location().set_hash(&format!("live/{id}"));
-            view! { <RunView run=id base=base.clone() /> }.into_any()
+            let hint = runs.with_untracked(|r| r.iter().find(|r| r.id == id).map(|r| r.iterations));
+            view! { <RunView run=id base=base.clone() total_hint=hint runs=runs /> }.into_any()
         }
         None => view! {
             <div class="empty">
@@ -449,8 +683,8 @@ pub fn LiveMode(base: ApiBase) -> impl IntoView {
                                     >
                                         <span class="run-name">{format!("#{} {}", r.id, r.name)}</span>
                                         <span class="run-meta">
-                                            <span class=status_class(&r.status) data-state=state title=status_label(&r.status)>{status_label(&r.status)}</span>
-                                            {format!(" · {} it · {}", r.iterations, format_lab_time(r.lab_seconds))}
+                                            <span class=status_class(&r.status) data-state=state title=status_label(&r.status)>{list_state(&r.status)}</span>
+                                            {format!(" · {} it · lab {}", crate::ui::grouped(r.iterations), format_lab_time(r.lab_seconds))}
                                             {if r.tuned { " · tuned" } else { "" }}
                                         </span>
                                     </button>
@@ -465,6 +699,31 @@ pub fn LiveMode(base: ApiBase) -> impl IntoView {
     }
 }
 
+/// Most iterations of a compared run loaded (its newest), to bound memory.
+pub const OVERLAY_MAX: u64 = 20_000;
+
+/// The newest `max` iterations of run `id`, over HTTP in pages of
+/// [`MAX_HISTORY_PAGE`] (scans dropped on arrival).
+pub async fn load_history_http(base: &ApiBase, id: u64, max: u64) -> Result<RunHistory, String> {
+    let summary: RunSummary = get_json(&base.url(&format!("/api/runs/{id}"))).await?;
+    let mut h = RunHistory::new();
+    h.set_total(summary.iterations);
+    let mut from = summary.iterations.saturating_sub(max);
+    while from < summary.iterations {
+        let limit = MAX_HISTORY_PAGE as u64;
+        let page: Vec<IterationRecord> = get_json(&base.url(&format!(
+            "/api/runs/{id}/iterations?from={from}&limit={limit}"
+        )))
+        .await?;
+        if page.is_empty() {
+            break;
+        }
+        h.insert(page);
+        from += limit;
+    }
+    Ok(h)
+}
+
 fn initial_run_from_hash() -> Option<u64> {
     let hash = window().location().hash().ok()?;
     hash.trim_start_matches('#')
@@ -475,14 +734,27 @@ fn initial_run_from_hash() -> Option<u64> {
 
 /// One run: connection state, summary, controls, plots.
 #[component]
-pub fn RunView(run: u64, base: ApiBase) -> impl IntoView {
+pub fn RunView(
+    run: u64,
+    base: ApiBase,
+    /// Iterations the server holds (from the run list), if known: the
+    /// first socket asks only for the newest page.
+    #[prop(optional_no_strip)]
+    total_hint: Option<u64>,
+    /// The run list (to pick a run to compare with).
+    #[prop(optional)]
+    runs: Option<RwSignal<Vec<RunSummary>>>,
+) -> impl IntoView {
     let sig = Signals {
-        history: RwSignal::new(History::new()),
+        history: RwSignal::new(RunHistory::new()),
+        paging: RwSignal::new(PagingMode::Socket),
         summary: RwSignal::new(None),
         conn: RwSignal::new(ConnState::Connecting { attempt: 0 }),
         auth: RwSignal::new(AuthState::None),
         notice: RwSignal::new(None),
     };
+    let export_base = base.clone();
+    let overlay_base = base.clone();
     let sess: SessionRef = Rc::new(RefCell::new(Session {
         run,
         base,
@@ -495,8 +767,26 @@ pub fn RunView(run: u64, base: ApiBase) -> impl IntoView {
         shut_down: false,
         token: None,
         hello_seen: false,
+        pending: VecDeque::new(),
+        page_in_flight: None,
+        last_page: None,
+        total_hint: total_hint.unwrap_or(0),
     }));
-    connect(&sess);
+    match total_hint {
+        Some(_) => connect(&sess),
+        None => {
+            // Learn the run's size first, so the first socket asks for one page.
+            let url = sess.borrow().base.url(&format!("/api/runs/{run}"));
+            let weak = Rc::downgrade(&sess);
+            leptos::task::spawn_local(async move {
+                let total = get_json::<RunSummary>(&url).await.map(|s| s.iterations);
+                if let Some(sess) = weak.upgrade() {
+                    sess.borrow_mut().total_hint = total.unwrap_or(0);
+                    connect(&sess);
+                }
+            });
+        }
+    }
     {
         let sess = SendWrapper::new(sess.clone());
         on_cleanup(move || {
@@ -537,6 +827,40 @@ pub fn RunView(run: u64, base: ApiBase) -> impl IntoView {
         })
     };
     let status = Signal::derive(move || sig.summary.with(|s| s.as_ref().map(|s| s.status.clone())));
+    let want_scans = Callback::new(move |k: u64| sess.with_value(|s| request_scans(s, k)));
+    let hooks = DashboardHooks {
+        want_scans: Some(want_scans),
+    };
+    let paging_note = move || match sig.paging.get() {
+        PagingMode::Socket => "history pages over the socket",
+        PagingMode::Http => "history pages over HTTP (server without socket paging)",
+    };
+    // Compare with another run: its newest iterations, over HTTP.
+    let overlay = RwSignal::new(None::<RunHistory>);
+    let overlay_id = RwSignal::new(None::<u64>);
+    let pick_overlay = move |id: Option<u64>| {
+        overlay_id.set(id);
+        overlay.set(None);
+        let Some(id) = id else { return };
+        let base = overlay_base.clone();
+        leptos::task::spawn_local(async move {
+            let h = load_history_http(&base, id, OVERLAY_MAX).await;
+            if overlay_id.try_get_untracked() == Some(Some(id)) {
+                let _ = overlay.try_set(h.ok());
+            }
+        });
+    };
+    let other_runs = move || {
+        runs.map(|r| {
+            r.with(|r| {
+                r.iter()
+                    .filter(|s| s.id != run)
+                    .map(|s| (s.id, s.name.clone()))
+                    .collect::<Vec<_>>()
+            })
+        })
+        .unwrap_or_default()
+    };
     view! {
         <div class="run-view">
             <header class="run-head">
@@ -571,7 +895,21 @@ pub fn RunView(run: u64, base: ApiBase) -> impl IntoView {
                     }.into_any(),
                 }}
             </div>
-            <Dashboard history=sig.history />
+            <div class="run-tools">
+                <span class="paging" data-testid="paging" data-mode=move || format!("{:?}", sig.paging.get()).to_lowercase()>{paging_note}</span>
+                <label>"compare with "
+                    <select data-testid="overlay" on:change=move |ev| pick_overlay(event_target_value(&ev).parse().ok())>
+                        <option value="">"no other run"</option>
+                        {move || other_runs().into_iter().map(|(id, name)| view! { <option value=id.to_string()>{format!("#{id} {name}")}</option> }).collect_view()}
+                    </select>
+                </label>
+                <span class="export">"export "
+                    <a data-testid="export-csv" href=export_base.url(&format!("/api/runs/{run}/export?format=csv")) download=format!("run-{run}.csv")>"CSV"</a>
+                    " · "
+                    <a data-testid="export-json" href=export_base.url(&format!("/api/runs/{run}/export?format=json")) download=format!("run-{run}.json")>"JSON"</a>
+                </span>
+            </div>
+            <Dashboard history=sig.history overlay=overlay hooks=hooks />
         </div>
     }
 }
@@ -581,7 +919,7 @@ pub fn RunView(run: u64, base: ApiBase) -> impl IntoView {
 /// ([`ControlsEnabled::for_status`]; all while the status is unknown).
 #[component]
 fn Controls(
-    history: RwSignal<History>,
+    history: RwSignal<RunHistory>,
     status: Signal<Option<RunStatus>>,
     on_command: Callback<ControlCommand>,
 ) -> impl IntoView {
@@ -593,7 +931,7 @@ fn Controls(
     });
     let params = Memo::new(move |_| {
         history.with(|h| {
-            h.last()
+            h.latest()
                 .map(|r| {
                     r.parameters
                         .iter()
@@ -705,7 +1043,8 @@ mod tests {
             run: 1,
             base: ApiBase::new("http://127.0.0.1:9"),
             sig: Signals {
-                history: RwSignal::new(History::new()),
+                history: RwSignal::new(RunHistory::new()),
+                paging: RwSignal::new(PagingMode::Socket),
                 summary: RwSignal::new(None),
                 conn: RwSignal::new(ConnState::Connecting { attempt: 0 }),
                 auth: RwSignal::new(AuthState::None),
@@ -719,6 +1058,10 @@ mod tests {
             shut_down: false,
             token: None,
             hello_seen: false,
+            pending: VecDeque::new(),
+            page_in_flight: None,
+            last_page: None,
+            total_hint: 0,
         }))
     }
 
@@ -761,5 +1104,99 @@ mod tests {
             .notice
             .get_untracked()
             .is_some_and(|n| n.contains("protocol v1")));
+    }
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn pages_scans_live_gaps_and_an_old_server_refusing() {
+        use crate::model::fake_records;
+        let sess = test_session();
+        let recs = fake_records(106);
+        let frame = |m: ServerMessage| serde_json::to_string(&m).unwrap();
+        let hello = format!(
+            r#"{{"type":"hello","version":{PROTOCOL_VERSION},"run":{{"id":1,"name":"demo","status":{{"state":"running"}},"iterations":100,"lab_seconds":0.0,"tuned":false}}}}"#
+        );
+        assert_eq!(handle_message(&sess, &hello), After::Continue);
+        let sig = sess.borrow().sig;
+        assert_eq!(sig.history.with_untracked(|h| h.total()), 100);
+        // The newest page, unasked after hello.
+        let page = |a: usize, b: usize, more: bool| {
+            frame(ServerMessage::History {
+                records: recs[a..b].iter().map(|r| r.summary()).collect(),
+                more_before: more,
+            })
+        };
+        handle_message(&sess, &page(80, 100, true));
+        assert_eq!(
+            sig.history
+                .with_untracked(|h| h.next_page(MAX_HISTORY_PAGE)),
+            Some((80, 80))
+        );
+        // The answer to our request (as `request_more` queues it on an open
+        // socket): the server holds nothing older than 30.
+        {
+            let mut s = sess.borrow_mut();
+            s.pending.push_back(Pending::History);
+            s.page_in_flight = Some((80, 80));
+        }
+        handle_message(&sess, &page(30, 80, false));
+        assert_eq!(
+            sig.history.with_untracked(|h| (h.len(), h.gaps())),
+            (70, vec![])
+        );
+        assert!(sess.borrow().pending.is_empty() && sess.borrow().page_in_flight.is_none());
+        // Scans on request go to the inspected iteration.
+        sess.borrow_mut().pending.push_back(Pending::Scans(42));
+        handle_message(
+            &sess,
+            &frame(ServerMessage::Scans {
+                iteration: 42,
+                scans: recs[42].scans.clone(),
+            }),
+        );
+        assert_eq!(
+            sig.history.with_untracked(|h| h.scans(42).map(|s| s.len())),
+            Some(1)
+        );
+        assert!(sess.borrow().pending.is_empty());
+        // A live frame after a gap (e.g. after `lagged`): kept, the gap is asked for next.
+        handle_message(
+            &sess,
+            &frame(ServerMessage::Iteration {
+                record: recs[105].clone(),
+            }),
+        );
+        assert_eq!(
+            sig.history
+                .with_untracked(|h| h.next_page(MAX_HISTORY_PAGE)),
+            Some((105, 5))
+        );
+        assert_eq!(
+            sig.summary
+                .with_untracked(|s| s.as_ref().map(|s| s.iterations)),
+            Some(106)
+        );
+        // A server without socket paging refuses `subscribe` and `history`:
+        // the first error is the subscription's (ignored), the second moves
+        // paging to HTTP with a notice; the socket stays.
+        {
+            let mut s = sess.borrow_mut();
+            s.pending.push_back(Pending::Subscribe);
+            s.pending.push_back(Pending::History);
+            s.page_in_flight = Some((105, 5));
+        }
+        let refusal = frame(ServerMessage::Error {
+            message: "not implemented yet".into(),
+        });
+        assert_eq!(handle_message(&sess, &refusal), After::Continue);
+        assert_eq!(sig.paging.get_untracked(), PagingMode::Socket);
+        assert_eq!(sig.notice.get_untracked(), None);
+        assert_eq!(handle_message(&sess, &refusal), After::Continue);
+        assert_eq!(sig.paging.get_untracked(), PagingMode::Http);
+        assert!(sess.borrow().page_in_flight.is_none());
+        assert!(sig
+            .notice
+            .get_untracked()
+            .is_some_and(|n| n.contains("over HTTP") && n.contains("not implemented yet")));
     }
 }

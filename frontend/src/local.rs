@@ -15,7 +15,10 @@ use spintune::parameter::Tolerance;
 use spintune::protocol::{ControlCommand, IterationRecord, RunStatus};
 
 use crate::charts;
+use crate::history::RunHistory;
+use crate::metrics;
 use crate::model::{ControlsEnabled, History};
+use crate::series::Drawn;
 use crate::ui::{Area, Chart, Dashboard, StatusBadge, StatusNote};
 
 /// What the student can choose.
@@ -233,6 +236,15 @@ impl LocalRunner {
         Ok(self.status())
     }
 
+    /// The run's path in the (`gx`, `gy`) plane, mV.
+    pub fn landscape_path(&self, gx: &str, gy: &str) -> Vec<(f64, f64)> {
+        self.history
+            .records()
+            .iter()
+            .filter_map(|r| Some((*r.voltages_mv.get(gx)?, *r.voltages_mv.get(gy)?)))
+            .collect()
+    }
+
     /// The simulator's noiseless truth on an `n`×`n` grid in the (`gx`, `gy`)
     /// plane, ±`half_mv` around the present voltages (other gates fixed):
     /// the larger of `|p − p*| / tolerance` over t_sr and w (≤ 1: in band).
@@ -265,12 +277,7 @@ impl LocalRunner {
                 }
             }
         }
-        let path = self
-            .history
-            .records()
-            .iter()
-            .filter_map(|r| Some((*r.voltages_mv.get(gx)?, *r.voltages_mv.get(gy)?)))
-            .collect();
+        let path = self.landscape_path(gx, gy);
         Some(Landscape {
             gx: gx.to_string(),
             gy: gy.to_string(),
@@ -314,7 +321,7 @@ fn NumberField(
 #[component]
 pub fn LocalMode() -> impl IntoView {
     let settings = RwSignal::new(LocalSettings::default());
-    let history = RwSignal::new(History::new());
+    let history = RwSignal::new(RunHistory::new());
     // Mirror of the session's status after each action (None: no run yet).
     let status = RwSignal::new(None::<RunStatus>);
     let tuned_at = RwSignal::new(None::<u64>);
@@ -331,12 +338,14 @@ pub fn LocalMode() -> impl IntoView {
             let Some(r) = r else { return };
             let known = history.with_untracked(|h| h.len());
             if r.history.len() != known {
+                metrics::begin_update();
                 history.update(|h| {
                     if h.len() > r.history.len() {
                         h.clear();
                     }
                     let n = h.len();
-                    let _ = h.extend(r.history.records()[n..].iter().cloned());
+                    h.insert(r.history.records()[n..].iter().cloned());
+                    h.set_total(r.history.len() as u64);
                 });
             }
             if tuned_at.get_untracked() != r.tuned_at {
@@ -448,7 +457,7 @@ pub fn LocalMode() -> impl IntoView {
         generation.update_value(|g| *g += 1);
         ticking.set_value(false);
         runner.set_value(None);
-        history.set(History::new());
+        history.set(RunHistory::new());
         status.set(None);
         tuned_at.set(None);
         error.set(None);
@@ -583,7 +592,7 @@ pub fn LocalMode() -> impl IntoView {
                         draw=move |a: &Area| {
                             let n = history.with(|h| h.len());
                             let land = runner.with_value(|r| r.as_ref().and_then(|r| r.landscape("SB", "T", 30.0, 25)));
-                            charts::draw_landscape(a, land.as_ref()).map(|_| n)
+                            charts::draw_landscape(a, land.as_ref(), &[]).map(|_| Drawn { iterations: n, ..Drawn::default() })
                         }
                     />
                     <div class="explain landscape-text">
@@ -591,6 +600,7 @@ pub fn LocalMode() -> impl IntoView {
                         <p>"The line is the tuner's path projected onto this plane (it also moves N and SA, so the map shifts as it goes). Light cells are far from the goal; the step limit keeps every move short because the map is curved: gradients measured here are wrong a few tens of mV away."</p>
                     </div>
                 </div>
+                <crate::race::RacePanel settings=settings />
             </section>
         </div>
     }

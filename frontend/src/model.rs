@@ -132,6 +132,15 @@ pub fn status_label(s: &RunStatus) -> String {
     }
 }
 
+/// The short state shown in the run list: the status name, except a fault,
+/// which reads "paused by fault" (the full label is the tooltip).
+pub fn list_state(s: &RunStatus) -> &'static str {
+    match s {
+        RunStatus::Faulted { .. } => "paused by fault",
+        other => other.name(),
+    }
+}
+
 /// CSS classes of a status badge: `status status-<name>` (e.g.
 /// `status status-faulted`), so every state can be styled on its own.
 pub fn status_class(s: &RunStatus) -> String {

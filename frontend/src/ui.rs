@@ -6,38 +6,30 @@ use leptos::prelude::*;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters_canvas::CanvasBackend;
-use wasm_bindgen::JsValue;
 
 use spintune::protocol::{ParameterReport, RunStatus, TunerEvent};
 
 use crate::charts;
+use crate::history::RunHistory;
+use crate::metrics;
 use crate::model::{
     event_is_safety_relevant, event_name, format_lab_time, status_class, status_hint, status_label,
-    History,
 };
+use crate::series::{self, Drawn, Frame, XAxis};
+use crate::zoom::{self, View};
 
-/// A drawing function for [`Chart`]: returns how many iterations it drew.
+/// A drawing area of a [`Chart`].
 pub type Area = DrawingArea<CanvasBackend, Shift>;
-
-fn note_first_chart(iterations: usize) {
-    if iterations == 0 {
-        return;
-    }
-    let w = window();
-    let key = JsValue::from_str("spintuneFirstChartMs");
-    let already = js_sys::Reflect::get(&w, &key)
-        .map(|v| !v.is_undefined())
-        .unwrap_or(true);
-    if !already {
-        let now = w.performance().map(|p| p.now()).unwrap_or(f64::NAN);
-        let _ = js_sys::Reflect::set(&w, &key, &JsValue::from_f64(now));
-    }
-}
 
 /// A `<canvas>` redrawn by plotters whenever the signals read in `draw` change.
 /// The canvas takes the width of its container and the given height.
-/// After each draw it carries `data-iterations` (iterations drawn) and
-/// `data-draws` (number of draws), which the end-to-end test reads.
+/// After each draw it carries `data-iterations` (iterations in view),
+/// `data-points` (points of the main series after decimation), `data-ymax`
+/// (largest value drawn), `data-overlay-points` (points of a compared run),
+/// `data-draws` (number of draws) and, for charts with
+/// one plot area, `data-px0`/`data-px1` (its pixel columns, CSS px) and
+/// `data-x0`/`data-x1` (its data x range), which the mouse handlers and the
+/// end-to-end test read. Each draw's time goes to [`metrics::note_draw`].
 #[component]
 pub fn Chart<F>(
     /// Name for tests and screen readers.
@@ -45,11 +37,11 @@ pub fn Chart<F>(
     name: String,
     /// Height in CSS pixels.
     height: u32,
-    /// Draws the figure; returns the number of iterations drawn.
+    /// Draws the figure.
     draw: F,
 ) -> impl IntoView
 where
-    F: Fn(&Area) -> Result<usize, String> + 'static,
+    F: Fn(&Area) -> Result<Drawn, String> + 'static,
 {
     let node = NodeRef::<html::Canvas>::new();
     let draws = StoredValue::new(0u64);
@@ -57,34 +49,55 @@ where
         let Some(canvas) = node.get() else {
             return;
         };
+        let t0 = metrics::now_ms();
         let ratio = window().device_pixel_ratio().clamp(1.0, 2.0);
-        let css_w = canvas.client_width().max(320) as f64;
-        canvas.set_width((css_w * ratio) as u32);
-        canvas.set_height((height as f64 * ratio) as u32);
+        let css_w = canvas.client_width().max(280) as f64;
+        // Resize only when the size changed: writing the size resets the
+        // canvas and invalidates the page's layout, which the next chart's
+        // `client_width` would then recompute (once per chart per update).
+        let (w, h) = ((css_w * ratio) as u32, (height as f64 * ratio) as u32);
+        if canvas.width() != w {
+            canvas.set_width(w);
+        }
+        if canvas.height() != h {
+            canvas.set_height(h);
+        }
         let Some(backend) = CanvasBackend::with_canvas_object(canvas.clone()) else {
             return;
         };
         if let Ok(Some(ctx)) = canvas.get_context("2d") {
             use wasm_bindgen::JsCast;
             if let Ok(ctx) = ctx.dyn_into::<web_sys::CanvasRenderingContext2d>() {
-                let _ = ctx.scale(ratio, ratio);
+                let _ = ctx.set_transform(ratio, 0.0, 0.0, ratio, 0.0, 0.0);
             }
         }
         let root = backend.into_drawing_area();
         let root = root.shrink((0, 0), (css_w as u32, height));
         let _ = root.fill(&WHITE);
         let drawn = match draw(&root) {
-            Ok(n) => n,
+            Ok(d) => d,
             Err(e) => {
                 leptos::logging::warn!("chart {}: {e}", canvas.id());
-                0
+                Drawn::default()
             }
         };
         let _ = root.present();
         draws.update_value(|d| *d += 1);
-        let _ = canvas.set_attribute("data-iterations", &drawn.to_string());
-        let _ = canvas.set_attribute("data-draws", &draws.get_value().to_string());
-        note_first_chart(drawn);
+        let set = |k: &str, v: String| {
+            let _ = canvas.set_attribute(k, &v);
+        };
+        set("data-iterations", drawn.iterations.to_string());
+        set("data-points", drawn.points.to_string());
+        set("data-ymax", drawn.y_max.to_string());
+        set("data-overlay-points", drawn.overlay_points.to_string());
+        set("data-draws", draws.get_value().to_string());
+        if let Some((a, b)) = drawn.plot_px {
+            set("data-px0", a.to_string());
+            set("data-px1", b.to_string());
+            set("data-x0", drawn.x_range.0.to_string());
+            set("data-x1", drawn.x_range.1.to_string());
+        }
+        metrics::note_draw(metrics::now_ms() - t0, drawn.iterations);
     });
     view! {
         <canvas
@@ -120,26 +133,21 @@ fn param_summary(p: &ParameterReport) -> impl IntoView {
     }
 }
 
-/// Headline numbers of a history.
+/// Headline numbers of a history (its newest record).
 #[component]
-pub fn Stats(history: RwSignal<History>) -> impl IntoView {
-    let last = move || {
-        history.with(|h| {
-            h.last()
-                .map(|r| (r.iteration, r.lab_seconds, r.tuned, r.failed_evaluations))
-        })
-    };
+pub fn Stats(history: RwSignal<RunHistory>) -> impl IntoView {
+    let last = Memo::new(move |_| history.with(|h| h.latest().cloned()));
     view! {
         <div class="stats">
-            {move || match last() {
+            {move || match last.get() {
                 None => view! { <span class="stat">"no iterations yet"</span> }.into_any(),
-                Some((k, lab, tuned, failed)) => view! {
-                    <span class="stat">"iteration " <b data-testid="iteration">{k}</b></span>
-                    <span class="stat">"lab time " <b data-testid="lab-time">{format_lab_time(lab)}</b></span>
-                    <span class="stat">"failed fits " <b>{failed}</b></span>
-                    {move || history.with(|h| h.last().map(|r| r.parameters.iter().map(param_summary).collect_view()))}
-                    <span class=if tuned { "badge ok" } else { "badge" } data-testid="tuned">
-                        {if tuned { "tuned: all parameters in band" } else { "tuning…" }}
+                Some(r) => view! {
+                    <span class="stat">"iteration " <b data-testid="iteration">{r.iteration}</b></span>
+                    <span class="stat">"lab time " <b data-testid="lab-time">{format_lab_time(r.lab_seconds)}</b></span>
+                    <span class="stat">"failed fits " <b>{r.failed_evaluations}</b></span>
+                    {r.parameters.iter().map(param_summary).collect_view()}
+                    <span class=if r.tuned { "badge ok" } else { "badge" } data-testid="tuned">
+                        {if r.tuned { "tuned: all parameters in band" } else { "tuning…" }}
                     </span>
                 }.into_any(),
             }}
@@ -147,96 +155,369 @@ pub fn Stats(history: RwSignal<History>) -> impl IntoView {
     }
 }
 
-/// The plots of one run: parameters, gradients, gates, latest scans, lab time.
+/// Thousands separators: 100000 → "100,000".
+pub fn grouped(n: u64) -> String {
+    let s = n.to_string();
+    let mut out = String::new();
+    for (i, c) in s.chars().enumerate() {
+        if i > 0 && (s.len() - i) % 3 == 0 {
+            out.push(',');
+        }
+        out.push(c);
+    }
+    out
+}
+
+/// The iteration at CSS pixel `px` of a chart canvas (from its `data-px*`
+/// and `data-x*` attributes), in the given x axis.
+fn iteration_at(canvas: &web_sys::Element, px: f64, axis: XAxis, h: &RunHistory) -> Option<f64> {
+    let num = |k: &str| canvas.get_attribute(k)?.parse::<f64>().ok();
+    let x = zoom::pixel_to_data(
+        px,
+        num("data-px0")?,
+        num("data-px1")?,
+        num("data-x0")?,
+        num("data-x1")?,
+    );
+    match axis {
+        XAxis::Iteration => Some(x),
+        XAxis::LabTime => h.at_lab_seconds(x * 3600.0).map(|k| k as f64),
+    }
+}
+
+/// Text legend under a parameter chart (legends never cover data).
+fn parameter_legend(i: usize, overlay: bool) -> impl IntoView {
+    let c = charts::color(i);
+    let css = format!("background: rgb({},{},{})", c.0, c.1, c.2);
+    view! {
+        <div class="legend">
+            <span><i class="swatch" style=css></i>"measured ±1σ (decimated: min/max per pixel column)"</span>
+            <span><i class="swatch target"></i>"target"</span>
+            <span><i class="swatch band"></i>"tolerance band"</span>
+            {overlay.then(|| view! { <span><i class="swatch overlay"></i>"compared run"</span> })}
+        </div>
+    }
+}
+
+/// What the dashboard shows besides the history: callbacks of its owner.
+#[derive(Clone, Copy, Default)]
+pub struct DashboardHooks {
+    /// Called when the user inspects an iteration whose scans are not held
+    /// (the live mode asks the server for them).
+    pub want_scans: Option<Callback<u64>>,
+}
+
+/// The plots of one run: parameters, gradients, gates, scans, lab time,
+/// with a shared zoomable iteration window ([`View`]), a lab-time x axis,
+/// hover read-out and an inspector for one iteration.
 #[component]
-pub fn Dashboard(history: RwSignal<History>) -> impl IntoView {
+pub fn Dashboard(
+    history: RwSignal<RunHistory>,
+    /// A second run drawn on the parameter charts.
+    #[prop(optional)]
+    overlay: Option<RwSignal<Option<RunHistory>>>,
+    #[prop(optional)] hooks: DashboardHooks,
+) -> impl IntoView {
+    let view_sel = RwSignal::new(View::All);
+    let axis = RwSignal::new(XAxis::Iteration);
+    let inspected = RwSignal::new(None::<u64>);
+    let hover = RwSignal::new(None::<u64>);
+    let drag_from = StoredValue::new(None::<f64>);
+    let extent = Memo::new(move |_| history.with(|h| h.extent()));
+    let window_m = Memo::new(move |_| {
+        let (a, b) = extent.get().unwrap_or((0, 10));
+        view_sel.get().window(a as f64, b.max(a) as f64)
+    });
+    let set_view = move |v: View| {
+        metrics::begin_update();
+        view_sel.set(v);
+    };
+    let zoom_by = move |factor: f64, center: Option<f64>| {
+        if let Some((a, b)) = extent.get_untracked() {
+            set_view(
+                view_sel
+                    .get_untracked()
+                    .zoom(factor, center, a as f64, b as f64),
+            );
+        }
+    };
+    let pan_by = move |fraction: f64| {
+        if let Some((a, b)) = extent.get_untracked() {
+            set_view(view_sel.get_untracked().pan(fraction, a as f64, b as f64));
+        }
+    };
+    let inspect = move |k: u64| {
+        inspected.set(Some(k));
+        if history.with_untracked(|h| h.scans(k).is_none()) {
+            if let Some(cb) = hooks.want_scans {
+                cb.run(k);
+            }
+        }
+    };
+    let on_key = move |ev: leptos::ev::KeyboardEvent| {
+        let handled = match ev.key().as_str() {
+            "+" | "=" => {
+                zoom_by(0.5, None);
+                true
+            }
+            "-" | "_" => {
+                zoom_by(2.0, None);
+                true
+            }
+            "ArrowLeft" => {
+                pan_by(-0.25);
+                true
+            }
+            "ArrowRight" => {
+                pan_by(0.25);
+                true
+            }
+            "0" | "Home" => {
+                set_view(View::All);
+                true
+            }
+            "Escape" => {
+                inspected.set(None);
+                true
+            }
+            _ => false,
+        };
+        if handled {
+            ev.prevent_default();
+        }
+    };
     let names = Memo::new(move |_| {
         history.with(|h| {
-            h.last()
-                .map(|r| {
-                    r.parameters
-                        .iter()
-                        .map(|p| p.name.clone())
-                        .collect::<Vec<_>>()
-                })
-                .unwrap_or_default()
-        })
-    });
-    let scan_count = Memo::new(move |_| history.with(|h| h.last().map_or(0, |r| r.scans.len())));
-    let events = Memo::new(move |_| {
-        history.with(|h| {
-            h.records()
+            h.layout()
+                .parameters
                 .iter()
-                .rev()
-                .flat_map(|r| r.events.iter().map(move |e| (r.iteration, e.clone())))
-                .take(6)
+                .map(|p| p.0.clone())
                 .collect::<Vec<_>>()
         })
     });
+    let gradients = Memo::new(move |_| {
+        history.with(|h| {
+            h.layout()
+                .gradients
+                .iter()
+                .map(|g| g.0.clone())
+                .collect::<Vec<_>>()
+        })
+    });
+    let latest_scans =
+        Memo::new(move |_| history.with(|h| h.latest_scans().map_or(0, |(_, s)| s.len())));
+    let events = Memo::new(move |_| history.with(|h| h.recent_events(6)));
+    let loaded = move || {
+        history.with(|h| {
+            format!(
+                "loaded {} / {} iterations",
+                grouped(h.len() as u64),
+                grouped(h.total())
+            )
+        })
+    };
+    let complete = move || history.with(|h| h.len() as u64 >= h.total());
+    let showing = move || {
+        let w = window_m.get();
+        let (a, b) = (w.lo.ceil().max(0.0) as u64, w.hi.floor().max(0.0) as u64);
+        match axis.get() {
+            XAxis::Iteration => format!("iterations {}–{}", grouped(a), grouped(b)),
+            XAxis::LabTime => history.with(|h| {
+                let lab = |k: u64| h.nearest(k as f64).map_or(0.0, |r| r.lab_seconds / 3600.0);
+                format!(
+                    "iterations {}–{} (lab time {}–{} h:mm)",
+                    grouped(a),
+                    grouped(b),
+                    series::hmm(&lab(a)),
+                    series::hmm(&lab(b))
+                )
+            }),
+        }
+    };
+    // Mouse on a chart: drag to zoom, click to inspect, double-click to reset, hover to read.
+    let mouse_down = move |ev: leptos::ev::MouseEvent| {
+        drag_from.set_value(Some(ev.offset_x() as f64));
+    };
+    let mouse_up = move |ev: leptos::ev::MouseEvent| {
+        let Some(a) = drag_from.get_value() else {
+            return;
+        };
+        drag_from.set_value(None);
+        let Some(canvas) = ev.target().and_then(|t| {
+            use wasm_bindgen::JsCast;
+            t.dyn_into::<web_sys::Element>().ok()
+        }) else {
+            return;
+        };
+        let b = ev.offset_x() as f64;
+        let ax = axis.get_untracked();
+        history.with_untracked(|h| {
+            let ka = iteration_at(&canvas, a, ax, h);
+            let kb = iteration_at(&canvas, b, ax, h);
+            if (a - b).abs() < 4.0 {
+                if let Some(r) = kb.and_then(|k| h.nearest(k)) {
+                    let k = r.iteration;
+                    // release the borrow before signalling
+                    leptos::task::spawn_local(async move { inspect(k) });
+                }
+            } else if let (Some(ka), Some(kb)) = (ka, kb) {
+                let w = zoom::Window {
+                    lo: ka.min(kb),
+                    hi: ka.max(kb),
+                };
+                set_view(View::Fixed(w));
+            }
+        });
+    };
+    let mouse_move = move |ev: leptos::ev::MouseEvent| {
+        let Some(canvas) = ev.target().and_then(|t| {
+            use wasm_bindgen::JsCast;
+            t.dyn_into::<web_sys::Element>().ok()
+        }) else {
+            return;
+        };
+        let k = history.with_untracked(|h| {
+            iteration_at(&canvas, ev.offset_x() as f64, axis.get_untracked(), h)
+                .and_then(|k| h.nearest(k))
+                .map(|r| r.iteration)
+        });
+        if hover.get_untracked() != k {
+            hover.set(k);
+        }
+    };
+    let readout = move || {
+        let k = hover.get().or(inspected.get())?;
+        Some(history.with(|h| readout_text(h, k)))
+    };
     view! {
         <div class="dashboard">
             <Stats history=history />
             <Show when=move || history.with(|h| h.is_empty())>
                 <p class="hint">"Waiting for the first iteration…"</p>
             </Show>
-            <h3>"Parameters"</h3>
-            <div class="grid2">
-                <For
-                    each=move || names.get().into_iter().enumerate()
-                    key=|(i, n)| (*i, n.clone())
-                    children=move |(i, name)| {
-                        let n2 = name.clone();
-                        view! {
-                            <Chart
-                                name=format!("parameter-{name}")
-                                height=270
-                                draw=move |a: &Area| history.with(|h| charts::draw_parameter(a, h.records(), &n2, i).map(|_| h.len()))
-                            />
-                        }
-                    }
-                />
+            <div class="viewbar" role="toolbar" aria-label="iteration window">
+                <span class=move || if complete() { "loaded done" } else { "loaded" } data-testid="loaded">{loaded}</span>
+                <button data-testid="zoom-in" title="zoom in (+)" on:click=move |_| zoom_by(0.5, None)>"+"</button>
+                <button data-testid="zoom-out" title="zoom out (−)" on:click=move |_| zoom_by(2.0, None)>"−"</button>
+                <button data-testid="pan-left" title="older (←)" on:click=move |_| pan_by(-0.25)>"◀"</button>
+                <button data-testid="pan-right" title="newer (→)" on:click=move |_| pan_by(0.25)>"▶"</button>
+                <button data-testid="zoom-reset" title="whole run (0, or double-click a chart)" on:click=move |_| set_view(View::All)>"all"</button>
+                <label>"window "
+                    <select data-testid="window-last" on:change=move |ev| {
+                        let v = event_target_value(&ev);
+                        set_view(v.parse::<u64>().map_or(View::All, View::Last));
+                    }>
+                        <option value="all" selected=move || view_sel.get() == View::All>"whole run"</option>
+                        {[100u64, 1_000, 10_000].into_iter().map(|n| view! {
+                            <option value=n.to_string() selected=move || view_sel.get() == View::Last(n)>{format!("last {} iterations", grouped(n))}</option>
+                        }).collect_view()}
+                    </select>
+                </label>
+                <label>"x axis "
+                    <select data-testid="x-axis" on:change=move |ev| {
+                        metrics::begin_update();
+                        axis.set(if event_target_value(&ev) == "lab" { XAxis::LabTime } else { XAxis::Iteration });
+                    }>
+                        <option value="iteration">"iteration"</option>
+                        <option value="lab">"lab time (h:mm)"</option>
+                    </select>
+                </label>
+                <span class="showing" data-testid="showing">{showing}</span>
             </div>
-            <h3>"Gradient estimates " <small>"(error bars: ±1σ = √diag C of the estimator)"</small></h3>
-            <For
-                each=move || names.get()
-                key=|n| n.clone()
-                children=move |name| {
-                    let n2 = name.clone();
-                    view! {
+            <p class="readout" data-testid="readout">{move || readout().unwrap_or_else(|| "Hover a chart to read values; click to inspect an iteration; drag to zoom; double-click to show the whole run. Keys on the charts: + − ← → 0.".into())}</p>
+            <div class="timeseries" tabindex="0" data-testid="charts" aria-label="run charts: + and − zoom, arrow keys pan, 0 resets"
+                on:keydown=on_key
+                on:dblclick=move |_| set_view(View::All)
+                on:mouseleave=move |_| hover.set(None)
+            >
+                <h3>"Parameters"</h3>
+                <div class="grid2">
+                    <For
+                        each=move || names.get().into_iter().enumerate()
+                        key=|(i, n)| (*i, n.clone())
+                        children=move |(i, name)| {
+                            let has_overlay = move || overlay.is_some_and(|o| o.with(|o| o.is_some()));
+                            view! {
+                                <div class="chart-box" on:mousedown=mouse_down on:mouseup=mouse_up on:mousemove=mouse_move>
+                                    <Chart
+                                        name=format!("parameter-{name}")
+                                        height=270
+                                        draw=move |a: &Area| {
+                                            let w = window_m.get();
+                                            let ax = axis.get();
+                                            let ov = overlay.map(|o| o.read());
+                                            history.with(|h| {
+                                                let f = Frame { history: h, window: w, axis: ax, overlay: ov.as_ref().and_then(|o| o.as_ref()) };
+                                                series::draw_parameter(a, &f, i, i)
+                                            })
+                                        }
+                                    />
+                                    {move || parameter_legend(i, has_overlay())}
+                                </div>
+                            }
+                        }
+                    />
+                </div>
+                <h3>"Gradient estimates " <small>"(bars and bands: ±1σ = √diag C of the estimator)"</small></h3>
+                <For
+                    each=move || gradients.get().into_iter().enumerate()
+                    key=|(i, n)| (*i, n.clone())
+                    children=move |(g, name)| view! {
                         <Chart
                             name=format!("gradient-{name}")
                             height=210
-                            draw=move |a: &Area| history.with(|h| charts::draw_gradient(a, h.records(), &n2).map(|_| h.len()))
-                        />
-                    }
-                }
-            />
-            <h3>"Gate voltages"</h3>
-            <Chart
-                name="gates"
-                height=200
-                draw=move |a: &Area| history.with(|h| charts::draw_gates(a, h.records()).map(|_| h.len()))
-            />
-            <h3>"Latest scans and fits"</h3>
-            <div class="grid2">
-                <For
-                    each=move || 0..scan_count.get().max(1)
-                    key=|i| *i
-                    children=move |i| view! {
-                        <Chart
-                            name=format!("scan-{i}")
-                            height=250
-                            draw=move |a: &Area| history.with(|h| {
-                                let last = h.last();
-                                charts::draw_scan(a, last.and_then(|r| r.scans.get(i)), last.map(|r| r.iteration)).map(|_| h.len())
-                            })
+                            draw=move |a: &Area| {
+                                let w = window_m.get();
+                                let ax = axis.get();
+                                history.with(|h| series::draw_gradient(a, &Frame { history: h, window: w, axis: ax, overlay: None }, g))
+                            }
                         />
                     }
                 />
+                <h3>"Gate voltages"</h3>
                 <Chart
-                    name="lab-time"
-                    height=250
-                    draw=move |a: &Area| history.with(|h| charts::draw_lab_time(a, h.records()).map(|_| h.len()))
+                    name="gates"
+                    height=200
+                    draw=move |a: &Area| {
+                        let w = window_m.get();
+                        let ax = axis.get();
+                        history.with(|h| series::draw_gates(a, &Frame { history: h, window: w, axis: ax, overlay: None }))
+                    }
+                />
+                <div class="chart-box" on:mousedown=mouse_down on:mouseup=mouse_up on:mousemove=mouse_move>
+                    <Chart
+                        name="lab-time"
+                        height=220
+                        draw=move |a: &Area| {
+                            let w = window_m.get();
+                            history.with(|h| series::draw_lab_time(a, &Frame { history: h, window: w, axis: XAxis::Iteration, overlay: None }))
+                        }
+                    />
+                    <div class="legend"><span><i class="swatch lab"></i>"cumulative lab time"</span><span><i class="swatch band"></i>"tuned"</span></div>
+                </div>
+            </div>
+            <Show when=move || inspected.get().is_some()>
+                <Inspector history inspected />
+            </Show>
+            <h3>"Latest scans and fits"</h3>
+            <div class="grid2">
+                <For
+                    each=move || 0..latest_scans.get().max(1)
+                    key=|i| *i
+                    children=move |i| view! {
+                        <div class="chart-box">
+                            <Chart
+                                name=format!("scan-{i}")
+                                height=250
+                                draw=move |a: &Area| history.with(|h| {
+                                    let latest = h.latest_scans();
+                                    charts::draw_scan(a, latest.and_then(|(_, s)| s.get(i)), latest.map(|(k, _)| k))
+                                        .map(|_| Drawn { iterations: latest.map_or(0, |_| h.len()), ..Drawn::default() })
+                                })
+                            />
+                            {move || history.with(|h| scan_legend(h.latest_scans().and_then(|(_, s)| s.get(i))))}
+                        </div>
+                    }
                 />
             </div>
             <Show when=move || !events.with(|e| e.is_empty())>
@@ -246,6 +527,140 @@ pub fn Dashboard(history: RwSignal<History>) -> impl IntoView {
                 </ul>
             </Show>
         </div>
+    }
+}
+
+/// Values of iteration `k` with units, for the hover read-out.
+pub fn readout_text(h: &RunHistory, k: u64) -> String {
+    let (Some(r), Some(d)) = (h.row(k), h.values(k)) else {
+        return format!("iteration {k}: not loaded");
+    };
+    let l = h.layout();
+    let mut parts = vec![
+        format!("iteration {}", grouped(k)),
+        format!("lab time {}", format_lab_time(r.lab_seconds)),
+    ];
+    for (i, (name, unit)) in l.parameters.iter().enumerate() {
+        let o = l.param(i);
+        let (v, s) = (d[o], d[o + 1]);
+        if v.is_finite() {
+            parts.push(format!("{name} {} ± {} {unit}", fmt_num(v), fmt_num(s)));
+        } else {
+            parts.push(format!("{name} –"));
+        }
+    }
+    for (i, gate) in l.gates.iter().enumerate() {
+        parts.push(format!("V_{gate} {} mV", fmt_num(d[l.gate(i)])));
+    }
+    parts.join(" · ")
+}
+
+fn scan_legend(scan: Option<&spintune::protocol::ScanReport>) -> impl IntoView {
+    scan.map(|s| {
+        let data = s
+            .raw
+            .traces
+            .iter()
+            .enumerate()
+            .map(|(i, t)| (format!("data: {}", t.label), charts::color(i + 4)));
+        let fits = s
+            .fit
+            .iter()
+            .enumerate()
+            .map(|(i, t)| (t.label.clone(), charts::color(i + 1)));
+        view! {
+            <div class="legend">
+                {data.chain(fits).map(|(label, c)| view! {
+                    <span><i class="swatch" style=format!("background: rgb({},{},{})", c.0, c.1, c.2)></i>{label}</span>
+                }).collect_view()}
+            </div>
+        }
+    })
+}
+
+/// One inspected iteration: its numbers, step, events and scans with fits
+/// (asked from the server when not held).
+#[component]
+fn Inspector(history: RwSignal<RunHistory>, inspected: RwSignal<Option<u64>>) -> impl IntoView {
+    let k = move || inspected.get().unwrap_or(0);
+    let details = move || {
+        let k = k();
+        history.with(|h| {
+            let (Some(r), Some(d)) = (h.row(k), h.values(k)) else {
+                return view! { <p class="hint">{format!("iteration {k} is not loaded yet")}</p> }.into_any();
+            };
+            let l = h.layout();
+            let params = l
+                .parameters
+                .iter()
+                .enumerate()
+                .map(|(i, (name, unit))| {
+                    let o = l.param(i);
+                    format!(
+                        "{name}: {} ± {} {unit} (target {} ± {} {unit})",
+                        fmt_num(d[o]),
+                        fmt_num(d[o + 1]),
+                        fmt_num(d[o + 2]),
+                        fmt_num(d[o + 3])
+                    )
+                })
+                .collect_view();
+            let step = l
+                .gates
+                .iter()
+                .enumerate()
+                .map(|(i, g)| format!("ΔV_{g} {} mV", fmt_num(d[l.gate(i) + 1])))
+                .collect::<Vec<_>>()
+                .join(", ");
+            let events = h.events(k).to_vec();
+            view! {
+                <ul class="inspect-values">
+                    <li>{format!("lab time {} ({} h:mm)", format_lab_time(r.lab_seconds), series::hmm(&(r.lab_seconds / 3600.0)))}</li>
+                    {params.into_iter().map(|p| view! { <li>{p}</li> }).collect_view()}
+                    <li data-testid="inspect-step">{format!("step: {step}")}</li>
+                    <li>{if r.tuned { "tuned: all parameters in band" } else { "not tuned" }}</li>
+                </ul>
+                {if events.is_empty() {
+                    view! { <p class="hint">"no events in this iteration"</p> }.into_any()
+                } else {
+                    view! { <ul class="events">{events.into_iter().map(|e| event_item(k, e)).collect_view()}</ul> }.into_any()
+                }}
+            }
+            .into_any()
+        })
+    };
+    let n_scans = Memo::new(move |_| {
+        let k = k();
+        history.with(|h| h.scans(k).map(|s| s.len()))
+    });
+    view! {
+        <section class="inspector" data-testid="inspector" data-iteration=move || k().to_string()>
+            <h3>{move || format!("Iteration {} ", grouped(k()))}
+                <button class="link" on:click=move |_| inspected.set(None)>"close"</button>
+            </h3>
+            {details}
+            {move || match n_scans.get() {
+                None => view! { <p class="hint" data-testid="inspect-scans-loading">"loading this iteration's scans…"</p> }.into_any(),
+                Some(0) => view! { <p class="hint">"no scans stored for this iteration"</p> }.into_any(),
+                Some(n) => view! {
+                    <div class="grid2" data-testid="inspect-scans">
+                        {(0..n).map(|i| view! {
+                            <div class="chart-box">
+                                <Chart
+                                    name=format!("inspect-scan-{i}")
+                                    height=230
+                                    draw=move |a: &Area| {
+                                        let k = k();
+                                        history.with(|h| charts::draw_scan(a, h.scans(k).and_then(|s| s.get(i)), Some(k)).map(|_| Drawn { iterations: 1, ..Drawn::default() }))
+                                    }
+                                />
+                                {move || { let k = k(); history.with(|h| scan_legend(h.scans(k).and_then(|s| s.get(i)))) }}
+                            </div>
+                        }).collect_view()}
+                    </div>
+                }.into_any(),
+            }}
+        </section>
     }
 }
 

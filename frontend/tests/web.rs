@@ -10,8 +10,9 @@ use spintune::protocol::{
     ClientMessage, ControlCommand, Fault, FaultKind, RunStatus, ServerMessage, PROTOCOL_VERSION,
 };
 use spintune_web::api::ApiBase;
+use spintune_web::history::RunHistory;
 use spintune_web::local::{LocalRunner, LocalSettings};
-use spintune_web::model::{fake_records, History};
+use spintune_web::model::fake_records;
 use spintune_web::ui::{Dashboard, StatusBadge, StatusNote};
 use spintune_web::{App, Mode};
 use wasm_bindgen::JsCast;
@@ -85,6 +86,7 @@ fn protocol_frames_decode_in_wasm() {
         .contains(&format!("protocol={PROTOCOL_VERSION}")));
     let history = ServerMessage::History {
         records: fake_records(3),
+        more_before: true,
     };
     let json = serde_json::to_string(&history).unwrap();
     assert_eq!(
@@ -110,12 +112,12 @@ fn protocol_frames_decode_in_wasm() {
 #[wasm_bindgen_test]
 async fn dashboard_draws_every_chart_from_records() {
     let el = host();
-    let history = RwSignal::new(History::new());
+    let history = RwSignal::new(RunHistory::new());
     let _h = leptos::mount::mount_to(el.clone(), move || view! { <Dashboard history=history /> });
     leptos::task::tick().await;
     assert!(text(&el).contains("Waiting for the first iteration"));
     history.update(|h| {
-        h.extend(fake_records(12)).unwrap();
+        h.insert(fake_records(12));
     });
     let charts = || el.query_selector_all("canvas.chart").unwrap();
     wait_for(
@@ -460,4 +462,84 @@ async fn status_badge_and_note_show_every_state() {
         assert_eq!(badge().get_attribute("data-state").as_deref(), Some(word));
         assert!(el.query_selector("[data-testid=failed]").unwrap().is_none());
     }
+}
+
+#[wasm_bindgen_test]
+async fn dashboard_zooms_with_buttons_keys_and_window_and_keeps_a_spike() {
+    let el = host();
+    let history = RwSignal::new(RunHistory::new());
+    let _h = leptos::mount::mount_to(el.clone(), move || view! { <Dashboard history=history /> });
+    let mut recs = fake_records(5_000);
+    recs[3_210].parameters[1].value = Some(9_999.0); // one-point spike in w
+    history.update(|h| {
+        h.insert(recs);
+    });
+    let chart = || -> Option<web_sys::Element> {
+        el.query_selector("canvas[data-chart=parameter-w]").unwrap()
+    };
+    let in_view = || -> u64 {
+        chart()
+            .and_then(|c| c.get_attribute("data-iterations"))
+            .and_then(|n| n.parse().ok())
+            .unwrap_or(0)
+    };
+    let q = |sel: &str| -> web_sys::HtmlElement {
+        el.query_selector(&format!("[data-testid={sel}]"))
+            .unwrap()
+            .unwrap_or_else(|| panic!("no {sel}"))
+            .unchecked_into()
+    };
+    wait_for("all 5,000 in view", Duration::from_secs(10), || {
+        in_view() == 5_000
+    })
+    .await;
+    // Decimated, and the spike is still drawn.
+    let w_chart = chart().expect("w chart");
+    let points: usize = w_chart
+        .get_attribute("data-points")
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(points < 5_000, "{points} points: not decimated");
+    assert_eq!(w_chart.get_attribute("data-ymax").as_deref(), Some("9999"));
+    assert!(q("loaded")
+        .inner_text()
+        .contains("loaded 5,000 / 5,000 iterations"));
+    // Zoom in with the button: half the run, the gates chart follows.
+    q("zoom-in").click();
+    wait_for("zoom in", Duration::from_secs(5), || in_view() < 5_000).await;
+    let half = in_view();
+    assert!((2_495..=2_505).contains(&half), "{half}");
+    let gates = el
+        .query_selector("canvas[data-chart=gates]")
+        .unwrap()
+        .unwrap()
+        .get_attribute("data-iterations");
+    assert_eq!(gates, Some(half.to_string()));
+    // Keys on the focused chart area: ← pans to older iterations, 0 resets.
+    let charts = q("charts");
+    charts.focus().unwrap();
+    let key = |k: &str| {
+        let init = web_sys::KeyboardEventInit::new();
+        init.set_key(k);
+        init.set_bubbles(true);
+        let ev =
+            web_sys::KeyboardEvent::new_with_keyboard_event_init_dict("keydown", &init).unwrap();
+        charts.dispatch_event(&ev).unwrap();
+    };
+    let showing = || q("showing").inner_text();
+    let before = showing();
+    key("ArrowLeft");
+    wait_for("pan left", Duration::from_secs(5), || showing() != before).await;
+    assert_eq!(in_view(), half, "panning keeps the span");
+    key("0");
+    wait_for("reset", Duration::from_secs(5), || in_view() == 5_000).await;
+    // "Last N iterations".
+    let select: web_sys::HtmlSelectElement = q("window-last").unchecked_into();
+    select.set_value("100");
+    select
+        .dispatch_event(&web_sys::Event::new("change").unwrap())
+        .unwrap();
+    wait_for("last 100", Duration::from_secs(5), || in_view() == 100).await;
+    assert!(showing().contains("4,900–4,999"), "{}", showing());
 }

@@ -15,275 +15,12 @@
 //!
 //! Missing chromedriver or dist is a test failure with an explanation, never a skip.
 
-use std::io::{BufRead, BufReader, Read, Write};
-use std::net::{TcpListener, TcpStream};
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
-use std::sync::mpsc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
-use fantoccini::{Client, ClientBuilder, Locator};
+use fantoccini::Locator;
 
-const TOKEN: &str = "e2e-secret-token";
-
-fn target_dir() -> PathBuf {
-    // CARGO_TARGET_TMPDIR is `<target>/tmp`.
-    Path::new(env!("CARGO_TARGET_TMPDIR"))
-        .parent()
-        .expect("target dir")
-        .to_path_buf()
-}
-
-fn workspace_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .unwrap()
-        .to_path_buf()
-}
-
-fn backend_binary() -> PathBuf {
-    if let Some(p) = std::env::var_os("SPINTUNE_BIN") {
-        let p = PathBuf::from(p);
-        assert!(p.is_file(), "SPINTUNE_BIN={} does not exist", p.display());
-        return p;
-    }
-    let p = target_dir().join("debug").join("spintune");
-    if !p.is_file() {
-        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-        let status = Command::new(cargo)
-            .args(["build", "-p", "spintune-server", "--bin", "spintune"])
-            .current_dir(workspace_root())
-            .env("CARGO_TARGET_DIR", target_dir())
-            .status()
-            .expect("run cargo build for the backend");
-        assert!(status.success(), "building the backend failed");
-    }
-    assert!(p.is_file(), "backend binary not found at {}", p.display());
-    p
-}
-
-fn dist_dir() -> PathBuf {
-    let p = std::env::var_os("SPINTUNE_DIST")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| workspace_root().join("dist"));
-    assert!(
-        p.join("index.html").is_file(),
-        "no built dashboard at {} (set SPINTUNE_DIST, or run `TRUNK_SKIP_VERSION_CHECK=true trunk build --release --offline` at the workspace root)",
-        p.display()
-    );
-    p
-}
-
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-/// A child process killed on drop.
-struct Proc(Child);
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn start_server(port: u16, db: &Path) -> Proc {
-    let mut child = Command::new(backend_binary())
-        .args([
-            "serve",
-            "--bind",
-            &format!("127.0.0.1:{port}"),
-            "--token",
-            TOKEN,
-            "--iteration-delay-ms",
-            "250",
-        ])
-        .arg("--dist")
-        .arg(dist_dir())
-        .arg("--db")
-        .arg(db)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::inherit())
-        .spawn()
-        .expect("start the backend");
-    let stdout = child.stdout.take().unwrap();
-    let (tx, rx) = mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            eprintln!("[server] {line}");
-            if line.contains("Dashboard:") {
-                let _ = tx.send(());
-            }
-        }
-    });
-    rx.recv_timeout(Duration::from_secs(60))
-        .expect("backend did not print its Dashboard address within 60 s");
-    Proc(child)
-}
-
-fn start_chromedriver(port: u16) -> Proc {
-    let bin = std::env::var("CHROMEDRIVER").unwrap_or_else(|_| "chromedriver".into());
-    let child = Command::new(&bin)
-        .arg(format!("--port={port}"))
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap_or_else(|e| {
-            panic!("cannot start `{bin}` ({e}): install chromium and chromium-driver (apt-get install chromium chromium-driver) or set CHROMEDRIVER")
-        });
-    let start = Instant::now();
-    while TcpStream::connect(("127.0.0.1", port)).is_err() {
-        assert!(
-            start.elapsed() < Duration::from_secs(20),
-            "chromedriver did not listen on {port}"
-        );
-        std::thread::sleep(Duration::from_millis(100));
-    }
-    Proc(child)
-}
-
-/// Minimal HTTP/1.1 request; returns (status, body).
-fn http(port: u16, method: &str, path: &str, auth: Option<&str>, body: &str) -> (u16, String) {
-    let mut s = TcpStream::connect(("127.0.0.1", port)).expect("connect to backend");
-    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
-    let auth = auth
-        .map(|t| format!("Authorization: Bearer {t}\r\n"))
-        .unwrap_or_default();
-    write!(
-        s,
-        "{method} {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n{auth}Content-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
-        body.len()
-    )
-    .unwrap();
-    let mut resp = String::new();
-    s.read_to_string(&mut resp).unwrap();
-    let status = resp
-        .split_whitespace()
-        .nth(1)
-        .and_then(|c| c.parse().ok())
-        .unwrap_or(0);
-    let body = resp
-        .split_once("\r\n\r\n")
-        .map(|x| x.1.to_string())
-        .unwrap_or_default();
-    (status, body)
-}
-
-fn run_iterations(port: u16) -> (u64, u64, String) {
-    let (status, body) = http(port, "GET", "/api/runs", None, "");
-    assert_eq!(status, 200, "GET /api/runs: {body}");
-    // The body may be chunked; take the JSON array.
-    let json = &body[body.find('[').unwrap()..=body.rfind(']').unwrap()];
-    let runs: serde_json::Value = serde_json::from_str(json).unwrap();
-    let run = &runs[0];
-    (
-        run["id"].as_u64().unwrap(),
-        run["iterations"].as_u64().unwrap(),
-        run["status"]["state"].as_str().unwrap().to_string(),
-    )
-}
-
-async fn text(c: &Client, css: &str) -> Option<String> {
-    c.find(Locator::Css(css)).await.ok()?.text().await.ok()
-}
-
-async fn attr(c: &Client, css: &str, name: &str) -> Option<String> {
-    c.find(Locator::Css(css))
-        .await
-        .ok()?
-        .attr(name)
-        .await
-        .ok()?
-}
-
-async fn iterations_drawn(c: &Client) -> u64 {
-    attr(c, "canvas[data-chart=parameter-t_sr]", "data-iterations")
-        .await
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(0)
-}
-
-/// Poll `check` every 100 ms until it returns `Some`, or fail after `secs`.
-async fn wait<T>(what: &str, secs: u64, mut check: impl AsyncFnMut() -> Option<T>) -> T {
-    let start = Instant::now();
-    loop {
-        if let Some(v) = check().await {
-            return v;
-        }
-        assert!(
-            start.elapsed() < Duration::from_secs(secs),
-            "timed out after {secs} s waiting for {what}"
-        );
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
-}
-
-async fn wait_text(c: &Client, css: &str, needle: &str, secs: u64) -> String {
-    wait(
-        &format!("`{css}` to contain {needle:?}"),
-        secs,
-        async || text(c, css).await.filter(|t| t.contains(needle)),
-    )
-    .await
-}
-
-async fn click(c: &Client, css: &str) {
-    c.find(Locator::Css(css))
-        .await
-        .unwrap_or_else(|e| panic!("no {css}: {e}"))
-        .click()
-        .await
-        .unwrap_or_else(|e| panic!("click {css}: {e}"));
-}
-
-async fn type_into(c: &Client, css: &str, value: &str) {
-    let el = c
-        .find(Locator::Css(css))
-        .await
-        .unwrap_or_else(|e| panic!("no {css}: {e}"));
-    el.clear().await.unwrap();
-    el.send_keys(value).await.unwrap();
-}
-
-async fn screenshot(c: &Client, name: &str) {
-    let dir = target_dir().join("e2e-screenshots");
-    std::fs::create_dir_all(&dir).unwrap();
-    let png = c.screenshot().await.expect("screenshot");
-    std::fs::write(dir.join(format!("{name}.png")), png).unwrap();
-    // And the whole page.
-    c.set_window_size(1400, 2600).await.unwrap();
-    tokio::time::sleep(Duration::from_millis(800)).await;
-    let png = c.screenshot().await.expect("screenshot");
-    std::fs::write(dir.join(format!("{name}-full.png")), png).unwrap();
-    c.set_window_size(1400, 900).await.unwrap();
-    tokio::time::sleep(Duration::from_millis(300)).await;
-    eprintln!("screenshots: {}", dir.join(format!("{name}.png")).display());
-}
-
-async fn browser(driver_port: u16) -> Client {
-    let mut opts = serde_json::json!({
-        "args": [
-            "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-            "--disable-background-networking", "--disable-component-update", "--disable-sync",
-            "--no-first-run", "--disable-quic", "--window-size=1400,900",
-        ]
-    });
-    if let Ok(bin) = std::env::var("CHROME") {
-        opts["binary"] = bin.into();
-    }
-    let mut caps = serde_json::Map::new();
-    caps.insert("goog:chromeOptions".into(), opts);
-    ClientBuilder::native()
-        .capabilities(caps)
-        .connect(&format!("http://127.0.0.1:{driver_port}"))
-        .await
-        .expect("connect to chromedriver")
-}
+mod support;
+use support::*;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn dashboard_live_control_reconnect_and_in_browser_mode() {
@@ -340,6 +77,21 @@ async fn dashboard_live_control_reconnect_and_in_browser_mode() {
         .await
         .unwrap();
     eprintln!("budget: first chart with data drawn {first_chart_ms} ms after navigation start (live mode)");
+    let metrics = c
+        .execute("return window.__spintune_metrics ?? null", vec![])
+        .await
+        .unwrap();
+    eprintln!(
+        "budget: live updates (demo run, {} iterations): latest {} ms, largest {} ms of chart drawing per update; wasm memory {} B",
+        iterations_drawn(&c).await,
+        metrics["updateMs"],
+        metrics["maxUpdateMs"],
+        metrics["wasmMemoryBytes"]
+    );
+    assert!(
+        metrics["updates"].as_f64().is_some_and(|n| n >= 2.0),
+        "no live updates measured: {metrics}"
+    );
     screenshot(&c, "live").await;
 
     // --- Control is refused without (or with a wrong) token -------------------

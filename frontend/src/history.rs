@@ -1,0 +1,578 @@
+//! The client's history of one run, built for long runs (10⁵ iterations and
+//! more): rows keyed by iteration, sorted, gaps allowed, filled from pages
+//! arriving in any order, and a compact numeric form of each record.
+//!
+//! **Memory bound.** A record is not kept as such: each iteration becomes a
+//! [`Row`] (iteration, lab time, tuned) and one number in each of the
+//! history's columns, laid out by the run's [`Layout`] (per parameter value,
+//! σ, target, tolerance; per gradient element value and σ; per gate voltage
+//! and step) — 4·P + 2·P·G + 2·G `f64`s (P parameters, G gates: 32 numbers,
+//! 256 B, plus the 24 B row, for the paper's 2 parameters and 4 gates), and
+//! its events (usually none). Columns are contiguous, so a chart reading one
+//! series of 100,000 iterations streams through 800 kB of memory. Raw scans (tens of kB per
+//! iteration) are kept for two iterations only: the latest live one and the
+//! one being inspected. At most [`MAX_ROWS`] rows are held (the oldest are
+//! dropped beyond it): ≈ 28 MB for 100,000 iterations.
+
+use std::collections::BTreeMap;
+
+use spintune::protocol::{IterationRecord, ScanReport, TunerEvent};
+
+use crate::model::gradient_sigmas;
+
+/// Most rows held; older rows are dropped (and not fetched again) beyond this.
+pub const MAX_ROWS: usize = 1_000_000;
+
+/// Names and units of the numbers in a [`Row`], fixed by the first record.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Layout {
+    /// Parameters: (name, unit).
+    pub parameters: Vec<(String, String)>,
+    /// Gradients: (parameter, unit, e.g. `"ns/mV"`).
+    pub gradients: Vec<(String, String)>,
+    /// The top level's gates (gradient columns, voltages, steps).
+    pub gates: Vec<String>,
+}
+
+/// Column indices of the numbers of an iteration.
+impl Layout {
+    fn from_record(r: &IterationRecord) -> Self {
+        Self {
+            parameters: r
+                .parameters
+                .iter()
+                .map(|p| (p.name.clone(), p.unit.clone()))
+                .collect(),
+            gradients: r
+                .gradients
+                .iter()
+                .map(|g| (g.parameter.clone(), g.unit.clone()))
+                .collect(),
+            gates: r.gates.clone(),
+        }
+    }
+
+    /// Numbers per row.
+    pub fn width(&self) -> usize {
+        4 * self.parameters.len()
+            + 2 * self.gradients.len() * self.gates.len()
+            + 2 * self.gates.len()
+    }
+
+    /// Column of parameter `p`'s value; σ, target and tolerance follow.
+    pub fn param(&self, p: usize) -> usize {
+        4 * p
+    }
+
+    /// Column of gradient `g`'s element for gate `gate`; its σ follows.
+    pub fn grad(&self, g: usize, gate: usize) -> usize {
+        4 * self.parameters.len() + 2 * (g * self.gates.len() + gate)
+    }
+
+    /// Column of gate `gate`'s voltage (mV); its step (mV) follows.
+    pub fn gate(&self, gate: usize) -> usize {
+        4 * self.parameters.len() + 2 * self.gradients.len() * self.gates.len() + 2 * gate
+    }
+
+    /// Position of a parameter by name.
+    pub fn param_index(&self, name: &str) -> Option<usize> {
+        self.parameters.iter().position(|p| p.0 == name)
+    }
+
+    /// The numbers of a record in this layout (NaN where absent).
+    fn row(&self, r: &IterationRecord) -> (Row, Vec<f64>) {
+        let mut data = vec![f64::NAN; self.width()];
+        for (i, (name, _)) in self.parameters.iter().enumerate() {
+            if let Some(p) = r.parameters.iter().find(|p| &p.name == name) {
+                let o = self.param(i);
+                let f = |v: Option<f64>| v.unwrap_or(f64::NAN);
+                data[o] = f(p.value);
+                data[o + 1] = f(p.std);
+                data[o + 2] = f(p.target);
+                data[o + 3] = f(p.tolerance);
+            }
+        }
+        for (gi, (name, _)) in self.gradients.iter().enumerate() {
+            let Some(g) = r.gradients.iter().find(|g| &g.parameter == name) else {
+                continue;
+            };
+            let sig = gradient_sigmas(g);
+            for (k, gate) in self.gates.iter().enumerate() {
+                let Some(col) = r.gates.iter().position(|x| x == gate) else {
+                    continue;
+                };
+                let o = self.grad(gi, k);
+                data[o] = g.gradient.get(col).copied().unwrap_or(f64::NAN);
+                data[o + 1] = sig
+                    .as_ref()
+                    .and_then(|s| s.get(col).copied())
+                    .unwrap_or(f64::NAN);
+            }
+        }
+        for (k, gate) in self.gates.iter().enumerate() {
+            let o = self.gate(k);
+            data[o] = r.voltages_mv.get(gate).copied().unwrap_or(f64::NAN);
+            data[o + 1] = r
+                .gates
+                .iter()
+                .position(|x| x == gate)
+                .and_then(|c| r.step_mv.get(c).copied())
+                .unwrap_or(f64::NAN);
+        }
+        (
+            Row {
+                iteration: r.iteration,
+                lab_seconds: r.lab_seconds,
+                tuned: r.tuned,
+            },
+            data,
+        )
+    }
+}
+
+/// One iteration (its numbers are in the history's columns, same index).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Row {
+    /// Iteration number.
+    pub iteration: u64,
+    /// Cumulative lab time, s.
+    pub lab_seconds: f64,
+    /// All targeted parameters in band.
+    pub tuned: bool,
+}
+
+/// How a page or a live record changed the history.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Merge {
+    /// Rows added.
+    pub added: usize,
+    /// Records already known (ignored).
+    pub duplicates: usize,
+}
+
+/// The history of one run (see the module doc for its memory bound).
+#[derive(Debug, Clone, Default)]
+pub struct RunHistory {
+    layout: Layout,
+    rows: Vec<Row>,
+    /// `columns[c][i]`: number `c` of the [`Layout`] for `rows[i]` (NaN where
+    /// the record had none).
+    columns: Vec<Vec<f64>>,
+    events: BTreeMap<u64, Vec<TunerEvent>>,
+    /// The newest record received (summary or full), for the headline numbers.
+    latest: Option<IterationRecord>,
+    /// Scans of the latest iteration (live frames after `subscribe`).
+    latest_scans: Option<(u64, Vec<ScanReport>)>,
+    /// Scans of the inspected iteration (answer to `scans`).
+    inspected_scans: Option<(u64, Vec<ScanReport>)>,
+    /// No stored iteration below this one exists (a page said `more_before: false`).
+    floor: u64,
+    /// Iterations the server holds, as far as known (`RunSummary::iterations`).
+    total: u64,
+    /// Bumped on every change (cheap change detection for charts).
+    version: u64,
+}
+
+impl RunHistory {
+    /// Empty.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// The layout of the rows (empty before the first record).
+    pub fn layout(&self) -> &Layout {
+        &self.layout
+    }
+
+    /// All rows, sorted by iteration (gaps possible).
+    pub fn rows(&self) -> &[Row] {
+        &self.rows
+    }
+
+    /// Number of iterations held.
+    pub fn len(&self) -> usize {
+        self.rows.len()
+    }
+
+    /// Whether no iteration is held.
+    pub fn is_empty(&self) -> bool {
+        self.rows.is_empty()
+    }
+
+    /// Change counter.
+    pub fn version(&self) -> u64 {
+        self.version
+    }
+
+    /// The newest record received.
+    pub fn latest(&self) -> Option<&IterationRecord> {
+        self.latest.as_ref()
+    }
+
+    /// First and last iteration held.
+    pub fn extent(&self) -> Option<(u64, u64)> {
+        Some((self.rows.first()?.iteration, self.rows.last()?.iteration))
+    }
+
+    /// Iterations on the server (at least those held).
+    pub fn total(&self) -> u64 {
+        self.total
+            .max(self.rows.last().map_or(0, |r| r.iteration + 1))
+    }
+
+    /// Tell the history how many iterations the server holds.
+    pub fn set_total(&mut self, total: u64) {
+        if total != self.total {
+            self.total = total;
+            self.version += 1;
+        }
+    }
+
+    /// Column `c` of the [`Layout`], one number per row.
+    pub fn column(&self, c: usize) -> &[f64] {
+        self.columns.get(c).map_or(&[], Vec::as_slice)
+    }
+
+    /// All numbers of iteration `k` (indexed by the [`Layout`]).
+    pub fn values(&self, k: u64) -> Option<Vec<f64>> {
+        let i = self.rows.binary_search_by_key(&k, |r| r.iteration).ok()?;
+        Some(self.columns.iter().map(|c| c[i]).collect())
+    }
+
+    /// The row of iteration `k`.
+    pub fn row(&self, k: u64) -> Option<&Row> {
+        self.rows
+            .binary_search_by_key(&k, |r| r.iteration)
+            .ok()
+            .map(|i| &self.rows[i])
+    }
+
+    /// Index range of rows with iteration in `[lo, hi]`.
+    pub fn range(&self, lo: f64, hi: f64) -> std::ops::Range<usize> {
+        let a = self.rows.partition_point(|r| (r.iteration as f64) < lo);
+        let b = self.rows.partition_point(|r| (r.iteration as f64) <= hi);
+        a..b.max(a)
+    }
+
+    /// The row nearest to iteration `k` (for hover).
+    pub fn nearest(&self, k: f64) -> Option<&Row> {
+        let i = self.rows.partition_point(|r| (r.iteration as f64) < k);
+        let after = self.rows.get(i);
+        let before = i.checked_sub(1).and_then(|j| self.rows.get(j));
+        match (before, after) {
+            (Some(b), Some(a)) => Some(if k - b.iteration as f64 <= a.iteration as f64 - k {
+                b
+            } else {
+                a
+            }),
+            (b, a) => b.or(a),
+        }
+    }
+
+    /// The iteration whose lab time is nearest to `seconds`.
+    pub fn at_lab_seconds(&self, seconds: f64) -> Option<u64> {
+        let i = self.rows.partition_point(|r| r.lab_seconds < seconds);
+        let cand = [i.checked_sub(1), Some(i)];
+        cand.into_iter()
+            .flatten()
+            .filter_map(|j| self.rows.get(j))
+            .min_by(|a, b| {
+                (a.lab_seconds - seconds)
+                    .abs()
+                    .total_cmp(&(b.lab_seconds - seconds).abs())
+            })
+            .map(|r| r.iteration)
+    }
+
+    /// Events of iteration `k`.
+    pub fn events(&self, k: u64) -> &[TunerEvent] {
+        self.events.get(&k).map_or(&[], Vec::as_slice)
+    }
+
+    /// The newest `n` events with their iterations, newest first.
+    pub fn recent_events(&self, n: usize) -> Vec<(u64, TunerEvent)> {
+        self.events
+            .iter()
+            .rev()
+            .flat_map(|(k, es)| es.iter().map(move |e| (*k, e.clone())))
+            .take(n)
+            .collect()
+    }
+
+    /// Scans of iteration `k` if held (latest or inspected).
+    pub fn scans(&self, k: u64) -> Option<&[ScanReport]> {
+        [&self.inspected_scans, &self.latest_scans]
+            .into_iter()
+            .flatten()
+            .find(|(i, _)| *i == k)
+            .map(|(_, s)| s.as_slice())
+    }
+
+    /// The latest iteration's scans, if held.
+    pub fn latest_scans(&self) -> Option<(u64, &[ScanReport])> {
+        self.latest_scans.as_ref().map(|(k, s)| (*k, s.as_slice()))
+    }
+
+    /// Keep the scans of the inspected iteration `k` (replacing the previous).
+    pub fn set_inspected_scans(&mut self, k: u64, scans: Vec<ScanReport>) {
+        self.inspected_scans = Some((k, scans));
+        self.version += 1;
+    }
+
+    /// Insert records (a page in any order, or one live record). Known
+    /// iterations are ignored; a record carrying scans that is the newest
+    /// becomes the latest scans. Returns what changed.
+    pub fn insert(&mut self, records: impl IntoIterator<Item = IterationRecord>) -> Merge {
+        let mut new_rows: Vec<(Row, Vec<f64>)> = Vec::new();
+        let mut merge = Merge::default();
+        for mut r in records {
+            if self.layout.gates.is_empty() && self.layout.parameters.is_empty() {
+                self.layout = Layout::from_record(&r);
+                self.columns = vec![Vec::new(); self.layout.width()];
+            }
+            if self.row(r.iteration).is_some() {
+                merge.duplicates += 1;
+                continue;
+            }
+            let newest = self
+                .latest
+                .as_ref()
+                .is_none_or(|l| r.iteration >= l.iteration);
+            let scans = std::mem::take(&mut r.scans);
+            if newest && !scans.is_empty() {
+                self.latest_scans = Some((r.iteration, scans));
+            }
+            if !r.events.is_empty() {
+                self.events.insert(r.iteration, r.events.clone());
+            }
+            new_rows.push(self.layout.row(&r));
+            if newest {
+                r.events.clear();
+                self.latest = Some(r);
+            }
+        }
+        if new_rows.is_empty() {
+            return merge;
+        }
+        new_rows.sort_by_key(|r| r.0.iteration);
+        new_rows.dedup_by_key(|r| r.0.iteration);
+        merge.added = new_rows.len();
+        let appending = self
+            .rows
+            .last()
+            .is_none_or(|l| l.iteration < new_rows[0].0.iteration);
+        if appending {
+            for (row, values) in new_rows {
+                self.rows.push(row);
+                for (c, v) in self.columns.iter_mut().zip(values) {
+                    c.push(v);
+                }
+            }
+        } else {
+            // Merge two sorted lists in O(n + m): the order once, then every column.
+            let (n, m) = (self.rows.len(), new_rows.len());
+            let mut order: Vec<(bool, usize)> = Vec::with_capacity(n + m);
+            let (mut i, mut j) = (0, 0);
+            while i < n || j < m {
+                let take_old =
+                    j == m || (i < n && self.rows[i].iteration <= new_rows[j].0.iteration);
+                if take_old {
+                    order.push((false, i));
+                    i += 1;
+                } else {
+                    order.push((true, j));
+                    j += 1;
+                }
+            }
+            let pick_row = |&(new, k): &(bool, usize)| {
+                if new {
+                    new_rows[k].0
+                } else {
+                    self.rows[k]
+                }
+            };
+            let rows: Vec<Row> = order.iter().map(pick_row).collect();
+            for (ci, col) in self.columns.iter_mut().enumerate() {
+                let merged: Vec<f64> = order
+                    .iter()
+                    .map(|&(new, k)| if new { new_rows[k].1[ci] } else { col[k] })
+                    .collect();
+                *col = merged;
+            }
+            self.rows = rows;
+        }
+        if self.rows.len() > MAX_ROWS {
+            let drop = self.rows.len() - MAX_ROWS;
+            let cut = self.rows[drop].iteration;
+            self.rows.drain(..drop);
+            for c in &mut self.columns {
+                c.drain(..drop);
+            }
+            self.events = self.events.split_off(&cut);
+            self.floor = self.floor.max(cut);
+        }
+        self.version += 1;
+        merge
+    }
+
+    /// A page arrived: insert it; with `more_before == false` nothing older
+    /// than its first record (or than `before` for an empty page) exists.
+    pub fn insert_page(
+        &mut self,
+        records: Vec<IterationRecord>,
+        more_before: bool,
+        before: Option<u64>,
+    ) -> Merge {
+        let first = records.iter().map(|r| r.iteration).min().or(before);
+        let m = self.insert(records);
+        if !more_before {
+            if let Some(f) = first {
+                if f > self.floor {
+                    self.floor = f;
+                    self.version += 1;
+                }
+            }
+        }
+        m
+    }
+
+    /// Iterations known missing, as half-open ranges `[a, b)`, newest first:
+    /// below the first row (down to the floor) and between rows.
+    pub fn gaps(&self) -> Vec<(u64, u64)> {
+        let mut out = Vec::new();
+        for w in self.rows.windows(2).rev() {
+            if w[1].iteration > w[0].iteration + 1 {
+                out.push((w[0].iteration + 1, w[1].iteration));
+            }
+        }
+        if let Some(first) = self.rows.first() {
+            if first.iteration > self.floor {
+                out.push((self.floor, first.iteration));
+            }
+        }
+        out
+    }
+
+    /// The next older page to ask for: `(before, limit)` covering the top of
+    /// the newest gap, with `limit ≤ max_limit`; `None` when complete.
+    pub fn next_page(&self, max_limit: u32) -> Option<(u64, u32)> {
+        let (a, b) = *self.gaps().first()?;
+        let limit = (b - a).min(max_limit as u64) as u32;
+        Some((b, limit))
+    }
+
+    /// Forget everything.
+    pub fn clear(&mut self) {
+        let v = self.version + 1;
+        *self = Self::default();
+        self.version = v;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::fake_records;
+
+    fn its(h: &RunHistory) -> Vec<u64> {
+        h.rows().iter().map(|r| r.iteration).collect()
+    }
+
+    fn recs(range: std::ops::Range<u64>) -> Vec<IterationRecord> {
+        let all = fake_records(range.end);
+        all[range.start as usize..].to_vec()
+    }
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn pages_out_of_order_with_gaps_and_duplicates() {
+        let mut h = RunHistory::new();
+        // The newest page first (as after hello), then older pages out of order.
+        assert_eq!(h.insert_page(recs(80..100), true, None).added, 20);
+        assert_eq!(h.next_page(15), Some((80, 15)));
+        assert_eq!(h.insert_page(recs(20..40), true, Some(40)).added, 20);
+        assert_eq!(h.gaps(), vec![(40, 80), (0, 20)]);
+        // Overlapping page: duplicates ignored.
+        let m = h.insert_page(recs(30..60), true, Some(60));
+        assert_eq!(
+            m,
+            Merge {
+                added: 20,
+                duplicates: 10
+            }
+        );
+        assert_eq!(h.gaps(), vec![(60, 80), (0, 20)]);
+        assert_eq!(h.next_page(2000), Some((80, 20)));
+        // A live record beyond the end, then a page reversed.
+        let mut page: Vec<_> = recs(60..80);
+        page.reverse();
+        h.insert_page(page, true, Some(80));
+        h.insert(recs(100..101));
+        assert_eq!(h.gaps(), vec![(0, 20)]);
+        // The oldest page says nothing is older.
+        h.insert_page(recs(0..20), false, Some(20));
+        assert_eq!(h.gaps(), vec![]);
+        assert_eq!(h.next_page(2000), None);
+        assert_eq!(its(&h), (0..101).collect::<Vec<_>>());
+        assert_eq!(h.latest().unwrap().iteration, 100);
+        // Every column was merged in the same order as the rows.
+        let src = fake_records(101);
+        let (p, g) = (h.layout().param(1), h.layout().gate(2));
+        for (i, r) in src.iter().enumerate() {
+            assert_eq!(h.column(p)[i], r.parameters[1].value.unwrap(), "w at {i}");
+            assert_eq!(h.column(g)[i], r.voltages_mv["SB"], "V_SB at {i}");
+        }
+    }
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn a_store_that_starts_late_has_a_floor() {
+        let mut h = RunHistory::new();
+        h.insert_page(recs(50..60), true, None);
+        assert_eq!(h.gaps(), vec![(0, 50)]);
+        // The server has nothing below 45 (e.g. pruned): no gap below it.
+        h.insert_page(recs(45..50), false, Some(50));
+        assert_eq!(h.gaps(), vec![]);
+        // An empty page for `before = 45` with more_before = false also ends paging.
+        let mut h2 = RunHistory::new();
+        h2.insert_page(recs(45..50), true, None);
+        h2.insert_page(vec![], false, Some(45));
+        assert_eq!(h2.next_page(100), None);
+    }
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn rows_hold_numbers_and_scans_are_kept_for_two_iterations_only() {
+        let mut h = RunHistory::new();
+        h.insert(fake_records(8));
+        let l = h.layout().clone();
+        assert_eq!(l.parameters[0], ("t_sr".to_string(), "ns".to_string()));
+        assert_eq!(l.gates, vec!["N", "SA", "SB", "T"]);
+        let r = h.values(5).unwrap();
+        let src = &fake_records(6)[5];
+        assert_eq!(h.column(l.param(0)).len(), 8);
+        assert_eq!(r[l.param(0)], src.parameters[0].value.unwrap());
+        assert_eq!(r[l.param(1) + 2], 270.0); // w target
+        assert_eq!(r[l.grad(1, 2)], src.gradients[1].gradient[2]);
+        assert!(
+            (r[l.grad(0, 0) + 1] - 0.075 * (1.0 + 3.0 * (-5.0f64 / 6.0).exp()).sqrt()).abs()
+                < 1e-12
+        );
+        assert_eq!(r[l.gate(3)], src.voltages_mv["T"]);
+        assert_eq!(r[l.gate(1) + 1], -1.0); // step on SA
+                                            // Only the newest record's scans are held; the others were dropped.
+        assert_eq!(h.latest_scans().map(|s| s.0), Some(7));
+        assert!(h.scans(5).is_none());
+        h.set_inspected_scans(5, src.scans.clone());
+        assert_eq!(h.scans(5).unwrap().len(), 1);
+        assert!(h.scans(7).is_some());
+        // Events are kept per iteration.
+        assert_eq!(h.events(5).len(), 1);
+        assert_eq!(h.recent_events(10).len(), 2);
+        assert_eq!(h.recent_events(10)[0].0, 5);
+        // Lookup helpers.
+        assert_eq!(h.nearest(5.4).unwrap().iteration, 5);
+        assert_eq!(h.range(2.0, 4.5), 2..5);
+        assert_eq!(h.at_lab_seconds(60.0 * 3.0 + 31.0), Some(3));
+    }
+}

@@ -1,0 +1,95 @@
+//! Main-thread cost of the dashboard, measured in the page and published on
+//! `window.__spintune_metrics` for the end-to-end test and BUDGET.md:
+//!
+//! * `firstChartMs` — `performance.now()` (ms since navigation start) when
+//!   the first chart with at least one iteration was drawn;
+//! * `updateMs` — total chart drawing time (ms) of the latest *update* (a
+//!   live iteration, a page of history or a change of the view: everything
+//!   the charts redraw for it), `maxUpdateMs` the largest over the finished
+//!   updates, `updates` how many began;
+//! * `wasmMemoryBytes` — size of the module's linear memory
+//!   (`WebAssembly.Memory.buffer.byteLength`), bytes.
+
+use std::cell::RefCell;
+
+use wasm_bindgen::{JsCast, JsValue};
+
+#[derive(Default)]
+struct Metrics {
+    updates: u64,
+    current_ms: f64,
+    max_ms: f64,
+    first_chart_ms: Option<f64>,
+}
+
+thread_local! {
+    static METRICS: RefCell<Metrics> = RefCell::new(Metrics::default());
+}
+
+/// `performance.now()`, ms (NaN outside a browser).
+pub fn now_ms() -> f64 {
+    web_sys::window()
+        .and_then(|w| w.performance())
+        .map_or(f64::NAN, |p| p.now())
+}
+
+/// A new update begins (its chart draws are summed from now on).
+pub fn begin_update() {
+    METRICS.with(|m| {
+        let mut m = m.borrow_mut();
+        if m.current_ms > m.max_ms && m.updates > 0 {
+            m.max_ms = m.current_ms;
+        }
+        m.updates += 1;
+        m.current_ms = 0.0;
+    });
+}
+
+/// A chart was drawn in `ms`, showing `iterations` iterations.
+pub fn note_draw(ms: f64, iterations: usize) {
+    METRICS.with(|m| {
+        let mut m = m.borrow_mut();
+        if ms.is_finite() {
+            m.current_ms += ms;
+        }
+        if iterations > 0 && m.first_chart_ms.is_none() {
+            m.first_chart_ms = Some(now_ms());
+        }
+    });
+    publish();
+}
+
+fn wasm_memory_bytes() -> f64 {
+    wasm_bindgen::memory()
+        .dyn_into::<js_sys::WebAssembly::Memory>()
+        .ok()
+        .and_then(|m| m.buffer().dyn_into::<js_sys::ArrayBuffer>().ok())
+        .map_or(f64::NAN, |b| b.byte_length() as f64)
+}
+
+/// Write the numbers to `window.__spintune_metrics` (and the first-chart
+/// time also to `window.spintuneFirstChartMs`, as before).
+pub fn publish() {
+    let Some(w) = web_sys::window() else { return };
+    let obj = js_sys::Object::new();
+    let set = |k: &str, v: f64| {
+        let _ = js_sys::Reflect::set(&obj, &JsValue::from_str(k), &JsValue::from_f64(v));
+    };
+    let first = METRICS.with(|m| {
+        let m = m.borrow();
+        set("updates", m.updates as f64);
+        set("updateMs", m.current_ms);
+        set("maxUpdateMs", m.max_ms);
+        set("firstChartMs", m.first_chart_ms.unwrap_or(f64::NAN));
+        m.first_chart_ms
+    });
+    set("wasmMemoryBytes", wasm_memory_bytes());
+    let _ = js_sys::Reflect::set(&w, &JsValue::from_str("__spintune_metrics"), &obj);
+    if let Some(first) = first {
+        let _ = js_sys::Reflect::set(
+            &w,
+            &JsValue::from_str("spintuneFirstChartMs"),
+            &JsValue::from_f64(first),
+        );
+    }
+}

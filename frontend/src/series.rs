@@ -1,0 +1,543 @@
+//! The time-series charts of a run (parameters, gradients, gate voltages,
+//! lab time), drawn from a [`RunHistory`] over the shared iteration
+//! [`Window`], decimated per pixel column ([`crate::decimate`]) so that a run
+//! of 100,000 iterations draws a few thousand points and keeps its spikes.
+//!
+//! The x axis is the iteration number or the lab time (h:mm, [`XAxis`]).
+//! Legends are not drawn on the canvas (they would cover data): the page
+//! shows them as text next to each chart.
+
+use plotters::coord::Shift;
+use plotters::prelude::*;
+
+use crate::charts::{
+    bar_width, color, err, int_label, num_label, placeholder, styled_chart, BAND, TARGET,
+};
+use crate::decimate::{min_max, Columns};
+use crate::history::{Row, RunHistory};
+use crate::model::padded_range;
+use crate::zoom::Window;
+
+/// What the x axis shows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum XAxis {
+    /// Iteration number.
+    Iteration,
+    /// Cumulative lab time, drawn in hours and labelled h:mm.
+    LabTime,
+}
+
+impl XAxis {
+    /// The x coordinate of a row: iteration, or lab time in hours.
+    pub fn x(self, r: &Row) -> f64 {
+        match self {
+            XAxis::Iteration => r.iteration as f64,
+            XAxis::LabTime => r.lab_seconds / 3600.0,
+        }
+    }
+
+    /// Axis description with its unit.
+    pub fn desc(self) -> &'static str {
+        match self {
+            XAxis::Iteration => "iteration",
+            XAxis::LabTime => "lab time (h:mm)",
+        }
+    }
+}
+
+/// Lab time in hours as `h:mm` (e.g. `1.5` → `"1:30"`).
+pub fn hmm(hours: &f64) -> String {
+    if !hours.is_finite() {
+        return String::new();
+    }
+    let m = (hours * 60.0).round() as i64;
+    let sign = if m < 0 { "-" } else { "" };
+    format!("{sign}{}:{:02}", m.abs() / 60, m.abs() % 60)
+}
+
+/// What a time-series chart shows.
+#[derive(Clone, Copy)]
+pub struct Frame<'a> {
+    /// The run.
+    pub history: &'a RunHistory,
+    /// Iterations shown.
+    pub window: Window,
+    /// The x axis.
+    pub axis: XAxis,
+    /// A second run drawn for comparison on the parameter charts.
+    pub overlay: Option<&'a RunHistory>,
+}
+
+impl Frame<'_> {
+    fn range(&self) -> std::ops::Range<usize> {
+        self.history.range(self.window.lo, self.window.hi)
+    }
+
+    fn rows(&self) -> &[Row] {
+        &self.history.rows()[self.range()]
+    }
+
+    /// Column `c` of the history over the rows in the window.
+    fn column(&self, c: usize) -> &[f64] {
+        self.history.column(c).get(self.range()).unwrap_or(&[])
+    }
+
+    /// The x range drawn.
+    pub fn x_range(&self) -> (f64, f64) {
+        match self.axis {
+            XAxis::Iteration => (
+                self.window.lo - 0.5,
+                self.window.hi.max(self.window.lo + 1.0) + 0.5,
+            ),
+            XAxis::LabTime => {
+                let rows = self.rows();
+                let a = rows.first().map_or(0.0, |r| XAxis::LabTime.x(r));
+                let b = rows.last().map_or(1.0, |r| XAxis::LabTime.x(r));
+                if b - a > 1e-9 {
+                    let pad = 0.01 * (b - a);
+                    (a - pad, b + pad)
+                } else {
+                    (a - 0.01, a + 0.01)
+                }
+            }
+        }
+    }
+
+    fn x_fmt(&self) -> &'static dyn Fn(&f64) -> String {
+        match self.axis {
+            XAxis::Iteration => &int_label,
+            XAxis::LabTime => &hmm,
+        }
+    }
+}
+
+/// What a chart drew: for the page's `data-` attributes (read by the tests)
+/// and for mapping mouse positions to iterations.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Drawn {
+    /// Iterations in the window.
+    pub iterations: usize,
+    /// Points of the main series drawn (after decimation).
+    pub points: usize,
+    /// Largest value of the main series drawn (NaN if none).
+    pub y_max: f64,
+    /// Points of the compared run drawn (parameter charts).
+    pub overlay_points: usize,
+    /// Pixel columns `[left, right]` of the plot area (CSS px), if it has one.
+    pub plot_px: Option<(f64, f64)>,
+    /// Data x range of the plot area.
+    pub x_range: (f64, f64),
+}
+
+fn plot_columns<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, y_area: u32) -> usize {
+    (area.dim_in_pixel().0.saturating_sub(y_area + 20) as usize).max(50)
+}
+
+/// The series at data offset `o` of `rows` (σ at `o + 1` when `sigma`):
+/// `(line, bands, points)`. Up to `2 × cols` rows are returned as they are
+/// (`points`: `(x, value, σ)` for error bars); more are decimated in one
+/// pass per pixel column ([`Columns`]: min/max of the values, envelope of
+/// value ± σ) and `points` is `None`.
+#[allow(clippy::type_complexity)]
+fn series_of(
+    f: &Frame<'_>,
+    o: usize,
+    sigma: bool,
+    (x0, x1): (f64, f64),
+    cols: usize,
+) -> (
+    Vec<(f64, f64)>,
+    Vec<(f64, f64, f64)>,
+    Option<Vec<(f64, f64, f64)>>,
+) {
+    let rows = f.rows();
+    let vals = f.column(o);
+    let sds = if sigma { f.column(o + 1) } else { &[] };
+    let sd = |i: usize| sds.get(i).copied().filter(|s| s.is_finite()).unwrap_or(0.0);
+    let axis = f.axis;
+    if rows.len() <= 2 * cols {
+        let pts: Vec<(f64, f64, f64)> = rows
+            .iter()
+            .zip(vals)
+            .enumerate()
+            .filter(|(_, (_, v))| v.is_finite())
+            .map(|(i, (r, v))| (axis.x(r), *v, sd(i)))
+            .collect();
+        let line = pts.iter().map(|&(x, v, _)| (x, v)).collect();
+        let bands = pts.iter().map(|&(x, v, s)| (x, v - s, v + s)).collect();
+        return (line, bands, Some(pts));
+    }
+    let mut c = Columns::new(x0, x1, cols);
+    for (i, (r, &v)) in rows.iter().zip(vals).enumerate() {
+        let s = sd(i);
+        c.push(axis.x(r), v, v - s, v + s);
+    }
+    let (line, bands) = c.finish();
+    (line, bands, None)
+}
+
+/// Segments of constant (target, tolerance) over rows: `(x from, x to, target, half-width)`.
+/// `targets` and `tolerances` are the parameter's columns over `rows`.
+pub fn target_segments(
+    rows: &[Row],
+    targets: &[f64],
+    tolerances: &[f64],
+    axis: XAxis,
+) -> Vec<(f64, f64, f64, f64)> {
+    let mut out: Vec<(f64, f64, f64, f64)> = Vec::new();
+    for ((r, &t), &tol) in rows.iter().zip(targets).zip(tolerances) {
+        if !t.is_finite() {
+            continue;
+        }
+        let tol = if tol.is_finite() { tol } else { 0.0 };
+        let x = axis.x(r);
+        match out.last_mut() {
+            Some(last) if last.2 == t && last.3 == tol => last.1 = x,
+            _ => out.push((x, x, t, tol)),
+        }
+    }
+    out
+}
+
+/// Y range of a decimated series with bands: every value counts (a spike
+/// must stay in view), band bounds only where the band is not much wider
+/// than the median band (distrusted fits are clipped at the frame).
+fn value_range(
+    line: &[(f64, f64)],
+    bands: &[(f64, f64, f64)],
+    extra: impl Iterator<Item = f64>,
+) -> (f64, f64) {
+    let mut widths: Vec<f64> = bands.iter().map(|b| b.2 - b.1).collect();
+    widths.sort_by(|a, b| a.total_cmp(b));
+    let median = widths.get(widths.len() / 2).copied().unwrap_or(0.0);
+    let trusted = bands
+        .iter()
+        .filter(|b| b.2 - b.1 <= 5.0 * median + 1e-300)
+        .flat_map(|b| [b.1, b.2]);
+    padded_range(line.iter().map(|p| p.1).chain(trusted).chain(extra), 0.08)
+}
+
+/// One parameter against the x axis: measured values with ±1σ (error bars,
+/// or per-column bands when decimated), the target line and its tolerance
+/// band; the overlay run's values as a grey line.
+pub fn draw_parameter<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    f: &Frame<'_>,
+    p: usize,
+    series: usize,
+) -> Result<Drawn, String> {
+    let layout = f.history.layout();
+    let Some((name, unit)) = layout.parameters.get(p) else {
+        return placeholder(area, "parameter", "waiting for measurements…")
+            .map(|_| Drawn::default());
+    };
+    let title = format!("{name} ({unit})");
+    let o = layout.param(p);
+    let rows = f.rows();
+    let (x0, x1) = f.x_range();
+    let cols = plot_columns(area, 62);
+    let (line, bands, pts) = series_of(f, o, true, (x0, x1), cols);
+    if line.is_empty() {
+        return placeholder(area, &title, "waiting for measurements…").map(|_| Drawn {
+            iterations: rows.len(),
+            ..Drawn::default()
+        });
+    }
+    let targets = target_segments(rows, f.column(o + 2), f.column(o + 3), f.axis);
+    let overlay: Vec<(f64, f64)> = f
+        .overlay
+        .and_then(|h| {
+            let q = h.layout().param_index(name)?;
+            let oo = h.layout().param(q);
+            let r = h.range(f.window.lo, f.window.hi);
+            let xy: Vec<(f64, f64)> = h.rows()[r.clone()]
+                .iter()
+                .zip(&h.column(oo)[r])
+                .map(|(row, v)| (f.axis.x(row), *v))
+                .collect();
+            Some(min_max(&xy, x0, x1, cols))
+        })
+        .unwrap_or_default();
+    let (y0, y1) = value_range(
+        &line,
+        &bands,
+        targets
+            .iter()
+            .flat_map(|&(_, _, t, tol)| [t - tol, t + tol])
+            .chain(overlay.iter().map(|p| p.1)),
+    );
+    let mut chart = styled_chart(
+        area,
+        &format!(
+            "{title} vs {}",
+            match f.axis {
+                XAxis::Iteration => "iteration",
+                XAxis::LabTime => "lab time",
+            }
+        ),
+        f.axis.desc(),
+        &title,
+        x0..x1,
+        y0..y1,
+        false,
+        f.x_fmt(),
+    )?;
+    let half = match f.axis {
+        XAxis::Iteration => 0.5,
+        XAxis::LabTime => 0.0,
+    };
+    chart
+        .draw_series(targets.iter().map(|&(a, b, t, tol)| {
+            Rectangle::new(
+                [(a - half, t - tol), (b + half, t + tol)],
+                BAND.mix(0.16).filled(),
+            )
+        }))
+        .map_err(err)?;
+    chart
+        .draw_series(targets.iter().map(|&(a, b, t, _)| {
+            PathElement::new(vec![(a - half, t), (b + half, t)], TARGET.stroke_width(2))
+        }))
+        .map_err(err)?;
+    if !overlay.is_empty() {
+        chart
+            .draw_series(LineSeries::new(
+                overlay.iter().copied(),
+                RGBColor(110, 110, 110).stroke_width(1),
+            ))
+            .map_err(err)?;
+    }
+    let c = color(series);
+    if let Some(pts) = &pts {
+        chart
+            .draw_series(LineSeries::new(
+                line.iter().copied(),
+                c.mix(0.5).stroke_width(1),
+            ))
+            .map_err(err)?;
+        chart
+            .draw_series(pts.iter().map(|&(k, v, s)| {
+                ErrorBar::new_vertical(k, v - s, v, v + s, c.filled(), bar_width(pts.len()))
+            }))
+            .map_err(err)?;
+    } else {
+        chart
+            .draw_series(bands.iter().map(|&(x, lo, hi)| {
+                PathElement::new(vec![(x, lo), (x, hi)], c.mix(0.25).stroke_width(1))
+            }))
+            .map_err(err)?;
+        chart
+            .draw_series(LineSeries::new(line.iter().copied(), c.stroke_width(1)))
+            .map_err(err)?;
+    }
+    let px = chart.plotting_area().get_pixel_range().0;
+    Ok(Drawn {
+        iterations: rows.len(),
+        points: line.len(),
+        y_max: line.iter().map(|p| p.1).fold(f64::NAN, f64::max),
+        overlay_points: overlay.len(),
+        plot_px: Some((px.start as f64, px.end as f64)),
+        x_range: (x0, x1),
+    })
+}
+
+/// Every element of one parameter's gradient, ±1σ `√diag C` (one panel per gate).
+pub fn draw_gradient<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    f: &Frame<'_>,
+    g: usize,
+) -> Result<Drawn, String> {
+    let layout = f.history.layout();
+    let Some((name, unit)) = layout.gradients.get(g) else {
+        return placeholder(area, "gradient", "waiting for a gradient estimate…")
+            .map(|_| Drawn::default());
+    };
+    let rows = f.rows();
+    let (x0, x1) = f.x_range();
+    let panels = area.split_evenly((1, layout.gates.len().max(1)));
+    let mut drawn = Drawn {
+        iterations: rows.len(),
+        y_max: f64::NAN,
+        x_range: (x0, x1),
+        ..Drawn::default()
+    };
+    for (gi, (gate, panel)) in layout.gates.iter().zip(panels.iter()).enumerate() {
+        let o = layout.grad(g, gi);
+        let cols = plot_columns(panel, 58);
+        let (line, bands, pts) = series_of(f, o, true, (x0, x1), cols);
+        let (y0, y1) = value_range(&line, &bands, std::iter::empty());
+        let mut chart = styled_chart(
+            panel,
+            &format!("∂{name}/∂V_{gate}"),
+            f.axis.desc(),
+            unit.as_str(),
+            x0..x1,
+            y0..y1,
+            true,
+            f.x_fmt(),
+        )?;
+        let c = color(gi);
+        if let Some(pts) = &pts {
+            chart
+                .draw_series(pts.iter().map(|&(k, v, s)| {
+                    ErrorBar::new_vertical(
+                        k,
+                        v - s,
+                        v,
+                        v + s,
+                        c.mix(0.55).filled(),
+                        bar_width(pts.len()),
+                    )
+                }))
+                .map_err(err)?;
+        } else {
+            chart
+                .draw_series(bands.iter().map(|&(x, lo, hi)| {
+                    PathElement::new(vec![(x, lo), (x, hi)], c.mix(0.25).stroke_width(1))
+                }))
+                .map_err(err)?;
+        }
+        chart
+            .draw_series(LineSeries::new(line.iter().copied(), c.mix(0.8)))
+            .map_err(err)?;
+        if gi == 0 {
+            drawn.points = line.len();
+        }
+    }
+    Ok(drawn)
+}
+
+/// The tuning gates' voltages (one panel per gate).
+pub fn draw_gates<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    f: &Frame<'_>,
+) -> Result<Drawn, String> {
+    let layout = f.history.layout();
+    if layout.gates.is_empty() {
+        return placeholder(area, "gate voltages", "waiting for data…").map(|_| Drawn::default());
+    }
+    let rows = f.rows();
+    let (x0, x1) = f.x_range();
+    let panels = area.split_evenly((1, layout.gates.len()));
+    let mut drawn = Drawn {
+        iterations: rows.len(),
+        y_max: f64::NAN,
+        x_range: (x0, x1),
+        ..Drawn::default()
+    };
+    for (gi, (gate, panel)) in layout.gates.iter().zip(panels.iter()).enumerate() {
+        let o = layout.gate(gi);
+        let cols = plot_columns(panel, 58);
+        let (line, _, _) = series_of(f, o, false, (x0, x1), cols);
+        let (y0, y1) = padded_range(line.iter().map(|p| p.1), 0.1);
+        let mut chart = styled_chart(
+            panel,
+            &format!("V_{gate}"),
+            f.axis.desc(),
+            "voltage (mV)",
+            x0..x1,
+            y0..y1,
+            true,
+            f.x_fmt(),
+        )?;
+        let c = color(gi);
+        chart
+            .draw_series(LineSeries::new(line.iter().copied(), c.stroke_width(2)))
+            .map_err(err)?;
+        if line.len() <= 60 {
+            chart
+                .draw_series(line.iter().map(|&p| Circle::new(p, 2, c.filled())))
+                .map_err(err)?;
+        }
+        if gi == 0 {
+            drawn.points = line.len();
+        }
+    }
+    Ok(drawn)
+}
+
+/// Cumulative lab time against iteration (the map between the two x axes);
+/// tuned iterations marked green.
+pub fn draw_lab_time<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    f: &Frame<'_>,
+) -> Result<Drawn, String> {
+    let rows = f.rows();
+    if rows.is_empty() {
+        return placeholder(area, "lab time", "waiting for data…").map(|_| Drawn::default());
+    }
+    let long = rows.last().map_or(0.0, |r| r.lab_seconds) > 2.0 * 3600.0;
+    let (scale, unit) = if long { (3600.0, "h") } else { (60.0, "min") };
+    let (x0, x1) = (f.window.lo - 0.5, f.window.hi.max(f.window.lo + 1.0) + 0.5);
+    let cols = plot_columns(area, 62);
+    let xy: Vec<(f64, f64)> = rows
+        .iter()
+        .map(|r| (r.iteration as f64, r.lab_seconds / scale))
+        .collect();
+    let line = min_max(&xy, x0, x1, cols);
+    let (y0, y1) = padded_range(line.iter().map(|p| p.1), 0.05);
+    let mut chart = styled_chart(
+        area,
+        "cumulative lab time",
+        "iteration",
+        &format!("lab time ({unit})"),
+        x0..x1,
+        y0.max(0.0)..y1,
+        false,
+        &int_label,
+    )?;
+    chart
+        .draw_series(LineSeries::new(
+            line.iter().copied(),
+            color(6).stroke_width(2),
+        ))
+        .map_err(err)?;
+    let tuned: Vec<(f64, f64)> = rows
+        .iter()
+        .filter(|r| r.tuned)
+        .map(|r| (r.iteration as f64, r.lab_seconds / scale))
+        .collect();
+    let tuned = min_max(&tuned, x0, x1, cols / 4);
+    chart
+        .draw_series(tuned.iter().map(|&p| Circle::new(p, 3, BAND.filled())))
+        .map_err(err)?;
+    let px = chart.plotting_area().get_pixel_range().0;
+    Ok(Drawn {
+        iterations: rows.len(),
+        points: line.len(),
+        y_max: line.iter().map(|p| p.1).fold(f64::NAN, f64::max),
+        overlay_points: 0,
+        plot_px: Some((px.start as f64, px.end as f64)),
+        x_range: (x0, x1),
+    })
+}
+
+/// Numbers for the y-axis-free parts of the page.
+pub fn fmt(x: f64) -> String {
+    num_label(&x)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::fake_records;
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn lab_time_labels_and_target_segments() {
+        assert_eq!(hmm(&1.5), "1:30");
+        assert_eq!(hmm(&0.0), "0:00");
+        assert_eq!(hmm(&27.999), "28:00");
+        let mut recs = fake_records(5);
+        recs[3].parameters[0].target = Some(70.0);
+        recs[4].parameters[0].target = Some(70.0);
+        let mut h = RunHistory::new();
+        h.insert(recs);
+        let o = h.layout().param(0);
+        let (t, tol) = (h.column(o + 2), h.column(o + 3));
+        let segs = target_segments(h.rows(), t, tol, XAxis::Iteration);
+        assert_eq!(segs, vec![(0.0, 2.0, 20.0, 2.0), (3.0, 4.0, 70.0, 2.0)]);
+        let segs = target_segments(h.rows(), t, tol, XAxis::LabTime);
+        assert_eq!(segs[1].0, (60.0 * 3.0 + 30.0) / 3600.0);
+    }
+}

@@ -57,3 +57,41 @@ fn kalman_strategies_report_filter_consistency_for_t_sr_and_w() {
         }
     }
 }
+
+#[test]
+fn the_labs_virtual_gate_matrix_is_not_the_simulators() {
+    let cfg = SimulationConfig::paper_default();
+    let exact = cfg
+        .device
+        .nominal_compensation(&["N", "SA", "SB", "T"], &["PA", "PB"]);
+    // the default config carries a literal matrix within its stated uncertainty
+    let c = cfg.tuner.top().compensation.clone().unwrap();
+    for (m, e) in c.matrix.iter().flatten().zip(exact.iter().flatten()) {
+        assert!((m - e).abs() <= c.relative_uncertainty * e.abs() + 1e-12);
+    }
+    // the benchmark's per-seed matrices differ from the truth and from each other
+    let a = spintune::benchmark::perturbed_compensation(
+        &cfg.device,
+        &["N", "SA", "SB", "T"],
+        &["PA", "PB"],
+        0.2,
+        1,
+    );
+    let b = spintune::benchmark::perturbed_compensation(
+        &cfg.device,
+        &["N", "SA", "SB", "T"],
+        &["PA", "PB"],
+        0.2,
+        2,
+    );
+    assert_ne!(a, exact);
+    assert_ne!(a, b);
+    let rel: Vec<f64> = a
+        .iter()
+        .flatten()
+        .zip(exact.iter().flatten())
+        .map(|(m, e)| (m / e - 1.0).abs())
+        .collect();
+    assert!(rel.iter().all(|r| *r <= 0.2 + 1e-12), "{rel:?}");
+    assert!(rel.iter().any(|r| *r > 0.05), "{rel:?}");
+}

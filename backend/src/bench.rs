@@ -25,7 +25,8 @@ pub struct BenchArgs {
     #[arg(long, default_value_t = 100)]
     pub seeds: u64,
     /// Comma-separated strategies (default: all): kalman, kalman-adaptive-q,
-    /// kalman-log, broyden, fixed-jacobian, fd-newton, oracle, oracle-log.
+    /// kalman-log, kalman-tr, kalman-log-tr, kalman-log-tr-multi, broyden,
+    /// fixed-jacobian, fd-newton, oracle, oracle-log.
     #[arg(long, value_delimiter = ',')]
     pub strategies: Vec<String>,
     /// Device description (TOML or JSON) overriding the simulator's defaults.
@@ -260,16 +261,18 @@ pub fn markdown_table(
         protocol.relative_tolerance * 100.0,
         protocol.compensation_error * 100.0
     );
-    s.push_str("| strategy | iterations/change median | p90 | max | lab min/change median | p90 | not converged | limit violations | failed fits | not converged where an oracle converged | ratio to oracle | ratio to oracle-log | truth queries |\n");
-    s.push_str("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
+    s.push_str("| strategy | iterations/change median | p90 | max | moves/change median | p90 | lab min/change median | p90 | not converged | limit violations | failed fits | not converged where an oracle converged | ratio to oracle | ratio to oracle-log | truth queries |\n");
+    s.push_str("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
     let ratio = |x: Option<f64>| x.map_or("–".to_string(), |x| format!("{x:.2}"));
     for r in summary {
         s.push_str(&format!(
-            "| {} | {:.1} | {:.1} | {:.0} | {:.1} | {:.1} | {} / {} | {} | {} | {} | {} | {} | {} |\n",
+            "| {} | {:.1} | {:.1} | {:.0} | {:.1} | {:.1} | {:.1} | {:.1} | {} / {} | {} | {} | {} | {} | {} | {} |\n",
             r.name,
             r.iterations_per_change.median,
             r.iterations_per_change.p90,
             r.iterations_per_change.max,
+            r.moves_per_change.median,
+            r.moves_per_change.p90,
             r.lab_minutes_per_change.median,
             r.lab_minutes_per_change.p90,
             r.not_converged,

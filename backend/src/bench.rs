@@ -25,7 +25,8 @@ pub struct BenchArgs {
     #[arg(long, default_value_t = 100)]
     pub seeds: u64,
     /// Comma-separated strategies (default: all): kalman, kalman-adaptive-q,
-    /// kalman-log, kalman-tr, kalman-log-tr, kalman-log-tr-multi, broyden,
+    /// kalman-log, kalman-tr, kalman-log-tr, kalman-log-tr-multi,
+    /// kalman-log-tr-multi-bare, broyden,
     /// fixed-jacobian, fd-newton, oracle, oracle-log.
     #[arg(long, value_delimiter = ',')]
     pub strategies: Vec<String>,

@@ -90,6 +90,9 @@ pub enum Strategy {
     /// [`Strategy::KalmanLogTr`] allowed up to [`MULTI_MOVES`] limited moves
     /// per measure-and-decide iteration when the target is far.
     KalmanLogTrMulti,
+    /// [`Strategy::KalmanLogTrMulti`] with the lower levels (sensing dot,
+    /// line re-centring) run after the last move of an iteration only.
+    KalmanLogTrMultiBare,
     /// Broyden rank-one update.
     Broyden,
     /// Initial Jacobian, never updated.
@@ -105,13 +108,14 @@ pub enum Strategy {
 
 impl Strategy {
     /// All strategies in report order.
-    pub const ALL: [Strategy; 11] = [
+    pub const ALL: [Strategy; 12] = [
         Strategy::Kalman,
         Strategy::KalmanAdaptiveQ,
         Strategy::KalmanLog,
         Strategy::KalmanTr,
         Strategy::KalmanLogTr,
         Strategy::KalmanLogTrMulti,
+        Strategy::KalmanLogTrMultiBare,
         Strategy::Broyden,
         Strategy::FixedJacobian,
         Strategy::FdNewton,
@@ -128,6 +132,7 @@ impl Strategy {
             Strategy::KalmanTr => "kalman-tr",
             Strategy::KalmanLogTr => "kalman-log-tr",
             Strategy::KalmanLogTrMulti => "kalman-log-tr-multi",
+            Strategy::KalmanLogTrMultiBare => "kalman-log-tr-multi-bare",
             Strategy::Broyden => "broyden",
             Strategy::FixedJacobian => "fixed-jacobian",
             Strategy::FdNewton => "fd-newton",
@@ -147,7 +152,8 @@ impl Strategy {
             | Strategy::KalmanLog
             | Strategy::KalmanTr
             | Strategy::KalmanLogTr
-            | Strategy::KalmanLogTrMulti => EstimatorKind::Kalman,
+            | Strategy::KalmanLogTrMulti
+            | Strategy::KalmanLogTrMultiBare => EstimatorKind::Kalman,
             Strategy::KalmanAdaptiveQ => EstimatorKind::KalmanAdaptiveQ,
             Strategy::Broyden => EstimatorKind::Broyden,
             Strategy::FixedJacobian => EstimatorKind::FixedJacobian,
@@ -171,6 +177,7 @@ impl Strategy {
                 | Strategy::KalmanTr
                 | Strategy::KalmanLogTr
                 | Strategy::KalmanLogTrMulti
+                | Strategy::KalmanLogTrMultiBare
         )
     }
 
@@ -182,6 +189,7 @@ impl Strategy {
                 | Strategy::OracleLog
                 | Strategy::KalmanLogTr
                 | Strategy::KalmanLogTrMulti
+                | Strategy::KalmanLogTrMultiBare
         )
     }
 
@@ -190,9 +198,10 @@ impl Strategy {
     /// (independent of [`crate::solver::SolverConfig`]'s default).
     pub fn step_rule(self) -> StepRule {
         match self {
-            Strategy::KalmanTr | Strategy::KalmanLogTr | Strategy::KalmanLogTrMulti => {
-                StepRule::ExpectedCost
-            }
+            Strategy::KalmanTr
+            | Strategy::KalmanLogTr
+            | Strategy::KalmanLogTrMulti
+            | Strategy::KalmanLogTrMultiBare => StepRule::ExpectedCost,
             _ => StepRule::PseudoInverse,
         }
     }
@@ -201,7 +210,7 @@ impl Strategy {
     /// [`Strategy::KalmanLogTrMulti`]).
     pub fn max_moves_per_iteration(self) -> u32 {
         match self {
-            Strategy::KalmanLogTrMulti => MULTI_MOVES,
+            Strategy::KalmanLogTrMulti | Strategy::KalmanLogTrMultiBare => MULTI_MOVES,
             _ => 1,
         }
     }
@@ -302,6 +311,7 @@ pub fn configure_strategy(strategy: Strategy, lab: &LabKnowledge) -> TunerConfig
     top.estimator = strategy.estimator();
     top.solver.rule = strategy.step_rule();
     top.solver.max_moves_per_iteration = strategy.max_moves_per_iteration();
+    top.solver.lower_levels_between_moves = strategy != Strategy::KalmanLogTrMultiBare;
     if strategy.log_space() {
         let values: Vec<f64> = top
             .parameters

@@ -52,6 +52,12 @@ pub struct SolverConfig {
     /// measuring the parameters in between (the lower levels still run after
     /// every move); 1 ≤ x ≤ [`MAX_MOVES_PER_ITERATION`], default 1 (the paper's).
     pub max_moves_per_iteration: u32,
+    /// With several moves per iteration: run the level's `after_move` levels
+    /// (sensing dot, line re-centring) after every move (`true`, default) or
+    /// only after the last one (`false`: the intermediate moves are bare set
+    /// requests, each still within `max_step_mv` and through the guard; the
+    /// lower levels then correct the accumulated offset once).
+    pub lower_levels_between_moves: bool,
 }
 
 impl Default for SolverConfig {
@@ -62,6 +68,7 @@ impl Default for SolverConfig {
             rule: StepRule::PseudoInverse,
             covariance_weight: 1.0,
             max_moves_per_iteration: 1,
+            lower_levels_between_moves: true,
         }
     }
 }

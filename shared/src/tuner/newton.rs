@@ -714,11 +714,14 @@ impl Tuner {
         }
         let children = self.after_move_ops(level);
         let mut ops = Vec::new();
-        for t in targets {
+        let moves = targets.len();
+        for (k, t) in targets.into_iter().enumerate() {
             // every move goes through `move_request` (per-gate clip, compensation,
-            // safety check) and is followed by the lower levels
+            // safety check); the lower levels follow every move, or the last only
             ops.push(Op::Move(t));
-            ops.extend(children.iter().cloned());
+            if cfg.solver.lower_levels_between_moves || k + 1 == moves {
+                ops.extend(children.iter().cloned());
+            }
         }
         if ops.is_empty() {
             ops.push(Op::Move(last));

@@ -667,6 +667,17 @@ fn schedule_changes_targets_at_the_given_iterations() {
 /// its lab time; w and t_sr are measured once per iteration, before the moves.
 #[test]
 fn multi_move_iteration_charges_every_move_and_no_move_bypasses_safety() {
+    multi_move_iteration(true);
+}
+
+/// As above, the lower levels only after the last move of an iteration: the
+/// intermediate moves are bare set requests, still guarded and charged.
+#[test]
+fn bare_multi_move_iteration_runs_lower_levels_once_per_iteration() {
+    multi_move_iteration(false);
+}
+
+fn multi_move_iteration(lower_levels_between_moves: bool) {
     use crate::solver::StepRule;
     let mut cfg = hierarchical();
     let max_step_mv = 3.0;
@@ -677,6 +688,7 @@ fn multi_move_iteration_charges_every_move_and_no_move_bypasses_safety() {
         max_step_mv,
         rule: StepRule::ExpectedCost,
         max_moves_per_iteration: 3,
+        lower_levels_between_moves,
         ..SolverConfig::default()
     };
     // a tight gate limit the moves run into
@@ -717,8 +729,15 @@ fn multi_move_iteration_charges_every_move_and_no_move_bypasses_safety() {
                         if norm > 1e-9 && records > 0 {
                             // the lower levels ran since the previous top move
                             if moved_this_iteration {
-                                assert!(since_top_move.contains(&ScanKind::SensingDot));
-                                assert!(since_top_move.contains(&ScanKind::ChemicalPotential));
+                                // the lower levels ran since the previous move, or not at all
+                                assert_eq!(
+                                    since_top_move.contains(&ScanKind::SensingDot),
+                                    lower_levels_between_moves
+                                );
+                                assert_eq!(
+                                    since_top_move.contains(&ScanKind::ChemicalPotential),
+                                    lower_levels_between_moves
+                                );
                             }
                             since_top_move.clear();
                             moves_this_iteration += 1;
@@ -745,6 +764,11 @@ fn multi_move_iteration_charges_every_move_and_no_move_bypasses_safety() {
                 tuner.feed(resp).unwrap();
             }
             Action::Iteration(_) => {
+                if moved_this_iteration {
+                    // the lower levels always follow the last move
+                    assert!(since_top_move.contains(&ScanKind::SensingDot));
+                    assert!(since_top_move.contains(&ScanKind::ChemicalPotential));
+                }
                 records += 1;
                 most_moves = most_moves.max(moves_this_iteration);
                 moves_this_iteration = 0;

@@ -57,6 +57,15 @@ pub struct BenchArgs {
     /// Device seed of the first random device (then +1, +2, …).
     #[arg(long, default_value_t = 1)]
     pub device_seed: u64,
+    /// Step rule of the `-tr` strategies: expected-cost or covariance-direction.
+    #[arg(long, default_value = "expected-cost")]
+    pub tr_rule: String,
+    /// Covariance weight of the `-tr` strategies (0..=100).
+    #[arg(long, default_value_t = 1.0)]
+    pub covariance_weight: f64,
+    /// Moves per iteration of the `-multi` strategies (1..=5).
+    #[arg(long, default_value_t = spintune::benchmark::MULTI_MOVES)]
+    pub multi_moves: u32,
 }
 
 /// Which random devices were benchmarked.
@@ -94,8 +103,28 @@ pub fn run(args: BenchArgs) -> Result<(), CliError> {
     if !(args.tolerance.is_finite() && args.tolerance > 0.0) {
         return Err(CliError::input("--tolerance must be a positive number"));
     }
+    let tr_rule = match args.tr_rule.as_str() {
+        "expected-cost" => spintune::solver::StepRule::ExpectedCost,
+        "covariance-direction" => spintune::solver::StepRule::CovarianceDirection,
+        other => {
+            return Err(CliError::input(format!(
+                "--tr-rule {other:?}: choose expected-cost or covariance-direction"
+            )))
+        }
+    };
+    if !(args.covariance_weight.is_finite()
+        && (0.0..=spintune::solver::MAX_COVARIANCE_WEIGHT).contains(&args.covariance_weight))
+    {
+        return Err(CliError::input("--covariance-weight must be in [0, 100]"));
+    }
+    if !(1..=spintune::solver::MAX_MOVES_PER_ITERATION).contains(&args.multi_moves) {
+        return Err(CliError::input("--multi-moves must be between 1 and 5"));
+    }
     let protocol = BenchmarkProtocol {
         relative_tolerance: args.tolerance,
+        tr_rule,
+        covariance_weight: args.covariance_weight,
+        multi_moves: args.multi_moves,
         ..BenchmarkProtocol::default()
     };
     let threads = args

@@ -230,6 +230,25 @@ pub struct BenchmarkProtocol {
     /// `[−e, +e]` drawn per seed (0.2 = ±20 %; 0 = exact).
     #[serde(default = "default_compensation_error")]
     pub compensation_error: f64,
+    /// Step rule of the `-tr` strategies.
+    #[serde(default = "default_tr_rule")]
+    pub tr_rule: StepRule,
+    /// [`crate::solver::SolverConfig::covariance_weight`] of the `-tr` strategies.
+    #[serde(default = "default_covariance_weight")]
+    pub covariance_weight: f64,
+    /// Moves per iteration of the `-multi` strategies.
+    #[serde(default = "default_multi_moves")]
+    pub multi_moves: u32,
+}
+
+fn default_tr_rule() -> StepRule {
+    StepRule::ExpectedCost
+}
+fn default_covariance_weight() -> f64 {
+    1.0
+}
+fn default_multi_moves() -> u32 {
+    MULTI_MOVES
 }
 
 fn default_compensation_error() -> f64 {
@@ -243,6 +262,9 @@ impl Default for BenchmarkProtocol {
             iterations_per_set_point: 21,
             relative_tolerance: 0.1,
             compensation_error: default_compensation_error(),
+            tr_rule: default_tr_rule(),
+            covariance_weight: default_covariance_weight(),
+            multi_moves: default_multi_moves(),
         }
     }
 }
@@ -304,13 +326,24 @@ pub struct LabKnowledge {
 /// Log-space strategies rescale the measured gradient, its covariance and Q
 /// by the measured start values (falling back to the target where a start
 /// value is missing).
-pub fn configure_strategy(strategy: Strategy, lab: &LabKnowledge) -> TunerConfig {
+pub fn configure_strategy(
+    strategy: Strategy,
+    lab: &LabKnowledge,
+    protocol: &BenchmarkProtocol,
+) -> TunerConfig {
     let mut tcfg = lab.config.clone();
     tcfg.max_iterations = None;
     let top = tcfg.top_mut();
     top.estimator = strategy.estimator();
     top.solver.rule = strategy.step_rule();
     top.solver.max_moves_per_iteration = strategy.max_moves_per_iteration();
+    if top.solver.rule == StepRule::ExpectedCost {
+        top.solver.rule = protocol.tr_rule;
+        top.solver.covariance_weight = protocol.covariance_weight;
+    }
+    if top.solver.max_moves_per_iteration > 1 {
+        top.solver.max_moves_per_iteration = protocol.multi_moves;
+    }
     top.solver.lower_levels_between_moves = strategy != Strategy::KalmanLogTrMultiBare;
     if strategy.log_space() {
         let values: Vec<f64> = top
@@ -450,7 +483,7 @@ pub fn run_seed(
     strategies
         .iter()
         .map(|&strategy| {
-            let tcfg = configure_strategy(strategy, &lab);
+            let tcfg = configure_strategy(strategy, &lab, protocol);
             let tuner = Tuner::new(tcfg).map_err(|e| err(format!("{}: {e}", strategy.name())))?;
             let mut dev = after_init.clone();
             if !strategy.is_oracle() {

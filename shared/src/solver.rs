@@ -25,6 +25,13 @@ pub enum StepRule {
     /// of `J`, inside a trust region of the step limit
     /// ([`expected_cost_step`]).
     ExpectedCost,
+    /// The direction of [`StepRule::ExpectedCost`] (uncertain directions
+    /// avoided), its length from the mean model: the step along that
+    /// direction minimising `‖S⁻¹(Δ + Ĵ Δv)‖²`, then scaled to the step
+    /// limit ([`covariance_direction_step`]). The expected cost alone shrinks
+    /// steps wherever the gradient is uncertain, and a filter learns only
+    /// along the directions it moves.
+    CovarianceDirection,
 }
 
 /// Largest [`SolverConfig::covariance_weight`].
@@ -190,7 +197,8 @@ pub fn expected_cost_step(
         || !jacobian.iter().all(finite)
         || !delta.iter().all(finite)
         || !scale.iter().all(|s| s.is_finite() && *s > 0.0)
-        || !(radius_mv.is_finite() && radius_mv >= 0.0)
+        || radius_mv.is_nan()
+        || radius_mv < 0.0
     {
         return zero;
     }
@@ -274,6 +282,73 @@ pub fn expected_cost_step(
         dv_mv: dv,
         unlimited_norm_mv: unlimited,
         rank: comps.len(),
+    }
+}
+
+/// [`StepRule::CovarianceDirection`]: the direction `d` of the unlimited
+/// [`expected_cost_step`], the length `α = −(Ĵd)ᵀS⁻²Δ / ‖S⁻¹Ĵd‖²` that
+/// minimises the mean model's scaled residual along it (kept at `α = 1` if
+/// that is not a positive finite number), scaled down to `radius_mv`.
+/// Invariants as for [`expected_cost_step`]: `‖dv_mv‖ ≤ radius_mv`, finite;
+/// with every `C_i = 0` it is the minimum-norm Newton step, limited.
+/// `unlimited_norm_mv` is `‖α d‖`.
+///
+/// ```
+/// use nalgebra::{DMatrix, DVector};
+/// use spintune::solver::{covariance_direction_step, SolverConfig};
+/// let j = DMatrix::from_row_slice(1, 2, &[2.0, 1.0]);
+/// let (delta, scale) = (DVector::from_vec(vec![1.0]), DVector::from_vec(vec![1.0]));
+/// // gate 1's element is poorly known: the step leans on gate 0 and still
+/// // reaches the target by the estimate (2·Δv₀ + Δv₁ = −1)
+/// let c = DMatrix::from_diagonal(&DVector::from_vec(vec![0.0, 4.0]));
+/// let s = covariance_direction_step(&j, &[Some(c)], &delta, &scale, &SolverConfig::default(), 10.0);
+/// assert!(s.dv_mv[1].abs() < 0.1 * s.dv_mv[0].abs());
+/// assert!((2.0 * s.dv_mv[0] + s.dv_mv[1] + 1.0).abs() < 1e-9);
+/// ```
+pub fn covariance_direction_step(
+    jacobian: &DMatrix<f64>,
+    covariances: &[Option<DMatrix<f64>>],
+    delta: &DVector<f64>,
+    scale: &DVector<f64>,
+    cfg: &SolverConfig,
+    radius_mv: f64,
+) -> NewtonStep {
+    let d = expected_cost_step(jacobian, covariances, delta, scale, cfg, f64::INFINITY);
+    let n = jacobian.ncols();
+    if d.dv_mv.norm() == 0.0 || !(radius_mv.is_finite() && radius_mv >= 0.0) {
+        return NewtonStep {
+            dv_mv: DVector::zeros(n),
+            ..d
+        };
+    }
+    let mut jd = jacobian * &d.dv_mv;
+    let mut ds = delta.clone();
+    for i in 0..jd.len() {
+        jd[i] /= scale[i];
+        ds[i] /= scale[i];
+    }
+    let alpha = -jd.dot(&ds) / jd.norm_squared();
+    let alpha = if alpha.is_finite() && alpha > 0.0 {
+        alpha
+    } else {
+        1.0
+    };
+    let mut dv = d.dv_mv * alpha;
+    let norm = dv.norm();
+    if !(norm.is_finite() && dv.iter().all(|x| x.is_finite())) {
+        return NewtonStep {
+            dv_mv: DVector::zeros(n),
+            unlimited_norm_mv: 0.0,
+            rank: 0,
+        };
+    }
+    if norm > radius_mv {
+        dv *= radius_mv / norm;
+    }
+    NewtonStep {
+        dv_mv: dv,
+        unlimited_norm_mv: norm,
+        rank: d.rank,
     }
 }
 

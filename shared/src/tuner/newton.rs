@@ -15,7 +15,9 @@ use crate::protocol::{
     EventKind, GradientReport, IterationRecord, ParameterReport, ParameterValue, ScanKind,
     ScanReport, ScanRequest, TunerEvent,
 };
-use crate::solver::{expected_cost_step, newton_step, SolverConfig, StepRule};
+use crate::solver::{
+    covariance_direction_step, expected_cost_step, newton_step, SolverConfig, StepRule,
+};
 
 /// After this many gated outliers in a row, the reference point is reset to
 /// the newest measurement (the parameter really moved; stop comparing with
@@ -674,14 +676,19 @@ impl Tuner {
                     ..cfg.solver
                 },
             ),
-            StepRule::ExpectedCost => {
+            StepRule::ExpectedCost | StepRule::CovarianceDirection => {
                 let covariances: Vec<Option<DMatrix<f64>>> =
                     rows.iter().map(|&i| es[i].covariance().cloned()).collect();
                 let scale = DVector::from_iterator(
                     rows.len(),
                     rows.iter().map(|&i| row_scale(&cfg.parameters[i])),
                 );
-                expected_cost_step(&jac, &covariances, &delta, &scale, &cfg.solver, radius_mv)
+                let solve = if cfg.solver.rule == StepRule::ExpectedCost {
+                    expected_cost_step
+                } else {
+                    covariance_direction_step
+                };
+                solve(&jac, &covariances, &delta, &scale, &cfg.solver, radius_mv)
             }
         };
         let base = snapshot.level_voltages_mv.clone();

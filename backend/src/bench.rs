@@ -60,8 +60,9 @@ pub struct BenchArgs {
     /// Step rule of the `-tr` strategies: expected-cost or covariance-direction.
     #[arg(long, default_value = "expected-cost")]
     pub tr_rule: String,
-    /// Covariance weight of the `-tr` strategies (0..=100).
-    #[arg(long, default_value_t = 1.0)]
+    /// Covariance weight of the `-tr` strategies (0..=100; default 0, the
+    /// plain trust region).
+    #[arg(long, default_value_t = 0.0)]
     pub covariance_weight: f64,
     /// Moves per iteration of the `-multi` strategies (1..=5).
     #[arg(long, default_value_t = spintune::benchmark::MULTI_MOVES)]

@@ -245,7 +245,7 @@ fn default_tr_rule() -> StepRule {
     StepRule::ExpectedCost
 }
 fn default_covariance_weight() -> f64 {
-    1.0
+    0.0
 }
 fn default_multi_moves() -> u32 {
     MULTI_MOVES

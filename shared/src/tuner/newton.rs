@@ -617,6 +617,9 @@ impl Tuner {
                     ops.extend(scans.iter().cloned());
                     ops.push(Op::Decide(Decision::FdPoint(0, j)));
                 }
+                // back to where the step is planned from: the step target is at
+                // most `max_step_mv` from there, not from the last offset point
+                ops.push(Op::Move(v_now.clone()));
                 ops.push(Op::Decide(Decision::FdFinish));
                 ops.push(Op::Decide(Decision::Step));
                 self.push_ops(ops);

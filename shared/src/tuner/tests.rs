@@ -539,6 +539,41 @@ fn config_errors_name_the_field() {
 }
 
 #[test]
+fn step_rule_fields_are_bounded_and_default_to_the_papers_rule() {
+    let mut cfg = flat(EstimatorKind::Kalman);
+    cfg.top_mut().solver.covariance_weight = -0.5;
+    assert_eq!(
+        Tuner::new(cfg).unwrap_err().field,
+        "levels[0].solver.covariance_weight"
+    );
+    let mut cfg = flat(EstimatorKind::Kalman);
+    cfg.top_mut().solver.covariance_weight = 101.0;
+    assert!(Tuner::new(cfg).is_err());
+    for moves in [0, 6] {
+        let mut cfg = flat(EstimatorKind::Kalman);
+        cfg.top_mut().solver.max_moves_per_iteration = moves;
+        assert_eq!(
+            Tuner::new(cfg).unwrap_err().field,
+            "levels[0].solver.max_moves_per_iteration"
+        );
+    }
+    // a solver config written before item 6 gets the paper's behaviour
+    let old: SolverConfig =
+        serde_json::from_str(r#"{"max_step_mv": 7.0, "rank_tolerance": 1e-9}"#).unwrap();
+    assert_eq!(old.rule, crate::solver::StepRule::PseudoInverse);
+    assert_eq!(old.max_moves_per_iteration, 1);
+    assert!(old.lower_levels_between_moves);
+    assert_eq!(old.covariance_weight, 0.0);
+    let new: SolverConfig = serde_json::from_str(
+        r#"{"rule": "expected_cost", "covariance_weight": 1.0, "max_moves_per_iteration": 2, "lower_levels_between_moves": false}"#,
+    )
+    .unwrap();
+    assert_eq!(new.rule, crate::solver::StepRule::ExpectedCost);
+    assert_eq!(new.max_step_mv, 10.0);
+    assert!(serde_json::from_str::<SolverConfig>(r#"{"moves": 2}"#).is_err());
+}
+
+#[test]
 fn non_positive_or_non_finite_fit_references_are_rejected_naming_the_field() {
     type Set = fn(&mut TunerConfig, f64);
     let cases: [(&str, Set); 4] = [

@@ -198,6 +198,13 @@ impl Strategy {
     /// The top level's step rule: the covariance-aware trust region for the
     /// `-tr` strategies, the paper's pseudo-inverse for all others
     /// (independent of [`crate::solver::SolverConfig`]'s default).
+    ///
+    /// ```
+    /// use spintune::benchmark::Strategy;
+    /// use spintune::solver::StepRule;
+    /// assert_eq!(Strategy::KalmanLog.step_rule(), StepRule::PseudoInverse);
+    /// assert_eq!(Strategy::KalmanLogTr.step_rule(), StepRule::ExpectedCost);
+    /// ```
     pub fn step_rule(self) -> StepRule {
         match self {
             Strategy::KalmanTr
@@ -208,8 +215,15 @@ impl Strategy {
         }
     }
 
-    /// Limited moves per measure-and-decide iteration (1 but for
-    /// [`Strategy::KalmanLogTrMulti`]).
+    /// Limited moves per measure-and-decide iteration (1 but for the
+    /// `-multi` strategies: [`MULTI_MOVES`], before the protocol's
+    /// [`BenchmarkProtocol::multi_moves`] overrides it).
+    ///
+    /// ```
+    /// use spintune::benchmark::{Strategy, MULTI_MOVES};
+    /// assert_eq!(Strategy::KalmanLogTr.max_moves_per_iteration(), 1);
+    /// assert_eq!(Strategy::KalmanLogTrMultiBare.max_moves_per_iteration(), MULTI_MOVES);
+    /// ```
     pub fn max_moves_per_iteration(self) -> u32 {
         match self {
             Strategy::KalmanLogTrMulti | Strategy::KalmanLogTrMultiBare => MULTI_MOVES,
@@ -708,6 +722,10 @@ pub struct Quantiles {
 
 impl Quantiles {
     /// All NaN (no data; e.g. a report from before the field existed).
+    ///
+    /// ```
+    /// assert!(spintune::benchmark::Quantiles::nan().median.is_nan());
+    /// ```
     pub fn nan() -> Self {
         Self {
             median: f64::NAN,

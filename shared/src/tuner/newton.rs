@@ -895,7 +895,45 @@ fn retreat_target(now: &[f64], good: &[f64], max_step_mv: f64) -> Option<Vec<f64
 
 #[cfg(test)]
 mod retreat_tests {
-    use super::retreat_target;
+    use super::{plan_moves, retreat_target};
+    use proptest::prelude::*;
+
+    proptest! {
+        /// Consecutive targets are within the step limit, there are at most
+        /// `max_moves` of them, and they end at `base + dv` when that is
+        /// reachable in `max_moves` moves.
+        #[test]
+        fn planned_moves_stay_within_the_step_limit(
+            base in proptest::collection::vec(-100.0f64..100.0, 4),
+            dv in proptest::collection::vec(-50.0f64..50.0, 4),
+            limit in 0.5f64..15.0,
+            max_moves in 1u32..=5,
+        ) {
+            let plan = plan_moves(&base, &dv, limit, max_moves);
+            prop_assert!(!plan.is_empty() && plan.len() <= max_moves as usize);
+            let mut from = base.clone();
+            for t in &plan {
+                let d = t.iter().zip(&from).map(|(a, b)| (a - b).powi(2)).sum::<f64>().sqrt();
+                prop_assert!(d <= limit * (1.0 + 1e-9), "{d} > {limit}");
+                from = t.clone();
+            }
+            let norm = dv.iter().map(|x| x * x).sum::<f64>().sqrt();
+            if norm <= limit * f64::from(max_moves) {
+                for ((t, b), d) in from.iter().zip(&base).zip(&dv) {
+                    prop_assert!((t - (b + d)).abs() < 1e-9);
+                }
+                // the fewest moves that fit
+                prop_assert!(plan.len() as f64 >= norm / limit - 1e-9);
+                prop_assert!(plan.len() == 1 || (plan.len() as f64 - 1.0) * limit < norm);
+            }
+        }
+    }
+
+    #[test]
+    fn no_moves_for_a_zero_or_non_finite_step() {
+        assert!(plan_moves(&[0.0], &[0.0], 10.0, 2).is_empty());
+        assert!(plan_moves(&[0.0], &[f64::NAN], 10.0, 2).is_empty());
+    }
 
     #[test]
     fn retreat_goes_half_way_back_within_the_step_limit() {

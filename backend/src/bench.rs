@@ -27,7 +27,7 @@ pub struct BenchArgs {
     /// Comma-separated strategies (default: all): kalman, kalman-adaptive-q,
     /// kalman-log, kalman-tr, kalman-log-tr, kalman-log-tr-multi,
     /// kalman-log-tr-multi-bare, broyden,
-    /// fixed-jacobian, fd-newton, oracle, oracle-log.
+    /// fixed-jacobian, fd-newton, oracle, oracle-log, oracle-log-multi-bare.
     #[arg(long, value_delimiter = ',')]
     pub strategies: Vec<String>,
     /// Device description (TOML or JSON) overriding the simulator's defaults.

@@ -106,11 +106,15 @@ pub enum Strategy {
     /// The simulator's true Jacobian with `t_sr` and `w` in log space: the
     /// strongest fair reference (same step limit).
     OracleLog,
+    /// [`Strategy::OracleLog`] stepping as [`Strategy::KalmanLogTrMultiBare`]
+    /// (trust region, [`MULTI_MOVES`] moves per iteration, lower levels after
+    /// the last): the reference for the multi-move strategies.
+    OracleLogMultiBare,
 }
 
 impl Strategy {
     /// All strategies in report order.
-    pub const ALL: [Strategy; 12] = [
+    pub const ALL: [Strategy; 13] = [
         Strategy::Kalman,
         Strategy::KalmanAdaptiveQ,
         Strategy::KalmanLog,
@@ -123,6 +127,7 @@ impl Strategy {
         Strategy::FdNewton,
         Strategy::Oracle,
         Strategy::OracleLog,
+        Strategy::OracleLogMultiBare,
     ];
 
     /// Command-line name.
@@ -140,6 +145,7 @@ impl Strategy {
             Strategy::FdNewton => "fd-newton",
             Strategy::Oracle => "oracle",
             Strategy::OracleLog => "oracle-log",
+            Strategy::OracleLogMultiBare => "oracle-log-multi-bare",
         }
     }
 
@@ -160,13 +166,18 @@ impl Strategy {
             Strategy::Broyden => EstimatorKind::Broyden,
             Strategy::FixedJacobian => EstimatorKind::FixedJacobian,
             Strategy::FdNewton => EstimatorKind::FdNewton,
-            Strategy::Oracle | Strategy::OracleLog => EstimatorKind::Oracle,
+            Strategy::Oracle | Strategy::OracleLog | Strategy::OracleLogMultiBare => {
+                EstimatorKind::Oracle
+            }
         }
     }
 
     /// Whether this strategy may read the simulator's truth (only the oracles).
     pub fn is_oracle(self) -> bool {
-        matches!(self, Strategy::Oracle | Strategy::OracleLog)
+        matches!(
+            self,
+            Strategy::Oracle | Strategy::OracleLog | Strategy::OracleLogMultiBare
+        )
     }
 
     /// Whether the top level runs a Kalman filter (consistency is reported).
@@ -189,6 +200,7 @@ impl Strategy {
             self,
             Strategy::KalmanLog
                 | Strategy::OracleLog
+                | Strategy::OracleLogMultiBare
                 | Strategy::KalmanLogTr
                 | Strategy::KalmanLogTrMulti
                 | Strategy::KalmanLogTrMultiBare
@@ -210,7 +222,8 @@ impl Strategy {
             Strategy::KalmanTr
             | Strategy::KalmanLogTr
             | Strategy::KalmanLogTrMulti
-            | Strategy::KalmanLogTrMultiBare => StepRule::ExpectedCost,
+            | Strategy::KalmanLogTrMultiBare
+            | Strategy::OracleLogMultiBare => StepRule::ExpectedCost,
             _ => StepRule::PseudoInverse,
         }
     }
@@ -226,7 +239,9 @@ impl Strategy {
     /// ```
     pub fn max_moves_per_iteration(self) -> u32 {
         match self {
-            Strategy::KalmanLogTrMulti | Strategy::KalmanLogTrMultiBare => MULTI_MOVES,
+            Strategy::KalmanLogTrMulti
+            | Strategy::KalmanLogTrMultiBare
+            | Strategy::OracleLogMultiBare => MULTI_MOVES,
             _ => 1,
         }
     }
@@ -360,7 +375,10 @@ pub fn configure_strategy(
     if top.solver.max_moves_per_iteration > 1 {
         top.solver.max_moves_per_iteration = protocol.multi_moves;
     }
-    top.solver.lower_levels_between_moves = strategy != Strategy::KalmanLogTrMultiBare;
+    top.solver.lower_levels_between_moves = !matches!(
+        strategy,
+        Strategy::KalmanLogTrMultiBare | Strategy::OracleLogMultiBare
+    );
     if strategy.log_space() {
         let values: Vec<f64> = top
             .parameters

@@ -25,7 +25,9 @@ pub struct BenchArgs {
     #[arg(long, default_value_t = 100)]
     pub seeds: u64,
     /// Comma-separated strategies (default: all): kalman, kalman-adaptive-q,
-    /// kalman-log, broyden, fixed-jacobian, fd-newton, oracle, oracle-log.
+    /// kalman-log, kalman-tr, kalman-log-tr, kalman-log-tr-multi,
+    /// kalman-log-tr-multi-bare, broyden,
+    /// fixed-jacobian, fd-newton, oracle, oracle-log, oracle-log-multi-bare.
     #[arg(long, value_delimiter = ',')]
     pub strategies: Vec<String>,
     /// Device description (TOML or JSON) overriding the simulator's defaults.
@@ -55,6 +57,16 @@ pub struct BenchArgs {
     /// Device seed of the first random device (then +1, +2, …).
     #[arg(long, default_value_t = 1)]
     pub device_seed: u64,
+    /// Step rule of the `-tr` strategies: expected-cost or covariance-direction.
+    #[arg(long, default_value = "expected-cost")]
+    pub tr_rule: String,
+    /// Covariance weight of the `-tr` strategies (0..=100; default 0, the
+    /// plain trust region).
+    #[arg(long, default_value_t = 0.0)]
+    pub covariance_weight: f64,
+    /// Moves per iteration of the `-multi` strategies (1..=5).
+    #[arg(long, default_value_t = spintune::benchmark::MULTI_MOVES)]
+    pub multi_moves: u32,
 }
 
 /// Which random devices were benchmarked.
@@ -92,8 +104,28 @@ pub fn run(args: BenchArgs) -> Result<(), CliError> {
     if !(args.tolerance.is_finite() && args.tolerance > 0.0) {
         return Err(CliError::input("--tolerance must be a positive number"));
     }
+    let tr_rule = match args.tr_rule.as_str() {
+        "expected-cost" => spintune::solver::StepRule::ExpectedCost,
+        "covariance-direction" => spintune::solver::StepRule::CovarianceDirection,
+        other => {
+            return Err(CliError::input(format!(
+                "--tr-rule {other:?}: choose expected-cost or covariance-direction"
+            )))
+        }
+    };
+    if !(args.covariance_weight.is_finite()
+        && (0.0..=spintune::solver::MAX_COVARIANCE_WEIGHT).contains(&args.covariance_weight))
+    {
+        return Err(CliError::input("--covariance-weight must be in [0, 100]"));
+    }
+    if !(1..=spintune::solver::MAX_MOVES_PER_ITERATION).contains(&args.multi_moves) {
+        return Err(CliError::input("--multi-moves must be between 1 and 5"));
+    }
     let protocol = BenchmarkProtocol {
         relative_tolerance: args.tolerance,
+        tr_rule,
+        covariance_weight: args.covariance_weight,
+        multi_moves: args.multi_moves,
         ..BenchmarkProtocol::default()
     };
     let threads = args
@@ -260,16 +292,18 @@ pub fn markdown_table(
         protocol.relative_tolerance * 100.0,
         protocol.compensation_error * 100.0
     );
-    s.push_str("| strategy | iterations/change median | p90 | max | lab min/change median | p90 | not converged | limit violations | failed fits | not converged where an oracle converged | ratio to oracle | ratio to oracle-log | truth queries |\n");
-    s.push_str("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
+    s.push_str("| strategy | iterations/change median | p90 | max | moves/change median | p90 | lab min/change median | p90 | not converged | limit violations | failed fits | not converged where an oracle converged | ratio to oracle | ratio to oracle-log | truth queries |\n");
+    s.push_str("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
     let ratio = |x: Option<f64>| x.map_or("–".to_string(), |x| format!("{x:.2}"));
     for r in summary {
         s.push_str(&format!(
-            "| {} | {:.1} | {:.1} | {:.0} | {:.1} | {:.1} | {} / {} | {} | {} | {} | {} | {} | {} |\n",
+            "| {} | {:.1} | {:.1} | {:.0} | {:.1} | {:.1} | {:.1} | {:.1} | {} / {} | {} | {} | {} | {} | {} | {} |\n",
             r.name,
             r.iterations_per_change.median,
             r.iterations_per_change.p90,
             r.iterations_per_change.max,
+            r.moves_per_change.median,
+            r.moves_per_change.p90,
             r.lab_minutes_per_change.median,
             r.lab_minutes_per_change.p90,
             r.not_converged,

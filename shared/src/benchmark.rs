@@ -28,12 +28,16 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::driver::{RunError, SimulationConfig, SimulationRun};
+use crate::driver::{SimulationConfig, SimulationRun};
 use crate::estimator::EstimatorKind;
 use crate::parameter::{Tolerance, Transform};
-use crate::protocol::{ControlCommand, FaultKind, IterationRecord, ParameterValue};
+use crate::protocol::{
+    ControlCommand, FaultKind, IterationRecord, ParameterValue, Request, RunStatus,
+};
+use crate::session::Output;
 use crate::session::{RunSession, SessionConfig};
 use crate::sim::{DeviceConfig, SimulatedDevice};
+use crate::solver::StepRule;
 use crate::tuner::{Consistency, InitialGradient, LevelKind, Tuner, TunerConfig};
 
 /// The paper's set-point cycle, `(t_sr ns, w µV)`.
@@ -66,7 +70,12 @@ pub fn paper_schedule(iterations_per_set_point: u64) -> Vec<crate::tuner::Schedu
         .collect()
 }
 
-/// A strategy: how the top level estimates its Jacobian.
+/// Moves per iteration of [`Strategy::KalmanLogTrMulti`] (2: on 50 random
+/// devices × 10 seeds, 3 moves left 9 of 2500 changes unconverged with the
+/// lower levels after the last move only, 2 moves none; docs/benchmarks.md).
+pub const MULTI_MOVES: u32 = 2;
+
+/// A strategy: how the top level estimates its Jacobian and steps.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub enum Strategy {
     /// The paper's filter, constant Q.
@@ -75,6 +84,17 @@ pub enum Strategy {
     KalmanAdaptiveQ,
     /// `t_sr` and `w` tuned in log space.
     KalmanLog,
+    /// [`Strategy::Kalman`] with the covariance-aware trust-region step
+    /// ([`StepRule::ExpectedCost`]).
+    KalmanTr,
+    /// [`Strategy::KalmanLog`] with the covariance-aware trust-region step.
+    KalmanLogTr,
+    /// [`Strategy::KalmanLogTr`] allowed up to [`MULTI_MOVES`] limited moves
+    /// per measure-and-decide iteration when the target is far.
+    KalmanLogTrMulti,
+    /// [`Strategy::KalmanLogTrMulti`] with the lower levels (sensing dot,
+    /// line re-centring) run after the last move of an iteration only.
+    KalmanLogTrMultiBare,
     /// Broyden rank-one update.
     Broyden,
     /// Initial Jacobian, never updated.
@@ -86,19 +106,28 @@ pub enum Strategy {
     /// The simulator's true Jacobian with `t_sr` and `w` in log space: the
     /// strongest fair reference (same step limit).
     OracleLog,
+    /// [`Strategy::OracleLog`] stepping as [`Strategy::KalmanLogTrMultiBare`]
+    /// (trust region, [`MULTI_MOVES`] moves per iteration, lower levels after
+    /// the last): the reference for the multi-move strategies.
+    OracleLogMultiBare,
 }
 
 impl Strategy {
     /// All strategies in report order.
-    pub const ALL: [Strategy; 8] = [
+    pub const ALL: [Strategy; 13] = [
         Strategy::Kalman,
         Strategy::KalmanAdaptiveQ,
         Strategy::KalmanLog,
+        Strategy::KalmanTr,
+        Strategy::KalmanLogTr,
+        Strategy::KalmanLogTrMulti,
+        Strategy::KalmanLogTrMultiBare,
         Strategy::Broyden,
         Strategy::FixedJacobian,
         Strategy::FdNewton,
         Strategy::Oracle,
         Strategy::OracleLog,
+        Strategy::OracleLogMultiBare,
     ];
 
     /// Command-line name.
@@ -107,11 +136,16 @@ impl Strategy {
             Strategy::Kalman => "kalman",
             Strategy::KalmanAdaptiveQ => "kalman-adaptive-q",
             Strategy::KalmanLog => "kalman-log",
+            Strategy::KalmanTr => "kalman-tr",
+            Strategy::KalmanLogTr => "kalman-log-tr",
+            Strategy::KalmanLogTrMulti => "kalman-log-tr-multi",
+            Strategy::KalmanLogTrMultiBare => "kalman-log-tr-multi-bare",
             Strategy::Broyden => "broyden",
             Strategy::FixedJacobian => "fixed-jacobian",
             Strategy::FdNewton => "fd-newton",
             Strategy::Oracle => "oracle",
             Strategy::OracleLog => "oracle-log",
+            Strategy::OracleLogMultiBare => "oracle-log-multi-bare",
         }
     }
 
@@ -122,31 +156,94 @@ impl Strategy {
 
     fn estimator(self) -> EstimatorKind {
         match self {
-            Strategy::Kalman | Strategy::KalmanLog => EstimatorKind::Kalman,
+            Strategy::Kalman
+            | Strategy::KalmanLog
+            | Strategy::KalmanTr
+            | Strategy::KalmanLogTr
+            | Strategy::KalmanLogTrMulti
+            | Strategy::KalmanLogTrMultiBare => EstimatorKind::Kalman,
             Strategy::KalmanAdaptiveQ => EstimatorKind::KalmanAdaptiveQ,
             Strategy::Broyden => EstimatorKind::Broyden,
             Strategy::FixedJacobian => EstimatorKind::FixedJacobian,
             Strategy::FdNewton => EstimatorKind::FdNewton,
-            Strategy::Oracle | Strategy::OracleLog => EstimatorKind::Oracle,
+            Strategy::Oracle | Strategy::OracleLog | Strategy::OracleLogMultiBare => {
+                EstimatorKind::Oracle
+            }
         }
     }
 
     /// Whether this strategy may read the simulator's truth (only the oracles).
     pub fn is_oracle(self) -> bool {
-        matches!(self, Strategy::Oracle | Strategy::OracleLog)
+        matches!(
+            self,
+            Strategy::Oracle | Strategy::OracleLog | Strategy::OracleLogMultiBare
+        )
     }
 
     /// Whether the top level runs a Kalman filter (consistency is reported).
     pub fn is_kalman(self) -> bool {
         matches!(
             self,
-            Strategy::Kalman | Strategy::KalmanAdaptiveQ | Strategy::KalmanLog
+            Strategy::Kalman
+                | Strategy::KalmanAdaptiveQ
+                | Strategy::KalmanLog
+                | Strategy::KalmanTr
+                | Strategy::KalmanLogTr
+                | Strategy::KalmanLogTrMulti
+                | Strategy::KalmanLogTrMultiBare
         )
     }
 
     /// Whether `t_sr` and `w` are tuned in log space.
     pub fn log_space(self) -> bool {
-        matches!(self, Strategy::KalmanLog | Strategy::OracleLog)
+        matches!(
+            self,
+            Strategy::KalmanLog
+                | Strategy::OracleLog
+                | Strategy::OracleLogMultiBare
+                | Strategy::KalmanLogTr
+                | Strategy::KalmanLogTrMulti
+                | Strategy::KalmanLogTrMultiBare
+        )
+    }
+
+    /// The top level's step rule: the covariance-aware trust region for the
+    /// `-tr` strategies, the paper's pseudo-inverse for all others
+    /// (independent of [`crate::solver::SolverConfig`]'s default).
+    ///
+    /// ```
+    /// use spintune::benchmark::Strategy;
+    /// use spintune::solver::StepRule;
+    /// assert_eq!(Strategy::KalmanLog.step_rule(), StepRule::PseudoInverse);
+    /// assert_eq!(Strategy::KalmanLogTr.step_rule(), StepRule::ExpectedCost);
+    /// ```
+    pub fn step_rule(self) -> StepRule {
+        match self {
+            Strategy::KalmanTr
+            | Strategy::KalmanLogTr
+            | Strategy::KalmanLogTrMulti
+            | Strategy::KalmanLogTrMultiBare
+            | Strategy::OracleLogMultiBare => StepRule::ExpectedCost,
+            _ => StepRule::PseudoInverse,
+        }
+    }
+
+    /// Limited moves per measure-and-decide iteration (1 but for the
+    /// `-multi` strategies: [`MULTI_MOVES`], before the protocol's
+    /// [`BenchmarkProtocol::multi_moves`] overrides it).
+    ///
+    /// ```
+    /// use spintune::benchmark::{Strategy, MULTI_MOVES};
+    /// assert_eq!(Strategy::KalmanLogTr.max_moves_per_iteration(), 1);
+    /// assert_eq!(Strategy::KalmanLogTrMultiBare.max_moves_per_iteration(), MULTI_MOVES);
+    /// ```
+    pub fn max_moves_per_iteration(self) -> u32 {
+        match self {
+            Strategy::KalmanLogTrMulti
+            | Strategy::KalmanLogTrMultiBare
+            | Strategy::OracleLogMultiBare => MULTI_MOVES,
+            _ => 1,
+        }
     }
 }
 
@@ -164,6 +261,25 @@ pub struct BenchmarkProtocol {
     /// `[−e, +e]` drawn per seed (0.2 = ±20 %; 0 = exact).
     #[serde(default = "default_compensation_error")]
     pub compensation_error: f64,
+    /// Step rule of the `-tr` strategies.
+    #[serde(default = "default_tr_rule")]
+    pub tr_rule: StepRule,
+    /// [`crate::solver::SolverConfig::covariance_weight`] of the `-tr` strategies.
+    #[serde(default = "default_covariance_weight")]
+    pub covariance_weight: f64,
+    /// Moves per iteration of the `-multi` strategies.
+    #[serde(default = "default_multi_moves")]
+    pub multi_moves: u32,
+}
+
+fn default_tr_rule() -> StepRule {
+    StepRule::ExpectedCost
+}
+fn default_covariance_weight() -> f64 {
+    0.0
+}
+fn default_multi_moves() -> u32 {
+    MULTI_MOVES
 }
 
 fn default_compensation_error() -> f64 {
@@ -177,6 +293,9 @@ impl Default for BenchmarkProtocol {
             iterations_per_set_point: 21,
             relative_tolerance: 0.1,
             compensation_error: default_compensation_error(),
+            tr_rule: default_tr_rule(),
+            covariance_weight: default_covariance_weight(),
+            multi_moves: default_multi_moves(),
         }
     }
 }
@@ -184,9 +303,14 @@ impl Default for BenchmarkProtocol {
 /// Outcome of one target change for one strategy.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ChangeResult {
-    /// Iterations (moves) after the change until both parameters were in their
-    /// bands; `None` if not within the block.
+    /// Measure-and-decide iterations (top-level records) after the change
+    /// until one measured both parameters in their bands; `None` if not
+    /// within the block.
     pub iterations: Option<u32>,
+    /// Top-level moves (set requests changing a top-level gate, retreats
+    /// included) from the change until then; `None` if not converged.
+    #[serde(default)]
+    pub moves: Option<u32>,
     /// Lab time from the change until then, minutes (`None` if not converged).
     pub lab_minutes: Option<f64>,
 }
@@ -204,7 +328,8 @@ pub struct SeedResult {
     pub device: u64,
     /// One entry per set point.
     pub changes: Vec<ChangeResult>,
-    /// Requests the safety limits refused, plus iteration steps above the step limit.
+    /// Requests the safety limits refused, plus top-level moves above the
+    /// step limit (each move checked on its way to the device).
     pub limit_violations: u64,
     /// Failed or rejected evaluations (all scans, all levels).
     pub failed_fits: u64,
@@ -232,11 +357,28 @@ pub struct LabKnowledge {
 /// Log-space strategies rescale the measured gradient, its covariance and Q
 /// by the measured start values (falling back to the target where a start
 /// value is missing).
-pub fn configure_strategy(strategy: Strategy, lab: &LabKnowledge) -> TunerConfig {
+pub fn configure_strategy(
+    strategy: Strategy,
+    lab: &LabKnowledge,
+    protocol: &BenchmarkProtocol,
+) -> TunerConfig {
     let mut tcfg = lab.config.clone();
     tcfg.max_iterations = None;
     let top = tcfg.top_mut();
     top.estimator = strategy.estimator();
+    top.solver.rule = strategy.step_rule();
+    top.solver.max_moves_per_iteration = strategy.max_moves_per_iteration();
+    if top.solver.rule == StepRule::ExpectedCost {
+        top.solver.rule = protocol.tr_rule;
+        top.solver.covariance_weight = protocol.covariance_weight;
+    }
+    if top.solver.max_moves_per_iteration > 1 {
+        top.solver.max_moves_per_iteration = protocol.multi_moves;
+    }
+    top.solver.lower_levels_between_moves = !matches!(
+        strategy,
+        Strategy::KalmanLogTrMultiBare | Strategy::OracleLogMultiBare
+    );
     if strategy.log_space() {
         let values: Vec<f64> = top
             .parameters
@@ -375,7 +517,7 @@ pub fn run_seed(
     strategies
         .iter()
         .map(|&strategy| {
-            let tcfg = configure_strategy(strategy, &lab);
+            let tcfg = configure_strategy(strategy, &lab, protocol);
             let tuner = Tuner::new(tcfg).map_err(|e| err(format!("{}: {e}", strategy.name())))?;
             let mut dev = after_init.clone();
             if !strategy.is_oracle() {
@@ -404,72 +546,62 @@ fn run_protocol(
     start_lab_seconds: f64,
     keep_records: bool,
 ) -> Result<SeedResult, String> {
-    let mut run = SimulationRun::from_parts(
-        RunSession::from_tuner(tuner, SessionConfig::default()),
+    let top = tuner.config().top();
+    let mut run = Harness {
+        top_gates: top.gates.clone(),
+        max_step_mv: top.solver.max_step_mv,
+        session: RunSession::from_tuner(tuner, SessionConfig::default()),
         device,
-    );
-    let max_step = run.tuner().config().top().solver.max_step_mv;
-    let mut violations = 0u64;
+        moves: 0,
+        violations: 0,
+    };
     let mut changes = Vec::new();
     let mut records = Vec::new();
-    let mut previous: Option<IterationRecord> = None;
     let mut lab_at_change = start_lab_seconds;
     for &(t_sr, w) in &protocol.set_points {
         let tol = Some(Tolerance::Relative(protocol.relative_tolerance));
         for (parameter, target) in [("t_sr", t_sr), ("w", w)] {
-            run.control(&ControlCommand::SetTarget {
-                parameter: parameter.into(),
-                target: Some(target),
-                tolerance: tol,
-            })
-            .map_err(|e| e.to_string())?;
+            run.session
+                .control(&ControlCommand::SetTarget {
+                    parameter: parameter.into(),
+                    target: Some(target),
+                    tolerance: tol,
+                })
+                .map_err(|e| e.to_string())?;
         }
+        let moves_at_change = run.moves;
         let mut converged: Option<ChangeResult> = None;
+        let mut last_lab = lab_at_change;
         for k in 0..protocol.iterations_per_set_point {
-            let rec = next_checked(&mut run, &mut violations)?;
-            if let Some(prev) = &previous {
-                let norm = rec
-                    .gates
-                    .iter()
-                    .map(|g| (rec.voltages_mv[g] - prev.voltages_mv[g]).powi(2))
-                    .sum::<f64>()
-                    .sqrt();
-                if norm > max_step * (1.0 + 1e-9) {
-                    violations += 1;
-                }
-            }
+            let rec = run.next()?;
             if converged.is_none() && rec.tuned {
                 converged = Some(ChangeResult {
                     iterations: Some(k),
+                    moves: Some((run.moves - moves_at_change) as u32),
                     lab_minutes: Some((rec.lab_seconds - lab_at_change) / 60.0),
                 });
             }
-            previous = Some(rec.clone());
+            last_lab = rec.lab_seconds;
             if keep_records {
                 records.push(rec);
             }
         }
-        lab_at_change = previous.as_ref().map_or(lab_at_change, |r| r.lab_seconds);
+        lab_at_change = last_lab;
         changes.push(converged.unwrap_or(ChangeResult {
             iterations: None,
+            moves: None,
             lab_minutes: None,
         }));
     }
-    let names = run
-        .tuner()
+    let tuner = run.session.tuner();
+    let names = tuner
         .config()
         .top()
         .parameters
         .iter()
         .map(|p| p.name.clone());
     let consistency = names
-        .zip(
-            run.tuner()
-                .consistency(0)
-                .unwrap_or_default()
-                .iter()
-                .copied(),
-        )
+        .zip(tuner.consistency(0).unwrap_or_default().iter().copied())
         .filter(|(_, c)| c.count > 0)
         .collect();
     Ok(SeedResult {
@@ -477,28 +609,69 @@ fn run_protocol(
         seed,
         device: 0,
         changes,
-        limit_violations: violations,
-        failed_fits: run.tuner().failed_evaluations(),
-        truth_queries: run.device().truth_queries(),
+        limit_violations: run.violations,
+        failed_fits: tuner.failed_evaluations(),
+        truth_queries: run.device.truth_queries(),
         consistency,
         records,
     })
 }
 
-/// [`SimulationRun::next_iteration`]; a fault (the guard refusing a request
-/// counts as a limit violation) ends the seed with an error: the benchmark
-/// never continues past a refused request.
-fn next_checked(run: &mut SimulationRun, violations: &mut u64) -> Result<IterationRecord, String> {
-    match run.next_iteration() {
-        Ok(Some(rec)) => Ok(rec),
-        Ok(None) => Err("tuner finished unexpectedly".into()),
-        Err(RunError::Fault(f)) => {
-            if f.kind == FaultKind::Safety {
-                *violations += 1;
+/// The benchmark's own driver loop (as [`crate::driver::SimulationRun`]),
+/// which also checks every top-level move on its way to the device,
+/// independently of the tuner: the Euclidean norm over the top level's gates
+/// of (requested − the device's present voltages) is a *move* if > 1 nV and
+/// a *limit violation* if above the step limit. A fault ends the seed (the
+/// guard refusing a request counts as a limit violation): the benchmark never
+/// continues past a refused request.
+struct Harness {
+    session: RunSession,
+    device: SimulatedDevice,
+    top_gates: Vec<String>,
+    max_step_mv: f64,
+    moves: u64,
+    violations: u64,
+}
+
+impl Harness {
+    fn next(&mut self) -> Result<IterationRecord, String> {
+        loop {
+            match self.session.poll() {
+                Output::Execute(request) => {
+                    if let Request::SetVoltages { voltages_mv } = &request {
+                        let now = self.device.voltages_mv();
+                        let norm = self
+                            .top_gates
+                            .iter()
+                            .filter_map(|g| Some((voltages_mv.get(g)? - now.get(g)?).powi(2)))
+                            .sum::<f64>()
+                            .sqrt();
+                        if norm > 1e-6 {
+                            self.moves += 1;
+                        }
+                        if !norm.is_finite() || norm > self.max_step_mv * (1.0 + 1e-9) {
+                            self.violations += 1;
+                        }
+                    }
+                    let response = self.device.execute(&request);
+                    self.session.feed(response).map_err(|e| e.to_string())?;
+                }
+                Output::Commit(record) => return Ok(*record),
+                Output::Save | Output::Publish(_) | Output::Sleep { .. } => {}
+                Output::Wait => {
+                    return Err(match self.session.status() {
+                        RunStatus::Faulted { fault } => {
+                            if fault.kind == FaultKind::Safety {
+                                self.violations += 1;
+                            }
+                            format!("run faulted: {fault}")
+                        }
+                        other => format!("run waiting ({other:?})"),
+                    })
+                }
+                Output::Done(_) => return Err("tuner finished unexpectedly".into()),
             }
-            Err(format!("run faulted: {f}"))
         }
-        Err(e) => Err(e.to_string()),
     }
 }
 
@@ -511,6 +684,10 @@ pub struct StrategySummary {
     pub iterations_per_change: Quantiles,
     /// Lab minutes per change: median and p90 over converged changes.
     pub lab_minutes_per_change: Quantiles,
+    /// Top-level moves per change (a measure-and-decide iteration may make
+    /// several): median, p90, max over converged changes.
+    #[serde(default = "Quantiles::nan")]
+    pub moves_per_change: Quantiles,
     /// Changes not reached within the block.
     pub not_converged: u64,
     /// Changes not reached within the block where an oracle run (`oracle` or
@@ -561,6 +738,21 @@ pub struct Quantiles {
     pub max: f64,
 }
 
+impl Quantiles {
+    /// All NaN (no data; e.g. a report from before the field existed).
+    ///
+    /// ```
+    /// assert!(spintune::benchmark::Quantiles::nan().median.is_nan());
+    /// ```
+    pub fn nan() -> Self {
+        Self {
+            median: f64::NAN,
+            p90: f64::NAN,
+            max: f64::NAN,
+        }
+    }
+}
+
 /// Quantile by linear interpolation between order statistics (`q` in 0..=1).
 ///
 /// ```
@@ -603,10 +795,15 @@ pub fn summarize(
                 .map(|c| c.iterations.map_or(block as f64, f64::from))
                 .collect();
             let minutes: Vec<f64> = changes.iter().filter_map(|c| c.lab_minutes).collect();
+            let moves: Vec<f64> = changes
+                .iter()
+                .filter_map(|c| c.moves.map(f64::from))
+                .collect();
             StrategySummary {
                 name: s.name().to_string(),
                 iterations_per_change: quantiles(&iters),
                 lab_minutes_per_change: quantiles(&minutes),
+                moves_per_change: quantiles(&moves),
                 not_converged: changes.iter().filter(|c| c.iterations.is_none()).count() as u64,
                 not_converged_where_oracle_converged: oracle_missed(results, &mine),
                 limit_violations: mine.iter().map(|r| r.limit_violations).sum(),
@@ -761,6 +958,7 @@ mod tests {
                 .into_iter()
                 .map(|i| ChangeResult {
                     iterations: i,
+                    moves: i.map(|x| 2 * x),
                     lab_minutes: i.map(|x| x as f64 * 2.0),
                 })
                 .collect(),
@@ -780,5 +978,8 @@ mod tests {
         assert_eq!(s[0].not_converged, 1);
         assert_eq!(s[0].ratio_to_oracle, Some(2.0));
         assert_eq!(s[0].lab_minutes_per_change.median, 6.0);
+        // moves over the converged changes only: 4, 8
+        assert_eq!(s[0].moves_per_change.median, 6.0);
+        assert_eq!(s[0].moves_per_change.max, 8.0);
     }
 }

@@ -583,6 +583,25 @@ fn validate_newton(n: &NewtonConfig, has_gate: &dyn Fn(&str) -> bool) -> Result<
     if !(n.solver.rank_tolerance.is_finite() && n.solver.rank_tolerance >= 0.0) {
         return Err(ConfigError::new("solver.rank_tolerance", "must be ≥ 0"));
     }
+    let kappa = n.solver.covariance_weight;
+    if !(kappa.is_finite() && (0.0..=crate::solver::MAX_COVARIANCE_WEIGHT).contains(&kappa)) {
+        return Err(ConfigError::new(
+            "solver.covariance_weight",
+            format!(
+                "must be a finite number in [0, {}]",
+                crate::solver::MAX_COVARIANCE_WEIGHT
+            ),
+        ));
+    }
+    if !(1..=crate::solver::MAX_MOVES_PER_ITERATION).contains(&n.solver.max_moves_per_iteration) {
+        return Err(ConfigError::new(
+            "solver.max_moves_per_iteration",
+            format!(
+                "must be between 1 and {}",
+                crate::solver::MAX_MOVES_PER_ITERATION
+            ),
+        ));
+    }
     if let Some(s) = n.outlier_sigma {
         if !(s.is_finite() && s > 0.0) {
             return Err(ConfigError::new(

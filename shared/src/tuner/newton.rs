@@ -15,7 +15,9 @@ use crate::protocol::{
     EventKind, GradientReport, IterationRecord, ParameterReport, ParameterValue, ScanKind,
     ScanReport, ScanRequest, TunerEvent,
 };
-use crate::solver::newton_step;
+use crate::solver::{
+    covariance_direction_step, expected_cost_step, newton_step, SolverConfig, StepRule,
+};
 
 /// After this many gated outliers in a row, the reference point is reset to
 /// the newest measurement (the parameter really moved; stop comparing with
@@ -615,6 +617,9 @@ impl Tuner {
                     ops.extend(scans.iter().cloned());
                     ops.push(Op::Decide(Decision::FdPoint(0, j)));
                 }
+                // back to where the step is planned from: the step target is at
+                // most `max_step_mv` from there, not from the last offset point
+                ops.push(Op::Move(v_now.clone()));
                 ops.push(Op::Decide(Decision::FdFinish));
                 ops.push(Op::Decide(Decision::Step));
                 self.push_ops(ops);
@@ -662,31 +667,76 @@ impl Tuner {
                 snapshot.samples[i].expect("filtered").0 - target
             }),
         );
-        let step = newton_step(&jac, &delta, &cfg.solver);
-        let mut target = snapshot.level_voltages_mv.clone();
-        for (j, g) in cfg.gates.iter().enumerate() {
-            target[j] += step.dv_mv[j];
-            if let Some(spec) = self.safety.gate(g) {
-                target[j] = target[j].clamp(spec.min_mv, spec.max_mv);
+        let max_moves = cfg.solver.max_moves_per_iteration.max(1);
+        // One iteration may travel up to `max_moves` moves of the step limit.
+        let radius_mv = cfg.solver.max_step_mv * f64::from(max_moves);
+        let step = match cfg.solver.rule {
+            StepRule::PseudoInverse => newton_step(
+                &jac,
+                &delta,
+                &SolverConfig {
+                    max_step_mv: radius_mv,
+                    ..cfg.solver
+                },
+            ),
+            StepRule::ExpectedCost | StepRule::CovarianceDirection => {
+                let covariances: Vec<Option<DMatrix<f64>>> =
+                    rows.iter().map(|&i| es[i].covariance().cloned()).collect();
+                let scale = DVector::from_iterator(
+                    rows.len(),
+                    rows.iter().map(|&i| row_scale(&cfg.parameters[i])),
+                );
+                let solve = if cfg.solver.rule == StepRule::ExpectedCost {
+                    expected_cost_step
+                } else {
+                    covariance_direction_step
+                };
+                solve(&jac, &covariances, &delta, &scale, &cfg.solver, radius_mv)
             }
-        }
-        let dv: Vec<f64> = target
-            .iter()
-            .zip(&snapshot.level_voltages_mv)
-            .map(|(a, b)| a - b)
-            .collect();
+        };
+        let base = snapshot.level_voltages_mv.clone();
+        let plan = plan_moves(
+            &base,
+            step.dv_mv.as_slice(),
+            cfg.solver.max_step_mv,
+            max_moves,
+        );
+        let clamp = |tuner: &Tuner, mut v: Vec<f64>| {
+            for (j, g) in cfg.gates.iter().enumerate() {
+                if let Some(spec) = tuner.safety.gate(g) {
+                    v[j] = v[j].clamp(spec.min_mv, spec.max_mv);
+                }
+            }
+            v
+        };
+        let targets: Vec<Vec<f64>> = plan.into_iter().map(|t| clamp(self, t)).collect();
+        let last = targets.last().cloned().unwrap_or_else(|| base.clone());
+        let dv: Vec<f64> = last.iter().zip(&base).map(|(a, b)| a - b).collect();
         let (_, state) = self.newton_mut(level);
-        if step.unlimited_norm_mv > cfg.solver.max_step_mv {
+        if step.unlimited_norm_mv > radius_mv {
             state.events.push(EventKind::StepLimited {
                 from_mv: step.unlimited_norm_mv,
-                to_mv: cfg.solver.max_step_mv,
+                to_mv: step.dv_mv.norm(),
             });
         }
         if let Some(s) = &mut state.snapshot {
             s.step_mv = dv;
         }
-        let mut ops = vec![Op::Move(target)];
-        ops.extend(self.after_move_ops(level));
+        let children = self.after_move_ops(level);
+        let mut ops = Vec::new();
+        let moves = targets.len();
+        for (k, t) in targets.into_iter().enumerate() {
+            // every move goes through `move_request` (per-gate clip, compensation,
+            // safety check); the lower levels follow every move, or the last only
+            ops.push(Op::Move(t));
+            if cfg.solver.lower_levels_between_moves || k + 1 == moves {
+                ops.extend(children.iter().cloned());
+            }
+        }
+        if ops.is_empty() {
+            ops.push(Op::Move(last));
+            ops.extend(children);
+        }
         ops.push(Op::Decide(Decision::EndIteration));
         self.push_ops(ops);
     }
@@ -771,6 +821,55 @@ impl Tuner {
     }
 }
 
+/// The row scale of the expected-cost step: the parameter's tolerance
+/// half-width at its target, in estimator units (log space: the band's
+/// width in ln). Falls back to 1 where that is not a positive finite number.
+fn row_scale(p: &ParameterSpec) -> f64 {
+    let s = p
+        .target
+        .and_then(|t| {
+            let hw = p.tolerance.half_width(t);
+            Some((p.transform.forward_value(t + hw)? - p.transform.forward_value(t)?).abs())
+        })
+        .unwrap_or(1.0);
+    if s.is_finite() && s > 0.0 {
+        s
+    } else {
+        1.0
+    }
+}
+
+/// Split a step `dv` (mV) from `base` (mV) into the fewest equal moves of at
+/// most `max_step_mv` each, at most `max_moves` of them; returns the absolute
+/// target of each move (the last one is `base + dv` when `‖dv‖ ≤
+/// max_moves·max_step_mv`, else the step is scaled to that length). Empty for
+/// a zero or non-finite step.
+///
+/// Invariant: consecutive targets (and `base` to the first) are at most
+/// `max_step_mv` apart.
+pub(super) fn plan_moves(
+    base: &[f64],
+    dv: &[f64],
+    max_step_mv: f64,
+    max_moves: u32,
+) -> Vec<Vec<f64>> {
+    let norm = dv.iter().map(|x| x * x).sum::<f64>().sqrt();
+    if !(norm.is_finite() && norm > 0.0 && max_step_mv > 0.0) || base.len() != dv.len() {
+        return Vec::new();
+    }
+    let max_moves = max_moves.max(1);
+    let total = norm.min(max_step_mv * f64::from(max_moves));
+    let moves = ((total / max_step_mv) * (1.0 - 1e-12)).ceil().max(1.0) as u32;
+    let moves = moves.min(max_moves);
+    let per_move = total / f64::from(moves);
+    (1..=moves)
+        .map(|k| {
+            let f = per_move * f64::from(k) / norm;
+            base.iter().zip(dv).map(|(b, d)| b + d * f).collect()
+        })
+        .collect()
+}
+
 /// Half-way from `now` toward `good` (mV, per gate), the step's norm capped
 /// at `max_step_mv`; `None` if `good` is within 0.01 mV of `now` or the
 /// inputs are not finite.
@@ -796,7 +895,45 @@ fn retreat_target(now: &[f64], good: &[f64], max_step_mv: f64) -> Option<Vec<f64
 
 #[cfg(test)]
 mod retreat_tests {
-    use super::retreat_target;
+    use super::{plan_moves, retreat_target};
+    use proptest::prelude::*;
+
+    proptest! {
+        /// Consecutive targets are within the step limit, there are at most
+        /// `max_moves` of them, and they end at `base + dv` when that is
+        /// reachable in `max_moves` moves.
+        #[test]
+        fn planned_moves_stay_within_the_step_limit(
+            base in proptest::collection::vec(-100.0f64..100.0, 4),
+            dv in proptest::collection::vec(-50.0f64..50.0, 4),
+            limit in 0.5f64..15.0,
+            max_moves in 1u32..=5,
+        ) {
+            let plan = plan_moves(&base, &dv, limit, max_moves);
+            prop_assert!(!plan.is_empty() && plan.len() <= max_moves as usize);
+            let mut from = base.clone();
+            for t in &plan {
+                let d = t.iter().zip(&from).map(|(a, b)| (a - b).powi(2)).sum::<f64>().sqrt();
+                prop_assert!(d <= limit * (1.0 + 1e-9), "{d} > {limit}");
+                from = t.clone();
+            }
+            let norm = dv.iter().map(|x| x * x).sum::<f64>().sqrt();
+            if norm <= limit * f64::from(max_moves) {
+                for ((t, b), d) in from.iter().zip(&base).zip(&dv) {
+                    prop_assert!((t - (b + d)).abs() < 1e-9);
+                }
+                // the fewest moves that fit
+                prop_assert!(plan.len() as f64 >= norm / limit - 1e-9);
+                prop_assert!(plan.len() == 1 || (plan.len() as f64 - 1.0) * limit < norm);
+            }
+        }
+    }
+
+    #[test]
+    fn no_moves_for_a_zero_or_non_finite_step() {
+        assert!(plan_moves(&[0.0], &[0.0], 10.0, 2).is_empty());
+        assert!(plan_moves(&[0.0], &[f64::NAN], 10.0, 2).is_empty());
+    }
 
     #[test]
     fn retreat_goes_half_way_back_within_the_step_limit() {

@@ -539,6 +539,41 @@ fn config_errors_name_the_field() {
 }
 
 #[test]
+fn step_rule_fields_are_bounded_and_default_to_the_papers_rule() {
+    let mut cfg = flat(EstimatorKind::Kalman);
+    cfg.top_mut().solver.covariance_weight = -0.5;
+    assert_eq!(
+        Tuner::new(cfg).unwrap_err().field,
+        "levels[0].solver.covariance_weight"
+    );
+    let mut cfg = flat(EstimatorKind::Kalman);
+    cfg.top_mut().solver.covariance_weight = 101.0;
+    assert!(Tuner::new(cfg).is_err());
+    for moves in [0, 6] {
+        let mut cfg = flat(EstimatorKind::Kalman);
+        cfg.top_mut().solver.max_moves_per_iteration = moves;
+        assert_eq!(
+            Tuner::new(cfg).unwrap_err().field,
+            "levels[0].solver.max_moves_per_iteration"
+        );
+    }
+    // a solver config written before item 6 gets the paper's behaviour
+    let old: SolverConfig =
+        serde_json::from_str(r#"{"max_step_mv": 7.0, "rank_tolerance": 1e-9}"#).unwrap();
+    assert_eq!(old.rule, crate::solver::StepRule::PseudoInverse);
+    assert_eq!(old.max_moves_per_iteration, 1);
+    assert!(old.lower_levels_between_moves);
+    assert_eq!(old.covariance_weight, 0.0);
+    let new: SolverConfig = serde_json::from_str(
+        r#"{"rule": "expected_cost", "covariance_weight": 1.0, "max_moves_per_iteration": 2, "lower_levels_between_moves": false}"#,
+    )
+    .unwrap();
+    assert_eq!(new.rule, crate::solver::StepRule::ExpectedCost);
+    assert_eq!(new.max_step_mv, 10.0);
+    assert!(serde_json::from_str::<SolverConfig>(r#"{"moves": 2}"#).is_err());
+}
+
+#[test]
 fn non_positive_or_non_finite_fit_references_are_rejected_naming_the_field() {
     type Set = fn(&mut TunerConfig, f64);
     let cases: [(&str, Set); 4] = [
@@ -660,4 +695,132 @@ fn schedule_changes_targets_at_the_given_iterations() {
         Tuner::new(cfg).unwrap_err().field,
         "schedule[0].targets.nope"
     );
+}
+
+/// Several limited moves per iteration: every move is its own guarded set
+/// request within the step limit, followed by the lower levels, each charged
+/// its lab time; w and t_sr are measured once per iteration, before the moves.
+#[test]
+fn multi_move_iteration_charges_every_move_and_no_move_bypasses_safety() {
+    multi_move_iteration(true);
+}
+
+/// As above, the lower levels only after the last move of an iteration: the
+/// intermediate moves are bare set requests, still guarded and charged.
+#[test]
+fn bare_multi_move_iteration_runs_lower_levels_once_per_iteration() {
+    multi_move_iteration(false);
+}
+
+fn multi_move_iteration(lower_levels_between_moves: bool) {
+    use crate::solver::StepRule;
+    let mut cfg = hierarchical();
+    let max_step_mv = 3.0;
+    let LevelKind::Newton(q) = &mut cfg.levels[0].kind else {
+        unreachable!()
+    };
+    q.solver = SolverConfig {
+        max_step_mv,
+        rule: StepRule::ExpectedCost,
+        max_moves_per_iteration: 3,
+        lower_levels_between_moves,
+        ..SolverConfig::default()
+    };
+    // a tight gate limit the moves run into
+    cfg.gates[0].max_mv = 6.0;
+    cfg.max_iterations = Some(12);
+    let top_gates = ["N", "SA", "SB", "T"];
+    let mut tuner = Tuner::new(cfg).unwrap();
+    let mut dev = Toy::new(&gates(), 3);
+    let mut charged_s = 0.0;
+    let mut records = 0;
+    // per iteration: top moves, and (kind, index) of every request
+    let mut moves_this_iteration = 0;
+    let mut most_moves = 0;
+    let mut since_top_move: Vec<ScanKind> = Vec::new();
+    let mut parameter_scan_after_move = false;
+    let mut moved_this_iteration = false;
+    let mut total_top_moves = 0;
+    for _ in 0..100_000 {
+        match tuner.poll() {
+            Action::Request(req) => {
+                match &req {
+                    Request::SetVoltages { voltages_mv } => {
+                        tuner
+                            .safety()
+                            .check(&dev.v, voltages_mv)
+                            .expect("tuner emitted an unsafe request");
+                        let norm = top_gates
+                            .iter()
+                            .filter_map(|g| Some((voltages_mv.get(*g)? - dev.v[*g]).powi(2)))
+                            .sum::<f64>()
+                            .sqrt();
+                        // (the initial finite differences, iteration 0, step between offsets)
+                        assert!(
+                            records == 0 || norm <= max_step_mv * (1.0 + 1e-9),
+                            "move of {norm} mV"
+                        );
+                        assert!(voltages_mv.get("N").is_none_or(|&v| v <= 6.0));
+                        if norm > 1e-9 && records > 0 {
+                            // the lower levels ran since the previous top move
+                            if moved_this_iteration {
+                                // the lower levels ran since the previous move, or not at all
+                                assert_eq!(
+                                    since_top_move.contains(&ScanKind::SensingDot),
+                                    lower_levels_between_moves
+                                );
+                                assert_eq!(
+                                    since_top_move.contains(&ScanKind::ChemicalPotential),
+                                    lower_levels_between_moves
+                                );
+                            }
+                            since_top_move.clear();
+                            moves_this_iteration += 1;
+                            total_top_moves += 1;
+                            moved_this_iteration = true;
+                        }
+                    }
+                    Request::Measure { scan } => {
+                        since_top_move.push(scan.kind);
+                        if moved_this_iteration
+                            && matches!(scan.kind, ScanKind::ReloadTime | ScanKind::TransitionWidth)
+                        {
+                            parameter_scan_after_move = true;
+                        }
+                    }
+                    _ => {}
+                }
+                let resp = dev.execute(&req);
+                if let Response::VoltagesSet { lab_seconds, .. }
+                | Response::Scanned { lab_seconds, .. } = &resp
+                {
+                    charged_s += lab_seconds;
+                }
+                tuner.feed(resp).unwrap();
+            }
+            Action::Iteration(_) => {
+                if moved_this_iteration {
+                    // the lower levels always follow the last move
+                    assert!(since_top_move.contains(&ScanKind::SensingDot));
+                    assert!(since_top_move.contains(&ScanKind::ChemicalPotential));
+                }
+                records += 1;
+                most_moves = most_moves.max(moves_this_iteration);
+                moves_this_iteration = 0;
+                moved_this_iteration = false;
+            }
+            Action::Finished => break,
+        }
+    }
+    assert_eq!(records, 12);
+    assert!(
+        most_moves >= 2,
+        "never more than {most_moves} move per iteration"
+    );
+    assert!(most_moves <= 3);
+    assert!(total_top_moves > records - 1);
+    // w and t_sr are measured only at the start of an iteration, before its moves
+    assert!(!parameter_scan_after_move);
+    // every request's lab time, moves included, is on the tuner's clock
+    assert!((tuner.lab_seconds() - charged_s).abs() < 1e-9);
 }

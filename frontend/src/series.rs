@@ -7,6 +7,7 @@
 //! Legends are not drawn on the canvas (they would cover data): the page
 //! shows them as text next to each chart.
 
+use plotters::coord::types::RangedCoordf64;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 
@@ -135,9 +136,11 @@ fn plot_columns<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, y_area: u32) 
 
 /// The series at data offset `o` of `rows` (σ at `o + 1` when `sigma`):
 /// `(line, bands, points)`. Up to `2 × cols` rows are returned as they are
-/// (`points`: `(x, value, σ)` for error bars); more are decimated in one
-/// pass per pixel column ([`Columns`]: min/max of the values, envelope of
-/// value ± σ) and `points` is `None`.
+/// (`points`: `(x, value, σ)` for error bars); more are decimated per pixel
+/// column (min/max of the values, envelope of value ± σ) from the history's
+/// min/max pyramid in O(columns × log n) ([`RunHistory::decimate`]; one
+/// pass over the rows with [`Columns`] if the column has none) and `points`
+/// is `None`.
 #[allow(clippy::type_complexity)]
 fn series_of(
     f: &Frame<'_>,
@@ -167,6 +170,12 @@ fn series_of(
         let bands = pts.iter().map(|&(x, v, s)| (x, v - s, v + s)).collect();
         return (line, bands, Some(pts));
     }
+    if let Some(out) = f
+        .history
+        .decimate(o, f.range(), |r| axis.x(r), (x0, x1), cols)
+    {
+        return (out.0, out.1, None);
+    }
     let mut c = Columns::new(x0, x1, cols);
     for (i, (r, &v)) in rows.iter().zip(vals).enumerate() {
         let s = sd(i);
@@ -174,6 +183,47 @@ fn series_of(
     }
     let (line, bands) = c.finish();
     (line, bands, None)
+}
+
+/// The ±1σ envelope of a decimated series (`(x, lower, upper)` per pixel
+/// column) as filled polygons, one per run of adjacent columns (a gap of
+/// missing values splits it; a lone column is a vertical line): one canvas
+/// fill per run instead of one stroke per pixel column.
+fn draw_band<DB: DrawingBackend>(
+    chart: &mut ChartContext<'_, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
+    bands: &[(f64, f64, f64)],
+    (x0, x1): (f64, f64),
+    cols: usize,
+    c: RGBColor,
+) -> Result<(), String> {
+    let gap = 2.5 * (x1 - x0) / cols.max(1) as f64;
+    let style = c.mix(0.25);
+    let mut start = 0;
+    for i in 1..=bands.len() {
+        if i < bands.len() && bands[i].0 - bands[i - 1].0 <= gap {
+            continue;
+        }
+        let run = &bands[start..i];
+        start = i;
+        if let [(x, lo, hi)] = run {
+            chart
+                .draw_series(std::iter::once(PathElement::new(
+                    vec![(*x, *lo), (*x, *hi)],
+                    style.stroke_width(1),
+                )))
+                .map_err(err)?;
+        } else if !run.is_empty() {
+            let outline: Vec<(f64, f64)> = run
+                .iter()
+                .map(|b| (b.0, b.2))
+                .chain(run.iter().rev().map(|b| (b.0, b.1)))
+                .collect();
+            chart
+                .draw_series(std::iter::once(Polygon::new(outline, style.filled())))
+                .map_err(err)?;
+        }
+    }
+    Ok(())
 }
 
 /// Segments of constant (target, tolerance) over rows: `(x from, x to, target, half-width)`.
@@ -236,7 +286,9 @@ pub fn draw_parameter<DB: DrawingBackend>(
     let rows = f.rows();
     let (x0, x1) = f.x_range();
     let cols = plot_columns(area, 62);
-    let (line, bands, pts) = series_of(f, o, true, (x0, x1), cols);
+    let (line, bands, pts) = crate::metrics::phase(crate::metrics::Phase::Decimate, || {
+        series_of(f, o, true, (x0, x1), cols)
+    });
     if line.is_empty() {
         return placeholder(area, &title, "waiting for measurements…").map(|_| Drawn {
             iterations: rows.len(),
@@ -321,11 +373,7 @@ pub fn draw_parameter<DB: DrawingBackend>(
             }))
             .map_err(err)?;
     } else {
-        chart
-            .draw_series(bands.iter().map(|&(x, lo, hi)| {
-                PathElement::new(vec![(x, lo), (x, hi)], c.mix(0.25).stroke_width(1))
-            }))
-            .map_err(err)?;
+        draw_band(&mut chart, &bands, (x0, x1), cols, c)?;
         chart
             .draw_series(LineSeries::new(line.iter().copied(), c.stroke_width(1)))
             .map_err(err)?;
@@ -364,7 +412,9 @@ pub fn draw_gradient<DB: DrawingBackend>(
     for (gi, (gate, panel)) in layout.gates.iter().zip(panels.iter()).enumerate() {
         let o = layout.grad(g, gi);
         let cols = plot_columns(panel, 58);
-        let (line, bands, pts) = series_of(f, o, true, (x0, x1), cols);
+        let (line, bands, pts) = crate::metrics::phase(crate::metrics::Phase::Decimate, || {
+            series_of(f, o, true, (x0, x1), cols)
+        });
         let (y0, y1) = value_range(&line, &bands, std::iter::empty());
         let mut chart = styled_chart(
             panel,
@@ -391,11 +441,7 @@ pub fn draw_gradient<DB: DrawingBackend>(
                 }))
                 .map_err(err)?;
         } else {
-            chart
-                .draw_series(bands.iter().map(|&(x, lo, hi)| {
-                    PathElement::new(vec![(x, lo), (x, hi)], c.mix(0.25).stroke_width(1))
-                }))
-                .map_err(err)?;
+            draw_band(&mut chart, &bands, (x0, x1), cols, c)?;
         }
         chart
             .draw_series(LineSeries::new(line.iter().copied(), c.mix(0.8)))
@@ -428,7 +474,9 @@ pub fn draw_gates<DB: DrawingBackend>(
     for (gi, (gate, panel)) in layout.gates.iter().zip(panels.iter()).enumerate() {
         let o = layout.gate(gi);
         let cols = plot_columns(panel, 58);
-        let (line, _, _) = series_of(f, o, false, (x0, x1), cols);
+        let (line, _, _) = crate::metrics::phase(crate::metrics::Phase::Decimate, || {
+            series_of(f, o, false, (x0, x1), cols)
+        });
         let (y0, y1) = padded_range(line.iter().map(|p| p.1), 0.1);
         let mut chart = styled_chart(
             panel,
@@ -470,11 +518,17 @@ pub fn draw_lab_time<DB: DrawingBackend>(
     let (scale, unit) = if long { (3600.0, "h") } else { (60.0, "min") };
     let (x0, x1) = (f.window.lo - 0.5, f.window.hi.max(f.window.lo + 1.0) + 0.5);
     let cols = plot_columns(area, 62);
-    let xy: Vec<(f64, f64)> = rows
-        .iter()
-        .map(|r| (r.iteration as f64, r.lab_seconds / scale))
-        .collect();
-    let line = min_max(&xy, x0, x1, cols);
+    let line: Vec<(f64, f64)> = if rows.len() <= 2 * cols {
+        rows.iter()
+            .map(|r| (r.iteration as f64, r.lab_seconds / scale))
+            .collect()
+    } else {
+        f.history
+            .decimate_lab_time(f.range(), |r| r.iteration as f64, (x0, x1), cols, false)
+            .into_iter()
+            .map(|(x, s)| (x, s / scale))
+            .collect()
+    };
     let (y0, y1) = padded_range(line.iter().map(|p| p.1), 0.05);
     let mut chart = styled_chart(
         area,
@@ -492,12 +546,20 @@ pub fn draw_lab_time<DB: DrawingBackend>(
             color(6).stroke_width(2),
         ))
         .map_err(err)?;
-    let tuned: Vec<(f64, f64)> = rows
-        .iter()
-        .filter(|r| r.tuned)
-        .map(|r| (r.iteration as f64, r.lab_seconds / scale))
-        .collect();
-    let tuned = min_max(&tuned, x0, x1, cols / 4);
+    let tuned: Vec<(f64, f64)> = if rows.len() <= 2 * cols {
+        let xy: Vec<(f64, f64)> = rows
+            .iter()
+            .filter(|r| r.tuned)
+            .map(|r| (r.iteration as f64, r.lab_seconds / scale))
+            .collect();
+        min_max(&xy, x0, x1, cols / 4)
+    } else {
+        f.history
+            .decimate_lab_time(f.range(), |r| r.iteration as f64, (x0, x1), cols / 4, true)
+            .into_iter()
+            .map(|(x, s)| (x, s / scale))
+            .collect()
+    };
     chart
         .draw_series(tuned.iter().map(|&p| Circle::new(p, 3, BAND.filled())))
         .map_err(err)?;

@@ -192,6 +192,24 @@ pub struct RunHistory {
     lab_pyramid: Pyramid,
     /// The same over the tuned rows only (NaN for the others).
     tuned_pyramid: Pyramid,
+    /// Per parameter, runs of rows with the same (target, tolerance)
+    /// ([`TargetRun`]), so that a chart finds the targets in its window
+    /// without reading every row.
+    target_runs: Vec<Vec<TargetRun>>,
+}
+
+/// Rows `first..=last` (both with a finite target) share one target and
+/// tolerance (rows between them without a target do not break the run).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TargetRun {
+    /// First row (index) with this target.
+    pub first: usize,
+    /// Last row (index) with this target.
+    pub last: usize,
+    /// Target (parameter units).
+    pub target: f64,
+    /// Tolerance half-width (parameter units; 0 where none).
+    pub tolerance: f64,
 }
 
 impl RunHistory {
@@ -298,6 +316,62 @@ impl RunHistory {
         self.lab_pyramid.update(n, from, |i| lab_of(rows, false, i));
         self.tuned_pyramid
             .update(n, from, |i| lab_of(rows, true, i));
+        let params = self.layout.parameters.len();
+        self.target_runs.resize(params, Vec::new());
+        for p in 0..params {
+            let o = self.layout.param(p);
+            let (t, tol) = (&self.columns[o + 2], &self.columns[o + 3]);
+            let runs = &mut self.target_runs[p];
+            // Runs reaching `from` are rescanned (the one before may grow).
+            let keep = runs.partition_point(|r| r.last < from);
+            let restart = runs.get(keep).map_or(from, |r| r.first.min(from));
+            runs.truncate(keep);
+            for i in restart..n {
+                if !t[i].is_finite() {
+                    continue;
+                }
+                let tl = if tol[i].is_finite() { tol[i] } else { 0.0 };
+                match runs.last_mut() {
+                    Some(r) if r.target == t[i] && r.tolerance == tl => r.last = i,
+                    _ => runs.push(TargetRun {
+                        first: i,
+                        last: i,
+                        target: t[i],
+                        tolerance: tl,
+                    }),
+                }
+            }
+        }
+    }
+
+    /// Parameter `p`'s runs of one target within the rows `rows` (clipped
+    /// to the rows with a target inside it), in row order.
+    pub fn target_runs(&self, p: usize, rows: std::ops::Range<usize>) -> Vec<TargetRun> {
+        let Some(runs) = self.target_runs.get(p) else {
+            return Vec::new();
+        };
+        let t = &self.columns[self.layout.param(p) + 2];
+        let start = runs.partition_point(|r| r.last < rows.start);
+        let mut out = Vec::new();
+        for r in &runs[start..] {
+            if r.first >= rows.end {
+                break;
+            }
+            let a = (r.first.max(rows.start)..=r.last).find(|&i| t[i].is_finite());
+            let b = (r.first..=r.last.min(rows.end - 1))
+                .rev()
+                .find(|&i| t[i].is_finite());
+            if let (Some(a), Some(b)) = (a, b) {
+                if a <= b {
+                    out.push(TargetRun {
+                        first: a,
+                        last: b,
+                        ..*r
+                    });
+                }
+            }
+        }
+        out
     }
 
     /// Decimate series column `c` over the rows with index in `rows` (x from
@@ -314,11 +388,13 @@ impl RunHistory {
         columns: usize,
     ) -> Option<Decimated> {
         let p = self.pyramids.get(c)?.as_ref()?;
-        let sigma = self.sigma_of(c);
+        let v = self.columns[c].as_slice();
+        let s = self.sigma_of(c).map(|s| self.columns[s].as_slice());
+        let r = self.rows.as_slice();
         Some(p.decimate(
             rows,
-            |i| x(&self.rows[i]),
-            |i| self.point(c, sigma, i),
+            |i| x(&r[i]),
+            |i| (v[i], s.map_or(0.0, |s| s[i])),
             x0,
             x1,
             columns,

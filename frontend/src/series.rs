@@ -295,7 +295,20 @@ pub fn draw_parameter<DB: DrawingBackend>(
             ..Drawn::default()
         });
     }
-    let targets = target_segments(rows, f.column(o + 2), f.column(o + 3), f.axis);
+    let targets: Vec<(f64, f64, f64, f64)> = f
+        .history
+        .target_runs(p, f.range())
+        .into_iter()
+        .map(|r| {
+            let all = f.history.rows();
+            (
+                f.axis.x(&all[r.first]),
+                f.axis.x(&all[r.last]),
+                r.target,
+                r.tolerance,
+            )
+        })
+        .collect();
     let overlay: Vec<(f64, f64)> = f
         .overlay
         .and_then(|h| {
@@ -601,5 +614,51 @@ mod tests {
         assert_eq!(segs, vec![(0.0, 2.0, 20.0, 2.0), (3.0, 4.0, 70.0, 2.0)]);
         let segs = target_segments(h.rows(), t, tol, XAxis::LabTime);
         assert_eq!(segs[1].0, (60.0 * 3.0 + 30.0) / 3600.0);
+    }
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn target_runs_kept_by_the_history_match_a_scan_of_every_window() {
+        let mut recs = fake_records(60);
+        for (k, r) in recs.iter_mut().enumerate() {
+            r.parameters[0].target = match k {
+                0..=9 => Some(20.0),
+                10..=14 => None,
+                15..=29 => Some(20.0),
+                30..=44 => Some(70.0),
+                _ => Some(45.0),
+            };
+        }
+        let mut h = RunHistory::new();
+        // Newest first, then older pages, then live records one by one.
+        h.insert(recs[40..50].to_vec());
+        h.insert(recs[0..40].to_vec());
+        for r in &recs[50..60] {
+            h.insert([r.clone()]);
+        }
+        let o = h.layout().param(0);
+        for (a, b) in [
+            (0, 60),
+            (0, 12),
+            (11, 14),
+            (12, 33),
+            (31, 60),
+            (59, 60),
+            (45, 46),
+        ] {
+            let rows = &h.rows()[a..b];
+            let expect = target_segments(
+                rows,
+                &h.column(o + 2)[a..b],
+                &h.column(o + 3)[a..b],
+                XAxis::Iteration,
+            );
+            let got: Vec<_> = h
+                .target_runs(0, a..b)
+                .into_iter()
+                .map(|r| (r.first as f64, r.last as f64, r.target, r.tolerance))
+                .collect();
+            assert_eq!(got, expect, "rows {a}..{b}");
+        }
     }
 }

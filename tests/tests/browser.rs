@@ -64,6 +64,8 @@ async fn dashboard_live_control_reconnect_and_in_browser_mode() {
             "chart {chart} not drawn with data"
         );
     }
+    // The run list names each run's driver (the demo run is simulated).
+    wait_text(&c, "[data-testid=run-driver]", "simulator", 10).await;
     // Read-only without the token.
     wait_text(&c, "[data-testid=readonly]", "Read-only view", 5).await;
     assert!(

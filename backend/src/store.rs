@@ -83,6 +83,7 @@ impl StoredRun {
                 iterations: 0,
                 lab_seconds: 0.0,
                 tuned: false,
+                driver: None,
             },
             config_json: String::new(),
             unreadable: Some(error),
@@ -144,6 +145,20 @@ fn now_unix_s() -> f64 {
         .unwrap_or(0.0)
 }
 
+/// The driver named by a stored run config (`backend.driver`, default
+/// `simulator`); `None` if the config is not readable JSON.
+fn stored_driver(config_json: &str) -> Option<String> {
+    let v: serde_json::Value = serde_json::from_str(config_json).ok()?;
+    let backend = v.get("backend")?;
+    Some(
+        backend
+            .get("driver")
+            .and_then(|d| d.as_str())
+            .unwrap_or("simulator")
+            .to_string(),
+    )
+}
+
 fn summary_from_row(row: &rusqlite::Row<'_>) -> rusqlite::Result<(RunSummary, String, String)> {
     let id: i64 = row.get(0)?;
     let name: String = row.get(1)?;
@@ -160,6 +175,7 @@ fn summary_from_row(row: &rusqlite::Row<'_>) -> rusqlite::Result<(RunSummary, St
             iterations: iterations as u64,
             lab_seconds,
             tuned,
+            driver: stored_driver(&config),
         },
         status,
         config,

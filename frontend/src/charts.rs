@@ -48,6 +48,22 @@ pub(crate) fn styled_chart<'a, DB: DrawingBackend>(
     small: bool,
     x_fmt: &dyn Fn(&f64) -> String,
 ) -> Result<ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>, String> {
+    crate::metrics::phase(crate::metrics::Phase::Axes, || {
+        styled_chart_inner(area, caption, x_desc, y_desc, x, y, small, x_fmt)
+    })
+}
+
+#[allow(clippy::too_many_arguments)]
+fn styled_chart_inner<'a, DB: DrawingBackend>(
+    area: &'a DrawingArea<DB, Shift>,
+    caption: &str,
+    x_desc: &str,
+    y_desc: &str,
+    x: std::ops::Range<f64>,
+    y: std::ops::Range<f64>,
+    small: bool,
+    x_fmt: &dyn Fn(&f64) -> String,
+) -> Result<ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>, String> {
     let (caption_px, margin, x_area, y_area, label_px, desc_px) = if small {
         (15, 6, 34, 58, 11, 12)
     } else {

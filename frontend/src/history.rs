@@ -12,12 +12,16 @@
 //! series of 100,000 iterations streams through 800 kB of memory. Raw scans (tens of kB per
 //! iteration) are kept for two iterations only: the latest live one and the
 //! one being inspected. At most [`MAX_ROWS`] rows are held (the oldest are
-//! dropped beyond it): ≈ 28 MB for 100,000 iterations.
+//! dropped beyond it): ≈ 28 MB for 100,000 iterations, plus the min/max
+//! pyramids of the 14 drawn series and the lab time ([`Pyramid`], about
+//! n / 7 blocks of 48 B each: ≈ 11 MB for 100,000 iterations) that make a
+//! redraw O(pixel columns) instead of O(iterations).
 
 use std::collections::BTreeMap;
 
 use spintune::protocol::{IterationRecord, ScanReport, TunerEvent};
 
+use crate::decimate::{Decimated, Pyramid};
 use crate::model::gradient_sigmas;
 
 /// Most rows held; older rows are dropped (and not fetched again) beyond this.
@@ -130,6 +134,16 @@ impl Layout {
     }
 }
 
+/// `(lab seconds, 0)` of row `i` (NaN for an untuned row with `tuned_only`).
+fn lab_of(rows: &[Row], tuned_only: bool, i: usize) -> (f64, f64) {
+    let r = &rows[i];
+    if tuned_only && !r.tuned {
+        (f64::NAN, 0.0)
+    } else {
+        (r.lab_seconds, 0.0)
+    }
+}
+
 /// One iteration (its numbers are in the history's columns, same index).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Row {
@@ -171,6 +185,31 @@ pub struct RunHistory {
     total: u64,
     /// Bumped on every change (cheap change detection for charts).
     version: u64,
+    /// Min/max pyramids of the drawn series, by column (`None` for the
+    /// columns that are not drawn as a series: σ, target, tolerance, step).
+    pyramids: Vec<Option<Pyramid>>,
+    /// Min/max pyramid of the lab time (s) over the rows.
+    lab_pyramid: Pyramid,
+    /// The same over the tuned rows only (NaN for the others).
+    tuned_pyramid: Pyramid,
+    /// Per parameter, runs of rows with the same (target, tolerance)
+    /// ([`TargetRun`]), so that a chart finds the targets in its window
+    /// without reading every row.
+    target_runs: Vec<Vec<TargetRun>>,
+}
+
+/// Rows `first..=last` (both with a finite target) share one target and
+/// tolerance (rows between them without a target do not break the run).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TargetRun {
+    /// First row (index) with this target.
+    pub first: usize,
+    /// Last row (index) with this target.
+    pub last: usize,
+    /// Target (parameter units).
+    pub target: f64,
+    /// Tolerance half-width (parameter units; 0 where none).
+    pub tolerance: f64,
 }
 
 impl RunHistory {
@@ -231,6 +270,162 @@ impl RunHistory {
     /// Column `c` of the [`Layout`], one number per row.
     pub fn column(&self, c: usize) -> &[f64] {
         self.columns.get(c).map_or(&[], Vec::as_slice)
+    }
+
+    /// The σ column of a drawn series column `c` (parameter values and
+    /// gradient elements have one; gate voltages have none).
+    fn sigma_of(&self, c: usize) -> Option<usize> {
+        let l = &self.layout;
+        let params = (0..l.parameters.len()).map(|p| l.param(p));
+        let grads = (0..l.gradients.len())
+            .flat_map(|g| (0..l.gates.len()).map(move |gi| (g, gi)))
+            .map(|(g, gi)| l.grad(g, gi));
+        params.chain(grads).any(|v| v == c).then_some(c + 1)
+    }
+
+    /// Whether column `c` is drawn as a series (has a pyramid).
+    fn is_series(&self, c: usize) -> bool {
+        let l = &self.layout;
+        self.sigma_of(c).is_some() || (0..l.gates.len()).any(|g| l.gate(g) == c)
+    }
+
+    /// `(value, σ)` of row `i` in series column `c`.
+    #[inline]
+    fn point(&self, c: usize, sigma: Option<usize>, i: usize) -> (f64, f64) {
+        let s = sigma.map_or(0.0, |s| self.columns[s][i]);
+        (self.columns[c][i], s)
+    }
+
+    /// Bring the pyramids up to date: rows `from..` are new or changed.
+    fn update_pyramids(&mut self, from: usize) {
+        let n = self.rows.len();
+        if self.pyramids.len() != self.columns.len() {
+            self.pyramids = (0..self.columns.len())
+                .map(|c| self.is_series(c).then(Pyramid::default))
+                .collect();
+        }
+        let mut pyramids = std::mem::take(&mut self.pyramids);
+        for (c, p) in pyramids.iter_mut().enumerate() {
+            if let Some(p) = p {
+                let sigma = self.sigma_of(c);
+                p.update(n, from, |i| self.point(c, sigma, i));
+            }
+        }
+        self.pyramids = pyramids;
+        let rows = &self.rows;
+        self.lab_pyramid.update(n, from, |i| lab_of(rows, false, i));
+        self.tuned_pyramid
+            .update(n, from, |i| lab_of(rows, true, i));
+        let params = self.layout.parameters.len();
+        self.target_runs.resize(params, Vec::new());
+        for p in 0..params {
+            let o = self.layout.param(p);
+            let (t, tol) = (&self.columns[o + 2], &self.columns[o + 3]);
+            let runs = &mut self.target_runs[p];
+            // Runs reaching `from` are rescanned (the one before may grow).
+            let keep = runs.partition_point(|r| r.last < from);
+            let restart = runs.get(keep).map_or(from, |r| r.first.min(from));
+            runs.truncate(keep);
+            for i in restart..n {
+                if !t[i].is_finite() {
+                    continue;
+                }
+                let tl = if tol[i].is_finite() { tol[i] } else { 0.0 };
+                match runs.last_mut() {
+                    Some(r) if r.target == t[i] && r.tolerance == tl => r.last = i,
+                    _ => runs.push(TargetRun {
+                        first: i,
+                        last: i,
+                        target: t[i],
+                        tolerance: tl,
+                    }),
+                }
+            }
+        }
+    }
+
+    /// Parameter `p`'s runs of one target within the rows `rows` (clipped
+    /// to the rows with a target inside it), in row order.
+    pub fn target_runs(&self, p: usize, rows: std::ops::Range<usize>) -> Vec<TargetRun> {
+        let Some(runs) = self.target_runs.get(p) else {
+            return Vec::new();
+        };
+        let t = &self.columns[self.layout.param(p) + 2];
+        let start = runs.partition_point(|r| r.last < rows.start);
+        let mut out = Vec::new();
+        for r in &runs[start..] {
+            if r.first >= rows.end {
+                break;
+            }
+            let a = (r.first.max(rows.start)..=r.last).find(|&i| t[i].is_finite());
+            let b = (r.first..=r.last.min(rows.end - 1))
+                .rev()
+                .find(|&i| t[i].is_finite());
+            if let (Some(a), Some(b)) = (a, b) {
+                if a <= b {
+                    out.push(TargetRun {
+                        first: a,
+                        last: b,
+                        ..*r
+                    });
+                }
+            }
+        }
+        out
+    }
+
+    /// Decimate series column `c` over the rows with index in `rows` (x from
+    /// `x(row)`, non-decreasing) into `columns` pixel columns over
+    /// `[x0, x1]`: the M4 line and the ±σ band envelope
+    /// ([`Pyramid::decimate`], O(columns × log n)). `None` if `c` is not a
+    /// series column.
+    pub fn decimate(
+        &self,
+        c: usize,
+        rows: std::ops::Range<usize>,
+        x: impl Fn(&Row) -> f64,
+        (x0, x1): (f64, f64),
+        columns: usize,
+    ) -> Option<Decimated> {
+        let p = self.pyramids.get(c)?.as_ref()?;
+        let v = self.columns[c].as_slice();
+        let s = self.sigma_of(c).map(|s| self.columns[s].as_slice());
+        let r = self.rows.as_slice();
+        Some(p.decimate(
+            rows,
+            |i| x(&r[i]),
+            |i| (v[i], s.map_or(0.0, |s| s[i])),
+            x0,
+            x1,
+            columns,
+        ))
+    }
+
+    /// Decimated lab time (s) against `x(row)`, like [`RunHistory::decimate`];
+    /// with `tuned_only`, of the tuned rows only.
+    pub fn decimate_lab_time(
+        &self,
+        rows: std::ops::Range<usize>,
+        x: impl Fn(&Row) -> f64,
+        (x0, x1): (f64, f64),
+        columns: usize,
+        tuned_only: bool,
+    ) -> Vec<(f64, f64)> {
+        let r = &self.rows;
+        let p = if tuned_only {
+            &self.tuned_pyramid
+        } else {
+            &self.lab_pyramid
+        };
+        p.decimate(
+            rows,
+            |i| x(&r[i]),
+            |i| lab_of(r, tuned_only, i),
+            x0,
+            x1,
+            columns,
+        )
+        .0
     }
 
     /// All numbers of iteration `k` (indexed by the [`Layout`]).
@@ -361,6 +556,8 @@ impl RunHistory {
             .rows
             .last()
             .is_none_or(|l| l.iteration < new_rows[0].0.iteration);
+        // Rows before this index keep their place (the pyramids above them stay).
+        let mut changed_from = self.rows.len();
         if appending {
             for (row, values) in new_rows {
                 self.rows.push(row);
@@ -391,6 +588,7 @@ impl RunHistory {
                     self.rows[k]
                 }
             };
+            changed_from = order.iter().position(|o| o.0).unwrap_or(n);
             let rows: Vec<Row> = order.iter().map(pick_row).collect();
             for (ci, col) in self.columns.iter_mut().enumerate() {
                 let merged: Vec<f64> = order
@@ -410,7 +608,9 @@ impl RunHistory {
             }
             self.events = self.events.split_off(&cut);
             self.floor = self.floor.max(cut);
+            changed_from = 0;
         }
+        self.update_pyramids(changed_from);
         self.version += 1;
         merge
     }
@@ -522,6 +722,78 @@ mod tests {
             assert_eq!(h.column(p)[i], r.parameters[1].value.unwrap(), "w at {i}");
             assert_eq!(h.column(g)[i], r.voltages_mv["SB"], "V_SB at {i}");
         }
+    }
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn pyramids_follow_pages_from_the_newest_backwards_and_live_appends() {
+        use crate::decimate::{Band, Columns};
+        let mut src = fake_records(700);
+        src[345].parameters[0].value = Some(900.0);
+        let mut h = RunHistory::new();
+        // Newest page first, older pages prepended, then live records.
+        h.insert_page(src[500..650].to_vec(), true, None);
+        h.insert_page(src[200..500].to_vec(), true, Some(500));
+        h.insert_page(src[0..200].to_vec(), false, Some(200));
+        for r in &src[650..700] {
+            h.insert([r.clone()]);
+        }
+        assert_eq!(h.len(), 700);
+        let l = h.layout().clone();
+        for (c, sigma) in [
+            (l.param(0), true),
+            (l.param(1), true),
+            (l.grad(1, 2), true),
+            (l.gate(3), false),
+        ] {
+            let (x0, x1, cols) = (-0.5, 699.5, 60);
+            let got = h
+                .decimate(c, 0..700, |r| r.iteration as f64, (x0, x1), cols)
+                .expect("a series column has a pyramid");
+            let mut full = Columns::new(x0, x1, cols);
+            for (i, r) in h.rows().iter().enumerate() {
+                let v = h.column(c)[i];
+                let s = if sigma { h.column(c + 1)[i] } else { 0.0 };
+                let s = if s.is_finite() { s } else { 0.0 };
+                full.push(r.iteration as f64, v, v - s, v + s);
+            }
+            let (line, bands) = full.finish();
+            assert_eq!(got.0, line, "column {c}");
+            let ext = |b: &[Band]| b.iter().map(|b| (b.1, b.2)).collect::<Vec<_>>();
+            assert_eq!(ext(&got.1), ext(&bands), "column {c}");
+        }
+        let (line, _) = h
+            .decimate(
+                l.param(0),
+                0..700,
+                |r| r.iteration as f64,
+                (-0.5, 699.5),
+                60,
+            )
+            .unwrap();
+        assert!(line.contains(&(345.0, 900.0)), "spike lost");
+        // Not a series: no pyramid.
+        assert!(h
+            .decimate(
+                l.param(0) + 2,
+                0..700,
+                |r| r.iteration as f64,
+                (0.0, 1.0),
+                5
+            )
+            .is_none());
+        // Lab time is non-decreasing: its decimated maximum is the last row's.
+        let lab = h.decimate_lab_time(0..700, |r| r.iteration as f64, (-0.5, 699.5), 60, false);
+        assert_eq!(lab.last().unwrap().1, h.rows()[699].lab_seconds);
+        // Tuned markers: only tuned rows.
+        let tuned = h.decimate_lab_time(0..700, |r| r.iteration as f64, (-0.5, 699.5), 15, true);
+        for (k, _) in &tuned {
+            assert!(
+                h.row(*k as u64).unwrap().tuned,
+                "untuned iteration {k} marked"
+            );
+        }
+        assert_eq!(tuned.is_empty(), !h.rows().iter().any(|r| r.tuned));
     }
 
     #[cfg_attr(not(target_arch = "wasm32"), test)]

@@ -5,6 +5,7 @@
 
 pub mod api;
 pub mod charts;
+pub mod compensation;
 pub mod decimate;
 pub mod history;
 pub mod live;

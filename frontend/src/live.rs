@@ -684,6 +684,10 @@ pub fn LiveMode(base: ApiBase) -> impl IntoView {
                                         <span class="run-name">{format!("#{} {}", r.id, r.name)}</span>
                                         <span class="run-meta">
                                             <span class=status_class(&r.status) data-state=state title=status_label(&r.status)>{list_state(&r.status)}</span>
+                                            " · "
+                                            <span class="run-driver" data-testid="run-driver" title="device driver">
+                                                {r.driver.clone().unwrap_or_else(|| "driver ?".to_string())}
+                                            </span>
                                             {format!(" · {} it · lab {}", crate::ui::grouped(r.iterations), format_lab_time(r.lab_seconds))}
                                             {if r.tuned { " · tuned" } else { "" }}
                                         </span>

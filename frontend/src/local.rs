@@ -48,6 +48,11 @@ pub struct LocalSettings {
     pub delay_ms: u32,
     /// Cycle the paper's set points (21 iterations each) instead of fixed targets.
     pub paper_cycle: bool,
+    /// Virtual-gate matrix of the qubit level (rows PA, PB; columns N, SA,
+    /// SB, T; mV of plunger per mV of gate), as a lab would write it down.
+    pub compensation: Vec<Vec<f64>>,
+    /// Its relative 1σ uncertainty (0.2 = 20 %).
+    pub compensation_uncertainty: f64,
 }
 
 impl Default for LocalSettings {
@@ -65,12 +70,23 @@ impl Default for LocalSettings {
             max_iterations: 150,
             delay_ms: 150,
             paper_cycle: false,
+            compensation: crate::compensation::default_matrix(),
+            compensation_uncertainty: 0.2,
         }
     }
 }
 
 impl LocalSettings {
-    /// The simulation config: the paper's setup with these choices applied.
+    /// The simulation config: the paper's setup with these choices applied
+    /// (an invalid virtual-gate matrix is refused, naming the cell).
+    pub fn try_config(&self) -> Result<SimulationConfig, String> {
+        self.to_config()
+            .with_compensation(self.compensation.clone(), self.compensation_uncertainty)
+            .map_err(|e| format!("virtual-gate matrix: {e}"))
+    }
+
+    /// The simulation config: the paper's setup with these choices applied
+    /// (not validated: see [`LocalSettings::try_config`]).
     pub fn to_config(&self) -> SimulationConfig {
         let mut cfg = SimulationConfig::paper_default();
         cfg.name = "in-browser".into();
@@ -99,6 +115,10 @@ impl LocalSettings {
                 _ => {}
             }
         }
+        if let Some(c) = &mut top.compensation {
+            c.matrix = self.compensation.clone();
+            c.relative_uncertainty = self.compensation_uncertainty;
+        }
         if self.paper_cycle {
             // The paper's Fig. 3: the targets above are replaced at iterations 0, 21, 42, …
             cfg.tuner.schedule = spintune::benchmark::paper_schedule(21);
@@ -108,7 +128,7 @@ impl LocalSettings {
 
     /// A fresh run with these settings.
     pub fn build(&self) -> Result<SimulationRun, String> {
-        SimulationRun::new(self.to_config()).map_err(|e| e.to_string())
+        SimulationRun::new(self.try_config()?).map_err(|e| e.to_string())
     }
 }
 
@@ -292,7 +312,7 @@ impl LocalRunner {
 
 /// A labelled numeric input bound to a field of the settings.
 #[component]
-fn NumberField(
+pub(crate) fn NumberField(
     label: &'static str,
     unit: &'static str,
     testid: &'static str,
@@ -573,6 +593,7 @@ pub fn LocalMode() -> impl IntoView {
                     <NumberField label="seed" unit="" testid="local-seed" step="1" get=seed set=set_seed />
                     <NumberField label="iteration limit" unit="" testid="local-max-iterations" step="10" get=max_it set=set_max_it />
                     <NumberField label="pause between iterations" unit="ms" testid="local-delay" step="50" get=delay set=set_delay />
+                    <crate::compensation::CompensationEditor settings=settings />
                     <label class="field">
                         <input type="checkbox" data-testid="local-paper-cycle"
                             prop:checked=move || settings.with(|s| s.paper_cycle)

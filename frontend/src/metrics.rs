@@ -7,6 +7,9 @@
 //!   live iteration, a page of history or a change of the view: everything
 //!   the charts redraw for it), `maxUpdateMs` the largest over the finished
 //!   updates, `updates` how many began;
+//! * `decimateMs` / `axesMs` — of `updateMs`, the time spent decimating
+//!   series and drawing frames (caption, axes, tick labels, grid): the rest
+//!   is drawing the data;
 //! * `wasmMemoryBytes` — size of the module's linear memory
 //!   (`WebAssembly.Memory.buffer.byteLength`), bytes.
 
@@ -19,6 +22,8 @@ struct Metrics {
     updates: u64,
     current_ms: f64,
     max_ms: f64,
+    decimate_ms: f64,
+    axes_ms: f64,
     first_chart_ms: Option<f64>,
 }
 
@@ -42,6 +47,8 @@ pub fn begin_update() {
         }
         m.updates += 1;
         m.current_ms = 0.0;
+        m.decimate_ms = 0.0;
+        m.axes_ms = 0.0;
     });
 }
 
@@ -57,6 +64,32 @@ pub fn note_draw(ms: f64, iterations: usize) {
         }
     });
     publish();
+}
+
+/// What part of a chart draw a [`phase`] timed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Phase {
+    /// Decimating a series to pixel columns.
+    Decimate,
+    /// Caption, axes, tick labels and grid of a plot area.
+    Axes,
+}
+
+/// Run `f`, adding its time to `phase` of the current update.
+pub fn phase<T>(phase: Phase, f: impl FnOnce() -> T) -> T {
+    let t0 = now_ms();
+    let out = f();
+    let ms = now_ms() - t0;
+    if ms.is_finite() {
+        METRICS.with(|m| {
+            let mut m = m.borrow_mut();
+            match phase {
+                Phase::Decimate => m.decimate_ms += ms,
+                Phase::Axes => m.axes_ms += ms,
+            }
+        });
+    }
+    out
 }
 
 fn wasm_memory_bytes() -> f64 {
@@ -80,6 +113,8 @@ pub fn publish() {
         set("updates", m.updates as f64);
         set("updateMs", m.current_ms);
         set("maxUpdateMs", m.max_ms);
+        set("decimateMs", m.decimate_ms);
+        set("axesMs", m.axes_ms);
         set("firstChartMs", m.first_chart_ms.unwrap_or(f64::NAN));
         m.first_chart_ms
     });

@@ -7,6 +7,7 @@
 //! Legends are not drawn on the canvas (they would cover data): the page
 //! shows them as text next to each chart.
 
+use plotters::coord::types::RangedCoordf64;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 
@@ -135,9 +136,11 @@ fn plot_columns<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, y_area: u32) 
 
 /// The series at data offset `o` of `rows` (σ at `o + 1` when `sigma`):
 /// `(line, bands, points)`. Up to `2 × cols` rows are returned as they are
-/// (`points`: `(x, value, σ)` for error bars); more are decimated in one
-/// pass per pixel column ([`Columns`]: min/max of the values, envelope of
-/// value ± σ) and `points` is `None`.
+/// (`points`: `(x, value, σ)` for error bars); more are decimated per pixel
+/// column (min/max of the values, envelope of value ± σ) from the history's
+/// min/max pyramid in O(columns × log n) ([`RunHistory::decimate`]; one
+/// pass over the rows with [`Columns`] if the column has none) and `points`
+/// is `None`.
 #[allow(clippy::type_complexity)]
 fn series_of(
     f: &Frame<'_>,
@@ -167,6 +170,12 @@ fn series_of(
         let bands = pts.iter().map(|&(x, v, s)| (x, v - s, v + s)).collect();
         return (line, bands, Some(pts));
     }
+    if let Some(out) = f
+        .history
+        .decimate(o, f.range(), |r| axis.x(r), (x0, x1), cols)
+    {
+        return (out.0, out.1, None);
+    }
     let mut c = Columns::new(x0, x1, cols);
     for (i, (r, &v)) in rows.iter().zip(vals).enumerate() {
         let s = sd(i);
@@ -174,6 +183,47 @@ fn series_of(
     }
     let (line, bands) = c.finish();
     (line, bands, None)
+}
+
+/// The ±1σ envelope of a decimated series (`(x, lower, upper)` per pixel
+/// column) as filled polygons, one per run of adjacent columns (a gap of
+/// missing values splits it; a lone column is a vertical line): one canvas
+/// fill per run instead of one stroke per pixel column.
+fn draw_band<DB: DrawingBackend>(
+    chart: &mut ChartContext<'_, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
+    bands: &[(f64, f64, f64)],
+    (x0, x1): (f64, f64),
+    cols: usize,
+    c: RGBColor,
+) -> Result<(), String> {
+    let gap = 2.5 * (x1 - x0) / cols.max(1) as f64;
+    let style = c.mix(0.25);
+    let mut start = 0;
+    for i in 1..=bands.len() {
+        if i < bands.len() && bands[i].0 - bands[i - 1].0 <= gap {
+            continue;
+        }
+        let run = &bands[start..i];
+        start = i;
+        if let [(x, lo, hi)] = run {
+            chart
+                .draw_series(std::iter::once(PathElement::new(
+                    vec![(*x, *lo), (*x, *hi)],
+                    style.stroke_width(1),
+                )))
+                .map_err(err)?;
+        } else if !run.is_empty() {
+            let outline: Vec<(f64, f64)> = run
+                .iter()
+                .map(|b| (b.0, b.2))
+                .chain(run.iter().rev().map(|b| (b.0, b.1)))
+                .collect();
+            chart
+                .draw_series(std::iter::once(Polygon::new(outline, style.filled())))
+                .map_err(err)?;
+        }
+    }
+    Ok(())
 }
 
 /// Segments of constant (target, tolerance) over rows: `(x from, x to, target, half-width)`.
@@ -236,14 +286,29 @@ pub fn draw_parameter<DB: DrawingBackend>(
     let rows = f.rows();
     let (x0, x1) = f.x_range();
     let cols = plot_columns(area, 62);
-    let (line, bands, pts) = series_of(f, o, true, (x0, x1), cols);
+    let (line, bands, pts) = crate::metrics::phase(crate::metrics::Phase::Decimate, || {
+        series_of(f, o, true, (x0, x1), cols)
+    });
     if line.is_empty() {
         return placeholder(area, &title, "waiting for measurements…").map(|_| Drawn {
             iterations: rows.len(),
             ..Drawn::default()
         });
     }
-    let targets = target_segments(rows, f.column(o + 2), f.column(o + 3), f.axis);
+    let targets: Vec<(f64, f64, f64, f64)> = f
+        .history
+        .target_runs(p, f.range())
+        .into_iter()
+        .map(|r| {
+            let all = f.history.rows();
+            (
+                f.axis.x(&all[r.first]),
+                f.axis.x(&all[r.last]),
+                r.target,
+                r.tolerance,
+            )
+        })
+        .collect();
     let overlay: Vec<(f64, f64)> = f
         .overlay
         .and_then(|h| {
@@ -321,11 +386,7 @@ pub fn draw_parameter<DB: DrawingBackend>(
             }))
             .map_err(err)?;
     } else {
-        chart
-            .draw_series(bands.iter().map(|&(x, lo, hi)| {
-                PathElement::new(vec![(x, lo), (x, hi)], c.mix(0.25).stroke_width(1))
-            }))
-            .map_err(err)?;
+        draw_band(&mut chart, &bands, (x0, x1), cols, c)?;
         chart
             .draw_series(LineSeries::new(line.iter().copied(), c.stroke_width(1)))
             .map_err(err)?;
@@ -364,7 +425,9 @@ pub fn draw_gradient<DB: DrawingBackend>(
     for (gi, (gate, panel)) in layout.gates.iter().zip(panels.iter()).enumerate() {
         let o = layout.grad(g, gi);
         let cols = plot_columns(panel, 58);
-        let (line, bands, pts) = series_of(f, o, true, (x0, x1), cols);
+        let (line, bands, pts) = crate::metrics::phase(crate::metrics::Phase::Decimate, || {
+            series_of(f, o, true, (x0, x1), cols)
+        });
         let (y0, y1) = value_range(&line, &bands, std::iter::empty());
         let mut chart = styled_chart(
             panel,
@@ -391,11 +454,7 @@ pub fn draw_gradient<DB: DrawingBackend>(
                 }))
                 .map_err(err)?;
         } else {
-            chart
-                .draw_series(bands.iter().map(|&(x, lo, hi)| {
-                    PathElement::new(vec![(x, lo), (x, hi)], c.mix(0.25).stroke_width(1))
-                }))
-                .map_err(err)?;
+            draw_band(&mut chart, &bands, (x0, x1), cols, c)?;
         }
         chart
             .draw_series(LineSeries::new(line.iter().copied(), c.mix(0.8)))
@@ -428,7 +487,9 @@ pub fn draw_gates<DB: DrawingBackend>(
     for (gi, (gate, panel)) in layout.gates.iter().zip(panels.iter()).enumerate() {
         let o = layout.gate(gi);
         let cols = plot_columns(panel, 58);
-        let (line, _, _) = series_of(f, o, false, (x0, x1), cols);
+        let (line, _, _) = crate::metrics::phase(crate::metrics::Phase::Decimate, || {
+            series_of(f, o, false, (x0, x1), cols)
+        });
         let (y0, y1) = padded_range(line.iter().map(|p| p.1), 0.1);
         let mut chart = styled_chart(
             panel,
@@ -470,11 +531,17 @@ pub fn draw_lab_time<DB: DrawingBackend>(
     let (scale, unit) = if long { (3600.0, "h") } else { (60.0, "min") };
     let (x0, x1) = (f.window.lo - 0.5, f.window.hi.max(f.window.lo + 1.0) + 0.5);
     let cols = plot_columns(area, 62);
-    let xy: Vec<(f64, f64)> = rows
-        .iter()
-        .map(|r| (r.iteration as f64, r.lab_seconds / scale))
-        .collect();
-    let line = min_max(&xy, x0, x1, cols);
+    let line: Vec<(f64, f64)> = if rows.len() <= 2 * cols {
+        rows.iter()
+            .map(|r| (r.iteration as f64, r.lab_seconds / scale))
+            .collect()
+    } else {
+        f.history
+            .decimate_lab_time(f.range(), |r| r.iteration as f64, (x0, x1), cols, false)
+            .into_iter()
+            .map(|(x, s)| (x, s / scale))
+            .collect()
+    };
     let (y0, y1) = padded_range(line.iter().map(|p| p.1), 0.05);
     let mut chart = styled_chart(
         area,
@@ -492,12 +559,20 @@ pub fn draw_lab_time<DB: DrawingBackend>(
             color(6).stroke_width(2),
         ))
         .map_err(err)?;
-    let tuned: Vec<(f64, f64)> = rows
-        .iter()
-        .filter(|r| r.tuned)
-        .map(|r| (r.iteration as f64, r.lab_seconds / scale))
-        .collect();
-    let tuned = min_max(&tuned, x0, x1, cols / 4);
+    let tuned: Vec<(f64, f64)> = if rows.len() <= 2 * cols {
+        let xy: Vec<(f64, f64)> = rows
+            .iter()
+            .filter(|r| r.tuned)
+            .map(|r| (r.iteration as f64, r.lab_seconds / scale))
+            .collect();
+        min_max(&xy, x0, x1, cols / 4)
+    } else {
+        f.history
+            .decimate_lab_time(f.range(), |r| r.iteration as f64, (x0, x1), cols / 4, true)
+            .into_iter()
+            .map(|(x, s)| (x, s / scale))
+            .collect()
+    };
     chart
         .draw_series(tuned.iter().map(|&p| Circle::new(p, 3, BAND.filled())))
         .map_err(err)?;
@@ -539,5 +614,51 @@ mod tests {
         assert_eq!(segs, vec![(0.0, 2.0, 20.0, 2.0), (3.0, 4.0, 70.0, 2.0)]);
         let segs = target_segments(h.rows(), t, tol, XAxis::LabTime);
         assert_eq!(segs[1].0, (60.0 * 3.0 + 30.0) / 3600.0);
+    }
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn target_runs_kept_by_the_history_match_a_scan_of_every_window() {
+        let mut recs = fake_records(60);
+        for (k, r) in recs.iter_mut().enumerate() {
+            r.parameters[0].target = match k {
+                0..=9 => Some(20.0),
+                10..=14 => None,
+                15..=29 => Some(20.0),
+                30..=44 => Some(70.0),
+                _ => Some(45.0),
+            };
+        }
+        let mut h = RunHistory::new();
+        // Newest first, then older pages, then live records one by one.
+        h.insert(recs[40..50].to_vec());
+        h.insert(recs[0..40].to_vec());
+        for r in &recs[50..60] {
+            h.insert([r.clone()]);
+        }
+        let o = h.layout().param(0);
+        for (a, b) in [
+            (0, 60),
+            (0, 12),
+            (11, 14),
+            (12, 33),
+            (31, 60),
+            (59, 60),
+            (45, 46),
+        ] {
+            let rows = &h.rows()[a..b];
+            let expect = target_segments(
+                rows,
+                &h.column(o + 2)[a..b],
+                &h.column(o + 3)[a..b],
+                XAxis::Iteration,
+            );
+            let got: Vec<_> = h
+                .target_runs(0, a..b)
+                .into_iter()
+                .map(|r| (r.first as f64, r.last as f64, r.target, r.tolerance))
+                .collect();
+            assert_eq!(got, expect, "rows {a}..{b}");
+        }
     }
 }

@@ -189,6 +189,82 @@ impl SimulationConfig {
         self.tuner.validate().map_err(|e| e.within("tuner"))
     }
 
+    /// The top (qubit) level's virtual-gate compensation, if it has one.
+    pub fn compensation(&self) -> Option<&Compensation> {
+        match &self.tuner.levels.first()?.kind {
+            LevelKind::Newton(n) => n.compensation.as_ref(),
+            LevelKind::SensingDot(_) => None,
+        }
+    }
+
+    /// This config with the top level's virtual-gate matrix (rows: its
+    /// compensation gates, e.g. PA and PB; columns: the level's gates, e.g.
+    /// N, SA, SB, T; mV of plunger per mV of gate) and its relative
+    /// uncertainty replaced, checked by the core's config rules
+    /// ([`SimulationConfig::validate`]). A refused cell is named by row and
+    /// column, e.g. for an editor:
+    ///
+    /// ```
+    /// use spintune::driver::{SimulationConfig, PAPER_DEFAULT_COMPENSATION};
+    /// let mut m: Vec<Vec<f64>> = PAPER_DEFAULT_COMPENSATION.iter().map(|r| r.to_vec()).collect();
+    /// m[1][2] = -0.45;
+    /// let cfg = SimulationConfig::paper_default().with_compensation(m.clone(), 0.1).unwrap();
+    /// assert_eq!(cfg.compensation().unwrap().matrix[1][2], -0.45);
+    /// m[1][2] = f64::NAN;
+    /// let e = SimulationConfig::paper_default().with_compensation(m.clone(), 0.1).unwrap_err();
+    /// assert_eq!(e.cell, Some((1, 2)));
+    /// assert!(e.to_string().starts_with("PB per SB (mV/mV): "), "{e}");
+    /// m[1][2] = 3e6;
+    /// let e = SimulationConfig::paper_default().with_compensation(m, 0.1).unwrap_err();
+    /// assert_eq!(e.cell, Some((1, 2)));
+    /// assert!(e.to_string().contains("out of range"), "{e}");
+    /// ```
+    pub fn with_compensation(
+        mut self,
+        matrix: Vec<Vec<f64>>,
+        relative_uncertainty: f64,
+    ) -> Result<Self, CompensationError> {
+        let top = self.tuner.top_mut();
+        let names = (
+            top.compensation
+                .as_ref()
+                .map(|c| c.gates.clone())
+                .unwrap_or_default(),
+            top.gates.clone(),
+        );
+        let c = top.compensation.get_or_insert_with(|| Compensation {
+            gates: Vec::new(),
+            matrix: Vec::new(),
+            relative_uncertainty,
+        });
+        c.matrix = matrix;
+        c.relative_uncertainty = relative_uncertainty;
+        let Err(error) = self.validate() else {
+            return Ok(self);
+        };
+        // `…compensation.matrix[r][c]` (a number out of range) or
+        // `…compensation.matrix[r]` (the row's first non-finite number).
+        let c = self.compensation();
+        let cell = error
+            .field
+            .split_once("compensation.matrix[")
+            .and_then(|(_, rest)| {
+                let mut idx = rest
+                    .split(['[', ']'])
+                    .filter(|t| !t.is_empty())
+                    .map(|t| t.parse::<usize>().ok());
+                let r = idx.next()??;
+                let col = match idx.next() {
+                    Some(col) => col?,
+                    None => c?.matrix.get(r)?.iter().position(|x| !x.is_finite())?,
+                };
+                Some((r, col))
+            });
+        let label = cell
+            .and_then(|(r, col)| Some(format!("{} per {}", names.0.get(r)?, names.1.get(col)?)));
+        Err(CompensationError { cell, label, error })
+    }
+
     /// The simulated device of this config (`device` with `tuner.gates`,
     /// seeded with `seed`) at the gates' initial voltages; the error names
     /// the field within this config (`device.…` or `tuner.gates[i]…`).
@@ -209,6 +285,29 @@ impl SimulationConfig {
         })
     }
 }
+
+/// Why an edited virtual-gate matrix was refused
+/// ([`SimulationConfig::with_compensation`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct CompensationError {
+    /// The refused cell (row, column), when one cell is at fault.
+    pub cell: Option<(usize, usize)>,
+    /// The cell as "PB per SB".
+    pub label: Option<String>,
+    /// The core's config error.
+    pub error: ConfigError,
+}
+
+impl std::fmt::Display for CompensationError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match &self.label {
+            Some(l) => write!(f, "{l} (mV/mV): {}", self.error.message),
+            None => write!(f, "{}", self.error),
+        }
+    }
+}
+
+impl std::error::Error for CompensationError {}
 
 /// Why a simulated run could not continue.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

@@ -705,6 +705,11 @@ pub struct RunSummary {
     pub lab_seconds: f64,
     /// Whether the last iteration was tuned.
     pub tuned: bool,
+    /// The run's device driver as configured (`"simulator"`, `"scpi"` or
+    /// `"bridge"`); `None` when the server does not say (servers before this
+    /// field, a quarantined run).
+    #[serde(default)]
+    pub driver: Option<String>,
 }
 
 /// A control action. Needs the control token.
@@ -919,6 +924,27 @@ pub enum BridgeServerMessage {
 mod tests {
     use super::*;
     use crate::parameter::Tolerance;
+
+    #[test]
+    fn run_summary_driver_round_trips_and_an_old_server_without_it_still_parses() {
+        let s = RunSummary {
+            id: 3,
+            name: "night".into(),
+            status: RunStatus::Finished,
+            iterations: 12,
+            lab_seconds: 40.5,
+            tuned: true,
+            driver: Some("scpi".into()),
+        };
+        let json = serde_json::to_value(&s).unwrap();
+        assert_eq!(json["driver"], "scpi");
+        assert_eq!(serde_json::from_value::<RunSummary>(json).unwrap(), s);
+        // A summary from a server before the field: no driver, not an error.
+        let old = r#"{"id":3,"name":"night","status":{"state":"finished"},"iterations":12,"lab_seconds":40.5,"tuned":true}"#;
+        let parsed: RunSummary = serde_json::from_str(old).unwrap();
+        assert_eq!(parsed.driver, None);
+        assert_eq!(parsed.iterations, 12);
+    }
 
     #[test]
     fn malformed_names_the_path_unless_top_level() {

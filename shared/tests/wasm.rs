@@ -95,6 +95,7 @@ fn protocol_messages_round_trip() {
             iterations: 3,
             lab_seconds: 12.5,
             tuned: false,
+            driver: Some("simulator".into()),
         },
     };
     let json = serde_json::to_string(&msg).unwrap();

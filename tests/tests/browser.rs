@@ -64,6 +64,8 @@ async fn dashboard_live_control_reconnect_and_in_browser_mode() {
             "chart {chart} not drawn with data"
         );
     }
+    // The run list names each run's driver (the demo run is simulated).
+    wait_text(&c, "[data-testid=run-driver]", "simulator", 10).await;
     // Read-only without the token.
     wait_text(&c, "[data-testid=readonly]", "Read-only view", 5).await;
     assert!(
@@ -191,6 +193,67 @@ async fn dashboard_live_control_reconnect_and_in_browser_mode() {
     // --- In-browser mode ---------------------------------------------------------
     click(&c, "[data-testid=tab-local]").await;
     wait_text(&c, ".explain", "What am I looking at?", 10).await;
+    // The virtual-gate matrix: an empty cell and an out-of-range one are
+    // refused by name, and no run starts with them.
+    set_value(&c, "[data-testid=comp-PB-SB]", "").await;
+    let e = wait_text(&c, "[data-testid=comp-error]", "PB per SB", 10).await;
+    assert!(e.contains("not a finite number"), "{e}");
+    assert_eq!(
+        attr(&c, "[data-testid=comp-PB-SB]", "class")
+            .await
+            .as_deref(),
+        Some("invalid"),
+        "the refused cell is not marked"
+    );
+    // (The page header is sticky: buttons at the top are clicked from the top.)
+    c.execute("window.scrollTo(0, 0); return true;", vec![])
+        .await
+        .unwrap();
+    click(&c, "[data-testid=local-run]").await;
+    wait_text(&c, "[data-testid=local-error]", "PB per SB", 10).await;
+    wait_text(&c, "[data-testid=local-state]", "ready", 5).await;
+    set_value(&c, "[data-testid=comp-PB-SB]", "5e6").await;
+    wait_text(&c, "[data-testid=comp-error]", "out of range", 10).await;
+    // Reset to the default; a perturbed matrix changes the cells.
+    click(&c, "[data-testid=comp-reset]").await;
+    wait("the matrix error to clear", 10, async || {
+        c.find(Locator::Css("[data-testid=comp-error]"))
+            .await
+            .is_err()
+            .then_some(())
+    })
+    .await;
+    let default_pa_n = attr(&c, "[data-testid=comp-PA-N]", "value").await;
+    assert_eq!(
+        c.execute(
+            "return document.querySelector('[data-testid=comp-PA-N]').value",
+            vec![]
+        )
+        .await
+        .unwrap()
+        .as_str(),
+        Some("-0.36"),
+        "default PA per N ({default_pa_n:?})"
+    );
+    click(&c, "[data-testid=comp-perturb]").await;
+    let perturbed = wait("a perturbed matrix", 10, async || {
+        let v = c
+            .execute(
+                "return document.querySelector('[data-testid=comp-PA-N]').value",
+                vec![],
+            )
+            .await
+            .ok()?;
+        v.as_str().filter(|v| *v != "-0.36").map(str::to_string)
+    })
+    .await;
+    let x: f64 = perturbed.parse().unwrap();
+    assert!(x < 0.0 && x.is_finite(), "perturbed PA per N {x}");
+    // The run below is timed against the paper's default matrix.
+    click(&c, "[data-testid=comp-reset]").await;
+    c.execute("window.scrollTo(0, 0); return true;", vec![])
+        .await
+        .unwrap();
     click(&c, "[data-testid=local-run]").await;
     let tuned = wait_text(&c, "[data-testid=local-tuned]", "tuned at iteration", 120).await;
     eprintln!("in-browser mode: {tuned}");
@@ -205,6 +268,25 @@ async fn dashboard_live_control_reconnect_and_in_browser_mode() {
     click(&c, "[data-testid=local-pause]").await;
     wait_text(&c, "[data-testid=local-status]", "paused", 10).await;
     screenshot(&c, "local").await;
+    // The in-browser mode (settings with the matrix editor) on a narrow screen.
+    c.set_window_size(420, 900).await.unwrap();
+    tokio::time::sleep(Duration::from_millis(800)).await;
+    let overflow = c
+        .execute(
+            "return document.documentElement.scrollWidth > window.innerWidth + 1",
+            vec![],
+        )
+        .await
+        .unwrap();
+    let dir = target_dir().join("e2e-screenshots");
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("local-narrow.png"), c.screenshot().await.unwrap()).unwrap();
+    assert_eq!(
+        overflow.as_bool(),
+        Some(false),
+        "the in-browser mode scrolls sideways at 420 px"
+    );
+    c.set_window_size(1400, 900).await.unwrap();
 
     c.close().await.unwrap();
     drop(server);

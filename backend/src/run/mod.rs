@@ -620,6 +620,9 @@ impl Manager {
             iterations: 0,
             lab_seconds: 0.0,
             tuned: false,
+            driver: serde_json::to_value(config.backend.driver)
+                .ok()
+                .and_then(|v| v.as_str().map(str::to_string)),
         };
         let handle = Arc::new(RunHandle::new(
             id,

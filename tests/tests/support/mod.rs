@@ -238,6 +238,16 @@ pub async fn type_into(c: &Client, css: &str, value: &str) {
     el.send_keys(value).await.unwrap();
 }
 
+/// Set an input's value and fire its `change` event (as after typing and
+/// leaving the field).
+pub async fn set_value(c: &Client, css: &str, value: &str) {
+    let script = format!(
+        "const e = document.querySelector('{css}'); if (!e) return false; e.value = '{value}'; e.dispatchEvent(new Event('change', {{bubbles: true}})); return true;"
+    );
+    let found = c.execute(&script, vec![]).await.unwrap();
+    assert_eq!(found.as_bool(), Some(true), "no {css}");
+}
+
 pub async fn screenshot(c: &Client, name: &str) {
     let dir = target_dir().join("e2e-screenshots");
     std::fs::create_dir_all(&dir).unwrap();

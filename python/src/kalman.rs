@@ -360,6 +360,7 @@ pub fn newton_step<'py>(
         &SolverConfig {
             max_step_mv,
             rank_tolerance,
+            ..SolverConfig::default()
         },
     );
     Ok(PyArray1::from_slice(py, step.dv_mv.as_slice()))

@@ -107,6 +107,9 @@ pub struct SecurityArgs {
     /// reached, e.g. through a reverse proxy); repeatable.
     #[arg(long = "allow-host", value_name = "NAME")]
     pub allow_host: Vec<String>,
+    /// Optional TLS (`crate::server::tls`).
+    #[command(flatten)]
+    pub tls: crate::server::tls::TlsArgs,
 }
 
 /// Where the token of `args` comes from, and the token.
@@ -148,10 +151,14 @@ pub struct Server {
     pub manager: Arc<Manager>,
     /// The serving task.
     pub task: tokio::task::JoinHandle<()>,
+    /// Whether it serves HTTPS/WSS (`--tls-cert/--tls-key`).
+    pub tls: bool,
 }
 
 /// Start a server (store, manager, demo run, HTTP) and return once it listens.
 pub async fn start_server(args: &ServeArgs) -> Result<Server, CliError> {
+    // Certificate errors before anything is opened or bound.
+    let tls = args.security.tls.acceptor().map_err(CliError::input)?;
     let store = Arc::new(
         Store::open(&args.db)
             .map_err(|e| CliError::runtime(format!("cannot open {}: {e}", args.db.display())))?,
@@ -214,6 +221,7 @@ pub async fn start_server(args: &ServeArgs) -> Result<Server, CliError> {
         listener,
         app,
         args.limits.connection_limits(),
+        tls.clone(),
     ));
     Ok(Server {
         addr,
@@ -221,6 +229,7 @@ pub async fn start_server(args: &ServeArgs) -> Result<Server, CliError> {
         token_source,
         manager,
         task,
+        tls: tls.is_some(),
     })
 }
 
@@ -232,7 +241,8 @@ pub async fn serve(args: ServeArgs) -> Result<(), CliError> {
     } else {
         server.addr.ip().to_string()
     };
-    println!("Dashboard: http://{host}:{}/", server.addr.port());
+    let scheme = if server.tls { "https" } else { "http" };
+    println!("Dashboard: {scheme}://{host}:{}/", server.addr.port());
     match &server.token_source {
         TokenSource::Random => println!("Control token: {}", server.token),
         TokenSource::Env => println!("Control token: from SPINTUNE_TOKEN"),

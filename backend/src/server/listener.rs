@@ -12,6 +12,10 @@
 //!
 //! Every accepted socket gets `TCP_NODELAY` (small frames at high rates must
 //! not wait for Nagle's algorithm).
+//!
+//! With a [`crate::server::tls::TlsAcceptor`] every connection is TLS
+//! (`--tls-cert/--tls-key`): the handshake must complete within the same
+//! [`HEADER_READ_TIMEOUT`], and a client that does not speak TLS is closed.
 
 use std::collections::HashMap;
 use std::net::IpAddr;
@@ -27,6 +31,7 @@ use hyper_util::service::TowerToHyperService;
 use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
 use tokio::net::TcpListener;
 
+use super::tls::TlsAcceptor;
 use crate::run::ViewerLimits;
 
 /// A connection that does not complete its request headers in this time is
@@ -194,10 +199,16 @@ impl<T: AsyncWrite + Unpin> AsyncWrite for Counted<T> {
     }
 }
 
-/// Serve `app` on `listener` until the task is dropped. Errors of single
-/// connections end those connections only; an accept error (e.g. out of
-/// file descriptors) is retried after a short pause.
-pub async fn serve(listener: TcpListener, app: Router, limits: ConnectionLimits) {
+/// Serve `app` on `listener` until the task is dropped, over TLS when `tls`
+/// is given. Errors of single connections end those connections only; an
+/// accept error (e.g. out of file descriptors) is retried after a short
+/// pause.
+pub async fn serve(
+    listener: TcpListener,
+    app: Router,
+    limits: ConnectionLimits,
+    tls: Option<TlsAcceptor>,
+) {
     let per_ip = Arc::new(PerIp::default());
     loop {
         let (tcp, peer) = match listener.accept().await {
@@ -224,18 +235,37 @@ pub async fn serve(listener: TcpListener, app: Router, limits: ConnectionLimits)
             io: tcp,
             _slot: slot,
         };
+        let tls = tls.clone();
         tokio::spawn(async move {
-            let mut builder = hyper::server::conn::http1::Builder::new();
-            builder
-                .timer(TokioTimer::new())
-                .header_read_timeout(limits.header_read_timeout);
-            let conn = builder
-                .serve_connection(TokioIo::new(io), service)
-                .with_upgrades();
-            // A client going away or timing out is normal.
-            let _ = conn.await;
+            match tls {
+                None => serve_connection(io, service, limits).await,
+                Some(acceptor) => {
+                    let handshake =
+                        tokio::time::timeout(limits.header_read_timeout, acceptor.accept(io));
+                    // A failed or slow handshake (e.g. plain HTTP) closes the connection.
+                    if let Ok(Ok(tls_io)) = handshake.await {
+                        serve_connection(tls_io, service, limits).await;
+                    }
+                }
+            }
         });
     }
+}
+
+/// HTTP/1.1 with upgrades on one connection, with the header-read timeout.
+async fn serve_connection<I>(io: I, service: TowerToHyperService<Router>, limits: ConnectionLimits)
+where
+    I: AsyncRead + AsyncWrite + Unpin + Send + 'static,
+{
+    let mut builder = hyper::server::conn::http1::Builder::new();
+    builder
+        .timer(TokioTimer::new())
+        .header_read_timeout(limits.header_read_timeout);
+    let conn = builder
+        .serve_connection(TokioIo::new(io), service)
+        .with_upgrades();
+    // A client going away or timing out is normal.
+    let _ = conn.await;
 }
 
 #[cfg(test)]

@@ -76,6 +76,7 @@ mod bridge_socket;
 pub mod listener;
 pub mod origin;
 mod redact;
+pub mod tls;
 
 use crate::config::RunConfig;
 use crate::run::{history_frame_text, Manager, RunError, ViewerSlot};

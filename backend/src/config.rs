@@ -141,7 +141,7 @@ impl RunConfig {
 
     /// Build from a generic value (a table/object at the top).
     pub fn from_value(value: Value) -> Result<Self, ConfigParseError> {
-        check_magnitudes(&value, "")?;
+        spintune::tuner::check_magnitudes(&value, "")?;
         let Value::Object(mut user) = value else {
             return Err(ConfigParseError(
                 "invalid config: expected a table/object at the top level".into(),
@@ -186,54 +186,13 @@ impl RunConfig {
 }
 
 /// Largest magnitude of any non-integer number in a run config, in the
-/// field's unit (mV, ns, s, µeV, …). Every field has its own checks on top
-/// (most with tighter ranges); this bound keeps any value a config can
-/// carry far from overflow and allocation sizes (ARCHITECTURE.md, invariant 8).
-pub const MAX_CONFIG_MAGNITUDE: f64 = 1e6;
+/// field's unit (mV, ns, s, µeV, …): the core's bound
+/// ([`spintune::tuner::check_magnitudes`]), checked on the whole
+/// run config before it is parsed (ARCHITECTURE.md, invariant 8).
+pub use spintune::tuner::MAX_MAGNITUDE as MAX_CONFIG_MAGNITUDE;
 
-/// Largest integer in a run config, except `seed` (any 64-bit seed is fine).
-/// Integer fields with their own tighter bounds (iteration delay, timeouts,
-/// sweep points) check those too.
-pub const MAX_CONFIG_INTEGER: u64 = 1 << 40;
-
-fn check_magnitudes(v: &Value, path: &str) -> Result<(), ConfigParseError> {
-    match v {
-        Value::Number(n) => {
-            let ok = if let Some(u) = n.as_u64() {
-                u <= MAX_CONFIG_INTEGER || path == "seed"
-            } else if let Some(i) = n.as_i64() {
-                i.unsigned_abs() <= MAX_CONFIG_INTEGER
-            } else {
-                n.as_f64()
-                    .is_some_and(|x| x.is_finite() && x.abs() <= MAX_CONFIG_MAGNITUDE)
-            };
-            if ok {
-                Ok(())
-            } else if n.is_f64() {
-                Err(ConfigParseError(format!(
-                    "invalid config at `{path}`: {n} is out of range (every number of a run config lies within ±{MAX_CONFIG_MAGNITUDE:e} in its unit)"
-                )))
-            } else {
-                Err(ConfigParseError(format!(
-                    "invalid config at `{path}`: {n} is out of range (integers of a run config are at most {MAX_CONFIG_INTEGER})"
-                )))
-            }
-        }
-        Value::Object(m) => m.iter().try_for_each(|(k, x)| {
-            let p = if path.is_empty() {
-                k.clone()
-            } else {
-                format!("{path}.{k}")
-            };
-            check_magnitudes(x, &p)
-        }),
-        Value::Array(a) => a
-            .iter()
-            .enumerate()
-            .try_for_each(|(i, x)| check_magnitudes(x, &format!("{path}[{i}]"))),
-        _ => Ok(()),
-    }
-}
+/// Largest integer in a run config, except `seed` (the core's bound).
+pub use spintune::tuner::MAX_INTEGER as MAX_CONFIG_INTEGER;
 
 fn apply_targets(sim: &mut SimulationConfig, b: &BackendSettings) -> Result<(), ConfigParseError> {
     if b.targets.is_empty() && b.tolerances.is_empty() {

@@ -2,7 +2,8 @@
 //! as the run's device, answering from its own simulated double dot with raw
 //! traces. Faults (no bridge, disconnect, unanswered request) pause the run;
 //! reconnecting resumes it; the final records equal an uninterrupted
-//! simulator run bit for bit (nothing lost, nothing measured twice).
+//! simulator run bit for bit (nothing lost, nothing measured twice). A
+//! second `auth` on an authenticated socket is an error, never `auth_ok`.
 
 mod common;
 
@@ -246,6 +247,19 @@ async fn bridge_serves_a_run_and_faults_pause_it_without_losing_data() {
     assert!(matches!(
         next_bridge(&mut ws).await,
         BridgeServerMessage::Error { message } if message.contains("malformed")
+    ));
+    // A second `auth`, even with a wrong token, is never answered `auth_ok`
+    // unchecked: an error, and the socket stays (it still serves the run).
+    send_msg(
+        &mut ws,
+        &BridgeClientMessage::Auth {
+            token: "not-the-token".into(),
+        },
+    )
+    .await;
+    assert!(matches!(
+        next_bridge(&mut ws).await,
+        BridgeServerMessage::Error { message } if message.contains("already authenticated")
     ));
     let (s, b) = control(srv.addr, run.id, r#"{"action":"resume"}"#).await;
     assert_eq!(s, 200, "{b}");

@@ -31,7 +31,8 @@ fn full_config() -> Value {
             "settle_ms": 0,
             "measure": "bridge",
             "profile": "qdac2",
-            "max_leakage_na": 100.0
+            "max_leakage_na": 100.0,
+            "max_leakage_na_by_gate": { "SB": 20.0 }
         }),
     );
     obj.insert(

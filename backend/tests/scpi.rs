@@ -266,6 +266,7 @@ fn scpi_config(addr: std::net::SocketAddr, channels: BTreeMap<String, u32>) -> S
         measure: MeasureSource::Simulator,
         profile: Default::default(),
         max_leakage_na: None,
+        max_leakage_na_by_gate: Default::default(),
     }
 }
 
@@ -708,6 +709,30 @@ async fn qdac2_profile_fixes_a_list_mode_channel_before_moving_it_and_reads_the_
         matches!(&e, DeviceError::ReadbackMismatch { gate, channel: 4, .. } if gate == "SB"),
         "{e:?}"
     );
+    assert!(inst.violations().is_empty(), "{:?}", inst.violations());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_per_gate_leakage_limit_overrides_the_default_for_that_gate() {
+    let (volts, limits) = instrument_at_initial();
+    let inst = Instrument::start(volts, limits, 2.0).await;
+    // SB sources 0.5 µA: under the 1 µA default, above its own 100 nA.
+    let sb = channel_map()["SB"];
+    inst.set_current(sb, 5e-7);
+    let dir = TempDir::new("scpi-leak-gate");
+    let srv = server(&dir, 256).await;
+    let mut config = run_config(inst.addr, 50);
+    config["scpi"]["profile"] = json!("qdac2");
+    config["scpi"]["max_leakage_na"] = json!(1000.0);
+    config["scpi"]["max_leakage_na_by_gate"] = json!({ "SB": 100.0 });
+    let run = create_run(srv.addr, &config).await;
+    let r = expect_fault(
+        &srv,
+        &inst,
+        run.id,
+        "exceeds max_leakage_na_by_gate.SB = 100 nA",
+    )
+    .await;
     assert!(inst.violations().is_empty(), "{:?}", inst.violations());
 }
 

@@ -110,10 +110,10 @@ pub enum DeviceError {
         tolerance_mv: f64,
     },
     /// A gate leaks: the current its channel sources after a move exceeds
-    /// `scpi.max_leakage_na` (QDAC-II profile). The run pauses; nothing
-    /// further is set.
+    /// `scpi.max_leakage_na` or the gate's `scpi.max_leakage_na_by_gate`
+    /// (QDAC-II profile). The run pauses; nothing further is set.
     #[error(
-        "leakage on {gate} (channel {channel}): {current_na:.3} nA exceeds max_leakage_na = {max_na} nA after the move; nothing further was set (check the gate for a leak into the 2DEG before resuming)"
+        "leakage on {gate} (channel {channel}): {current_na:.3} nA exceeds {limit} = {max_na} nA after the move; nothing further was set (check the gate for a leak into the 2DEG before resuming)"
     )]
     Leakage {
         /// The gate.
@@ -122,6 +122,9 @@ pub enum DeviceError {
         channel: u32,
         /// The current read, nA (absolute value).
         current_na: f64,
+        /// The config key of the limit (`max_leakage_na` or
+        /// `max_leakage_na_by_gate.GATE`).
+        limit: String,
         /// The configured limit, nA.
         max_na: f64,
     },

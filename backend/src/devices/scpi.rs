@@ -10,7 +10,7 @@
 //! | `sour{ch}:volt?` | generic | read channel `ch` back; answers one line, volts |
 //! | `sour{ch}:volt:last?` | qdac2 | the present output of `ch`, volts (`volt?` may echo the set point) |
 //! | `sour{ch}:volt {V}` | both | set channel `ch` to `V` volts (no answer) |
-//! | `read{ch}?` | qdac2 with `max_leakage_na` | after every move, for every moved channel: the current it sources, A (comma-separated list; the largest magnitude counts) |
+//! | `read{ch}?` | qdac2 with `max_leakage_na` or `max_leakage_na_by_gate` | after every move, for every moved channel: the current it sources, A (comma-separated list; the largest magnitude counts) |
 //!
 //! The tuner works in mV, the instrument in V: every value is divided by
 //! 1000 on the way out (formatted with 6 decimals, i.e. 1 µV resolution) and
@@ -115,6 +115,12 @@ pub struct ScpiConfig {
     /// fault (a gate leaking into the 2DEG). `None`: no check.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub max_leakage_na: Option<f64>,
+    /// QDAC-II only: per-gate leakage limits, nA, overriding
+    /// `max_leakage_na` for the gates named (e.g. a plunger gate that is
+    /// allowed less). A gate named here is checked even without
+    /// `max_leakage_na`. Every key must be a mapped gate.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub max_leakage_na_by_gate: BTreeMap<String, f64>,
 }
 
 /// Most `sour{ch}:volt` commands one move may take (bounds the planned ramp).
@@ -142,6 +148,18 @@ fn default_timeout_ms() -> u64 {
 }
 
 impl ScpiConfig {
+    /// The leakage limit of `gate`, nA, with the config key it comes from
+    /// (`max_leakage_na_by_gate.SB` before `max_leakage_na`); `None`: the
+    /// gate's current is not checked.
+    pub fn leakage_limit_na(&self, gate: &str) -> Option<(String, f64)> {
+        match self.max_leakage_na_by_gate.get(gate) {
+            Some(&na) => Some((format!("max_leakage_na_by_gate.{gate}"), na)),
+            None => self
+                .max_leakage_na
+                .map(|na| ("max_leakage_na".to_string(), na)),
+        }
+    }
+
     /// Check the settings against the tuner's gates. The error's field is
     /// relative to the `[scpi]` table (`channels.SB`); a run config prefixes
     /// it with `scpi`.
@@ -234,17 +252,35 @@ impl ScpiConfig {
                 format!("must be 1 to {MAX_TIMEOUT_MS} ms, got {}", self.timeout_ms),
             ));
         }
-        if let Some(na) = self.max_leakage_na {
+        let limits = self
+            .max_leakage_na
+            .map(|na| ("max_leakage_na".to_string(), na))
+            .into_iter()
+            .chain(
+                self.max_leakage_na_by_gate
+                    .iter()
+                    .map(|(g, &na)| (format!("max_leakage_na_by_gate.{g}"), na)),
+            );
+        for (field, na) in limits {
             if self.profile != ScpiProfile::Qdac2 {
                 return Err(ConfigError::new(
-                    "max_leakage_na",
+                    field,
                     "the leakage check reads the current with the QDAC-II's `read{ch}?`: set profile = \"qdac2\"",
                 ));
             }
             if !(na.is_finite() && na > 0.0 && na <= MAX_LEAKAGE_NA) {
                 return Err(ConfigError::new(
-                    "max_leakage_na",
+                    field,
                     format!("must be a positive number of nA, at most {MAX_LEAKAGE_NA}, got {na}"),
+                ));
+            }
+        }
+        for gate in self.max_leakage_na_by_gate.keys() {
+            if !self.channels.contains_key(gate) {
+                let mapped: Vec<&str> = self.channels.keys().map(String::as_str).collect();
+                return Err(ConfigError::new(
+                    format!("max_leakage_na_by_gate.{gate}"),
+                    format!("{gate:?} is not a gate of `channels` (mapped: {mapped:?})"),
                 ));
             }
         }
@@ -669,18 +705,20 @@ impl ScpiSource {
                 });
             }
         }
-        if let Some(max_na) = self.cfg.max_leakage_na {
-            for gate in target.keys() {
-                let ch = self.channel(gate)?;
-                let current_na = self.query_current_na(ch).await?;
-                if current_na > max_na {
-                    return Err(DeviceError::Leakage {
-                        gate: gate.clone(),
-                        channel: ch,
-                        current_na,
-                        max_na,
-                    });
-                }
+        for gate in target.keys() {
+            let Some((limit, max_na)) = self.cfg.leakage_limit_na(gate) else {
+                continue;
+            };
+            let ch = self.channel(gate)?;
+            let current_na = self.query_current_na(ch).await?;
+            if current_na > max_na {
+                return Err(DeviceError::Leakage {
+                    gate: gate.clone(),
+                    channel: ch,
+                    current_na,
+                    limit,
+                    max_na,
+                });
             }
         }
         Ok(readback)
@@ -850,6 +888,7 @@ mod tests {
             measure: MeasureSource::Simulator,
             profile: Default::default(),
             max_leakage_na: None,
+            max_leakage_na_by_gate: BTreeMap::new(),
         };
         assert_eq!(cfg(&[("N", 1), ("SB", 4)]).validate(&gates), Ok(()));
         let e = cfg(&[("NOPE", 1)]).validate(&gates).unwrap_err();
@@ -878,6 +917,55 @@ mod tests {
         assert_eq!(c.validate(&gates).unwrap_err().field, "address");
     }
 
+    #[test]
+    fn per_gate_leakage_limits_override_the_default_and_are_validated() {
+        let gates = spintune::sim::default_gates();
+        let mut c = ScpiConfig {
+            address: "127.0.0.1:5025".into(),
+            channels: BTreeMap::from([("N".to_string(), 1), ("SB".to_string(), 4)]),
+            ramp_step_mv: 1.0,
+            slew_v_per_s: None,
+            readback_tolerance_mv: 0.05,
+            timeout_ms: 500,
+            settle_ms: 0,
+            measure: MeasureSource::Simulator,
+            profile: ScpiProfile::Qdac2,
+            max_leakage_na: None,
+            max_leakage_na_by_gate: BTreeMap::from([("SB".to_string(), 20.0)]),
+        };
+        assert_eq!(c.validate(&gates), Ok(()));
+        // Only the named gate is checked without a default...
+        assert_eq!(
+            c.leakage_limit_na("SB"),
+            Some(("max_leakage_na_by_gate.SB".to_string(), 20.0))
+        );
+        assert_eq!(c.leakage_limit_na("N"), None);
+        // ...and with one, the others get the default.
+        c.max_leakage_na = Some(100.0);
+        assert_eq!(
+            c.leakage_limit_na("N"),
+            Some(("max_leakage_na".to_string(), 100.0))
+        );
+        assert_eq!(c.leakage_limit_na("SB").map(|l| l.1), Some(20.0));
+        // A gate that is not mapped, a bad value, or the generic profile: errors naming the key.
+        c.max_leakage_na_by_gate.insert("PA".into(), 5.0);
+        let e = c.validate(&gates).unwrap_err();
+        assert_eq!(e.field, "max_leakage_na_by_gate.PA");
+        assert!(e.message.contains("not a gate of `channels`"), "{e}");
+        c.max_leakage_na_by_gate.remove("PA");
+        c.max_leakage_na_by_gate.insert("SB".into(), -1.0);
+        assert_eq!(
+            c.validate(&gates).unwrap_err().field,
+            "max_leakage_na_by_gate.SB"
+        );
+        c.max_leakage_na_by_gate.insert("SB".into(), 20.0);
+        c.max_leakage_na = None;
+        c.profile = ScpiProfile::Generic;
+        let e = c.validate(&gates).unwrap_err();
+        assert_eq!(e.field, "max_leakage_na_by_gate.SB");
+        assert!(e.message.contains("qdac2"), "{e}");
+    }
+
     #[tokio::test]
     async fn refusals_and_connection_failures_are_typed() {
         let gates = spintune::sim::default_gates();
@@ -897,6 +985,7 @@ mod tests {
             measure: MeasureSource::Simulator,
             profile: Default::default(),
             max_leakage_na: None,
+            max_leakage_na_by_gate: BTreeMap::new(),
         };
         let mut src = ScpiSource::new(cfg, &gates);
         assert_eq!(

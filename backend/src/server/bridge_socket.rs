@@ -120,9 +120,12 @@ async fn pump(
                                 .err()
                                 .map(|e| error_frame(e.to_string()))
                         }
-                        Ok(BridgeClientMessage::Auth { .. }) => {
-                            Some(frame(&BridgeServerMessage::AuthOk))
-                        }
+                        // Never an unchecked `auth_ok`: the socket is
+                        // authenticated once, for its lifetime.
+                        Ok(BridgeClientMessage::Auth { .. }) => Some(error_frame(
+                            "this bridge socket is already authenticated; a second auth is \
+                             not checked and changes nothing (reconnect to use another token)",
+                        )),
                         Err(e) => Some(error_frame(e.to_string())),
                     },
                     Message::Binary(_) => {

@@ -113,20 +113,58 @@ fn default_max_inner() -> u32 {
     3
 }
 
-/// Largest magnitude of any non-integer number of a tuner config, in its
-/// unit (mV, ns, µV, …); gate voltages are bounded tighter ([`MAX_GATE_MV`]).
+/// Largest magnitude of any non-integer number of a config (tuner, run), in
+/// its unit (mV, ns, µV, …); gate voltages are bounded tighter
+/// ([`MAX_GATE_MV`]). Every field has its own range on top of this one.
 pub const MAX_MAGNITUDE: f64 = 1e6;
 
-fn check_magnitudes(v: &serde_json::Value, path: &str) -> Result<(), ConfigError> {
+/// Largest integer of a config, except fields named `seed` (any 64-bit seed
+/// is fine). Integer fields with their own tighter bounds (sweep points,
+/// timeouts) check those too.
+pub const MAX_INTEGER: u64 = 1 << 40;
+
+/// Check every number of a config given as a JSON value: non-integers
+/// finite and within ±[`MAX_MAGNITUDE`], integers within ±[`MAX_INTEGER`]
+/// (fields named `seed` exempt). The error names the field, prefixed by
+/// `path`. This is the first check of [`TunerConfig::validate`] and of the
+/// server's run-config parser: it keeps any value a config can carry far
+/// from overflow and from allocation sizes (bounded by construction).
+///
+/// ```
+/// use spintune::tuner::check_magnitudes;
+/// let v = serde_json::json!({"a": {"b": [1.0, 1e300]}, "seed": u64::MAX});
+/// let e = check_magnitudes(&v, "").unwrap_err();
+/// assert_eq!(e.field, "a.b[1]");
+/// assert!(check_magnitudes(&serde_json::json!({"seed": u64::MAX}), "").is_ok());
+/// assert!(check_magnitudes(&serde_json::json!({"n": 1u64 << 41}), "").is_err());
+/// ```
+pub fn check_magnitudes(v: &serde_json::Value, path: &str) -> Result<(), ConfigError> {
     use serde_json::Value;
     match v {
-        Value::Number(n) if n.is_f64() => match n.as_f64() {
-            Some(x) if x.is_finite() && x.abs() <= MAX_MAGNITUDE => Ok(()),
-            _ => Err(ConfigError::new(
-                path,
-                format!("{n} is out of range (a finite number within ±{MAX_MAGNITUDE:e})"),
-            )),
-        },
+        Value::Number(n) => {
+            let is_seed = path == "seed" || path.ends_with(".seed");
+            let ok = if let Some(u) = n.as_u64() {
+                u <= MAX_INTEGER || is_seed
+            } else if let Some(i) = n.as_i64() {
+                i.unsigned_abs() <= MAX_INTEGER
+            } else {
+                n.as_f64()
+                    .is_some_and(|x| x.is_finite() && x.abs() <= MAX_MAGNITUDE)
+            };
+            if ok {
+                Ok(())
+            } else if n.is_f64() {
+                Err(ConfigError::new(
+                    path,
+                    format!("{n} is out of range (a finite number within ±{MAX_MAGNITUDE:e} in its unit)"),
+                ))
+            } else {
+                Err(ConfigError::new(
+                    path,
+                    format!("{n} is out of range (integers of a config are at most {MAX_INTEGER})"),
+                ))
+            }
+        }
         Value::Object(m) => m.iter().try_for_each(|(k, x)| {
             let p = if path.is_empty() {
                 k.clone()
@@ -280,8 +318,9 @@ impl TunerConfig {
 
     /// Check the config; the error names the offending field.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        // Every non-integer number first: within ±MAX_MAGNITUDE in its unit
-        // (bounded by construction; the checks below add each field's range).
+        // Every number first: within ±MAX_MAGNITUDE in its unit, integers
+        // within MAX_INTEGER (bounded by construction; the checks below add
+        // each field's range).
         if let Ok(v) = serde_json::to_value(self) {
             check_magnitudes(&v, "")?;
         }

@@ -38,6 +38,7 @@ use std::collections::{BTreeMap, VecDeque};
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
+pub use config::{check_magnitudes, MAX_GATE_MV, MAX_INTEGER, MAX_MAGNITUDE};
 pub use config::{
     Compensation, ConfigError, InitialGradient, LevelConfig, LevelKind, NewtonConfig,
     ScheduledTargets, SensingDotConfig, SensingDotFallback, TunerConfig, MAX_FALLBACK_SWEEPS,

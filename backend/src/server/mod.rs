@@ -755,41 +755,11 @@ async fn viewer_loop(state: &AppState, id: u64, from: u64, socket: &mut WebSocke
         let result = tokio::select! {
             frame = rx.recv() => match frame {
                 Ok(frame) => {
-                    if let Some(seq) = frame.seq {
-                        if seq < next {
-                            continue;
-                        }
-                        if seq > next {
-                            // Missed something (cannot normally happen): send the gap.
-                            let Some((gap, _)) =
-                                history_page(state, id, Some(seq), seq - next, next).await
-                            else {
-                                return ViewerEnd::Gone;
-                            };
-                            if let Err(e) = send_within(socket, gap, timeout).await {
-                                return e;
-                            }
-                        }
-                        next = seq + 1;
-                    }
-                    let text = match (&frame.full, view.scans) {
-                        (Some(full), true) => full.clone(),
-                        _ => frame.text,
-                    };
-                    send_within(socket, Message::Text(text), timeout).await
+                    live_batch(state, id, socket, &mut rx, frame, &mut next, view.scans, timeout)
+                        .await
                 }
                 Err(RecvError::Lagged(skipped)) => {
-                    let lagged = text_of(&ServerMessage::Lagged { skipped });
-                    match send_within(socket, lagged, timeout).await {
-                        Ok(()) => match history_page(state, id, None, page, next).await {
-                            Some((frame, end)) => {
-                                next = next.max(end);
-                                send_within(socket, frame, timeout).await
-                            }
-                            None => Err(ViewerEnd::Gone),
-                        },
-                        Err(e) => Err(e),
-                    }
+                    send_lagged(state, id, socket, skipped, &mut next, timeout).await
                 }
                 Err(RecvError::Closed) => {
                     let _ = send_within(socket, Message::Close(None), CLOSE_GRACE).await;
@@ -837,6 +807,116 @@ async fn viewer_loop(state: &AppState, id: u64, from: u64, socket: &mut WebSocke
         if let Err(e) = result {
             return e;
         }
+    }
+}
+
+/// Most live frames written to one viewer between two flushes.
+pub const MAX_LIVE_BATCH: usize = 64;
+
+/// Write `first` and whatever else is already queued for this viewer (at
+/// most [`MAX_LIVE_BATCH`] frames), then flush once: a viewer that fell
+/// behind catches up with one write instead of one per frame, which keeps
+/// the fan-out's system calls, and so its latency, down under load. The
+/// whole batch must be written within `timeout`. Frames with a seq below
+/// `next` (already sent in a page) are skipped; a gap is filled from the
+/// store first.
+#[allow(clippy::too_many_arguments)]
+async fn live_batch(
+    state: &AppState,
+    id: u64,
+    socket: &mut WebSocket,
+    rx: &mut tokio::sync::broadcast::Receiver<crate::run::Frame>,
+    first: crate::run::Frame,
+    next: &mut u64,
+    scans: bool,
+    timeout: Duration,
+) -> Result<(), ViewerEnd> {
+    use futures_util::SinkExt;
+    use tokio::sync::broadcast::error::TryRecvError;
+    let deadline = tokio::time::Instant::now() + timeout;
+    let mut frame = first;
+    let mut lag = None;
+    for n in 1.. {
+        match frame.seq {
+            Some(seq) if seq < *next => {}
+            seq => {
+                if let Some(seq) = seq {
+                    if seq > *next {
+                        // Missed something (cannot normally happen): send the gap.
+                        let Some((gap, _)) =
+                            history_page(state, id, Some(seq), seq - *next, *next).await
+                        else {
+                            return Err(ViewerEnd::Gone);
+                        };
+                        feed_by(socket, gap, deadline, timeout).await?;
+                    }
+                    *next = seq + 1;
+                }
+                let text = match (&frame.full, scans) {
+                    (Some(full), true) => full.clone(),
+                    _ => frame.text,
+                };
+                feed_by(socket, Message::Text(text), deadline, timeout).await?;
+            }
+        }
+        if n >= MAX_LIVE_BATCH {
+            break;
+        }
+        match rx.try_recv() {
+            Ok(f) => frame = f,
+            Err(TryRecvError::Lagged(skipped)) => {
+                lag = Some(skipped);
+                break;
+            }
+            // Empty; or Closed, which the next `recv` reports.
+            Err(_) => break,
+        }
+    }
+    match tokio::time::timeout_at(deadline, socket.flush()).await {
+        Ok(Ok(())) => {}
+        Ok(Err(_)) => return Err(ViewerEnd::Gone),
+        Err(_) => return Err(ViewerEnd::SendTimeout(timeout)),
+    }
+    match lag {
+        Some(skipped) => send_lagged(state, id, socket, skipped, next, timeout).await,
+        None => Ok(()),
+    }
+}
+
+/// Queue `msg` on the socket (written when its buffer fills or on flush)
+/// by `deadline`; `timeout` is what the deadline was set from (for the error).
+async fn feed_by(
+    socket: &mut WebSocket,
+    msg: Message,
+    deadline: tokio::time::Instant,
+    timeout: Duration,
+) -> Result<(), ViewerEnd> {
+    use futures_util::SinkExt;
+    match tokio::time::timeout_at(deadline, socket.feed(msg)).await {
+        Ok(Ok(())) => Ok(()),
+        Ok(Err(_)) => Err(ViewerEnd::Gone),
+        Err(_) => Err(ViewerEnd::SendTimeout(timeout)),
+    }
+}
+
+/// The viewer lagged by `skipped` live frames: tell it, then send the
+/// newest page (it asks for older pages to fill any gap).
+async fn send_lagged(
+    state: &AppState,
+    id: u64,
+    socket: &mut WebSocket,
+    skipped: u64,
+    next: &mut u64,
+    timeout: Duration,
+) -> Result<(), ViewerEnd> {
+    let lagged = text_of(&ServerMessage::Lagged { skipped });
+    send_within(socket, lagged, timeout).await?;
+    match history_page(state, id, None, DEFAULT_HISTORY_PAGE as u64, *next).await {
+        Some((frame, end)) => {
+            *next = (*next).max(end);
+            send_within(socket, frame, timeout).await
+        }
+        None => Err(ViewerEnd::Gone),
     }
 }
 

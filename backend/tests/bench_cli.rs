@@ -1,4 +1,4 @@
-//! `spintune bench` end to end: JSON keys as documented, markdown table,
+//! `spintune bench` and `bench-server` end to end: JSON keys as documented, markdown tables,
 //! zero limit violations, clear errors for bad input.
 
 use std::process::Command;
@@ -93,4 +93,95 @@ fn bench_rejects_unknown_strategy_and_bad_device_file() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("lever_arm_typo"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The rows of a markdown table in `stdout` whose first cell is `clients`.
+fn rows<'a>(stdout: &'a str, clients: &str) -> Vec<Vec<&'a str>> {
+    stdout
+        .lines()
+        .filter(|l| l.starts_with(&format!("| {clients} |")))
+        .map(|l| l.trim_matches('|').split('|').map(str::trim).collect())
+        .collect()
+}
+
+#[test]
+fn bench_server_measures_viewers_in_this_and_in_a_separate_process() {
+    let out = bin()
+        .args([
+            "bench-server",
+            "--viewers",
+            "3",
+            "--rate",
+            "40",
+            "--seconds",
+            "0.5",
+            "--clients",
+            "both",
+        ])
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for clients in ["separate", "same"] {
+        let r = rows(&stdout, clients);
+        assert_eq!(r.len(), 1, "{clients}: {stdout}");
+        // | clients | viewers | published | achieved Hz | delivered / expected | lagged | p50 | p99 | max | RSS |
+        assert_eq!(r[0][1], "3");
+        assert_eq!(r[0][2], "20");
+        assert_eq!(
+            r[0][4], "60 / 60",
+            "{clients}: every frame reached every viewer"
+        );
+        let p50: f64 = r[0][6].parse().unwrap();
+        let max: f64 = r[0][8].parse().unwrap();
+        assert!(
+            p50 > 0.0 && p50 <= max,
+            "{clients}: latencies {p50} / {max}"
+        );
+    }
+}
+
+#[test]
+fn bench_server_stalled_mode_reports_the_server_memory() {
+    let out = bin()
+        .args([
+            "bench-server",
+            "--stalled",
+            "4",
+            "--rate",
+            "40",
+            "--seconds",
+            "0.5",
+            "--full-frames",
+            "--clients",
+            "separate",
+            "--viewer-send-timeout-ms",
+            "200",
+        ])
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout}");
+    let r = rows(&stdout, "separate");
+    assert_eq!(r.len(), 1, "{stdout}");
+    // | clients | stalled viewers | before MiB | peak MiB | dropped | achieved Hz |
+    assert_eq!(r[0][1], "4");
+    let before: f64 = r[0][2].parse().unwrap();
+    let peak: f64 = r[0][3].parse().unwrap();
+    assert!(before > 1.0 && peak >= before, "{before} → {peak}");
+    assert!(r[0][4].ends_with("/ 4"), "{stdout}");
+}
+
+#[test]
+fn bench_server_rejects_bad_numbers_naming_the_flag() {
+    for (flag, value) in [("--rate", "0"), ("--seconds", "nan"), ("--viewers", "0")] {
+        let out = bin().args(["bench-server", flag, value]).output().unwrap();
+        assert_eq!(out.status.code(), Some(2), "{flag} {value} was accepted");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(flag), "{flag}: {err}");
+    }
 }

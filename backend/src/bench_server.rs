@@ -513,10 +513,12 @@ async fn measure(
     let rss_before = rss_kb().unwrap_or(0);
     enum Clients {
         Same(Viewers),
-        Separate(ClientProcess),
+        Separate(Box<ClientProcess>),
     }
     let clients = if separate {
-        Clients::Separate(ClientProcess::start(&url, viewers, n_records, args, false).await?)
+        Clients::Separate(Box::new(
+            ClientProcess::start(&url, viewers, n_records, args, false).await?,
+        ))
     } else {
         Clients::Same(Viewers::connect(&url, viewers, args.full_frames).await?)
     };

@@ -733,6 +733,10 @@ async fn a_per_gate_leakage_limit_overrides_the_default_for_that_gate() {
         "exceeds max_leakage_na_by_gate.SB = 100 nA",
     )
     .await;
+    assert!(
+        matches!(&r.status, RunStatus::Faulted { fault } if fault.kind == spintune::protocol::FaultKind::Device),
+        "{r:?}"
+    );
     assert!(inst.violations().is_empty(), "{:?}", inst.violations());
 }
 

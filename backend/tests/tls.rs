@@ -6,14 +6,13 @@
 
 mod common;
 
-use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::sync::Arc;
 use std::time::Duration;
 
-use common::{Proc, TempDir, TOKEN};
+use common::{spawn_serve_command, Proc, TempDir, TOKEN};
 use futures_util::StreamExt;
 use spintune::protocol::{ServerMessage, PROTOCOL_VERSION};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -54,7 +53,7 @@ fn serve_cmd(dir: &TempDir, tls: &[&std::ffi::OsStr]) -> Command {
 /// Start `serve` over TLS; returns the process and the address it printed
 /// after `Dashboard: https://`.
 fn spawn_tls(dir: &TempDir, cert: &Path, key: &Path) -> (Proc, SocketAddr) {
-    let mut child = serve_cmd(
+    let cmd = serve_cmd(
         dir,
         &[
             "--tls-cert".as_ref(),
@@ -62,30 +61,8 @@ fn spawn_tls(dir: &TempDir, cert: &Path, key: &Path) -> (Proc, SocketAddr) {
             "--tls-key".as_ref(),
             key.as_os_str(),
         ],
-    )
-    .stdout(Stdio::piped())
-    .stderr(Stdio::inherit())
-    .spawn()
-    .expect("spawn spintune serve");
-    let stdout = child.stdout.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            let _ = tx.send(line);
-        }
-    });
-    let proc = Proc(child);
-    loop {
-        let line = rx
-            .recv_timeout(Duration::from_secs(20))
-            .expect("server did not print its address");
-        if let Some(rest) = line.strip_prefix("Dashboard: ") {
-            let addr = rest
-                .strip_prefix("https://")
-                .unwrap_or_else(|| panic!("expected an https:// URL, got {rest:?}"));
-            return (proc, addr.trim_end_matches('/').parse().unwrap());
-        }
-    }
+    );
+    spawn_serve_command(cmd, "https")
 }
 
 /// A TLS connection to `addr` as `localhost`, trusting only `ck`'s certificate.

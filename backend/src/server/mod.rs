@@ -616,7 +616,19 @@ async fn send_within(
     msg: Message,
     timeout: Duration,
 ) -> Result<(), ViewerEnd> {
-    match tokio::time::timeout(timeout, socket.send(msg)).await {
+    let deadline = tokio::time::Instant::now() + timeout;
+    by_deadline(socket.send(msg), deadline, timeout).await
+}
+
+/// Run a socket write by `deadline`: a failed write means the viewer is
+/// gone, a late one a [`ViewerEnd::SendTimeout`] of `timeout` (what the
+/// deadline was set from).
+async fn by_deadline(
+    write: impl std::future::Future<Output = Result<(), axum::Error>>,
+    deadline: tokio::time::Instant,
+    timeout: Duration,
+) -> Result<(), ViewerEnd> {
+    match tokio::time::timeout_at(deadline, write).await {
         Ok(Ok(())) => Ok(()),
         Ok(Err(_)) => Err(ViewerEnd::Gone),
         Err(_) => Err(ViewerEnd::SendTimeout(timeout)),
@@ -848,7 +860,7 @@ async fn live_batch(
                         else {
                             return Err(ViewerEnd::Gone);
                         };
-                        feed_by(socket, gap, deadline, timeout).await?;
+                        by_deadline(socket.feed(gap), deadline, timeout).await?;
                     }
                     *next = seq + 1;
                 }
@@ -856,7 +868,7 @@ async fn live_batch(
                     (Some(full), true) => full.clone(),
                     _ => frame.text,
                 };
-                feed_by(socket, Message::Text(text), deadline, timeout).await?;
+                by_deadline(socket.feed(Message::Text(text)), deadline, timeout).await?;
             }
         }
         if n >= MAX_LIVE_BATCH {
@@ -872,30 +884,10 @@ async fn live_batch(
             Err(_) => break,
         }
     }
-    match tokio::time::timeout_at(deadline, socket.flush()).await {
-        Ok(Ok(())) => {}
-        Ok(Err(_)) => return Err(ViewerEnd::Gone),
-        Err(_) => return Err(ViewerEnd::SendTimeout(timeout)),
-    }
+    by_deadline(socket.flush(), deadline, timeout).await?;
     match lag {
         Some(skipped) => send_lagged(state, id, socket, skipped, next, timeout).await,
         None => Ok(()),
-    }
-}
-
-/// Queue `msg` on the socket (written when its buffer fills or on flush)
-/// by `deadline`; `timeout` is what the deadline was set from (for the error).
-async fn feed_by(
-    socket: &mut WebSocket,
-    msg: Message,
-    deadline: tokio::time::Instant,
-    timeout: Duration,
-) -> Result<(), ViewerEnd> {
-    use futures_util::SinkExt;
-    match tokio::time::timeout_at(deadline, socket.feed(msg)).await {
-        Ok(Ok(())) => Ok(()),
-        Ok(Err(_)) => Err(ViewerEnd::Gone),
-        Err(_) => Err(ViewerEnd::SendTimeout(timeout)),
     }
 }
 

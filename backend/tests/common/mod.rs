@@ -240,20 +240,27 @@ impl Drop for Proc {
 
 /// Start `spintune serve` on an ephemeral port; returns the process and its address.
 pub fn spawn_server(db: &std::path::Path) -> (Proc, SocketAddr) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_spintune"))
-        .args([
-            "serve",
-            "--bind",
-            "127.0.0.1:0",
-            "--demo",
-            "never",
-            "--token",
-            TOKEN,
-        ])
-        .arg("--db")
-        .arg(db)
-        .arg("--dist")
-        .arg(db.with_file_name("no-dist"))
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_spintune"));
+    cmd.args([
+        "serve",
+        "--bind",
+        "127.0.0.1:0",
+        "--demo",
+        "never",
+        "--token",
+        TOKEN,
+    ])
+    .arg("--db")
+    .arg(db)
+    .arg("--dist")
+    .arg(db.with_file_name("no-dist"));
+    spawn_serve_command(cmd, "http")
+}
+
+/// Run a `spintune serve` command (stdout piped, stderr inherited) and wait
+/// for its `Dashboard: SCHEME://ADDR/` line; panics on another scheme.
+pub fn spawn_serve_command(mut cmd: Command, scheme: &str) -> (Proc, SocketAddr) {
+    let mut child = cmd
         .stdout(Stdio::piped())
         .stderr(Stdio::inherit())
         .spawn()
@@ -262,15 +269,19 @@ pub fn spawn_server(db: &std::path::Path) -> (Proc, SocketAddr) {
     let (tx, rx) = std::sync::mpsc::channel();
     std::thread::spawn(move || {
         for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            if let Some(rest) = line.strip_prefix("Dashboard: http://") {
+            if let Some(rest) = line.strip_prefix("Dashboard: ") {
                 let _ = tx.send(rest.trim_end_matches('/').to_string());
             }
         }
     });
-    let addr = rx
+    let proc = Proc(child);
+    let url = rx
         .recv_timeout(Duration::from_secs(20))
         .expect("server did not print its address");
-    (Proc(child), addr.parse().unwrap())
+    let addr = url
+        .strip_prefix(&format!("{scheme}://"))
+        .unwrap_or_else(|| panic!("expected a {scheme}:// URL, got {url:?}"));
+    (proc, addr.parse().unwrap())
 }
 
 /// `spintune serve` arguments as the command line would give them (every

@@ -22,6 +22,9 @@
 //! process is the server (plus the publisher), so that figure is the
 //! server's.
 //!
+//! The client process runs on one thread (the server keeps a core of its
+//! own on a 2-core machine); in-process clients share the server's runtime.
+//!
 //! `--stalled N` measures memory instead: N viewers that connect and never
 //! read, records published for `--seconds`, and the server's peak VmRSS
 //! sampled every 50 ms, plus how many of those viewers the server dropped
@@ -637,6 +640,23 @@ fn check_args(args: &BenchServerArgs) -> Result<(), CliError> {
         return Err(CliError::input("--viewer-buffer must be in 1..=65536"));
     }
     Ok(())
+}
+
+/// `spintune bench-server`: the bench on a multi-threaded runtime (one
+/// worker per core, as `serve`); the client process (`--clients-of`) on a
+/// single thread, so that on a small machine it cannot take every core
+/// from the server it measures.
+pub fn main(args: BenchServerArgs) -> Result<(), CliError> {
+    let mut builder = if args.clients_of.is_some() {
+        tokio::runtime::Builder::new_current_thread()
+    } else {
+        tokio::runtime::Builder::new_multi_thread()
+    };
+    let runtime = builder
+        .enable_all()
+        .build()
+        .map_err(|e| CliError::runtime(format!("cannot start the async runtime: {e}")))?;
+    runtime.block_on(run(args))
 }
 
 /// Run the bench and print markdown tables (or, with `--clients-of`, serve

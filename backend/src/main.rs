@@ -38,7 +38,7 @@ fn main() {
         Command::Export(args) => cli::export(args),
         Command::Replay(args) => cli::replay(args),
         Command::Bench(args) => spintune_server::bench::run(args),
-        Command::BenchServer(args) => runtime().block_on(spintune_server::bench_server::run(args)),
+        Command::BenchServer(args) => spintune_server::bench_server::main(args),
     };
     if let Err(e) = result {
         eprintln!("error: {}", e.message);

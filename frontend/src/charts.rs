@@ -433,13 +433,11 @@ pub fn draw_scan<DB: DrawingBackend>(
     let all = scan.raw.traces.iter().chain(scan.fit.iter());
     let (x0, x1) = padded_range(all.clone().flat_map(|t| t.x.iter().copied()), 0.02);
     let (y0, y1) = padded_range(all.flat_map(|t| t.y.iter().copied()), 0.08);
-    let title = match iteration {
-        Some(k) => format!("{} — iteration {k}", scan_title(scan.raw.kind)),
-        None => scan_title(scan.raw.kind).to_string(),
-    };
+    // The caption is part of the frame (kept while the axes stay); the
+    // iteration, which changes with every live scan, is drawn with the data.
     let mut chart = styled_chart(
         plot,
-        &title,
+        scan_title(scan.raw.kind),
         scan.raw.x_label.as_str(),
         scan.raw.y_label.as_str(),
         x0..x1,
@@ -473,6 +471,16 @@ pub fn draw_scan<DB: DrawingBackend>(
             .map_err(err)?
             .label(t.label.clone())
             .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], c.stroke_width(2)));
+    }
+    if let Some(k) = iteration {
+        use plotters::style::text_anchor::{HPos, Pos, VPos};
+        let style = (FONT, 13)
+            .into_font()
+            .color(&RGBColor(90, 90, 90))
+            .pos(Pos::new(HPos::Right, VPos::Top));
+        let w = area.dim_in_pixel().0 as i32;
+        area.draw(&Text::new(format!("iteration {k}"), (w - 10, 6), style))
+            .map_err(err)?;
     }
     if scan.fit.is_empty() {
         area.draw(&Text::new(

@@ -297,6 +297,9 @@ fn styled_chart_inner<'a, DB: DrawingBackend>(
     let mut chart = ChartBuilder::on(area)
         .caption(caption, (FONT, caption_px))
         .margin(margin)
+        // Room for half of the last x tick label: stepped ranges end on a
+        // round number, which gets a label at the right edge.
+        .margin_right(margin + if small { 10 } else { 18 })
         .x_label_area_size(x_area)
         .y_label_area_size(y_area)
         .build_cartesian_2d(x, y)

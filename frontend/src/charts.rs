@@ -33,13 +33,177 @@ pub(crate) fn err<E: std::fmt::Debug>(e: E) -> String {
     format!("{e:?}")
 }
 
-/// A linear chart on `area` in the dashboard's style: caption, axis
+/// Pixel rectangle in absolute backend pixels: `(x range, y range)`.
+pub type PixelRect = (std::ops::Range<i32>, std::ops::Range<i32>);
+
+/// What a frame (caption, axes, tick labels, grid) of one plot area shows:
+/// equal keys draw equal frames.
+#[derive(Debug, Clone, PartialEq)]
+struct FrameKey {
+    caption: String,
+    x_desc: String,
+    y_desc: String,
+    /// Axis ranges as `f64::to_bits`.
+    x: (u64, u64),
+    y: (u64, u64),
+    small: bool,
+    /// Address of the x label formatter.
+    x_fmt: usize,
+}
+
+/// A frame drawn on the background canvas.
+#[derive(Debug)]
+struct FrameEntry {
+    /// The plot area's whole region (absolute pixels).
+    region: PixelRect,
+    key: FrameKey,
+    /// Its data rectangle (absolute pixels).
+    plot: PixelRect,
+    /// Used in the current draw.
+    used: bool,
+}
+
+/// The frames a chart holds on its background canvas, by region. Between
+/// [`Frames::begin`] and [`Frames::end`] every plot area drawn marks its
+/// frame used; frames not used in a draw are stale (the layout changed).
+#[derive(Debug, Default)]
+pub struct Frames {
+    entries: std::cell::RefCell<Vec<FrameEntry>>,
+}
+
+impl Frames {
+    /// A draw begins.
+    pub fn begin(&self) {
+        for e in self.entries.borrow_mut().iter_mut() {
+            e.used = false;
+        }
+    }
+
+    /// A draw ended: drop the frames it did not use; `true` if there were
+    /// any (their pixels are still on the background canvas: clear it,
+    /// [`Frames::clear`] and draw again).
+    pub fn end(&self) -> bool {
+        let mut e = self.entries.borrow_mut();
+        let n = e.len();
+        e.retain(|e| e.used);
+        e.len() != n
+    }
+
+    /// Forget every frame (the background canvas was cleared).
+    pub fn clear(&self) {
+        self.entries.borrow_mut().clear();
+    }
+
+    /// Frames held.
+    pub fn len(&self) -> usize {
+        self.entries.borrow().len()
+    }
+
+    /// Whether no frame is held.
+    pub fn is_empty(&self) -> bool {
+        self.entries.borrow().is_empty()
+    }
+}
+
+/// Where a figure is drawn. Single: everything on one area. Layered: the
+/// data on `area` (a transparent canvas cleared before every draw) and the
+/// frames of the plot areas on a background canvas of the same geometry,
+/// redrawn only when a frame's [`FrameKey`] changed ([`Frames`]).
+pub struct Plot<'a, DB: DrawingBackend> {
+    fg: DrawingArea<DB, Shift>,
+    bg: Option<(DrawingArea<DB, Shift>, &'a Frames)>,
+}
+
+impl<'a, DB: DrawingBackend> Plot<'a, DB> {
+    /// Everything on `area`.
+    pub fn single(area: DrawingArea<DB, Shift>) -> Self {
+        Self { fg: area, bg: None }
+    }
+
+    /// Data on `fg`, frames on `bg` (same geometry), remembered in `frames`.
+    pub fn layered(
+        fg: DrawingArea<DB, Shift>,
+        bg: DrawingArea<DB, Shift>,
+        frames: &'a Frames,
+    ) -> Self {
+        Self {
+            fg,
+            bg: Some((bg, frames)),
+        }
+    }
+
+    /// The data area (for placeholders and elements without a frame).
+    pub fn area(&self) -> &DrawingArea<DB, Shift> {
+        &self.fg
+    }
+
+    /// Split into `(rows, cols)` equal plots (as `DrawingArea::split_evenly`).
+    pub fn split_evenly(&self, rc: (usize, usize)) -> Vec<Plot<'a, DB>> {
+        let fg = self.fg.split_evenly(rc);
+        match &self.bg {
+            None => fg.into_iter().map(Plot::single).collect(),
+            Some((bg, frames)) => fg
+                .into_iter()
+                .zip(bg.split_evenly(rc))
+                .map(|(f, b)| Plot::layered(f, b, frames))
+                .collect(),
+        }
+    }
+}
+
+fn region<DB: DrawingBackend>(a: &DrawingArea<DB, Shift>) -> PixelRect {
+    a.get_pixel_range()
+}
+
+/// `[lo, hi]` widened outward to multiples of a 1-2-5 step of about a fifth
+/// of the span, so that small changes of the data do not change the axis
+/// (and its frame). Degenerate or non-finite ranges are returned as they are.
+pub fn nice_range(lo: f64, hi: f64) -> (f64, f64) {
+    let span = hi - lo;
+    if !(span.is_finite() && span > 0.0) {
+        return (lo, hi);
+    }
+    let step = nice_step(span / 5.0);
+    let (mut a, mut b) = ((lo / step).floor() * step, (hi / step).ceil() * step);
+    // Rounding of the division must not cut the data.
+    if a > lo {
+        a -= step;
+    }
+    if b < hi {
+        b += step;
+    }
+    if a.is_finite() && b.is_finite() && b > a {
+        (a, b)
+    } else {
+        (lo, hi)
+    }
+}
+
+/// The smallest of 1, 2, 5 × 10^k that is ≥ `x` (`x` > 0, finite).
+pub fn nice_step(x: f64) -> f64 {
+    let p = 10f64.powf(x.log10().floor());
+    let m = x / p;
+    let f = if m <= 1.0 {
+        1.0
+    } else if m <= 2.0 {
+        2.0
+    } else if m <= 5.0 {
+        5.0
+    } else {
+        10.0
+    };
+    f * p
+}
+
+/// A linear chart on `plot` in the dashboard's style: caption, axis
 /// descriptions with units, light grid, number formatting. `small` is for the
 /// rows of per-gate panels; `x_fmt` labels the x axis (e.g. whole
-/// iterations or lab time h:mm).
+/// iterations or lab time h:mm). The y range is widened to [`nice_range`].
+/// On a layered plot the frame is drawn on the background only if it
+/// changed, and the returned chart draws on the data canvas.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn styled_chart<'a, DB: DrawingBackend>(
-    area: &'a DrawingArea<DB, Shift>,
+    plot: &'a Plot<'_, DB>,
     caption: &str,
     x_desc: &str,
     y_desc: &str,
@@ -48,9 +212,70 @@ pub(crate) fn styled_chart<'a, DB: DrawingBackend>(
     small: bool,
     x_fmt: &dyn Fn(&f64) -> String,
 ) -> Result<ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>, String> {
-    crate::metrics::phase(crate::metrics::Phase::Axes, || {
-        styled_chart_inner(area, caption, x_desc, y_desc, x, y, small, x_fmt)
-    })
+    let (y0, y1) = nice_range(y.start, y.end);
+    let y = y0..y1;
+    let Some((bg, frames)) = &plot.bg else {
+        return crate::metrics::phase(crate::metrics::Phase::Axes, || {
+            styled_chart_inner(&plot.fg, caption, x_desc, y_desc, x, y, small, x_fmt)
+        });
+    };
+    let key = FrameKey {
+        caption: caption.to_string(),
+        x_desc: x_desc.to_string(),
+        y_desc: y_desc.to_string(),
+        x: (x.start.to_bits(), x.end.to_bits()),
+        y: (y.start.to_bits(), y.end.to_bits()),
+        small,
+        x_fmt: x_fmt as *const dyn Fn(&f64) -> String as *const () as usize,
+    };
+    let reg = region(&plot.fg);
+    let held = {
+        let mut entries = frames.entries.borrow_mut();
+        entries
+            .iter_mut()
+            .find(|e| e.region == reg && e.key == key)
+            .map(|e| {
+                e.used = true;
+                e.plot.clone()
+            })
+    };
+    let rect = match held {
+        Some(r) => r,
+        None => {
+            let r = crate::metrics::phase(crate::metrics::Phase::Axes, || {
+                bg.fill(&WHITE).map_err(err)?;
+                let c = styled_chart_inner(
+                    bg,
+                    caption,
+                    x_desc,
+                    y_desc,
+                    x.clone(),
+                    y.clone(),
+                    small,
+                    x_fmt,
+                )?;
+                Ok::<_, String>(c.plotting_area().get_pixel_range())
+            })?;
+            let mut entries = frames.entries.borrow_mut();
+            entries.retain(|e| e.region != reg);
+            entries.push(FrameEntry {
+                region: reg.clone(),
+                key,
+                plot: r.clone(),
+                used: true,
+            });
+            r
+        }
+    };
+    // The same data rectangle on the data canvas, without drawing a frame.
+    let m = |v: i32| v.max(0) as u32;
+    ChartBuilder::on(&plot.fg)
+        .margin_left(m(rect.0.start - reg.0.start))
+        .margin_right(m(reg.0.end - rect.0.end))
+        .margin_top(m(rect.1.start - reg.1.start))
+        .margin_bottom(m(reg.1.end - rect.1.end))
+        .build_cartesian_2d(x, y)
+        .map_err(err)
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -72,6 +297,9 @@ fn styled_chart_inner<'a, DB: DrawingBackend>(
     let mut chart = ChartBuilder::on(area)
         .caption(caption, (FONT, caption_px))
         .margin(margin)
+        // Room for half of the last x tick label: stepped ranges end on a
+        // round number, which gets a label at the right edge.
+        .margin_right(margin + if small { 10 } else { 18 })
         .x_label_area_size(x_area)
         .y_label_area_size(y_area)
         .build_cartesian_2d(x, y)
@@ -197,23 +425,22 @@ pub fn scan_title(kind: ScanKind) -> &'static str {
 
 /// One raw scan (points) with its fitted curve(s) (lines).
 pub fn draw_scan<DB: DrawingBackend>(
-    area: &DrawingArea<DB, Shift>,
+    plot: &Plot<'_, DB>,
     scan: Option<&ScanReport>,
     iteration: Option<u64>,
 ) -> DrawResult {
+    let area = plot.area();
     let Some(scan) = scan else {
         return placeholder(area, "latest scan", "no scan yet");
     };
     let all = scan.raw.traces.iter().chain(scan.fit.iter());
     let (x0, x1) = padded_range(all.clone().flat_map(|t| t.x.iter().copied()), 0.02);
     let (y0, y1) = padded_range(all.flat_map(|t| t.y.iter().copied()), 0.08);
-    let title = match iteration {
-        Some(k) => format!("{} — iteration {k}", scan_title(scan.raw.kind)),
-        None => scan_title(scan.raw.kind).to_string(),
-    };
+    // The caption is part of the frame (kept while the axes stay); the
+    // iteration, which changes with every live scan, is drawn with the data.
     let mut chart = styled_chart(
-        area,
-        &title,
+        plot,
+        scan_title(scan.raw.kind),
         scan.raw.x_label.as_str(),
         scan.raw.y_label.as_str(),
         x0..x1,
@@ -247,6 +474,16 @@ pub fn draw_scan<DB: DrawingBackend>(
             .map_err(err)?
             .label(t.label.clone())
             .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], c.stroke_width(2)));
+    }
+    if let Some(k) = iteration {
+        use plotters::style::text_anchor::{HPos, Pos, VPos};
+        let style = (FONT, 13)
+            .into_font()
+            .color(&RGBColor(90, 90, 90))
+            .pos(Pos::new(HPos::Right, VPos::Top));
+        let w = area.dim_in_pixel().0 as i32;
+        area.draw(&Text::new(format!("iteration {k}"), (w - 10, 6), style))
+            .map_err(err)?;
     }
     if scan.fit.is_empty() {
         area.draw(&Text::new(
@@ -283,10 +520,11 @@ pub fn error_color(e: f64) -> RGBColor {
 /// tuner's path (black) and optionally a second run's path (`other`, mV,
 /// orange dashes of dots: the estimator race).
 pub fn draw_landscape<DB: DrawingBackend>(
-    area: &DrawingArea<DB, Shift>,
+    plot: &Plot<'_, DB>,
     land: Option<&crate::local::Landscape>,
     other: &[(f64, f64)],
 ) -> DrawResult {
+    let area = plot.area();
     let Some(l) = land else {
         return placeholder(
             area,
@@ -404,6 +642,29 @@ pub fn draw_landscape<DB: DrawingBackend>(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn nice_range_widens_to_steps_and_absorbs_small_changes() {
+        assert_eq!(nice_step(0.3), 0.5);
+        assert_eq!(nice_step(2.0), 2.0);
+        assert_eq!(nice_step(7.0), 10.0);
+        assert_eq!(nice_step(1200.0), 2000.0);
+        assert_eq!(nice_range(3.2, 27.9), (0.0, 30.0));
+        assert_eq!(nice_range(-1.3, 0.4), (-1.5, 0.5));
+        // A slightly different data range keeps the axis.
+        assert_eq!(nice_range(3.5, 28.7), nice_range(3.2, 27.9));
+        // Contains the input.
+        for (lo, hi) in [(0.001, 0.0013), (-5e-9, 7e-9), (99.0, 101.0), (1e6, 3e6)] {
+            let (a, b) = nice_range(lo, hi);
+            assert!(
+                a <= lo && b >= hi && b - a <= 3.0 * (hi - lo),
+                "{lo} {hi} -> {a} {b}"
+            );
+        }
+        assert_eq!(nice_range(1.0, 1.0), (1.0, 1.0));
+        assert!(nice_range(f64::NAN, 1.0).0.is_nan());
+    }
 
     #[cfg_attr(not(target_arch = "wasm32"), test)]
     #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]

@@ -164,6 +164,14 @@ pub struct Merge {
     pub duplicates: usize,
 }
 
+/// A change stamp: increasing and unique within the page (all histories
+/// share one counter), so equal stamps mean the same content.
+pub fn next_stamp() -> u64 {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static STAMP: AtomicU64 = AtomicU64::new(0);
+    STAMP.fetch_add(1, Ordering::Relaxed) + 1
+}
+
 /// The history of one run (see the module doc for its memory bound).
 #[derive(Debug, Clone, Default)]
 pub struct RunHistory {
@@ -183,8 +191,13 @@ pub struct RunHistory {
     floor: u64,
     /// Iterations the server holds, as far as known (`RunSummary::iterations`).
     total: u64,
-    /// Bumped on every change (cheap change detection for charts).
+    /// Stamp of the latest change of any kind ([`next_stamp`]: unique
+    /// across histories, so a chart never mistakes a new history for the
+    /// one it drew).
     version: u64,
+    /// Stamp of the latest change of the rows, columns or pyramids (what
+    /// the time-series charts draw); not changed by scans, totals or floors.
+    rows_version: u64,
     /// Min/max pyramids of the drawn series, by column (`None` for the
     /// columns that are not drawn as a series: σ, target, tolerance, step).
     pyramids: Vec<Option<Pyramid>>,
@@ -238,9 +251,21 @@ impl RunHistory {
         self.rows.is_empty()
     }
 
-    /// Change counter.
+    /// Stamp of the latest change of anything held (0 for a new, empty
+    /// history; unique across histories otherwise).
     pub fn version(&self) -> u64 {
         self.version
+    }
+
+    /// Stamp of the latest change of the rows (what the time-series charts
+    /// draw): unchanged when only scans, the total or the floor change.
+    pub fn rows_version(&self) -> u64 {
+        self.rows_version
+    }
+
+    /// Stamp of the latest scans (iteration and count), for the scan charts.
+    pub fn latest_scans_key(&self) -> Option<(u64, usize)> {
+        self.latest_scans.as_ref().map(|(k, s)| (*k, s.len()))
     }
 
     /// The newest record received.
@@ -263,7 +288,7 @@ impl RunHistory {
     pub fn set_total(&mut self, total: u64) {
         if total != self.total {
             self.total = total;
-            self.version += 1;
+            self.version = next_stamp();
         }
     }
 
@@ -511,7 +536,7 @@ impl RunHistory {
     /// Keep the scans of the inspected iteration `k` (replacing the previous).
     pub fn set_inspected_scans(&mut self, k: u64, scans: Vec<ScanReport>) {
         self.inspected_scans = Some((k, scans));
-        self.version += 1;
+        self.version = next_stamp();
     }
 
     /// Insert records (a page in any order, or one live record). Known
@@ -611,7 +636,8 @@ impl RunHistory {
             changed_from = 0;
         }
         self.update_pyramids(changed_from);
-        self.version += 1;
+        self.version = next_stamp();
+        self.rows_version = self.version;
         merge
     }
 
@@ -629,7 +655,7 @@ impl RunHistory {
             if let Some(f) = first {
                 if f > self.floor {
                     self.floor = f;
-                    self.version += 1;
+                    self.version = next_stamp();
                 }
             }
         }
@@ -663,9 +689,9 @@ impl RunHistory {
 
     /// Forget everything.
     pub fn clear(&mut self) {
-        let v = self.version + 1;
         *self = Self::default();
-        self.version = v;
+        self.version = next_stamp();
+        self.rows_version = self.version;
     }
 }
 
@@ -673,6 +699,34 @@ impl RunHistory {
 mod tests {
     use super::*;
     use crate::model::fake_records;
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn rows_version_changes_with_rows_only_and_stamps_are_unique() {
+        let mut h = RunHistory::new();
+        let mut other = RunHistory::new();
+        assert_eq!((h.version(), h.rows_version()), (0, 0));
+        let recs = fake_records(3);
+        h.insert(recs[..2].to_vec());
+        let rows = h.rows_version();
+        assert!(rows > 0);
+        // Scans of an inspected iteration, the total: not the rows.
+        h.set_inspected_scans(0, Vec::new());
+        h.set_total(50);
+        assert_eq!(h.rows_version(), rows);
+        assert!(h.version() > rows);
+        // A known iteration adds nothing; a new one changes the rows.
+        h.insert(recs[..1].to_vec());
+        assert_eq!(h.rows_version(), rows);
+        h.insert(recs[2..].to_vec());
+        assert!(h.rows_version() > rows);
+        // Another history with the same records has other stamps.
+        other.insert(recs.clone());
+        assert_ne!(other.rows_version(), h.rows_version());
+        let before = h.rows_version();
+        h.clear();
+        assert_ne!(h.rows_version(), before);
+    }
 
     fn its(h: &RunHistory) -> Vec<u64> {
         h.rows().iter().map(|r| r.iteration).collect()

@@ -13,6 +13,7 @@ pub mod local;
 pub mod metrics;
 pub mod model;
 pub mod race;
+pub mod schedule;
 pub mod series;
 pub mod ui;
 pub mod zoom;

@@ -36,7 +36,7 @@ use web_sys::{CloseEvent, MessageEvent, WebSocket};
 
 use crate::api::{get_json, ApiBase};
 use crate::history::RunHistory;
-use crate::metrics;
+
 use crate::model::{
     format_lab_time, list_state, status_class, status_is_final, status_label, ControlsEnabled,
 };
@@ -368,7 +368,6 @@ fn handle_message(sess: &SessionRef, text: &str) -> After {
                     None => None,
                 }
             };
-            metrics::begin_update();
             let mut added = 0;
             sig.history.update(|h| {
                 added = match answer {
@@ -385,7 +384,6 @@ fn handle_message(sess: &SessionRef, text: &str) -> After {
         ServerMessage::Iteration { record } => {
             let tuned = record.tuned;
             let (k, lab) = (record.iteration, record.lab_seconds);
-            metrics::begin_update();
             let mut added = 0;
             sig.history.update(|h| {
                 added = h.insert([record]).added;
@@ -513,7 +511,6 @@ fn request_more(sess: &SessionRef) {
                 let ok = match result {
                     Ok(mut records) => {
                         records.retain(|r| r.iteration < before);
-                        metrics::begin_update();
                         let more = !records.is_empty();
                         let mut added = 0;
                         let _ = sig.history.try_update(|h| {

@@ -16,7 +16,7 @@ use spintune::protocol::{ControlCommand, IterationRecord, RunStatus};
 
 use crate::charts;
 use crate::history::RunHistory;
-use crate::metrics;
+
 use crate::model::{ControlsEnabled, History};
 use crate::series::Drawn;
 use crate::ui::{Area, Chart, Dashboard, StatusBadge, StatusNote};
@@ -358,7 +358,6 @@ pub fn LocalMode() -> impl IntoView {
             let Some(r) = r else { return };
             let known = history.with_untracked(|h| h.len());
             if r.history.len() != known {
-                metrics::begin_update();
                 history.update(|h| {
                     if h.len() > r.history.len() {
                         h.clear();
@@ -610,6 +609,7 @@ pub fn LocalMode() -> impl IntoView {
                     <Chart
                         name="landscape"
                         height=340
+                        key=move || vec![history.with(|h| h.version())]
                         draw=move |a: &Area| {
                             let n = history.with(|h| h.len());
                             let land = runner.with_value(|r| r.as_ref().and_then(|r| r.landscape("SB", "T", 30.0, 25)));

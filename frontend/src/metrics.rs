@@ -3,10 +3,13 @@
 //!
 //! * `firstChartMs` — `performance.now()` (ms since navigation start) when
 //!   the first chart with at least one iteration was drawn;
-//! * `updateMs` — total chart drawing time (ms) of the latest *update* (a
-//!   live iteration, a page of history or a change of the view: everything
-//!   the charts redraw for it), `maxUpdateMs` the largest over the finished
-//!   updates, `updates` how many began;
+//! * `updateMs` — total chart drawing time (ms) of the latest *update*: one
+//!   animation frame in which at least one chart was redrawn (charts draw
+//!   only when their inputs changed and at most once per frame, see
+//!   [`crate::schedule`]; so an update is everything the live iterations,
+//!   pages of history or changes of the view that arrived within one frame
+//!   cost), `maxUpdateMs` the largest over the finished updates, `updates`
+//!   how many began;
 //! * `decimateMs` / `axesMs` — of `updateMs`, the time spent decimating
 //!   series and drawing frames (caption, axes, tick labels, grid): the rest
 //!   is drawing the data;

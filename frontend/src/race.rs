@@ -261,6 +261,7 @@ pub fn RacePanel(settings: RwSignal<LocalSettings>) -> impl IntoView {
             <Chart
                 name=format!("race-{name}")
                 height=240
+                key=move || vec![histories[0].with(|h| h.version()), overlay_b.with(|o| o.as_ref().map_or(0, |h| h.version()))]
                 draw=move |ar: &Area| {
                     let ov = overlay_b.read();
                     histories[0].with(|h| {
@@ -303,6 +304,7 @@ pub fn RacePanel(settings: RwSignal<LocalSettings>) -> impl IntoView {
                 <Chart
                     name="race-landscape"
                     height=340
+                    key=move || vec![histories[0].with(|h| h.version()), histories[1].with(|h| h.version())]
                     draw=move |ar: &Area| {
                         let n = histories[0].with(|h| h.len()) + histories[1].with(|h| h.len());
                         let (land, other) = race.with_value(|r| match r {

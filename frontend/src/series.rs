@@ -12,7 +12,7 @@ use plotters::coord::Shift;
 use plotters::prelude::*;
 
 use crate::charts::{
-    bar_width, color, err, int_label, num_label, placeholder, styled_chart, BAND, TARGET,
+    bar_width, color, err, int_label, num_label, placeholder, styled_chart, Plot, BAND, TARGET,
 };
 use crate::decimate::{min_max, Columns};
 use crate::history::{Row, RunHistory};
@@ -271,26 +271,26 @@ fn value_range(
 /// or per-column bands when decimated), the target line and its tolerance
 /// band; the overlay run's values as a grey line.
 pub fn draw_parameter<DB: DrawingBackend>(
-    area: &DrawingArea<DB, Shift>,
+    plot: &Plot<'_, DB>,
     f: &Frame<'_>,
     p: usize,
     series: usize,
 ) -> Result<Drawn, String> {
     let layout = f.history.layout();
     let Some((name, unit)) = layout.parameters.get(p) else {
-        return placeholder(area, "parameter", "waiting for measurements…")
+        return placeholder(plot.area(), "parameter", "waiting for measurements…")
             .map(|_| Drawn::default());
     };
     let title = format!("{name} ({unit})");
     let o = layout.param(p);
     let rows = f.rows();
     let (x0, x1) = f.x_range();
-    let cols = plot_columns(area, 62);
+    let cols = plot_columns(plot.area(), 62);
     let (line, bands, pts) = crate::metrics::phase(crate::metrics::Phase::Decimate, || {
         series_of(f, o, true, (x0, x1), cols)
     });
     if line.is_empty() {
-        return placeholder(area, &title, "waiting for measurements…").map(|_| Drawn {
+        return placeholder(plot.area(), &title, "waiting for measurements…").map(|_| Drawn {
             iterations: rows.len(),
             ..Drawn::default()
         });
@@ -332,7 +332,7 @@ pub fn draw_parameter<DB: DrawingBackend>(
             .chain(overlay.iter().map(|p| p.1)),
     );
     let mut chart = styled_chart(
-        area,
+        plot,
         &format!(
             "{title} vs {}",
             match f.axis {
@@ -404,18 +404,18 @@ pub fn draw_parameter<DB: DrawingBackend>(
 
 /// Every element of one parameter's gradient, ±1σ `√diag C` (one panel per gate).
 pub fn draw_gradient<DB: DrawingBackend>(
-    area: &DrawingArea<DB, Shift>,
+    plot: &Plot<'_, DB>,
     f: &Frame<'_>,
     g: usize,
 ) -> Result<Drawn, String> {
     let layout = f.history.layout();
     let Some((name, unit)) = layout.gradients.get(g) else {
-        return placeholder(area, "gradient", "waiting for a gradient estimate…")
+        return placeholder(plot.area(), "gradient", "waiting for a gradient estimate…")
             .map(|_| Drawn::default());
     };
     let rows = f.rows();
     let (x0, x1) = f.x_range();
-    let panels = area.split_evenly((1, layout.gates.len().max(1)));
+    let panels = plot.split_evenly((1, layout.gates.len().max(1)));
     let mut drawn = Drawn {
         iterations: rows.len(),
         y_max: f64::NAN,
@@ -424,7 +424,7 @@ pub fn draw_gradient<DB: DrawingBackend>(
     };
     for (gi, (gate, panel)) in layout.gates.iter().zip(panels.iter()).enumerate() {
         let o = layout.grad(g, gi);
-        let cols = plot_columns(panel, 58);
+        let cols = plot_columns(panel.area(), 58);
         let (line, bands, pts) = crate::metrics::phase(crate::metrics::Phase::Decimate, || {
             series_of(f, o, true, (x0, x1), cols)
         });
@@ -467,17 +467,15 @@ pub fn draw_gradient<DB: DrawingBackend>(
 }
 
 /// The tuning gates' voltages (one panel per gate).
-pub fn draw_gates<DB: DrawingBackend>(
-    area: &DrawingArea<DB, Shift>,
-    f: &Frame<'_>,
-) -> Result<Drawn, String> {
+pub fn draw_gates<DB: DrawingBackend>(plot: &Plot<'_, DB>, f: &Frame<'_>) -> Result<Drawn, String> {
     let layout = f.history.layout();
     if layout.gates.is_empty() {
-        return placeholder(area, "gate voltages", "waiting for data…").map(|_| Drawn::default());
+        return placeholder(plot.area(), "gate voltages", "waiting for data…")
+            .map(|_| Drawn::default());
     }
     let rows = f.rows();
     let (x0, x1) = f.x_range();
-    let panels = area.split_evenly((1, layout.gates.len()));
+    let panels = plot.split_evenly((1, layout.gates.len()));
     let mut drawn = Drawn {
         iterations: rows.len(),
         y_max: f64::NAN,
@@ -486,7 +484,7 @@ pub fn draw_gates<DB: DrawingBackend>(
     };
     for (gi, (gate, panel)) in layout.gates.iter().zip(panels.iter()).enumerate() {
         let o = layout.gate(gi);
-        let cols = plot_columns(panel, 58);
+        let cols = plot_columns(panel.area(), 58);
         let (line, _, _) = crate::metrics::phase(crate::metrics::Phase::Decimate, || {
             series_of(f, o, false, (x0, x1), cols)
         });
@@ -520,17 +518,17 @@ pub fn draw_gates<DB: DrawingBackend>(
 /// Cumulative lab time against iteration (the map between the two x axes);
 /// tuned iterations marked green.
 pub fn draw_lab_time<DB: DrawingBackend>(
-    area: &DrawingArea<DB, Shift>,
+    plot: &Plot<'_, DB>,
     f: &Frame<'_>,
 ) -> Result<Drawn, String> {
     let rows = f.rows();
     if rows.is_empty() {
-        return placeholder(area, "lab time", "waiting for data…").map(|_| Drawn::default());
+        return placeholder(plot.area(), "lab time", "waiting for data…").map(|_| Drawn::default());
     }
     let long = rows.last().map_or(0.0, |r| r.lab_seconds) > 2.0 * 3600.0;
     let (scale, unit) = if long { (3600.0, "h") } else { (60.0, "min") };
     let (x0, x1) = (f.window.lo - 0.5, f.window.hi.max(f.window.lo + 1.0) + 0.5);
-    let cols = plot_columns(area, 62);
+    let cols = plot_columns(plot.area(), 62);
     let line: Vec<(f64, f64)> = if rows.len() <= 2 * cols {
         rows.iter()
             .map(|r| (r.iteration as f64, r.lab_seconds / scale))
@@ -544,7 +542,7 @@ pub fn draw_lab_time<DB: DrawingBackend>(
     };
     let (y0, y1) = padded_range(line.iter().map(|p| p.1), 0.05);
     let mut chart = styled_chart(
-        area,
+        plot,
         "cumulative lab time",
         "iteration",
         &format!("lab time ({unit})"),

@@ -3,7 +3,6 @@
 
 use leptos::html;
 use leptos::prelude::*;
-use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters_canvas::CanvasBackend;
 
@@ -15,99 +14,211 @@ use crate::metrics;
 use crate::model::{
     event_is_safety_relevant, event_name, format_lab_time, status_class, status_hint, status_label,
 };
+use crate::schedule;
 use crate::series::{self, Drawn, Frame, XAxis};
 use crate::zoom::{self, View};
 
-/// A drawing area of a [`Chart`].
-pub type Area = DrawingArea<CanvasBackend, Shift>;
+/// Where a [`Chart`] draws: the data canvas layered over the frame canvas
+/// ([`charts::Plot`]).
+pub type Area<'a> = charts::Plot<'a, CanvasBackend>;
 
-/// A `<canvas>` redrawn by plotters whenever the signals read in `draw` change.
+/// What a chart's figure depends on, compared between updates: the chart is
+/// redrawn only when its key changes (e.g. a history's
+/// [`RunHistory::rows_version`], the window's bounds as `f64::to_bits`, the
+/// x axis). Reading the signals that the key is made of subscribes the chart
+/// to them.
+pub type ChartKey = Vec<u64>;
+
+/// Key of a time-series chart: the rows drawn, the window and the x axis.
+pub fn series_key(h: &RunHistory, w: zoom::Window, axis: XAxis) -> ChartKey {
+    vec![
+        h.rows_version(),
+        w.lo.to_bits(),
+        w.hi.to_bits(),
+        axis as u64,
+    ]
+}
+
+/// A chart drawn by plotters on two stacked canvases of the same size: the
+/// frames of its plot areas (caption, axes, tick labels, grid) on the lower
+/// one, redrawn only when a frame changes ([`charts::Plot`]), the data on the
+/// upper, transparent one (cleared on every draw). `key` is read in an effect (subscribing
+/// to the signals it reads); when it differs from the key of the latest
+/// draw, `draw` is queued for the next animation frame ([`schedule`]), so
+/// an update that does not change this chart's inputs costs no drawing,
+/// and many updates within one frame cost one draw. `draw` runs untracked.
 /// The canvas takes the width of its container and the given height.
 /// After each draw it carries `data-iterations` (iterations in view),
 /// `data-points` (points of the main series after decimation), `data-ymax`
 /// (largest value drawn), `data-overlay-points` (points of a compared run),
-/// `data-draws` (number of draws) and, for charts with
+/// `data-draws` (number of draws), `data-frames` (plot-area frames held on
+/// the frame canvas below it) and, for charts with
 /// one plot area, `data-px0`/`data-px1` (its pixel columns, CSS px) and
 /// `data-x0`/`data-x1` (its data x range), which the mouse handlers and the
 /// end-to-end test read. Each draw's time goes to [`metrics::note_draw`].
 #[component]
-pub fn Chart<F>(
+pub fn Chart<K, F>(
     /// Name for tests and screen readers.
     #[prop(into)]
     name: String,
     /// Height in CSS pixels.
     height: u32,
+    /// What the figure depends on (see [`ChartKey`]).
+    key: K,
     /// Draws the figure.
     draw: F,
 ) -> impl IntoView
 where
+    K: Fn() -> ChartKey + 'static,
     F: Fn(&Area) -> Result<Drawn, String> + 'static,
 {
     let node = NodeRef::<html::Canvas>::new();
+    let back = NodeRef::<html::Canvas>::new();
     let draws = StoredValue::new(0u64);
-    Effect::new(move |_| {
-        let Some(canvas) = node.get() else {
-            return;
-        };
-        let t0 = metrics::now_ms();
-        let ratio = window().device_pixel_ratio().clamp(1.0, 2.0);
-        let css_w = canvas.client_width().max(280) as f64;
-        // Resize only when the size changed: writing the size resets the
-        // canvas and invalidates the page's layout, which the next chart's
-        // `client_width` would then recompute (once per chart per update).
-        let (w, h) = ((css_w * ratio) as u32, (height as f64 * ratio) as u32);
-        if canvas.width() != w {
-            canvas.set_width(w);
+    let id = schedule::new_id();
+    on_cleanup(move || schedule::cancel(id));
+    let draw = std::rc::Rc::new(draw);
+    let frames = std::rc::Rc::new(charts::Frames::default());
+    Effect::new(move |prev: Option<Option<ChartKey>>| {
+        let k = key();
+        let canvas = node.get()?;
+        let background = back.get()?;
+        if prev.flatten().as_ref() == Some(&k) {
+            return Some(k);
         }
-        if canvas.height() != h {
-            canvas.set_height(h);
-        }
-        let Some(backend) = CanvasBackend::with_canvas_object(canvas.clone()) else {
-            return;
-        };
-        if let Ok(Some(ctx)) = canvas.get_context("2d") {
-            use wasm_bindgen::JsCast;
-            if let Ok(ctx) = ctx.dyn_into::<web_sys::CanvasRenderingContext2d>() {
-                let _ = ctx.set_transform(ratio, 0.0, 0.0, ratio, 0.0, 0.0);
+        let (draw, frames) = (draw.clone(), frames.clone());
+        schedule::request(
+            id,
+            std::rc::Rc::new(move || {
+                // Removed since it asked: nothing to draw.
+                if draws.try_get_value().is_none() || !canvas.is_connected() {
+                    return;
+                }
+                let layers = Layers {
+                    data: &canvas,
+                    frame: &background,
+                    frames: &frames,
+                };
+                untrack(|| paint(&layers, height, &*draw, draws));
+            }),
+        );
+        Some(k)
+    });
+    view! {
+        <div class="chart-stack">
+            <canvas node_ref=back class="chart-frame" aria-hidden="true" style=format!("height:{height}px")></canvas>
+            <canvas
+                node_ref=node
+                class="chart"
+                data-chart=name.clone()
+                aria-label=name
+                style=format!("height:{height}px")
+            ></canvas>
+        </div>
+    }
+}
+
+/// The two canvases of a [`Chart`] and the frames held on the lower one.
+struct Layers<'a> {
+    /// Data (transparent, on top; carries the `data-` attributes).
+    data: &'a web_sys::HtmlCanvasElement,
+    /// Frames (captions, axes, tick labels, grids), below.
+    frame: &'a web_sys::HtmlCanvasElement,
+    frames: &'a charts::Frames,
+}
+
+/// Set `canvas` to `w` × `h` device pixels (only if different: writing the
+/// size resets the canvas and invalidates the page's layout) and its
+/// context's transform to `ratio`; `true` if the size changed.
+fn prepare(canvas: &web_sys::HtmlCanvasElement, w: u32, h: u32, ratio: f64, clear: bool) -> bool {
+    let resized = canvas.width() != w || canvas.height() != h;
+    if canvas.width() != w {
+        canvas.set_width(w);
+    }
+    if canvas.height() != h {
+        canvas.set_height(h);
+    }
+    if let Ok(Some(ctx)) = canvas.get_context("2d") {
+        use wasm_bindgen::JsCast;
+        if let Ok(ctx) = ctx.dyn_into::<web_sys::CanvasRenderingContext2d>() {
+            if clear && !resized {
+                let _ = ctx.set_transform(1.0, 0.0, 0.0, 1.0, 0.0, 0.0);
+                ctx.clear_rect(0.0, 0.0, w as f64, h as f64);
             }
+            let _ = ctx.set_transform(ratio, 0.0, 0.0, ratio, 0.0, 0.0);
         }
-        let root = backend.into_drawing_area();
-        let root = root.shrink((0, 0), (css_w as u32, height));
-        let _ = root.fill(&WHITE);
-        let drawn = match draw(&root) {
+    }
+    resized
+}
+
+/// Draw `draw` on the chart's canvases (CSS height `height` px) and publish
+/// what it drew. The data canvas is cleared; the frame canvas keeps the
+/// frames whose inputs did not change.
+fn paint(
+    layers: &Layers<'_>,
+    height: u32,
+    draw: &dyn Fn(&Area) -> Result<Drawn, String>,
+    draws: StoredValue<u64>,
+) {
+    let t0 = metrics::now_ms();
+    let canvas = layers.data;
+    let ratio = window().device_pixel_ratio().clamp(1.0, 2.0);
+    let css_w = canvas.client_width().max(280) as f64;
+    let (w, h) = ((css_w * ratio) as u32, (height as f64 * ratio) as u32);
+    prepare(canvas, w, h, ratio, true);
+    if prepare(layers.frame, w, h, ratio, false) {
+        layers.frames.clear();
+    }
+    let root = |c: &web_sys::HtmlCanvasElement| {
+        CanvasBackend::with_canvas_object(c.clone())
+            .map(|b| b.into_drawing_area().shrink((0, 0), (css_w as u32, height)))
+    };
+    let (Some(data), Some(frame)) = (root(canvas), root(layers.frame)) else {
+        return;
+    };
+    if layers.frames.is_empty() {
+        let _ = frame.fill(&WHITE);
+    }
+    let plot = charts::Plot::layered(data.clone(), frame.clone(), layers.frames);
+    let run = || {
+        layers.frames.begin();
+        let drawn = match draw(&plot) {
             Ok(d) => d,
             Err(e) => {
                 leptos::logging::warn!("chart {}: {e}", canvas.id());
                 Drawn::default()
             }
         };
-        let _ = root.present();
-        draws.update_value(|d| *d += 1);
-        let set = |k: &str, v: String| {
-            let _ = canvas.set_attribute(k, &v);
-        };
-        set("data-iterations", drawn.iterations.to_string());
-        set("data-points", drawn.points.to_string());
-        set("data-ymax", drawn.y_max.to_string());
-        set("data-overlay-points", drawn.overlay_points.to_string());
-        set("data-draws", draws.get_value().to_string());
-        if let Some((a, b)) = drawn.plot_px {
-            set("data-px0", a.to_string());
-            set("data-px1", b.to_string());
-            set("data-x0", drawn.x_range.0.to_string());
-            set("data-x1", drawn.x_range.1.to_string());
-        }
-        metrics::note_draw(metrics::now_ms() - t0, drawn.iterations);
-    });
-    view! {
-        <canvas
-            node_ref=node
-            class="chart"
-            data-chart=name.clone()
-            aria-label=name
-            style=format!("height:{height}px")
-        ></canvas>
+        (drawn, layers.frames.end())
+    };
+    let (mut drawn, stale) = run();
+    if stale {
+        // The layout changed (e.g. a panel fewer): stale frames are still
+        // on the frame canvas. Clear both and draw everything once more.
+        layers.frames.clear();
+        let _ = frame.fill(&WHITE);
+        prepare(canvas, w, h, ratio, true);
+        drawn = run().0;
     }
+    let _ = data.present();
+    let _ = frame.present();
+    draws.update_value(|d| *d += 1);
+    let set = |k: &str, v: String| {
+        let _ = canvas.set_attribute(k, &v);
+    };
+    set("data-iterations", drawn.iterations.to_string());
+    set("data-points", drawn.points.to_string());
+    set("data-ymax", drawn.y_max.to_string());
+    set("data-overlay-points", drawn.overlay_points.to_string());
+    set("data-draws", draws.get_value().to_string());
+    set("data-frames", layers.frames.len().to_string());
+    if let Some((a, b)) = drawn.plot_px {
+        set("data-px0", a.to_string());
+        set("data-px1", b.to_string());
+        set("data-x0", drawn.x_range.0.to_string());
+        set("data-x1", drawn.x_range.1.to_string());
+    }
+    metrics::note_draw(metrics::now_ms() - t0, drawn.iterations);
 }
 
 fn fmt_num(x: f64) -> String {
@@ -228,8 +339,17 @@ pub fn Dashboard(
         let (a, b) = extent.get().unwrap_or((0, 10));
         view_sel.get().window(a as f64, b.max(a) as f64)
     });
+    // What the charts draw: while the window follows new iterations (whole
+    // run, last N), its end grows in steps so that the x axis (and the
+    // charts' frames) change rarely during a live run.
+    let draw_window = Memo::new(move |_| {
+        let w = window_m.get();
+        match view_sel.get() {
+            View::All | View::Last(_) => zoom::grow_in_steps(w),
+            View::Fixed(_) => w,
+        }
+    });
     let set_view = move |v: View| {
-        metrics::begin_update();
         view_sel.set(v);
     };
     let zoom_by = move |factor: f64, center: Option<f64>| {
@@ -415,7 +535,6 @@ pub fn Dashboard(
                 </label>
                 <label>"x axis "
                     <select data-testid="x-axis" on:change=move |ev| {
-                        metrics::begin_update();
                         axis.set(if event_target_value(&ev) == "lab" { XAxis::LabTime } else { XAxis::Iteration });
                     }>
                         <option value="iteration">"iteration"</option>
@@ -442,8 +561,13 @@ pub fn Dashboard(
                                     <Chart
                                         name=format!("parameter-{name}")
                                         height=270
+                                        key=move || {
+                                            let mut k = history.with(|h| series_key(h, draw_window.get(), axis.get()));
+                                            k.push(overlay.map_or(0, |o| o.with(|o| o.as_ref().map_or(0, |h| h.version()))));
+                                            k
+                                        }
                                         draw=move |a: &Area| {
-                                            let w = window_m.get();
+                                            let w = draw_window.get();
                                             let ax = axis.get();
                                             let ov = overlay.map(|o| o.read());
                                             history.with(|h| {
@@ -466,8 +590,9 @@ pub fn Dashboard(
                         <Chart
                             name=format!("gradient-{name}")
                             height=210
+                            key=move || history.with(|h| series_key(h, draw_window.get(), axis.get()))
                             draw=move |a: &Area| {
-                                let w = window_m.get();
+                                let w = draw_window.get();
                                 let ax = axis.get();
                                 history.with(|h| series::draw_gradient(a, &Frame { history: h, window: w, axis: ax, overlay: None }, g))
                             }
@@ -478,8 +603,9 @@ pub fn Dashboard(
                 <Chart
                     name="gates"
                     height=200
+                    key=move || history.with(|h| series_key(h, draw_window.get(), axis.get()))
                     draw=move |a: &Area| {
-                        let w = window_m.get();
+                        let w = draw_window.get();
                         let ax = axis.get();
                         history.with(|h| series::draw_gates(a, &Frame { history: h, window: w, axis: ax, overlay: None }))
                     }
@@ -488,8 +614,9 @@ pub fn Dashboard(
                     <Chart
                         name="lab-time"
                         height=220
+                        key=move || history.with(|h| series_key(h, draw_window.get(), XAxis::Iteration))
                         draw=move |a: &Area| {
-                            let w = window_m.get();
+                            let w = draw_window.get();
                             history.with(|h| series::draw_lab_time(a, &Frame { history: h, window: w, axis: XAxis::Iteration, overlay: None }))
                         }
                     />
@@ -509,6 +636,7 @@ pub fn Dashboard(
                             <Chart
                                 name=format!("scan-{i}")
                                 height=250
+                                key=move || history.with(|h| h.latest_scans_key().map_or(vec![0], |(k, n)| vec![1, k, n as u64]))
                                 draw=move |a: &Area| history.with(|h| {
                                     let latest = h.latest_scans();
                                     charts::draw_scan(a, latest.and_then(|(_, s)| s.get(i)), latest.map(|(k, _)| k))
@@ -649,6 +777,7 @@ fn Inspector(history: RwSignal<RunHistory>, inspected: RwSignal<Option<u64>>) ->
                                 <Chart
                                     name=format!("inspect-scan-{i}")
                                     height=230
+                                    key=move || { let k = k(); history.with(|h| vec![k, h.scans(k).map_or(0, |s| s.len() as u64 + 1)]) }
                                     draw=move |a: &Area| {
                                         let k = k();
                                         history.with(|h| charts::draw_scan(a, h.scans(k).and_then(|s| s.get(i)), Some(k)).map(|_| Drawn { iterations: 1, ..Drawn::default() }))

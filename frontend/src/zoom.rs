@@ -30,6 +30,23 @@ impl Window {
     }
 }
 
+/// `w` with its end moved out to `lo` plus a whole number of steps of
+/// max(10, a 1-2-5 step of about a tenth of its span) iterations: a window
+/// that follows a live run keeps its x axis for many iterations (≈ 10 % of
+/// the run, at least 10) instead of changing with every one. `lo` and the
+/// iterations inside stay the same.
+pub fn grow_in_steps(w: Window) -> Window {
+    let span = w.span();
+    if !(span.is_finite() && span > 0.0) {
+        return w;
+    }
+    let step = crate::charts::nice_step(span / 10.0).max(10.0);
+    Window {
+        lo: w.lo,
+        hi: w.lo + (span / step).ceil() * step,
+    }
+}
+
 /// What the user chose; resolved against the run's extent with [`View::window`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum View {
@@ -127,6 +144,32 @@ pub fn drag_window(a: f64, b: f64, px0: f64, px1: f64, w: Window) -> Option<Wind
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn a_following_window_grows_in_steps() {
+        let w = |lo: f64, hi: f64| Window { lo, hi };
+        // Small runs: steps of 10 iterations.
+        assert_eq!(grow_in_steps(w(0.0, 4.0)), w(0.0, 10.0));
+        assert_eq!(grow_in_steps(w(0.0, 10.0)), w(0.0, 10.0));
+        assert_eq!(grow_in_steps(w(0.0, 11.0)), w(0.0, 20.0));
+        // Long runs: about a tenth of the span.
+        assert_eq!(grow_in_steps(w(0.0, 99_999.0)), w(0.0, 100_000.0));
+        assert_eq!(grow_in_steps(w(500.0, 1_730.0)), w(500.0, 1_900.0));
+        // Every live iteration from 1,731 to 1,900 keeps that axis.
+        for hi in 1_731..=1_900 {
+            assert_eq!(grow_in_steps(w(500.0, hi as f64)), w(500.0, 1_900.0));
+        }
+        // Never shrinks, keeps lo; a single iteration stays as it is.
+        for hi in [3.0, 47.0, 1234.5, 77_777.0] {
+            let g = grow_in_steps(w(2.0, hi));
+            assert!(
+                g.lo == 2.0 && g.hi >= hi && g.hi - hi <= 0.25 * (hi - 2.0) + 10.0,
+                "{hi} -> {g:?}"
+            );
+        }
+        assert_eq!(grow_in_steps(w(7.0, 7.0)), w(7.0, 7.0));
+    }
 
     #[cfg_attr(not(target_arch = "wasm32"), test)]
     #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]

@@ -543,3 +543,50 @@ async fn dashboard_zooms_with_buttons_keys_and_window_and_keeps_a_spike() {
     wait_for("last 100", Duration::from_secs(5), || in_view() == 100).await;
     assert!(showing().contains("4,900–4,999"), "{}", showing());
 }
+
+#[wasm_bindgen_test]
+async fn charts_redraw_only_when_their_inputs_change() {
+    let el = host();
+    let history = RwSignal::new(RunHistory::new());
+    let _h = leptos::mount::mount_to(el.clone(), move || view! { <Dashboard history=history /> });
+    let recs = fake_records(13);
+    history.update(|h| {
+        h.insert(recs[..12].to_vec());
+    });
+    let attr = |chart: &str, k: &str| -> String {
+        el.query_selector(&format!("canvas[data-chart={chart}]"))
+            .unwrap()
+            .and_then(|c| c.get_attribute(k))
+            .unwrap_or_default()
+    };
+    let draws = |chart: &str| -> u64 { attr(chart, "data-draws").parse().unwrap_or(0) };
+    wait_for("12 iterations drawn", Duration::from_secs(10), || {
+        attr("gates", "data-iterations") == "12" && attr("lab-time", "data-iterations") == "12"
+    })
+    .await;
+    sleep(100).await;
+    let (gates, lab, scan) = (draws("gates"), draws("lab-time"), draws("scan-0"));
+    assert!(gates >= 1 && scan >= 1);
+    // The scans of an inspected iteration change the history, not the rows
+    // nor the latest scans: no chart of the dashboard redraws.
+    history.update(|h| h.set_inspected_scans(3, Vec::new()));
+    sleep(300).await;
+    assert_eq!(
+        (draws("gates"), draws("lab-time"), draws("scan-0")),
+        (gates, lab, scan)
+    );
+    // A new iteration: the time series redraw once each.
+    history.update(|h| {
+        h.insert(recs[12..].to_vec());
+    });
+    wait_for("13 iterations drawn", Duration::from_secs(10), || {
+        attr("gates", "data-iterations") == "13"
+    })
+    .await;
+    sleep(100).await;
+    assert_eq!((draws("gates"), draws("lab-time")), (gates + 1, lab + 1));
+    // The whole-run window grows in steps of 10 iterations: the x axis of
+    // 12 and of 13 iterations is the same, 0..20 (± half an iteration).
+    assert_eq!(attr("lab-time", "data-x0"), "-0.5");
+    assert_eq!(attr("lab-time", "data-x1"), "20.5");
+}

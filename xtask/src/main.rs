@@ -8,7 +8,9 @@
 //!   environment under `~/.cache/spintune/venv`) and the wasm tests in
 //!   headless Chromium.
 //!
-//! Every install step is skipped when the right version is already present.
+//! Every install step is skipped when the right version is already present
+//! (binaryen's `wasm-opt`, which Trunk runs on the dashboard, comes from npm
+//! into `~/.cache/spintune/node`).
 //! Builds go to `$CARGO_TARGET_DIR` (default `~/.cache/spintune/target`, outside
 //! the clone, so repeated runs stay warm).
 
@@ -19,6 +21,10 @@ use std::time::Instant;
 
 const TRUNK_VERSION: &str = "0.21.14";
 const WASM_TARGET: &str = "wasm32-unknown-unknown";
+/// binaryen release whose `wasm-opt` Trunk runs on the dashboard (npm
+/// package `binaryen`; must match `[tools] wasm_opt` in Trunk.toml). Debian's
+/// binaryen (v108) breaks the module in Chromium.
+const BINARYEN_VERSION: &str = "132";
 
 fn main() {
     let args: Vec<String> = env::args().skip(1).collect();
@@ -33,6 +39,8 @@ fn main() {
         env::set_var("WASM_BINDGEN_TEST_TIMEOUT", "180");
     }
     prepend_path(&cargo_bin_dir());
+    // npm's binaryen (wasm-opt) before any system one.
+    prepend_path(&node_dir().join("node_modules/.bin"));
     match args.first().map(String::as_str) {
         Some("run") => run(&args[1..]),
         Some("test") => test(&args[1..]),
@@ -50,7 +58,7 @@ fn main() {
         }
         _ => {
             eprintln!(
-                "usage: cargo xtask <command>\n\n  run [server args]  build the dashboard and start the server on the simulator\n  test [--no-lint]   run formatting/lint checks and every test (native, browser, Python, wasm)\n  install            install the tools only (wasm target, trunk, wasm-bindgen, chromium)\n  python-test        only the Python package step of `test` (venv, maturin build, pytest)"
+                "usage: cargo xtask <command>\n\n  run [server args]  build the dashboard and start the server on the simulator\n  test [--no-lint]   run formatting/lint checks and every test (native, browser, Python, wasm)\n  install            install the tools only (wasm target, trunk, wasm-bindgen, binaryen wasm-opt, chromium)\n  python-test        only the Python package step of `test` (venv, maturin build, pytest)"
             );
             exit(2);
         }
@@ -304,6 +312,24 @@ fn install_tools(browser: bool) {
             &["install", "--locked", "trunk", "--version", TRUNK_VERSION],
         );
     }
+    if output("wasm-opt", &["--version"])
+        .unwrap_or_default()
+        .contains(&format!("version_{BINARYEN_VERSION}"))
+    {
+        eprintln!("  wasm-opt (binaryen {BINARYEN_VERSION}): present");
+    } else {
+        let prefix = node_dir();
+        cmd(
+            "npm",
+            &[
+                "install",
+                "--no-save",
+                "--prefix",
+                &prefix.to_string_lossy(),
+                &format!("binaryen@{BINARYEN_VERSION}"),
+            ],
+        );
+    }
     if browser {
         if which("chromium") && which("chromedriver") {
             eprintln!("  chromium + chromedriver: present");
@@ -356,6 +382,11 @@ fn target_dir() -> PathBuf {
     env::var_os("CARGO_TARGET_DIR")
         .map(PathBuf::from)
         .unwrap_or_else(|| home().join(".cache/spintune/target"))
+}
+
+/// Where npm installs binaryen (`node_modules/.bin/wasm-opt`), outside the clone.
+fn node_dir() -> PathBuf {
+    home().join(".cache/spintune/node")
 }
 
 fn cargo_bin_dir() -> PathBuf {

@@ -590,3 +590,84 @@ async fn charts_redraw_only_when_their_inputs_change() {
     assert_eq!(attr("lab-time", "data-x0"), "-0.5");
     assert_eq!(attr("lab-time", "data-x1"), "20.5");
 }
+
+/// Rows held before the live updates of
+/// [`live_updates_of_a_long_run_redraw_the_data_not_the_frames`]: 20,000 in
+/// the test suite; `SPINTUNE_LIVE_ROWS=100000` at compile time for the
+/// figure in frontend/BUDGET.md.
+const LIVE_ROWS: u64 = match option_env!("SPINTUNE_LIVE_ROWS") {
+    Some(s) => match u64::from_str_radix(s, 10) {
+        Ok(n) => n,
+        Err(_) => panic!("SPINTUNE_LIVE_ROWS: not a number"),
+    },
+    None => 20_000,
+};
+
+/// `window.__spintune_metrics[key]`.
+fn metric(key: &str) -> f64 {
+    let w = web_sys::window().unwrap();
+    let m = js_sys::Reflect::get(&w, &"__spintune_metrics".into()).unwrap();
+    js_sys::Reflect::get(&m, &key.into())
+        .ok()
+        .and_then(|v| v.as_f64())
+        .unwrap_or(f64::NAN)
+}
+
+#[wasm_bindgen_test]
+async fn live_updates_of_a_long_run_redraw_the_data_not_the_frames() {
+    let el = host();
+    let history = RwSignal::new(RunHistory::new());
+    let _h = leptos::mount::mount_to(el.clone(), move || view! { <Dashboard history=history /> });
+    const LIVE: u64 = 12;
+    let recs = fake_records(LIVE_ROWS + LIVE);
+    history.update(|h| {
+        h.insert(recs[..LIVE_ROWS as usize].to_vec());
+    });
+    let in_view = || -> u64 {
+        el.query_selector("canvas[data-chart=gates]")
+            .unwrap()
+            .and_then(|c| c.get_attribute("data-iterations"))
+            .and_then(|n| n.parse().ok())
+            .unwrap_or(0)
+    };
+    wait_for("the whole run drawn", Duration::from_secs(60), || {
+        in_view() == LIVE_ROWS
+    })
+    .await;
+    sleep(200).await;
+    let mut update_ms = Vec::new();
+    let mut frames_redrawn = 0;
+    for k in LIVE_ROWS..LIVE_ROWS + LIVE {
+        let updates = metric("updates");
+        history.update(|h| {
+            h.insert(vec![recs[k as usize].clone()]);
+        });
+        wait_for("the live iteration drawn", Duration::from_secs(10), || {
+            in_view() == k + 1 && metric("updates") > updates
+        })
+        .await;
+        // Let every chart of this animation frame draw.
+        sleep(100).await;
+        update_ms.push(metric("updateMs"));
+        if metric("axesMs") > 0.0 {
+            frames_redrawn += 1;
+        }
+    }
+    let mut sorted = update_ms.clone();
+    sorted.sort_by(f64::total_cmp);
+    web_sys::console::log_1(
+        &format!(
+            "budget: live update with {LIVE_ROWS} iterations in view: median {:.1} ms, max {:.1} ms over {LIVE} updates ({frames_redrawn} redrew frames): {update_ms:.1?}",
+            sorted[sorted.len() / 2],
+            sorted[sorted.len() - 1],
+        )
+        .into(),
+    );
+    // The whole-run window grows in steps and y ranges in nice steps: a live
+    // iteration redraws the data layer, the frames (axes, ticks, grid) at
+    // most now and then.
+    assert!(
+        frames_redrawn <= 2,
+        "{frames_redrawn} of {LIVE} live updates redrew the chart frames"
+    );
+}

@@ -854,6 +854,24 @@ impl Device for ScpiDevice {
 mod tests {
     use super::*;
 
+    /// A config with the defaults of a run config, `generic` profile, no
+    /// leakage check.
+    fn config(address: &str, channels: &[(&str, u32)]) -> ScpiConfig {
+        ScpiConfig {
+            address: address.into(),
+            channels: channels.iter().map(|(g, c)| (g.to_string(), *c)).collect(),
+            ramp_step_mv: default_ramp_step_mv(),
+            slew_v_per_s: None,
+            readback_tolerance_mv: default_readback_tolerance_mv(),
+            timeout_ms: default_timeout_ms(),
+            settle_ms: 0,
+            measure: MeasureSource::Simulator,
+            profile: Default::default(),
+            max_leakage_na: None,
+            max_leakage_na_by_gate: BTreeMap::new(),
+        }
+    }
+
     #[test]
     fn ramp_increments_never_exceed_the_step_and_end_on_target() {
         let present = BTreeMap::from([("A".to_string(), -780.0), ("B".to_string(), 10.0)]);
@@ -877,19 +895,7 @@ mod tests {
     #[test]
     fn config_errors_name_the_field_within_the_scpi_table() {
         let gates = spintune::sim::default_gates();
-        let cfg = |channels: &[(&str, u32)]| ScpiConfig {
-            address: "127.0.0.1:5025".into(),
-            channels: channels.iter().map(|(g, c)| (g.to_string(), *c)).collect(),
-            ramp_step_mv: default_ramp_step_mv(),
-            slew_v_per_s: None,
-            readback_tolerance_mv: default_readback_tolerance_mv(),
-            timeout_ms: default_timeout_ms(),
-            settle_ms: 0,
-            measure: MeasureSource::Simulator,
-            profile: Default::default(),
-            max_leakage_na: None,
-            max_leakage_na_by_gate: BTreeMap::new(),
-        };
+        let cfg = |channels: &[(&str, u32)]| config("127.0.0.1:5025", channels);
         assert_eq!(cfg(&[("N", 1), ("SB", 4)]).validate(&gates), Ok(()));
         let e = cfg(&[("NOPE", 1)]).validate(&gates).unwrap_err();
         assert_eq!(e.field, "channels.NOPE");
@@ -921,17 +927,9 @@ mod tests {
     fn per_gate_leakage_limits_override_the_default_and_are_validated() {
         let gates = spintune::sim::default_gates();
         let mut c = ScpiConfig {
-            address: "127.0.0.1:5025".into(),
-            channels: BTreeMap::from([("N".to_string(), 1), ("SB".to_string(), 4)]),
-            ramp_step_mv: 1.0,
-            slew_v_per_s: None,
-            readback_tolerance_mv: 0.05,
-            timeout_ms: 500,
-            settle_ms: 0,
-            measure: MeasureSource::Simulator,
             profile: ScpiProfile::Qdac2,
-            max_leakage_na: None,
             max_leakage_na_by_gate: BTreeMap::from([("SB".to_string(), 20.0)]),
+            ..config("127.0.0.1:5025", &[("N", 1), ("SB", 4)])
         };
         assert_eq!(c.validate(&gates), Ok(()));
         // Only the named gate is checked without a default...
@@ -975,17 +973,8 @@ mod tests {
             .local_addr()
             .unwrap();
         let cfg = ScpiConfig {
-            address: addr.to_string(),
-            channels: BTreeMap::from([("SB".to_string(), 4)]),
-            ramp_step_mv: 1.0,
-            slew_v_per_s: None,
-            readback_tolerance_mv: 0.05,
             timeout_ms: 500,
-            settle_ms: 0,
-            measure: MeasureSource::Simulator,
-            profile: Default::default(),
-            max_leakage_na: None,
-            max_leakage_na_by_gate: BTreeMap::new(),
+            ..config(&addr.to_string(), &[("SB", 4)])
         };
         let mut src = ScpiSource::new(cfg, &gates);
         assert_eq!(

@@ -310,15 +310,18 @@ fn styled_chart_inner<'a, DB: DrawingBackend>(
         .x_label_formatter(x_fmt)
         .y_label_formatter(&num_label)
         .light_line_style(RGBColor(238, 238, 238))
-        // One light line between labels at most: each line is a canvas
-        // stroke, and ten per interval (plotters' default) made the grid
+        // Grid lines at the labels only: each line is a canvas stroke, and
+        // ten light lines per interval (plotters' default) made the grid
         // the largest part of a redraw.
-        .max_light_lines(if small { 0 } else { 1 })
+        .max_light_lines(0)
         .label_style((FONT, label_px))
-        .axis_desc_style((FONT, desc_px));
-    if small {
-        mesh.x_labels(6).y_labels(6);
-    }
+        .axis_desc_style((FONT, desc_px))
+        // Each label is a font change, a text measurement and a fill on the
+        // canvas: six per axis (plotters' default is ten) keeps a frame
+        // cheap enough that the live update which redraws every frame
+        // stays within one animation frame (frontend/BUDGET.md).
+        .x_labels(6)
+        .y_labels(6);
     mesh.draw().map_err(err)?;
     Ok(chart)
 }

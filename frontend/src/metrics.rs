@@ -13,10 +13,16 @@
 //! * `decimateMs` / `axesMs` — of `updateMs`, the time spent decimating
 //!   series and drawing frames (caption, axes, tick labels, grid): the rest
 //!   is drawing the data;
+//! * `recentUpdateMs` / `recentAxesMs` — the last [`RECENT_UPDATES`]
+//!   finished updates (oldest first): drawing time and, of it, frames, ms.
+//!   A change that needs more than one frame's budget is drawn over
+//!   consecutive frames ([`crate::schedule`]): its cost is the sum of its
+//!   entries, and each entry is what one frame cost;
 //! * `wasmMemoryBytes` — size of the module's linear memory
 //!   (`WebAssembly.Memory.buffer.byteLength`), bytes.
 
 use std::cell::RefCell;
+use std::collections::VecDeque;
 
 use wasm_bindgen::{JsCast, JsValue};
 
@@ -28,7 +34,12 @@ struct Metrics {
     decimate_ms: f64,
     axes_ms: f64,
     first_chart_ms: Option<f64>,
+    /// (update ms, frames ms) of the last finished updates.
+    recent: VecDeque<(f64, f64)>,
 }
+
+/// Finished updates kept in `recentUpdateMs` (bounded).
+pub const RECENT_UPDATES: usize = 64;
 
 thread_local! {
     static METRICS: RefCell<Metrics> = RefCell::new(Metrics::default());
@@ -52,6 +63,18 @@ pub fn begin_update() {
         m.current_ms = 0.0;
         m.decimate_ms = 0.0;
         m.axes_ms = 0.0;
+    });
+}
+
+/// The update begun by [`begin_update`] is finished (its charts drew).
+pub fn end_update() {
+    METRICS.with(|m| {
+        let mut m = m.borrow_mut();
+        if m.recent.len() == RECENT_UPDATES {
+            m.recent.pop_front();
+        }
+        let entry = (m.current_ms, m.axes_ms);
+        m.recent.push_back(entry);
     });
 }
 
@@ -119,6 +142,14 @@ pub fn publish() {
         set("decimateMs", m.decimate_ms);
         set("axesMs", m.axes_ms);
         set("firstChartMs", m.first_chart_ms.unwrap_or(f64::NAN));
+        let list = |f: fn(&(f64, f64)) -> f64| {
+            m.recent
+                .iter()
+                .map(|e| JsValue::from_f64(f(e)))
+                .collect::<js_sys::Array>()
+        };
+        let _ = js_sys::Reflect::set(&obj, &"recentUpdateMs".into(), &list(|e| e.0));
+        let _ = js_sys::Reflect::set(&obj, &"recentAxesMs".into(), &list(|e| e.1));
         m.first_chart_ms
     });
     set("wasmMemoryBytes", wasm_memory_bytes());

@@ -8,6 +8,13 @@
 //! one update are drawn together: one [`metrics`] update per frame that drew
 //! anything.
 //!
+//! A frame draws charts until [`FRAME_BUDGET_MS`] of drawing is spent; the
+//! charts still queued then are drawn in the next frame (first in line), so
+//! that a change that redraws every chart's axes (e.g. the x window of a
+//! live run growing a step) does not block the page for longer than a
+//! frame. Each chart is drawn whole (its axes and data agree); only the
+//! moment differs, by one frame (≈ 16 ms).
+//!
 //! Outside a browser (no `window`) the jobs run at once.
 
 use std::cell::{Cell, RefCell};
@@ -17,6 +24,10 @@ use wasm_bindgen::closure::Closure;
 use wasm_bindgen::JsCast;
 
 use crate::metrics;
+
+/// Drawing time after which a frame leaves the remaining charts to the
+/// next frame, ms (at least one chart is drawn per frame).
+pub const FRAME_BUDGET_MS: f64 = 10.0;
 
 /// A draw job of one chart.
 pub type Job = Rc<dyn Fn()>;
@@ -50,6 +61,11 @@ pub fn request(id: u64, job: Job) {
             None => q.push((id, job)),
         }
     });
+    schedule_frame();
+}
+
+/// Ask for an animation frame to run the queue, unless one is asked for.
+fn schedule_frame() {
     if SCHEDULED.with(|s| s.replace(true)) {
         return;
     }
@@ -68,7 +84,8 @@ pub fn cancel(id: u64) {
     QUEUE.with(|q| q.borrow_mut().retain(|e| e.0 != id));
 }
 
-/// Run every queued draw as one update.
+/// Run the queued draws as one update, within [`FRAME_BUDGET_MS`] (see
+/// the module doc); what is left is queued first for the next frame.
 fn run_frame() {
     SCHEDULED.with(|s| s.set(false));
     let jobs = QUEUE.with(|q| std::mem::take(&mut *q.borrow_mut()));
@@ -76,10 +93,32 @@ fn run_frame() {
         return;
     }
     metrics::begin_update();
-    for (_, job) in jobs {
+    let t0 = metrics::now_ms();
+    let mut jobs = jobs.into_iter();
+    for (_, job) in jobs.by_ref() {
         job();
+        // NaN outside a browser: never over budget.
+        if metrics::now_ms() - t0 >= FRAME_BUDGET_MS {
+            break;
+        }
     }
+    let rest: Vec<(u64, Job)> = jobs.collect();
+    metrics::end_update();
     metrics::publish();
+    if !rest.is_empty() {
+        QUEUE.with(|q| {
+            let mut q = q.borrow_mut();
+            // Charts that asked again meanwhile keep their newer job.
+            let newer: Vec<(u64, Job)> = std::mem::take(&mut *q);
+            let mut merged: Vec<(u64, Job)> = rest
+                .into_iter()
+                .filter(|(id, _)| newer.iter().all(|n| n.0 != *id))
+                .collect();
+            merged.extend(newer);
+            *q = merged;
+        });
+        schedule_frame();
+    }
 }
 
 #[cfg(test)]

@@ -84,10 +84,11 @@ async fn dashboard_live_control_reconnect_and_in_browser_mode() {
         .await
         .unwrap();
     eprintln!(
-        "budget: live updates (demo run, {} iterations): latest {} ms, largest {} ms of chart drawing per update; wasm memory {} B",
+        "budget: live updates (demo run, {} iterations): latest {} ms, largest {} ms of chart drawing per animation frame (recent frames, ms: {}); wasm memory {} B",
         iterations_drawn(&c).await,
         metrics["updateMs"],
         metrics["maxUpdateMs"],
+        metrics["recentUpdateMs"],
         metrics["wasmMemoryBytes"]
     );
     assert!(

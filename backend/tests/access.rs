@@ -293,18 +293,7 @@ fn an_empty_or_missing_token_file_stops_the_server_naming_the_path() {
 #[test]
 fn the_token_flag_still_works_but_warns_that_ps_shows_it() {
     let dir = TempDir::new("tok-flag");
-    let mut child = Command::new(env!("CARGO_BIN_EXE_spintune"))
-        .args([
-            "serve",
-            "--bind",
-            "127.0.0.1:0",
-            "--demo",
-            "never",
-            "--token",
-            TOKEN,
-            "--db",
-        ])
-        .arg(dir.0.join("s.db"))
+    let mut child = serve_command(&dir.0.join("s.db"))
         .env_remove("SPINTUNE_TOKEN")
         .stdout(Stdio::null())
         .stderr(Stdio::piped())

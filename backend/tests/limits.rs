@@ -8,7 +8,7 @@
 mod common;
 
 use std::net::SocketAddr;
-use std::process::{Command, Stdio};
+use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 use common::*;
@@ -28,21 +28,7 @@ struct Served {
 
 fn spawn(dir: &TempDir, extra: &[&str]) -> Served {
     use std::io::{BufRead, BufReader};
-    let db = dir.0.join("limits.db");
-    let mut child = Command::new(env!("CARGO_BIN_EXE_spintune"))
-        .args([
-            "serve",
-            "--bind",
-            "127.0.0.1:0",
-            "--demo",
-            "never",
-            "--token",
-            TOKEN,
-        ])
-        .arg("--db")
-        .arg(&db)
-        .arg("--dist")
-        .arg(dir.0.join("no-dist"))
+    let mut child = serve_command(&dir.0.join("limits.db"))
         .args(extra)
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())

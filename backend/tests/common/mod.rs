@@ -238,8 +238,10 @@ impl Drop for Proc {
     }
 }
 
-/// Start `spintune serve` on an ephemeral port; returns the process and its address.
-pub fn spawn_server(db: &std::path::Path) -> (Proc, SocketAddr) {
+/// `spintune serve` on an ephemeral loopback port with the store `db`, no
+/// demo, the token [`TOKEN`] and no dashboard (`no-dist` beside `db`); add
+/// flags, stdio and environment to it.
+pub fn serve_command(db: &std::path::Path) -> Command {
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_spintune"));
     cmd.args([
         "serve",
@@ -254,7 +256,12 @@ pub fn spawn_server(db: &std::path::Path) -> (Proc, SocketAddr) {
     .arg(db)
     .arg("--dist")
     .arg(db.with_file_name("no-dist"));
-    spawn_serve_command(cmd, "http")
+    cmd
+}
+
+/// Start `spintune serve` on an ephemeral port; returns the process and its address.
+pub fn spawn_server(db: &std::path::Path) -> (Proc, SocketAddr) {
+    spawn_serve_command(serve_command(db), "http")
 }
 
 /// Run a `spintune serve` command (stdout piped, stderr inherited) and wait

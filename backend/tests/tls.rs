@@ -12,7 +12,7 @@ use std::process::{Command, Stdio};
 use std::sync::Arc;
 use std::time::Duration;
 
-use common::{spawn_serve_command, Proc, TempDir, TOKEN};
+use common::{serve_command_demo, spawn_serve_command, Proc, TempDir};
 use futures_util::StreamExt;
 use spintune::protocol::{ServerMessage, PROTOCOL_VERSION};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -30,23 +30,11 @@ fn write_cert(dir: &TempDir) -> (PathBuf, PathBuf, rcgen::CertifiedKey) {
     (cert, key, ck)
 }
 
+/// `serve` with a demo run (paced, so it is live while the test runs) and
+/// the given TLS flags.
 fn serve_cmd(dir: &TempDir, tls: &[&std::ffi::OsStr]) -> Command {
-    let mut cmd = Command::new(env!("CARGO_BIN_EXE_spintune"));
-    cmd.args([
-        "serve",
-        "--bind",
-        "127.0.0.1:0",
-        "--demo",
-        "always",
-        "--iteration-delay-ms",
-        "50",
-    ])
-    .arg("--db")
-    .arg(dir.0.join("tls.db"))
-    .arg("--dist")
-    .arg(dir.0.join("no-dist"))
-    .args(tls)
-    .env("SPINTUNE_TOKEN", TOKEN);
+    let mut cmd = serve_command_demo(&dir.0.join("tls.db"), "always");
+    cmd.args(["--iteration-delay-ms", "50"]).args(tls);
     cmd
 }
 

@@ -242,13 +242,18 @@ impl Drop for Proc {
 /// demo, the token [`TOKEN`] and no dashboard (`no-dist` beside `db`); add
 /// flags, stdio and environment to it.
 pub fn serve_command(db: &std::path::Path) -> Command {
+    serve_command_demo(db, "never")
+}
+
+/// [`serve_command`] with `--demo MODE` (`never`, `auto`, `always`).
+pub fn serve_command_demo(db: &std::path::Path, demo: &str) -> Command {
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_spintune"));
     cmd.args([
         "serve",
         "--bind",
         "127.0.0.1:0",
         "--demo",
-        "never",
+        demo,
         "--token",
         TOKEN,
     ])

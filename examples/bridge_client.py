@@ -17,7 +17,7 @@ Usage (one dependency: ``pip install websockets``)::
 
 Protocol (JSON text frames, see docs/instruments.md):
 
-    (the script adds ?protocol=2 to the URL: the server refuses clients
+    (the script adds ?protocol=3 to the URL: the server refuses clients
     that do not state the protocol version they speak)
     server: {"type":"hello","version":2,"run":{...}}
     client: {"type":"auth","token":"SECRET"}
@@ -53,7 +53,7 @@ import sys
 import websockets
 
 # The wire protocol this script speaks (spintune::protocol::PROTOCOL_VERSION).
-PROTOCOL_VERSION = 2
+PROTOCOL_VERSION = 3
 
 # --- toy device -------------------------------------------------------------
 # A linear model around a working point: parameter = p0 + sum_g J[g] * (V_g - V0_g).

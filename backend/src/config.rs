@@ -18,6 +18,7 @@
 //! | `targets` | table parameter → number | targets of the top tuner level's parameters, in the parameter's unit (e.g. `t_sr` in ns, `w` in µV) |
 //! | `tolerances` | table parameter → `{ absolute = x }` or `{ relative = f }` | tolerance bands of the top level's parameters |
 //! | `iteration_delay_ms` | integer, ms | wall-clock pause after each iteration (overrides the server's `--iteration-delay-ms`) |
+//! | `moved_tolerance_mv` | number, mV, 0–100 (default 1) | largest distance of a gate's read-back from where the run left it; farther is a `moved` fault that waits for `accept_positions` |
 //!
 //! Errors name the offending field, e.g. ``invalid config at `tuner.levels[0].kind`: …``.
 
@@ -64,6 +65,10 @@ pub struct BackendSettings {
     /// Wall-clock pause after each iteration, ms (`None`: the server's default).
     #[serde(default)]
     pub iteration_delay_ms: Option<u64>,
+    /// Largest distance of a gate's read-back from where the run left it,
+    /// mV (`None`: [`spintune::session::SessionConfig`]'s default, 1 mV).
+    #[serde(default)]
+    pub moved_tolerance_mv: Option<f64>,
     /// SCPI DC source settings (required for `driver = "scpi"`).
     #[serde(default)]
     pub scpi: Option<ScpiConfig>,
@@ -86,11 +91,12 @@ impl BackendSettings {
     }
 }
 
-const BACKEND_KEYS: [&str; 6] = [
+const BACKEND_KEYS: [&str; 7] = [
     "driver",
     "targets",
     "tolerances",
     "iteration_delay_ms",
+    "moved_tolerance_mv",
     "scpi",
     "bridge",
 ];
@@ -170,6 +176,13 @@ impl RunConfig {
                     ConfigParseError(format!("invalid config at `{path}`: {inner}"))
                 }
             })?;
+        if let Some(mv) = backend.moved_tolerance_mv {
+            spintune::session::SessionConfig {
+                moved_tolerance_mv: mv,
+                ..Default::default()
+            }
+            .validate()?;
+        }
         apply_targets(&mut simulation, &backend)?;
         simulation.validate()?;
         validate_drivers(&simulation, &backend)?;

@@ -228,14 +228,7 @@ async fn bridge_serves_a_run_and_faults_pause_it_without_losing_data() {
     // refused; `resume` re-issues the request under a new id.
     let (late_id, unanswered) = next_request_reading(&mut ws, &mut device).await;
     wait_status(srv.addr, run.id, |r| fault_contains(r, "did not answer")).await;
-    answer(
-        &mut ws,
-        late_id,
-        Response::Error {
-            message: "too late".into(),
-        },
-    )
-    .await;
+    answer(&mut ws, late_id, Response::error("too late")).await;
     assert!(matches!(
         next_bridge(&mut ws).await,
         BridgeServerMessage::Error { message } if message.contains("not outstanding")

@@ -15,7 +15,7 @@
 //! arrival, see [`crate::history`] for the memory bound).
 //!
 //! The socket URL states the protocol version this page speaks
-//! (`?protocol=2`); a server that refuses it answers with an error frame
+//! (`?protocol=3`); a server that refuses it answers with an error frame
 //! before its `hello` and closes the socket: the page then stops retrying and
 //! says why.
 

@@ -465,10 +465,7 @@ mod tests {
             RunStatus::Paused,
             RunStatus::Stopping,
             RunStatus::Faulted {
-                fault: Fault {
-                    kind: FaultKind::Readback,
-                    message: "gate SB reads -410 mV, set -400 mV".into(),
-                },
+                fault: Fault::new(FaultKind::Readback, "gate SB reads -410 mV, set -400 mV"),
             },
             RunStatus::Finished,
             RunStatus::Stopped,
@@ -507,10 +504,7 @@ mod tests {
     fn faulted_status_is_labelled_with_kind_and_message_and_is_resumable() {
         use spintune::protocol::{Fault, FaultKind};
         let faulted = RunStatus::Faulted {
-            fault: Fault {
-                kind: FaultKind::Device,
-                message: "instrument timed out".into(),
-            },
+            fault: Fault::new(FaultKind::Device, "instrument timed out"),
         };
         let label = status_label(&faulted);
         assert_eq!(label, "faulted — device fault: instrument timed out");

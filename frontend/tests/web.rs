@@ -70,10 +70,7 @@ fn protocol_frames_decode_in_wasm() {
             assert_eq!(
                 run.status,
                 RunStatus::Faulted {
-                    fault: Fault {
-                        kind: FaultKind::Readback,
-                        message: "gate SB reads -410 mV".into()
-                    }
+                    fault: Fault::new(FaultKind::Readback, "gate SB reads -410 mV")
                 }
             );
             assert!(run.status.is_resumable());
@@ -411,10 +408,7 @@ async fn status_badge_and_note_show_every_state() {
     );
 
     status.set(Some(RunStatus::Faulted {
-        fault: Fault {
-            kind: FaultKind::Safety,
-            message: "step of 12 mV on SB exceeds 10 mV".into(),
-        },
+        fault: Fault::new(FaultKind::Safety, "step of 12 mV on SB exceeds 10 mV"),
     }));
     leptos::task::tick().await;
     assert_eq!(

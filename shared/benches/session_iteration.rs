@@ -97,9 +97,7 @@ mod native {
                         lab_seconds: 0.0,
                     }
                 }
-                Request::TrueJacobian { .. } => Response::Error {
-                    message: "no oracle".into(),
-                },
+                Request::TrueJacobian { .. } => Response::error("no oracle"),
             }
         }
     }

@@ -12,10 +12,13 @@ use serde::{Deserialize, Serialize};
 /// Version of the wire format; bumped on any incompatible change.
 ///
 /// Version 2 added [`Request::ReadVoltages`], the typed [`RunStatus::Faulted`]
-/// and [`RunStatus::Stepping`] states and typed [`TunerEvent`]s. A client
-/// states the version it speaks when it connects (the server refuses any
-/// other with an error naming both versions).
-pub const PROTOCOL_VERSION: u32 = 2;
+/// and [`RunStatus::Stepping`] states and typed [`TunerEvent`]s. Version 3
+/// added the fault policy: [`FaultKind::Disconnected`] and
+/// [`FaultKind::Moved`], [`Fault::cleared_by`] and [`Fault::moved`],
+/// [`ControlCommand::AcceptPositions`] and [`Response::Error`]'s `cause`. A
+/// client states the version it speaks when it connects (the server refuses
+/// any other with an error naming both versions).
+pub const PROTOCOL_VERSION: u32 = 3;
 
 /// Why a message that crossed a boundary (a WebSocket frame, an HTTP body, a
 /// lab bridge's answer, a device's evaluated scan) was refused. The text
@@ -298,7 +301,59 @@ pub enum Response {
     Error {
         /// Why.
         message: String,
+        /// Whether the device was unreachable (a fault that may clear when it
+        /// reconnects) or reported a problem a person must look at (the
+        /// default, also when a lab bridge omits it).
+        #[serde(default, skip_serializing_if = "ErrorCause::is_instrument")]
+        cause: ErrorCause,
     },
+}
+
+impl Response {
+    /// A [`Response::Error`] that needs a person ([`ErrorCause::Instrument`]).
+    ///
+    /// ```
+    /// use spintune::protocol::{ErrorCause, Response};
+    /// let r = Response::error("leakage on SB");
+    /// assert_eq!(serde_json::to_string(&r).unwrap(), r#"{"type":"error","message":"leakage on SB"}"#);
+    /// assert!(matches!(r, Response::Error { cause: ErrorCause::Instrument, .. }));
+    /// ```
+    pub fn error(message: impl Into<String>) -> Self {
+        Response::Error {
+            message: message.into(),
+            cause: ErrorCause::Instrument,
+        }
+    }
+
+    /// A [`Response::Error`] for a device that could not be reached
+    /// ([`ErrorCause::Disconnected`]): the fault may clear when it reconnects.
+    pub fn disconnected(message: impl Into<String>) -> Self {
+        Response::Error {
+            message: message.into(),
+            cause: ErrorCause::Disconnected,
+        }
+    }
+}
+
+/// Why a device answered [`Response::Error`]; decides the [`FaultKind`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ErrorCause {
+    /// The instrument (or its driver) reported a problem: an error, a
+    /// leakage current, a read-back that does not match. Needs a person.
+    #[default]
+    Instrument,
+    /// The device could not be reached (the lab bridge is not connected,
+    /// disconnected or did not answer in time). Nothing is known to be wrong
+    /// with the instrument; the fault clears when the device reconnects.
+    Disconnected,
+}
+
+impl ErrorCause {
+    /// Whether this is the default, [`ErrorCause::Instrument`].
+    pub fn is_instrument(&self) -> bool {
+        *self == ErrorCause::Instrument
+    }
 }
 
 /// One parameter in an [`IterationRecord`].
@@ -573,7 +628,7 @@ impl std::fmt::Display for EventKind {
 
 /// Lifecycle of a run: the modes of [`crate::session::RunSession`] plus
 /// what only a server knows (`Interrupted`, `Failed`).
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "state", rename_all = "snake_case")]
 pub enum RunStatus {
     /// Iterating.
@@ -610,7 +665,7 @@ impl RunStatus {
     ///
     /// ```
     /// use spintune::protocol::{Fault, FaultKind, RunStatus};
-    /// let f = RunStatus::Faulted { fault: Fault { kind: FaultKind::Device, message: "timeout".into() } };
+    /// let f = RunStatus::Faulted { fault: Fault::new(FaultKind::Device, "timeout") };
     /// assert_eq!(f.name(), "faulted");
     /// assert!(f.is_resumable() && !RunStatus::Stopped.is_resumable());
     /// ```
@@ -645,15 +700,49 @@ impl RunStatus {
     }
 }
 
-/// Why a run was paused by a fault. Resumable: the instrument is read back
-/// first and the kept request is checked again.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+/// Why a run was paused by a fault. What clears it depends on its kind
+/// ([`FaultKind::cleared_by`], the fault policy): only a
+/// [`FaultKind::Disconnected`] fault clears when the device reconnects; every
+/// other kind waits for a person. Whatever clears it, the instrument is read
+/// back first and the kept request is checked again.
+///
+/// ```
+/// use spintune::protocol::{ClearedBy, Fault, FaultKind};
+/// let f = Fault::new(FaultKind::Device, "leakage on SB");
+/// assert_eq!(f.cleared_by, ClearedBy::Resume);
+/// assert_eq!(
+///     serde_json::to_string(&f).unwrap(),
+///     r#"{"kind":"device","message":"leakage on SB","cleared_by":"resume"}"#
+/// );
+/// ```
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Fault {
     /// Which check failed.
     pub kind: FaultKind,
     /// What happened, for a person.
     pub message: String,
+    /// What clears the fault (always `kind.cleared_by()`; stated so that
+    /// clients need not know the policy). Faults stored before this field
+    /// read as [`ClearedBy::Resume`].
+    #[serde(default = "ClearedBy::human")]
+    pub cleared_by: ClearedBy,
+    /// For [`FaultKind::Moved`]: every gate that reads far from where the run
+    /// left it, with both positions (what `accept_positions` adopts).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub moved: Vec<MovedGate>,
+}
+
+impl Fault {
+    /// A fault of `kind` (its `cleared_by` from the policy, no moved gates).
+    pub fn new(kind: FaultKind, message: impl Into<String>) -> Self {
+        Self {
+            kind,
+            message: message.into(),
+            cleared_by: kind.cleared_by(),
+            moved: Vec::new(),
+        }
+    }
 }
 
 impl std::fmt::Display for Fault {
@@ -662,15 +751,77 @@ impl std::fmt::Display for Fault {
     }
 }
 
-/// The kinds of [`Fault`].
+/// A gate that reads far from where the run left it ([`FaultKind::Moved`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MovedGate {
+    /// Gate name.
+    pub gate: String,
+    /// Where the run left it, mV: the last accepted read-back, or the range
+    /// it may have been left anywhere in (a sweep, an interrupted move).
+    pub left_from_mv: f64,
+    /// Upper end of that range, mV (equal to `left_from_mv` for a point).
+    pub left_to_mv: f64,
+    /// What the instrument reads now, mV.
+    pub read_mv: f64,
+}
+
+/// What clears a fault (the fault policy, [`FaultKind::cleared_by`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ClearedBy {
+    /// The device reconnecting (or a person's `resume`).
+    Reconnect,
+    /// Only a person's `resume` (after looking at the instrument).
+    Resume,
+    /// Only a person's `accept_positions` (confirming the gates' new
+    /// positions), or `resume` after putting the gates back.
+    AcceptPositions,
+}
+
+impl ClearedBy {
+    /// The conservative default for faults stored before the policy.
+    pub fn human() -> Self {
+        ClearedBy::Resume
+    }
+
+    /// Short name, as in JSON.
+    pub fn name(self) -> &'static str {
+        match self {
+            ClearedBy::Reconnect => "reconnect",
+            ClearedBy::Resume => "resume",
+            ClearedBy::AcceptPositions => "accept_positions",
+        }
+    }
+}
+
+/// The kinds of [`Fault`]. Every kind but [`FaultKind::Disconnected`] waits
+/// for a person.
+///
+/// | kind | what happened | cleared by |
+/// |---|---|---|
+/// | `disconnected` | the device could not be reached | reconnect or resume |
+/// | `device` | the instrument reported an error (e.g. leakage) | resume |
+/// | `readback` | a read-back is missing, extra, not finite, outside the limits or off the set value | resume |
+/// | `moved` | a gate reads far from where the run left it | accept_positions (or resume after moving it back) |
+/// | `safety` | a request was refused before it reached the device | resume |
+/// | `response` | the answer does not fit the request | resume |
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum FaultKind {
-    /// The device (or its driver) reported an error or did not answer.
+    /// The device could not be reached: the lab bridge is not connected,
+    /// disconnected or did not answer in time.
+    Disconnected,
+    /// The device (or its driver) reported an error: leakage, a read-back
+    /// mismatch inside the driver, a failed command.
     Device,
     /// A read-back was refused: gates not requested, gates missing, non-finite
-    /// values, or a mismatch with the set value beyond the tolerance.
+    /// values, values outside the gate's limits, or a mismatch with the set
+    /// value beyond the tolerance.
     Readback,
+    /// A gate reads farther than `session.moved_tolerance_mv` from where the
+    /// run left it (on start after a restore, resume or reconnect).
+    Moved,
     /// The safety check refused a request before it reached the device
     /// (limits, step from the last read-back, sweep points).
     Safety,
@@ -682,10 +833,30 @@ impl FaultKind {
     /// Short name, as in JSON.
     pub fn name(self) -> &'static str {
         match self {
+            FaultKind::Disconnected => "disconnected",
             FaultKind::Device => "device",
             FaultKind::Readback => "read-back",
+            FaultKind::Moved => "moved",
             FaultKind::Safety => "safety",
             FaultKind::Response => "response",
+        }
+    }
+
+    /// The fault policy: what clears a fault of this kind.
+    ///
+    /// ```
+    /// use spintune::protocol::{ClearedBy, FaultKind};
+    /// assert_eq!(FaultKind::Disconnected.cleared_by(), ClearedBy::Reconnect);
+    /// assert_eq!(FaultKind::Device.cleared_by(), ClearedBy::Resume);
+    /// assert_eq!(FaultKind::Moved.cleared_by(), ClearedBy::AcceptPositions);
+    /// ```
+    pub fn cleared_by(self) -> ClearedBy {
+        match self {
+            FaultKind::Disconnected => ClearedBy::Reconnect,
+            FaultKind::Moved => ClearedBy::AcceptPositions,
+            FaultKind::Device | FaultKind::Readback | FaultKind::Safety | FaultKind::Response => {
+                ClearedBy::Resume
+            }
         }
     }
 }
@@ -724,6 +895,11 @@ pub enum ControlCommand {
     Step,
     /// Stop for good.
     Stop,
+    /// Confirm the positions a [`FaultKind::Moved`] fault reported (a person
+    /// moved the gates, or checked that the instrument is right): the run
+    /// continues from them after the next `resume`, which reads every gate
+    /// again. Refused for any other status.
+    AcceptPositions,
     /// Change a parameter's target and/or tolerance between iterations.
     SetTarget {
         /// Parameter name, e.g. `"t_sr"`.

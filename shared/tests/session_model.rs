@@ -12,7 +12,19 @@
 //!    step), and sweep points are at most `max_step_mv` apart;
 //! 3. after `stop` is acknowledged, no request reaches the instrument;
 //! 4. committed iteration numbers are contiguous and unique (0, 1, 2, …),
-//!    across crashes.
+//!    across crashes;
+//! 5. the fault policy: only a `disconnected` fault clears when the device
+//!    reconnects; a reconnect never clears any other fault (nothing is
+//!    requested until a person acts), and `accept_positions` is accepted only
+//!    for a `moved` fault and leaves the run paused.
+//!
+//! The instrument also lies: transient read-backs far from the physical
+//! voltage, read-backs outside the limits and 1e308; invariant 2 (measured
+//! against the physical voltage) holds through them. What no guard can tell
+//! from the truth is not scripted: a lie on a gate the run has not left at
+//! one known voltage (a new run's first read, a gate after a sweep, which
+//! may have left it anywhere in the sweep's range) or one that lands within
+//! the moved tolerance of where the run left it.
 //!
 //! The number of generated steps is counted and asserted (≥ 10⁵ per run of
 //! the test binary), so the test cannot pass by generating nothing.
@@ -24,7 +36,8 @@ use proptest::prelude::*;
 use spintune::driver::SimulationConfig;
 use spintune::parameter::Tolerance;
 use spintune::protocol::{
-    ControlCommand, ParameterValue, Request, Response, RunStatus, ScanKind, ScanOutcome,
+    ClearedBy, ControlCommand, FaultKind, ParameterValue, Request, Response, RunStatus, ScanKind,
+    ScanOutcome,
 };
 use spintune::safety::GateSpec;
 use spintune::session::{Output, RunSession, SessionConfig};
@@ -36,6 +49,9 @@ static STEPS: AtomicU64 = AtomicU64::new(0);
 static COMMITS: AtomicU64 = AtomicU64::new(0);
 static FAULTS: AtomicU64 = AtomicU64::new(0);
 static EXECUTED: AtomicU64 = AtomicU64::new(0);
+/// `moved` faults published and positions accepted, over all cases.
+static MOVED: AtomicU64 = AtomicU64::new(0);
+static ACCEPTED: AtomicU64 = AtomicU64::new(0);
 
 const CASES: u32 = 500;
 const MAX_SCRIPT: usize = 300;
@@ -115,6 +131,13 @@ enum Answer {
     NonFinite,
     /// Answers with the wrong kind of response.
     WrongKind,
+    /// The device is unreachable (a dropped lab bridge): nothing applied.
+    Disconnected,
+    /// A read reports one gate this far from its physical voltage (a
+    /// transient lie; a set is answered honestly).
+    LyingRead(f64),
+    /// A read reports one gate outside its limits (or 1e308).
+    ImpossibleRead(bool),
 }
 
 #[derive(Debug, Clone)]
@@ -129,6 +152,10 @@ enum Action {
     /// Someone turns a knob while the run is not moving gates (paused, faulted, crashed).
     KnobTurn(usize, f64),
     Crash,
+    /// The device reconnects by itself (`RunSession::device_recovered`).
+    Reconnect,
+    /// A person confirms the positions of a `moved` fault.
+    AcceptPositions,
 }
 
 fn answer() -> impl Strategy<Value = Answer> {
@@ -141,20 +168,25 @@ fn answer() -> impl Strategy<Value = Answer> {
         2 => (0.2..30.0f64).prop_map(Answer::Mismatch),
         1 => Just(Answer::NonFinite),
         1 => Just(Answer::WrongKind),
+        2 => Just(Answer::Disconnected),
+        2 => prop_oneof![(-60.0..-2.0f64), (2.0..60.0f64)].prop_map(Answer::LyingRead),
+        1 => any::<bool>().prop_map(Answer::ImpossibleRead),
     ]
 }
 
 fn action() -> impl Strategy<Value = Action> {
     prop_oneof![
-        120 => answer().prop_map(Action::Exec),
+        160 => answer().prop_map(Action::Exec),
         2 => Just(Action::Pause),
-        4 => (1..4usize).prop_map(Action::Resume),
+        6 => (1..4usize).prop_map(Action::Resume),
         2 => Just(Action::Step),
         1 => Just(Action::Stop),
         2 => (150.0..300.0f64).prop_map(Action::SetTarget),
         1 => Just(Action::BadTarget),
         2 => ((0..5usize), (-40.0..40.0f64)).prop_map(|(g, d)| Action::KnobTurn(g, d)),
         1 => Just(Action::Crash),
+        2 => Just(Action::Reconnect),
+        6 => Just(Action::AcceptPositions),
     ]
 }
 
@@ -235,20 +267,19 @@ impl Instrument {
     }
 
     fn execute(&mut self, req: &Request, how: Answer) -> Response {
+        if matches!(how, Answer::Disconnected) {
+            return Response::disconnected("scripted: the bridge dropped");
+        }
         match req {
             Request::SetVoltages { voltages_mv } => {
                 if matches!(how, Answer::Error) {
-                    return Response::Error {
-                        message: "scripted error".into(),
-                    };
+                    return Response::error("scripted error");
                 }
                 if matches!(how, Answer::PartialError) {
                     if let Some((g, v)) = voltages_mv.iter().next() {
                         self.phys.insert(g.clone(), *v);
                     }
-                    return Response::Error {
-                        message: "scripted error after one gate".into(),
-                    };
+                    return Response::error("scripted error after one gate");
                 }
                 let mut answer = BTreeMap::new();
                 for (i, (g, &v)) in voltages_mv.iter().enumerate() {
@@ -304,9 +335,7 @@ impl Instrument {
                     gates.iter().map(|g| (g.clone(), self.phys[g])).collect();
                 match how {
                     Answer::Error | Answer::PartialError => {
-                        return Response::Error {
-                            message: "scripted read error".into(),
-                        }
+                        return Response::error("scripted read error")
                     }
                     Answer::ExtraGate(lie) => {
                         if let Some(g) = self.phys.keys().find(|g| !gates.contains(g)).cloned() {
@@ -330,7 +359,23 @@ impl Instrument {
                             lab_seconds: 0.0,
                         }
                     }
-                    Answer::Honest | Answer::Mismatch(_) => {}
+                    Answer::LyingRead(d) => {
+                        if let Some(v) = answer.values_mut().next() {
+                            *v += d;
+                        }
+                    }
+                    Answer::ImpossibleRead(huge) => {
+                        let first = answer.keys().next().cloned();
+                        if let Some(g) = first {
+                            let lie = if huge {
+                                1e308
+                            } else {
+                                self.limits[&g].max_mv + 5.0
+                            };
+                            answer.insert(g, lie);
+                        }
+                    }
+                    Answer::Honest | Answer::Mismatch(_) | Answer::Disconnected => {}
                 }
                 Response::VoltagesRead {
                     voltages_mv: answer,
@@ -340,9 +385,7 @@ impl Instrument {
             Request::Measure { scan } => {
                 match how {
                     Answer::Error | Answer::PartialError => {
-                        return Response::Error {
-                            message: "scripted measurement error".into(),
-                        }
+                        return Response::error("scripted measurement error")
                     }
                     Answer::WrongKind => {
                         return Response::VoltagesSet {
@@ -386,9 +429,7 @@ impl Instrument {
                     lab_seconds: 1.0,
                 }
             }
-            Request::TrueJacobian { .. } => Response::Error {
-                message: "no oracle here".into(),
-            },
+            Request::TrueJacobian { .. } => Response::error("no oracle here"),
         }
     }
 }
@@ -418,8 +459,16 @@ fn next_request(
                 *checkpoint = serde_json::to_string(session).unwrap();
             }
             Output::Save => *checkpoint = serde_json::to_string(session).unwrap(),
-            Output::Publish(RunStatus::Faulted { .. }) => {
+            Output::Publish(RunStatus::Faulted { fault }) => {
                 FAULTS.fetch_add(1, Ordering::Relaxed);
+                if fault.kind == FaultKind::Moved {
+                    MOVED.fetch_add(1, Ordering::Relaxed);
+                }
+                if fault.cleared_by != fault.kind.cleared_by()
+                    || fault.moved.is_empty() != (fault.kind != FaultKind::Moved)
+                {
+                    return Err(format!("fault off the policy: {fault:?}"));
+                }
             }
             Output::Publish(_) | Output::Sleep { .. } => {}
             Output::Wait | Output::Done(_) => return Ok(None),
@@ -436,6 +485,7 @@ fn run_script(script: &[Action]) -> Result<(), TestCaseError> {
         SessionConfig {
             readback_tolerance_mv: 0.05,
             iteration_delay_ms: 0,
+            moved_tolerance_mv: 1.0,
         },
     )
     .unwrap();
@@ -454,7 +504,22 @@ fn run_script(script: &[Action]) -> Result<(), TestCaseError> {
                 // invariants 1 and 2
                 dev.check_request(&req).map_err(TestCaseError::fail)?;
                 EXECUTED.fetch_add(1, Ordering::Relaxed);
-                let resp = dev.execute(&req, *how);
+                let how = match (how, &req) {
+                    (Answer::LyingRead(d), Request::ReadVoltages { gates }) => {
+                        // The lie is told about the first gate of the answer.
+                        let g = gates.iter().min().cloned().unwrap_or_default();
+                        let detectable = session.guard().left_mv().get(&g).is_some_and(|s| {
+                            s.lo_mv == s.hi_mv && (dev.phys[&g] + d - s.lo_mv).abs() > 1.0
+                        });
+                        if detectable {
+                            Answer::LyingRead(*d)
+                        } else {
+                            Answer::Honest
+                        }
+                    }
+                    (other, _) => *other,
+                };
+                let resp = dev.execute(&req, how);
                 session
                     .feed(resp)
                     .map_err(|e| TestCaseError::fail(e.to_string()))?;
@@ -502,6 +567,27 @@ fn run_script(script: &[Action]) -> Result<(), TestCaseError> {
                     dev.phys.insert(name.to_string(), v);
                 }
             }
+            Action::Reconnect => {
+                let before = session.status();
+                let resumed = session.device_recovered();
+                let policy_allows = matches!(&before, RunStatus::Faulted { fault } if fault.kind.cleared_by() == ClearedBy::Reconnect);
+                prop_assert_eq!(resumed, policy_allows, "reconnect while {:?}", before);
+                if !resumed {
+                    prop_assert_eq!(session.status(), before);
+                }
+            }
+            Action::AcceptPositions => {
+                let before = session.status();
+                let r = session.control(&ControlCommand::AcceptPositions);
+                let moved = matches!(&before, RunStatus::Faulted { fault } if fault.kind == FaultKind::Moved);
+                prop_assert_eq!(r.is_ok(), moved, "accept_positions while {:?}", before);
+                if moved {
+                    ACCEPTED.fetch_add(1, Ordering::Relaxed);
+                    prop_assert_eq!(session.status(), RunStatus::Paused);
+                } else {
+                    prop_assert_eq!(session.status(), before);
+                }
+            }
             Action::Crash => {
                 // Everything since the last commit is lost; the instrument
                 // stays where it is, and someone may have touched it.
@@ -541,16 +627,27 @@ fn session_holds_safety_and_lifecycle_invariants_over_1e5_random_steps() {
         FAULTS.load(Ordering::Relaxed),
         EXECUTED.load(Ordering::Relaxed),
     );
-    eprintln!("{generated} steps: {executed} requests executed, {commits} iterations committed, {faults} faults");
+    let (moved, accepted) = (
+        MOVED.load(Ordering::Relaxed),
+        ACCEPTED.load(Ordering::Relaxed),
+    );
+    eprintln!("{generated} steps: {executed} requests executed, {commits} iterations committed, {faults} faults ({moved} moved, {accepted} positions accepted)");
     assert!(
         generated >= MIN_TOTAL_STEPS,
         "only {generated} steps generated"
     );
     // The scripts must really drive tuning and really provoke faults.
-    assert!(executed >= generated / 4, "{executed} requests executed");
+    // (a sixth: faults that wait for a person — moved gates need
+    // accept_positions and a resume — keep many scripts waiting)
+    assert!(executed >= generated / 6, "{executed} requests executed");
     assert!(
         commits >= u64::from(CASES) * 5,
         "{commits} iterations committed"
     );
     assert!(faults >= u64::from(CASES), "{faults} faults");
+    assert!(moved >= u64::from(CASES) / 2, "{moved} moved faults");
+    assert!(
+        accepted >= u64::from(CASES) / 5,
+        "{accepted} positions accepted"
+    );
 }

@@ -250,14 +250,21 @@ impl BridgeLink {
         }
     }
 
-    /// Resolves when a bridge connection newer than the present one (if any)
-    /// is established: after a disconnect, the reconnection; after a timeout
-    /// on a live connection, only a fresh connection.
-    pub fn recovered(&self) -> BoxFuture<'static, ()> {
-        let now = *self.connected.borrow();
+    /// Generation of the connected bridge, 0 when none.
+    pub fn connection(&self) -> u64 {
+        *self.connected.borrow()
+    }
+
+    /// Resolves when a bridge connection other than `failed` (the generation
+    /// a request failed on, 0 for none) is established: after a disconnect,
+    /// the reconnection; after a timeout on a live connection, only a fresh
+    /// connection. A connection made *before* this is called counts (it
+    /// resolves at once): the wake-up is not lost if the bridge reconnects
+    /// while the run task is still storing the fault.
+    pub fn recovered_after(&self, failed: u64) -> BoxFuture<'static, ()> {
         let mut rx = self.connected.subscribe();
         Box::pin(async move {
-            if rx.wait_for(|g| *g != 0 && *g != now).await.is_err() {
+            if rx.wait_for(|g| *g != 0 && *g != failed).await.is_err() {
                 std::future::pending::<()>().await;
             }
         })
@@ -281,7 +288,7 @@ fn describe(request: &Request) -> String {
 /// run session's guard (the one choke point), not here.
 fn attribute(request: &Request, response: Response, id: u64) -> Response {
     match response {
-        Response::Error { message } => DeviceError::BridgeReported {
+        Response::Error { message, .. } => DeviceError::BridgeReported {
             id,
             request: describe(request),
             message,
@@ -295,15 +302,30 @@ fn attribute(request: &Request, response: Response, id: u64) -> Response {
 pub struct BridgeDevice {
     link: Arc<BridgeLink>,
     config: BridgeConfig,
+    /// Connection generation the last failed request was sent on (0: none).
+    failed_connection: u64,
 }
 
 impl BridgeDevice {
     /// A device talking through `link`.
     pub fn new(link: Arc<BridgeLink>, config: BridgeConfig) -> Self {
-        Self { link, config }
+        Self {
+            link,
+            config,
+            failed_connection: 0,
+        }
     }
 
     async fn execute_inner(&mut self, request: Request) -> Response {
+        let at_send = self.link.connection();
+        let response = self.exchange(request).await;
+        if matches!(response, Response::Error { .. }) {
+            self.failed_connection = at_send;
+        }
+        response
+    }
+
+    async fn exchange(&mut self, request: Request) -> Response {
         let timeout = Duration::from_secs_f64(self.config.request_timeout_s);
         let (id, rx) = match self.link.send(&request, self.config.request_timeout_s) {
             Ok(x) => x,
@@ -343,7 +365,7 @@ impl Device for BridgeDevice {
     }
 
     fn recovered(&self) -> BoxFuture<'static, ()> {
-        self.link.recovered()
+        self.link.recovered_after(self.failed_connection)
     }
 }
 
@@ -386,15 +408,20 @@ mod tests {
         // nobody connected
         let r = dev.execute(req.clone()).await;
         assert!(
-            matches!(&r, Response::Error { message } if message.contains("no lab bridge")),
+            matches!(&r, Response::Error { message, .. } if message.contains("no lab bridge")),
             "{r:?}"
         );
         // connect; the recovery future fires
-        let rec = link.recovered();
+        let rec = link.recovered_after(0);
         let (generation, mut out) = link.attach();
         tokio::time::timeout(Duration::from_secs(1), rec)
             .await
             .expect("recovered on connect");
+        // a bridge that connected before the run task waits (while it was
+        // storing the fault) still wakes it: no lost wake-up
+        tokio::time::timeout(Duration::from_secs(1), dev.recovered())
+            .await
+            .expect("a connection made before the wait counts");
         // answered correctly
         let l2 = link.clone();
         let answer = tokio::spawn(async move {
@@ -414,13 +441,7 @@ mod tests {
             .unwrap();
             // a second answer to the same id is refused
             assert_eq!(
-                l2.answer(
-                    generation,
-                    id,
-                    Response::Error {
-                        message: "x".into()
-                    }
-                ),
+                l2.answer(generation, id, Response::error("x")),
                 Err(DeviceError::NotOutstanding { id })
             );
             out
@@ -431,7 +452,7 @@ mod tests {
         // unanswered → timeout; the late answer is refused
         let r = dev.execute(req.clone()).await;
         assert!(
-            matches!(&r, Response::Error { message } if message.contains("did not answer")),
+            matches!(&r, Response::Error { message, .. } if message.contains("did not answer")),
             "{r:?}"
         );
         let text = out.recv().await.unwrap();
@@ -459,7 +480,7 @@ mod tests {
         });
         let r = dev.execute(req).await;
         assert!(
-            matches!(&r, Response::Error { message } if message.contains("disconnected")),
+            matches!(&r, Response::Error { message, .. } if message.contains("disconnected")),
             "{r:?}"
         );
         assert!(!link.is_connected());

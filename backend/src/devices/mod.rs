@@ -212,10 +212,26 @@ the connection was dropped and the step was NOT re-sent; on resume the driver re
 }
 
 impl DeviceError {
+    /// Whether the device could not be reached (the lab bridge is absent,
+    /// dropped or silent): the only errors whose fault may clear when the
+    /// device reconnects (the fault policy, `FaultKind::cleared_by`). Every
+    /// other error — leakage, a read-back mismatch, an instrument's I/O
+    /// failure mid-ramp, a refusal — waits for a person.
+    pub fn is_disconnection(&self) -> bool {
+        matches!(
+            self,
+            DeviceError::NoBridge { .. }
+                | DeviceError::BridgeDisconnected { .. }
+                | DeviceError::BridgeTimeout { .. }
+        )
+    }
+
     /// The fault as the device's answer to a request.
     pub fn into_response(self) -> Response {
-        Response::Error {
-            message: self.to_string(),
+        if self.is_disconnection() {
+            Response::disconnected(self.to_string())
+        } else {
+            Response::error(self.to_string())
         }
     }
 }
@@ -371,12 +387,10 @@ the connection was dropped and nothing was re-sent"
         };
         assert_eq!(
             e.clone().into_response(),
-            Response::Error {
-                message:
-                    "the lab bridge did not answer request 3 (measure ReloadTime) within 0.2 s; \
+            Response::disconnected(
+                "the lab bridge did not answer request 3 (measure ReloadTime) within 0.2 s; \
 resume to re-issue it (or reconnect the bridge)"
-                        .into()
-            }
+            )
         );
         assert!(DeviceError::NotOutstanding { id: 9 }
             .to_string()

@@ -16,9 +16,10 @@
 //! 1000 on the way out (formatted with 6 decimals, i.e. 1 µV resolution) and
 //! multiplied by 1000 on the way back.
 //!
-//! Safety, on top of the run task's [`SafetyLimits::check`] (which compares
-//! with the tuner's idea of the voltages), enforced against the *instrument's*
-//! read-back state before any command is sent:
+//! Safety, on top of the run session's guard (which checks every request
+//! against the limits and the instrument's last read-back as the session
+//! accepted it), enforced against the *driver's own* read-back state before
+//! any command is sent:
 //!
 //! 1. every gate must be mapped to a channel and have a [`GateSpec`];
 //! 2. the target must lie within the gate's `[min_mv, max_mv]`;
@@ -31,6 +32,10 @@
 //! 5. after the last increment every channel is read back and compared with
 //!    the target ([`ScpiConfig::readback_tolerance_mv`]); a mismatch is an
 //!    error (the run pauses, nothing is retried silently).
+//!
+//! Numbers from the instrument are believed only if they are finite and not
+//! SCPI's special values (`9.91E37` is NaN, `±9.9E37` is ±infinity/overflow,
+//! [`scpi_number`]); anything else drops the connection and faults.
 //!
 //! Any I/O error or timeout drops the connection and forgets the instrument
 //! state. The failed request is reported as an error (the run pauses with the
@@ -54,6 +59,27 @@ use tokio::net::TcpStream;
 use super::bridge::BridgeDevice;
 use super::{BoxFuture, Device, DeviceError, SimulatorDevice};
 use crate::config::DriverKind;
+
+/// Magnitude from which a SCPI number is one of the standard's special
+/// values: `9.91E37` (NaN) and `±9.9E37` (±infinity, overflow).
+pub const SCPI_SPECIAL_MAGNITUDE: f64 = 9.9e37;
+
+/// A number an instrument answered, if it is a real measurement: it parses,
+/// is finite and is not one of SCPI's special values (NaN `9.91E37`,
+/// overflow `±9.9E37`).
+///
+/// ```
+/// use spintune_server::devices::scpi::scpi_number;
+/// assert_eq!(scpi_number(" -0.75 "), Some(-0.75));
+/// assert_eq!(scpi_number("9.91E37"), None);
+/// assert_eq!(scpi_number("-9.9e37"), None);
+/// assert_eq!(scpi_number("nan"), None);
+/// assert_eq!(scpi_number("1 V"), None);
+/// ```
+pub fn scpi_number(answer: &str) -> Option<f64> {
+    let v: f64 = answer.trim().parse().ok()?;
+    (v.is_finite() && v.abs() < SCPI_SPECIAL_MAGNITUDE).then_some(v)
+}
 
 /// Where a SCPI run's measurements come from (the DC source only sets gates).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -457,9 +483,9 @@ impl ScpiSource {
     async fn query_mv(&mut self, channel: u32) -> Result<f64, DeviceError> {
         let q = readback_command(self.cfg.profile, channel);
         let answer = self.query_line(&q).await?;
-        match answer.parse::<f64>() {
-            Ok(v) if v.is_finite() => Ok(v * 1000.0),
-            _ => {
+        match scpi_number(&answer) {
+            Some(v) => Ok(v * 1000.0),
+            None => {
                 self.drop_conn();
                 Err(DeviceError::Protocol(format!(
                     "answer {answer:?} to `{q}` is not a voltage"
@@ -472,10 +498,7 @@ impl ScpiSource {
     async fn query_current_na(&mut self, channel: u32) -> Result<f64, DeviceError> {
         let q = current_command(channel);
         let answer = self.query_line(&q).await?;
-        let values: Option<Vec<f64>> = answer
-            .split(',')
-            .map(|x| x.trim().parse::<f64>().ok().filter(|v| v.is_finite()))
-            .collect();
+        let values: Option<Vec<f64>> = answer.split(',').map(scpi_number).collect();
         match values {
             Some(v) if !v.is_empty() => Ok(v.iter().fold(0.0f64, |m, x| m.max(x.abs())) * 1e9),
             _ => {
@@ -757,9 +780,7 @@ impl ScpiDevice {
 
     /// A fault of the DC source as the device's answer, naming the source.
     fn source_fault(&self, e: DeviceError) -> Response {
-        Response::Error {
-            message: format!("SCPI source {}: {e}", self.source.cfg.address),
-        }
+        Response::error(format!("SCPI source {}: {e}", self.source.cfg.address))
     }
 
     async fn execute_inner(&mut self, request: Request) -> Response {
@@ -770,17 +791,15 @@ impl ScpiDevice {
                     Ok(readback) => {
                         if let Measurer::Simulator(sim) = &mut self.measurer {
                             // The simulated device follows the real voltages.
-                            if let Response::Error { message } = sim
+                            if let Response::Error { message, .. } = sim
                                 .execute(Request::SetVoltages {
                                     voltages_mv: readback.clone(),
                                 })
                                 .await
                             {
-                                return Response::Error {
-                                    message: format!(
-                                        "simulator refused the read-back voltages: {message}"
-                                    ),
-                                };
+                                return Response::error(format!(
+                                    "simulator refused the read-back voltages: {message}"
+                                ));
                             }
                         }
                         Response::VoltagesSet {

@@ -105,6 +105,14 @@ pub struct RecentPage {
 /// Waits before each attempt to store a run's `failed` status, ms.
 const FAILED_STATUS_RETRY_MS: [u64; 3] = [0, 200, 1_000];
 
+/// A `stopped` status the store refused is stored again every this many ms
+/// (the run is stopped in memory at once: nothing reaches the device).
+const STOPPED_STATUS_RETRY_MS: u64 = 2_000;
+
+/// ... at most this many times (one hour); after that a restart lists the
+/// run with its last stored status (never `running`: `interrupted`).
+const STOPPED_STATUS_RETRIES: u32 = 1_800;
+
 /// Schema version of [`Checkpoint`] written by this release. Checkpoints
 /// without a version were written by older releases (read as version 1).
 pub const CHECKPOINT_VERSION: u32 = 2;
@@ -479,6 +487,9 @@ fn session_config(config: &RunConfig, default_delay: Duration) -> SessionConfig 
     SessionConfig {
         readback_tolerance_mv,
         iteration_delay_ms: delay_ms,
+        moved_tolerance_mv: b
+            .moved_tolerance_mv
+            .unwrap_or(SessionConfig::default().moved_tolerance_mv),
     }
 }
 
@@ -694,8 +705,16 @@ impl Manager {
                     .control(&command)
                     .map_err(|e| RunError::Conflict(e.to_string()))?;
                 handle.set_summary(|s| s.status = new_status);
-                self.start_task(handle, Checkpoint::new(session, device))
-                    .await?;
+                if let Err(e) = self
+                    .start_task(handle, Checkpoint::new(session, device))
+                    .await
+                {
+                    // No task runs: the run is what it was (never a phantom
+                    // `running` nobody drives).
+                    let summary = handle.set_summary(|s| s.status = status.clone());
+                    handle.broadcast_status(summary);
+                    return Err(e);
+                }
                 Ok(handle.summary())
             }
             ControlCommand::Pause => match status {
@@ -707,8 +726,27 @@ impl Manager {
             },
             ControlCommand::Stop => match status {
                 RunStatus::Finished | RunStatus::Stopped => Ok(handle.summary()),
-                _ => self.set_status_offline(handle, RunStatus::Stopped).await,
+                _ => Ok(self.settle_stopped(handle, None).await),
             },
+            ControlCommand::AcceptPositions => {
+                // Only a faulted run has positions to accept; the session
+                // decides (it refuses every other status).
+                let checkpoint = self.load_checkpoint(handle).await?;
+                let scfg = session_config(&handle.config, self.options.iteration_delay);
+                let (mut session, device) = checkpoint.into_session(scfg)?;
+                if let RunStatus::Faulted { fault } = &status {
+                    session.restore_fault(fault.clone());
+                }
+                let new_status = session
+                    .control(&command)
+                    .map_err(|e| RunError::Conflict(format!("run {}: {e}", handle.id)))?;
+                let json = serde_json::to_string(&Checkpoint::new(session, device))
+                    .map_err(|e| RunError::Internal(e.to_string()))?;
+                let store = self.store.clone();
+                let id = handle.id;
+                blocking(move || store.save_checkpoint(id, None, &json)).await?;
+                self.set_status_offline(handle, new_status).await
+            }
             ControlCommand::SetTarget { .. } => {
                 if status == RunStatus::Stopped {
                     return Err(conflict("a stopped run takes no new targets"));
@@ -801,6 +839,44 @@ impl Manager {
             let summary = handle.set_summary(|s| s.status = status);
             handle.broadcast_status(summary);
         }
+    }
+
+    /// The run is stopped: at once in memory (and to viewers), and in the
+    /// store as soon as it takes the write (retried in the background every
+    /// [`STOPPED_STATUS_RETRY_MS`], at most [`STOPPED_STATUS_RETRIES`] times).
+    /// A stop always works: no task drives the run any more.
+    async fn settle_stopped(
+        self: &Arc<Self>,
+        handle: &Arc<RunHandle>,
+        generation: Option<u64>,
+    ) -> RunSummary {
+        let summary = handle.set_summary(|s| s.status = RunStatus::Stopped);
+        handle.broadcast_status(summary.clone());
+        if self
+            .store_status(handle, generation, RunStatus::Stopped)
+            .await
+            .is_ok()
+        {
+            return summary;
+        }
+        let (manager, handle) = (self.clone(), handle.clone());
+        tokio::spawn(async move {
+            for _ in 0..STOPPED_STATUS_RETRIES {
+                tokio::time::sleep(Duration::from_millis(STOPPED_STATUS_RETRY_MS)).await;
+                if handle.summary().status != RunStatus::Stopped {
+                    return;
+                }
+                match manager
+                    .store_status(&handle, generation, RunStatus::Stopped)
+                    .await
+                {
+                    Ok(()) => return,
+                    Err(e) if e.is_stale() || matches!(e, RunError::NotFound(_)) => return,
+                    Err(_) => {}
+                }
+            }
+        });
+        summary
     }
 
     /// Store a status (with `generation`: only for that task), no broadcast.

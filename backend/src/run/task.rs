@@ -40,9 +40,18 @@ impl RunTask {
     /// Drive the session until it is done; store `failed` if the store breaks.
     pub async fn run(mut self) {
         if let Err(Exit::Failed(message)) = self.drive().await {
-            self.manager
-                .fail_run(&self.handle, self.generation, message)
-                .await;
+            if self.session.status() == RunStatus::Stopped {
+                // A user stopped it and the store refused the status: it is
+                // stopped all the same (nothing more reaches the device), and
+                // stored as such when the store allows.
+                self.manager
+                    .settle_stopped(&self.handle, Some(self.generation))
+                    .await;
+            } else {
+                self.manager
+                    .fail_run(&self.handle, self.generation, message)
+                    .await;
+            }
         }
     }
 
@@ -61,9 +70,7 @@ impl RunTask {
                                     if handle_control(&mut self.session, &self.handle, msg) {
                                         // Stop: abandon the request (a ramp stops between
                                         // stages); nothing further reaches the device.
-                                        break Response::Error {
-                                            message: "stopped while the request was at the device".into(),
-                                        };
+                                        break Response::error("stopped while the request was at the device");
                                     }
                                 }
                             }
@@ -119,13 +126,15 @@ impl RunTask {
                     }
                 }
                 Output::Wait => {
-                    let faulted = matches!(self.session.status(), RunStatus::Faulted { .. });
+                    // Only a fault the policy lets clear on reconnect waits for
+                    // the device; every other waits for a person.
+                    let awaits_reconnect = self.session.awaits_reconnect();
                     let recovered = self.device.recovered();
                     tokio::select! {
                         msg = self.control.recv() => {
                             handle_control(&mut self.session, &self.handle, msg.ok_or(Exit::Quiet)?);
                         }
-                        _ = recovered, if faulted => {
+                        _ = recovered, if awaits_reconnect => {
                             self.session.device_recovered();
                         }
                     }

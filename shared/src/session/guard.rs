@@ -9,6 +9,16 @@
 //!   fault, or for a swept gate after its sweep.
 //! * A set answer is accepted only if it carries exactly the requested gates,
 //!   every value finite and within `readback_tolerance_mv` of the set value.
+//! * A read answer is **plausible** or refused: exactly the requested gates,
+//!   every value finite and inside the gate's limits (± the read-back
+//!   tolerance), and within `moved_tolerance_mv` of where the run left the
+//!   gate. "Where the run left it" is a range per gate, serialized with the
+//!   checkpoint (unlike the read-backs): the last accepted read-back, widened
+//!   to every voltage a request sent since may have visited (a sweep's range,
+//!   the path of a move whose answer was refused or lost). A gate that reads
+//!   outside that range is a [`ReadbackError::Moved`], which a person clears
+//!   ([`Guard::accept_positions`]); a new run (nothing left yet) trusts a
+//!   plausible first read-back.
 //! * Every voltage a request can visit is checked: each gate of a move and
 //!   every point of a sweep lies within the gate's limits; a move's step and
 //!   a sweep's first point lie within `max_step_mv` of the read-back; the
@@ -20,7 +30,7 @@ use std::collections::{BTreeMap, BTreeSet};
 
 use serde::{Deserialize, Serialize};
 
-use crate::protocol::{Request, Sweep};
+use crate::protocol::{MovedGate, Request, Sweep};
 use crate::safety::{SafetyError, SafetyLimits};
 use crate::tuner::MAX_SWEEP_POINTS;
 
@@ -42,6 +52,30 @@ pub enum ReadbackError {
         /// Reported value, mV.
         value_mv: f64,
     },
+    /// A read-back lies outside the gate's limits (an instrument that reports
+    /// this is faulty, or the gate was moved outside them by hand).
+    #[error(
+        "gate {gate}: read-back {value_mv} mV lies outside its limits [{min_mv}, {max_mv}] mV"
+    )]
+    OutOfLimits {
+        /// Gate name.
+        gate: String,
+        /// Reported value, mV.
+        value_mv: f64,
+        /// Lower limit, mV.
+        min_mv: f64,
+        /// Upper limit, mV.
+        max_mv: f64,
+    },
+    /// Gates read farther than the moved tolerance from where the run left
+    /// them: a person must confirm the new positions (or move them back).
+    #[error("{}", moved_message(.moved, *.tolerance_mv))]
+    Moved {
+        /// Every such gate with both positions.
+        moved: Vec<MovedGate>,
+        /// The allowed distance, mV.
+        tolerance_mv: f64,
+    },
     /// The read-back differs from the set value by more than the tolerance.
     #[error(
         "gate {gate}: set {set_mv:.6} mV, read back {read_mv:.6} mV (tolerance {tolerance_mv} mV)"
@@ -58,12 +92,78 @@ pub enum ReadbackError {
     },
 }
 
-/// Gate limits plus the instrument's last read-back of each gate.
+fn moved_message(moved: &[MovedGate], tolerance_mv: f64) -> String {
+    let gates: Vec<String> = moved
+        .iter()
+        .map(|m| {
+            let left = if m.left_from_mv == m.left_to_mv {
+                format!("{:.3} mV", m.left_from_mv)
+            } else {
+                format!("[{:.3}, {:.3}] mV", m.left_from_mv, m.left_to_mv)
+            };
+            format!("{} was left at {left}, reads {:.3} mV", m.gate, m.read_mv)
+        })
+        .collect();
+    format!(
+        "{} (more than {tolerance_mv} mV away); nothing was moved: confirm the new positions (accept_positions) or put the gates back and resume",
+        gates.join("; ")
+    )
+}
+
+/// Where the run left a gate: a range of voltages, mV (`lo_mv == hi_mv` for
+/// an accepted read-back).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Span {
+    /// Lower end, mV.
+    pub lo_mv: f64,
+    /// Upper end, mV.
+    pub hi_mv: f64,
+}
+
+impl Span {
+    /// The single voltage `mv`.
+    pub fn point(mv: f64) -> Self {
+        Self {
+            lo_mv: mv,
+            hi_mv: mv,
+        }
+    }
+
+    /// The smallest range holding this one and `mv`.
+    pub fn with(self, mv: f64) -> Self {
+        Self {
+            lo_mv: self.lo_mv.min(mv),
+            hi_mv: self.hi_mv.max(mv),
+        }
+    }
+
+    /// Distance of `mv` from the range, mV (0 inside).
+    pub fn distance_mv(self, mv: f64) -> f64 {
+        (self.lo_mv - mv).max(mv - self.hi_mv).max(0.0)
+    }
+}
+
+/// Default of [`Guard`]'s moved tolerance for checkpoints written before it
+/// existed, mV.
+fn default_moved_tolerance_mv() -> f64 {
+    1.0
+}
+
+/// Gate limits plus the instrument's last read-back of each gate and where
+/// the run left each gate.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Guard {
     limits: SafetyLimits,
     /// Largest accepted |read-back − set value|, mV.
     tolerance_mv: f64,
+    /// Largest accepted distance of a read-back from where the run left the
+    /// gate, mV.
+    #[serde(default = "default_moved_tolerance_mv")]
+    moved_tolerance_mv: f64,
+    /// Where the run left each gate (serialized: a restored run compares the
+    /// instrument with it). Empty for a new run.
+    #[serde(default)]
+    left_mv: BTreeMap<String, Span>,
     /// Last accepted read-back per gate, mV. Not serialized: after a restore
     /// the instrument must be asked again.
     #[serde(skip)]
@@ -71,12 +171,63 @@ pub struct Guard {
 }
 
 impl Guard {
-    /// A guard that knows no gate's position yet.
-    pub fn new(limits: SafetyLimits, tolerance_mv: f64) -> Self {
+    /// A guard that knows no gate's position yet. `tolerance_mv`: largest
+    /// |read-back − set value|; `moved_tolerance_mv`: largest distance of a
+    /// read-back from where the run left the gate (both mV).
+    pub fn new(limits: SafetyLimits, tolerance_mv: f64, moved_tolerance_mv: f64) -> Self {
         Self {
             limits,
             tolerance_mv,
+            moved_tolerance_mv,
+            left_mv: BTreeMap::new(),
             readback_mv: BTreeMap::new(),
+        }
+    }
+
+    /// Where the run left each gate (gates never read are absent).
+    pub fn left_mv(&self) -> &BTreeMap<String, Span> {
+        &self.left_mv
+    }
+
+    /// A person confirmed these positions (the gates of a
+    /// [`ReadbackError::Moved`]): the run left the gates there. They are read
+    /// again before anything moves.
+    pub fn accept_positions(&mut self, moved: &[MovedGate]) {
+        for m in moved {
+            self.left_mv.insert(m.gate.clone(), Span::point(m.read_mv));
+            self.readback_mv.remove(&m.gate);
+        }
+    }
+
+    /// `request` is being answered: every voltage it may have set is where
+    /// the run may have left its gates (until an answer says exactly where).
+    pub fn may_have_visited(&mut self, request: &Request) {
+        let mut widen = |gate: &str, mv: f64| {
+            if !mv.is_finite() {
+                return;
+            }
+            let span = match self.left_mv.get(gate) {
+                Some(s) => s.with(mv),
+                None => match self.readback_mv.get(gate) {
+                    Some(&r) => Span::point(r).with(mv),
+                    None => Span::point(mv),
+                },
+            };
+            self.left_mv.insert(gate.to_string(), span);
+        };
+        match request {
+            Request::SetVoltages { voltages_mv } => {
+                for (g, &v) in voltages_mv {
+                    widen(g, v);
+                }
+            }
+            Request::Measure { scan } => {
+                if let Some(s) = &scan.sweep {
+                    widen(&s.gate, s.from_mv);
+                    widen(&s.gate, s.to_mv);
+                }
+            }
+            Request::ReadVoltages { .. } | Request::TrueJacobian { .. } => {}
         }
     }
 
@@ -181,6 +332,7 @@ impl Guard {
             Ok(()) => {
                 for (g, &v) in answered {
                     self.readback_mv.insert(g.clone(), v);
+                    self.left_mv.insert(g.clone(), Span::point(v));
                 }
             }
             Err(_) => {
@@ -218,26 +370,74 @@ impl Guard {
         Ok(())
     }
 
-    /// Take the answer to a read request (exactly the requested gates, finite).
+    /// Take the answer to a read request: exactly the requested gates, every
+    /// value finite, inside the gate's limits (± the read-back tolerance) and
+    /// within the moved tolerance of where the run left the gate. On `Err`
+    /// nothing is adopted and the requested gates are unknown.
     pub fn accept_read(
         &mut self,
+        requested: &[String],
+        answered: &BTreeMap<String, f64>,
+    ) -> Result<(), ReadbackError> {
+        let result = self.validate_read(requested, answered);
+        match &result {
+            Ok(()) => {
+                for (g, &v) in answered {
+                    self.readback_mv.insert(g.clone(), v);
+                    self.left_mv.insert(g.clone(), Span::point(v));
+                }
+            }
+            Err(_) => {
+                for g in requested {
+                    self.readback_mv.remove(g);
+                }
+            }
+        }
+        result
+    }
+
+    fn validate_read(
+        &self,
         requested: &[String],
         answered: &BTreeMap<String, f64>,
     ) -> Result<(), ReadbackError> {
         same_gates(requested.iter(), answered)?;
         for (gate, &v) in answered {
             if !v.is_finite() {
-                for g in requested {
-                    self.readback_mv.remove(g);
-                }
                 return Err(ReadbackError::NotFinite {
                     gate: gate.clone(),
                     value_mv: v,
                 });
             }
+            if let Some(spec) = self.limits.gate(gate) {
+                let slack = self.tolerance_mv;
+                if v < spec.min_mv - slack || v > spec.max_mv + slack {
+                    return Err(ReadbackError::OutOfLimits {
+                        gate: gate.clone(),
+                        value_mv: v,
+                        min_mv: spec.min_mv,
+                        max_mv: spec.max_mv,
+                    });
+                }
+            }
         }
-        for (g, &v) in answered {
-            self.readback_mv.insert(g.clone(), v);
+        let moved: Vec<MovedGate> = answered
+            .iter()
+            .filter_map(|(gate, &v)| {
+                let span = *self.left_mv.get(gate)?;
+                (span.distance_mv(v) > self.moved_tolerance_mv).then(|| MovedGate {
+                    gate: gate.clone(),
+                    left_from_mv: span.lo_mv,
+                    left_to_mv: span.hi_mv,
+                    read_mv: v,
+                })
+            })
+            .collect();
+        if !moved.is_empty() {
+            return Err(ReadbackError::Moved {
+                moved,
+                tolerance_mv: self.moved_tolerance_mv,
+            });
         }
         Ok(())
     }
@@ -294,7 +494,13 @@ mod tests {
     use crate::protocol::{ScanKind, ScanRequest};
     use crate::safety::GateSpec;
 
+    /// A guard that tolerates any move of a gate between reads (the moved
+    /// check has its own test).
     fn guard() -> Guard {
+        guard_with_moved_tolerance(100.0)
+    }
+
+    fn guard_with_moved_tolerance(moved_tolerance_mv: f64) -> Guard {
         let spec = |name: &str| GateSpec {
             name: name.into(),
             min_mv: -100.0,
@@ -302,7 +508,11 @@ mod tests {
             max_step_mv: 10.0,
             initial_mv: 0.0,
         };
-        Guard::new(SafetyLimits::new(&[spec("A"), spec("B")]), 0.05)
+        Guard::new(
+            SafetyLimits::new(&[spec("A"), spec("B")]),
+            0.05,
+            moved_tolerance_mv,
+        )
     }
 
     fn set(pairs: &[(&str, f64)]) -> BTreeMap<String, f64> {
@@ -403,6 +613,83 @@ mod tests {
         ));
         g.after_request(&sweep(90.0, 80.0, 11));
         assert!(!g.readback_mv().contains_key("A"));
+    }
+
+    #[test]
+    fn read_backs_must_be_plausible_and_near_where_the_run_left_the_gate() {
+        let mut g = guard_with_moved_tolerance(1.0);
+        // a new run trusts a plausible first read
+        g.accept_read(&["A".into(), "B".into()], &set(&[("A", 3.0), ("B", -2.0)]))
+            .unwrap();
+        for lie in [f64::NAN, f64::INFINITY, 1e308, 9.91e40, 100.1, -105.0] {
+            let e = g
+                .accept_read(&["A".into()], &set(&[("A", lie)]))
+                .unwrap_err();
+            assert!(
+                matches!(
+                    e,
+                    ReadbackError::NotFinite { .. } | ReadbackError::OutOfLimits { .. }
+                ),
+                "{lie}: {e}"
+            );
+            assert!(
+                !g.readback_mv().contains_key("A"),
+                "a refused read is forgotten"
+            );
+        }
+        // at the limit ± the read-back tolerance is fine (DAC rounding)
+        let mut edge = guard_with_moved_tolerance(100.0);
+        edge.accept_read(&["A".into()], &set(&[("A", 100.04)]))
+            .unwrap();
+        // 0.9 mV from where it was left: adopted; 1.5 mV: moved
+        g.accept_read(&["A".into()], &set(&[("A", 3.9)])).unwrap();
+        let e = g
+            .accept_read(&["A".into(), "B".into()], &set(&[("A", 5.4), ("B", 40.0)]))
+            .unwrap_err();
+        let ReadbackError::Moved {
+            moved,
+            tolerance_mv,
+        } = &e
+        else {
+            panic!("{e}")
+        };
+        assert_eq!(*tolerance_mv, 1.0);
+        assert_eq!(
+            moved
+                .iter()
+                .map(|m| (m.gate.as_str(), m.left_from_mv, m.read_mv))
+                .collect::<Vec<_>>(),
+            vec![("A", 3.9, 5.4), ("B", -2.0, 40.0)]
+        );
+        assert!(
+            e.to_string()
+                .contains("B was left at -2.000 mV, reads 40.000 mV"),
+            "{e}"
+        );
+        // nothing adopted; confirming adopts the new positions as where the run left them
+        assert!(g.readback_mv().is_empty());
+        g.accept_positions(moved);
+        assert_eq!(g.left_mv()["B"], Span::point(40.0));
+        g.accept_read(&["A".into(), "B".into()], &set(&[("A", 5.4), ("B", 40.0)]))
+            .unwrap();
+        // a move whose answer was lost may have left the gate anywhere on its path
+        let req = Request::SetVoltages {
+            voltages_mv: set(&[("A", 12.0)]),
+        };
+        g.may_have_visited(&req);
+        assert_eq!(
+            g.left_mv()["A"],
+            Span {
+                lo_mv: 5.4,
+                hi_mv: 12.0
+            }
+        );
+        g.forget_all();
+        g.accept_read(&["A".into()], &set(&[("A", 9.0)])).unwrap();
+        assert_eq!(g.left_mv()["A"], Span::point(9.0));
+        // and a restored guard still knows where the run left the gates
+        let back: Guard = serde_json::from_str(&serde_json::to_string(&g).unwrap()).unwrap();
+        assert_eq!(back.left_mv(), g.left_mv());
     }
 
     #[test]

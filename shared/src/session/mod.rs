@@ -26,8 +26,14 @@
 //!   against the instrument's last read-back; every gate is read back on
 //!   start, after a restore and on every resume;
 //! * a read-back that carries gates not requested, lacks requested gates,
-//!   holds non-finite values or differs from the set value beyond the
-//!   tolerance pauses the run with a [`Fault`] and is not believed;
+//!   holds non-finite values or values outside the gate's limits, or differs
+//!   from the set value beyond the tolerance pauses the run with a [`Fault`]
+//!   and is not believed; a gate that reads far from where the run left it
+//!   (after a restore, resume or reconnect) faults with [`FaultKind::Moved`]
+//!   until a person confirms the positions ([`ControlCommand::AcceptPositions`]);
+//! * faults follow the policy of [`FaultKind::cleared_by`]: only a
+//!   disconnected device's fault clears by itself
+//!   ([`RunSession::device_recovered`]), every other waits for a person;
 //! * after `stop` is acknowledged no request is issued;
 //! * iteration numbers are contiguous and unique, also across a restore.
 //!
@@ -65,7 +71,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::parameter::Tolerance;
 use crate::protocol::{
-    ControlCommand, Fault, FaultKind, IterationRecord, Request, Response, RunStatus,
+    ClearedBy, ControlCommand, ErrorCause, Fault, FaultKind, IterationRecord, Request, Response,
+    RunStatus,
 };
 use crate::safety::SafetyLimits;
 use crate::tuner::{Action, ConfigError, Tuner, TunerConfig, TunerError};
@@ -83,6 +90,12 @@ pub struct SessionConfig {
     pub readback_tolerance_mv: f64,
     /// Wall-clock pause after each iteration while running, ms (0: none).
     pub iteration_delay_ms: u64,
+    /// Largest accepted distance of a gate's read-back from where the run
+    /// left it, mV, checked whenever the session reads the instrument (on a
+    /// restore, resume or reconnect every gate). Farther is a
+    /// [`FaultKind::Moved`] fault. A lie smaller than this can add at most
+    /// this much to one physical step.
+    pub moved_tolerance_mv: f64,
 }
 
 impl Default for SessionConfig {
@@ -90,6 +103,7 @@ impl Default for SessionConfig {
         Self {
             readback_tolerance_mv: 0.05,
             iteration_delay_ms: 0,
+            moved_tolerance_mv: 1.0,
         }
     }
 }
@@ -100,6 +114,8 @@ impl SessionConfig {
     /// Upper bound of [`SessionConfig::readback_tolerance_mv`], mV (a wider
     /// tolerance would let the guard accept any read-back: invariant 5).
     pub const MAX_READBACK_TOLERANCE_MV: f64 = 100.0;
+    /// Upper bound of [`SessionConfig::moved_tolerance_mv`], mV.
+    pub const MAX_MOVED_TOLERANCE_MV: f64 = 100.0;
 
     /// Check the values; the error names the field.
     pub fn validate(&self) -> Result<(), ConfigError> {
@@ -109,6 +125,15 @@ impl SessionConfig {
                 format!(
                     "must be a finite number ≥ 0 (mV), at most {} mV",
                     Self::MAX_READBACK_TOLERANCE_MV
+                ),
+            ));
+        }
+        if !(0.0..=Self::MAX_MOVED_TOLERANCE_MV).contains(&self.moved_tolerance_mv) {
+            return Err(ConfigError::new(
+                "moved_tolerance_mv",
+                format!(
+                    "must be a finite number ≥ 0 (mV), at most {} mV",
+                    Self::MAX_MOVED_TOLERANCE_MV
                 ),
             ));
         }
@@ -253,6 +278,7 @@ impl RunSession {
         let guard = Guard::new(
             SafetyLimits::new(&tuner.config().gates),
             config.readback_tolerance_mv,
+            config.moved_tolerance_mv,
         );
         Self {
             tuner,
@@ -377,10 +403,10 @@ impl RunSession {
                     return Output::Execute(Request::ReadVoltages { gates });
                 }
                 if let Err(e) = self.guard.check(&request) {
-                    self.set_fault(
+                    self.set_fault(Fault::new(
                         FaultKind::Safety,
                         format!("refused before it reached the device: {e}"),
-                    );
+                    ));
                     return self.poll();
                 }
                 self.in_flight = Some(InFlight::Tuner(request.clone()));
@@ -423,12 +449,21 @@ impl RunSession {
             .in_flight
             .take()
             .ok_or(SessionError::NothingOutstanding)?;
-        if let Response::Error { message } = &response {
+        if let InFlight::Tuner(request) = &in_flight {
+            // Whatever the answer, the gates may be anywhere the request
+            // could take them until an accepted answer says exactly where.
+            self.guard.may_have_visited(request);
+        }
+        if let Response::Error { message, cause } = &response {
             if let InFlight::Tuner(request) = &in_flight {
                 self.guard.after_request(request);
             }
             self.guard.forget_all();
-            self.set_fault(FaultKind::Device, message.clone());
+            let kind = match cause {
+                ErrorCause::Disconnected => FaultKind::Disconnected,
+                ErrorCause::Instrument => FaultKind::Device,
+            };
+            self.set_fault(Fault::new(kind, message.clone()));
             return Ok(());
         }
         match in_flight {
@@ -443,8 +478,23 @@ impl RunSession {
                             self.tuner
                                 .adopt_readback(&voltages_mv, self.config.readback_tolerance_mv);
                         }
+                        Err(guard::ReadbackError::Moved { moved, .. }) => {
+                            let message = format!(
+                                "read_voltages: {}",
+                                guard::ReadbackError::Moved {
+                                    moved: moved.clone(),
+                                    tolerance_mv: self.config.moved_tolerance_mv,
+                                }
+                            );
+                            let mut fault = Fault::new(FaultKind::Moved, message);
+                            fault.moved = moved;
+                            self.set_fault(fault);
+                        }
                         Err(e) => {
-                            self.set_fault(FaultKind::Readback, format!("read_voltages: {e}"));
+                            self.set_fault(Fault::new(
+                                FaultKind::Readback,
+                                format!("read_voltages: {e}"),
+                            ));
                         }
                     }
                 }
@@ -470,12 +520,15 @@ impl RunSession {
                 ) = (&request, &response)
                 {
                     if let Err(e) = self.guard.accept_set(requested, voltages_mv) {
-                        self.set_fault(FaultKind::Readback, format!("set_voltages: {e}"));
+                        self.set_fault(Fault::new(
+                            FaultKind::Readback,
+                            format!("set_voltages: {e}"),
+                        ));
                         return Ok(());
                     }
                 }
                 if let Err(e) = self.tuner.feed(response) {
-                    self.set_fault(FaultKind::Response, e.to_string());
+                    self.set_fault(Fault::new(FaultKind::Response, e.to_string()));
                 }
             }
         }
@@ -487,39 +540,63 @@ impl RunSession {
 
     fn wrong_answer(&mut self, expected: &str, got: &Response) {
         self.guard.forget_all();
-        self.set_fault(
+        self.set_fault(Fault::new(
             FaultKind::Response,
             format!(
                 "answered `{}` to a `{expected}` request",
                 response_name(got)
             ),
-        );
+        ));
     }
 
     /// Pause with a fault (a stop in progress wins: the run just stops).
-    fn set_fault(&mut self, kind: FaultKind, message: String) {
+    fn set_fault(&mut self, fault: Fault) {
         self.mode = match self.mode {
             Mode::Stopping | Mode::Stopped => Mode::Stopped,
-            _ => Mode::Faulted(Fault { kind, message }),
+            _ => Mode::Faulted(fault),
         };
     }
 
-    /// The device recovered by itself (e.g. the lab bridge reconnected): a
-    /// faulted run resumes (after reading every gate back). Returns whether
-    /// it did; a run paused by a user stays paused.
+    /// The device is reachable again by itself (e.g. the lab bridge
+    /// reconnected). Only a fault the policy lets clear on reconnect
+    /// ([`FaultKind::Disconnected`], see [`FaultKind::cleared_by`]) resumes
+    /// the run (after reading every gate back, with every plausibility
+    /// check); every other fault, and a run paused by a user, stays as it is.
+    /// Returns whether the run resumed.
     pub fn device_recovered(&mut self) -> bool {
-        if matches!(self.mode, Mode::Faulted(_)) {
-            self.resume(Mode::Running);
-            true
-        } else {
-            false
+        match &self.mode {
+            Mode::Faulted(f) if f.kind.cleared_by() == ClearedBy::Reconnect => {
+                self.resume(Mode::Running);
+                true
+            }
+            _ => false,
         }
+    }
+
+    /// A fault recorded after the session's last checkpoint (a server stores
+    /// statuses apart from checkpoints): the restored session is faulted
+    /// with it, so that what clears it ([`FaultKind::cleared_by`]) still
+    /// applies. A finished or stopped session stays as it is.
+    pub fn restore_fault(&mut self, fault: Fault) {
+        if !matches!(self.mode, Mode::Finished | Mode::Stopped | Mode::Stopping) {
+            self.mode = Mode::Faulted(fault);
+        }
+    }
+
+    /// Whether the run waits for the device to reconnect (a fault that
+    /// [`RunSession::device_recovered`] would clear).
+    pub fn awaits_reconnect(&self) -> bool {
+        matches!(&self.mode, Mode::Faulted(f) if f.kind.cleared_by() == ClearedBy::Reconnect)
     }
 
     fn resume(&mut self, mode: Mode) {
         // Wherever the instrument is now, it is read before anything moves.
         self.guard.forget_all();
         self.mode = mode;
+        // The pause between iterations is not skipped by pausing and resuming.
+        if self.at_boundary && self.in_flight.is_none() {
+            self.sleep_due = true;
+        }
     }
 
     /// Apply a control command. Pause, stop and target changes take effect
@@ -554,6 +631,19 @@ impl RunSession {
                     Mode::Finished => return Err(conflict(self, "the run has finished")),
                 }
             }
+            ControlCommand::AcceptPositions => match &self.mode {
+                Mode::Faulted(f) if f.kind == FaultKind::Moved => {
+                    let moved = f.moved.clone();
+                    self.guard.accept_positions(&moved);
+                    self.mode = Mode::Paused;
+                }
+                _ => {
+                    return Err(conflict(
+                        self,
+                        "only a run faulted because gates moved has positions to accept",
+                    ))
+                }
+            },
             ControlCommand::Stop => match self.mode {
                 Mode::Stopped | Mode::Stopping | Mode::Finished => {}
                 _ if self.in_flight.is_some() => self.mode = Mode::Stopping,

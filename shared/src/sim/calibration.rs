@@ -94,7 +94,7 @@ pub fn calibrate_reference(
                 } => scan,
                 other => {
                     let reason = match other {
-                        Response::Error { message } => message,
+                        Response::Error { message, .. } => message,
                         Response::Scanned {
                             outcome: ScanOutcome::Failed { reason },
                             ..

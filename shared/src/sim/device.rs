@@ -241,7 +241,7 @@ impl SimulatedDevice {
                     voltages_mv: readback,
                     lab_seconds: self.config.durations.set_voltages_s,
                 },
-                Err(message) => Response::Error { message },
+                Err(message) => Response::error(message),
             },
             Request::ReadVoltages { gates } => {
                 // A read takes no simulated lab time and draws no random
@@ -250,11 +250,7 @@ impl SimulatedDevice {
                 for g in gates {
                     match self.voltages_mv.get(g) {
                         Some(&v) => voltages_mv.insert(g.clone(), v),
-                        None => {
-                            return Response::Error {
-                                message: format!("unknown gate {g:?}"),
-                            }
-                        }
+                        None => return Response::error(format!("unknown gate {g:?}")),
                     };
                 }
                 Response::VoltagesRead {
@@ -274,11 +270,10 @@ impl SimulatedDevice {
             },
             Request::TrueJacobian { .. } if self.truth_sealed => {
                 self.truth_queries += 1;
-                Response::Error {
-                    message: "the true Jacobian is sealed on this device: only the oracle \
-                        may read the simulator's truth (ARCHITECTURE.md invariant 7)"
-                        .into(),
-                }
+                Response::error(
+                    "the true Jacobian is sealed on this device: only the oracle \
+                        may read the simulator's truth (ARCHITECTURE.md invariant 7)",
+                )
             }
             Request::TrueJacobian { gates, parameters } => {
                 self.truth_queries += 1;
@@ -293,10 +288,8 @@ impl SimulatedDevice {
                             .map(|r| j.row(r).iter().copied().collect())
                             .collect(),
                     },
-                    (_, Err(message)) => Response::Error { message },
-                    (None, Ok(_)) => Response::Error {
-                        message: "unknown parameter".into(),
-                    },
+                    (_, Err(message)) => Response::error(message),
+                    (None, Ok(_)) => Response::error("unknown parameter"),
                 }
             }
         }

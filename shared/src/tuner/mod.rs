@@ -513,7 +513,7 @@ impl Tuner {
     /// same request will be polled again.
     pub fn feed(&mut self, response: Response) -> Result<(), TunerError> {
         let pending = self.pending.as_ref().ok_or(TunerError::NothingPending)?;
-        if let Response::Error { message } = &response {
+        if let Response::Error { message, .. } = &response {
             return Err(TunerError::Device(message.clone()));
         }
         match (pending, response) {

@@ -110,9 +110,9 @@ impl Toy {
                     lab_seconds: 10.0,
                 }
             }
-            Request::TrueJacobian { .. } | Request::ReadVoltages { .. } => Response::Error {
-                message: "toy has no oracle and is not read back (the tuner never asks)".into(),
-            },
+            Request::TrueJacobian { .. } | Request::ReadVoltages { .. } => {
+                Response::error("toy has no oracle and is not read back (the tuner never asks)")
+            }
         }
     }
 }
@@ -477,9 +477,7 @@ fn device_error_keeps_request_pending() {
         panic!()
     };
     let before = tuner.clone();
-    let err = tuner.feed(Response::Error {
-        message: "bridge timed out".into(),
-    });
+    let err = tuner.feed(Response::error("bridge timed out"));
     assert!(matches!(err, Err(TunerError::Device(_))));
     assert_eq!(tuner, before);
     assert_eq!(tuner.poll(), Action::Request(first));

@@ -591,9 +591,14 @@ class QcodesTuner:
         (the user asked for a pause); for another exception a fault it caused
         stays visible. Idempotent."""
         session = self.session
-        what = "the run was interrupted" if exc is None else f"{type(exc).__name__} in run()"
-        if isinstance(exc, KeyboardInterrupt):
+        if exc is None:
+            what = "run() found a request unanswered (left by a driver outside run())"
+        elif isinstance(exc, KeyboardInterrupt):
             what = "interrupted by the user (KeyboardInterrupt)"
+        else:
+            text = str(exc)
+            text = text if len(text) <= 300 else text[:300] + "…"
+            what = f"{type(exc).__name__} in run(): {text}" if text else f"{type(exc).__name__} in run()"
         fed = False
         if session.has_request_in_flight:
             session.feed(

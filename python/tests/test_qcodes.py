@@ -426,6 +426,23 @@ def test_exception_from_a_parameter_faults_and_is_read_again(station):
     check_instrument_log(dac, tuner.limits, start_mv)
 
 
+def test_a_malformed_scan_result_faults_and_is_read_again(station):
+    # The answer cannot even be fed (ValueError from the session): the request
+    # stays unanswered until run() reports it as a device fault.
+    dac = station["dac"]
+    start_mv = dict(station["device"].voltages_mv)
+    scans = dict(station["scans"], reload_time=lambda scan: {"t_sr": ("twenty", 0.25)})
+    tuner = QcodesTuner(station["gates"], scans, {"max_iterations": 2}, experiment=station["exp"], **FAST)
+    with pytest.raises(ValueError):
+        tuner.run()
+    assert tuner.status["state"] == "faulted" and tuner.status["fault"]["kind"] == "device"
+    assert "ValueError in run()" in tuner.status["fault"]["message"]
+    assert not tuner.session.has_request_in_flight
+    tuner._scans["reload_time"] = station["scans"]["reload_time"]
+    run_after_a_turned_knob(tuner, station, "N", -40.0)
+    check_instrument_log(dac, tuner.limits, start_mv)
+
+
 # -- issue 20: read-back checks that prove nothing, the instrument's own ramp ---
 
 

@@ -44,6 +44,7 @@ class SimulatedDac(Instrument):
         self.log = []  # ("set", gate, mV) / ("get", gate) / ("knob", gate, mV)
         self.interrupt_on_set = None  # (gate, n): the n-th set of gate raises KeyboardInterrupt
         self.interrupt_snapshot = False  # the next snapshot raises KeyboardInterrupt
+        self.fail_on_get = None  # (gate, n): the n-th get of gate raises OSError
         for gate, (lo, hi) in ranges_v.items():
             self.add_parameter(
                 gate,
@@ -81,6 +82,11 @@ class SimulatedDac(Instrument):
             raise RuntimeError(r["message"])
 
     def _get(self, gate):
+        if self.fail_on_get is not None and self.fail_on_get[0] == gate:
+            g, n = self.fail_on_get
+            self.fail_on_get = (g, n - 1) if n > 1 else None
+            if n == 1:
+                raise OSError("VISA timeout")
         self.log.append(("get", gate))
         return self.device.voltages_mv[gate] / 1000.0
 
@@ -407,19 +413,10 @@ def test_exception_from_a_parameter_faults_and_is_read_again(station):
     dac = station["dac"]
     start_mv = dict(station["device"].voltages_mv)
     tuner = QcodesTuner(station["gates"], station["scans"], {"max_iterations": 2}, experiment=station["exp"], **FAST)
-    real_get = dac.T.get_raw
-    calls = {"n": 0}
-
-    def flaky():
-        calls["n"] += 1
-        if calls["n"] == 3:
-            raise OSError("VISA timeout")
-        return real_get()
-
-    dac.T.get_raw = flaky
-    dac.T.get = dac.T._wrap_get(flaky)
+    dac.fail_on_get = ("T", 3)  # the third read of T (a read-back after a set) times out
     with pytest.raises(OSError, match="VISA timeout"):
         tuner.run()
+    assert dac.fail_on_get is None
     assert tuner.status["state"] == "faulted" and tuner.status["fault"]["kind"] == "device"
     assert not tuner.session.has_request_in_flight
     run_after_a_turned_knob(tuner, station, "T", 40.0)

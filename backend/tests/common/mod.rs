@@ -3,6 +3,8 @@
 //! bounded in time.
 #![allow(dead_code)]
 
+pub mod bridge_client;
+
 use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
 use std::path::PathBuf;

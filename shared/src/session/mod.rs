@@ -473,8 +473,13 @@ impl RunSession {
                     lab_seconds,
                 } => {
                     self.tuner.charge_lab_time(lab_seconds);
+                    let first_positions = self.guard.left_mv().is_empty();
                     match self.guard.accept_read(&gates, &voltages_mv) {
                         Ok(()) => {
+                            // A new run now knows where its gates are: persist it,
+                            // so a crash before the first iteration is committed
+                            // still compares the instrument with it on restore.
+                            self.save_due |= first_positions;
                             self.tuner
                                 .adopt_readback(&voltages_mv, self.config.readback_tolerance_mv);
                         }

@@ -288,12 +288,20 @@ fn describe(request: &Request) -> String {
 /// run session's guard (the one choke point), not here.
 fn attribute(request: &Request, response: Response, id: u64) -> Response {
     match response {
-        Response::Error { message, .. } => DeviceError::BridgeReported {
-            id,
-            request: describe(request),
-            message,
+        Response::Error { message, cause } => {
+            let text = DeviceError::BridgeReported {
+                id,
+                request: describe(request),
+                message,
+            }
+            .to_string();
+            // The script says whether its instrument is unreachable (clears
+            // on reconnect) or reported a problem (needs a person; the default).
+            Response::Error {
+                message: text,
+                cause,
+            }
         }
-        .into_response(),
         other => other,
     }
 }

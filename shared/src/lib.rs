@@ -26,6 +26,7 @@ pub mod driver;
 pub mod estimator;
 pub mod fit;
 pub mod kalman;
+pub mod lifecycle;
 pub mod parameter;
 pub mod protocol;
 pub mod safety;

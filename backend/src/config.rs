@@ -183,6 +183,10 @@ impl RunConfig {
                     ConfigParseError(format!("invalid config at `{path}`: {inner}"))
                 }
             })?;
+        // The tuner as given first (an error names what is wrong with it,
+        // not a device gate or a target that no longer fits), then the
+        // device's gate names, then everything with the targets applied.
+        simulation.tuner.validate().map_err(|e| e.within("tuner"))?;
         check_device_gates(user_device.as_ref(), &simulation.tuner.gates)?;
         apply_targets(&mut simulation, &backend)?;
         simulation.validate()?;

@@ -400,27 +400,6 @@ impl TunerConfig {
                 "the top level must be `newton`",
             ));
         }
-        for (i, entry) in self.schedule.iter().enumerate() {
-            for (name, &t) in &entry.targets {
-                let field = format!("schedule[{i}].targets.{name}");
-                let spec = self.levels.iter().find_map(|l| match &l.kind {
-                    LevelKind::Newton(n) => n.parameters.iter().find(|p| &p.name == name),
-                    LevelKind::SensingDot(_) => None,
-                });
-                let Some(spec) = spec else {
-                    return Err(ConfigError::new(
-                        field,
-                        format!("unknown parameter {name:?}"),
-                    ));
-                };
-                if spec.transform.forward_value(t).is_none() {
-                    return Err(ConfigError::new(
-                        field,
-                        "must be a finite number (> 0 in log space)",
-                    ));
-                }
-            }
-        }
         for (parameter, r) in [
             ("w", &self.fit_references.w),
             ("t_sr", &self.fit_references.t_sr),
@@ -532,6 +511,29 @@ impl TunerConfig {
                 }
                 LevelKind::Newton(n) => {
                     validate_newton(n, &has_gate).map_err(|e| e.within(&format!("levels[{li}]")))?
+                }
+            }
+        }
+        // Scheduled targets last: a level's own error (e.g. no parameters)
+        // is named before a target that no longer fits it.
+        for (i, entry) in self.schedule.iter().enumerate() {
+            for (name, &t) in &entry.targets {
+                let field = format!("schedule[{i}].targets.{name}");
+                let spec = self.levels.iter().find_map(|l| match &l.kind {
+                    LevelKind::Newton(n) => n.parameters.iter().find(|p| &p.name == name),
+                    LevelKind::SensingDot(_) => None,
+                });
+                let Some(spec) = spec else {
+                    return Err(ConfigError::new(
+                        field,
+                        format!("unknown parameter {name:?}"),
+                    ));
+                };
+                if spec.transform.forward_value(t).is_none() {
+                    return Err(ConfigError::new(
+                        field,
+                        "must be a finite number (> 0 in log space)",
+                    ));
                 }
             }
         }

@@ -235,6 +235,10 @@ pub async fn serve(
     tls: Option<TlsAcceptor>,
 ) {
     let per_ip = Arc::new(PerIp::default());
+    let app = app.layer(axum::middleware::from_fn_with_state(
+        limits.body_read_timeout,
+        read_body_by_deadline,
+    ));
     loop {
         let (tcp, peer) = match listener.accept().await {
             Ok(c) => c,
@@ -254,10 +258,6 @@ pub async fn serve(
         // `into_make_service_with_connect_info` would provide it.
         let service = TowerToHyperService::new(
             app.clone()
-                .layer(axum::middleware::from_fn_with_state(
-                    limits.body_read_timeout,
-                    read_body_by_deadline,
-                ))
                 .layer(axum::Extension(ConnectInfo::<std::net::SocketAddr>(peer))),
         );
         let io = Counted {

@@ -55,7 +55,8 @@
 //! [`MAX_HISTORY_PAGE`] summaries, plus the shared broadcast ring); the
 //! server pings every [`VIEWER_PING_INTERVAL`] and closes a socket from which
 //! nothing arrived for [`VIEWER_PONG_TIMEOUT`]; inbound frames are capped at
-//! [`MAX_VIEWER_MESSAGE`] (viewer) and [`MAX_BRIDGE_MESSAGE`] (bridge); at
+//! [`MAX_VIEWER_MESSAGE`] (viewer) and [`MAX_BRIDGE_MESSAGE`] (bridge): a
+//! larger message closes the socket with 1009 (Message Too Big); at
 //! most [`MAX_VIEWERS_PER_RUN`] viewer sockets per run (one more → 503).
 //! Connection limits (header read timeout, connections per IP): [`listener`].
 

@@ -157,6 +157,24 @@ fn run_with_targets_over_empty_levels_exits_2_naming_the_field() {
 }
 
 #[test]
+fn serve_refuses_an_iteration_delay_above_its_bound() {
+    let out = spintune(&[
+        "serve",
+        "--iteration-delay-ms",
+        "3600001",
+        "--bind",
+        "127.0.0.1:0",
+        "--demo",
+        "never",
+        "--db",
+        "/nonexistent/x.db",
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("--iteration-delay-ms 3600001"), "{err}");
+}
+
+#[test]
 fn headless_run_refuses_a_bridge_config() {
     let dir = std::env::temp_dir().join(format!("spintune-cli-bridge-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();

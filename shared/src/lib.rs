@@ -33,6 +33,7 @@ pub mod safety;
 pub mod session;
 pub mod sim;
 pub mod solver;
+pub mod strict_json;
 pub mod tuner;
 
 pub use config_error::ConfigError;

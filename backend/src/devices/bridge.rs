@@ -196,10 +196,13 @@ impl BridgeLink {
         let mut inner = self.inner();
         match inner.waiting.take() {
             Some(w) if w.id == id && w.generation == generation => {
-                // The run task may have given up in this very moment; then the
-                // request is re-issued anyway.
-                let _ = w.reply.send(response);
-                Ok(())
+                // The run task may have given up on the request (a stop, a
+                // timeout): then nobody takes the answer, and the bridge is
+                // told so (an `error` frame) rather than left believing it
+                // was used. A request given up is re-issued if the run resumes.
+                w.reply
+                    .send(response)
+                    .map_err(|_| DeviceError::NotOutstanding { id })
             }
             other => {
                 inner.waiting = other;

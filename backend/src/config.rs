@@ -40,21 +40,7 @@ use spintune::ConfigError;
 
 pub use crate::devices::bridge::BridgeConfig;
 pub use crate::devices::scpi::{MeasureSource, ScpiConfig, ScpiProfile};
-
-/// Which device a run drives.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum DriverKind {
-    /// The embedded simulated double dot (`spintune::sim`).
-    #[default]
-    Simulator,
-    /// A SCPI DC voltage source over raw TCP sets the gates
-    /// ([`crate::devices::scpi`]); measurements come from `scpi.measure`.
-    Scpi,
-    /// An external lab script connected over WebSocket sets gates and
-    /// measures ([`crate::devices::bridge`]).
-    Bridge,
-}
+pub use crate::devices::DriverKind;
 
 /// Backend-only settings of a run (everything that is not a [`SimulationConfig`] field).
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]

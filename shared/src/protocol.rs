@@ -90,31 +90,10 @@ impl ProtocolError {
     }
 }
 
-/// The measurements a device can be asked for.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum ScanKind {
-    /// 1-D sweep of a sensing-dot gate over Coulomb peaks → `sd_flank_mv`
-    /// (steepest flank of the highest peak, mV) and `sd_contrast`.
-    SensingDot,
-    /// Lead-transition scans in the RFA/RFB plane → `mu_a_mv`, `mu_b_mv`
-    /// (transition-line positions, mV on RFA and RFB).
-    ChemicalPotential,
-    /// Detuning line scan across the inter-dot transition → `w` (µV).
-    TransitionWidth,
-    /// Load curve (signal vs. wait time) → `t_sr` (ns).
-    ReloadTime,
-}
-
-impl ScanKind {
-    /// All kinds.
-    pub const ALL: [ScanKind; 4] = [
-        ScanKind::SensingDot,
-        ScanKind::ChemicalPotential,
-        ScanKind::TransitionWidth,
-        ScanKind::ReloadTime,
-    ];
-}
+/// The measurements a device can be asked for (defined next to
+/// [`crate::parameter::ParameterSpec`], which names the scan of each
+/// parameter).
+pub use crate::parameter::ScanKind;
 
 /// A 1-D sweep of one gate, mV.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

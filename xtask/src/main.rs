@@ -14,6 +14,8 @@
 //! Builds go to `$CARGO_TARGET_DIR` (default `~/.cache/spintune/target`, outside
 //! the clone, so repeated runs stay warm).
 
+mod deps;
+
 use std::env;
 use std::path::{Path, PathBuf};
 use std::process::{exit, Command};
@@ -44,6 +46,11 @@ fn main() {
     match args.first().map(String::as_str) {
         Some("run") => run(&args[1..]),
         Some("test") => test(&args[1..]),
+        Some("deps") => {
+            if !check_deps(&root) {
+                exit(1);
+            }
+        }
         Some("install") => {
             install_tools(true);
         }
@@ -58,7 +65,7 @@ fn main() {
         }
         _ => {
             eprintln!(
-                "usage: cargo xtask <command>\n\n  run [server args]  build the dashboard and start the server on the simulator\n  test [--no-lint]   run formatting/lint checks and every test (native, browser, Python, wasm)\n  install            install the tools only (wasm target, trunk, wasm-bindgen, binaryen wasm-opt, chromium)\n  python-test        only the Python package step of `test` (venv, maturin build, pytest)"
+                "usage: cargo xtask <command>\n\n  run [server args]  build the dashboard and start the server on the simulator\n  test [--no-lint]   run formatting/lint checks and every test (native, browser, Python, wasm)\n  deps               list module import cycles (fails if there is one)\n  install            install the tools only (wasm target, trunk, wasm-bindgen, binaryen wasm-opt, chromium)\n  python-test        only the Python package step of `test` (venv, maturin build, pytest)"
             );
             exit(2);
         }
@@ -85,6 +92,17 @@ fn run(server_args: &[String]) {
     cmd("cargo", &args);
 }
 
+/// Print every file-level import cycle of the crates; `true` when there is none.
+fn check_deps(root: &Path) -> bool {
+    let found = deps::cycles(root, &deps::CRATE_SOURCES);
+    for c in &found {
+        let files: Vec<String> = c.iter().map(|f| f.display().to_string()).collect();
+        println!("cycle: {}", files.join(" → "));
+    }
+    println!("{} import cycles", found.len());
+    found.is_empty()
+}
+
 fn test(flags: &[String]) {
     let started = Instant::now();
     let lint = !flags.iter().any(|f| f == "--no-lint");
@@ -92,6 +110,11 @@ fn test(flags: &[String]) {
     if lint {
         step("formatting");
         cmd("cargo", &["fmt", "--all", "--", "--check"]);
+        step("module import cycles (cargo xtask deps)");
+        if !check_deps(&env::current_dir().unwrap()) {
+            eprintln!("xtask: module import cycles (see ARCHITECTURE.md, dependency rules)");
+            exit(1);
+        }
         step("clippy (native)");
         cmd(
             "cargo",

@@ -39,8 +39,8 @@ use spintune::protocol::{BridgeServerMessage, Request, Response};
 use spintune::ConfigError;
 use tokio::sync::{mpsc, oneshot, watch};
 
+use super::DriverKind;
 use super::{BoxFuture, Device, DeviceError};
-use crate::config::DriverKind;
 
 /// Time a freshly connected bridge has to authenticate, s.
 pub const AUTH_TIMEOUT_S: u64 = 10;
@@ -91,7 +91,7 @@ impl BridgeConfig {
                 ),
             ));
         }
-        let max = super::scpi::MAX_READBACK_TOLERANCE_MV;
+        let max = spintune::session::SessionConfig::MAX_READBACK_TOLERANCE_MV;
         if !(self.readback_tolerance_mv.is_finite()
             && self.readback_tolerance_mv >= 0.0
             && self.readback_tolerance_mv <= max)

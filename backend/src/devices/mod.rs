@@ -24,14 +24,16 @@ use spintune::protocol::{Request, Response};
 use std::sync::Arc;
 
 pub mod bridge;
+mod driver_kind;
 pub mod scpi;
 mod simulator;
 
+pub use driver_kind::DriverKind;
 pub use simulator::SimulatorDevice;
 
-use crate::config::{DriverKind, RunConfig};
 use bridge::{BridgeDevice, BridgeLink};
 use scpi::{MeasureSource, ScpiDevice, ScpiSource};
+use spintune::safety::GateSpec;
 
 /// Why a driver could not carry out a request (or could not be opened).
 ///
@@ -259,16 +261,29 @@ pub trait Device: Send + Sync {
     }
 }
 
-/// Open the device of `config` from its checkpoint `state` (the simulator's
+/// What [`open`] needs of a run config (the backend settings and the gates).
+#[derive(Debug, Clone, Copy)]
+pub struct DeviceSettings<'a> {
+    /// The driver.
+    pub driver: DriverKind,
+    /// SCPI source settings (required for [`DriverKind::Scpi`]).
+    pub scpi: Option<&'a scpi::ScpiConfig>,
+    /// Lab bridge settings.
+    pub bridge: &'a bridge::BridgeConfig,
+    /// The gates with their limits.
+    pub gates: &'a [GateSpec],
+}
+
+/// Open the device described by `settings` from its checkpoint `state` (the simulator's
 /// state for the simulator and for SCPI with simulated measurements; ignored
 /// otherwise). `bridge` is the run's bridge link (needed when
 /// [`crate::config::BackendSettings::uses_bridge`]).
 pub fn open(
-    config: &RunConfig,
+    settings: DeviceSettings<'_>,
     state: Value,
     bridge: Option<Arc<BridgeLink>>,
 ) -> Result<Box<dyn Device>, DeviceError> {
-    let b = &config.backend;
+    let b = settings;
     let bridge_device = || {
         bridge
             .clone()
@@ -290,11 +305,11 @@ pub fn open(
         DriverKind::Simulator => Ok(Box::new(simulator(state)?)),
         DriverKind::Bridge => Ok(Box::new(bridge_device()?)),
         DriverKind::Scpi => {
-            let scpi = b.scpi.clone().ok_or_else(|| {
+            let scpi = b.scpi.cloned().ok_or_else(|| {
                 DeviceError::Open("driver = \"scpi\" needs a [scpi] table".into())
             })?;
             let measure = scpi.measure;
-            let source = ScpiSource::new(scpi, &config.simulation.tuner.gates);
+            let source = ScpiSource::new(scpi, b.gates);
             match measure {
                 MeasureSource::Simulator => Ok(Box::new(ScpiDevice::with_simulator(
                     source,

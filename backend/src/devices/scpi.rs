@@ -57,8 +57,8 @@ use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
 use tokio::net::TcpStream;
 
 use super::bridge::BridgeDevice;
+use super::DriverKind;
 use super::{BoxFuture, Device, DeviceError, SimulatorDevice};
-use crate::config::DriverKind;
 
 /// Magnitude from which a SCPI number is one of the standard's special
 /// values: `9.91E37` (NaN) and `±9.9E37` (±infinity, overflow).

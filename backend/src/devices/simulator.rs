@@ -4,8 +4,8 @@ use serde_json::Value;
 use spintune::protocol::{Request, Response};
 use spintune::sim::SimulatedDevice;
 
+use super::DriverKind;
 use super::{BoxFuture, Device};
-use crate::config::DriverKind;
 
 /// The embedded simulated double dot.
 pub struct SimulatorDevice {

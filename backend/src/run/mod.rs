@@ -24,6 +24,9 @@
 
 mod frames;
 mod task;
+pub mod viewer_limits;
+
+pub use viewer_limits::ViewerLimits;
 
 use std::collections::{BTreeMap, VecDeque};
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -52,32 +55,6 @@ pub const CONTROL_QUEUE: usize = 16;
 /// Summaries of the newest iterations each run keeps in memory (one default
 /// history page), so the page sent after `Hello`/`Lagged` needs no store read.
 pub const RECENT_SUMMARIES: usize = spintune::protocol::DEFAULT_HISTORY_PAGE as usize;
-
-/// Limits of a run's viewer WebSockets (see `crate::server` for the constants
-/// and what happens when one is reached).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct ViewerLimits {
-    /// A send to a viewer that does not complete in this time disconnects it.
-    pub send_timeout: Duration,
-    /// The server pings every viewer this often.
-    pub ping_interval: Duration,
-    /// A viewer from which nothing (pong or any frame) arrived for this long
-    /// is disconnected (checked at each ping).
-    pub pong_timeout: Duration,
-    /// Open viewer WebSockets per run; one more is refused with 503.
-    pub max_viewers_per_run: usize,
-}
-
-impl Default for ViewerLimits {
-    fn default() -> Self {
-        Self {
-            send_timeout: crate::server::VIEWER_SEND_TIMEOUT,
-            ping_interval: crate::server::VIEWER_PING_INTERVAL,
-            pong_timeout: crate::server::VIEWER_PONG_TIMEOUT,
-            max_viewers_per_run: crate::server::MAX_VIEWERS_PER_RUN,
-        }
-    }
-}
 
 /// One open viewer socket of a run (counted until dropped; holds the count,
 /// not the run, so deleting the run still closes its channel).
@@ -1032,7 +1009,14 @@ impl Manager {
             .backend
             .uses_bridge()
             .then(|| self.bridges.get(handle.id));
-        let device: Box<dyn Device> = match devices::open(&handle.config, device_state, bridge) {
+        let backend = &handle.config.backend;
+        let settings = devices::DeviceSettings {
+            driver: backend.driver,
+            scpi: backend.scpi.as_ref(),
+            bridge: &backend.bridge,
+            gates: &handle.config.simulation.tuner.gates,
+        };
+        let device: Box<dyn Device> = match devices::open(settings, device_state, bridge) {
             Ok(d) => d,
             Err(e) => {
                 let status = RunStatus::Failed {

@@ -99,18 +99,9 @@ pub const MAX_VIEWER_MESSAGE: usize = 64 * 1024;
 /// Largest frame a lab bridge may send (a raw scan: e.g. 4 traces of 100,000
 /// points as JSON numbers), bytes.
 pub const MAX_BRIDGE_MESSAGE: usize = 16 * 1024 * 1024;
-/// A send to a viewer (one frame into the socket) that does not complete in
-/// this time closes the viewer's socket: a viewer that stops reading holds
-/// at most one frame for at most this long.
-pub const VIEWER_SEND_TIMEOUT: Duration = Duration::from_secs(10);
-/// The server pings every viewer this often.
-pub const VIEWER_PING_INTERVAL: Duration = Duration::from_secs(15);
-/// A viewer from which nothing (a pong or any frame) arrived for this long
-/// is disconnected; checked at each ping, so it goes within
-/// `VIEWER_PONG_TIMEOUT + VIEWER_PING_INTERVAL`.
-pub const VIEWER_PONG_TIMEOUT: Duration = Duration::from_secs(45);
-/// Open viewer WebSockets per run; one more is refused with 503.
-pub const MAX_VIEWERS_PER_RUN: usize = 1024;
+pub use crate::run::viewer_limits::{
+    MAX_VIEWERS_PER_RUN, VIEWER_PING_INTERVAL, VIEWER_PONG_TIMEOUT, VIEWER_SEND_TIMEOUT,
+};
 /// How long the server tries to send a close frame to a viewer it drops for
 /// a timeout.
 const CLOSE_GRACE: Duration = Duration::from_secs(1);

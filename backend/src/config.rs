@@ -220,16 +220,14 @@ fn apply_targets(sim: &mut SimulationConfig, b: &BackendSettings) -> Result<(), 
     let top = sim.tuner.top_level_mut().map_err(|e| e.within("tuner"))?;
     let known: Vec<String> = top.parameters.iter().map(|p| p.name.clone()).collect();
     for (name, &target) in &b.targets {
-        if !target.is_finite() {
-            return Err(ConfigParseError(format!(
-                "invalid config at `targets.{name}`: must be a finite number"
-            )));
-        }
         let p = top
             .parameters
             .iter_mut()
             .find(|p| &p.name == name)
             .ok_or_else(|| unknown_parameter("targets", name, &known))?;
+        // the core's one target check (bounds and sign)
+        p.check_target(target)
+            .map_err(|e| ConfigError::new(format!("targets.{name}"), e.message))?;
         p.target = Some(target);
     }
     for (name, &tol) in &b.tolerances {

@@ -23,6 +23,12 @@ pub enum ScanKind {
 }
 
 impl ScanKind {
+    /// Whether the parameters this scan gives are positive quantities (a
+    /// width, a time): `w` and `t_sr` are, line and flank positions (mV) are not.
+    pub fn gives_positive_values(self) -> bool {
+        matches!(self, ScanKind::TransitionWidth | ScanKind::ReloadTime)
+    }
+
     /// All kinds.
     pub const ALL: [ScanKind; 4] = [
         ScanKind::SensingDot,
@@ -159,7 +165,56 @@ pub struct ParameterSpec {
     pub process_noise_per_mv: f64,
 }
 
+/// Largest |target| of any parameter, in its unit (ns, µV, mV): the
+/// config's magnitude bound ([`crate::tuner::MAX_MAGNITUDE`]).
+pub const MAX_TARGET_MAGNITUDE: f64 = 1e6;
+
 impl ParameterSpec {
+    /// The one check of a target for this parameter (config, schedule,
+    /// `set_target` from the API, the dashboard and Python): finite, at most
+    /// [`MAX_TARGET_MAGNITUDE`] in magnitude, and > 0 for a positive quantity
+    /// (`w`, `t_sr`: [`ScanKind::gives_positive_values`]) or a log-space
+    /// parameter. The error's field is `target`.
+    ///
+    /// ```
+    /// use spintune::driver::SimulationConfig;
+    /// let t_sr = SimulationConfig::paper_default().tuner.top().parameters[0].clone();
+    /// assert_eq!(t_sr.name, "t_sr");
+    /// assert!(t_sr.check_target(70.0).is_ok());
+    /// assert!(t_sr.check_target(-50.0).unwrap_err().to_string().contains("must be > 0"));
+    /// assert!(t_sr.check_target(1e8).unwrap_err().to_string().contains("at most"));
+    /// ```
+    pub fn check_target(&self, target: f64) -> Result<(), ConfigError> {
+        if !target.is_finite() {
+            return Err(ConfigError::new("target", "must be a finite number"));
+        }
+        if target.abs() > MAX_TARGET_MAGNITUDE {
+            return Err(ConfigError::new(
+                "target",
+                format!(
+                    "must be at most {MAX_TARGET_MAGNITUDE:e} {} in magnitude, got {target}",
+                    self.unit
+                ),
+            ));
+        }
+        let positive = self.scan.gives_positive_values() || self.transform == Transform::Log;
+        if positive && target <= 0.0 {
+            let why = if self.transform == Transform::Log {
+                "a log-transformed parameter"
+            } else {
+                "a width or time"
+            };
+            return Err(ConfigError::new(
+                "target",
+                format!(
+                    "must be > 0 for {} ({why}), got {target} {}",
+                    self.name, self.unit
+                ),
+            ));
+        }
+        Ok(())
+    }
+
     /// Whether the parameter is inside its band (true when it has no target).
     pub fn in_band(&self, value: f64) -> bool {
         match self.target {

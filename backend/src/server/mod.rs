@@ -248,18 +248,14 @@ fn parse_id(id: &str) -> ApiResult<u64> {
 
 /// Parse a `ControlCommand` from JSON text, naming the offending field on error.
 pub fn parse_control(text: &str) -> Result<ControlCommand, ProtocolError> {
-    let cmd: ControlCommand = parse_strict(text)?;
-    validate_control(&cmd)?;
-    Ok(cmd)
+    // Its content (parameter, target bounds, tolerance) is the run
+    // session's to check: `RunSession::control`, the one place.
+    parse_strict(text)
 }
 
 /// Parse a `ClientMessage` from JSON text, naming the offending field on error.
 pub fn parse_client_message(text: &str) -> Result<ClientMessage, ProtocolError> {
-    let msg: ClientMessage = parse_strict(text)?;
-    if let ClientMessage::Control { command } = &msg {
-        validate_control(command)?;
-    }
-    Ok(msg)
+    parse_strict(text)
 }
 
 /// Parse one `T` strictly ([`spintune::strict_json::parse_strict`]): one
@@ -270,32 +266,6 @@ pub(crate) fn parse_strict<T: serde::de::DeserializeOwned + serde::Serialize>(
     text: &str,
 ) -> Result<T, ProtocolError> {
     spintune::strict_json::parse_strict(text)
-}
-
-fn validate_control(cmd: &ControlCommand) -> Result<(), ProtocolError> {
-    if let ControlCommand::SetTarget {
-        parameter,
-        target,
-        tolerance,
-    } = cmd
-    {
-        if let Some(t) = target {
-            if !t.is_finite() {
-                return Err(ProtocolError::NotFinite {
-                    field: format!("target of {parameter:?}"),
-                    value: *t,
-                });
-            }
-        }
-        if let Some(tol) = tolerance {
-            tol.validate()
-                .map_err(|error| ProtocolError::InvalidTolerance {
-                    parameter: parameter.clone(),
-                    error,
-                })?;
-        }
-    }
-    Ok(())
 }
 
 /// Build the router. `dist` is the dashboard directory (Trunk output).

@@ -529,12 +529,8 @@ impl TunerConfig {
                         format!("unknown parameter {name:?}"),
                     ));
                 };
-                if spec.transform.forward_value(t).is_none() {
-                    return Err(ConfigError::new(
-                        field,
-                        "must be a finite number (> 0 in log space)",
-                    ));
-                }
+                spec.check_target(t)
+                    .map_err(|e| ConfigError::new(field, e.message))?;
             }
         }
         Ok(())
@@ -574,15 +570,8 @@ fn validate_newton(n: &NewtonConfig, has_gate: &dyn Fn(&str) -> bool) -> Result<
             ));
         }
         if let Some(t) = p.target {
-            if !t.is_finite() {
-                return Err(ConfigError::new(f("target"), "must be a finite number"));
-            }
-            if p.transform == crate::parameter::Transform::Log && t <= 0.0 {
-                return Err(ConfigError::new(
-                    f("target"),
-                    "must be > 0 for a log-transformed parameter",
-                ));
-            }
+            p.check_target(t)
+                .map_err(|e| e.within(&format!("parameters[{i}]")))?;
         }
         p.tolerance
             .validate()

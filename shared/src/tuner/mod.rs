@@ -355,11 +355,6 @@ impl Tuner {
             parameter: parameter.to_string(),
             message: m.to_string(),
         };
-        if let Some(t) = target {
-            if !t.is_finite() {
-                return Err(invalid("target must be a finite number"));
-            }
-        }
         if let Some(tol) = tolerance {
             tol.validate()
                 .map_err(|e| invalid(&format!("tolerance {}", e.clause())))?;
@@ -369,11 +364,8 @@ impl Tuner {
                 if let Some(index) = n.parameters.iter().position(|p| p.name == parameter) {
                     let p = &n.parameters[index];
                     if let Some(t) = target {
-                        if p.transform.forward_value(t).is_none() {
-                            return Err(invalid(
-                                "target must be > 0 for a log-transformed parameter",
-                            ));
-                        }
+                        p.check_target(t)
+                            .map_err(|e| invalid(&format!("target {}", e.message)))?;
                     }
                     return Ok((level, index));
                 }

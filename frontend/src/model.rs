@@ -661,7 +661,7 @@ mod tests {
         // A finished run may take a new target (it can revive a run that stopped when tuned).
         assert!(ControlsEnabled::for_status(&RunStatus::Finished).targets);
         // Unknown status: the server decides, but nothing offers to accept positions.
-        assert!(!ControlsEnabled::ALL.accept_positions);
+        const { assert!(!ControlsEnabled::ALL.accept_positions) };
     }
 
     fn moved_fault() -> Fault {
@@ -687,10 +687,7 @@ mod tests {
     #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
     fn accept_positions_only_for_a_moved_fault() {
         for s in every_status() {
-            assert!(
-                !ControlsEnabled::for_status(&s).accept_positions,
-                "{s:?}"
-            );
+            assert!(!ControlsEnabled::for_status(&s).accept_positions, "{s:?}");
         }
         for kind in [
             FaultKind::Disconnected,
@@ -743,14 +740,15 @@ mod tests {
         }
         let moved = label(FaultKind::Moved);
         assert!(
-            moved.starts_with("faulted — Gates moved: m — needs a person: confirm the new positions"),
+            moved.starts_with(
+                "faulted — Gates moved: m — needs a person: confirm the new positions"
+            ),
             "{moved}"
         );
         // The words come from the fault's stated `cleared_by` (the server's
         // policy), not from the kind: an old stored fault without the field
         // reads as needing a person.
-        let old: Fault =
-            serde_json::from_str(r#"{"kind":"disconnected","message":"m"}"#).unwrap();
+        let old: Fault = serde_json::from_str(r#"{"kind":"disconnected","message":"m"}"#).unwrap();
         assert!(fault_summary(&old).contains("needs a person"));
         // Every kind has its own words; no label contains another state's word.
         let kinds = [
@@ -767,7 +765,9 @@ mod tests {
         assert_eq!(words.len(), kinds.len());
         for kind in kinds {
             let l = label(kind);
-            for other in ["running", "paused", "stopped", "stopping", "finished", "failed"] {
+            for other in [
+                "running", "paused", "stopped", "stopping", "finished", "failed",
+            ] {
                 assert!(!l.contains(other), "{l} contains {other}");
             }
         }
@@ -807,7 +807,10 @@ mod tests {
             left_to_mv: 0.0,
             read_mv: 12.25,
         });
-        assert_eq!((row.left.as_str(), row.difference.as_str()), ("0.00 … 10.00", "+2.25"));
+        assert_eq!(
+            (row.left.as_str(), row.difference.as_str()),
+            ("0.00 … 10.00", "+2.25")
+        );
         assert!(moved_rows(&Fault::new(FaultKind::Device, "x")).is_empty());
     }
 

@@ -782,7 +782,11 @@ async fn fault_note_says_what_clears_each_kind_and_lists_moved_gates() {
         "{}",
         badge()
     );
-    assert!(clears().contains("check the instrument, then Resume"), "{}", clears());
+    assert!(
+        clears().contains("check the instrument, then Resume"),
+        "{}",
+        clears()
+    );
 
     // A disconnected device clears by itself when the bridge reconnects.
     status.set(Some(RunStatus::Faulted {
@@ -812,10 +816,7 @@ async fn fault_note_says_what_clears_each_kind_and_lists_moved_gates() {
         "{}",
         clears()
     );
-    let note = el
-        .query_selector("[data-testid=fault]")
-        .unwrap()
-        .unwrap();
+    let note = el.query_selector("[data-testid=fault]").unwrap().unwrap();
     assert_eq!(note.get_attribute("data-fault").as_deref(), Some("moved"));
     assert_eq!(
         note.get_attribute("data-cleared-by").as_deref(),
@@ -944,7 +945,9 @@ async fn live_moved_fault_offers_accept_positions_which_sends_the_command() {
     leptos::task::tick().await;
     assert_eq!(sockets.count(), 1);
     assert!(
-        sockets.url().contains(&format!("protocol={PROTOCOL_VERSION}")),
+        sockets
+            .url()
+            .contains(&format!("protocol={PROTOCOL_VERSION}")),
         "{}",
         sockets.url()
     );

@@ -75,7 +75,8 @@ pub struct ServeArgs {
     /// Token file, origin and host options (`crate::server::auth`, `crate::server::origin`).
     #[command(flatten)]
     pub security: SecurityArgs,
-    /// Wall-clock pause after each iteration, ms, so a human can watch (runs may override).
+    /// Wall-clock pause after each iteration, ms, so a human can watch (runs may
+    /// override); at most 3,600,000 (`SessionConfig::MAX_ITERATION_DELAY_MS`).
     #[arg(long, default_value_t = 300)]
     pub iteration_delay_ms: u64,
     /// Live frames buffered per viewer before it is told it lagged.
@@ -157,7 +158,14 @@ pub struct Server {
 
 /// Start a server (store, manager, demo run, HTTP) and return once it listens.
 pub async fn start_server(args: &ServeArgs) -> Result<Server, CliError> {
-    // Certificate errors before anything is opened or bound.
+    // Bad flags and certificate errors before anything is opened or bound.
+    let max_delay = spintune::session::SessionConfig::MAX_ITERATION_DELAY_MS;
+    if args.iteration_delay_ms > max_delay {
+        return Err(CliError::input(format!(
+            "--iteration-delay-ms {} exceeds the largest iteration delay, {max_delay} ms (one hour)",
+            args.iteration_delay_ms
+        )));
+    }
     let tls = args.security.tls.acceptor().map_err(CliError::input)?;
     let store = Arc::new(
         Store::open(&args.db)

@@ -17,8 +17,13 @@
 //! | `bridge` | table, [`BridgeConfig`] | lab bridge: `request_timeout_s`, `readback_tolerance_mv` |
 //! | `targets` | table parameter → number | targets of the top tuner level's parameters, in the parameter's unit (e.g. `t_sr` in ns, `w` in µV) |
 //! | `tolerances` | table parameter → `{ absolute = x }` or `{ relative = f }` | tolerance bands of the top level's parameters |
-//! | `iteration_delay_ms` | integer, ms | wall-clock pause after each iteration (overrides the server's `--iteration-delay-ms`) |
+//! | `iteration_delay_ms` | integer, ms, at most `SessionConfig::MAX_ITERATION_DELAY_MS` (3,600,000: one hour) | wall-clock pause after each iteration (overrides the server's `--iteration-delay-ms`) |
 //! | `moved_tolerance_mv` | number, mV, 0–100 (default 1) | largest distance of a gate's read-back from where the run left it; farther is a `moved` fault that waits for `accept_positions` |
+//!
+//! Gate names in the `device` table (keys of `reference_mv`, `*_per_mv`
+//! maps, quadratic terms' `a`/`b`, `sensing_dot.gate`) must be gates of
+//! `tuner.gates`. A JSON config is exactly one JSON value (nothing may
+//! follow it but whitespace).
 //!
 //! Errors name the offending field, e.g. ``invalid config at `tuner.levels[0].kind`: …``.
 
@@ -29,6 +34,8 @@ use serde_json::{Map, Value};
 use spintune::config_merge::merge;
 use spintune::driver::SimulationConfig;
 use spintune::parameter::Tolerance;
+use spintune::safety::GateSpec;
+use spintune::session::SessionConfig;
 use spintune::ConfigError;
 
 pub use crate::devices::bridge::BridgeConfig;
@@ -137,11 +144,15 @@ impl RunConfig {
         Self::from_value(value)
     }
 
-    /// Parse a JSON document (the body of `POST /api/runs`).
+    /// Parse a JSON document (the body of `POST /api/runs`): exactly one
+    /// JSON value, nothing after it but whitespace
+    /// ([`spintune::strict_json::parse_value`]).
     pub fn from_json_str(text: &str) -> Result<Self, ConfigParseError> {
-        let de = &mut serde_json::Deserializer::from_str(text);
-        let value: Value = serde_path_to_error::deserialize(de)
-            .map_err(|e| ConfigParseError(format!("invalid JSON: {}", e.inner())))?;
+        let value = spintune::strict_json::parse_value(text).map_err(|e| {
+            let e = e.to_string();
+            let e = e.strip_prefix("malformed message").unwrap_or(&e);
+            ConfigParseError(format!("invalid JSON{e}"))
+        })?;
         Self::from_value(value)
     }
 
@@ -163,6 +174,8 @@ impl RunConfig {
             .map_err(|e| {
                 ConfigParseError(format!("invalid config at `{}`: {}", e.path(), e.inner()))
             })?;
+        validate_delay(&backend)?;
+        let user_device = user.get("device").cloned();
         let mut merged = serde_json::to_value(SimulationConfig::paper_default())
             .map_err(|e| ConfigParseError(format!("internal: default config: {e}")))?;
         merge(&mut merged, Value::Object(user));
@@ -183,6 +196,11 @@ impl RunConfig {
             }
             .validate()?;
         }
+        // The tuner as given first (an error names what is wrong with it,
+        // not a device gate or a target that no longer fits), then the
+        // device's gate names, then everything with the targets applied.
+        simulation.tuner.validate().map_err(|e| e.within("tuner"))?;
+        check_device_gates(user_device.as_ref(), &simulation.tuner.gates)?;
         apply_targets(&mut simulation, &backend)?;
         simulation.validate()?;
         validate_drivers(&simulation, &backend)?;
@@ -211,7 +229,9 @@ fn apply_targets(sim: &mut SimulationConfig, b: &BackendSettings) -> Result<(), 
     if b.targets.is_empty() && b.tolerances.is_empty() {
         return Ok(());
     }
-    let top = sim.tuner.top_mut();
+    // Before the tuner is validated: its top level may be missing or not
+    // a Newton level (refused here naming the field, never a panic).
+    let top = sim.tuner.top_level_mut().map_err(|e| e.within("tuner"))?;
     let known: Vec<String> = top.parameters.iter().map(|p| p.name.clone()).collect();
     for (name, &target) in &b.targets {
         if !target.is_finite() {
@@ -235,6 +255,94 @@ fn apply_targets(sim: &mut SimulationConfig, b: &BackendSettings) -> Result<(), 
             .find(|p| &p.name == name)
             .ok_or_else(|| unknown_parameter("tolerances", name, &known))?;
         p.tolerance = tol;
+    }
+    Ok(())
+}
+
+/// `iteration_delay_ms` within its documented bound
+/// ([`SessionConfig::MAX_ITERATION_DELAY_MS`]): refused, never clamped.
+fn validate_delay(b: &BackendSettings) -> Result<(), ConfigParseError> {
+    let Some(ms) = b.iteration_delay_ms else {
+        return Ok(());
+    };
+    let session = SessionConfig {
+        iteration_delay_ms: ms,
+        ..SessionConfig::default()
+    };
+    session.validate().map_err(|e| {
+        ConfigParseError(format!(
+            "invalid config at `iteration_delay_ms`: {ms} ms: {}",
+            e.message
+        ))
+    })
+}
+
+/// Every gate named by the user's `device` table (keys of its per-gate
+/// maps, the gates of its quadratic terms, `sensing_dot.gate`) is a gate of
+/// `tuner.gates`: a misspelt gate would otherwise be silently ignored (it
+/// never moves). Only the user's keys are checked: the default device's
+/// maps may name gates a custom `tuner.gates` leaves out. Call after the
+/// config deserialized (the shapes are right).
+fn check_device_gates(user: Option<&Value>, gates: &[GateSpec]) -> Result<(), ConfigError> {
+    let Some(Value::Object(device)) = user else {
+        return Ok(());
+    };
+    let known = |name: &str, field: String| -> Result<(), ConfigError> {
+        if gates.iter().any(|g| g.name == name) {
+            return Ok(());
+        }
+        let names: Vec<&str> = gates.iter().map(|g| g.name.as_str()).collect();
+        Err(ConfigError::new(
+            field,
+            format!("{name:?} is not a gate of `tuner.gates` (known: {names:?})"),
+        ))
+    };
+    let keys = |v: Option<&Value>, field: &str| -> Result<(), ConfigError> {
+        if let Some(Value::Object(m)) = v {
+            for k in m.keys() {
+                known(k, format!("device.{field}.{k}"))?;
+            }
+        }
+        Ok(())
+    };
+    let terms = |v: Option<&Value>, field: &str| -> Result<(), ConfigError> {
+        if let Some(Value::Array(a)) = v {
+            for (i, t) in a.iter().enumerate() {
+                for end in ["a", "b"] {
+                    if let Some(Value::String(g)) = t.get(end) {
+                        known(g, format!("device.{field}[{i}].{end}"))?;
+                    }
+                }
+            }
+        }
+        Ok(())
+    };
+    keys(device.get("reference_mv"), "reference_mv")?;
+    for model in ["tunnel_coupling_uev", "lead_rate_per_ns"] {
+        let m = device.get(model);
+        keys(
+            m.and_then(|m| m.get("linear_per_mv")),
+            &format!("{model}.linear_per_mv"),
+        )?;
+        terms(
+            m.and_then(|m| m.get("quadratic_per_mv2")),
+            &format!("{model}.quadratic_per_mv2"),
+        )?;
+    }
+    let x = device.get("crosstalk");
+    for line in ["line_a", "line_b"] {
+        let map = format!("{line}_per_mv");
+        keys(x.and_then(|x| x.get(&map)), &format!("crosstalk.{map}"))?;
+        let quad = format!("{line}_quadratic");
+        terms(x.and_then(|x| x.get(&quad)), &format!("crosstalk.{quad}"))?;
+    }
+    let sd = device.get("sensing_dot");
+    keys(
+        sd.and_then(|s| s.get("lever_per_mv")),
+        "sensing_dot.lever_per_mv",
+    )?;
+    if let Some(Value::String(g)) = sd.and_then(|s| s.get("gate")) {
+        known(g, "device.sensing_dot.gate".into())?;
     }
     Ok(())
 }
@@ -320,6 +428,98 @@ mod tests {
         assert!(c.backend.uses_bridge());
         let e = RunConfig::from_json_str("{\"tuner\": {\"gates\": []}}").unwrap_err();
         assert!(e.0.contains("gates"), "{e}");
+    }
+
+    #[test]
+    fn targets_over_a_missing_or_sensing_top_level_are_refused_not_a_panic() {
+        // Issue 20 item 7: `top_mut()` on empty levels indexed out of bounds.
+        for (text, field) in [
+            (
+                r#"{"targets":{"t_sr":20},"tuner":{"levels":[]}}"#,
+                "`tuner.levels`",
+            ),
+            (
+                r#"{"tolerances":{"w":{"absolute":1}},"tuner":{"levels":[]}}"#,
+                "`tuner.levels`",
+            ),
+            (
+                r#"{"targets":{"t_sr":20},"tuner":{"levels":[{"name":"sd","kind":"sensing_dot","gate":"SP","half_width_mv":10,"points":20}]}}"#,
+                "`tuner.levels[0].kind`",
+            ),
+        ] {
+            let e = RunConfig::from_json_str(text).unwrap_err();
+            assert!(e.0.contains(field), "{text}: {e}");
+        }
+        let e = RunConfig::from_json_str(r#"{"tuner":{"levels":[]}}"#).unwrap_err();
+        assert!(e.0.contains("`tuner.levels`"), "{e}");
+    }
+
+    #[test]
+    fn the_iteration_delay_is_bounded_not_clamped() {
+        let max = SessionConfig::MAX_ITERATION_DELAY_MS;
+        let c = RunConfig::from_json_str(&format!(r#"{{"iteration_delay_ms":{max}}}"#)).unwrap();
+        assert_eq!(c.backend.iteration_delay_ms, Some(max));
+        for ms in [max + 1, 1 << 40] {
+            let e =
+                RunConfig::from_json_str(&format!(r#"{{"iteration_delay_ms":{ms}}}"#)).unwrap_err();
+            assert!(e.0.contains("`iteration_delay_ms`"), "{e}");
+            assert!(e.0.contains(&max.to_string()), "{e}");
+        }
+    }
+
+    #[test]
+    fn unknown_gates_in_the_device_table_are_refused_naming_the_field() {
+        for (text, field) in [
+            (
+                r#"{"device":{"reference_mv":{"NOPE":1}}}"#,
+                "device.reference_mv.NOPE",
+            ),
+            (
+                r#"{"device":{"tunnel_coupling_uev":{"linear_per_mv":{"X":0.1}}}}"#,
+                "device.tunnel_coupling_uev.linear_per_mv.X",
+            ),
+            (
+                r#"{"device":{"lead_rate_per_ns":{"quadratic_per_mv2":[{"a":"N","b":"Q","coefficient_per_mv2":1e-4}]}}}"#,
+                "device.lead_rate_per_ns.quadratic_per_mv2[0].b",
+            ),
+            (
+                r#"{"device":{"crosstalk":{"line_b_per_mv":{"n":0.1}}}}"#,
+                "device.crosstalk.line_b_per_mv.n",
+            ),
+            (
+                r#"{"device":{"crosstalk":{"line_a_quadratic":[{"a":"Z","b":"N","coefficient_per_mv2":0}]}}}"#,
+                "device.crosstalk.line_a_quadratic[0].a",
+            ),
+            (
+                r#"{"device":{"sensing_dot":{"lever_per_mv":{"SPP":0.5}}}}"#,
+                "device.sensing_dot.lever_per_mv.SPP",
+            ),
+            (
+                r#"{"device":{"sensing_dot":{"gate":"SD9"}}}"#,
+                "device.sensing_dot.gate",
+            ),
+        ] {
+            let e = RunConfig::from_json_str(text).unwrap_err();
+            assert!(e.0.contains(&format!("`{field}`")), "{text}: {e}");
+        }
+        // Known gates are fine, and a custom gate set may leave default gates out.
+        RunConfig::from_json_str(r#"{"device":{"crosstalk":{"line_b_per_mv":{"N":0.1}}}}"#)
+            .unwrap();
+    }
+
+    #[test]
+    fn a_json_config_is_one_value() {
+        for text in [r#"{}{}"#, r#"{"seed":3} x"#, r#"{"seed":3}]"#] {
+            let e = RunConfig::from_json_str(text).unwrap_err();
+            assert!(e.0.contains("trailing characters"), "{text}: {e}");
+        }
+        assert_eq!(
+            RunConfig::from_json_str(" {\"seed\":3}\n")
+                .unwrap()
+                .simulation
+                .seed,
+            3
+        );
     }
 
     #[test]

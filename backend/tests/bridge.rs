@@ -9,109 +9,22 @@ mod common;
 
 use std::time::Duration;
 
+use common::bridge_client::*;
 use common::*;
-use futures_util::{SinkExt, StreamExt};
+use futures_util::SinkExt;
 use serde_json::json;
 use spintune::driver::SimulationRun;
 use spintune::protocol::{
     BridgeClientMessage, BridgeServerMessage, FaultKind, Request, Response, RunStatus, RunSummary,
-    PROTOCOL_VERSION,
 };
 use spintune::sim::SimulatedDevice;
 use spintune_server::config::RunConfig;
 use tokio_tungstenite::tungstenite::Message;
 
-async fn bridge_connect(addr: std::net::SocketAddr, id: u64) -> Ws {
-    let url = format!("ws://{addr}/api/runs/{id}/bridge?protocol={PROTOCOL_VERSION}");
-    let (ws, _) = tokio::time::timeout(STEP, tokio_tungstenite::connect_async(url))
-        .await
-        .expect("connect timed out")
-        .expect("connect");
-    ws
-}
-
-async fn next_bridge(ws: &mut Ws) -> BridgeServerMessage {
-    loop {
-        let m = tokio::time::timeout(STEP, ws.next())
-            .await
-            .expect("no bridge frame in time")
-            .expect("socket closed")
-            .expect("socket error");
-        match m {
-            Message::Text(t) => {
-                return serde_json::from_str(t.as_str())
-                    .unwrap_or_else(|e| panic!("bad bridge frame {t}: {e}"))
-            }
-            Message::Ping(_) | Message::Pong(_) => continue,
-            other => panic!("unexpected frame {other:?}"),
-        }
-    }
-}
-
-async fn send_msg(ws: &mut Ws, msg: &BridgeClientMessage) {
-    ws.send(Message::Text(serde_json::to_string(msg).unwrap().into()))
-        .await
-        .unwrap();
-}
-
-/// Connect and authenticate; panics unless `auth_ok` comes back.
-async fn bridge(addr: std::net::SocketAddr, id: u64) -> Ws {
-    let mut ws = bridge_connect(addr, id).await;
-    match next_bridge(&mut ws).await {
-        BridgeServerMessage::Hello { version, run } => {
-            assert_eq!(version, PROTOCOL_VERSION);
-            assert_eq!(run.id, id);
-        }
-        other => panic!("expected hello, got {other:?}"),
-    }
-    send_msg(
-        &mut ws,
-        &BridgeClientMessage::Auth {
-            token: TOKEN.into(),
-        },
-    )
-    .await;
-    assert_eq!(next_bridge(&mut ws).await, BridgeServerMessage::AuthOk);
-    ws
-}
-
-async fn next_any_request(ws: &mut Ws) -> (u64, Request) {
-    match next_bridge(ws).await {
-        BridgeServerMessage::Request { id, request, .. } => (id, request),
-        other => panic!("expected a request, got {other:?}"),
-    }
-}
-
-/// The next request that is not a read-back, answering read-backs from
-/// `device` on the way (the run reads every gate on connect and resume, and
-/// the swept gate after each sweep).
-async fn next_request_reading(ws: &mut Ws, device: &mut SimulatedDevice) -> (u64, Request) {
-    loop {
-        let (id, req) = next_any_request(ws).await;
-        if matches!(req, Request::ReadVoltages { .. }) {
-            let resp = device.execute(&req);
-            answer(ws, id, resp).await;
-            continue;
-        }
-        return (id, req);
-    }
-}
-
-async fn answer(ws: &mut Ws, id: u64, response: Response) {
-    send_msg(ws, &BridgeClientMessage::Response { id, response }).await;
-}
-
-/// Serve `k` requests from `device`.
-async fn serve(ws: &mut Ws, device: &mut SimulatedDevice, k: usize) {
-    for _ in 0..k {
-        let (id, req) = next_any_request(ws).await;
-        let resp = device.execute(&req);
-        answer(ws, id, resp).await;
-    }
-}
-
+/// A fault of a device that could not be reached (the only kind that clears
+/// when the bridge reconnects) whose message holds `needle`.
 fn fault_contains(r: &RunSummary, needle: &str) -> bool {
-    matches!(&r.status, RunStatus::Faulted { fault } if fault.kind == FaultKind::Device && fault.message.contains(needle))
+    matches!(&r.status, RunStatus::Faulted { fault } if fault.kind == FaultKind::Disconnected && fault.message.contains(needle))
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -290,41 +203,6 @@ async fn bridge_serves_a_run_and_faults_pause_it_without_losing_data() {
     );
 }
 
-/// Checks one request against the physical state of the scripted lab device
-/// (limits, and the step from where each gate really is). `Err` names the violation.
-fn physical_violation(device: &SimulatedDevice, req: &Request) -> Option<String> {
-    let gates = spintune::sim::default_gates();
-    let spec = |g: &str| gates.iter().find(|s| s.name == g).cloned().unwrap();
-    let check = |g: &str, v: f64, out: &mut Vec<String>| {
-        let s = spec(g);
-        let now = device.voltages_mv()[g];
-        if v < s.min_mv || v > s.max_mv {
-            out.push(format!("{g}: {v} mV outside its limits"));
-        }
-        if (v - now).abs() > s.max_step_mv + 1e-9 {
-            out.push(format!(
-                "{g}: physical step {} mV from {now} mV",
-                (v - now).abs()
-            ));
-        }
-    };
-    let mut out = Vec::new();
-    match req {
-        Request::SetVoltages { voltages_mv } => {
-            for (g, &v) in voltages_mv {
-                check(g, v, &mut out);
-            }
-        }
-        Request::Measure { scan } => {
-            if let Some(s) = &scan.sweep {
-                check(&s.gate, s.from_mv, &mut out);
-            }
-        }
-        _ => {}
-    }
-    (!out.is_empty()).then(|| out.join("; "))
-}
-
 /// The real binary, a scripted bridge that lies and an instrument moved
 /// during a crash. A `voltages_set` answer carrying a read-back of a gate that
 /// was not requested (N reported 150 mV away, not applied) faults the run and
@@ -440,6 +318,40 @@ async fn a_lying_bridge_and_a_crash_never_cause_a_step_above_the_limit() {
     });
     let (_proc2, addr) = spawn_server(&db);
     let mut ws = bridge(addr, run.id).await;
+    let (s, b) = control(addr, run.id, r#"{"action":"resume"}"#).await;
+    assert_eq!(s, 200, "{b}");
+    // The restarted run reads every gate: T is 18.5 mV from where the run
+    // left it, so nothing moves until a person confirms the positions.
+    let (id, read) = next_any_request(&mut ws).await;
+    assert!(
+        matches!(&read, Request::ReadVoltages { gates } if gates.len() == 11),
+        "{read:?}"
+    );
+    let resp = device.execute(&read);
+    answer(&mut ws, id, resp).await;
+    let faulted = wait_status(addr, run.id, |r| {
+        matches!(r.status, RunStatus::Faulted { .. })
+    })
+    .await;
+    let RunStatus::Faulted { fault } = &faulted.status else {
+        unreachable!()
+    };
+    assert_eq!(fault.kind, FaultKind::Moved, "{fault}");
+    let t_moved = fault
+        .moved
+        .iter()
+        .find(|m| m.gate == "T")
+        .unwrap_or_else(|| panic!("T not among the moved gates: {fault:?}"));
+    assert_eq!(t_moved.read_mv, t + 18.5);
+    assert!(
+        tokio::time::timeout(Duration::from_millis(500), next_bridge(&mut ws))
+            .await
+            .is_err(),
+        "a request was sent before the positions were confirmed"
+    );
+    let (s, b) = control(addr, run.id, r#"{"action":"accept_positions"}"#).await;
+    assert_eq!(s, 200, "{b}");
+    assert_eq!(get_run(addr, run.id).await.status, RunStatus::Paused);
     let (s, b) = control(addr, run.id, r#"{"action":"resume"}"#).await;
     assert_eq!(s, 200, "{b}");
     let finished = tokio::time::timeout(Duration::from_secs(60), async {

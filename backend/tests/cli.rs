@@ -122,6 +122,59 @@ fn run_rejects_a_bad_config_naming_the_field() {
 }
 
 #[test]
+fn run_with_targets_over_empty_levels_exits_2_naming_the_field() {
+    // Issue 20 item 7: this config panicked (exit 101) while applying the targets.
+    for (name, text, field) in [
+        (
+            "empty-levels.toml",
+            "[targets]\nt_sr = 20.0\n[tuner]\nlevels = []\n",
+            "tuner.levels",
+        ),
+        (
+            "late-delay.toml",
+            "iteration_delay_ms = 3600001\n",
+            "iteration_delay_ms",
+        ),
+        (
+            "device-gate.toml",
+            "[device.reference_mv]\nNOPE = 1.0\n",
+            "device.reference_mv.NOPE",
+        ),
+    ] {
+        let p = temp_file(name, text);
+        let out = spintune(&[
+            "run",
+            "--config",
+            p.to_str().unwrap(),
+            "--db",
+            "/nonexistent/x.db",
+        ]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{name}: {err}");
+        assert!(err.contains(&format!("`{field}`")), "{name}: {err}");
+        assert!(!err.contains("panicked"), "{name}: {err}");
+    }
+}
+
+#[test]
+fn serve_refuses_an_iteration_delay_above_its_bound() {
+    let out = spintune(&[
+        "serve",
+        "--iteration-delay-ms",
+        "3600001",
+        "--bind",
+        "127.0.0.1:0",
+        "--demo",
+        "never",
+        "--db",
+        "/nonexistent/x.db",
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("--iteration-delay-ms 3600001"), "{err}");
+}
+
+#[test]
 fn headless_run_refuses_a_bridge_config() {
     let dir = std::env::temp_dir().join(format!("spintune-cli-bridge-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();

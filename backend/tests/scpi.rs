@@ -35,6 +35,8 @@ enum Fault {
     Late(Duration),
     /// Answer the next query with the true value plus this offset, mV.
     Offset(f64),
+    /// Answer the next query with this text (e.g. SCPI's NaN, `9.91E37`).
+    Raw(&'static str),
 }
 
 #[derive(Default)]
@@ -137,12 +139,17 @@ impl Instrument {
                                         &s.setpoint
                                     };
                                     let mut v = map.get(&ch).copied().unwrap_or(0.0);
+                                    let mut raw = None;
                                     match s.query_fault.take() {
                                         Some(Fault::Late(d)) => delay = Some(d),
                                         Some(Fault::Offset(mv)) => v += mv / 1000.0,
+                                        Some(Fault::Raw(text)) => raw = Some(text),
                                         _ => {}
                                     }
-                                    answer = Some(format!("{v}\n"));
+                                    answer = Some(match raw {
+                                        Some(text) => format!("{text}\n"),
+                                        None => format!("{v}\n"),
+                                    });
                                 } else if head.ends_with(":volt") {
                                     s.sets += 1;
                                     let v: f64 = arg.parse().expect("volts");
@@ -521,6 +528,42 @@ async fn faults_pause_the_run_without_losing_data_and_limits_always_hold() {
     assert!(sets > 100, "only {sets} set commands");
 }
 
+/// SCPI's special values are not voltages: an instrument that answers
+/// `9.91E37` (NaN) or `-9.9E37` (overflow) to a read-back faults the run
+/// (a person must resume), nothing further is set, and the stored state
+/// never holds the value. (Before, `9.91E37` V was adopted as 9.91e40 mV.)
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn scpi_nan_and_overflow_answers_fault_and_nothing_is_set() {
+    let (volts, limits) = instrument_at_initial();
+    let inst = Instrument::start(volts, limits, 2.0).await;
+    let dir = TempDir::new("scpi-nan");
+    let srv = server(&dir, 256).await;
+    inst.arm(Fault::Raw("9.91E37"), 20);
+    let run = create_run(srv.addr, &run_config(inst.addr, 3)).await;
+    let r = expect_fault(&srv, &inst, run.id, "not a voltage").await;
+    let RunStatus::Faulted { fault } = &r.status else {
+        unreachable!()
+    };
+    assert_eq!(fault.kind, spintune::protocol::FaultKind::Device, "{fault}");
+    assert!(fault.message.contains("9.91E37"), "{fault}");
+    // Overflow on the read-back of every channel after a resume.
+    inst.arm(Fault::Raw("-9.9E37"), 0);
+    inst.state.lock().unwrap().query_fault = Some(Fault::Raw("-9.9E37"));
+    let (s, b) = control(srv.addr, run.id, r#"{"action":"resume"}"#).await;
+    assert_eq!(s, 200, "{b}");
+    expect_fault(&srv, &inst, run.id, "not a voltage").await;
+    // An honest instrument again: the run finishes, every command within limits.
+    inst.state.lock().unwrap().armed = None;
+    let (s, b) = control(srv.addr, run.id, r#"{"action":"resume"}"#).await;
+    assert_eq!(s, 200, "{b}");
+    wait_status(srv.addr, run.id, is_finished).await;
+    assert!(inst.violations().is_empty(), "{:?}", inst.violations());
+    for rec in records(srv.addr, run.id).await {
+        let text = rec.to_string();
+        assert!(!text.contains("e37") && !text.contains("e40"), "{text}");
+    }
+}
+
 /// The real binary as a process against the scripted instrument: `kill -9`
 /// mid-run, restart, eight concurrent `resume`s. Exactly one task may drive
 /// the run (one new instrument connection, paced iterations, contiguous
@@ -789,5 +832,91 @@ async fn a_leaking_gate_faults_the_run_with_channel_and_current_and_nothing_furt
     let (s, b) = control(srv.addr, run.id, r#"{"action":"resume"}"#).await;
     assert_eq!(s, 200, "{b}");
     expect_fault(&srv, &inst, run.id, "leakage on SB").await;
+    assert!(inst.violations().is_empty(), "{:?}", inst.violations());
+}
+
+/// Issue 20's first finding: a SCPI run measured through a lab bridge faults
+/// on leakage, then the bridge reconnects. The leakage fault needs a person:
+/// the reconnect clears nothing and not one more set command reaches the
+/// instrument (before, 1,740 did and the run finished).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_leakage_fault_is_not_cleared_by_a_bridge_reconnect() {
+    use common::bridge_client::{answer, bridge, next_bridge};
+    use spintune::protocol::BridgeServerMessage;
+
+    let (volts, limits) = instrument_at_initial();
+    let inst = Instrument::start(volts, limits, 2.0).await;
+    let sb = channel_map()["SB"];
+    inst.set_current(sb, 5e-7);
+    let dir = TempDir::new("scpi-leak-bridge");
+    let srv = server(&dir, 256).await;
+    let mut config = run_config(inst.addr, 50);
+    config["scpi"]["profile"] = json!("qdac2");
+    config["scpi"]["max_leakage_na"] = json!(100.0);
+    config["scpi"]["measure"] = json!("bridge");
+    let parsed = spintune_server::config::RunConfig::from_json_str(&config.to_string()).unwrap();
+    let mut lab = spintune::driver::SimulationRun::new(parsed.simulation)
+        .unwrap()
+        .device()
+        .clone();
+    let run = create_run(srv.addr, &config).await;
+    let mut ws = bridge(srv.addr, run.id).await;
+    // Serve measurements until the leakage fault.
+    let fault = tokio::time::timeout(Duration::from_secs(60), async {
+        let mut tick = tokio::time::interval(Duration::from_millis(50));
+        loop {
+            tokio::select! {
+                frame = next_bridge(&mut ws) => {
+                    if let BridgeServerMessage::Request { id, request, .. } = frame {
+                        let resp = lab.execute(&request);
+                        answer(&mut ws, id, resp).await;
+                    }
+                }
+                _ = tick.tick() => {
+                    if let RunStatus::Faulted { fault } = get_run(srv.addr, run.id).await.status {
+                        return fault;
+                    }
+                }
+            }
+        }
+    })
+    .await
+    .expect("no leakage fault");
+    assert_eq!(fault.kind, spintune::protocol::FaultKind::Device, "{fault}");
+    assert!(fault.message.contains("leakage on SB"), "{fault}");
+    let sets_at_fault = inst
+        .commands()
+        .iter()
+        .filter(|c| c.contains(":volt ") && !c.contains("slew"))
+        .count();
+    // The bridge drops and reconnects.
+    drop(ws);
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let mut ws = bridge(srv.addr, run.id).await;
+    let quiet = tokio::time::timeout(Duration::from_millis(1500), async {
+        loop {
+            if let BridgeServerMessage::Request { .. } = next_bridge(&mut ws).await {
+                return;
+            }
+        }
+    })
+    .await;
+    assert!(
+        quiet.is_err(),
+        "a measurement was requested after the reconnect"
+    );
+    let sets_after = inst
+        .commands()
+        .iter()
+        .filter(|c| c.contains(":volt ") && !c.contains("slew"))
+        .count();
+    assert_eq!(
+        sets_after, sets_at_fault,
+        "set commands after the reconnect"
+    );
+    assert!(
+        matches!(&get_run(srv.addr, run.id).await.status, RunStatus::Faulted { fault } if fault.message.contains("leakage")),
+        "the leakage fault cleared by itself"
+    );
     assert!(inst.violations().is_empty(), "{:?}", inst.violations());
 }

@@ -99,6 +99,82 @@ async fn when_the_store_takes_no_write_the_run_is_failed_in_memory_and_never_run
     assert_eq!(get_run(addr, id).await.status, RunStatus::Interrupted);
 }
 
+/// A full disk during `resume` of a run with no task (here: interrupted by a
+/// crash) answers an error and leaves the run truthfully as it was — never a
+/// phantom `running` nobody drives — and `stop` still works: stopped at
+/// once, stored as soon as the store takes writes again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_resume_on_a_full_disk_leaves_a_truthful_run_that_stop_still_stops() {
+    let dir = TempDir::new("store-resume");
+    let db = dir.0.join("s.db");
+    let id;
+    {
+        let (_p, addr) = spawn_server(&db);
+        let run = create_run(addr, &small_config("resume", 100_000, 20)).await;
+        id = run.id;
+        wait_status(addr, id, |r| r.iterations >= 2).await;
+    } // kill -9
+    let (_p, addr) = spawn_server(&db);
+    assert_eq!(get_run(addr, id).await.status, RunStatus::Interrupted);
+    sql(&db, FAIL_STATUS);
+    let (s, body) = control(addr, id, r#"{"action":"resume"}"#).await;
+    assert!(s >= 500, "{s} {body}");
+    assert!(body.contains("simulated disk full"), "{body}");
+    let iterations = get_run(addr, id).await.iterations;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let after = get_run(addr, id).await;
+    assert_eq!(after.status, RunStatus::Interrupted, "no phantom running");
+    assert_eq!(after.iterations, iterations, "nothing ran");
+    // The viewers' socket says the same.
+    let mut ws = connect(addr, id, None).await;
+    match next_msg(&mut ws).await {
+        spintune::protocol::ServerMessage::Hello { run, .. } => {
+            assert_eq!(run.status, RunStatus::Interrupted)
+        }
+        other => panic!("{other:?}"),
+    }
+    // Stop works although the store refuses it ...
+    let (s, body) = control(addr, id, r#"{"action":"stop"}"#).await;
+    assert_eq!(s, 200, "{body}");
+    assert_eq!(get_run(addr, id).await.status, RunStatus::Stopped);
+    let (s, _) = control(addr, id, r#"{"action":"resume"}"#).await;
+    assert_eq!(s, 409, "a stopped run cannot be resumed");
+    // ... and is stored when the disk allows.
+    sql(&db, "DROP TRIGGER test_full_runs;");
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    drop(_p);
+    let (_p, addr) = spawn_server(&db);
+    assert_eq!(get_run(addr, id).await.status, RunStatus::Stopped);
+}
+
+/// A full disk when a person stops a live run: the run is stopped (not
+/// failed, nothing more reaches the device) and stored as stopped when the
+/// disk allows.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stop_on_a_full_disk_stops_a_live_run_and_is_stored_later() {
+    let dir = TempDir::new("store-stop");
+    let db = dir.0.join("s.db");
+    let (p, addr) = spawn_server(&db);
+    let run = create_run(addr, &small_config("stop", 100_000, 20)).await;
+    let id = run.id;
+    wait_status(addr, id, |r| r.iterations >= 1).await;
+    let (s, body) = control(addr, id, r#"{"action":"pause"}"#).await;
+    assert_eq!(s, 200, "{body}");
+    let paused = wait_status(addr, id, |r| r.status == RunStatus::Paused).await;
+    sql(&db, FAIL_STATUS);
+    let (s, body) = control(addr, id, r#"{"action":"stop"}"#).await;
+    assert_eq!(s, 200, "{body}");
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let after = get_run(addr, id).await;
+    assert_eq!(after.status, RunStatus::Stopped, "{:?}", after.status);
+    assert_eq!(after.iterations, paused.iterations);
+    sql(&db, "DROP TRIGGER test_full_runs;");
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    drop(p);
+    let (_p, addr) = spawn_server(&db);
+    assert_eq!(get_run(addr, id).await.status, RunStatus::Stopped);
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_corrupt_run_is_quarantined_and_the_others_are_served() {
     let dir = TempDir::new("quarantine");

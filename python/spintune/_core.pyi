@@ -78,6 +78,7 @@ class RunSession:
         tuner_config: Optional[Mapping[str, Any]] = None,
         readback_tolerance_mv: float = 0.05,
         iteration_delay_ms: int = 0,
+        moved_tolerance_mv: float = 1.0,
     ) -> None: ...
     def poll(self) -> JsonDict:
         """``{"output": "execute" | "commit" | "save" | "publish" | "sleep" | "wait" | "done", ...}``"""

@@ -25,6 +25,19 @@ instrument stays where it is, and ``run()`` again resumes: every gate is
 read back first, and the interrupted request is checked again against the
 read-back before it is re-issued. ``stop()`` ends the run for good.
 
+The same holds for **any exception** that leaves ``run()`` — from a scan
+callable, a gate parameter, an ``on_iteration`` callback, QCoDeS creating or
+closing the dataset — and wherever it lands (also before the first
+iteration): the run is left paused (or faulted), never running, so the next
+``run()`` reads every gate first and a gate moved by hand in between is
+stepped from where it really is.
+
+Defence in depth: each gate parameter's own QCoDeS ``step`` is set to the
+gate's ``max_step_mv`` (in the parameter's unit; a smaller step already set is
+kept) and its ``inter_delay`` to at least ``inter_delay_s`` (1 ms). A gate
+parameter without a get command of its own (``get()`` returns its cache)
+warns: its read-back checks prove nothing.
+
 Example::
 
     from spintune.qcodes import QcodesTuner
@@ -66,6 +79,7 @@ import json
 import math
 import re
 import time
+import warnings
 from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
@@ -125,6 +139,110 @@ def _validator_range(param: Any) -> Tuple[Optional[float], Optional[float]]:
     lo = float(lo) if lo is not None and math.isfinite(float(lo)) else None
     hi = float(hi) if hi is not None and math.isfinite(float(hi)) else None
     return lo, hi
+
+
+def _cache_only_get(param: Any) -> Any:
+    """The parameter whose cached value (the last value set) ``param.get()``
+    returns instead of asking the instrument, or ``None``: a QCoDeS
+    ``Parameter`` made with ``get_cmd=None`` (the default when only
+    ``set_cmd`` is given; ``ManualParameter``), or the one a delegate/scaled
+    parameter reads through to."""
+    seen = set()
+    while param is not None and id(param) not in seen:
+        seen.add(id(param))
+        get_raw = getattr(param, "get_raw", None)
+        func = getattr(get_raw, "__func__", get_raw)
+        qualname = getattr(func, "__qualname__", "") or ""
+        if "_get_manual_parameter" in qualname:  # QCoDeS >= 0.40
+            return param
+        if qualname == "Parameter.__init__.<locals>.<lambda>":  # older QCoDeS: lambda: cache
+            return param
+        # look through a DelegateParameter / ScaledParameter to what it reads
+        inner = None
+        for attr in ("source", "_wrapped_parameter"):
+            try:
+                inner = getattr(param, attr, None)
+            except Exception:
+                inner = None
+            if inner is not None:
+                break
+        param = inner
+    return None
+
+
+def _check_readable(name: str, param: Any) -> None:
+    """Refuse a gate parameter that cannot be read; warn for one whose get()
+    only returns its cache (its read-back checks prove nothing)."""
+    full = getattr(param, "full_name", None) or repr(param)
+    if getattr(param, "gettable", True) is False or not callable(getattr(param, "get", None)):
+        raise ValueError(
+            f"gate {name}: parameter {full!r} cannot be read (no get command); the run reads "
+            "every gate from the instrument before it moves one: give it a get_cmd"
+        )
+    cached = _cache_only_get(param)
+    if cached is not None:
+        via = ""
+        if cached is not param:
+            via = f" (it reads {getattr(cached, 'full_name', None) or repr(cached)!r}, which has none)"
+        warnings.warn(
+            f"gate {name}: QCoDeS parameter {full!r} has no get command{via}: get() "
+            "returns the cached last set value, not the instrument's, so the read-back checks "
+            f"of gate {name} are vacuous (a gate moved outside the run goes unnoticed, and a "
+            "set that did not take effect looks like one that did). Give it a get_cmd that "
+            "asks the instrument.",
+            UserWarning,
+            stacklevel=3,
+        )
+
+
+def _configure_ramp(
+    name: str, param: Any, max_step_mv: float, mv_per_unit: float, inter_delay_s: Optional[float]
+) -> Dict[str, Any]:
+    """Defence in depth: QCoDeS's own ramp. ``param.step`` becomes the gate's
+    ``max_step_mv`` in the parameter's unit (unless a smaller step is set
+    already), ``param.inter_delay`` at least ``inter_delay_s``. Returns what is
+    in force: ``{"step": ..., "inter_delay": ...}`` (``None`` if the parameter
+    has no such attribute or refused the value; a ``UserWarning`` says why)."""
+    out: Dict[str, Any] = {"step": None, "inter_delay": None}
+    full = getattr(param, "full_name", None) or repr(param)
+    if hasattr(param, "step"):
+        step = max_step_mv / mv_per_unit
+        while step * mv_per_unit > max_step_mv:  # rounding must not loosen the limit
+            step = math.nextafter(step, 0.0)
+        try:
+            old = param.step
+            if old is not None and 0 < float(old) <= step:
+                pass  # the user's step is at least as strict: keep it
+            else:
+                try:
+                    param.step = step
+                except TypeError:
+                    # an integer parameter takes an integer step
+                    if int(step) < 1:
+                        raise
+                    param.step = int(step)
+            out["step"] = param.step
+        except (TypeError, ValueError, AttributeError) as e:
+            warnings.warn(
+                f"gate {name}: could not set the step of QCoDeS parameter {full!r} to "
+                f"{step:g} {getattr(param, 'unit', '')} ({e}); the run's own guard still "
+                f"limits every set to {max_step_mv:g} mV",
+                UserWarning,
+                stacklevel=3,
+            )
+    if inter_delay_s is not None and hasattr(param, "inter_delay"):
+        try:
+            if not float(param.inter_delay) >= inter_delay_s:
+                param.inter_delay = inter_delay_s
+            out["inter_delay"] = param.inter_delay
+        except (TypeError, ValueError, AttributeError) as e:
+            warnings.warn(
+                f"gate {name}: could not set the inter_delay of QCoDeS parameter {full!r} "
+                f"to {inter_delay_s:g} s ({e})",
+                UserWarning,
+                stacklevel=3,
+            )
+    return out
 
 
 def gate_limits(
@@ -248,6 +366,19 @@ class QcodesTuner:
         station: QCoDeS station recorded with the datasets' snapshot.
         name: name of the QCoDeS measurement.
         sleep: function used for the session's ``sleep`` outputs, s.
+        inter_delay_s: least time between two sets of one gate parameter, s
+            (QCoDeS ``inter_delay``; default 1 ms, ``None`` leaves it as it
+            is). A larger ``inter_delay`` already set is kept.
+
+    Defence in depth: each gate parameter's QCoDeS ``step`` is set to the
+    gate's ``max_step_mv`` in the parameter's unit (a smaller step already set
+    is kept), so QCoDeS itself ramps any larger set in steps no longer than
+    that, at most one per ``inter_delay``. QCoDeS ramps from its cached value,
+    which every read of the run refreshes. ``ramps`` shows what is in force.
+
+    A gate parameter that cannot be read raises ``ValueError``; one whose
+    ``get()`` only returns its cached value (no ``get_cmd``) warns
+    (``UserWarning``): its read-back checks prove nothing.
     """
 
     def __init__(
@@ -262,9 +393,16 @@ class QcodesTuner:
         station: Any = None,
         name: str = "spintune",
         sleep: Callable[[float], None] = time.sleep,
+        inter_delay_s: Optional[float] = 0.001,
     ):
+        if inter_delay_s is not None and not (
+            isinstance(inter_delay_s, (int, float)) and 0 <= inter_delay_s < math.inf
+        ):
+            raise ValueError(f"inter_delay_s must be a number of seconds >= 0 or None, got {inter_delay_s!r}")
         config = resolve_tuner_config(dict(tuner_config or {}))
         config["gates"] = gate_limits(config["gates"], gates, mv_per_unit)
+        for g in config["gates"]:
+            _check_readable(g["name"], gates[g["name"]])
         missing = [k for k in _scan_kinds(config) if k not in scans]
         if missing:
             raise ValueError(
@@ -287,6 +425,13 @@ class QcodesTuner:
         self._top_params: List[Tuple[str, str]] = [
             (p["name"], p["unit"]) for p in top.get("parameters", [])
         ]
+        # Only now that everything is valid: the parameters' own ramp.
+        self.ramps: Dict[str, Dict[str, Any]] = {}
+        for g in self.tuner_config["gates"]:
+            gate = g["name"]
+            self.ramps[gate] = _configure_ramp(
+                gate, self._gates[gate], float(g["max_step_mv"]), self._scale[gate], inter_delay_s
+            )
 
     # -- state and control ---------------------------------------------------
 
@@ -339,15 +484,41 @@ class QcodesTuner:
         also appended to ``datasets``). ``on_iteration(record)`` is called
         after each iteration is recorded.
 
-        Raises :class:`TuningFault` if the session faulted, re-raises an
-        exception of a scan callable or a gate parameter (after pausing the
-        run with a device fault), and re-raises ``KeyboardInterrupt`` after
-        pausing the run (see the module docstring).
+        Raises :class:`TuningFault` if the session faulted. Any other
+        exception — of a scan callable, a gate parameter, ``on_iteration``,
+        QCoDeS, or ``KeyboardInterrupt`` — propagates after the run is made
+        safe: a request that was at the instrument is reported to the session
+        as a device fault (its outcome is unknown), and a running run is
+        paused. So the next ``run()`` reads every gate back before it moves
+        one (see the module docstring).
         """
         state = self.session.status["state"]
         if state in ("finished", "stopped"):
             raise RuntimeError(f"the run is {state}; create a new QcodesTuner to tune again")
-        if state in ("paused", "faulted"):
+        try:
+            return self._run(iterations, on_iteration)
+        except BaseException as e:
+            # Whatever escaped, from wherever (the resume, the dataset's
+            # creation, the loop, a callback, closing the dataset): the
+            # session must not be left running on read-backs that the next
+            # run() would trust.
+            self._make_safe(e)
+            raise
+
+    def _run(
+        self,
+        iterations: Optional[int],
+        on_iteration: Optional[Callable[[Dict[str, Any]], None]],
+    ):
+        state = self.session.status["state"]
+        if state in ("running", "stepping") and (
+            self.session.readback_mv or self.session.has_request_in_flight
+        ):
+            # Left moving by a driver outside run() (the session driven by
+            # hand): whatever happened to the gates since, read them first.
+            self._make_safe(None)
+            self.session.control({"action": "step" if state == "stepping" else "resume"})
+        elif state in ("paused", "faulted"):
             self.session.control({"action": "resume"})
         if self.experiment is None:
             self.experiment = load_or_create_experiment("spintune", sample_name=self.name)
@@ -393,9 +564,12 @@ class QcodesTuner:
                         elif kind in ("wait", "done"):
                             break
                         # "publish": the status is read from the session when needed
-                except KeyboardInterrupt as e:
-                    self._interrupted()
-                    interrupted = e
+                except BaseException as e:
+                    # safe before the dataset records the status
+                    self._make_safe(e)
+                    if not isinstance(e, KeyboardInterrupt):
+                        raise
+                    interrupted = e  # the segment's dataset is completed first
                 finally:
                     saver.dataset.add_metadata("spintune_status", json.dumps(self.session.status))
         finally:
@@ -409,22 +583,37 @@ class QcodesTuner:
             raise TuningFault(status["fault"])
         return dataset
 
-    def _interrupted(self) -> None:
-        """Ctrl-C: nothing more goes to the instrument; the run is paused."""
-        if self.session.has_request_in_flight:
-            # Its outcome is unknown: let the session believe nothing about the gates.
-            self.session.feed(
+    def _make_safe(self, exc: Optional[BaseException]) -> None:
+        """Leave the session so that nothing moves until every gate is read
+        back: a request at the instrument is answered with a device error
+        (its outcome is unknown, so nothing is believed about the gates), a
+        running run is paused. A ``KeyboardInterrupt`` always ends paused
+        (the user asked for a pause); for another exception a fault it caused
+        stays visible. Idempotent."""
+        session = self.session
+        if exc is None:
+            what = "run() found a request unanswered (left by a driver outside run())"
+        elif isinstance(exc, KeyboardInterrupt):
+            what = "interrupted by the user (KeyboardInterrupt)"
+        else:
+            text = str(exc)
+            text = text if len(text) <= 300 else text[:300] + "…"
+            what = f"{type(exc).__name__} in run(): {text}" if text else f"{type(exc).__name__} in run()"
+        fed = False
+        if session.has_request_in_flight:
+            session.feed(
                 {
                     "response": "error",
-                    "message": "interrupted by the user (KeyboardInterrupt) while a request "
-                    "was at the instrument; its outcome is unknown",
+                    "message": f"{what} while a request was at the instrument; its outcome is unknown",
                 }
             )
-        try:
-            self.session.control({"action": "pause"})
-        except RuntimeError:
-            pass  # already stopped or finished
-        self.checkpoint = self.session.checkpoint()
+            fed = True
+        state = session.status["state"]
+        if state in ("running", "stepping") or (
+            state == "faulted" and (exc is None or isinstance(exc, KeyboardInterrupt)) and fed
+        ):
+            session.control({"action": "pause"})
+        self.checkpoint = session.checkpoint()
 
     def _get_mv(self, gate: str) -> float:
         return float(self._gates[gate].get()) * self._scale[gate]

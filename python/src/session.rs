@@ -71,6 +71,10 @@ pub(crate) fn control_error(e: ControlError) -> PyErr {
 ///         gate, mV (default 0.05 mV); a larger difference faults the run.
 ///     iteration_delay_ms: wall-clock pause after each iteration, ms
 ///         (announced by ``{"output": "sleep"}``; default 0).
+///     moved_tolerance_mv: largest accepted distance of a gate's read-back
+///         from where the run left it, mV (default 1 mV); farther is a
+///         ``moved`` fault that waits for ``control({"action":
+///         "accept_positions"})``.
 #[pyclass(name = "RunSession", module = "spintune")]
 pub struct PyRunSession {
     inner: RunSession,
@@ -79,11 +83,12 @@ pub struct PyRunSession {
 #[pymethods]
 impl PyRunSession {
     #[new]
-    #[pyo3(signature = (tuner_config = None, readback_tolerance_mv = 0.05, iteration_delay_ms = 0))]
+    #[pyo3(signature = (tuner_config = None, readback_tolerance_mv = 0.05, iteration_delay_ms = 0, moved_tolerance_mv = 1.0))]
     fn new(
         tuner_config: Option<&Bound<'_, PyAny>>,
         readback_tolerance_mv: f64,
         iteration_delay_ms: u64,
+        moved_tolerance_mv: f64,
     ) -> PyResult<Self> {
         let tuner = crate::config::tuner_config(tuner_config)?;
         let inner = RunSession::new(
@@ -91,6 +96,7 @@ impl PyRunSession {
             SessionConfig {
                 readback_tolerance_mv,
                 iteration_delay_ms,
+                moved_tolerance_mv,
             },
         )
         .map_err(|e| PyValueError::new_err(e.to_string()))?;

@@ -4,6 +4,8 @@ checked on the instrument side against the limits in force."""
 
 import json
 import math
+import time
+import warnings
 from functools import partial
 
 import numpy as np
@@ -12,6 +14,7 @@ import pytest
 import qcodes  # real QCoDeS from PyPI (installed by `cargo xtask test`)
 from qcodes.dataset import initialise_or_create_database_at, load_by_id, load_or_create_experiment
 from qcodes.instrument import Instrument
+from qcodes.parameters import DelegateParameter, ManualParameter, Parameter
 from qcodes.station import Station
 from qcodes.validators import Numbers
 
@@ -23,14 +26,25 @@ from spintune.qcodes import QcodesTuner, ScanFailed, TuningFault, sweep_points_m
 VALIDATOR_V = {"N": (-0.8, -0.6)}
 WIDE_V = (-2.0, 0.5)
 
+# The simulated DAC needs no settling time: tests about something else leave
+# QCoDeS's inter_delay at 0 (a sensing-dot sweep is 201 sets, ~900 per
+# iteration); the first tuning test and
+# test_instrument_step_and_inter_delay_from_the_limits run with the default.
+FAST = {"inter_delay_s": 0.0}
+
 
 class SimulatedDac(Instrument):
-    """A DAC whose channels (V) drive the simulated device; logs every get/set."""
+    """A DAC whose channels (V) drive the simulated device; logs every get,
+    every physical set (each step of a QCoDeS ramp) and every knob a human
+    turned by hand."""
 
     def __init__(self, name, device, ranges_v):
         super().__init__(name)
         self.device = device
-        self.log = []  # ("set", gate, mV) / ("get", gate)
+        self.log = []  # ("set", gate, mV) / ("get", gate) / ("knob", gate, mV)
+        self.interrupt_on_set = None  # (gate, n): the n-th set of gate raises KeyboardInterrupt
+        self.interrupt_snapshot = False  # the next snapshot raises KeyboardInterrupt
+        self.fail_on_get = None  # (gate, n): the n-th get of gate raises OSError
         for gate, (lo, hi) in ranges_v.items():
             self.add_parameter(
                 gate,
@@ -43,7 +57,24 @@ class SimulatedDac(Instrument):
     def get_idn(self):
         return {"vendor": "spintune", "model": "simulated DAC", "serial": None, "firmware": spintune.__version__}
 
+    def snapshot_base(self, *args, **kwargs):
+        if self.interrupt_snapshot:
+            self.interrupt_snapshot = False
+            raise KeyboardInterrupt  # Ctrl-C while QCoDeS creates the dataset
+        return super().snapshot_base(*args, **kwargs)
+
+    def turn_knob(self, gate, mv):
+        """A human moves a gate at the instrument; QCoDeS does not know."""
+        self.log.append(("knob", gate, mv))
+        r = self.device.execute({"request": "set_voltages", "voltages_mv": {gate: mv}})
+        assert r["response"] == "voltages_set", r
+
     def _set(self, gate, volts):
+        if self.interrupt_on_set is not None and self.interrupt_on_set[0] == gate:
+            g, n = self.interrupt_on_set
+            self.interrupt_on_set = (g, n - 1) if n > 1 else None
+            if n == 1:
+                raise KeyboardInterrupt  # Ctrl-C while the set is at the instrument
         mv = volts * 1000.0
         self.log.append(("set", gate, mv))
         r = self.device.execute({"request": "set_voltages", "voltages_mv": {gate: mv}})
@@ -51,6 +82,11 @@ class SimulatedDac(Instrument):
             raise RuntimeError(r["message"])
 
     def _get(self, gate):
+        if self.fail_on_get is not None and self.fail_on_get[0] == gate:
+            g, n = self.fail_on_get
+            self.fail_on_get = (g, n - 1) if n > 1 else None
+            if n == 1:
+                raise OSError("VISA timeout")
         self.log.append(("get", gate))
         return self.device.voltages_mv[gate] / 1000.0
 
@@ -113,13 +149,25 @@ def station(tmp_path):
 
 
 def check_instrument_log(dac, limits, readback_mv):
-    """Every set within the limits in force and one max step of the previous value."""
+    """Every physical set within the limits in force and one max step of the
+    gate's previous value (a knob turned by hand moves the previous value)."""
     last = dict(readback_mv)
-    for _, gate, mv in dac.sets():
-        lim = limits[gate]
-        assert lim["min_mv"] - 1e-9 <= mv <= lim["max_mv"] + 1e-9, (gate, mv, lim)
-        assert abs(mv - last[gate]) <= lim["max_step_mv"] * (1 + 1e-9) + 1e-9, (gate, mv, last[gate])
-        last[gate] = mv
+    for entry in dac.log:
+        if entry[0] == "knob":
+            last[entry[1]] = entry[2]
+        elif entry[0] == "set":
+            _, gate, mv = entry
+            lim = limits[gate]
+            assert lim["min_mv"] - 1e-9 <= mv <= lim["max_mv"] + 1e-9, (gate, mv, lim)
+            assert abs(mv - last[gate]) <= lim["max_step_mv"] * (1 + 1e-9) + 1e-9, (gate, mv, last[gate])
+            last[gate] = mv
+
+
+def assert_reads_every_gate_first(dac, start, gates):
+    """After log position `start`, every gate is read before the first set."""
+    after = dac.log[start:]
+    first_set = next((i for i, e in enumerate(after) if e[0] == "set"), len(after))
+    assert {e[1] for e in after[:first_set] if e[0] == "get"} == set(gates), after[: first_set + 1]
 
 
 def test_tunes_to_the_first_target_within_limits(station):
@@ -169,7 +217,7 @@ def test_tight_validator_is_never_exceeded(station):
     # the core keeps every request inside; the instrument never sees more.
     station["dac"].N.vals = Numbers(-0.701, -0.699)
     start_mv = dict(station["device"].voltages_mv)
-    tuner = QcodesTuner(station["gates"], station["scans"], {"max_iterations": 3}, experiment=station["exp"])
+    tuner = QcodesTuner(station["gates"], station["scans"], {"max_iterations": 3}, experiment=station["exp"], **FAST)
     try:
         tuner.run()
     except TuningFault:
@@ -191,7 +239,7 @@ def test_interrupt_pauses_sets_nothing_and_resumes(station):
 
     scans = dict(station["scans"], transition_width=interrupted_once)
     start_mv = dict(station["device"].voltages_mv)
-    tuner = QcodesTuner(station["gates"], scans, {"max_iterations": 2}, experiment=station["exp"])
+    tuner = QcodesTuner(station["gates"], scans, {"max_iterations": 2}, experiment=station["exp"], **FAST)
     with pytest.raises(KeyboardInterrupt):
         tuner.run()
     assert tuner.status == {"state": "paused"}
@@ -212,7 +260,7 @@ def test_interrupt_pauses_sets_nothing_and_resumes(station):
 
 
 def test_run_in_segments_and_scan_errors(station):
-    tuner = QcodesTuner(station["gates"], station["scans"], {"max_iterations": 3}, experiment=station["exp"])
+    tuner = QcodesTuner(station["gates"], station["scans"], {"max_iterations": 3}, experiment=station["exp"], **FAST)
     tuner.run(iterations=1)
     assert tuner.status == {"state": "paused"} and len(tuner.records) == 1
     tuner.set_target("t_sr", 25.0)
@@ -254,3 +302,216 @@ def test_configuration_errors(station):
     with pytest.raises(ValueError, match="max_iterations"):
         QcodesTuner(station["gates"], station["scans"], {"max_iterations": "many"}, mv_per_unit={"N": 1000.0})
     assert not math.isnan(station["device"].lab_seconds)
+
+
+# -- issue 20: an exception never leaves the run running ----------------------
+
+def run_after_a_turned_knob(tuner, station, gate, delta_mv):
+    """A human turns `gate` by `delta_mv` at the instrument, then run() again.
+    The run either goes on (from where the gate really is) or stops with a
+    fault (a core that refuses a gate far from where the run left it); either
+    way every gate is read before anything is set."""
+    dac, device = station["dac"], station["device"]
+    n_log = len(dac.log)
+    dac.turn_knob(gate, device.voltages_mv[gate] + delta_mv)
+    try:
+        tuner.run()
+    except TuningFault:
+        assert tuner.status["state"] == "faulted"
+    else:
+        assert tuner.status == {"state": "finished"}
+    assert_reads_every_gate_first(dac, n_log + 1, station["gates"])
+
+
+def test_raising_callback_then_a_turned_knob_never_steps_beyond_the_limit(station):
+    # The issue's case: on_iteration raises, a human moves T by 40 mV (4× its
+    # max step), run() again. Before the fix the session stayed `running`,
+    # the gates were not read again, and T was stepped ~40 mV at once.
+    start_mv = dict(station["device"].voltages_mv)
+    tuner = QcodesTuner(station["gates"], station["scans"], {"max_iterations": 3}, experiment=station["exp"], **FAST)
+
+    class AnalysisFailed(Exception):
+        pass
+
+    def callback(record):
+        raise AnalysisFailed(f"iteration {record['iteration']}")
+
+    with pytest.raises(AnalysisFailed):
+        tuner.run(on_iteration=callback)
+    assert tuner.status == {"state": "paused"}
+    assert not tuner.session.has_request_in_flight
+    assert [r["iteration"] for r in tuner.records] == [0]
+    assert len(tuner.datasets) == 1
+    assert json.loads(tuner.datasets[0].metadata["spintune_status"]) == {"state": "paused"}
+    run_after_a_turned_knob(tuner, station, "T", 40.0)
+    check_instrument_log(station["dac"], tuner.limits, start_mv)
+
+
+def test_keyboard_interrupt_inside_a_parameter_set_leaves_the_run_paused(station):
+    dac = station["dac"]
+    start_mv = dict(station["device"].voltages_mv)
+    tuner = QcodesTuner(station["gates"], station["scans"], {"max_iterations": 3}, experiment=station["exp"], **FAST)
+    dac.interrupt_on_set = ("N", 2)  # the second set of N: Ctrl-C before it reaches the DAC
+    with pytest.raises(KeyboardInterrupt):
+        tuner.run()
+    assert dac.interrupt_on_set is None  # it did land inside the set
+    assert tuner.status == {"state": "paused"}
+    assert not tuner.session.has_request_in_flight
+    assert len(tuner.datasets) == 1
+    n_log = len(dac.log)
+    assert tuner.session.poll()["output"] in ("publish", "wait")
+    assert tuner.session.poll() == {"output": "wait"}
+    assert len(dac.log) == n_log  # nothing after the interrupt
+    run_after_a_turned_knob(tuner, station, "SA", -35.0)
+    check_instrument_log(dac, tuner.limits, start_mv)
+
+
+def test_keyboard_interrupt_while_the_dataset_is_created_leaves_the_run_paused(station):
+    # Ctrl-C lands while QCoDeS snapshots the station for the new dataset,
+    # after run() resumed the session and before the first request.
+    dac = station["dac"]
+    start_mv = dict(station["device"].voltages_mv)
+    tuner = QcodesTuner(
+        station["gates"], station["scans"], {"max_iterations": 3},
+        experiment=station["exp"], station=station["station"], **FAST,
+    )
+    tuner.run(iterations=1)
+    assert tuner.status == {"state": "paused"}
+    dac.interrupt_snapshot = True
+    n_log = len(dac.log)
+    with pytest.raises(KeyboardInterrupt):
+        tuner.run()
+    assert not dac.interrupt_snapshot  # it did land in the snapshot
+    assert tuner.status == {"state": "paused"}
+    assert len(dac.log) == n_log
+    run_after_a_turned_knob(tuner, station, "N", 40.0)
+    check_instrument_log(dac, tuner.limits, start_mv)
+
+
+def test_a_session_left_running_is_read_again(station):
+    # A driver outside run() left the session running with read-backs (here:
+    # one request polled by hand, never answered): run() reads every gate
+    # before it moves one, and the unanswered request counts as unknown.
+    dac = station["dac"]
+    start_mv = dict(station["device"].voltages_mv)
+    tuner = QcodesTuner(station["gates"], station["scans"], {"max_iterations": 2}, experiment=station["exp"], **FAST)
+    session = tuner.session
+    assert session.poll()["output"] == "publish"
+    out = session.poll()
+    assert out["request"]["request"] == "read_voltages"
+    session.feed(tuner._execute(out["request"]))
+    out = session.poll()
+    assert out["output"] == "execute" and session.has_request_in_flight
+    assert tuner.status == {"state": "running"} and session.readback_mv
+    run_after_a_turned_knob(tuner, station, "T", 40.0)
+    check_instrument_log(dac, tuner.limits, start_mv)
+
+
+def test_exception_from_a_parameter_faults_and_is_read_again(station):
+    # Any other exception of a gate parameter: a device fault (visible), not
+    # a running run; run() again reads every gate.
+    dac = station["dac"]
+    start_mv = dict(station["device"].voltages_mv)
+    tuner = QcodesTuner(station["gates"], station["scans"], {"max_iterations": 2}, experiment=station["exp"], **FAST)
+    dac.fail_on_get = ("T", 3)  # the third read of T (a read-back after a set) times out
+    with pytest.raises(OSError, match="VISA timeout"):
+        tuner.run()
+    assert dac.fail_on_get is None
+    assert tuner.status["state"] == "faulted" and tuner.status["fault"]["kind"] == "device"
+    assert not tuner.session.has_request_in_flight
+    run_after_a_turned_knob(tuner, station, "T", 40.0)
+    check_instrument_log(dac, tuner.limits, start_mv)
+
+
+def test_a_malformed_scan_result_faults_and_is_read_again(station):
+    # The answer cannot even be fed (ValueError from the session): the request
+    # stays unanswered until run() reports it as a device fault.
+    dac = station["dac"]
+    start_mv = dict(station["device"].voltages_mv)
+    scans = dict(station["scans"], reload_time=lambda scan: {"t_sr": ("twenty", 0.25)})
+    tuner = QcodesTuner(station["gates"], scans, {"max_iterations": 2}, experiment=station["exp"], **FAST)
+    with pytest.raises(ValueError):
+        tuner.run()
+    assert tuner.status["state"] == "faulted" and tuner.status["fault"]["kind"] == "device"
+    assert "ValueError in run()" in tuner.status["fault"]["message"]
+    assert not tuner.session.has_request_in_flight
+    tuner._scans["reload_time"] = station["scans"]["reload_time"]
+    run_after_a_turned_knob(tuner, station, "N", -40.0)
+    check_instrument_log(dac, tuner.limits, start_mv)
+
+
+# -- issue 20: read-back checks that prove nothing, the instrument's own ramp ---
+
+
+def our_warnings(record):
+    return [str(w.message) for w in record if issubclass(w.category, UserWarning) and "gate " in str(w.message)]
+
+
+def test_cache_only_parameter_warns(station):
+    dac = station["dac"]
+    with warnings.catch_warnings(record=True) as record:
+        warnings.simplefilter("always")
+        QcodesTuner(station["gates"], station["scans"], **FAST)
+    assert our_warnings(record) == []  # every DAC channel asks the instrument
+
+    gates = dict(station["gates"])
+    # only a set_cmd: get() returns the last value set
+    gates["RFA"] = Parameter("rfa_set_only", unit="V", set_cmd=lambda v: None, initial_cache_value=0.0)
+    gates["RFB"] = ManualParameter("rfb_manual", unit="V", initial_value=0.0)
+    gates["SP"] = DelegateParameter("sp_delegate", source=ManualParameter("sp_cache", unit="V", initial_value=-0.5))
+    gates["SD2"] = DelegateParameter("sd2_delegate", source=dac.SD2)  # asks the DAC: fine
+    with pytest.warns(UserWarning) as record:
+        QcodesTuner(gates, station["scans"], **FAST)
+    messages = {m.split(":")[0]: m for m in our_warnings(record)}
+    assert sorted(messages) == ["gate RFA", "gate RFB", "gate SP"], messages
+    assert "'rfa_set_only' has no get command" in messages["gate RFA"] and "vacuous" in messages["gate RFA"]
+    assert "'rfb_manual' has no get command" in messages["gate RFB"]
+    assert "'sp_delegate' has no get command (it reads 'sp_cache', which has none)" in messages["gate SP"]
+
+    # no get at all: the run could not read the gate; refused at once
+    gates = dict(station["gates"], RFA=Parameter("rfa_no_get", unit="V", set_cmd=lambda v: None, get_cmd=False))
+    with pytest.raises(ValueError, match="gate RFA: parameter 'rfa_no_get' cannot be read"):
+        QcodesTuner(gates, station["scans"], **FAST)
+
+
+def test_instrument_step_and_inter_delay_from_the_limits(station):
+    dac = station["dac"]
+    dac.SD1.step = 0.005  # the user's stricter step (5 mV < 30 mV) is kept
+    dac.SA.step = 0.5  # a looser one (500 mV) is tightened
+    dac.SB.inter_delay = 0.2  # a longer inter_delay is kept
+    gates = dict(station["gates"])
+    rfa = Parameter("rfa_mv", unit="mV", get_cmd=lambda: 0.0, set_cmd=lambda v: None)
+    gates["RFA"] = rfa
+    tuner = QcodesTuner(gates, station["scans"], experiment=station["exp"])
+    limits = tuner.limits
+    for gate, param in gates.items():
+        scale = 1.0 if gate == "RFA" else 1000.0
+        expected = 0.005 if gate == "SD1" else limits[gate]["max_step_mv"] / scale
+        assert param.step == pytest.approx(expected, rel=1e-12), gate
+        assert param.step * scale <= limits[gate]["max_step_mv"], gate  # never looser than the limit
+        assert param.inter_delay == (0.2 if gate == "SB" else 0.001), gate
+        assert tuner.ramps[gate] == {"step": param.step, "inter_delay": param.inter_delay}
+    assert dac.N.step == pytest.approx(0.010) and dac.PA.step == pytest.approx(0.030)
+    assert rfa.step == pytest.approx(5.0)  # RFA in mV, max_step_mv 5
+
+    # QCoDeS itself now ramps a large set: 25 mV on N goes out in steps of
+    # at most 10 mV, at least inter_delay apart
+    n0 = dac.N.get()
+    start = len(dac.log)
+    t0 = time.perf_counter()
+    dac.N.set(n0 + 0.025)
+    elapsed = time.perf_counter() - t0
+    sets = [mv for kind, *rest in dac.log[start:] if kind == "set" for _, mv in [rest]]
+    assert len(sets) == 3 and sets[-1] == pytest.approx((n0 + 0.025) * 1000)
+    prev = n0 * 1000
+    for mv in sets:
+        assert abs(mv - prev) <= 10.0 + 1e-9
+        prev = mv
+    assert elapsed >= 2 * 0.001
+
+    # inter_delay_s=None leaves inter_delay alone; a bad value is refused
+    dac.N.inter_delay = 0.0
+    QcodesTuner(station["gates"], station["scans"], inter_delay_s=None)
+    assert dac.N.inter_delay == 0.0
+    with pytest.raises(ValueError, match="inter_delay_s"):
+        QcodesTuner(station["gates"], station["scans"], inter_delay_s=-1.0)

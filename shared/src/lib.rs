@@ -26,12 +26,14 @@ pub mod driver;
 pub mod estimator;
 pub mod fit;
 pub mod kalman;
+pub mod lifecycle;
 pub mod parameter;
 pub mod protocol;
 pub mod safety;
 pub mod session;
 pub mod sim;
 pub mod solver;
+pub mod strict_json;
 pub mod tuner;
 
 pub use config_error::ConfigError;

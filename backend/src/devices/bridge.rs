@@ -196,10 +196,13 @@ impl BridgeLink {
         let mut inner = self.inner();
         match inner.waiting.take() {
             Some(w) if w.id == id && w.generation == generation => {
-                // The run task may have given up in this very moment; then the
-                // request is re-issued anyway.
-                let _ = w.reply.send(response);
-                Ok(())
+                // The run task may have given up on the request (a stop, a
+                // timeout): then nobody takes the answer, and the bridge is
+                // told so (an `error` frame) rather than left believing it
+                // was used. A request given up is re-issued if the run resumes.
+                w.reply
+                    .send(response)
+                    .map_err(|_| DeviceError::NotOutstanding { id })
             }
             other => {
                 inner.waiting = other;
@@ -288,12 +291,20 @@ fn describe(request: &Request) -> String {
 /// run session's guard (the one choke point), not here.
 fn attribute(request: &Request, response: Response, id: u64) -> Response {
     match response {
-        Response::Error { message, .. } => DeviceError::BridgeReported {
-            id,
-            request: describe(request),
-            message,
+        Response::Error { message, cause } => {
+            let text = DeviceError::BridgeReported {
+                id,
+                request: describe(request),
+                message,
+            }
+            .to_string();
+            // The script says whether its instrument is unreachable (clears
+            // on reconnect) or reported a problem (needs a person; the default).
+            Response::Error {
+                message: text,
+                cause,
+            }
         }
-        .into_response(),
         other => other,
     }
 }

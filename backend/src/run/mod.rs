@@ -33,6 +33,7 @@ use std::time::Duration;
 use axum::extract::ws::Utf8Bytes;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
+use spintune::lifecycle::Acceptance;
 use spintune::protocol::{ControlCommand, IterationRecord, RunStatus, RunSummary, ServerMessage};
 use spintune::session::{RunSession, SessionConfig};
 use spintune::tuner::Tuner;
@@ -686,18 +687,15 @@ impl Manager {
         command: ControlCommand,
     ) -> Result<RunSummary, RunError> {
         let status = handle.summary().status;
-        let conflict = |what: &str| {
-            RunError::Conflict(format!("run {} is {}: {what}", handle.id, status.name()))
-        };
+        // The one lifecycle table (the core's), for a run without a task.
+        let acceptance = status
+            .accepts(&command)
+            .map_err(|r| RunError::Conflict(format!("run {}: {r}", handle.id)))?;
+        if acceptance == Acceptance::AlreadyThere {
+            return Ok(handle.summary());
+        }
         match &command {
             ControlCommand::Resume | ControlCommand::Step => {
-                match status {
-                    RunStatus::Stopped | RunStatus::Stopping => {
-                        return Err(conflict("a stopped run cannot be resumed"))
-                    }
-                    RunStatus::Finished => return Err(conflict("the run has finished")),
-                    _ => {}
-                }
                 let checkpoint = self.load_checkpoint(handle).await?;
                 let scfg = session_config(&handle.config, self.options.iteration_delay);
                 let (mut session, device) = checkpoint.into_session(scfg)?;
@@ -717,40 +715,9 @@ impl Manager {
                 }
                 Ok(handle.summary())
             }
-            ControlCommand::Pause => match status {
-                RunStatus::Interrupted | RunStatus::Failed { .. } | RunStatus::Faulted { .. } => {
-                    self.set_status_offline(handle, RunStatus::Paused).await
-                }
-                RunStatus::Paused => Ok(handle.summary()),
-                _ => Err(conflict("only a running or resumable run can be paused")),
-            },
-            ControlCommand::Stop => match status {
-                RunStatus::Finished | RunStatus::Stopped => Ok(handle.summary()),
-                _ => Ok(self.settle_stopped(handle, None).await),
-            },
-            ControlCommand::AcceptPositions => {
-                // Only a faulted run has positions to accept; the session
-                // decides (it refuses every other status).
-                let checkpoint = self.load_checkpoint(handle).await?;
-                let scfg = session_config(&handle.config, self.options.iteration_delay);
-                let (mut session, device) = checkpoint.into_session(scfg)?;
-                if let RunStatus::Faulted { fault } = &status {
-                    session.restore_fault(fault.clone());
-                }
-                let new_status = session
-                    .control(&command)
-                    .map_err(|e| RunError::Conflict(format!("run {}: {e}", handle.id)))?;
-                let json = serde_json::to_string(&Checkpoint::new(session, device))
-                    .map_err(|e| RunError::Internal(e.to_string()))?;
-                let store = self.store.clone();
-                let id = handle.id;
-                blocking(move || store.save_checkpoint(id, None, &json)).await?;
-                self.set_status_offline(handle, new_status).await
-            }
+            ControlCommand::Pause => self.set_status_offline(handle, RunStatus::Paused).await,
+            ControlCommand::Stop => Ok(self.settle_stopped(handle, None).await),
             ControlCommand::SetTarget { .. } => {
-                if status == RunStatus::Stopped {
-                    return Err(conflict("a stopped run takes no new targets"));
-                }
                 let checkpoint = self.load_checkpoint(handle).await?;
                 let scfg = session_config(&handle.config, self.options.iteration_delay);
                 let (mut session, device) = checkpoint.into_session(scfg)?;
@@ -772,6 +739,25 @@ impl Manager {
                     return self.set_status_offline(handle, RunStatus::Paused).await;
                 }
                 Ok(handle.summary())
+            }
+            ControlCommand::AcceptPositions => {
+                // Only a faulted run has positions to accept; the session
+                // decides (it refuses every other status).
+                let checkpoint = self.load_checkpoint(handle).await?;
+                let scfg = session_config(&handle.config, self.options.iteration_delay);
+                let (mut session, device) = checkpoint.into_session(scfg)?;
+                if let RunStatus::Faulted { fault } = &status {
+                    session.restore_fault(fault.clone());
+                }
+                let new_status = session
+                    .control(&command)
+                    .map_err(|e| RunError::Conflict(format!("run {}: {e}", handle.id)))?;
+                let json = serde_json::to_string(&Checkpoint::new(session, device))
+                    .map_err(|e| RunError::Internal(e.to_string()))?;
+                let store = self.store.clone();
+                let id = handle.id;
+                blocking(move || store.save_checkpoint(id, None, &json)).await?;
+                self.set_status_offline(handle, new_status).await
             }
         }
     }

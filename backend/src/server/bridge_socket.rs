@@ -9,7 +9,7 @@ use axum::extract::ws::{Message, Utf8Bytes, WebSocket};
 use spintune::protocol::{BridgeClientMessage, BridgeServerMessage, PROTOCOL_VERSION};
 use tokio::sync::mpsc;
 
-use super::{parse_strict, AppState};
+use super::{parse_strict, too_big_close, AppState, MAX_BRIDGE_MESSAGE};
 use crate::devices::bridge::{BridgeLink, AUTH_TIMEOUT_S};
 
 fn frame(msg: &BridgeServerMessage) -> Message {
@@ -26,8 +26,12 @@ fn error_frame(message: impl Into<String>) -> Message {
 
 /// Serve one bridge socket of run `id` (the handler of `/api/runs/{id}/bridge`).
 pub async fn serve_socket(state: AppState, id: u64, mut socket: WebSocket) {
-    let _ = serve(&state, id, &mut socket).await;
-    let _ = socket.send(Message::Close(None)).await;
+    // A message above MAX_BRIDGE_MESSAGE closes with 1009 (Message Too Big).
+    let close = match serve(&state, id, &mut socket).await {
+        Err(e) => too_big_close(&e, MAX_BRIDGE_MESSAGE),
+        Ok(()) => None,
+    };
+    let _ = socket.send(close.unwrap_or(Message::Close(None))).await;
 }
 
 async fn serve(state: &AppState, id: u64, socket: &mut WebSocket) -> Result<(), axum::Error> {

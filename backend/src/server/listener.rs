@@ -6,6 +6,10 @@
 //!   request's headers in this time is closed — also an idle keep-alive
 //!   connection between requests (hyper's `header_read_timeout`, which runs
 //!   whenever the connection waits for a request head).
+//! * [`BODY_READ_TIMEOUT`]: a request whose body does not arrive in full
+//!   within this time after its headers is answered 408 and the connection
+//!   closed (hyper has no body timeout of its own); bodies above
+//!   [`MAX_BODY_BYTES`] are answered 413.
 //! * [`MAX_CONNECTIONS_PER_IP`]: concurrent connections (HTTP and WebSocket)
 //!   from one client IP address; a connection beyond it is closed at once,
 //!   before anything is read from it.
@@ -24,7 +28,11 @@ use std::sync::{Arc, Mutex};
 use std::task::{Context, Poll};
 use std::time::Duration;
 
-use axum::extract::ConnectInfo;
+use axum::body::Body;
+use axum::extract::{ConnectInfo, Request, State};
+use axum::http::{header, HeaderValue, StatusCode};
+use axum::middleware::Next;
+use axum::response::{IntoResponse, Response};
 use axum::Router;
 use hyper_util::rt::{TokioIo, TokioTimer};
 use hyper_util::service::TowerToHyperService;
@@ -38,6 +46,15 @@ use crate::run::ViewerLimits;
 /// closed.
 pub const HEADER_READ_TIMEOUT: Duration = Duration::from_secs(10);
 
+/// A request body that has not arrived in full this long after the
+/// request's headers is answered 408 (Request Timeout) and the connection
+/// closed: a body that never completes cannot hold a connection (and a
+/// slot of [`MAX_CONNECTIONS_PER_IP`]) for longer.
+pub const BODY_READ_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// Largest request body, bytes (axum's default body limit); larger → 413.
+pub const MAX_BODY_BYTES: usize = 2 * 1024 * 1024;
+
 /// Concurrent connections per client IP address; more are closed at once.
 pub const MAX_CONNECTIONS_PER_IP: usize = 64;
 
@@ -46,6 +63,8 @@ pub const MAX_CONNECTIONS_PER_IP: usize = 64;
 pub struct ConnectionLimits {
     /// See [`HEADER_READ_TIMEOUT`].
     pub header_read_timeout: Duration,
+    /// See [`BODY_READ_TIMEOUT`].
+    pub body_read_timeout: Duration,
     /// See [`MAX_CONNECTIONS_PER_IP`].
     pub max_connections_per_ip: usize,
 }
@@ -54,6 +73,7 @@ impl Default for ConnectionLimits {
     fn default() -> Self {
         Self {
             header_read_timeout: HEADER_READ_TIMEOUT,
+            body_read_timeout: BODY_READ_TIMEOUT,
             max_connections_per_ip: MAX_CONNECTIONS_PER_IP,
         }
     }
@@ -66,6 +86,9 @@ pub struct LimitArgs {
     /// Close a connection that does not complete its request headers in this time, ms.
     #[arg(long, default_value_t = HEADER_READ_TIMEOUT.as_millis() as u64)]
     pub header_read_timeout_ms: u64,
+    /// Answer 408 and close a connection whose request body has not arrived in full this long after its headers, ms.
+    #[arg(long, default_value_t = BODY_READ_TIMEOUT.as_millis() as u64)]
+    pub body_read_timeout_ms: u64,
     /// Concurrent connections per client IP address (more are closed at once).
     #[arg(long, default_value_t = MAX_CONNECTIONS_PER_IP)]
     pub max_connections_per_ip: usize,
@@ -89,6 +112,7 @@ impl Default for LimitArgs {
         let c = ConnectionLimits::default();
         Self {
             header_read_timeout_ms: c.header_read_timeout.as_millis() as u64,
+            body_read_timeout_ms: c.body_read_timeout.as_millis() as u64,
             max_connections_per_ip: c.max_connections_per_ip,
             viewer_send_timeout_ms: v.send_timeout.as_millis() as u64,
             viewer_ping_interval_ms: v.ping_interval.as_millis() as u64,
@@ -104,6 +128,7 @@ impl LimitArgs {
     pub fn connection_limits(&self) -> ConnectionLimits {
         ConnectionLimits {
             header_read_timeout: Duration::from_millis(self.header_read_timeout_ms.max(1)),
+            body_read_timeout: Duration::from_millis(self.body_read_timeout_ms.max(1)),
             max_connections_per_ip: self.max_connections_per_ip.max(1),
         }
     }
@@ -210,6 +235,10 @@ pub async fn serve(
     tls: Option<TlsAcceptor>,
 ) {
     let per_ip = Arc::new(PerIp::default());
+    let app = app.layer(axum::middleware::from_fn_with_state(
+        limits.body_read_timeout,
+        read_body_by_deadline,
+    ));
     loop {
         let (tcp, peer) = match listener.accept().await {
             Ok(c) => c,
@@ -250,6 +279,54 @@ pub async fn serve(
             }
         });
     }
+}
+
+/// Read the request's whole body (at most [`MAX_BODY_BYTES`]) within
+/// `timeout` before the handlers see it: 408 and `Connection: close` if it
+/// does not arrive in time, 413 if it is too large.
+async fn read_body_by_deadline(
+    State(timeout): State<Duration>,
+    request: Request,
+    next: Next,
+) -> Response {
+    let (parts, body) = request.into_parts();
+    let error = |status: StatusCode, message: String| {
+        let mut resp =
+            (status, axum::Json(serde_json::json!({ "error": message }))).into_response();
+        resp.headers_mut()
+            .insert(header::CONNECTION, HeaderValue::from_static("close"));
+        resp
+    };
+    let bytes =
+        match tokio::time::timeout(timeout, axum::body::to_bytes(body, MAX_BODY_BYTES)).await {
+            Ok(Ok(bytes)) => bytes,
+            Err(_) => {
+                return error(
+                    StatusCode::REQUEST_TIMEOUT,
+                    format!(
+                        "the request body did not arrive within {} s of the headers",
+                        timeout.as_secs_f64()
+                    ),
+                )
+            }
+            Ok(Err(e)) => {
+                let e = e.into_inner();
+                let too_large = e.is::<http_body_util::LengthLimitError>();
+                return if too_large {
+                    error(
+                        StatusCode::PAYLOAD_TOO_LARGE,
+                        format!("the request body exceeds {MAX_BODY_BYTES} bytes"),
+                    )
+                } else {
+                    error(
+                        StatusCode::BAD_REQUEST,
+                        format!("cannot read the request body: {e}"),
+                    )
+                };
+            }
+        };
+    next.run(Request::from_parts(parts, Body::from(bytes)))
+        .await
 }
 
 /// HTTP/1.1 with upgrades on one connection, with the header-read timeout.

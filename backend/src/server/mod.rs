@@ -19,7 +19,15 @@
 //! | DELETE 🔒 | `/api/runs/{id}` | → 204 |
 //! | GET | `/api/runs/{id}/ws?protocol=3&from=N` | WebSocket, see below |
 //! | GET | `/api/runs/{id}/bridge?protocol=3` | WebSocket of the lab bridge (runs with `driver = "bridge"` or `scpi.measure = "bridge"`), see [`crate::devices::bridge`] |
-//! | GET | `/*` | the dashboard (Trunk's `dist/`), or a note on how to build it |
+//! | GET | `/*` | the dashboard (Trunk's `dist/`), or a note on how to build it; a symbolic link inside `dist/` (or a path leaving it) → 404 |
+//!
+//! The JSON bodies must come as `Content-Type: application/json` (optional
+//! parameters); another Content-Type → 415, none → read as JSON. A body is
+//! exactly one JSON value: anything but whitespace after it → 400 / 422
+//! (the same strict parser reads viewer and bridge frames:
+//! [`spintune::strict_json`]). Bodies: at most
+//! [`listener::MAX_BODY_BYTES`], in full within
+//! [`listener::BODY_READ_TIMEOUT`] of the headers (413 / 408).
 //!
 //! Both WebSockets require `protocol=3` ([`PROTOCOL_VERSION`]) in the query;
 //! a client that omits it (every version-1 client) or states another version
@@ -47,7 +55,8 @@
 //! [`MAX_HISTORY_PAGE`] summaries, plus the shared broadcast ring); the
 //! server pings every [`VIEWER_PING_INTERVAL`] and closes a socket from which
 //! nothing arrived for [`VIEWER_PONG_TIMEOUT`]; inbound frames are capped at
-//! [`MAX_VIEWER_MESSAGE`] (viewer) and [`MAX_BRIDGE_MESSAGE`] (bridge); at
+//! [`MAX_VIEWER_MESSAGE`] (viewer) and [`MAX_BRIDGE_MESSAGE`] (bridge): a
+//! larger message closes the socket with 1009 (Message Too Big); at
 //! most [`MAX_VIEWERS_PER_RUN`] viewer sockets per run (one more → 503).
 //! Connection limits (header read timeout, connections per IP): [`listener`].
 
@@ -202,6 +211,29 @@ fn authorize(state: &AppState, client: auth::ClientIp, headers: &HeaderMap) -> A
     })
 }
 
+/// The JSON bodies (`POST /api/runs`, `POST /api/runs/{id}/control`) must be
+/// sent as `Content-Type: application/json` (parameters such as
+/// `; charset=utf-8` allowed); another type is refused with 415. A request
+/// without a Content-Type is read as JSON (scripts; a browser always sends
+/// one, so a cross-site form post — `text/plain` or a form type — is
+/// refused).
+fn require_json(headers: &HeaderMap) -> ApiResult<()> {
+    let Some(value) = headers.get(header::CONTENT_TYPE) else {
+        return Ok(());
+    };
+    let text = value.to_str().unwrap_or("");
+    let essence = text.split(';').next().unwrap_or("").trim();
+    if essence.eq_ignore_ascii_case("application/json") {
+        return Ok(());
+    }
+    Err(ApiError(
+        StatusCode::UNSUPPORTED_MEDIA_TYPE,
+        format!(
+            "the body must be JSON sent as `Content-Type: application/json`, got {text:?} (curl: add -H 'Content-Type: application/json')"
+        ),
+    ))
+}
+
 fn parse_u64(q: &HashMap<String, String>, key: &str) -> ApiResult<Option<u64>> {
     match q.get(key) {
         None => Ok(None),
@@ -239,44 +271,14 @@ pub fn parse_client_message(text: &str) -> Result<ClientMessage, ProtocolError> 
     Ok(msg)
 }
 
-/// Deserialize `T`, then refuse keys that `T` does not have. (serde ignores
-/// `deny_unknown_fields` on unit variants of internally tagged enums, e.g.
-/// `{"action":"pause","extra":1}`; comparing with the re-serialized value
-/// catches those.)
+/// Parse one `T` strictly ([`spintune::strict_json::parse_strict`]): one
+/// JSON value and nothing after it but whitespace, no unknown keys at any
+/// depth, errors naming the field. Every REST body, viewer frame and bridge
+/// frame goes through it.
 pub(crate) fn parse_strict<T: serde::de::DeserializeOwned + serde::Serialize>(
     text: &str,
 ) -> Result<T, ProtocolError> {
-    let de = &mut serde_json::Deserializer::from_str(text);
-    let raw: serde_json::Value = serde_path_to_error::deserialize(de).map_err(malformed)?;
-    let typed: T = serde_path_to_error::deserialize(raw.clone()).map_err(malformed)?;
-    let back = serde_json::to_value(&typed).map_err(|e| ProtocolError::malformed("", e))?;
-    unknown_keys(&raw, &back, "")?;
-    Ok(typed)
-}
-
-fn unknown_keys(
-    raw: &serde_json::Value,
-    known: &serde_json::Value,
-    path: &str,
-) -> Result<(), ProtocolError> {
-    if let (serde_json::Value::Object(r), serde_json::Value::Object(k)) = (raw, known) {
-        for (key, v) in r {
-            let here = if path.is_empty() {
-                key.clone()
-            } else {
-                format!("{path}.{key}")
-            };
-            match k.get(key) {
-                None => return Err(ProtocolError::UnknownField { field: here }),
-                Some(kv) => unknown_keys(v, kv, &here)?,
-            }
-        }
-    }
-    Ok(())
-}
-
-fn malformed(e: serde_path_to_error::Error<serde_json::Error>) -> ProtocolError {
-    ProtocolError::malformed(&e.path().to_string(), e.inner())
+    spintune::strict_json::parse_strict(text)
 }
 
 fn validate_control(cmd: &ControlCommand) -> Result<(), ProtocolError> {
@@ -320,7 +322,13 @@ pub fn router(state: AppState, dist: PathBuf) -> Router {
         .route("/api/runs/{id}/bridge", get(bridge_ws))
         .with_state(state);
     let app = if dist.join("index.html").is_file() {
-        api.fallback_service(ServeDir::new(dist))
+        // Symbolic links inside `dist` are not followed (404): only the
+        // files really in the directory are served.
+        let root = std::fs::canonicalize(&dist).unwrap_or_else(|_| dist.clone());
+        let files = Router::new().fallback_service(ServeDir::new(&root)).layer(
+            axum::middleware::from_fn_with_state(Arc::new(root), refuse_links),
+        );
+        api.fallback_service(files)
     } else {
         let note = dashboard_missing_note(&dist);
         api.fallback(move || {
@@ -329,6 +337,76 @@ pub fn router(state: AppState, dist: PathBuf) -> Router {
         })
     };
     origin::guard(app, access)
+}
+
+/// 404 for a dashboard path that passes through a symbolic link inside
+/// `root` (or resolves outside it); otherwise on to `ServeDir`, which reads
+/// the path the same way (percent-decoded, `.` skipped, `..` refused).
+async fn refuse_links(
+    State(root): State<Arc<PathBuf>>,
+    request: axum::extract::Request,
+    next: axum::middleware::Next,
+) -> Response {
+    match dist_path_is_plain(&root, request.uri().path()).await {
+        true => next.run(request).await,
+        false => (StatusCode::NOT_FOUND, "not found").into_response(),
+    }
+}
+
+/// Whether every component of the file `path` names under `root` (and
+/// `index.html` of a directory) is a plain file or directory, and the file
+/// lies inside `root`. A path that does not exist is plain (`ServeDir`
+/// answers 404).
+async fn dist_path_is_plain(root: &std::path::Path, path: &str) -> bool {
+    let Some(decoded) = percent_decode(path.trim_start_matches('/')) else {
+        return false;
+    };
+    let mut here = root.to_path_buf();
+    for component in std::path::Path::new(&decoded).components() {
+        match component {
+            std::path::Component::Normal(c) => here.push(c),
+            std::path::Component::CurDir => continue,
+            _ => return false,
+        }
+        match tokio::fs::symlink_metadata(&here).await {
+            Ok(m) if m.file_type().is_symlink() => return false,
+            Ok(_) => {}
+            Err(_) => return true,
+        }
+    }
+    if tokio::fs::metadata(&here).await.is_ok_and(|m| m.is_dir()) {
+        here.push("index.html");
+        if tokio::fs::symlink_metadata(&here)
+            .await
+            .is_ok_and(|m| m.file_type().is_symlink())
+        {
+            return false;
+        }
+    }
+    match tokio::fs::canonicalize(&here).await {
+        Ok(real) => real.starts_with(root),
+        Err(_) => true,
+    }
+}
+
+/// `%XX`-decode a URL path (as `ServeDir` does); `None` if it is not UTF-8.
+fn percent_decode(s: &str) -> Option<String> {
+    let bytes = s.as_bytes();
+    let mut out = Vec::with_capacity(bytes.len());
+    let mut i = 0;
+    while i < bytes.len() {
+        let hex = |b: u8| (b as char).to_digit(16);
+        if bytes[i] == b'%' && i + 2 < bytes.len() {
+            if let (Some(h), Some(l)) = (hex(bytes[i + 1]), hex(bytes[i + 2])) {
+                out.push((h * 16 + l) as u8);
+                i += 3;
+                continue;
+            }
+        }
+        out.push(bytes[i]);
+        i += 1;
+    }
+    String::from_utf8(out).ok()
 }
 
 fn dashboard_missing_note(dist: &std::path::Path) -> String {
@@ -364,6 +442,7 @@ async fn create_run(
     body: Bytes,
 ) -> ApiResult<impl IntoResponse> {
     authorize(&s, client, &headers)?;
+    require_json(&headers)?;
     let text = std::str::from_utf8(&body)
         .map_err(|_| ApiError(StatusCode::BAD_REQUEST, "body is not UTF-8".into()))?;
     let text = if text.trim().is_empty() { "{}" } else { text };
@@ -478,6 +557,7 @@ async fn control(
     body: Bytes,
 ) -> ApiResult<impl IntoResponse> {
     authorize(&s, client, &headers)?;
+    require_json(&headers)?;
     let id = parse_id(&id)?;
     let text = std::str::from_utf8(&body)
         .map_err(|_| ApiError(StatusCode::BAD_REQUEST, "body is not UTF-8".into()))?;
@@ -585,6 +665,25 @@ fn text_of(msg: &ServerMessage) -> Message {
     ))
 }
 
+/// The close frame for a receive error that is an inbound message above
+/// `max` bytes: code 1009 (Message Too Big) with the sizes; `None` for any
+/// other error (the peer went away).
+pub(crate) fn too_big_close(e: &axum::Error, max: usize) -> Option<Message> {
+    use tungstenite::error::CapacityError;
+    let inner = std::error::Error::source(e)?.downcast_ref::<tungstenite::Error>()?;
+    match inner {
+        tungstenite::Error::Capacity(CapacityError::MessageTooLong { size, .. }) => {
+            Some(Message::Close(Some(axum::extract::ws::CloseFrame {
+                code: axum::extract::ws::close_code::SIZE,
+                reason: Utf8Bytes::from(format!(
+                    "message of {size} bytes exceeds the limit of {max} bytes"
+                )),
+            })))
+        }
+        _ => None,
+    }
+}
+
 /// What the viewer's socket loop answers itself (it needs the socket).
 enum ViewerRequest {
     History { before: Option<u64>, limit: u32 },
@@ -608,6 +707,9 @@ enum ViewerEnd {
     SendTimeout(Duration),
     /// Nothing arrived within the pong timeout.
     Idle(Duration),
+    /// The viewer sent a message above [`MAX_VIEWER_MESSAGE`]: this close
+    /// frame (1009) ends the socket.
+    TooBig(Message),
 }
 
 /// Send one frame within `timeout`.
@@ -714,6 +816,11 @@ async fn viewer(state: AppState, id: u64, from: u64, mut socket: WebSocket, _slo
     let end = viewer_loop(&state, id, from, &mut socket).await;
     let reason = match end {
         ViewerEnd::Gone => return,
+        ViewerEnd::TooBig(close) => {
+            eprintln!("viewer of run {id} disconnected: inbound message too big");
+            let _ = tokio::time::timeout(CLOSE_GRACE, socket.send(close)).await;
+            return;
+        }
         ViewerEnd::SendTimeout(t) => format!(
             "send timed out after {} s: the viewer does not read",
             t.as_secs_f64()
@@ -779,7 +886,14 @@ async fn viewer_loop(state: &AppState, id: u64, from: u64, socket: &mut WebSocke
                 }
             },
             incoming = socket.recv() => {
-                let Some(Ok(incoming)) = incoming else { return ViewerEnd::Gone };
+                let incoming = match incoming {
+                    Some(Ok(incoming)) => incoming,
+                    Some(Err(e)) => {
+                        return too_big_close(&e, MAX_VIEWER_MESSAGE)
+                            .map_or(ViewerEnd::Gone, ViewerEnd::TooBig)
+                    }
+                    None => return ViewerEnd::Gone,
+                };
                 last_heard = tokio::time::Instant::now();
                 let reply = match incoming {
                     Message::Text(text) => {

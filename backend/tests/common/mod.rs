@@ -3,6 +3,8 @@
 //! bounded in time.
 #![allow(dead_code)]
 
+pub mod bridge_client;
+
 use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -63,12 +65,24 @@ pub async fn server(dir: &TempDir, viewer_buffer: usize) -> Server {
     .unwrap_or_else(|e| panic!("server: {}", e.message))
 }
 
-/// Minimal HTTP/1.1 request; returns (status, body).
+/// Minimal HTTP/1.1 request (`Content-Type: application/json`); returns (status, body).
 pub async fn http(
     addr: SocketAddr,
     method: &str,
     path: &str,
     token: Option<&str>,
+    body: Option<&str>,
+) -> (u16, String) {
+    http_typed(addr, method, path, token, Some("application/json"), body).await
+}
+
+/// [`http`] with the given `Content-Type` header (`None`: no such header).
+pub async fn http_typed(
+    addr: SocketAddr,
+    method: &str,
+    path: &str,
+    token: Option<&str>,
+    content_type: Option<&str>,
     body: Option<&str>,
 ) -> (u16, String) {
     tokio::time::timeout(STEP, async {
@@ -77,8 +91,11 @@ pub async fn http(
         let auth = token
             .map(|t| format!("Authorization: Bearer {t}\r\n"))
             .unwrap_or_default();
+        let ctype = content_type
+            .map(|t| format!("Content-Type: {t}\r\n"))
+            .unwrap_or_default();
         let req = format!(
-            "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n{auth}Content-Type: application/json\r\nContent-Length: {}\r\n\r\n{body}",
+            "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n{auth}{ctype}Content-Length: {}\r\n\r\n{body}",
             body.len()
         );
         s.write_all(req.as_bytes()).await.unwrap();

@@ -69,6 +69,7 @@ pub mod guard;
 
 use serde::{Deserialize, Serialize};
 
+use crate::lifecycle::{Acceptance, Refusal};
 use crate::parameter::Tolerance;
 use crate::protocol::{
     ClearedBy, ControlCommand, ErrorCause, Fault, FaultKind, IterationRecord, Request, Response,
@@ -181,6 +182,15 @@ pub enum RunEnd {
     Finished,
     /// A user stopped it.
     Stopped,
+}
+
+impl From<Refusal> for ControlError {
+    fn from(r: Refusal) -> Self {
+        ControlError::Conflict {
+            status: r.status,
+            message: r.reason,
+        }
+    }
 }
 
 /// A control command could not be applied. Nothing changed.
@@ -473,8 +483,13 @@ impl RunSession {
                     lab_seconds,
                 } => {
                     self.tuner.charge_lab_time(lab_seconds);
+                    let first_positions = self.guard.left_mv().is_empty();
                     match self.guard.accept_read(&gates, &voltages_mv) {
                         Ok(()) => {
+                            // A new run now knows where its gates are: persist it,
+                            // so a crash before the first iteration is committed
+                            // still compares the instrument with it on restore.
+                            self.save_due |= first_positions;
                             self.tuner
                                 .adopt_readback(&voltages_mv, self.config.readback_tolerance_mv);
                         }
@@ -601,21 +616,15 @@ impl RunSession {
 
     /// Apply a control command. Pause, stop and target changes take effect
     /// at once (a target change received mid-iteration applies from the next
-    /// iteration); the returned status is the new one.
+    /// iteration); the returned status is the new one. Whether the present
+    /// status accepts the command is the lifecycle table
+    /// ([`RunStatus::accepts`]), stated once for every shell.
     pub fn control(&mut self, command: &ControlCommand) -> Result<RunStatus, ControlError> {
-        let conflict = |s: &Self, message| ControlError::Conflict {
-            status: s.status().name(),
-            message,
-        };
+        if self.status().accepts(command)? == Acceptance::AlreadyThere {
+            return Ok(self.status());
+        }
         match command {
-            ControlCommand::Pause => match self.mode {
-                Mode::Running | Mode::Stepping | Mode::Faulted(_) => self.mode = Mode::Paused,
-                Mode::Paused => {}
-                Mode::Stopping | Mode::Stopped => {
-                    return Err(conflict(self, "a stopped run cannot be paused"))
-                }
-                Mode::Finished => return Err(conflict(self, "the run has finished")),
-            },
+            ControlCommand::Pause => self.mode = Mode::Paused,
             ControlCommand::Resume | ControlCommand::Step => {
                 let target = if *command == ControlCommand::Step {
                     Mode::Stepping
@@ -623,40 +632,29 @@ impl RunSession {
                     Mode::Running
                 };
                 match self.mode {
-                    Mode::Paused | Mode::Faulted(_) => self.resume(target),
                     Mode::Running | Mode::Stepping => self.mode = target,
-                    Mode::Stopping | Mode::Stopped => {
-                        return Err(conflict(self, "a stopped run cannot be resumed"))
-                    }
-                    Mode::Finished => return Err(conflict(self, "the run has finished")),
+                    _ => self.resume(target),
                 }
             }
-            ControlCommand::AcceptPositions => match &self.mode {
-                Mode::Faulted(f) if f.kind == FaultKind::Moved => {
+            ControlCommand::Stop => {
+                self.mode = if self.in_flight.is_some() {
+                    Mode::Stopping
+                } else {
+                    Mode::Stopped
+                }
+            }
+            ControlCommand::AcceptPositions => {
+                if let Mode::Faulted(f) = &self.mode {
                     let moved = f.moved.clone();
                     self.guard.accept_positions(&moved);
                     self.mode = Mode::Paused;
                 }
-                _ => {
-                    return Err(conflict(
-                        self,
-                        "only a run faulted because gates moved has positions to accept",
-                    ))
-                }
-            },
-            ControlCommand::Stop => match self.mode {
-                Mode::Stopped | Mode::Stopping | Mode::Finished => {}
-                _ if self.in_flight.is_some() => self.mode = Mode::Stopping,
-                _ => self.mode = Mode::Stopped,
-            },
+            }
             ControlCommand::SetTarget {
                 parameter,
                 target,
                 tolerance,
             } => {
-                if matches!(self.mode, Mode::Stopped | Mode::Stopping) {
-                    return Err(conflict(self, "a stopped run takes no new targets"));
-                }
                 self.tuner.validate_target(parameter, *target, *tolerance)?;
                 let change = TargetChange {
                     parameter: parameter.clone(),

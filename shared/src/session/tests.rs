@@ -250,7 +250,7 @@ fn non_finite_and_out_of_limit_read_backs_fault_with_nothing_moved() {
         (9.91e40, "outside its limits"),
         (1e308, "outside its limits"),
     ] {
-        let (mut s, mut dev) = setup(3);
+        let (mut s, dev) = setup(3);
         let mut commits = Vec::new();
         let read = next_request(&mut s, &mut commits).unwrap();
         let Request::ReadVoltages { gates } = &read else {
@@ -270,7 +270,7 @@ fn non_finite_and_out_of_limit_read_backs_fault_with_nothing_moved() {
         assert_eq!(next_request(&mut s, &mut commits), None, "nothing moves");
     }
     // 5 mV outside the limits (the 195 mV physical step)
-    let (mut s, mut dev) = setup(3);
+    let (mut s, dev) = setup(3);
     let mut commits = Vec::new();
     let read = next_request(&mut s, &mut commits).unwrap();
     let Request::ReadVoltages { gates } = &read else {

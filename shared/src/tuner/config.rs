@@ -311,6 +311,28 @@ impl TunerConfig {
         }
     }
 
+    /// The top level's Newton config for a config that may not be valid
+    /// yet (e.g. to apply targets before [`TunerConfig::validate`]): an
+    /// error naming `levels` (none) or `levels[0].kind` (not `newton`)
+    /// instead of the panic of [`TunerConfig::top_mut`].
+    ///
+    /// ```
+    /// let mut t = spintune::driver::SimulationConfig::paper_default().tuner;
+    /// assert!(t.top_level_mut().is_ok());
+    /// t.levels.clear();
+    /// assert_eq!(t.top_level_mut().unwrap_err().field, "levels");
+    /// ```
+    pub fn top_level_mut(&mut self) -> Result<&mut NewtonConfig, ConfigError> {
+        match self.levels.first_mut().map(|l| &mut l.kind) {
+            None => Err(ConfigError::new("levels", "at least one level is required")),
+            Some(LevelKind::Newton(n)) => Ok(n),
+            Some(LevelKind::SensingDot(_)) => Err(ConfigError::new(
+                "levels[0].kind",
+                "the top level must be `newton`",
+            )),
+        }
+    }
+
     /// Index of the level called `name`.
     pub fn level_index(&self, name: &str) -> Option<usize> {
         self.levels.iter().position(|l| l.name == name)
@@ -367,26 +389,16 @@ impl TunerConfig {
                 return Err(ConfigError::new(f("max_step_mv"), "must be > 0"));
             }
         }
-        for (i, entry) in self.schedule.iter().enumerate() {
-            for (name, &t) in &entry.targets {
-                let field = format!("schedule[{i}].targets.{name}");
-                let spec = self.levels.iter().find_map(|l| match &l.kind {
-                    LevelKind::Newton(n) => n.parameters.iter().find(|p| &p.name == name),
-                    LevelKind::SensingDot(_) => None,
-                });
-                let Some(spec) = spec else {
-                    return Err(ConfigError::new(
-                        field,
-                        format!("unknown parameter {name:?}"),
-                    ));
-                };
-                if spec.transform.forward_value(t).is_none() {
-                    return Err(ConfigError::new(
-                        field,
-                        "must be a finite number (> 0 in log space)",
-                    ));
-                }
-            }
+        // The levels exist and the top one is a Newton level before
+        // anything below looks at them.
+        if self.levels.is_empty() {
+            return Err(ConfigError::new("levels", "at least one level is required"));
+        }
+        if !matches!(self.levels[0].kind, LevelKind::Newton(_)) {
+            return Err(ConfigError::new(
+                "levels[0].kind",
+                "the top level must be `newton`",
+            ));
         }
         for (parameter, r) in [
             ("w", &self.fit_references.w),
@@ -412,15 +424,6 @@ impl TunerConfig {
                     "must be a finite number in [0, 1)",
                 ));
             }
-        }
-        if self.levels.is_empty() {
-            return Err(ConfigError::new("levels", "at least one level is required"));
-        }
-        if !matches!(self.levels[0].kind, LevelKind::Newton(_)) {
-            return Err(ConfigError::new(
-                "levels[0].kind",
-                "the top level must be `newton`",
-            ));
         }
         let has_gate = |name: &str| self.gates.iter().any(|g| g.name == name);
         for (li, level) in self.levels.iter().enumerate() {
@@ -508,6 +511,29 @@ impl TunerConfig {
                 }
                 LevelKind::Newton(n) => {
                     validate_newton(n, &has_gate).map_err(|e| e.within(&format!("levels[{li}]")))?
+                }
+            }
+        }
+        // Scheduled targets last: a level's own error (e.g. no parameters)
+        // is named before a target that no longer fits it.
+        for (i, entry) in self.schedule.iter().enumerate() {
+            for (name, &t) in &entry.targets {
+                let field = format!("schedule[{i}].targets.{name}");
+                let spec = self.levels.iter().find_map(|l| match &l.kind {
+                    LevelKind::Newton(n) => n.parameters.iter().find(|p| &p.name == name),
+                    LevelKind::SensingDot(_) => None,
+                });
+                let Some(spec) = spec else {
+                    return Err(ConfigError::new(
+                        field,
+                        format!("unknown parameter {name:?}"),
+                    ));
+                };
+                if spec.transform.forward_value(t).is_none() {
+                    return Err(ConfigError::new(
+                        field,
+                        "must be a finite number (> 0 in log space)",
+                    ));
                 }
             }
         }

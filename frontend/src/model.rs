@@ -270,21 +270,24 @@ pub fn status_is_final(s: &RunStatus) -> bool {
     s.is_terminal()
 }
 
-/// Which run controls make sense in a status.
+/// Which run controls make sense in a status: a button is enabled exactly
+/// where its command would change the run, by the core's one lifecycle table
+/// ([`RunStatus::is_changed_by`], `spintune::lifecycle`); the dashboard does
+/// not state the rule again.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ControlsEnabled {
-    /// Pause (running, stepping, or a faulted run the user wants to hold).
+    /// Pause (running, stepping, a faulted, interrupted or failed run).
     pub pause: bool,
-    /// Resume (every resumable state, faulted included).
+    /// Resume (paused, faulted, interrupted, failed; stepping: keep running).
     pub resume: bool,
-    /// Single step (resumable states; while running: finish this iteration, then pause).
+    /// Single step (those, and running: finish this iteration, then pause).
     pub step: bool,
     /// Stop for good.
     pub stop: bool,
     /// Change targets (refused by a stopped or stopping run).
     pub targets: bool,
     /// Accept the positions the instrument reads (only a run faulted because
-    /// gates moved, [`FaultKind::Moved`]: the session refuses it otherwise).
+    /// gates moved, [`FaultKind::Moved`]).
     pub accept_positions: bool,
 }
 
@@ -300,22 +303,22 @@ impl ControlsEnabled {
         accept_positions: false,
     };
 
-    /// The controls that apply in status `s` (what the run session accepts).
+    /// The controls that apply in status `s` (what the run session accepts
+    /// and would act on).
     pub fn for_status(s: &RunStatus) -> Self {
-        let over = s.is_terminal() || *s == RunStatus::Stopping;
+        use spintune::protocol::ControlCommand as C;
+        let target = C::SetTarget {
+            parameter: String::new(),
+            target: None,
+            tolerance: None,
+        };
         ControlsEnabled {
-            pause: matches!(
-                s,
-                RunStatus::Running | RunStatus::Stepping | RunStatus::Faulted { .. }
-            ),
-            resume: s.is_resumable(),
-            step: s.is_resumable() || *s == RunStatus::Running,
-            stop: !over,
-            targets: !matches!(s, RunStatus::Stopped | RunStatus::Stopping),
-            accept_positions: matches!(
-                s,
-                RunStatus::Faulted { fault } if fault.kind == FaultKind::Moved
-            ),
+            pause: s.is_changed_by(&C::Pause),
+            resume: s.is_changed_by(&C::Resume),
+            step: s.is_changed_by(&C::Step),
+            stop: s.is_changed_by(&C::Stop),
+            targets: s.is_changed_by(&target),
+            accept_positions: s.is_changed_by(&C::AcceptPositions),
         }
     }
 }
@@ -637,7 +640,11 @@ mod tests {
     fn controls_follow_the_status() {
         for s in every_status() {
             let c = ControlsEnabled::for_status(&s);
-            assert_eq!(c.resume, s.is_resumable(), "{s:?}");
+            assert_eq!(
+                c.resume,
+                s.is_resumable() || s == RunStatus::Stepping,
+                "{s:?}"
+            );
             if s.is_terminal() {
                 assert!(!c.pause && !c.resume && !c.step && !c.stop, "{s:?}: {c:?}");
             }

@@ -834,6 +834,7 @@ pub fn StatusBadge(
             class=move || status.with(|s| s.as_ref().map_or_else(|| "status status-unknown".to_string(), status_class))
             data-state=move || status.with(|s| s.as_ref().map_or("unknown", |s| s.name()))
             data-testid=testid
+            title=move || status.with(|s| s.as_ref().map(status_label))
         >
             {move || status.with(|s| s.as_ref().map_or_else(|| unknown.clone(), status_label))}
         </span>
@@ -860,9 +861,9 @@ pub fn StatusNote(
                         <table class="moved" data-testid="moved-gates">
                             <thead><tr>
                                 <th>"gate"</th>
-                                <th>"where the run left it (mV)"</th>
-                                <th>"reads now (mV)"</th>
-                                <th>"difference (mV)"</th>
+                                <th class="num">"where the run left it (mV)"</th>
+                                <th class="num">"reads now (mV)"</th>
+                                <th class="num">"difference (mV)"</th>
                             </tr></thead>
                             <tbody>
                                 {rows.into_iter().map(|r| view! {

@@ -953,6 +953,14 @@ fn Controls(
                     on_command.run(ControlCommand::Stop);
                 }
             }>"Stop"</button>
+            // Only for a run faulted because gates moved (the table above
+            // shows old → new): adopts the read positions, the run stays
+            // paused until Resume.
+            <Show when=move || enabled.get().accept_positions>
+                <button class="primary" data-testid="accept-positions"
+                    title="Adopt the positions the instrument reads now (the table above); the run stays paused until Resume, which reads every gate again"
+                    on:click=move |_| on_command.run(ControlCommand::AcceptPositions)>"Accept positions"</button>
+            </Show>
             <div class="targets">
                 <For
                     each=move || params.get()
@@ -1085,7 +1093,10 @@ mod tests {
         assert_eq!(
             sig.summary
                 .with_untracked(|s| s.as_ref().map(|s| status_label(&s.status))),
-            Some("faulted — device fault: timeout".into())
+            Some(
+                "faulted — Instrument fault: timeout — needs a person: check the instrument, then Resume"
+                    .into()
+            )
         );
         assert_eq!(
             handle_message(&sess, r#"{"type":"error","message":"unknown parameter x"}"#),

@@ -511,6 +511,7 @@ pub fn LocalMode() -> impl IntoView {
                 step: true,
                 stop: false,
                 targets: true,
+                accept_positions: false,
             },
             Some(s) => ControlsEnabled::for_status(s),
         })
@@ -552,6 +553,11 @@ pub fn LocalMode() -> impl IntoView {
                     <button data-testid="local-step" disabled=move || !enabled.get().step on:click=move |_| step()>"Step"</button>
                     <button class="danger" data-testid="local-stop" disabled=move || !enabled.get().stop on:click=move |_| stop()>"Stop"</button>
                     <button data-testid="local-reset" on:click=move |_| reset()>"Reset"</button>
+                    // Only for a run faulted because gates moved (the simulator
+                    // does not move gates by itself; the rule is the live mode's).
+                    <Show when=move || enabled.get().accept_positions>
+                        <button data-testid="local-accept-positions" on:click=move |_| command(ControlCommand::AcceptPositions)>"Accept positions"</button>
+                    </Show>
                 </div>
                 <p class="local-status" data-testid="local-status">
                     {move || if started() {
@@ -752,10 +758,13 @@ mod tests {
         let label = status_label(&status);
         assert!(label.starts_with("faulted"), "{label}");
         assert!(
-            label.contains("device fault") && label.contains(&fault.message),
+            label.contains("Instrument fault")
+                && label.contains(&fault.message)
+                && label.contains("needs a person"),
             "{label}"
         );
         assert!(ControlsEnabled::for_status(&status).resume);
+        assert!(!ControlsEnabled::for_status(&status).accept_positions);
         assert!(r.history.is_empty());
 
         // Resume: the session reads the gates back and retries the request,
@@ -767,5 +776,57 @@ mod tests {
         assert_eq!(r.advance(), Err(RunError::Paused));
         assert_eq!(r.control(&ControlCommand::Stop), Ok(RunStatus::Stopped));
         assert_eq!(r.advance(), Ok(None));
+    }
+
+    /// Gate N moved by hand while the run was paused: resume reads it back
+    /// and faults (moved); resume alone re-reads and faults again; accepting
+    /// the positions leaves the run paused, and resume continues from them.
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn a_gate_moved_while_paused_needs_its_position_accepted() {
+        use crate::model::{moved_rows, status_label, ControlsEnabled};
+        use spintune::protocol::{ClearedBy, FaultKind, Request, Response};
+
+        let mut r = LocalRunner::new(&LocalSettings::default()).unwrap();
+        assert_eq!(r.advance(), Ok(Some(0)));
+        assert_eq!(r.control(&ControlCommand::Pause), Ok(RunStatus::Paused));
+        let left = r.run.device().voltages_mv()["N"];
+        let moved_to = left + 5.0;
+        let answer = r.run.device_mut().execute(&Request::SetVoltages {
+            voltages_mv: [("N".to_string(), moved_to)].into(),
+        });
+        assert!(matches!(answer, Response::VoltagesSet { .. }), "{answer:?}");
+
+        assert_eq!(r.control(&ControlCommand::Resume), Ok(RunStatus::Running));
+        let fault = match r.advance() {
+            Err(RunError::Fault(f)) => f,
+            other => panic!("expected a moved fault, got {other:?}"),
+        };
+        assert_eq!(fault.kind, FaultKind::Moved);
+        assert_eq!(fault.cleared_by, ClearedBy::AcceptPositions);
+        let rows = moved_rows(&fault);
+        assert_eq!(rows.len(), 1, "{rows:?}");
+        assert_eq!(rows[0].gate, "N");
+        assert_eq!(rows[0].read, format!("{moved_to:.2}"));
+        assert_eq!(rows[0].difference, "+5.00");
+        let status = r.status();
+        assert!(status_label(&status).contains("Gates moved"));
+        let c = ControlsEnabled::for_status(&status);
+        assert!(c.accept_positions && c.resume, "{c:?}");
+
+        // Resume without accepting: the gate is read again, still far.
+        assert_eq!(r.control(&ControlCommand::Resume), Ok(RunStatus::Running));
+        assert!(matches!(r.advance(), Err(RunError::Fault(f)) if f.kind == FaultKind::Moved));
+        // Accept: paused, nothing sent until resume.
+        assert_eq!(
+            r.control(&ControlCommand::AcceptPositions),
+            Ok(RunStatus::Paused)
+        );
+        assert!(!ControlsEnabled::for_status(&r.status()).accept_positions);
+        assert!(r.control(&ControlCommand::AcceptPositions).is_err());
+        assert_eq!(r.advance(), Err(RunError::Paused));
+        assert_eq!(r.control(&ControlCommand::Resume), Ok(RunStatus::Running));
+        assert_eq!(r.advance(), Ok(Some(1)));
+        assert_eq!(r.status(), RunStatus::Running);
     }
 }

@@ -1,7 +1,9 @@
 //! Client-side state that does not depend on the DOM: the de-duplicated
 //! iteration history of one run, and helpers that turn records into series.
 
-use spintune::protocol::{EventKind, GradientReport, IterationRecord, RunStatus};
+use spintune::protocol::{
+    ClearedBy, EventKind, Fault, FaultKind, GradientReport, IterationRecord, MovedGate, RunStatus,
+};
 
 /// What happened when a record was offered to a [`History`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -116,20 +118,109 @@ pub fn gradient_sigmas(g: &GradientReport) -> Option<Vec<f64>> {
 }
 
 /// Short human label of a run status, as the run header, the run list and
-/// the in-browser mode show it. A fault names its kind and message.
+/// the in-browser mode show it. A fault names its kind in words, its message
+/// and what clears it ([`fault_summary`]).
 pub fn status_label(s: &RunStatus) -> String {
     match s {
         RunStatus::Running => "running".into(),
         RunStatus::Stepping => "stepping (one iteration)".into(),
         RunStatus::Paused => "paused".into(),
         RunStatus::Stopping => "stopping".into(),
-        // Fault's Display: "<kind> fault: <message>"
-        RunStatus::Faulted { fault } => format!("faulted — {fault}"),
+        RunStatus::Faulted { fault } => format!("faulted — {}", fault_summary(fault)),
         RunStatus::Finished => "finished".into(),
         RunStatus::Stopped => "stopped".into(),
         RunStatus::Interrupted => "interrupted".into(),
         RunStatus::Failed { message } => format!("failed: {message}"),
     }
+}
+
+/// A fault's kind in words, for a person (the dashboard's name of each
+/// [`FaultKind`]).
+pub fn fault_kind_text(kind: FaultKind) -> &'static str {
+    match kind {
+        FaultKind::Disconnected => "Device disconnected",
+        FaultKind::Device => "Instrument fault",
+        FaultKind::Readback => "Read-back refused",
+        FaultKind::Moved => "Gates moved",
+        FaultKind::Safety => "Request refused by the safety check",
+        FaultKind::Response => "Unexpected answer from the device",
+    }
+}
+
+/// What clears a fault, for a person. Derived only from what the server (or
+/// the in-browser session) states in [`Fault::cleared_by`]: the policy itself
+/// is the core's ([`FaultKind::cleared_by`]), not the dashboard's.
+pub fn fault_clears_text(cleared_by: ClearedBy) -> &'static str {
+    match cleared_by {
+        ClearedBy::Reconnect => "resumes by itself when the lab bridge reconnects (or Resume)",
+        ClearedBy::Resume => "needs a person: check the instrument, then Resume",
+        ClearedBy::AcceptPositions => {
+            "needs a person: confirm the new positions (Accept positions) or put the gates back and Resume"
+        }
+    }
+}
+
+/// A fault in one line: its kind in words, its message and what clears it,
+/// e.g. "Instrument fault: leakage on SB — needs a person: check the
+/// instrument, then Resume".
+pub fn fault_summary(fault: &Fault) -> String {
+    format!(
+        "{}: {} — {}",
+        fault_kind_text(fault.kind),
+        fault.message,
+        fault_clears_text(fault.cleared_by)
+    )
+}
+
+/// One row of the moved-gates table (a [`FaultKind::Moved`] fault), as shown.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct MovedRow {
+    /// Gate name.
+    pub gate: String,
+    /// Where the run left the gate, mV: a point ("-400.00") or a range
+    /// ("-410.00 … -390.00").
+    pub left: String,
+    /// What the instrument reads now, mV.
+    pub read: String,
+    /// Read-back minus the nearest point where the run left the gate, mV,
+    /// signed ("+50.00").
+    pub difference: String,
+}
+
+impl MovedRow {
+    /// The row of one moved gate.
+    pub fn new(g: &MovedGate) -> Self {
+        let (lo, hi) = if g.left_from_mv <= g.left_to_mv {
+            (g.left_from_mv, g.left_to_mv)
+        } else {
+            (g.left_to_mv, g.left_from_mv)
+        };
+        let left = if lo == hi {
+            format!("{lo:.2}")
+        } else {
+            format!("{lo:.2} … {hi:.2}")
+        };
+        // Distance to the nearest point of where the run left the gate.
+        let difference = if g.read_mv < lo {
+            g.read_mv - lo
+        } else if g.read_mv > hi {
+            g.read_mv - hi
+        } else {
+            0.0
+        };
+        MovedRow {
+            gate: g.gate.clone(),
+            left,
+            read: format!("{:.2}", g.read_mv),
+            difference: format!("{difference:+.2}"),
+        }
+    }
+}
+
+/// The rows of the moved-gates table of a fault (empty unless it reports
+/// moved gates).
+pub fn moved_rows(fault: &Fault) -> Vec<MovedRow> {
+    fault.moved.iter().map(MovedRow::new).collect()
 }
 
 /// The short state shown in the run list: the status name, except a fault,
@@ -155,9 +246,14 @@ pub fn status_hint(s: &RunStatus) -> Option<&'static str> {
         RunStatus::Stopping => {
             Some("Stop acknowledged: the answer to the request at the device is still recorded; nothing new is sent.")
         }
-        RunStatus::Faulted { .. } => Some(
-            "The run paused itself. Resume or Single step reads every gate back first, then checks and retries the request that failed.",
-        ),
+        RunStatus::Faulted { fault } => Some(match fault.cleared_by {
+            ClearedBy::AcceptPositions => {
+                "The run paused itself and sends nothing. Accept positions adopts what the instrument reads and leaves the run paused; Resume then reads every gate again and continues from there (Resume without accepting only reads the gates again)."
+            }
+            ClearedBy::Reconnect | ClearedBy::Resume => {
+                "The run paused itself and sends nothing. Resume or Single step reads every gate back first, then checks and retries the request that failed."
+            }
+        }),
         RunStatus::Finished => Some("The tuner reached its goal or its iteration limit."),
         RunStatus::Interrupted => {
             Some("The server went away while this run was active; resume to continue from the last stored iteration.")
@@ -174,43 +270,55 @@ pub fn status_is_final(s: &RunStatus) -> bool {
     s.is_terminal()
 }
 
-/// Which run controls make sense in a status.
+/// Which run controls make sense in a status: a button is enabled exactly
+/// where its command would change the run, by the core's one lifecycle table
+/// ([`RunStatus::is_changed_by`], `spintune::lifecycle`); the dashboard does
+/// not state the rule again.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ControlsEnabled {
-    /// Pause (running, stepping, or a faulted run the user wants to hold).
+    /// Pause (running, stepping, a faulted, interrupted or failed run).
     pub pause: bool,
-    /// Resume (every resumable state, faulted included).
+    /// Resume (paused, faulted, interrupted, failed; stepping: keep running).
     pub resume: bool,
-    /// Single step (resumable states; while running: finish this iteration, then pause).
+    /// Single step (those, and running: finish this iteration, then pause).
     pub step: bool,
     /// Stop for good.
     pub stop: bool,
     /// Change targets (refused by a stopped or stopping run).
     pub targets: bool,
+    /// Accept the positions the instrument reads (only a run faulted because
+    /// gates moved, [`FaultKind::Moved`]).
+    pub accept_positions: bool,
 }
 
 impl ControlsEnabled {
-    /// Everything enabled (status unknown: the server decides).
+    /// Everything enabled (status unknown: the server decides), except
+    /// accepting positions, which only a known moved fault offers.
     pub const ALL: ControlsEnabled = ControlsEnabled {
         pause: true,
         resume: true,
         step: true,
         stop: true,
         targets: true,
+        accept_positions: false,
     };
 
-    /// The controls that apply in status `s` (what the run session accepts).
+    /// The controls that apply in status `s` (what the run session accepts
+    /// and would act on).
     pub fn for_status(s: &RunStatus) -> Self {
-        let over = s.is_terminal() || *s == RunStatus::Stopping;
+        use spintune::protocol::ControlCommand as C;
+        let target = C::SetTarget {
+            parameter: String::new(),
+            target: None,
+            tolerance: None,
+        };
         ControlsEnabled {
-            pause: matches!(
-                s,
-                RunStatus::Running | RunStatus::Stepping | RunStatus::Faulted { .. }
-            ),
-            resume: s.is_resumable(),
-            step: s.is_resumable() || *s == RunStatus::Running,
-            stop: !over,
-            targets: !matches!(s, RunStatus::Stopped | RunStatus::Stopping),
+            pause: s.is_changed_by(&C::Pause),
+            resume: s.is_changed_by(&C::Resume),
+            step: s.is_changed_by(&C::Step),
+            stop: s.is_changed_by(&C::Stop),
+            targets: s.is_changed_by(&target),
+            accept_positions: s.is_changed_by(&C::AcceptPositions),
         }
     }
 }
@@ -507,12 +615,15 @@ mod tests {
             fault: Fault::new(FaultKind::Device, "instrument timed out"),
         };
         let label = status_label(&faulted);
-        assert_eq!(label, "faulted — device fault: instrument timed out");
+        assert_eq!(
+            label,
+            "faulted — Instrument fault: instrument timed out — needs a person: check the instrument, then Resume"
+        );
         assert!(faulted.is_resumable() && !status_is_final(&faulted));
         assert!(status_hint(&faulted).is_some());
         let c = ControlsEnabled::for_status(&faulted);
         assert!(
-            c.resume && c.step && c.pause && c.stop && c.targets,
+            c.resume && c.step && c.pause && c.stop && c.targets && !c.accept_positions,
             "{c:?}"
         );
         // Failed is a different thing (red, not amber): its own class.
@@ -529,7 +640,11 @@ mod tests {
     fn controls_follow_the_status() {
         for s in every_status() {
             let c = ControlsEnabled::for_status(&s);
-            assert_eq!(c.resume, s.is_resumable(), "{s:?}");
+            assert_eq!(
+                c.resume,
+                s.is_resumable() || s == RunStatus::Stepping,
+                "{s:?}"
+            );
             if s.is_terminal() {
                 assert!(!c.pause && !c.resume && !c.step && !c.stop, "{s:?}: {c:?}");
             }
@@ -546,11 +661,164 @@ mod tests {
                 resume: false,
                 step: false,
                 stop: false,
-                targets: false
+                targets: false,
+                accept_positions: false,
             }
         );
         // A finished run may take a new target (it can revive a run that stopped when tuned).
         assert!(ControlsEnabled::for_status(&RunStatus::Finished).targets);
+        // Unknown status: the server decides, but nothing offers to accept positions.
+        const { assert!(!ControlsEnabled::ALL.accept_positions) };
+    }
+
+    fn moved_fault() -> Fault {
+        let mut fault = Fault::new(FaultKind::Moved, "N reads 50 mV from where the run left it");
+        fault.moved = vec![
+            MovedGate {
+                gate: "N".into(),
+                left_from_mv: -400.0,
+                left_to_mv: -400.0,
+                read_mv: -350.0,
+            },
+            MovedGate {
+                gate: "SD1".into(),
+                left_from_mv: -610.0,
+                left_to_mv: -590.0,
+                read_mv: -612.5,
+            },
+        ];
+        fault
+    }
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn accept_positions_only_for_a_moved_fault() {
+        for s in every_status() {
+            assert!(!ControlsEnabled::for_status(&s).accept_positions, "{s:?}");
+        }
+        for kind in [
+            FaultKind::Disconnected,
+            FaultKind::Device,
+            FaultKind::Readback,
+            FaultKind::Safety,
+            FaultKind::Response,
+        ] {
+            let s = RunStatus::Faulted {
+                fault: Fault::new(kind, "x"),
+            };
+            let c = ControlsEnabled::for_status(&s);
+            assert!(!c.accept_positions && c.resume, "{kind:?}: {c:?}");
+        }
+        let moved = RunStatus::Faulted {
+            fault: moved_fault(),
+        };
+        let c = ControlsEnabled::for_status(&moved);
+        // Accept, or resume (re-reads the gates), hold or stop.
+        assert!(
+            c.accept_positions && c.resume && c.step && c.pause && c.stop,
+            "{c:?}"
+        );
+    }
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn a_fault_says_its_kind_and_what_clears_it() {
+        let label = |kind| {
+            status_label(&RunStatus::Faulted {
+                fault: Fault::new(kind, "m"),
+            })
+        };
+        assert_eq!(
+            label(FaultKind::Disconnected),
+            "faulted — Device disconnected: m — resumes by itself when the lab bridge reconnects (or Resume)"
+        );
+        for kind in [
+            FaultKind::Device,
+            FaultKind::Readback,
+            FaultKind::Safety,
+            FaultKind::Response,
+        ] {
+            let l = label(kind);
+            assert!(
+                l.contains(fault_kind_text(kind)) && l.contains("needs a person"),
+                "{l}"
+            );
+            assert!(!l.contains("by itself"), "{l}");
+        }
+        let moved = label(FaultKind::Moved);
+        assert!(
+            moved.starts_with(
+                "faulted — Gates moved: m — needs a person: confirm the new positions"
+            ),
+            "{moved}"
+        );
+        // The words come from the fault's stated `cleared_by` (the server's
+        // policy), not from the kind: an old stored fault without the field
+        // reads as needing a person.
+        let old: Fault = serde_json::from_str(r#"{"kind":"disconnected","message":"m"}"#).unwrap();
+        assert!(fault_summary(&old).contains("needs a person"));
+        // Every kind has its own words; no label contains another state's word.
+        let kinds = [
+            FaultKind::Disconnected,
+            FaultKind::Device,
+            FaultKind::Readback,
+            FaultKind::Moved,
+            FaultKind::Safety,
+            FaultKind::Response,
+        ];
+        let mut words: Vec<&str> = kinds.iter().map(|k| fault_kind_text(*k)).collect();
+        words.sort();
+        words.dedup();
+        assert_eq!(words.len(), kinds.len());
+        for kind in kinds {
+            let l = label(kind);
+            for other in [
+                "running", "paused", "stopped", "stopping", "finished", "failed",
+            ] {
+                assert!(!l.contains(other), "{l} contains {other}");
+            }
+        }
+        // A moved fault's hint explains the accept flow.
+        let hint = status_hint(&RunStatus::Faulted {
+            fault: moved_fault(),
+        })
+        .unwrap();
+        assert!(hint.contains("Accept positions"), "{hint}");
+    }
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn moved_rows_show_where_the_run_left_each_gate_and_the_difference() {
+        let rows = moved_rows(&moved_fault());
+        assert_eq!(
+            rows,
+            vec![
+                MovedRow {
+                    gate: "N".into(),
+                    left: "-400.00".into(),
+                    read: "-350.00".into(),
+                    difference: "+50.00".into(),
+                },
+                MovedRow {
+                    gate: "SD1".into(),
+                    left: "-610.00 … -590.00".into(),
+                    read: "-612.50".into(),
+                    difference: "-2.50".into(),
+                },
+            ]
+        );
+        // Above a range: the distance to its upper end; a reversed range is ordered.
+        let row = MovedRow::new(&MovedGate {
+            gate: "T".into(),
+            left_from_mv: 10.0,
+            left_to_mv: 0.0,
+            read_mv: 12.25,
+        });
+        assert_eq!(
+            (row.left.as_str(), row.difference.as_str()),
+            ("0.00 … 10.00", "+2.25")
+        );
+        assert!(moved_rows(&Fault::new(FaultKind::Device, "x")).is_empty());
     }
 
     #[cfg_attr(not(target_arch = "wasm32"), test)]

@@ -12,7 +12,8 @@ use crate::charts;
 use crate::history::RunHistory;
 use crate::metrics;
 use crate::model::{
-    event_is_safety_relevant, event_name, format_lab_time, status_class, status_hint, status_label,
+    event_is_safety_relevant, event_name, fault_clears_text, fault_kind_text, format_lab_time,
+    moved_rows, status_class, status_hint, status_label,
 };
 use crate::schedule;
 use crate::series::{self, Drawn, Frame, XAxis};
@@ -833,6 +834,7 @@ pub fn StatusBadge(
             class=move || status.with(|s| s.as_ref().map_or_else(|| "status status-unknown".to_string(), status_class))
             data-state=move || status.with(|s| s.as_ref().map_or("unknown", |s| s.name()))
             data-testid=testid
+            title=move || status.with(|s| s.as_ref().map(status_label))
         >
             {move || status.with(|s| s.as_ref().map_or_else(|| unknown.clone(), status_label))}
         </span>
@@ -853,14 +855,42 @@ pub fn StatusNote(
             let s = s.as_ref()?;
             let hint = status_hint(s);
             Some(match s {
-                RunStatus::Faulted { fault } => view! {
-                    <div class="status-note fault" role="alert" data-testid="fault" data-fault=fault.kind.name()>
-                        <b>{format!("⚠ Paused by a {} fault", fault.kind.name())}</b>
-                        {format!(": {}", fault.message)}
-                        <div class="hint">{hint}</div>
-                    </div>
+                RunStatus::Faulted { fault } => {
+                    let rows = moved_rows(fault);
+                    let table = (!rows.is_empty()).then(|| view! {
+                        <table class="moved" data-testid="moved-gates">
+                            <thead><tr>
+                                <th>"gate"</th>
+                                <th class="num">"where the run left it (mV)"</th>
+                                <th class="num">"reads now (mV)"</th>
+                                <th class="num">"difference (mV)"</th>
+                            </tr></thead>
+                            <tbody>
+                                {rows.into_iter().map(|r| view! {
+                                    <tr data-gate=r.gate.clone()>
+                                        <td class="gate">{r.gate.clone()}</td>
+                                        <td class="num left">{r.left}</td>
+                                        <td class="num read">{r.read}</td>
+                                        <td class="num diff">{r.difference}</td>
+                                    </tr>
+                                }).collect_view()}
+                            </tbody>
+                        </table>
+                    });
+                    view! {
+                        <div class="status-note fault" role="alert" data-testid="fault"
+                            data-fault=fault.kind.name() data-cleared-by=fault.cleared_by.name()>
+                            <b>{format!("⚠ {}", fault_kind_text(fault.kind))}</b>
+                            {format!(": {}", fault.message)}
+                            <div class="clears" data-testid="fault-clears">
+                                <b>"What clears it: "</b>{fault_clears_text(fault.cleared_by)}
+                            </div>
+                            {table}
+                            <div class="hint">{hint}</div>
+                        </div>
+                    }
+                    .into_any()
                 }
-                .into_any(),
                 RunStatus::Failed { message } => view! {
                     <div class="status-note failed" role="alert" data-testid="failed">
                         <b>"Run failed"</b>

@@ -7,7 +7,8 @@ use std::time::Duration;
 
 use leptos::prelude::*;
 use spintune::protocol::{
-    ClientMessage, ControlCommand, Fault, FaultKind, RunStatus, ServerMessage, PROTOCOL_VERSION,
+    ClientMessage, ControlCommand, Fault, FaultKind, MovedGate, RunStatus, RunSummary,
+    ServerMessage, PROTOCOL_VERSION,
 };
 use spintune_web::api::ApiBase;
 use spintune_web::history::RunHistory;
@@ -413,7 +414,7 @@ async fn status_badge_and_note_show_every_state() {
     leptos::task::tick().await;
     assert_eq!(
         badge().inner_text(),
-        "faulted — safety fault: step of 12 mV on SB exceeds 10 mV"
+        "faulted — Request refused by the safety check: step of 12 mV on SB exceeds 10 mV — needs a person: check the instrument, then Resume"
     );
     assert!(badge().class_list().contains("status-faulted"));
     let note: web_sys::HtmlElement = el
@@ -422,13 +423,21 @@ async fn status_badge_and_note_show_every_state() {
         .expect("fault note")
         .unchecked_into();
     assert_eq!(note.get_attribute("data-fault").as_deref(), Some("safety"));
+    assert_eq!(
+        note.get_attribute("data-cleared-by").as_deref(),
+        Some("resume")
+    );
     assert!(note.class_list().contains("fault"));
     let t = note.inner_text();
     assert!(
-        t.contains("safety fault") && t.contains("12 mV on SB"),
+        t.contains("Request refused by the safety check") && t.contains("12 mV on SB"),
         "{t}"
     );
     assert!(t.contains("Resume"), "{t}");
+    assert!(el
+        .query_selector("[data-testid=moved-gates]")
+        .unwrap()
+        .is_none());
 
     status.set(Some(RunStatus::Failed {
         message: "store is read-only".into(),
@@ -690,5 +699,346 @@ async fn live_updates_of_a_long_run_redraw_the_data_not_the_frames() {
     assert!(
         frames_redrawn <= 2,
         "{frames_redrawn} of {LIVE} live updates redrew the chart frames"
+    );
+}
+
+/// A fault of kind `moved`: N was left at −400 mV and reads −350 mV; SD1 was
+/// left anywhere in a sweep's range and reads just below it.
+fn moved_fault() -> Fault {
+    let mut fault = Fault::new(
+        FaultKind::Moved,
+        "N reads 50.00 mV from where the run left it",
+    );
+    fault.moved = vec![
+        MovedGate {
+            gate: "N".into(),
+            left_from_mv: -400.0,
+            left_to_mv: -400.0,
+            read_mv: -350.0,
+        },
+        MovedGate {
+            gate: "SD1".into(),
+            left_from_mv: -610.0,
+            left_to_mv: -590.0,
+            read_mv: -612.5,
+        },
+    ];
+    fault
+}
+
+/// The cells of the moved-gates table, row by row.
+fn moved_table(el: &web_sys::HtmlElement) -> Vec<Vec<String>> {
+    let rows = el
+        .query_selector_all("[data-testid=moved-gates] tbody tr")
+        .unwrap();
+    (0..rows.length())
+        .map(|i| {
+            let row: web_sys::Element = rows.get(i).unwrap().unchecked_into();
+            let cells = row.query_selector_all("td").unwrap();
+            (0..cells.length())
+                .map(|j| {
+                    let c: web_sys::HtmlElement = cells.get(j).unwrap().unchecked_into();
+                    c.inner_text()
+                })
+                .collect()
+        })
+        .collect()
+}
+
+#[wasm_bindgen_test]
+async fn fault_note_says_what_clears_each_kind_and_lists_moved_gates() {
+    let el = host();
+    let status = RwSignal::new(None::<RunStatus>);
+    let _h = leptos::mount::mount_to(el.clone(), move || {
+        view! {
+            <StatusBadge status testid="badge" unknown="…" />
+            <StatusNote status />
+        }
+    });
+    let badge = || -> String {
+        let b: web_sys::HtmlElement = el
+            .query_selector("[data-testid=badge]")
+            .unwrap()
+            .unwrap()
+            .unchecked_into();
+        b.inner_text()
+    };
+    let clears = || -> String {
+        let c: web_sys::HtmlElement = el
+            .query_selector("[data-testid=fault-clears]")
+            .unwrap()
+            .expect("what clears the fault")
+            .unchecked_into();
+        c.inner_text()
+    };
+
+    // A device fault waits for a person.
+    status.set(Some(RunStatus::Faulted {
+        fault: Fault::new(FaultKind::Device, "leakage 500 nA on SB"),
+    }));
+    leptos::task::tick().await;
+    assert!(
+        badge().contains("Instrument fault") && badge().contains("needs a person"),
+        "{}",
+        badge()
+    );
+    assert!(
+        clears().contains("check the instrument, then Resume"),
+        "{}",
+        clears()
+    );
+
+    // A disconnected device clears by itself when the bridge reconnects.
+    status.set(Some(RunStatus::Faulted {
+        fault: Fault::new(FaultKind::Disconnected, "lab bridge not connected"),
+    }));
+    leptos::task::tick().await;
+    assert!(
+        badge().contains("Device disconnected")
+            && badge().contains("resumes by itself when the lab bridge reconnects"),
+        "{}",
+        badge()
+    );
+    assert!(clears().contains("by itself"), "{}", clears());
+    assert!(el
+        .query_selector("[data-testid=moved-gates]")
+        .unwrap()
+        .is_none());
+
+    // Gates moved: old → new per gate, with the difference.
+    status.set(Some(RunStatus::Faulted {
+        fault: moved_fault(),
+    }));
+    leptos::task::tick().await;
+    assert!(badge().contains("Gates moved"), "{}", badge());
+    assert!(
+        clears().contains("confirm the new positions"),
+        "{}",
+        clears()
+    );
+    let note = el.query_selector("[data-testid=fault]").unwrap().unwrap();
+    assert_eq!(note.get_attribute("data-fault").as_deref(), Some("moved"));
+    assert_eq!(
+        note.get_attribute("data-cleared-by").as_deref(),
+        Some("accept_positions")
+    );
+    assert_eq!(
+        moved_table(&el),
+        vec![
+            vec!["N", "-400.00", "-350.00", "+50.00"],
+            vec!["SD1", "-610.00 … -590.00", "-612.50", "-2.50"],
+        ]
+    );
+    let head: web_sys::HtmlElement = el
+        .query_selector("[data-testid=moved-gates] thead")
+        .unwrap()
+        .unwrap()
+        .unchecked_into();
+    let head = head.inner_text();
+    for col in ["gate", "where the run left it", "reads now", "difference"] {
+        assert!(head.contains(col), "{head}");
+    }
+}
+
+/// The page's `WebSocket` replaced by a fake whose sockets the test opens,
+/// feeds frames and reads what the page sent; the real one is put back on drop.
+struct FakeSockets;
+
+impl FakeSockets {
+    fn install() -> Self {
+        js_sys::eval(
+            r#"(() => {
+                if (!globalThis.__RealWebSocket) globalThis.__RealWebSocket = globalThis.WebSocket;
+                class FakeWebSocket {
+                    constructor(url) {
+                        this.url = url; this.readyState = 0; this.sent = [];
+                        this.onopen = null; this.onmessage = null; this.onclose = null;
+                        FakeWebSocket.all.push(this);
+                    }
+                    send(s) { if (this.readyState !== 1) throw new Error("not open"); this.sent.push(s); }
+                    close() { this.readyState = 3; }
+                }
+                FakeWebSocket.CONNECTING = 0; FakeWebSocket.OPEN = 1;
+                FakeWebSocket.CLOSING = 2; FakeWebSocket.CLOSED = 3;
+                FakeWebSocket.all = [];
+                globalThis.WebSocket = FakeWebSocket;
+            })()"#,
+        )
+        .unwrap();
+        FakeSockets
+    }
+
+    fn count(&self) -> u32 {
+        js_sys::eval("WebSocket.all.length")
+            .unwrap()
+            .as_f64()
+            .unwrap() as u32
+    }
+
+    fn url(&self) -> String {
+        js_sys::eval("WebSocket.all.at(-1).url")
+            .unwrap()
+            .as_string()
+            .unwrap()
+    }
+
+    /// Open the newest socket (the page's `onopen` runs).
+    fn open(&self) {
+        js_sys::eval(
+            r#"(() => { const s = WebSocket.all.at(-1); s.readyState = 1; if (s.onopen) s.onopen(new Event("open")); })()"#,
+        )
+        .unwrap();
+    }
+
+    /// A frame from the "server" on the newest socket.
+    fn receive(&self, msg: &ServerMessage) {
+        let json = serde_json::to_string(msg).unwrap();
+        js_sys::Function::new_with_args(
+            "m",
+            r#"const s = WebSocket.all.at(-1); s.onmessage(new MessageEvent("message", { data: m }));"#,
+        )
+        .call1(&wasm_bindgen::JsValue::NULL, &json.into())
+        .unwrap();
+    }
+
+    /// What the page sent on the newest socket, decoded.
+    fn sent(&self) -> Vec<ClientMessage> {
+        let list: js_sys::Array = js_sys::eval("WebSocket.all.at(-1).sent")
+            .unwrap()
+            .unchecked_into();
+        list.iter()
+            .map(|v| serde_json::from_str(&v.as_string().unwrap()).unwrap())
+            .collect()
+    }
+}
+
+impl Drop for FakeSockets {
+    fn drop(&mut self) {
+        let _ = js_sys::eval("globalThis.WebSocket = globalThis.__RealWebSocket");
+    }
+}
+
+fn summary(status: RunStatus) -> RunSummary {
+    RunSummary {
+        id: 1,
+        name: "lab".into(),
+        status,
+        iterations: 0,
+        lab_seconds: 0.0,
+        tuned: false,
+        driver: Some("bridge".into()),
+    }
+}
+
+/// Live mode against a fake server socket: a moved fault shows the table
+/// to every viewer; with the control token, "Accept positions" is enabled
+/// and sends `{"action":"accept_positions"}` like the other controls; it
+/// goes away for any other status.
+#[wasm_bindgen_test]
+async fn live_moved_fault_offers_accept_positions_which_sends_the_command() {
+    let sockets = FakeSockets::install();
+    let el = host();
+    let base = ApiBase::new("http://127.0.0.1:9");
+    let _h = leptos::mount::mount_to(el.clone(), move || {
+        view! { <spintune_web::live::RunView run=1 base=base.clone() total_hint=Some(0) /> }
+    });
+    leptos::task::tick().await;
+    assert_eq!(sockets.count(), 1);
+    assert!(
+        sockets
+            .url()
+            .contains(&format!("protocol={PROTOCOL_VERSION}")),
+        "{}",
+        sockets.url()
+    );
+    sockets.open();
+    sockets.receive(&ServerMessage::Hello {
+        version: PROTOCOL_VERSION,
+        run: summary(RunStatus::Faulted {
+            fault: moved_fault(),
+        }),
+    });
+    leptos::task::tick().await;
+    let q = |sel: &str| -> Option<web_sys::HtmlElement> {
+        el.query_selector(&format!("[data-testid={sel}]"))
+            .unwrap()
+            .map(|e| e.unchecked_into())
+    };
+    // Every viewer sees the kind, what clears it and old → new per gate.
+    let status = q("run-status").unwrap().inner_text();
+    assert!(status.contains("Gates moved"), "{status}");
+    assert_eq!(
+        moved_table(&el),
+        vec![
+            vec!["N", "-400.00", "-350.00", "+50.00"],
+            vec!["SD1", "-610.00 … -590.00", "-612.50", "-2.50"],
+        ]
+    );
+    // Without the token: read-only, no button.
+    assert!(q("readonly").is_some());
+    assert!(q("accept-positions").is_none());
+
+    // Unlock: the token goes out on the socket; the server accepts it.
+    let token: web_sys::HtmlInputElement = q("token").unwrap().unchecked_into();
+    token.set_value("secret");
+    token
+        .dispatch_event(&web_sys::Event::new("input").unwrap())
+        .unwrap();
+    q("unlock").unwrap().click();
+    leptos::task::tick().await;
+    assert!(
+        sockets.sent().contains(&ClientMessage::Auth {
+            token: "secret".into()
+        }),
+        "{:?}",
+        sockets.sent()
+    );
+    sockets.receive(&ServerMessage::AuthOk);
+    leptos::task::tick().await;
+    let accept = q("accept-positions").expect("accept button for a moved fault");
+    assert!(!accept.has_attribute("disabled"));
+    assert_eq!(accept.inner_text(), "Accept positions");
+    assert!(
+        !q("resume").unwrap().has_attribute("disabled"),
+        "resume re-reads the gates"
+    );
+
+    let before = sockets.sent().len();
+    accept.click();
+    leptos::task::tick().await;
+    let sent = sockets.sent();
+    assert_eq!(sent.len(), before + 1, "{sent:?}");
+    assert_eq!(
+        sent.last(),
+        Some(&ClientMessage::Control {
+            command: ControlCommand::AcceptPositions
+        })
+    );
+    assert_eq!(
+        serde_json::to_string(sent.last().unwrap()).unwrap(),
+        r#"{"type":"control","command":{"action":"accept_positions"}}"#
+    );
+
+    // The server accepts: paused, the button and the table go away.
+    sockets.receive(&ServerMessage::Status {
+        run: summary(RunStatus::Paused),
+    });
+    leptos::task::tick().await;
+    assert!(q("accept-positions").is_none());
+    assert!(q("moved-gates").is_none());
+    assert!(q("run-status").unwrap().inner_text().starts_with("paused"));
+
+    // Another kind of fault: no button; the note says it needs a person.
+    sockets.receive(&ServerMessage::Status {
+        run: summary(RunStatus::Faulted {
+            fault: Fault::new(FaultKind::Device, "leakage 500 nA on SB"),
+        }),
+    });
+    leptos::task::tick().await;
+    assert!(q("accept-positions").is_none());
+    let note = q("fault").unwrap().inner_text();
+    assert!(
+        note.contains("Instrument fault") && note.contains("check the instrument, then Resume"),
+        "{note}"
     );
 }

@@ -294,7 +294,7 @@ impl Response {
     /// ```
     /// use spintune::protocol::{ErrorCause, Response};
     /// let r = Response::error("leakage on SB");
-    /// assert_eq!(serde_json::to_string(&r).unwrap(), r#"{"type":"error","message":"leakage on SB"}"#);
+    /// assert_eq!(serde_json::to_string(&r).unwrap(), r#"{"response":"error","message":"leakage on SB"}"#);
     /// assert!(matches!(r, Response::Error { cause: ErrorCause::Instrument, .. }));
     /// ```
     pub fn error(message: impl Into<String>) -> Self {

@@ -87,6 +87,9 @@ fn stop_with_a_request_at_the_device_issues_nothing_more() {
     assert_eq!(s.poll(), Output::Wait);
     s.feed(dev.execute(&r)).unwrap();
     assert_eq!(s.poll(), Output::Publish(RunStatus::Stopped));
+    // (that answer was the new run's first read-back: where the gates are is
+    // persisted, nothing is requested)
+    assert_eq!(s.poll(), Output::Save);
     assert_eq!(s.poll(), Output::Done(RunEnd::Stopped));
     assert!(matches!(
         s.control(&ControlCommand::Resume),

@@ -31,10 +31,9 @@ use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 use serde_json::{Map, Value};
-use spintune::config_merge::merge;
 use spintune::driver::SimulationConfig;
 use spintune::parameter::Tolerance;
-use spintune::safety::GateSpec;
+use spintune::run_config::resolve_simulation;
 use spintune::session::SessionConfig;
 use spintune::ConfigError;
 
@@ -161,20 +160,6 @@ impl RunConfig {
                 ConfigParseError(format!("invalid config at `{}`: {}", e.path(), e.inner()))
             })?;
         validate_delay(&backend)?;
-        let user_device = user.get("device").cloned();
-        let mut merged = serde_json::to_value(SimulationConfig::paper_default())
-            .map_err(|e| ConfigParseError(format!("internal: default config: {e}")))?;
-        merge(&mut merged, Value::Object(user));
-        let mut simulation: SimulationConfig =
-            serde_path_to_error::deserialize(merged).map_err(|e| {
-                let path = e.path().to_string();
-                let inner = e.inner().to_string();
-                if path == "." {
-                    ConfigParseError(format!("invalid config: {inner}"))
-                } else {
-                    ConfigParseError(format!("invalid config at `{path}`: {inner}"))
-                }
-            })?;
         if let Some(mv) = backend.moved_tolerance_mv {
             spintune::session::SessionConfig {
                 moved_tolerance_mv: mv,
@@ -182,13 +167,8 @@ impl RunConfig {
             }
             .validate()?;
         }
-        // The tuner as given first (an error names what is wrong with it,
-        // not a device gate or a target that no longer fits), then the
-        // device's gate names, then everything with the targets applied.
-        simulation.tuner.validate().map_err(|e| e.within("tuner"))?;
-        check_device_gates(user_device.as_ref(), &simulation.tuner.gates)?;
-        apply_targets(&mut simulation, &backend)?;
-        simulation.validate()?;
+        // The core's one merge and validation of the simulation part.
+        let simulation = resolve_simulation(user, &backend.targets, &backend.tolerances)?;
         validate_drivers(&simulation, &backend)?;
         Ok(Self {
             simulation,
@@ -211,38 +191,6 @@ pub use spintune::tuner::MAX_MAGNITUDE as MAX_CONFIG_MAGNITUDE;
 /// Largest integer in a run config, except `seed` (the core's bound).
 pub use spintune::tuner::MAX_INTEGER as MAX_CONFIG_INTEGER;
 
-fn apply_targets(sim: &mut SimulationConfig, b: &BackendSettings) -> Result<(), ConfigParseError> {
-    if b.targets.is_empty() && b.tolerances.is_empty() {
-        return Ok(());
-    }
-    // Before the tuner is validated: its top level may be missing or not
-    // a Newton level (refused here naming the field, never a panic).
-    let top = sim.tuner.top_level_mut().map_err(|e| e.within("tuner"))?;
-    let known: Vec<String> = top.parameters.iter().map(|p| p.name.clone()).collect();
-    for (name, &target) in &b.targets {
-        let p = top
-            .parameters
-            .iter_mut()
-            .find(|p| &p.name == name)
-            .ok_or_else(|| unknown_parameter("targets", name, &known))?;
-        // the core's one target check (bounds and sign)
-        p.check_target(target)
-            .map_err(|e| ConfigError::new(format!("targets.{name}"), e.message))?;
-        p.target = Some(target);
-    }
-    for (name, &tol) in &b.tolerances {
-        tol.validate()
-            .map_err(|e| e.within(&format!("tolerances.{name}")))?;
-        let p = top
-            .parameters
-            .iter_mut()
-            .find(|p| &p.name == name)
-            .ok_or_else(|| unknown_parameter("tolerances", name, &known))?;
-        p.tolerance = tol;
-    }
-    Ok(())
-}
-
 /// `iteration_delay_ms` within its documented bound
 /// ([`SessionConfig::MAX_ITERATION_DELAY_MS`]): refused, never clamped.
 fn validate_delay(b: &BackendSettings) -> Result<(), ConfigParseError> {
@@ -261,76 +209,6 @@ fn validate_delay(b: &BackendSettings) -> Result<(), ConfigParseError> {
     })
 }
 
-/// Every gate named by the user's `device` table (keys of its per-gate
-/// maps, the gates of its quadratic terms, `sensing_dot.gate`) is a gate of
-/// `tuner.gates`: a misspelt gate would otherwise be silently ignored (it
-/// never moves). Only the user's keys are checked: the default device's
-/// maps may name gates a custom `tuner.gates` leaves out. Call after the
-/// config deserialized (the shapes are right).
-fn check_device_gates(user: Option<&Value>, gates: &[GateSpec]) -> Result<(), ConfigError> {
-    let Some(Value::Object(device)) = user else {
-        return Ok(());
-    };
-    let known = |name: &str, field: String| -> Result<(), ConfigError> {
-        if gates.iter().any(|g| g.name == name) {
-            return Ok(());
-        }
-        let names: Vec<&str> = gates.iter().map(|g| g.name.as_str()).collect();
-        Err(ConfigError::new(
-            field,
-            format!("{name:?} is not a gate of `tuner.gates` (known: {names:?})"),
-        ))
-    };
-    let keys = |v: Option<&Value>, field: &str| -> Result<(), ConfigError> {
-        if let Some(Value::Object(m)) = v {
-            for k in m.keys() {
-                known(k, format!("device.{field}.{k}"))?;
-            }
-        }
-        Ok(())
-    };
-    let terms = |v: Option<&Value>, field: &str| -> Result<(), ConfigError> {
-        if let Some(Value::Array(a)) = v {
-            for (i, t) in a.iter().enumerate() {
-                for end in ["a", "b"] {
-                    if let Some(Value::String(g)) = t.get(end) {
-                        known(g, format!("device.{field}[{i}].{end}"))?;
-                    }
-                }
-            }
-        }
-        Ok(())
-    };
-    keys(device.get("reference_mv"), "reference_mv")?;
-    for model in ["tunnel_coupling_uev", "lead_rate_per_ns"] {
-        let m = device.get(model);
-        keys(
-            m.and_then(|m| m.get("linear_per_mv")),
-            &format!("{model}.linear_per_mv"),
-        )?;
-        terms(
-            m.and_then(|m| m.get("quadratic_per_mv2")),
-            &format!("{model}.quadratic_per_mv2"),
-        )?;
-    }
-    let x = device.get("crosstalk");
-    for line in ["line_a", "line_b"] {
-        let map = format!("{line}_per_mv");
-        keys(x.and_then(|x| x.get(&map)), &format!("crosstalk.{map}"))?;
-        let quad = format!("{line}_quadratic");
-        terms(x.and_then(|x| x.get(&quad)), &format!("crosstalk.{quad}"))?;
-    }
-    let sd = device.get("sensing_dot");
-    keys(
-        sd.and_then(|s| s.get("lever_per_mv")),
-        "sensing_dot.lever_per_mv",
-    )?;
-    if let Some(Value::String(g)) = sd.and_then(|s| s.get("gate")) {
-        known(g, "device.sensing_dot.gate".into())?;
-    }
-    Ok(())
-}
-
 fn validate_drivers(sim: &SimulationConfig, b: &BackendSettings) -> Result<(), ConfigParseError> {
     match (&b.driver, &b.scpi) {
         (DriverKind::Scpi, None) => {
@@ -344,12 +222,6 @@ fn validate_drivers(sim: &SimulationConfig, b: &BackendSettings) -> Result<(), C
         _ => {}
     }
     Ok(b.bridge.validate().map_err(|e| e.within("bridge"))?)
-}
-
-fn unknown_parameter(section: &str, name: &str, known: &[String]) -> ConfigParseError {
-    ConfigParseError(format!(
-        "invalid config at `{section}.{name}`: the top tuner level has no parameter {name:?} (it has {known:?})"
-    ))
 }
 
 #[cfg(test)]

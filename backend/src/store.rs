@@ -36,6 +36,17 @@ pub enum StoreError {
     /// No such run.
     #[error("no run with id {0}")]
     NotFound(u64),
+    /// The store was written by a newer release (its schema version is
+    /// higher than this release reads); nothing was changed.
+    #[error(
+        "this store has schema version {found}, this release of spintune reads up to {supported}: it was written by a newer spintune; use that release (nothing was changed)"
+    )]
+    NewerSchema {
+        /// The store's `PRAGMA user_version`.
+        found: i64,
+        /// [`SCHEMA_VERSION`].
+        supported: i64,
+    },
     /// The writer's task generation is no longer the run's: another task
     /// has taken the run over. Nothing was written; the writer must exit.
     #[error("run {run}: task generation {generation} is stale (the run is now driven by generation {current})")]
@@ -101,6 +112,13 @@ pub struct SummaryPage {
     /// Stored iterations older than the page exist.
     pub more_before: bool,
 }
+
+/// Schema version of the store this release writes, kept in SQLite's
+/// `PRAGMA user_version` (read by the server and by Python's `open_store`,
+/// which refuse a newer one with a clear error). History: 0 — unversioned
+/// stores of earlier releases (the `runs.generation` column may be missing);
+/// 1 — `runs` with `generation`, `iterations` keyed by (run, seq).
+pub const SCHEMA_VERSION: i64 = 1;
 
 /// The SQLite store: one connection for writes, one for reads.
 pub struct Store {
@@ -196,15 +214,27 @@ impl Store {
     /// Open (or create) the database at `path`.
     pub fn open(path: &Path) -> Result<Self, StoreError> {
         let writer = open_conn(path)?;
+        let found: i64 = writer.pragma_query_value(None, "user_version", |r| r.get(0))?;
+        if found > SCHEMA_VERSION {
+            return Err(StoreError::NewerSchema {
+                found,
+                supported: SCHEMA_VERSION,
+            });
+        }
         writer.execute_batch(SCHEMA)?;
-        // Stores written before task generations existed lack the column.
-        let has_generation = writer
-            .prepare("SELECT 1 FROM pragma_table_info('runs') WHERE name = 'generation'")?
-            .exists([])?;
-        if !has_generation {
-            writer.execute_batch(
-                "ALTER TABLE runs ADD COLUMN generation INTEGER NOT NULL DEFAULT 0",
-            )?;
+        if found < 1 {
+            // Stores written before task generations existed lack the column.
+            let has_generation = writer
+                .prepare("SELECT 1 FROM pragma_table_info('runs') WHERE name = 'generation'")?
+                .exists([])?;
+            if !has_generation {
+                writer.execute_batch(
+                    "ALTER TABLE runs ADD COLUMN generation INTEGER NOT NULL DEFAULT 0",
+                )?;
+            }
+        }
+        if found != SCHEMA_VERSION {
+            writer.pragma_update(None, "user_version", SCHEMA_VERSION)?;
         }
         let reader = open_conn(path)?;
         Ok(Self {
@@ -557,6 +587,48 @@ impl Store {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_schema_version_is_written_migrated_and_a_newer_one_refused() {
+        let dir = std::env::temp_dir().join(format!("spintune-store-v-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("v.db");
+        let _ = std::fs::remove_file(&path);
+        // an unversioned store of an earlier release, without `generation`
+        {
+            let c = Connection::open(&path).unwrap();
+            c.execute_batch(&SCHEMA.replace(",\n    generation  INTEGER NOT NULL DEFAULT 0", ""))
+                .unwrap();
+            let cols: i64 = c
+                .query_row(
+                    "SELECT count(*) FROM pragma_table_info('runs') WHERE name='generation'",
+                    [],
+                    |r| r.get(0),
+                )
+                .unwrap();
+            assert_eq!(cols, 0, "the fixture must lack the column");
+        }
+        let s = Store::open(&path).unwrap();
+        let id = s.create_run("a", "{}", &RunStatus::Running, "{}").unwrap();
+        assert_eq!(s.claim(id).unwrap(), 1, "migrated: generations work");
+        drop(s);
+        let v: i64 = Connection::open(&path)
+            .unwrap()
+            .pragma_query_value(None, "user_version", |r| r.get(0))
+            .unwrap();
+        assert_eq!(v, SCHEMA_VERSION);
+        // a store from a newer release is refused, untouched
+        Connection::open(&path)
+            .unwrap()
+            .pragma_update(None, "user_version", SCHEMA_VERSION + 1)
+            .unwrap();
+        let e = Store::open(&path)
+            .err()
+            .expect("a newer store must be refused");
+        assert!(matches!(e, StoreError::NewerSchema { .. }), "{e}");
+        assert!(e.to_string().contains("newer spintune"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 
     #[test]
     fn commit_and_read_back() {

@@ -101,6 +101,12 @@ class StoredRun:
         )
 
 
+#: Store schema version this package reads (``PRAGMA user_version``), the
+#: server's ``spintune_server::store::SCHEMA_VERSION``: a newer store is
+#: refused with a clear error rather than misread.
+SCHEMA_VERSION = 1
+
+
 class Store:
     """A spintune store (SQLite file), read-only. Iterating yields the runs
     (oldest first); ``store[id]`` is one run."""
@@ -111,8 +117,18 @@ class Store:
             raise FileNotFoundError(f"no spintune store at {self.path}")
         with self._connect() as conn:
             tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+            version = conn.execute("PRAGMA user_version").fetchone()[0]
         if not {"runs", "iterations"} <= tables:
             raise ValueError(f"{self.path} is not a spintune store (no `runs`/`iterations` tables)")
+        if version > SCHEMA_VERSION:
+            raise ValueError(
+                f"{self.path} has store schema version {version}; this spintune package "
+                f"reads up to {SCHEMA_VERSION}: it was written by a newer spintune server, "
+                "upgrade the package"
+            )
+        #: The store's schema version (``PRAGMA user_version``; 0: an older,
+        #: unversioned store).
+        self.schema_version = version
 
     def _connect(self) -> sqlite3.Connection:
         uri = "file:" + os.path.abspath(self.path).replace("?", "%3f").replace("#", "%23") + "?mode=ro"

@@ -1,8 +1,9 @@
-//! Run configs from Python dicts, with the merge rules of the run config
-//! TOML/JSON (`backend/src/config.rs`): every key is optional, tables are
-//! merged key by key into [`SimulationConfig::paper_default`], arrays replace
-//! the default array whole, and a table whose tag (`kind`, …) differs from the
-//! default's replaces it whole.
+//! Run configs from Python dicts: the core's one merge and validation
+//! ([`spintune::run_config::resolve_simulation`], the server's too): every
+//! key is optional, tables are merged key by key into
+//! [`SimulationConfig::paper_default`], arrays replace the default array
+//! whole, and a table whose tag (`kind`, …) differs from the default's
+//! replaces it whole.
 
 use std::collections::BTreeMap;
 
@@ -12,6 +13,7 @@ use serde_json::{Map, Value};
 use spintune::config_merge::merge;
 use spintune::driver::SimulationConfig;
 use spintune::parameter::Tolerance;
+use spintune::run_config::resolve_simulation;
 use spintune::tuner::TunerConfig;
 
 use crate::convert::{from_py, from_value, to_value};
@@ -65,11 +67,8 @@ pub fn simulation_config(config: Option<&Bound<'_, PyAny>>) -> PyResult<Simulati
         Some(v) => from_value(v, "config at `tolerances`")?,
         None => BTreeMap::new(),
     };
-    let mut merged = to_value(&SimulationConfig::paper_default())?;
-    merge(&mut merged, Value::Object(user));
-    let mut sim: SimulationConfig = from_value(merged, "config")?;
-    apply_targets(&mut sim, &targets, &tolerances)?;
-    sim.validate()
+    // The core's one merge and validation (the server's too).
+    let sim = resolve_simulation(user, &targets, &tolerances)
         .map_err(|e| PyValueError::new_err(e.to_string()))?;
     Ok(sim)
 }
@@ -85,46 +84,4 @@ pub fn tuner_config(config: Option<&Bound<'_, PyAny>>) -> PyResult<TunerConfig> 
         .validate()
         .map_err(|e| PyValueError::new_err(e.within("tuner").to_string()))?;
     Ok(tuner)
-}
-
-fn apply_targets(
-    sim: &mut SimulationConfig,
-    targets: &BTreeMap<String, f64>,
-    tolerances: &BTreeMap<String, Tolerance>,
-) -> PyResult<()> {
-    if targets.is_empty() && tolerances.is_empty() {
-        return Ok(());
-    }
-    let top = sim.tuner.top_mut();
-    let known: Vec<String> = top.parameters.iter().map(|p| p.name.clone()).collect();
-    let unknown = |section: &str, name: &str| {
-        PyValueError::new_err(format!(
-            "invalid config at `{section}.{name}`: the top tuner level has no parameter {name:?} (it has {known:?})"
-        ))
-    };
-    for (name, &target) in targets {
-        if !target.is_finite() {
-            return Err(PyValueError::new_err(format!(
-                "invalid config at `targets.{name}`: must be a finite number"
-            )));
-        }
-        let p = top
-            .parameters
-            .iter_mut()
-            .find(|p| &p.name == name)
-            .ok_or_else(|| unknown("targets", name))?;
-        p.target = Some(target);
-    }
-    for (name, &tol) in tolerances {
-        tol.validate().map_err(|e| {
-            PyValueError::new_err(e.within(&format!("tolerances.{name}")).to_string())
-        })?;
-        let p = top
-            .parameters
-            .iter_mut()
-            .find(|p| &p.name == name)
-            .ok_or_else(|| unknown("tolerances", name))?;
-        p.tolerance = tol;
-    }
-    Ok(())
 }

@@ -179,3 +179,12 @@ def test_store_to_xarray(tmp_path, run_cli):
     (tmp_path / "other.db").write_bytes(b"")
     with pytest.raises(ValueError, match="not a spintune store"):
         spintune.open_store(tmp_path / "other.db")
+    # the server writes its schema version; a newer one is refused, not misread
+    assert store.schema_version == spintune.store.SCHEMA_VERSION
+    import sqlite3
+    conn = sqlite3.connect(db)
+    conn.execute(f"PRAGMA user_version = {spintune.store.SCHEMA_VERSION + 1}")
+    conn.commit()
+    conn.close()
+    with pytest.raises(ValueError, match="newer spintune"):
+        spintune.open_store(db)

@@ -20,7 +20,7 @@
 /// );
 /// ```
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("invalid config at `{field}`: {message}")]
+#[error("{}", self.describe())]
 pub struct ConfigError {
     /// Dotted path of the offending field, e.g. `tuner.levels[0].gates[2]`.
     pub field: String,
@@ -48,6 +48,16 @@ impl ConfigError {
             format!("{outer}.{}", self.field)
         };
         self
+    }
+
+    /// `invalid config at `field`: message` (`invalid config: message` for
+    /// the config as a whole, an empty field).
+    fn describe(&self) -> String {
+        if self.field.is_empty() {
+            format!("invalid config: {}", self.message)
+        } else {
+            format!("invalid config at `{}`: {}", self.field, self.message)
+        }
     }
 
     /// `` `field` message``: the error as one clause, for embedding in

@@ -29,6 +29,7 @@ pub mod kalman;
 pub mod lifecycle;
 pub mod parameter;
 pub mod protocol;
+pub mod run_config;
 pub mod safety;
 pub mod session;
 pub mod sim;

@@ -891,6 +891,46 @@ pub enum ControlCommand {
     },
 }
 
+impl ControlCommand {
+    /// The command's form, whatever run it is for: a target is finite and a
+    /// tolerance valid. Whether the run has the parameter and the target fits
+    /// it ([`crate::parameter::ParameterSpec::check_target`]) is the run
+    /// session's check; whether the run's status accepts the command is the
+    /// lifecycle table ([`RunStatus::accepts`]).
+    ///
+    /// ```
+    /// use spintune::parameter::Tolerance;
+    /// use spintune::protocol::ControlCommand;
+    /// let c = ControlCommand::SetTarget { parameter: "w".into(), target: Some(270.0), tolerance: Some(Tolerance::Relative(-1.0)) };
+    /// assert!(c.check_form().unwrap_err().to_string().contains("tolerance"));
+    /// ```
+    pub fn check_form(&self) -> Result<(), ProtocolError> {
+        if let ControlCommand::SetTarget {
+            parameter,
+            target,
+            tolerance,
+        } = self
+        {
+            if let Some(t) = target {
+                if !t.is_finite() {
+                    return Err(ProtocolError::NotFinite {
+                        field: format!("target of {parameter:?}"),
+                        value: *t,
+                    });
+                }
+            }
+            if let Some(tol) = tolerance {
+                tol.validate()
+                    .map_err(|error| ProtocolError::InvalidTolerance {
+                        parameter: parameter.clone(),
+                        error,
+                    })?;
+            }
+        }
+        Ok(())
+    }
+}
+
 /// Records in a [`ServerMessage::History`] page when the client names no
 /// `limit` (and the page the server sends unasked after `Hello`). At about
 /// 2 kB per summary record this keeps a page near 400 kB.

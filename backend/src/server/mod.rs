@@ -248,14 +248,20 @@ fn parse_id(id: &str) -> ApiResult<u64> {
 
 /// Parse a `ControlCommand` from JSON text, naming the offending field on error.
 pub fn parse_control(text: &str) -> Result<ControlCommand, ProtocolError> {
-    // Its content (parameter, target bounds, tolerance) is the run
-    // session's to check: `RunSession::control`, the one place.
-    parse_strict(text)
+    // Its form here (the core's check); whether the run has the parameter
+    // and the target fits it is the run session's.
+    let cmd: ControlCommand = parse_strict(text)?;
+    cmd.check_form()?;
+    Ok(cmd)
 }
 
 /// Parse a `ClientMessage` from JSON text, naming the offending field on error.
 pub fn parse_client_message(text: &str) -> Result<ClientMessage, ProtocolError> {
-    parse_strict(text)
+    let msg: ClientMessage = parse_strict(text)?;
+    if let ClientMessage::Control { command } = &msg {
+        command.check_form()?;
+    }
+    Ok(msg)
 }
 
 /// Parse one `T` strictly ([`spintune::strict_json::parse_strict`]): one

@@ -79,6 +79,27 @@ SCAN_LAB_SECONDS = {"sensing_dot": 17.0, "chemical_potential": 38.0,
 
 gates_mv = dict(WORKING_POINT_MV)   # what the toy "instrument" is set to, mV
 rng = random.Random(1)
+# A real DAC keeps its outputs when this script restarts; the toy keeps them
+# in this file when --state is given. (Without it a restarted toy is back at
+# its working point: the server then faults the run `moved` and waits for a
+# person to confirm the positions, as it should for a real instrument.)
+state_path = None
+
+
+def load_state(path):
+    global state_path
+    state_path = path
+    if path and os.path.exists(path):
+        with open(path) as f:
+            gates_mv.update(json.load(f))
+
+
+def save_state():
+    if state_path:
+        tmp = state_path + ".tmp"
+        with open(tmp, "w") as f:
+            json.dump(gates_mv, f)
+        os.replace(tmp, state_path)
 
 
 def set_gates(voltages_mv):
@@ -89,6 +110,7 @@ def set_gates(voltages_mv):
     read-back values in mV: the server compares them with the request.
     """
     gates_mv.update(voltages_mv)
+    save_state()
     return dict(voltages_mv), 0.1
 
 
@@ -199,7 +221,11 @@ async def main():
     ap.add_argument("--exit-after", type=int, default=None, metavar="N",
                     help="answer N requests, then exit leaving the next one unanswered "
                          "(to try out pause and resume)")
+    ap.add_argument("--state", default=None, metavar="FILE",
+                    help="keep the toy instrument's gate voltages in FILE across restarts "
+                         "(as a real DAC keeps its outputs)")
     args = ap.parse_args()
+    load_state(args.state)
     if not args.token:
         ap.error("no token: set SPINTUNE_TOKEN (or pass --token)")
     budget = [args.exit_after]

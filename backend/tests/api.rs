@@ -561,3 +561,37 @@ async fn iteration_pages_and_inbound_frames_are_bounded() {
     // the server still serves
     assert_eq!(get_run(srv.addr, run.id).await.id, run.id);
 }
+
+/// Issue 21: a target out of bounds (−50 ns or 1e8 ns for t_sr) is refused
+/// by the API naming the parameter, in a run config and in a control
+/// command alike (the core's one check, `ParameterSpec::check_target`).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn targets_out_of_bounds_are_refused_naming_the_parameter() {
+    let dir = TempDir::new("target-bounds");
+    let srv = server(&dir, 256).await;
+    // (in a config, 1e8 is beyond every config number's bound already)
+    for (target, needle) in [("-50", "> 0"), ("1e8", "within ±1e6")] {
+        let body = format!(r#"{{"targets":{{"t_sr":{target}}}}}"#);
+        let (s, text) = http(srv.addr, "POST", "/api/runs", Some(TOKEN), Some(&body)).await;
+        assert_eq!(s, 422, "{body} → {text}");
+        assert!(
+            text.contains("targets.t_sr") && text.contains(needle),
+            "{text}"
+        );
+    }
+    let run = create_run(srv.addr, &small_config("bounds", 100_000, 20)).await;
+    let path = format!("/api/runs/{}/control", run.id);
+    for (target, needle) in [("-50", "> 0"), ("1e8", "at most")] {
+        let body = format!(r#"{{"action":"set_target","parameter":"t_sr","target":{target}}}"#);
+        let (s, text) = http(srv.addr, "POST", &path, Some(TOKEN), Some(&body)).await;
+        assert_eq!(s, 422, "{body} → {text}");
+        assert!(text.contains("t_sr") && text.contains(needle), "{text}");
+    }
+    let (s, text) = control(
+        srv.addr,
+        run.id,
+        r#"{"action":"set_target","parameter":"t_sr","target":70}"#,
+    )
+    .await;
+    assert_eq!(s, 200, "{text}");
+}

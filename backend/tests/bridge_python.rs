@@ -88,7 +88,10 @@ async fn python_bridge_client_serves_a_run_and_reconnects() {
 
     // The lab script answers 180 requests (more than one iteration), then
     // goes away with the next one outstanding: the run pauses, saying why.
-    let mut first = Client::start(&url, &python, &["--exit-after", "180"]);
+    // The toy instrument keeps its outputs across the restart, as a DAC does.
+    let state = dir.0.join("toy-instrument.json");
+    let state = state.to_str().unwrap();
+    let mut first = Client::start(&url, &python, &["--exit-after", "180", "--state", state]);
     let paused = wait_status(srv.addr, run.id, |r| {
         // (Before the script connects the run waits, paused for lack of a bridge.)
         matches!(&r.status, RunStatus::Faulted { fault } if fault.message.contains("disconnected"))
@@ -108,7 +111,7 @@ async fn python_bridge_client_serves_a_run_and_reconnects() {
     first.stop();
     let before = records(srv.addr, run.id).await;
     // It comes back: the run resumes by itself and finishes.
-    let _client = Client::start(&url, &python, &[]);
+    let _client = Client::start(&url, &python, &["--state", state]);
     let done = wait_status(srv.addr, run.id, is_finished).await;
     assert_eq!(done.iterations, n);
     let stored = records(srv.addr, run.id).await;

@@ -131,13 +131,26 @@ def test_stop_pause_and_control_errors():
     assert s.poll() == {"output": "wait"}  # the outstanding answer is still expected, nothing new
     s.feed(dev.execute(req))
     assert s.control({"action": "stop"}) == {"state": "stopped"}
-    outs = [s.poll() for _ in range(3)]
+    outs = [s.poll() for _ in range(4)]
     assert outs[0] == {"output": "publish", "status": {"state": "stopped"}}
-    assert outs[1:] == [{"output": "done", "end": "stopped"}] * 2
+    # the answered request was the new run's first read-back: its positions are saved
+    assert outs[1] == {"output": "save"}
+    assert outs[2:] == [{"output": "done", "end": "stopped"}] * 2
     with pytest.raises(RuntimeError, match="stopped"):
         s.control({"action": "resume"})
     with pytest.raises(RuntimeError, match="no request"):
         s.feed({"response": "error", "message": "x"})
+
+
+def test_targets_out_of_bounds_are_refused_naming_the_parameter():
+    s = spintune.RunSession()
+    s.poll()
+    for target, needle in [(-50.0, "> 0"), (1e8, "at most")]:
+        with pytest.raises(ValueError, match="t_sr") as e:
+            s.control({"action": "set_target", "parameter": "t_sr", "target": target})
+        assert needle in str(e.value)
+    with pytest.raises(ValueError, match="targets.t_sr"):
+        spintune.resolve_config({"targets": {"t_sr": -50.0}})
 
 
 def test_bad_dicts_raise_value_error_naming_the_field():

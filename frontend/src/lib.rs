@@ -4,18 +4,19 @@
 //! runs the whole tuner against the simulated double dot inside the page.
 
 pub mod api;
+pub mod axis;
 pub mod charts;
-pub mod compensation;
 pub mod decimate;
 pub mod history;
+pub mod landscape;
 pub mod live;
 pub mod local;
 pub mod metrics;
 pub mod model;
-pub mod race;
 pub mod schedule;
 pub mod series;
 pub mod ui;
+pub mod widgets;
 pub mod zoom;
 
 use leptos::prelude::*;

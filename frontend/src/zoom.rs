@@ -40,7 +40,7 @@ pub fn grow_in_steps(w: Window) -> Window {
     if !(span.is_finite() && span > 0.0) {
         return w;
     }
-    let step = crate::charts::nice_step(span / 10.0).max(10.0);
+    let step = crate::axis::nice_step(span / 10.0).max(10.0);
     Window {
         lo: w.lo,
         hi: w.lo + (span / step).ceil() * step,

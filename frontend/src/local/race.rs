@@ -10,9 +10,10 @@
 use leptos::prelude::*;
 use spintune::estimator::EstimatorKind;
 
+use super::runner::LocalRunner;
+use super::settings::LocalSettings;
 use crate::charts;
 use crate::history::RunHistory;
-use crate::local::{LocalRunner, LocalSettings};
 use crate::series::{self, Drawn, Frame, XAxis};
 use crate::ui::{Area, Chart};
 use crate::zoom::View;

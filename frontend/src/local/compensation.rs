@@ -4,7 +4,7 @@
 //! SB, T; mV of plunger per mV of gate), with its relative uncertainty.
 //!
 //! The page only edits numbers: the default is the core's
-//! [`PAPER_DEFAULT_COMPENSATION`], "perturb" is the core's benchmark
+//! `PAPER_DEFAULT_COMPENSATION` ([`default_matrix`]), "perturb" is the core's benchmark
 //! perturbation ([`spintune::benchmark::perturbed_compensation`]) and the
 //! check is the core's config validation
 //! ([`SimulationConfig::with_compensation`], which names a refused cell).
@@ -12,17 +12,12 @@
 //! start while the matrix is refused ([`LocalSettings::try_config`]).
 
 use leptos::prelude::*;
-use spintune::driver::{SimulationConfig, PAPER_DEFAULT_COMPENSATION};
+use spintune::driver::SimulationConfig;
+#[cfg(test)]
+use spintune::driver::PAPER_DEFAULT_COMPENSATION;
 
-use crate::local::{LocalSettings, NumberField};
-
-/// The paper setup's matrix ([`PAPER_DEFAULT_COMPENSATION`]) as rows.
-pub fn default_matrix() -> Vec<Vec<f64>> {
-    PAPER_DEFAULT_COMPENSATION
-        .iter()
-        .map(|r| r.to_vec())
-        .collect()
-}
+use super::settings::{default_matrix, LocalSettings};
+use crate::widgets::NumberField;
 
 /// Row (compensating plunger) and column (tuning gate) names of the matrix,
 /// from the paper's setup.

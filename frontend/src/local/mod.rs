@@ -1,0 +1,345 @@
+//! In-browser mode: the run session and the simulated double dot from
+//! `spintune` run inside the page (no server).
+//!
+//! The page is a thin driver of [`SimulationRun`]: pause, resume, single
+//! step, stop and target changes are [`ControlCommand`]s applied by the run
+//! session, which owns the run's status. The page keeps only its animation
+//! timer: each tick asks for the next iteration while the session is running
+//! or stepping, and yields to the browser in between so the page stays
+//! responsive.
+
+//!
+//! Files: [`settings`] (what the student chooses → the simulation config),
+//! [`runner`] (drives one run through its session), [`compensation`] (the
+//! virtual-gate matrix editor), [`race`] (two estimators on one device) and
+//! this page. Nothing here imports the live mode, nor the live mode this.
+
+pub mod compensation;
+pub mod race;
+pub mod runner;
+pub mod settings;
+
+use leptos::prelude::*;
+use spintune::driver::RunError;
+use spintune::estimator::EstimatorKind;
+use spintune::protocol::{ControlCommand, RunStatus};
+
+pub use runner::LocalRunner;
+pub use settings::LocalSettings;
+
+use crate::charts;
+use crate::history::RunHistory;
+use crate::model::ControlsEnabled;
+use crate::series::Drawn;
+use crate::ui::{Area, Chart, Dashboard, StatusBadge, StatusNote};
+use crate::widgets::NumberField;
+/// The teaching demo.
+#[component]
+pub fn LocalMode() -> impl IntoView {
+    let settings = RwSignal::new(LocalSettings::default());
+    let history = RwSignal::new(RunHistory::new());
+    // Mirror of the session's status after each action (None: no run yet).
+    let status = RwSignal::new(None::<RunStatus>);
+    let tuned_at = RwSignal::new(None::<u64>);
+    let error = RwSignal::new(None::<String>);
+    let note = RwSignal::new(None::<String>);
+    let runner = StoredValue::new_local(None::<LocalRunner>);
+    // The animation timer: whether a tick loop is alive, and which run it belongs to.
+    let ticking = StoredValue::new(false);
+    let generation = StoredValue::new(0u64);
+
+    // Copy what changed in the runner into the signals.
+    let sync = move || {
+        runner.with_value(|r| {
+            let Some(r) = r else { return };
+            let known = history.with_untracked(|h| h.len());
+            if r.history.len() != known {
+                history.update(|h| {
+                    if h.len() > r.history.len() {
+                        h.clear();
+                    }
+                    let n = h.len();
+                    h.insert(r.history.records()[n..].iter().cloned());
+                    h.set_total(r.history.len() as u64);
+                });
+            }
+            if tuned_at.get_untracked() != r.tuned_at {
+                tuned_at.set(r.tuned_at);
+            }
+            let s = Some(r.status());
+            if status.with_untracked(|old| *old != s) {
+                status.set(s);
+            }
+        })
+    };
+    let ensure = move || -> bool {
+        if runner.with_value(|r| r.is_some()) {
+            return true;
+        }
+        match LocalRunner::new(&settings.get_untracked()) {
+            Ok(r) => {
+                runner.set_value(Some(r));
+                error.set(None);
+                true
+            }
+            Err(e) => {
+                error.set(Some(format!("invalid settings: {e}")));
+                false
+            }
+        }
+    };
+    // A command for the session; a refusal is shown, nothing else changes.
+    let command = move |c: ControlCommand| {
+        let res = runner
+            .try_update_value(|r| r.as_mut().map(|r| r.control(&c)))
+            .flatten();
+        match res {
+            Some(Err(e)) => error.set(Some(e)),
+            Some(Ok(_)) => error.set(None),
+            None => {}
+        }
+        sync();
+    };
+    // One tick: the next iteration if the session wants one. Returns whether
+    // the timer should keep ticking.
+    let tick = move || -> bool {
+        let res = runner
+            .try_update_value(|r| r.as_mut().map(|r| r.advance()))
+            .flatten();
+        let broken = match res {
+            None => return false,
+            Some(Ok(Some(_))) => false,
+            // over, paused (also after a single step) or faulted: the
+            // session's status says which
+            Some(Ok(None) | Err(RunError::Paused | RunError::Fault(_))) => false,
+            // a bug in this driver: stop ticking rather than repeat it
+            Some(Err(e @ RunError::Session(_))) => {
+                error.set(Some(e.to_string()));
+                true
+            }
+        };
+        sync();
+        !broken && runner.with_value(|r| r.as_ref().is_some_and(|r| r.is_advancing()))
+    };
+    // Start the animation timer unless it is running.
+    let kick = move || {
+        if ticking.get_value()
+            || !runner.with_value(|r| r.as_ref().is_some_and(|r| r.is_advancing()))
+        {
+            return;
+        }
+        ticking.set_value(true);
+        let my_gen = generation.get_value();
+        leptos::task::spawn_local(async move {
+            loop {
+                // Yield first: lets the page paint between iterations.
+                let delay = settings.try_with_untracked(|s| s.delay_ms).unwrap_or(0);
+                gloo_timers::future::TimeoutFuture::new(delay).await;
+                if generation.try_get_value() != Some(my_gen) {
+                    // reset (or unmounted): a new run owns the timer
+                    break;
+                }
+                if !tick() {
+                    ticking.set_value(false);
+                    break;
+                }
+            }
+        });
+    };
+    let run = move || {
+        note.set(None);
+        if runner.with_value(|r| r.is_none()) {
+            if !ensure() {
+                return;
+            }
+            sync();
+        } else {
+            command(ControlCommand::Resume);
+        }
+        kick();
+    };
+    let pause = move || command(ControlCommand::Pause);
+    let step = move || {
+        note.set(None);
+        if !ensure() {
+            return;
+        }
+        command(ControlCommand::Step);
+        kick();
+    };
+    let stop = move || command(ControlCommand::Stop);
+    let reset = move || {
+        generation.update_value(|g| *g += 1);
+        ticking.set_value(false);
+        runner.set_value(None);
+        history.set(RunHistory::new());
+        status.set(None);
+        tuned_at.set(None);
+        error.set(None);
+        note.set(None);
+    };
+    let apply_targets = move || {
+        let s = settings.get_untracked();
+        let res = runner
+            .try_update_value(|r| {
+                r.as_mut()
+                    .map(|r| r.set_targets(s.target_tsr, s.target_w, s.tolerance))
+            })
+            .flatten();
+        match res {
+            Some(Err(e)) => error.set(Some(e)),
+            Some(Ok(_)) => {
+                error.set(None);
+                note.set(Some(
+                    "new targets: they apply from the next iteration".into(),
+                ));
+            }
+            None => note.set(Some("targets set: the run starts with them".into())),
+        }
+        sync();
+    };
+    let enabled = Memo::new(move |_| {
+        status.with(|s| match s {
+            // no run yet: Run and Step start one
+            None => ControlsEnabled {
+                pause: false,
+                resume: true,
+                step: true,
+                stop: false,
+                targets: true,
+                accept_positions: false,
+            },
+            Some(s) => ControlsEnabled::for_status(s),
+        })
+    });
+    let started = move || status.with(|s| s.is_some());
+
+    macro_rules! field {
+        ($f:ident) => {
+            (
+                Signal::derive(move || settings.with(|s| s.$f as f64)),
+                Callback::new(move |v: f64| settings.update(|s| s.$f = v as _)),
+            )
+        };
+    }
+    let (q_tsr, set_q_tsr) = field!(q_tsr);
+    let (q_w, set_q_w) = field!(q_w);
+    let (noise, set_noise) = field!(noise_scale);
+    let (max_step, set_max_step) = field!(max_step_mv);
+    let (seed, set_seed) = field!(seed);
+    let (t_tsr, set_t_tsr) = field!(target_tsr);
+    let (t_w, set_t_w) = field!(target_w);
+    let (tol, set_tol) = field!(tolerance);
+    let (delay, set_delay) = field!(delay_ms);
+    let (max_it, set_max_it) = field!(max_iterations);
+
+    let tuned_text = move || match tuned_at.get() {
+        Some(k) => format!("tuned at iteration {k}"),
+        None => "not tuned yet".into(),
+    };
+    view! {
+        <div class="mode-local">
+            <aside class="sidebar">
+                <h2>"Simulated double dot"</h2>
+                <div class="buttons">
+                    <button class="primary" data-testid="local-run" disabled=move || !enabled.get().resume on:click=move |_| run()>
+                        {move || if started() { "Resume" } else { "Run" }}
+                    </button>
+                    <button data-testid="local-pause" disabled=move || !enabled.get().pause on:click=move |_| pause()>"Pause"</button>
+                    <button data-testid="local-step" disabled=move || !enabled.get().step on:click=move |_| step()>"Step"</button>
+                    <button class="danger" data-testid="local-stop" disabled=move || !enabled.get().stop on:click=move |_| stop()>"Stop"</button>
+                    <button data-testid="local-reset" on:click=move |_| reset()>"Reset"</button>
+                    // Only for a run faulted because gates moved (the simulator
+                    // does not move gates by itself; the rule is the live mode's).
+                    <Show when=move || enabled.get().accept_positions>
+                        <button data-testid="local-accept-positions" on:click=move |_| command(ControlCommand::AcceptPositions)>"Accept positions"</button>
+                    </Show>
+                </div>
+                <p class="local-status" data-testid="local-status">
+                    {move || if started() {
+                        view! { <StatusBadge status=status testid="local-state" unknown="" /> }.into_any()
+                    } else {
+                        view! { <span class="status status-ready" data-state="ready" data-testid="local-state">"ready: press Run"</span> }.into_any()
+                    }}
+                    " · " <b data-testid="local-tuned">{tuned_text}</b>
+                </p>
+                <StatusNote status=status />
+                {move || error.get().map(|e| view! { <p class="error" data-testid="local-error">{e}</p> })}
+                {move || note.get().map(|n| view! { <p class="hint" data-testid="local-note">{n}</p> })}
+                <fieldset>
+                    <legend>"Targets (apply any time)"</legend>
+                    <NumberField label="t_sr target" unit="ns" testid="local-target-tsr" step="1" get=t_tsr set=set_t_tsr />
+                    <NumberField label="w target" unit="µV" testid="local-target-w" step="5" get=t_w set=set_t_w />
+                    <NumberField label="tolerance" unit="× target" testid="local-tolerance" step="0.01" get=tol set=set_tol />
+                    <button data-testid="local-apply-targets" disabled=move || !enabled.get().targets on:click=move |_| apply_targets()>"Apply targets"</button>
+                </fieldset>
+                <fieldset>
+                    <legend>"Tuner and device (apply on Reset)"</legend>
+                    <label class="field">
+                        <span class="field-label">"estimator"</span>
+                        <select data-testid="local-estimator" on:change=move |ev| {
+                            if let Some(k) = EstimatorKind::from_name(&event_target_value(&ev)) {
+                                settings.update(|s| s.estimator = k);
+                            }
+                        }>
+                            {EstimatorKind::ALL.into_iter().map(|k| view! {
+                                <option value=k.name() selected=move || settings.with(|s| s.estimator == k)>{k.name()}</option>
+                            }).collect_view()}
+                        </select>
+                    </label>
+                    <NumberField label="Q σ of ∂t_sr/∂V" unit="ns/mV per mV" testid="local-q-tsr" step="0.005" get=q_tsr set=set_q_tsr />
+                    <NumberField label="Q σ of ∂w/∂V" unit="µV/mV per mV" testid="local-q-w" step="0.05" get=q_w set=set_q_w />
+                    <NumberField label="measurement noise" unit="× default" testid="local-noise" step="0.25" get=noise set=set_noise />
+                    <NumberField label="step limit" unit="mV" testid="local-max-step" step="1" get=max_step set=set_max_step />
+                    <NumberField label="seed" unit="" testid="local-seed" step="1" get=seed set=set_seed />
+                    <NumberField label="iteration limit" unit="" testid="local-max-iterations" step="10" get=max_it set=set_max_it />
+                    <NumberField label="pause between iterations" unit="ms" testid="local-delay" step="50" get=delay set=set_delay />
+                    <compensation::CompensationEditor settings=settings />
+                    <label class="field">
+                        <input type="checkbox" data-testid="local-paper-cycle"
+                            prop:checked=move || settings.with(|s| s.paper_cycle)
+                            on:change=move |ev| settings.update(|s| s.paper_cycle = event_target_checked(&ev)) />
+                        <span class="field-label">"cycle the paper's set points (21 iterations each, as in its Fig. 3)"</span>
+                    </label>
+                </fieldset>
+                <Explanation />
+            </aside>
+            <section class="main">
+                <Dashboard history=history />
+                <h3>"Simulator ground truth " <small>"(what the tuner cannot see)"</small></h3>
+                <div class="grid2">
+                    <Chart
+                        name="landscape"
+                        height=340
+                        key=move || vec![history.with(|h| h.version())]
+                        draw=move |a: &Area| {
+                            let n = history.with(|h| h.len());
+                            let land = runner.with_value(|r| r.as_ref().and_then(|r| r.landscape("SB", "T", 30.0, 25)));
+                            charts::draw_landscape(a, land.as_ref(), &[]).map(|_| Drawn { iterations: n, ..Drawn::default() })
+                        }
+                    />
+                    <div class="explain landscape-text">
+                        <p><b>"Heat map."</b>" Colour: how far the true t_sr and w are from their targets, in units of the tolerance (the larger of the two), when only V_SB and V_T are changed from the present voltages. Inside the green region both parameters are in band."</p>
+                        <p>"The line is the tuner's path projected onto this plane (it also moves N and SA, so the map shifts as it goes). Light cells are far from the goal; the step limit keeps every move short because the map is curved: gradients measured here are wrong a few tens of mV away."</p>
+                    </div>
+                </div>
+                <race::RacePanel settings=settings />
+            </section>
+        </div>
+    }
+}
+
+/// What the student is looking at.
+#[component]
+fn Explanation() -> impl IntoView {
+    view! {
+        <details class="explain" open>
+            <summary>"What am I looking at?"</summary>
+            <p>"The tuner moves four gate voltages (N, SA, SB, T) until the reload time "<i>"t_sr"</i>" and the inter-dot transition width "<i>"w"</i>" sit inside their tolerance bands (green)."</p>
+            <p><b>"Gradient."</b>" Each panel of the gradient plot is one element of the Jacobian: how much a parameter changes per mV on one gate. The tuner never measures it directly after the start; a Kalman filter infers it from how the parameters responded to each step."</p>
+            <p><b>"Error bars."</b>" ±1σ is the square root of the filter's covariance diagonal: how unsure the filter is. Steps shrink it along the direction moved; the process noise Q grows it again every iteration, so the filter keeps learning when the device changes. Large Q: fast but jumpy; tiny Q: smooth but slow to notice a changed gradient. Broyden has no noise model (no error bars); fixed-jacobian never learns."</p>
+            <p><b>"Step limit."</b>" The gradient is only valid near the present voltages (tunnel couplings depend exponentially on them), so each Newton step is cut to a maximal length, as in the paper (10 mV). Larger limits converge faster when the model is right and overshoot when it is not."</p>
+            <p><b>"Noise."</b>" Each parameter comes from a fit to a noisy raw scan (bottom). More noise means larger measurement error bars and a filter that trusts each measurement less."</p>
+        </details>
+    }
+}

@@ -263,8 +263,10 @@ impl SimulatedDevice {
                     outcome: ScanOutcome::Raw { scan },
                     lab_seconds,
                 },
-                Err(reason) => Response::Scanned {
-                    outcome: ScanOutcome::Failed { reason },
+                Err(e) => Response::Scanned {
+                    outcome: ScanOutcome::Failed {
+                        reason: e.to_string(),
+                    },
                     lab_seconds: 0.0,
                 },
             },

@@ -18,9 +18,33 @@ pub const MAX_SWEEP_POINTS: usize = 100_000;
 
 const SIGNAL_LABEL: &str = "sensor signal (a.u.)";
 
+/// Why the simulated device cannot take a scan (the scan fails with this
+/// reason; nothing is measured, no lab time is charged).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ScanError {
+    /// The sweep names a gate the device does not have.
+    #[error("unknown sweep gate {0:?}")]
+    UnknownGate(String),
+    /// The sweep's number of points is outside `2..=MAX_SWEEP_POINTS`.
+    #[error("sweep points {0} outside 2..={MAX_SWEEP_POINTS}")]
+    Points(usize),
+    /// An end of the sweep is not finite or outside the gate's limits.
+    #[error("sweep of {gate:?} to {mv} mV outside its limits [{min_mv}, {max_mv}] mV")]
+    OutOfLimits {
+        /// The swept gate.
+        gate: String,
+        /// The offending end, mV.
+        mv: f64,
+        /// Lower limit, mV.
+        min_mv: f64,
+        /// Upper limit, mV.
+        max_mv: f64,
+    },
+}
+
 impl SimulatedDevice {
     /// Runs one scan: returns the raw data and the lab time charged, s.
-    pub(crate) fn scan(&mut self, request: &ScanRequest) -> Result<(RawScan, f64), String> {
+    pub(crate) fn scan(&mut self, request: &ScanRequest) -> Result<(RawScan, f64), ScanError> {
         let durations = self.config.durations.clone();
         let (scan, seconds) = match request.kind {
             ScanKind::SensingDot => {
@@ -89,25 +113,24 @@ impl SimulatedDevice {
         y
     }
 
-    fn sd_sweep(&mut self, sweep: &Sweep) -> Result<RawScan, String> {
+    fn sd_sweep(&mut self, sweep: &Sweep) -> Result<RawScan, ScanError> {
         let gate = self
             .gates
             .iter()
             .find(|g| g.name == sweep.gate)
-            .ok_or_else(|| format!("unknown sweep gate {:?}", sweep.gate))?
+            .ok_or_else(|| ScanError::UnknownGate(sweep.gate.clone()))?
             .clone();
         if !(2..=MAX_SWEEP_POINTS).contains(&sweep.points) {
-            return Err(format!(
-                "sweep points {} outside 2..={MAX_SWEEP_POINTS}",
-                sweep.points
-            ));
+            return Err(ScanError::Points(sweep.points));
         }
         for v in [sweep.from_mv, sweep.to_mv] {
             if !(v.is_finite() && gate.min_mv <= v && v <= gate.max_mv) {
-                return Err(format!(
-                    "sweep of {:?} to {v} mV outside its limits [{}, {}] mV",
-                    gate.name, gate.min_mv, gate.max_mv
-                ));
+                return Err(ScanError::OutOfLimits {
+                    gate: gate.name.clone(),
+                    mv: v,
+                    min_mv: gate.min_mv,
+                    max_mv: gate.max_mv,
+                });
             }
         }
         let x = model::grid(sweep.from_mv, sweep.to_mv, sweep.points);

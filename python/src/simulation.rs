@@ -2,6 +2,8 @@
 //! `driver::SimulationRun` (run session + simulated double dot) and
 //! `sim::SimulatedDevice`, iterated from Python.
 
+use std::sync::Mutex;
+
 use pyo3::exceptions::{PyRuntimeError, PyStopIteration, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
@@ -36,21 +38,43 @@ use crate::session::control_error;
 /// ``scan_counts``, ``failed_evaluations``, ``scans``, ``events``.
 ///
 /// Raises ``ValueError`` naming the field for an invalid config.
-#[pyclass(name = "SimulationRun", module = "spintune")]
+///
+/// Thread-safe: ``status``, ``records``, ``control()`` (e.g. a stop) and the
+/// other readers work from another thread while ``run()`` iterates (it
+/// releases the GIL while computing; a reader waits at most for the
+/// iteration in progress).
+#[pyclass(name = "SimulationRun", module = "spintune", frozen)]
 pub struct PySimulationRun {
-    run: SimulationRun,
+    inner: Mutex<Inner>,
     config: SimulationConfig,
+}
+
+/// The run and its records, behind one lock.
+struct Inner {
+    run: SimulationRun,
     records: Vec<IterationRecord>,
 }
 
 impl PySimulationRun {
-    fn next_record(&mut self, py: Python<'_>) -> PyResult<Option<IterationRecord>> {
-        let run = &mut self.run;
-        match py.detach(|| run.next_iteration()) {
-            Ok(Some(record)) => {
-                self.records.push(record.clone());
-                Ok(Some(record))
+    /// Run with the lock, the GIL released (so other Python threads, and
+    /// readers of this run, go on; no lock is held while the GIL is taken).
+    fn with<T: Send>(&self, py: Python<'_>, f: impl FnOnce(&mut Inner) -> T + Send) -> T {
+        py.detach(|| {
+            let mut inner = self.inner.lock().unwrap_or_else(|p| p.into_inner());
+            f(&mut inner)
+        })
+    }
+
+    fn next_record(&self, py: Python<'_>) -> PyResult<Option<IterationRecord>> {
+        let result = self.with(py, |inner| {
+            let r = inner.run.next_iteration();
+            if let Ok(Some(record)) = &r {
+                inner.records.push(record.clone());
             }
+            r
+        });
+        match result {
+            Ok(Some(record)) => Ok(Some(record)),
             Ok(None) | Err(RunError::Paused) => Ok(None),
             Err(RunError::Fault(f)) => Err(PyRuntimeError::new_err(format!(
                 "the simulated run faulted: {f} (resume with control({{\"action\": \"resume\"}}))"
@@ -69,9 +93,11 @@ impl PySimulationRun {
         let run =
             SimulationRun::new(cfg.clone()).map_err(|e| PyValueError::new_err(e.to_string()))?;
         Ok(Self {
-            run,
+            inner: Mutex::new(Inner {
+                run,
+                records: Vec::new(),
+            }),
             config: cfg,
-            records: Vec::new(),
         })
     }
 
@@ -82,19 +108,19 @@ impl PySimulationRun {
     /// Run until the next iteration completes and return its record (dict).
     /// Raises ``StopIteration`` when the run is over (finished, stopped) or
     /// paused, ``RuntimeError`` if it faulted.
-    fn __next__<'py>(&mut self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+    fn __next__<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
         match self.next_record(py)? {
             Some(record) => to_py(py, &record),
             None => Err(PyStopIteration::new_err(())),
         }
     }
 
-    /// Run to the end (or until paused) and return every record of the run
-    /// so far (list of dicts). With ``max_iterations``, run at most that
-    /// many more iterations.
+    /// Run to the end (or until paused or stopped, also from another thread)
+    /// and return every record of the run so far (list of dicts). With
+    /// ``max_iterations``, run at most that many more iterations.
     #[pyo3(signature = (max_iterations = None))]
     fn run<'py>(
-        &mut self,
+        &self,
         py: Python<'py>,
         max_iterations: Option<u64>,
     ) -> PyResult<Bound<'py, PyList>> {
@@ -112,8 +138,9 @@ impl PySimulationRun {
     /// Every record produced so far, oldest first (list of dicts).
     #[getter]
     fn records<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyList>> {
+        let records = self.with(py, |inner| inner.records.clone());
         let list = PyList::empty(py);
-        for r in &self.records {
+        for r in &records {
             list.append(to_py(py, r)?)?;
         }
         Ok(list)
@@ -129,19 +156,24 @@ impl PySimulationRun {
     /// Present status, e.g. ``{"state": "running"}``.
     #[getter]
     fn status<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        to_py(py, &self.run.session().status())
+        let status = self.with(py, |inner| inner.run.session().status());
+        to_py(py, &status)
     }
 
     /// Apply a control command (JSON of ``protocol::ControlCommand``, e.g.
     /// ``{"action": "set_target", "parameter": "w", "target": 300.0}`` in the
-    /// parameter's unit, or ``{"action": "pause"}``); returns the new status.
+    /// parameter's unit, ``{"action": "pause"}`` or ``{"action": "stop"}``,
+    /// also from another thread while ``run()`` iterates); returns the new
+    /// status.
     fn control<'py>(
-        &mut self,
+        &self,
         py: Python<'py>,
         command: &Bound<'py, PyAny>,
     ) -> PyResult<Bound<'py, PyAny>> {
         let command: ControlCommand = from_py(command, "control command")?;
-        let status = self.run.control(&command).map_err(control_error)?;
+        let status = self
+            .with(py, |inner| inner.run.control(&command))
+            .map_err(control_error)?;
         to_py(py, &status)
     }
 
@@ -150,13 +182,15 @@ impl PySimulationRun {
     /// ``gamma_per_ns`` (1/ns), ``mu_a_mv``, ``mu_b_mv``, ``sd_flank_mv`` (mV),
     /// ``sd_contrast`` (0..1).
     fn truth<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
-        truth_dict(py, &self.run.device().truth())
+        let truth = self.with(py, |inner| inner.run.device().truth());
+        truth_dict(py, &truth)
     }
 
     /// Present gate voltages of the simulated device, mV (dict gate → mV).
     #[getter]
     fn voltages_mv<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        to_py(py, self.run.device().voltages_mv())
+        let v = self.with(py, |inner| inner.run.device().voltages_mv().clone());
+        to_py(py, &v)
     }
 
     /// The records so far as an ``xarray.Dataset`` over dimension
@@ -191,13 +225,13 @@ impl PySimulationRun {
         Ok(())
     }
 
-    fn __repr__(&self) -> String {
+    fn __repr__(&self, py: Python<'_>) -> String {
+        let (n, status) = self.with(py, |inner| {
+            (inner.records.len(), inner.run.session().status().name())
+        });
         format!(
-            "SimulationRun(name={:?}, seed={}, iterations={}, status={:?})",
-            self.config.name,
-            self.config.seed,
-            self.records.len(),
-            self.run.session().status().name()
+            "SimulationRun(name={:?}, seed={}, iterations={n}, status={status:?})",
+            self.config.name, self.config.seed,
         )
     }
 }

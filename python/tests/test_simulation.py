@@ -188,3 +188,37 @@ def test_store_to_xarray(tmp_path, run_cli):
     conn.close()
     with pytest.raises(ValueError, match="newer spintune"):
         spintune.open_store(db)
+
+
+def test_a_background_run_can_be_watched_and_stopped_from_another_thread():
+    """Issue 26: reading ``status``/``records`` while another thread is in
+    ``run()`` raised ``Already mutably borrowed``; a stop from the watching
+    thread must end the run."""
+    import threading
+    import time
+
+    run = spintune.SimulationRun({"seed": 3, "tuner": {"max_iterations": 10_000, "stop_when_tuned": False}})
+    errors = []
+
+    def work():
+        try:
+            run.run()
+        except Exception as e:  # pragma: no cover - reported below
+            errors.append(e)
+
+    t = threading.Thread(target=work)
+    t.start()
+    seen = []
+    deadline = time.monotonic() + 60
+    while len(seen) < 3 and time.monotonic() < deadline:
+        status = run.status
+        assert status["state"] in ("running", "finished"), status
+        seen.append(len(run.records))
+        time.sleep(0.05)
+    assert run.control({"action": "stop"}) == {"state": "stopped"}
+    t.join(timeout=60)
+    assert not t.is_alive(), "run() did not end after the stop"
+    assert not errors, errors
+    assert run.status == {"state": "stopped"}
+    assert len(run.records) >= max(seen)
+    assert len(run.records) < 10_000

@@ -41,7 +41,7 @@ def test_public_names_and_docstrings_with_units():
     assert "mV" in spintune.KalmanGradient.__doc__ and "mV" in spintune.newton_step.__doc__
     assert "mV" in spintune.KalmanGradient.update.__doc__
     assert "µV" in spintune.SimulationRun.__doc__ and "ns" in spintune.SimulationRun.__doc__
-    assert spintune.PROTOCOL_VERSION == 2
+    assert spintune.PROTOCOL_VERSION == 3
     import spintune.qcodes as sq
 
     assert "mV" in sq.__doc__ and "paused" in sq.__doc__

@@ -401,6 +401,9 @@ def test_a_session_left_running_is_read_again(station):
     assert out["request"]["request"] == "read_voltages"
     session.feed(tuner._execute(out["request"]))
     out = session.poll()
+    # (a new run saves where its gates are after the first read)
+    assert out["output"] == "save"
+    out = session.poll()
     assert out["output"] == "execute" and session.has_request_in_flight
     assert tuner.status == {"state": "running"} and session.readback_mv
     run_after_a_turned_knob(tuner, station, "T", 40.0)

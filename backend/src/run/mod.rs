@@ -27,10 +27,10 @@
 //! | file | what it is |
 //! |---|---|
 //! | [`manager`] | [`Manager`]: the runs by id; create, control, start a task, delete |
-//! | [`handle`] | [`RunHandle`]: one run's summary, viewers channel, recent summaries, control channel, lifecycle lock |
+//! | [`handle`] | [`RunHandle`](handle::RunHandle): one run's summary, viewers channel, recent summaries, control channel, lifecycle lock |
 //! | [`task`] | the async shell around the run's `RunSession` |
 //! | [`persist`] | a run's writes: the store first, then memory and viewers |
-//! | [`checkpoint`] | [`Checkpoint`]: schema, version, migration of older checkpoints |
+//! | [`checkpoint`] | [`Checkpoint`](checkpoint::Checkpoint): schema, version, migration of older checkpoints |
 //! | [`error`] | [`RunError`] |
 //! | [`frames`] | pre-serialized viewer frames |
 //! | [`viewer_limits`] | limits of a run's viewer sockets |
@@ -47,9 +47,11 @@ mod persist;
 mod task;
 pub mod viewer_limits;
 
-pub use checkpoint::{Checkpoint, CHECKPOINT_VERSION};
-pub use error::{RunError, StoreErrorKind};
-pub use frames::{history_frame_text, iteration_frame_text, Frame, FrameEvent};
-pub use handle::{RecentPage, RunHandle, ViewerSlot, RECENT_SUMMARIES};
-pub use manager::{Manager, ManagerOptions, CONTROL_QUEUE};
+pub use error::RunError;
+pub use frames::{history_frame_text, Frame, FrameEvent};
+pub use handle::ViewerSlot;
+pub use manager::{Manager, ManagerOptions};
 pub use viewer_limits::ViewerLimits;
+// Named by ARCHITECTURE.md (invariant 8, the bounds) as `run::…`.
+#[allow(unused_imports)]
+pub use {handle::RECENT_SUMMARIES, manager::CONTROL_QUEUE};

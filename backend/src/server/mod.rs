@@ -78,17 +78,17 @@ use std::sync::Arc;
 use axum::routing::{get, post};
 use axum::Router;
 
-pub mod auth;
+pub(crate) mod auth;
 mod bridge_socket;
 mod dashboard;
 mod error;
 mod http;
 pub mod listener;
-pub mod origin;
+pub(crate) mod origin;
 mod parse;
 mod redact;
 mod socket;
-pub mod tls;
+pub(crate) mod tls;
 mod viewer;
 
 pub use error::ApiError;

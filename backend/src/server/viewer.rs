@@ -121,7 +121,7 @@ async fn by_deadline(
 
 /// A `History` frame of summaries with seq in `[from.max(end - limit), end)`,
 /// `end` = `before` or the newest; with the page's `end` (see
-/// [`crate::run::RecentPage::end`]). From the run's ring of recent summaries
+/// `run::handle::RecentPage::end`). From the run's ring of recent summaries
 /// when it holds the page, else from the store. `None`: the run is gone or
 /// the store failed.
 async fn history_page(

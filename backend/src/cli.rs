@@ -10,9 +10,9 @@ use spintune::protocol::RunStatus;
 
 use crate::config::RunConfig;
 use crate::run::{FrameEvent, Manager, ManagerOptions};
-use crate::server::auth::{read_token_file, Auth, TokenSource};
+use crate::server::auth::{random_token, read_token_file, Auth, TokenSource};
 use crate::server::origin::Access;
-use crate::server::{random_token, router, AppState};
+use crate::server::{router, AppState};
 use crate::store::Store;
 
 /// A failed command: message and process exit code.

@@ -23,7 +23,7 @@ use spintune::protocol::{Request, Response};
 
 use std::sync::Arc;
 
-pub mod bridge;
+pub(crate) mod bridge;
 mod driver_kind;
 pub mod scpi;
 mod simulator;

@@ -16,11 +16,15 @@ use spintune::protocol::{ControlCommand, Response, RunStatus};
 use spintune::session::{Output, RunSession};
 use tokio::sync::mpsc;
 
-use super::{ControlMsg, Manager, RunError, RunHandle};
+use super::checkpoint::CHECKPOINT_VERSION;
+use super::error::RunError;
+use super::handle::{ControlMsg, RunHandle};
+use super::persist;
 use crate::devices::Device;
+use crate::store::Store;
 
 pub(super) struct RunTask {
-    pub manager: Arc<Manager>,
+    pub store: Arc<Store>,
     pub handle: Arc<RunHandle>,
     pub session: RunSession,
     pub device: Box<dyn Device>,
@@ -44,13 +48,9 @@ impl RunTask {
                 // A user stopped it and the store refused the status: it is
                 // stopped all the same (nothing more reaches the device), and
                 // stored as such when the store allows.
-                self.manager
-                    .settle_stopped(&self.handle, Some(self.generation))
-                    .await;
+                persist::settle_stopped(&self.store, &self.handle, Some(self.generation)).await;
             } else {
-                self.manager
-                    .fail_run(&self.handle, self.generation, message)
-                    .await;
+                persist::fail_run(&self.store, &self.handle, self.generation, message).await;
             }
         }
     }
@@ -84,30 +84,34 @@ impl RunTask {
                     let checkpoint = self.checkpoint_json()?;
                     let record_json = serde_json::to_string(&*record)
                         .map_err(|e| Exit::Failed(format!("cannot serialize record: {e}")))?;
-                    self.manager
-                        .commit_and_broadcast(
-                            &self.handle,
-                            Some(self.generation),
-                            Arc::from(record),
-                            record_json,
-                            checkpoint,
-                        )
-                        .await
-                        .map_err(exit)?;
+                    persist::commit_and_broadcast(
+                        &self.store,
+                        &self.handle,
+                        Some(self.generation),
+                        Arc::from(record),
+                        record_json,
+                        checkpoint,
+                    )
+                    .await
+                    .map_err(exit)?;
                 }
                 Output::Save => {
                     let checkpoint = self.checkpoint_json()?;
-                    let store = self.manager.store.clone();
+                    let store = self.store.clone();
                     let (id, g) = (self.handle.id, self.generation);
-                    super::blocking(move || store.save_checkpoint(id, Some(g), &checkpoint))
+                    persist::blocking(move || store.save_checkpoint(id, Some(g), &checkpoint))
                         .await
                         .map_err(exit)?;
                 }
                 Output::Publish(status) => {
-                    self.manager
-                        .store_status(&self.handle, Some(self.generation), status.clone())
-                        .await
-                        .map_err(exit)?;
+                    persist::store_status(
+                        &self.store,
+                        &self.handle,
+                        Some(self.generation),
+                        status.clone(),
+                    )
+                    .await
+                    .map_err(exit)?;
                     let summary = self.handle.set_summary(|s| s.status = status);
                     self.handle.broadcast_status(summary);
                 }
@@ -156,7 +160,7 @@ impl RunTask {
             device: Value,
         }
         serde_json::to_string(&CheckpointRef {
-            version: super::CHECKPOINT_VERSION,
+            version: CHECKPOINT_VERSION,
             session: &self.session,
             device,
         })

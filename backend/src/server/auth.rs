@@ -140,7 +140,7 @@ impl Auth {
                 }
             }
         }
-        if super::token_eq(presented.trim(), &self.token) {
+        if token_eq(presented.trim(), &self.token) {
             if key == ip {
                 table.remove(&key);
             }
@@ -207,6 +207,29 @@ pub fn read_token_file(path: &Path) -> Result<String, String> {
         ));
     }
     Ok(token.to_string())
+}
+
+/// Compare two strings in time independent of where they differ.
+pub fn token_eq(a: &str, b: &str) -> bool {
+    let (a, b) = (a.as_bytes(), b.as_bytes());
+    if a.len() != b.len() {
+        return false;
+    }
+    a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+/// A fresh random control token (128 bits, hex).
+pub fn random_token() -> String {
+    let mut buf = [0u8; 16];
+    if getrandom::getrandom(&mut buf).is_err() {
+        // Extremely unlikely on Linux; fall back to time and pid.
+        let t = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_nanos())
+            .unwrap_or(0);
+        buf = (t ^ ((std::process::id() as u128) << 64)).to_le_bytes();
+    }
+    buf.iter().map(|b| format!("{b:02x}")).collect()
 }
 
 #[cfg(test)]

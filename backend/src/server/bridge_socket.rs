@@ -3,13 +3,19 @@
 //! [`crate::devices::bridge::BridgeLink`]. Wire protocol: see
 //! [`crate::devices::bridge`].
 
+use std::collections::HashMap;
 use std::time::Duration;
 
-use axum::extract::ws::{Message, Utf8Bytes, WebSocket};
+use axum::extract::ws::{Message, Utf8Bytes, WebSocket, WebSocketUpgrade};
+use axum::extract::{Extension, Path, Query, State};
+use axum::response::Response;
 use spintune::protocol::{BridgeClientMessage, BridgeServerMessage, PROTOCOL_VERSION};
 use tokio::sync::mpsc;
 
-use super::{parse_strict, too_big_close, AppState, MAX_BRIDGE_MESSAGE};
+use super::error::ApiResult;
+use super::parse::{parse_id, parse_strict};
+use super::socket::{refuse_socket, too_big_close, version_mismatch};
+use super::{auth, AppState, MAX_BRIDGE_MESSAGE};
 use crate::devices::bridge::{BridgeLink, AUTH_TIMEOUT_S};
 
 fn frame(msg: &BridgeServerMessage) -> Message {
@@ -22,6 +28,32 @@ fn error_frame(message: impl Into<String>) -> Message {
     frame(&BridgeServerMessage::Error {
         message: message.into(),
     })
+}
+
+/// The lab bridge's socket (see [`crate::devices::bridge`]).
+pub(super) async fn bridge_ws(
+    State(s): State<AppState>,
+    Extension(client): Extension<auth::ClientIp>,
+    Path(id): Path<String>,
+    Query(q): Query<HashMap<String, String>>,
+    upgrade: WebSocketUpgrade,
+) -> ApiResult<Response> {
+    let id = parse_id(&id)?;
+    s.manager.get(id)?;
+    let s = s.for_client(client);
+    let upgrade = upgrade
+        .max_message_size(MAX_BRIDGE_MESSAGE)
+        .max_frame_size(MAX_BRIDGE_MESSAGE);
+    if let Some(message) = version_mismatch(&q) {
+        let frame =
+            serde_json::to_string(&spintune::protocol::BridgeServerMessage::Error { message })
+                .expect("BridgeServerMessage serializes");
+        return Ok(refuse_socket(
+            upgrade,
+            Message::Text(Utf8Bytes::from(frame)),
+        ));
+    }
+    Ok(upgrade.on_upgrade(move |socket| serve_socket(s, id, socket)))
 }
 
 /// Serve one bridge socket of run `id` (the handler of `/api/runs/{id}/bridge`).

@@ -24,7 +24,7 @@ use axum::http::{header, Method, StatusCode};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 
-use super::ApiError;
+use super::error::ApiError;
 
 /// Which Hosts and Origins the server accepts besides its own.
 #[derive(Debug, Clone, Default)]

@@ -1,0 +1,234 @@
+//! A run known to the manager ([`RunHandle`]): its config, its summary, the
+//! broadcast channel of its live frames, the ring of its newest summaries
+//! ([`RECENT_SUMMARIES`]), its open viewer sockets, the control channel of
+//! its task (if one drives it) and its lifecycle lock.
+
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+
+use axum::extract::ws::Utf8Bytes;
+use spintune::protocol::{ControlCommand, RunSummary, ServerMessage};
+use tokio::sync::{broadcast, mpsc, oneshot};
+
+use super::error::RunError;
+use super::frames::Frame;
+use crate::config::RunConfig;
+
+/// Summaries of the newest iterations each run keeps in memory (one default
+/// history page), so the page sent after `Hello`/`Lagged` needs no store read.
+pub const RECENT_SUMMARIES: usize = spintune::protocol::DEFAULT_HISTORY_PAGE as usize;
+
+/// One open viewer socket of a run (counted until dropped; holds the count,
+/// not the run, so deleting the run still closes its channel).
+pub struct ViewerSlot(Arc<AtomicUsize>);
+
+impl Drop for ViewerSlot {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::AcqRel);
+    }
+}
+
+/// A page of summaries served from memory ([`RunHandle::recent_page`]).
+#[derive(Debug, Clone)]
+pub struct RecentPage {
+    /// Seq of the first record (`None`: empty page).
+    pub first_seq: Option<u64>,
+    /// Summary records as JSON, oldest first.
+    pub records: Vec<Utf8Bytes>,
+    /// Older iterations exist.
+    pub more_before: bool,
+    /// The seq after the page's range (the newest committed + 1 for a page
+    /// of the newest).
+    pub end: u64,
+}
+
+/// A control command for a run's task, with where its answer goes.
+pub(super) struct ControlMsg {
+    pub(super) command: ControlCommand,
+    pub(super) reply: oneshot::Sender<Result<RunSummary, RunError>>,
+}
+
+/// A run known to the manager (live task or not).
+pub struct RunHandle {
+    /// Run id.
+    pub id: u64,
+    /// The run's configuration.
+    pub config: RunConfig,
+    summary: Mutex<RunSummary>,
+    tx: broadcast::Sender<Frame>,
+    control: Mutex<Option<mpsc::Sender<ControlMsg>>>,
+    /// Why the stored run is unreadable (`Some`: quarantined; listed, never driven).
+    quarantine: Option<String>,
+    /// Held while starting, resuming or controlling the run: at most one task.
+    pub(super) lifecycle: tokio::sync::Mutex<()>,
+    /// (seq, summary JSON) of the newest committed iterations, at most
+    /// [`RECENT_SUMMARIES`].
+    recent: Mutex<VecDeque<(u64, Utf8Bytes)>>,
+    /// Open viewer sockets ([`RunHandle::add_viewer`]).
+    viewer_sockets: Arc<AtomicUsize>,
+}
+
+impl RunHandle {
+    pub(super) fn new(
+        id: u64,
+        config: RunConfig,
+        summary: RunSummary,
+        viewer_buffer: usize,
+    ) -> Self {
+        Self {
+            id,
+            config,
+            summary: Mutex::new(summary),
+            tx: broadcast::channel(viewer_buffer.max(1)).0,
+            control: Mutex::new(None),
+            quarantine: None,
+            lifecycle: tokio::sync::Mutex::new(()),
+            recent: Mutex::new(VecDeque::with_capacity(RECENT_SUMMARIES)),
+            viewer_sockets: Arc::new(AtomicUsize::new(0)),
+        }
+    }
+
+    /// Count one more open viewer socket, unless `max` are open already.
+    pub fn add_viewer(&self, max: usize) -> Option<ViewerSlot> {
+        self.viewer_sockets
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
+                (n < max).then_some(n + 1)
+            })
+            .ok()
+            .map(|_| ViewerSlot(self.viewer_sockets.clone()))
+    }
+
+    /// Open viewer sockets.
+    pub fn viewer_sockets(&self) -> usize {
+        self.viewer_sockets.load(Ordering::Acquire)
+    }
+
+    pub(super) fn remember_summary(&self, seq: u64, summary: Utf8Bytes) {
+        let mut recent = self.recent.lock().unwrap_or_else(|p| p.into_inner());
+        if recent.back().is_some_and(|(s, _)| s + 1 != seq) {
+            recent.clear();
+        }
+        if recent.len() == RECENT_SUMMARIES {
+            recent.pop_front();
+        }
+        recent.push_back((seq, summary));
+    }
+
+    /// The page of summaries with seq in `[from.max(before - limit), before)`
+    /// (`before` `None`: up to the newest committed iteration), if the ring of
+    /// recent summaries holds all of it; `None`: ask the store.
+    pub fn recent_page(&self, before: Option<u64>, limit: u64, from: u64) -> Option<RecentPage> {
+        let recent = self.recent.lock().unwrap_or_else(|p| p.into_inner());
+        let committed = self.summary().iterations;
+        let end = before.map_or(committed, |b| b.min(committed));
+        let start = end.saturating_sub(limit).max(from);
+        if start >= end {
+            // Seq is contiguous from 0: older iterations exist iff end > 0.
+            return Some(RecentPage {
+                first_seq: None,
+                records: Vec::new(),
+                more_before: end > 0,
+                end,
+            });
+        }
+        let (first, _) = *recent.front()?;
+        let (last, _) = *recent.back()?;
+        if start < first || end - 1 > last {
+            return None;
+        }
+        let lo = (start - first) as usize;
+        let hi = (end - first) as usize;
+        Some(RecentPage {
+            first_seq: Some(start),
+            records: recent.range(lo..hi).map(|(_, t)| t.clone()).collect(),
+            more_before: start > 0,
+            end,
+        })
+    }
+
+    /// A run whose stored row or config is unreadable: listed with the
+    /// error, refused for control, config and bridges; deletable.
+    pub(super) fn quarantined(
+        id: u64,
+        summary: RunSummary,
+        error: String,
+        viewer_buffer: usize,
+    ) -> Self {
+        Self {
+            quarantine: Some(error),
+            ..Self::new(id, RunConfig::paper_default(), summary, viewer_buffer)
+        }
+    }
+
+    /// `Conflict` naming the error if the run is quarantined.
+    pub fn readable(&self) -> Result<(), RunError> {
+        match &self.quarantine {
+            None => Ok(()),
+            Some(e) => Err(RunError::Conflict(format!(
+                "run {} is quarantined: its stored data is unreadable ({e}); delete it or repair the store",
+                self.id
+            ))),
+        }
+    }
+
+    /// Current summary.
+    pub fn summary(&self) -> RunSummary {
+        self.summary
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
+    }
+
+    /// Subscribe to the run's live frames.
+    pub fn subscribe(&self) -> broadcast::Receiver<Frame> {
+        self.tx.subscribe()
+    }
+
+    /// Number of connected viewers.
+    pub fn viewers(&self) -> usize {
+        self.tx.receiver_count()
+    }
+
+    /// Whether a task drives the run in this process.
+    pub fn is_live(&self) -> bool {
+        self.control_sender().is_some()
+    }
+
+    pub(super) fn set_summary(&self, f: impl FnOnce(&mut RunSummary)) -> RunSummary {
+        let mut s = self.summary.lock().unwrap_or_else(|p| p.into_inner());
+        f(&mut s);
+        s.clone()
+    }
+
+    pub(super) fn broadcast_status(&self, run: RunSummary) {
+        self.broadcast(Frame::message(&ServerMessage::Status { run }));
+    }
+
+    /// Send a frame to the run's viewers (none listening is fine).
+    pub(super) fn broadcast(&self, frame: Frame) {
+        let _ = self.tx.send(frame);
+    }
+
+    pub(super) fn control_sender(&self) -> Option<mpsc::Sender<ControlMsg>> {
+        self.control
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .as_ref()
+            .filter(|s| !s.is_closed())
+            .cloned()
+    }
+
+    pub(super) fn set_control(&self, sender: Option<mpsc::Sender<ControlMsg>>) {
+        *self.control.lock().unwrap_or_else(|p| p.into_inner()) = sender;
+    }
+
+    /// Clear the control channel if it is still `tx` (a task ending must not
+    /// clear its successor's).
+    pub(super) fn release_control(&self, tx: &mpsc::Sender<ControlMsg>) {
+        let mut control = self.control.lock().unwrap_or_else(|p| p.into_inner());
+        if control.as_ref().is_some_and(|c| c.same_channel(tx)) {
+            *control = None;
+        }
+    }
+}

@@ -169,18 +169,40 @@ fn csv_cell(v: &Value) -> String {
     }
 }
 
+/// Why a run could not be exported.
+#[derive(Debug, thiserror::Error)]
+pub enum ExportError {
+    /// The store could not be read (e.g. no such run).
+    #[error("{0}")]
+    Store(#[from] crate::store::StoreError),
+    /// A stored iteration is not a readable record.
+    #[error("stored iteration {index} of run {run} is unreadable: {error}")]
+    Record {
+        /// The run.
+        run: u64,
+        /// The iteration's index.
+        index: usize,
+        /// Why.
+        error: serde_json::Error,
+    },
+    /// Writing the CSV failed.
+    #[error("cannot write CSV: {0}")]
+    Csv(String),
+}
+
 /// Render a table.
-pub fn render(t: &Table, format: Format) -> Result<String, String> {
+pub fn render(t: &Table, format: Format) -> Result<String, ExportError> {
+    let csv_error = |e: &dyn std::fmt::Display| ExportError::Csv(e.to_string());
     match format {
         Format::Csv => {
             let mut w = csv::Writer::from_writer(Vec::new());
-            w.write_record(&t.columns).map_err(|e| e.to_string())?;
+            w.write_record(&t.columns).map_err(|e| csv_error(&e))?;
             for row in &t.rows {
                 w.write_record(row.iter().map(csv_cell))
-                    .map_err(|e| e.to_string())?;
+                    .map_err(|e| csv_error(&e))?;
             }
-            let bytes = w.into_inner().map_err(|e| e.to_string())?;
-            String::from_utf8(bytes).map_err(|e| e.to_string())
+            let bytes = w.into_inner().map_err(|e| csv_error(&e))?;
+            String::from_utf8(bytes).map_err(|e| csv_error(&e))
         }
         Format::Json => {
             let mut s = String::from("[");
@@ -206,17 +228,18 @@ pub fn render(t: &Table, format: Format) -> Result<String, String> {
 }
 
 /// Export run `id` from the store.
-pub fn export(store: &Store, id: u64, format: Format) -> Result<String, String> {
-    store.get_run(id).map_err(|e| e.to_string())?;
-    let json = store
-        .iterations_json(id, 0, None)
-        .map_err(|e| e.to_string())?;
+pub fn export(store: &Store, id: u64, format: Format) -> Result<String, ExportError> {
+    store.get_run(id)?;
+    let json = store.iterations_json(id, 0, None)?;
     let records = json
         .iter()
         .enumerate()
-        .map(|(i, j)| {
-            serde_json::from_str::<IterationRecord>(j)
-                .map_err(|e| format!("stored iteration {i} of run {id} is unreadable: {e}"))
+        .map(|(index, j)| {
+            serde_json::from_str::<IterationRecord>(j).map_err(|error| ExportError::Record {
+                run: id,
+                index,
+                error,
+            })
         })
         .collect::<Result<Vec<_>, _>>()?;
     render(&table(&records), format)

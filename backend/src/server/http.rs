@@ -149,7 +149,7 @@ pub(super) async fn export(
     let out = tokio::task::spawn_blocking(move || crate::export::export(&store, id, format))
         .await
         .map_err(|e| ApiError(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?
-        .map_err(|e| ApiError(StatusCode::INTERNAL_SERVER_ERROR, e))?;
+        .map_err(|e| ApiError(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
     let ctype = match format {
         crate::export::Format::Csv => "text/csv; charset=utf-8",
         crate::export::Format::Json => "application/json",

@@ -51,7 +51,9 @@ pub fn series_key(h: &RunHistory, w: zoom::Window, axis: XAxis) -> ChartKey {
 /// The canvas takes the width of its container and the given height.
 /// After each draw it carries `data-iterations` (iterations in view),
 /// `data-points` (points of the main series after decimation), `data-ymax`
-/// (largest value drawn), `data-overlay-points` (points of a compared run),
+/// (largest value drawn), `data-y0`/`data-y1` (the y range of the first
+/// plot area), `data-rejected` (values drawn marked as rejected by the
+/// tuner), `data-overlay-points` (points of a compared run),
 /// `data-draws` (number of draws), `data-frames` (plot-area frames held on
 /// the frame canvas below it) and, for charts with
 /// one plot area, `data-px0`/`data-px1` (its pixel columns, CSS px) and
@@ -210,6 +212,9 @@ fn paint(
     set("data-iterations", drawn.iterations.to_string());
     set("data-points", drawn.points.to_string());
     set("data-ymax", drawn.y_max.to_string());
+    set("data-y0", drawn.y_range.0.to_string());
+    set("data-y1", drawn.y_range.1.to_string());
+    set("data-rejected", drawn.rejected.to_string());
     set("data-overlay-points", drawn.overlay_points.to_string());
     set("data-draws", draws.get_value().to_string());
     set("data-frames", layers.frames.len().to_string());
@@ -306,6 +311,7 @@ fn parameter_legend(i: usize, overlay: bool) -> impl IntoView {
             <span><i class="swatch" style=css></i>"measured ±1σ (decimated: min/max per pixel column)"</span>
             <span><i class="swatch target"></i>"target"</span>
             <span><i class="swatch band"></i>"tolerance band"</span>
+            <span title="too uncertain, outlier-gated or refused by the estimator: not acted on, and not setting the y range (▵ at the edge: outside it)"><i class="swatch rejected"></i>"rejected by the tuner"</span>
             {overlay.then(|| view! { <span><i class="swatch overlay"></i>"compared run"</span> })}
         </div>
     }
@@ -672,8 +678,17 @@ pub fn readout_text(h: &RunHistory, k: u64) -> String {
     for (i, (name, unit)) in l.parameters.iter().enumerate() {
         let o = l.param(i);
         let (v, s) = (d[o], d[o + 1]);
+        let rejected = if d[l.rejected(i)].is_finite() {
+            " (rejected)"
+        } else {
+            ""
+        };
         if v.is_finite() {
-            parts.push(format!("{name} {} ± {} {unit}", fmt_num(v), fmt_num(s)));
+            parts.push(format!(
+                "{name} {} ± {} {unit}{rejected}",
+                fmt_num(v),
+                fmt_num(s)
+            ));
         } else {
             parts.push(format!("{name} –"));
         }
@@ -726,9 +741,10 @@ fn Inspector(history: RwSignal<RunHistory>, inspected: RwSignal<Option<u64>>) ->
                 .map(|(i, (name, unit))| {
                     let o = l.param(i);
                     format!(
-                        "{name}: {} ± {} {unit} (target {} ± {} {unit})",
+                        "{name}: {} ± {} {unit}{} (target {} ± {} {unit})",
                         fmt_num(d[o]),
                         fmt_num(d[o + 1]),
+                        if d[l.rejected(i)].is_finite() { ", rejected by the tuner" } else { "" },
                         fmt_num(d[o + 2]),
                         fmt_num(d[o + 3])
                     )

@@ -547,6 +547,89 @@ async fn dashboard_zooms_with_buttons_keys_and_window_and_keeps_a_spike() {
     assert!(showing().contains("4,900–4,999"), "{}", showing());
 }
 
+/// Issue 25: a value the tuner rejected (here too uncertain: 9,999 ± 8,000
+/// µV, and one outlier-gated) is drawn marked but does not set the y range,
+/// so the tolerance band (243–297 µV) stays readable; with error bars (few
+/// iterations) and decimated (5,000 iterations) alike. An accepted spike
+/// still sets it (see the zoom test).
+#[wasm_bindgen_test]
+async fn rejected_values_are_marked_and_do_not_set_the_y_range() {
+    use spintune::protocol::{EventKind, TunerEvent};
+    for n in [30usize, 5_000] {
+        let el = host();
+        let history = RwSignal::new(RunHistory::new());
+        let _h =
+            leptos::mount::mount_to(el.clone(), move || view! { <Dashboard history=history /> });
+        let mut recs = fake_records(n as u64);
+        let reject = |r: &mut spintune::protocol::IterationRecord, value: f64, kind: EventKind| {
+            r.parameters[1].value = Some(value);
+            r.parameters[1].std = Some(8_000.0);
+            r.events.push(TunerEvent {
+                level: "qubit".into(),
+                kind,
+            });
+        };
+        reject(
+            &mut recs[n / 2],
+            9_999.0,
+            EventKind::TooUncertain {
+                parameter: "w".into(),
+                value: 9_999.0,
+                std: 8_000.0,
+                unit: "µV".into(),
+            },
+        );
+        reject(
+            &mut recs[n / 3],
+            -4_000.0,
+            EventKind::OutlierGated {
+                parameter: "w".into(),
+                innovation: -4_270.0,
+                innovation_sigma: 30.0,
+                unit: "µV".into(),
+            },
+        );
+        history.update(|h| {
+            h.insert(recs);
+        });
+        let chart = || el.query_selector("canvas[data-chart=parameter-w]").unwrap();
+        let num = |k: &str| -> f64 {
+            chart()
+                .and_then(|c| c.get_attribute(k))
+                .and_then(|v| v.parse().ok())
+                .unwrap_or(f64::NAN)
+        };
+        wait_for("the w chart", Duration::from_secs(10), || {
+            num("data-iterations") == n as f64
+        })
+        .await;
+        let (y_max, y0, y1) = (num("data-ymax"), num("data-y0"), num("data-y1"));
+        assert!(
+            y_max < 400.0,
+            "{n}: the rejected 9,999 µV set the max: {y_max}"
+        );
+        assert!(
+            y0 > 0.0 && y0 <= 243.0 && y1 >= 297.0 && y1 < 500.0,
+            "{n}: y range {y0}–{y1} is not set by the accepted values and the band"
+        );
+        assert_eq!(
+            num("data-rejected"),
+            2.0,
+            "{n}: both rejected values are drawn"
+        );
+        // t_sr has the fake records' one outlier-gated value (iteration 5).
+        let tsr = el
+            .query_selector("canvas[data-chart=parameter-t_sr]")
+            .unwrap()
+            .unwrap();
+        assert_eq!(tsr.get_attribute("data-rejected").as_deref(), Some("1"));
+        // The hover read-out says so.
+        let readout = history.with_untracked(|h| spintune_web::ui::readout_text(h, n as u64 / 2));
+        assert!(readout.contains("w 9999 ± 8000 µV (rejected)"), "{readout}");
+        el.remove();
+    }
+}
+
 #[wasm_bindgen_test]
 async fn charts_redraw_only_when_their_inputs_change() {
     let el = host();

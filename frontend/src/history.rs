@@ -579,6 +579,28 @@ impl RunHistory {
         self.latest_scans.as_ref().map(|(k, s)| (*k, s.as_slice()))
     }
 
+    /// Scans of iteration `k` asked for by the page: kept as the inspected
+    /// iteration's, and as the latest scans too when `k` is the newest
+    /// iteration held and no newer scans are (a finished, stopped or
+    /// reopened run gets its last scans this way, not from live frames).
+    pub fn offer_scans(&mut self, k: u64, scans: Vec<ScanReport>) {
+        let newest = self.rows.last().is_some_and(|r| r.iteration == k);
+        let newer_held = self.latest_scans.as_ref().is_some_and(|(i, _)| *i >= k);
+        if newest && !newer_held && !scans.is_empty() {
+            self.latest_scans = Some((k, scans.clone()));
+        }
+        self.set_inspected_scans(k, scans);
+    }
+
+    /// The iteration whose scans the page should ask for to show the latest
+    /// scans: the newest one held, when its scans are not held.
+    pub fn missing_latest_scans(&self) -> Option<u64> {
+        let k = self.rows.last()?.iteration;
+        let held = self.latest_scans.as_ref().is_some_and(|(i, _)| *i >= k)
+            || self.inspected_scans.as_ref().is_some_and(|(i, _)| *i == k);
+        (!held).then_some(k)
+    }
+
     /// Keep the scans of the inspected iteration `k` (replacing the previous).
     pub fn set_inspected_scans(&mut self, k: u64, scans: Vec<ScanReport>) {
         self.inspected_scans = Some((k, scans));
@@ -984,5 +1006,32 @@ mod tests {
         let (marks, _) = h.decimate(rej, 0..400, x, (0.0, 399.0), 50).unwrap();
         let marked: Vec<f64> = marks.iter().map(|p| p.0).collect();
         assert_eq!(marked, vec![5.0, 200.0]);
+    }
+
+    /// Issue 25: a run opened after its end has no live scans; the page asks
+    /// for the newest iteration's and they become the latest scans.
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn scans_asked_for_the_newest_iteration_become_the_latest() {
+        let recs = fake_records(6);
+        let scans = recs[5].scans.clone();
+        let mut h = RunHistory::new();
+        assert_eq!(h.missing_latest_scans(), None);
+        h.insert(recs.iter().map(|r| r.summary()));
+        assert_eq!(h.missing_latest_scans(), Some(5));
+        assert!(h.latest_scans().is_none());
+        // An older iteration's scans are only inspected.
+        h.offer_scans(3, recs[3].scans.clone());
+        assert!(h.latest_scans().is_none());
+        assert_eq!(h.missing_latest_scans(), Some(5));
+        h.offer_scans(5, scans.clone());
+        assert_eq!(h.latest_scans().map(|s| s.0), Some(5));
+        assert_eq!(h.missing_latest_scans(), None);
+        // A live record with scans replaces them as usual.
+        let mut next = fake_records(7).pop().unwrap();
+        next.iteration = 6;
+        h.insert([next]);
+        assert_eq!(h.latest_scans().map(|s| s.0), Some(6));
+        assert_eq!(h.missing_latest_scans(), None);
     }
 }

@@ -13,7 +13,7 @@ use crate::history::RunHistory;
 use crate::metrics;
 use crate::model::{
     event_is_safety_relevant, event_name, fault_clears_text, fault_kind_text, format_lab_time,
-    moved_rows, status_class, status_hint, status_label,
+    moved_rows, stale_status_label, status_class, status_hint, status_label, tuned_badge,
 };
 use crate::schedule;
 use crate::series::{self, Drawn, Frame, XAxis};
@@ -250,9 +250,14 @@ fn param_summary(p: &ParameterReport) -> impl IntoView {
     }
 }
 
-/// Headline numbers of a history (its newest record).
+/// Headline numbers of a history (its newest record); the tuned badge reads
+/// the run's `status` too ([`tuned_badge`]).
 #[component]
-pub fn Stats(history: RwSignal<RunHistory>) -> impl IntoView {
+pub fn Stats(
+    history: RwSignal<RunHistory>,
+    /// The run's status (`None`: not known).
+    status: Option<Signal<Option<RunStatus>>>,
+) -> impl IntoView {
     let last = Memo::new(move |_| history.with(|h| h.latest().cloned()));
     view! {
         <div class="stats">
@@ -263,9 +268,13 @@ pub fn Stats(history: RwSignal<RunHistory>) -> impl IntoView {
                     <span class="stat">"lab time " <b data-testid="lab-time">{format_lab_time(r.lab_seconds)}</b></span>
                     <span class="stat">"failed fits " <b>{r.failed_evaluations}</b></span>
                     {r.parameters.iter().map(param_summary).collect_view()}
-                    <span class=if r.tuned { "badge ok" } else { "badge" } data-testid="tuned">
-                        {if r.tuned { "tuned: all parameters in band" } else { "tuning…" }}
-                    </span>
+                    {move || {
+                        let (text, ok) = match status {
+                            Some(s) => s.with(|s| tuned_badge(r.tuned, s.as_ref())),
+                            None => tuned_badge(r.tuned, None),
+                        };
+                        view! { <span class=if ok { "badge ok" } else { "badge" } data-testid="tuned">{text}</span> }
+                    }}
                 }.into_any(),
             }}
         </div>
@@ -323,6 +332,8 @@ pub struct DashboardHooks {
     /// Called when the user inspects an iteration whose scans are not held
     /// (the live mode asks the server for them).
     pub want_scans: Option<Callback<u64>>,
+    /// The run's status, for the tuned badge (`None`: not known).
+    pub status: Option<Signal<Option<RunStatus>>>,
 }
 
 /// The plots of one run: parameters, gradients, gates, scans, lab time,
@@ -518,7 +529,7 @@ pub fn Dashboard(
     };
     view! {
         <div class="dashboard">
-            <Stats history=history />
+            <Stats history=history status=hooks.status />
             <Show when=move || history.with(|h| h.is_empty())>
                 <p class="hint">"Waiting for the first iteration…"</p>
             </Show>
@@ -844,15 +855,29 @@ pub fn StatusBadge(
     /// Text while the status is not known.
     #[prop(into)]
     unknown: String,
+    /// Whether the page is connected to whoever owns the status (default
+    /// yes). When not, a status that is not final is shown grey as the last
+    /// one known ([`stale_status_label`]), with `data-stale="true"`.
+    #[prop(optional, into)]
+    connected: Option<Signal<bool>>,
 ) -> impl IntoView {
+    let connected = move || connected.is_none_or(|c| c.get());
+    let stale =
+        move || status.with(|s| s.as_ref().and_then(|s| stale_status_label(s, connected())));
     view! {
         <span
-            class=move || status.with(|s| s.as_ref().map_or_else(|| "status status-unknown".to_string(), status_class))
+            class=move || {
+                if stale().is_some() {
+                    return "status status-unknown status-stale".to_string();
+                }
+                status.with(|s| s.as_ref().map_or_else(|| "status status-unknown".to_string(), status_class))
+            }
             data-state=move || status.with(|s| s.as_ref().map_or("unknown", |s| s.name()))
+            data-stale=move || stale().is_some().to_string()
             data-testid=testid
             title=move || status.with(|s| s.as_ref().map(status_label))
         >
-            {move || status.with(|s| s.as_ref().map_or_else(|| unknown.clone(), status_label))}
+            {move || stale().unwrap_or_else(|| status.with(|s| s.as_ref().map_or_else(|| unknown.clone(), status_label)))}
         </span>
     }
 }

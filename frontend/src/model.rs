@@ -975,7 +975,7 @@ mod tests {
     #[cfg_attr(not(target_arch = "wasm32"), test)]
     #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
     fn tuned_badge_and_stale_status_follow_the_run() {
-        assert_eq!(tuned_badge(true, Some(&RunStatus::Stopped)).1, true);
+        assert!(tuned_badge(true, Some(&RunStatus::Stopped)).1);
         assert_eq!(tuned_badge(false, None).0, "tuning…");
         assert_eq!(tuned_badge(false, Some(&RunStatus::Running)).0, "tuning…");
         for s in [

@@ -6,8 +6,9 @@
 //! [`Row`] (iteration, lab time, tuned) and one number in each of the
 //! history's columns, laid out by the run's [`Layout`] (per parameter value,
 //! σ, target, tolerance; per gradient element value and σ; per gate voltage
-//! and step) — 4·P + 2·P·G + 2·G `f64`s (P parameters, G gates: 32 numbers,
-//! 256 B, plus the 24 B row, for the paper's 2 parameters and 4 gates), and
+//! and step; per parameter the value the tuner rejected, see [`rejects`]) —
+//! 5·P + 2·P·G + 2·G `f64`s (P parameters, G gates: 34 numbers,
+//! 272 B, plus the 24 B row, for the paper's 2 parameters and 4 gates), and
 //! its events (usually none). Columns are contiguous, so a chart reading one
 //! series of 100,000 iterations streams through 800 kB of memory. Raw scans (tens of kB per
 //! iteration) are kept for two iterations only: the latest live one and the
@@ -19,13 +20,27 @@
 
 use std::collections::BTreeMap;
 
-use spintune::protocol::{IterationRecord, ScanReport, TunerEvent};
+use spintune::protocol::{EventKind, IterationRecord, ScanReport, TunerEvent};
 
 use crate::decimate::{Decimated, Pyramid};
 use crate::model::gradient_sigmas;
 
 /// Most rows held; older rows are dropped (and not fetched again) beyond this.
 pub const MAX_ROWS: usize = 1_000_000;
+
+/// Whether `event` says the tuner did not act on this iteration's
+/// measurement of `parameter` (too uncertain, refused by the outlier gate,
+/// or an update the estimator refused). Such a value is drawn marked and
+/// does not set a chart's y range: it is kept in its own column
+/// ([`Layout::rejected`]) and left out of the parameter's series.
+pub fn rejects(event: &TunerEvent, parameter: &str) -> bool {
+    match &event.kind {
+        EventKind::TooUncertain { parameter: p, .. }
+        | EventKind::OutlierGated { parameter: p, .. }
+        | EventKind::UpdateRejected { parameter: p, .. } => p == parameter,
+        _ => false,
+    }
+}
 
 /// Names and units of the numbers in a [`Row`], fixed by the first record.
 #[derive(Debug, Clone, PartialEq, Default)]
@@ -58,7 +73,7 @@ impl Layout {
 
     /// Numbers per row.
     pub fn width(&self) -> usize {
-        4 * self.parameters.len()
+        5 * self.parameters.len()
             + 2 * self.gradients.len() * self.gates.len()
             + 2 * self.gates.len()
     }
@@ -78,6 +93,20 @@ impl Layout {
         4 * self.parameters.len() + 2 * self.gradients.len() * self.gates.len() + 2 * gate
     }
 
+    /// Column of parameter `p`'s value where the tuner rejected it ([`rejects`];
+    /// NaN where it did not). The value column holds every measured value.
+    pub fn rejected(&self, p: usize) -> usize {
+        4 * self.parameters.len()
+            + 2 * self.gradients.len() * self.gates.len()
+            + 2 * self.gates.len()
+            + p
+    }
+
+    /// The parameter whose value is in column `c`, if any.
+    fn param_of_value(&self, c: usize) -> Option<usize> {
+        (c % 4 == 0 && c < 4 * self.parameters.len()).then_some(c / 4)
+    }
+
     /// Position of a parameter by name.
     pub fn param_index(&self, name: &str) -> Option<usize> {
         self.parameters.iter().position(|p| p.0 == name)
@@ -94,6 +123,9 @@ impl Layout {
                 data[o + 1] = f(p.std);
                 data[o + 2] = f(p.target);
                 data[o + 3] = f(p.tolerance);
+                if r.events.iter().any(|e| rejects(e, name)) {
+                    data[self.rejected(i)] = f(p.value);
+                }
             }
         }
         for (gi, (name, _)) in self.gradients.iter().enumerate() {
@@ -298,7 +330,7 @@ impl RunHistory {
     }
 
     /// The σ column of a drawn series column `c` (parameter values and
-    /// gradient elements have one; gate voltages have none).
+    /// gradient elements have one; gate voltages and rejected values have none).
     fn sigma_of(&self, c: usize) -> Option<usize> {
         let l = &self.layout;
         let params = (0..l.parameters.len()).map(|p| l.param(p));
@@ -311,12 +343,27 @@ impl RunHistory {
     /// Whether column `c` is drawn as a series (has a pyramid).
     fn is_series(&self, c: usize) -> bool {
         let l = &self.layout;
-        self.sigma_of(c).is_some() || (0..l.gates.len()).any(|g| l.gate(g) == c)
+        self.sigma_of(c).is_some()
+            || (0..l.gates.len()).any(|g| l.gate(g) == c)
+            || (0..l.parameters.len()).any(|p| l.rejected(p) == c)
     }
 
-    /// `(value, σ)` of row `i` in series column `c`.
+    /// Whether row `i`'s value in column `c` is one the tuner rejected
+    /// (only parameter values can be).
+    #[inline]
+    pub fn is_rejected(&self, c: usize, i: usize) -> bool {
+        self.layout
+            .param_of_value(c)
+            .is_some_and(|p| self.columns[self.layout.rejected(p)][i].is_finite())
+    }
+
+    /// `(value, σ)` of row `i` in series column `c` as drawn: NaN where the
+    /// tuner rejected the value (it is drawn from [`Layout::rejected`]).
     #[inline]
     fn point(&self, c: usize, sigma: Option<usize>, i: usize) -> (f64, f64) {
+        if self.is_rejected(c, i) {
+            return (f64::NAN, 0.0);
+        }
         let s = sigma.map_or(0.0, |s| self.columns[s][i]);
         (self.columns[c][i], s)
     }
@@ -413,13 +460,12 @@ impl RunHistory {
         columns: usize,
     ) -> Option<Decimated> {
         let p = self.pyramids.get(c)?.as_ref()?;
-        let v = self.columns[c].as_slice();
-        let s = self.sigma_of(c).map(|s| self.columns[s].as_slice());
+        let sigma = self.sigma_of(c);
         let r = self.rows.as_slice();
         Some(p.decimate(
             rows,
             |i| x(&r[i]),
-            |i| (v[i], s.map_or(0.0, |s| s[i])),
+            |i| self.point(c, sigma, i),
             x0,
             x1,
             columns,
@@ -531,6 +577,28 @@ impl RunHistory {
     /// The latest iteration's scans, if held.
     pub fn latest_scans(&self) -> Option<(u64, &[ScanReport])> {
         self.latest_scans.as_ref().map(|(k, s)| (*k, s.as_slice()))
+    }
+
+    /// Scans of iteration `k` asked for by the page: kept as the inspected
+    /// iteration's, and as the latest scans too when `k` is the newest
+    /// iteration held and no newer scans are (a finished, stopped or
+    /// reopened run gets its last scans this way, not from live frames).
+    pub fn offer_scans(&mut self, k: u64, scans: Vec<ScanReport>) {
+        let newest = self.rows.last().is_some_and(|r| r.iteration == k);
+        let newer_held = self.latest_scans.as_ref().is_some_and(|(i, _)| *i >= k);
+        if newest && !newer_held && !scans.is_empty() {
+            self.latest_scans = Some((k, scans.clone()));
+        }
+        self.set_inspected_scans(k, scans);
+    }
+
+    /// The iteration whose scans the page should ask for to show the latest
+    /// scans: the newest one held, when its scans are not held.
+    pub fn missing_latest_scans(&self) -> Option<u64> {
+        let k = self.rows.last()?.iteration;
+        let held = self.latest_scans.as_ref().is_some_and(|(i, _)| *i >= k)
+            || self.inspected_scans.as_ref().is_some_and(|(i, _)| *i == k);
+        (!held).then_some(k)
     }
 
     /// Keep the scans of the inspected iteration `k` (replacing the previous).
@@ -900,5 +968,70 @@ mod tests {
         assert_eq!(h.nearest(5.4).unwrap().iteration, 5);
         assert_eq!(h.range(2.0, 4.5), 2..5);
         assert_eq!(h.at_lab_seconds(60.0 * 3.0 + 31.0), Some(3));
+    }
+
+    /// Issue 25: a value the tuner rejected keeps its number (hover,
+    /// inspector) but is left out of the drawn series and its pyramid, and
+    /// is kept in the parameter's rejected column instead.
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn rejected_values_are_kept_apart_from_the_series() {
+        use spintune::protocol::EventKind;
+        let mut recs = fake_records(400);
+        recs[200].parameters[0].value = Some(238.0);
+        recs[200].events.push(TunerEvent {
+            level: "qubit".into(),
+            kind: EventKind::TooUncertain {
+                parameter: "t_sr".into(),
+                value: 238.0,
+                std: 288.0,
+                unit: "ns".into(),
+            },
+        });
+        let mut h = RunHistory::new();
+        h.insert(recs);
+        let l = h.layout().clone();
+        let (v, rej) = (l.param(0), l.rejected(0));
+        assert_eq!(h.values(200).unwrap()[v], 238.0);
+        assert_eq!(h.values(200).unwrap()[rej], 238.0);
+        assert!(h.values(201).unwrap()[rej].is_nan());
+        // The fake records' outlier-gated t_sr at iteration 5 is rejected too; w is not.
+        assert!(h.is_rejected(v, 5) && h.is_rejected(v, 200) && !h.is_rejected(v, 6));
+        assert!(!h.is_rejected(l.param(1), 200));
+        let x = |r: &Row| r.iteration as f64;
+        let (line, bands) = h.decimate(v, 0..400, x, (0.0, 399.0), 50).unwrap();
+        let top = line.iter().map(|p| p.1).fold(f64::MIN, f64::max);
+        assert!(top < 100.0, "{top}");
+        assert!(bands.iter().all(|b| b.2 < 100.0));
+        let (marks, _) = h.decimate(rej, 0..400, x, (0.0, 399.0), 50).unwrap();
+        let marked: Vec<f64> = marks.iter().map(|p| p.0).collect();
+        assert_eq!(marked, vec![5.0, 200.0]);
+    }
+
+    /// Issue 25: a run opened after its end has no live scans; the page asks
+    /// for the newest iteration's and they become the latest scans.
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn scans_asked_for_the_newest_iteration_become_the_latest() {
+        let recs = fake_records(6);
+        let scans = recs[5].scans.clone();
+        let mut h = RunHistory::new();
+        assert_eq!(h.missing_latest_scans(), None);
+        h.insert(recs.iter().map(|r| r.summary()));
+        assert_eq!(h.missing_latest_scans(), Some(5));
+        assert!(h.latest_scans().is_none());
+        // An older iteration's scans are only inspected.
+        h.offer_scans(3, recs[3].scans.clone());
+        assert!(h.latest_scans().is_none());
+        assert_eq!(h.missing_latest_scans(), Some(5));
+        h.offer_scans(5, scans.clone());
+        assert_eq!(h.latest_scans().map(|s| s.0), Some(5));
+        assert_eq!(h.missing_latest_scans(), None);
+        // A live record with scans replaces them as usual.
+        let mut next = fake_records(7).pop().unwrap();
+        next.iteration = 6;
+        h.insert([next]);
+        assert_eq!(h.latest_scans().map(|s| s.0), Some(6));
+        assert_eq!(h.missing_latest_scans(), None);
     }
 }

@@ -34,11 +34,12 @@ use spintune::protocol::{
 use wasm_bindgen::prelude::*;
 use web_sys::{CloseEvent, MessageEvent, WebSocket};
 
-use crate::api::{get_json, ApiBase};
+use crate::api::{get_json, http_status, ApiBase};
 use crate::history::RunHistory;
 
 use crate::model::{
     format_lab_time, list_state, status_class, status_is_final, status_label, ControlsEnabled,
+    Followed,
 };
 use crate::ui::{Dashboard, DashboardHooks, StatusBadge, StatusNote};
 
@@ -175,6 +176,10 @@ struct Session {
     last_page: Option<((u64, u32), usize)>,
     /// Iterations the server holds, from the run list (for the first `from`).
     total_hint: u64,
+    /// The iteration whose scans were asked for to show the latest scans
+    /// (once per iteration: a run that is over, paused or reopened has no
+    /// live frames with scans).
+    latest_scans_asked: Option<u64>,
 }
 
 type SessionRef = Rc<RefCell<Session>>;
@@ -286,7 +291,13 @@ fn connect(sess: &SessionRef) {
                 .notice
                 .set(Some(format!("socket closed: {}", ev.reason())));
         }
-        schedule_reconnect(&sess);
+        if sess.borrow().hello_seen {
+            schedule_reconnect(&sess);
+        } else {
+            // Closed before its hello: the run may not exist (a socket
+            // cannot tell a 404 from a server that is down). Ask over HTTP.
+            check_run_then_reconnect(&sess);
+        }
     });
 
     ws.set_onopen(Some(on_open.as_ref().unchecked_ref()));
@@ -294,6 +305,37 @@ fn connect(sess: &SessionRef) {
     ws.set_onclose(Some(on_close.as_ref().unchecked_ref()));
     s.handlers = Some((on_open, on_message, on_close));
     s.ws = Some(ws);
+}
+
+/// After a socket closed before the server's `hello`: `GET /api/runs/{id}`;
+/// a 404 means there is no such run, so the page stops retrying and says
+/// so; anything else (the server down, another error) retries as usual.
+fn check_run_then_reconnect(sess: &SessionRef) {
+    let (url, run) = {
+        let s = sess.borrow();
+        (s.base.url(&format!("/api/runs/{}", s.run)), s.run)
+    };
+    let weak = Rc::downgrade(sess);
+    leptos::task::spawn_local(async move {
+        let status = http_status(&url).await;
+        let Some(sess) = weak.upgrade() else { return };
+        if sess.borrow().shut_down {
+            return;
+        }
+        if status == Ok(404) {
+            let mut s = sess.borrow_mut();
+            drop_socket(&mut s);
+            s.retry = None;
+            let _ = s.sig.conn.try_set(ConnState::Closed {
+                reason: format!("no run {run}"),
+            });
+            let _ = s.sig.notice.try_set(Some(format!(
+                "The server has no run {run}: pick one from the list."
+            )));
+        } else {
+            schedule_reconnect(&sess);
+        }
+    });
 }
 
 fn schedule_reconnect(sess: &SessionRef) {
@@ -411,8 +453,7 @@ fn handle_message(sess: &SessionRef, text: &str) -> After {
                     s.pending.drain(..=i);
                 }
             }
-            sig.history
-                .update(|h| h.set_inspected_scans(iteration, scans));
+            sig.history.update(|h| h.offer_scans(iteration, scans));
         }
         ServerMessage::Status { run } => {
             {
@@ -464,8 +505,26 @@ fn handle_message(sess: &SessionRef, text: &str) -> After {
     After::Continue
 }
 
-/// Ask for the next older page if one is missing and none is on its way.
+/// Ask for the newest iteration's scans if they are not held (once per
+/// iteration), then for the next older page if one is missing and none is
+/// on its way.
 fn request_more(sess: &SessionRef) {
+    let missing = {
+        let s = sess.borrow();
+        if !s.hello_seen || s.shut_down {
+            return;
+        }
+        s.sig
+            .history
+            .with_untracked(|h| h.missing_latest_scans())
+            .filter(|k| s.latest_scans_asked != Some(*k))
+    };
+    if let Some(k) = missing {
+        // Also while running: the next live frame may be an hour away. A
+        // newer live frame's scans win over this answer.
+        sess.borrow_mut().latest_scans_asked = Some(k);
+        request_scans(sess, k);
+    }
     let mut s = sess.borrow_mut();
     if s.page_in_flight.is_some() || !s.hello_seen || s.shut_down {
         return;
@@ -551,7 +610,7 @@ fn fetch_scans_http(sess: &SessionRef, k: u64) {
                     .find(|r| r.iteration == k)
                     .map(|r| r.scans)
                     .unwrap_or_default();
-                let _ = sig.history.try_update(|h| h.set_inspected_scans(k, scans));
+                let _ = sig.history.try_update(|h| h.offer_scans(k, scans));
             }
             Err(e) => {
                 let _ = sig
@@ -772,6 +831,7 @@ pub fn RunView(
         page_in_flight: None,
         last_page: None,
         total_hint: total_hint.unwrap_or(0),
+        latest_scans_asked: None,
     }));
     match total_hint {
         Some(_) => connect(&sess),
@@ -831,7 +891,9 @@ pub fn RunView(
     let want_scans = Callback::new(move |k: u64| sess.with_value(|s| request_scans(s, k)));
     let hooks = DashboardHooks {
         want_scans: Some(want_scans),
+        status: Some(status),
     };
+    let connected = Signal::derive(move || sig.conn.with(|c| *c == ConnState::Open));
     let paging_note = move || match sig.paging.get() {
         PagingMode::Socket => "history pages over the socket",
         PagingMode::Http => "history pages over HTTP (server without socket paging)",
@@ -866,7 +928,7 @@ pub fn RunView(
         <div class="run-view">
             <header class="run-head">
                 <h2>{title}</h2>
-                <StatusBadge status testid="run-status" unknown="…" />
+                <StatusBadge status testid="run-status" unknown="…" connected />
                 <span class=move || sig.conn.with(|c| c.class()) data-testid="connection">{move || sig.conn.with(|c| c.label())}</span>
             </header>
             {move || sig.notice.get().map(|n| view! {
@@ -965,8 +1027,19 @@ fn Controls(
                 <For
                     each=move || params.get()
                     key=|p| p.0.clone()
-                    children=move |(name, unit, target, tol)| view! {
-                        <TargetEditor name unit target tolerance=tol enabled=Signal::derive(move || enabled.get().targets) on_command />
+                    children=move |(name, unit, _, _)| {
+                        let n = name.clone();
+                        // The run's present target and tolerance (newest record).
+                        let current = Signal::derive(move || {
+                            params.with(|ps| {
+                                ps.iter()
+                                    .find(|p| p.0 == n)
+                                    .map_or((None, None), |p| (p.2, p.3))
+                            })
+                        });
+                        view! {
+                            <TargetEditor name unit current enabled=Signal::derive(move || enabled.get().targets) on_command />
+                        }
                     }
                 />
             </div>
@@ -974,22 +1047,27 @@ fn Controls(
     }
 }
 
-/// Edit one parameter's target and tolerance.
+/// Edit one parameter's target and tolerance. Each field shows the run's
+/// present value (`current`: target, tolerance half-width, from the newest
+/// record, so a scheduled change shows) unless the user is editing it
+/// ([`Followed`]); Apply sends what the fields show, so a field left alone
+/// sends the run's present value.
 #[component]
 fn TargetEditor(
     name: String,
     unit: String,
-    target: Option<f64>,
-    tolerance: Option<f64>,
+    current: Signal<(Option<f64>, Option<f64>)>,
     enabled: Signal<bool>,
     on_command: Callback<ControlCommand>,
 ) -> impl IntoView {
-    let t = RwSignal::new(target.map(|t| format!("{t}")).unwrap_or_default());
-    let tol = RwSignal::new(tolerance.map(|t| format!("{t}")).unwrap_or_default());
+    let t = RwSignal::new(Followed::default());
+    let tol = RwSignal::new(Followed::default());
+    let t_text = move || t.with(|f| f.shown(current.get().0));
+    let tol_text = move || tol.with(|f| f.shown(current.get().1));
     let err = RwSignal::new(None::<String>);
     let n2 = name.clone();
     let apply = move || {
-        let tt = t.get_untracked();
+        let tt = untrack(t_text);
         let target = if tt.trim().is_empty() {
             None
         } else {
@@ -1001,7 +1079,7 @@ fn TargetEditor(
                 }
             }
         };
-        let tl = tol.get_untracked();
+        let tl = untrack(tol_text);
         let tolerance = if tl.trim().is_empty() {
             None
         } else {
@@ -1019,14 +1097,19 @@ fn TargetEditor(
             target,
             tolerance,
         });
+        let (run_t, run_tol) = current.get_untracked();
+        t.update(|f| f.sent(run_t));
+        tol.update(|f| f.sent(run_tol));
     };
     view! {
         <form class="target" data-parameter=name.clone() on:submit=move |ev| { ev.prevent_default(); apply(); }>
             <b>{name.clone()}</b>
             <label>"target "<input type="number" step="any" data-testid=format!("target-{name}")
-                prop:value=move || t.get() on:input=move |ev| t.set(event_target_value(&ev)) />{format!(" {unit}")}</label>
+                class:edited=move || t.with(Followed::is_editing)
+                prop:value=t_text on:input=move |ev| t.update(|f| f.edit(event_target_value(&ev))) />{format!(" {unit}")}</label>
             <label>"± "<input type="number" step="any" min="0" data-testid=format!("tolerance-{name}")
-                prop:value=move || tol.get() on:input=move |ev| tol.set(event_target_value(&ev)) />{format!(" {unit}")}</label>
+                class:edited=move || tol.with(Followed::is_editing)
+                prop:value=tol_text on:input=move |ev| tol.update(|f| f.edit(event_target_value(&ev))) />{format!(" {unit}")}</label>
             <button type="submit" disabled=move || !enabled.get()>"Apply"</button>
             {move || err.get().map(|e| view! { <span class="error">{e}</span> })}
         </form>
@@ -1071,6 +1154,7 @@ mod tests {
             page_in_flight: None,
             last_page: None,
             total_hint: 0,
+            latest_scans_asked: None,
         }))
     }
 

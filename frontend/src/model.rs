@@ -389,6 +389,88 @@ pub fn padded_range(values: impl IntoIterator<Item = f64>, pad: f64) -> (f64, f6
     }
 }
 
+/// The tuned badge of the headline: the newest record's `tuned` read with
+/// the run's status (`None`: not known, e.g. the in-browser mode before a
+/// run). "tuning…" only while the run iterates; a paused, faulted or ended
+/// run out of band says so. `(text, in band)`.
+pub fn tuned_badge(tuned: bool, status: Option<&RunStatus>) -> (&'static str, bool) {
+    if tuned {
+        return ("tuned: all parameters in band", true);
+    }
+    let text = match status {
+        None | Some(RunStatus::Running | RunStatus::Stepping) => "tuning…",
+        Some(RunStatus::Paused | RunStatus::Faulted { .. }) => "not in band (paused)",
+        Some(RunStatus::Stopping) => "not in band (stopping)",
+        Some(_) => "not in band when the run ended",
+    };
+    (text, false)
+}
+
+/// The run status badge while the page is not connected to the server:
+/// a status that is not final is only the last one known (the run may have
+/// moved on, or the server be down), so the badge says so instead of
+/// showing a live-looking "running". `None`: show the status as it is.
+pub fn stale_status_label(status: &RunStatus, connected: bool) -> Option<String> {
+    (!connected && !status_is_final(status))
+        .then(|| format!("{} (last known; not connected)", status.name()))
+}
+
+/// One number of an editor that shows the run's current value unless the
+/// user is editing it (e.g. a target editor during a scheduled target
+/// change). `shown(run)` is what the input displays; what Apply sends is
+/// [`Followed::shown`] too, so a field the user did not touch sends the
+/// run's current value, never a stale one.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub enum Followed {
+    /// Shows the run's value.
+    #[default]
+    Following,
+    /// The user typed this and has not applied it.
+    Editing(String),
+    /// Applied: shown until the run's value changes from `then` (the change
+    /// arrived, or another one did), then following again.
+    Sent {
+        /// What was applied.
+        text: String,
+        /// The run's value when it was applied.
+        then: Option<f64>,
+    },
+}
+
+impl Followed {
+    /// The run's value as the input shows it (empty for none).
+    pub fn text_of(value: Option<f64>) -> String {
+        value.map(|v| format!("{v}")).unwrap_or_default()
+    }
+
+    /// What the input shows while the run's value is `run`.
+    pub fn shown(&self, run: Option<f64>) -> String {
+        match self {
+            Followed::Editing(t) => t.clone(),
+            Followed::Sent { text, then } if *then == run => text.clone(),
+            _ => Self::text_of(run),
+        }
+    }
+
+    /// Whether the user has typed something not yet applied.
+    pub fn is_editing(&self) -> bool {
+        matches!(self, Followed::Editing(_))
+    }
+
+    /// The user typed `text`.
+    pub fn edit(&mut self, text: String) {
+        *self = Followed::Editing(text);
+    }
+
+    /// Apply was pressed while the run's value was `run`.
+    pub fn sent(&mut self, run: Option<f64>) {
+        *self = Followed::Sent {
+            text: self.shown(run),
+            then: run,
+        };
+    }
+}
+
 /// Deterministic fake records for tests and previews: two parameters over
 /// four gates, approaching their targets.
 pub fn fake_records(n: u64) -> Vec<IterationRecord> {
@@ -850,5 +932,69 @@ mod tests {
             let json = serde_json::to_value(&kind).unwrap();
             assert_eq!(json["event"], event_name(&kind));
         }
+    }
+
+    /// Issue 25: the target editor follows the run (a scheduled change)
+    /// unless the user is editing, and a field left alone sends the run's
+    /// current value.
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn followed_fields_show_the_runs_value_unless_edited() {
+        let mut target = Followed::default();
+        let mut tol = Followed::default();
+        assert_eq!(target.shown(Some(20.0)), "20");
+        // A scheduled change: the untouched field shows the new target.
+        assert_eq!(target.shown(Some(70.0)), "70");
+        // The user edits only the tolerance; Apply sends the current target.
+        tol.edit("3".into());
+        assert!(tol.is_editing() && !target.is_editing());
+        assert_eq!(
+            (target.shown(Some(70.0)), tol.shown(Some(7.0))),
+            ("70".into(), "3".into())
+        );
+        // A change arriving while the user edits does not overwrite the edit.
+        assert_eq!(tol.shown(Some(9.0)), "3");
+        target.sent(Some(70.0));
+        tol.sent(Some(9.0));
+        assert_eq!(tol.shown(Some(9.0)), "3", "applied, not yet in a record");
+        assert_eq!(tol.shown(Some(3.0)), "3");
+        assert_eq!(
+            tol.shown(Some(5.0)),
+            "5",
+            "the run moved on: following again"
+        );
+        assert_eq!(target.shown(Some(45.0)), "45");
+        assert_eq!(Followed::default().shown(None), "");
+        // Editing after applying starts a new edit.
+        tol.edit("4".into());
+        assert_eq!(tol.shown(Some(9.0)), "4");
+    }
+
+    /// Issue 25: stopped and finished runs do not say "tuning…"; a status
+    /// shown while disconnected is marked as the last one known.
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn tuned_badge_and_stale_status_follow_the_run() {
+        assert!(tuned_badge(true, Some(&RunStatus::Stopped)).1);
+        assert_eq!(tuned_badge(false, None).0, "tuning…");
+        assert_eq!(tuned_badge(false, Some(&RunStatus::Running)).0, "tuning…");
+        for s in [
+            RunStatus::Stopped,
+            RunStatus::Finished,
+            RunStatus::Interrupted,
+        ] {
+            let (text, ok) = tuned_badge(false, Some(&s));
+            assert!(!ok && !text.contains("tuning"), "{s:?}: {text}");
+        }
+        assert_eq!(
+            tuned_badge(false, Some(&RunStatus::Paused)).0,
+            "not in band (paused)"
+        );
+        assert_eq!(
+            stale_status_label(&RunStatus::Running, false).as_deref(),
+            Some("running (last known; not connected)")
+        );
+        assert_eq!(stale_status_label(&RunStatus::Running, true), None);
+        assert_eq!(stale_status_label(&RunStatus::Finished, false), None);
     }
 }

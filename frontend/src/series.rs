@@ -122,6 +122,11 @@ pub struct Drawn {
     pub points: usize,
     /// Largest value of the main series drawn (NaN if none).
     pub y_max: f64,
+    /// The y range of the (first) plot area (NaN if none).
+    pub y_range: (f64, f64),
+    /// Values drawn marked as rejected by the tuner (parameter charts;
+    /// after decimation), whether inside the y range or pinned to its edge.
+    pub rejected: usize,
     /// Points of the compared run drawn (parameter charts).
     pub overlay_points: usize,
     /// Pixel columns `[left, right]` of the plot area (CSS px), if it has one.
@@ -157,14 +162,22 @@ fn series_of(
     let vals = f.column(o);
     let sds = if sigma { f.column(o + 1) } else { &[] };
     let sd = |i: usize| sds.get(i).copied().filter(|s| s.is_finite()).unwrap_or(0.0);
+    // A value the tuner rejected is not part of the series (drawn apart).
+    let start = f.range().start;
+    let val = |i: usize| {
+        if f.history.is_rejected(o, start + i) {
+            f64::NAN
+        } else {
+            vals[i]
+        }
+    };
     let axis = f.axis;
     if rows.len() <= 2 * cols {
         let pts: Vec<(f64, f64, f64)> = rows
             .iter()
-            .zip(vals)
             .enumerate()
-            .filter(|(_, (_, v))| v.is_finite())
-            .map(|(i, (r, v))| (axis.x(r), *v, sd(i)))
+            .map(|(i, r)| (axis.x(r), val(i), sd(i)))
+            .filter(|(_, v, _)| v.is_finite())
             .collect();
         let line = pts.iter().map(|&(x, v, _)| (x, v)).collect();
         let bands = pts.iter().map(|&(x, v, s)| (x, v - s, v + s)).collect();
@@ -177,8 +190,8 @@ fn series_of(
         return (out.0, out.1, None);
     }
     let mut c = Columns::new(x0, x1, cols);
-    for (i, (r, &v)) in rows.iter().zip(vals).enumerate() {
-        let s = sd(i);
+    for (i, r) in rows.iter().enumerate() {
+        let (v, s) = (val(i), sd(i));
         c.push(axis.x(r), v, v - s, v + s);
     }
     let (line, bands) = c.finish();
@@ -269,7 +282,11 @@ fn value_range(
 
 /// One parameter against the x axis: measured values with ±1σ (error bars,
 /// or per-column bands when decimated), the target line and its tolerance
-/// band; the overlay run's values as a grey line.
+/// band; the overlay run's values as a grey line. Values the tuner rejected
+/// ([`crate::history::rejects`]: too uncertain, outlier-gated, update
+/// refused) are hollow grey circles without error bars and do not set the y
+/// range (one such value of 238 ± 288 ns would hide every tolerance band);
+/// those outside it are pinned to the nearer edge as hollow triangles.
 pub fn draw_parameter<DB: DrawingBackend>(
     plot: &Plot<'_, DB>,
     f: &Frame<'_>,
@@ -289,7 +306,10 @@ pub fn draw_parameter<DB: DrawingBackend>(
     let (line, bands, pts) = crate::metrics::phase(crate::metrics::Phase::Decimate, || {
         series_of(f, o, true, (x0, x1), cols)
     });
-    if line.is_empty() {
+    let (rejected, _, _) = crate::metrics::phase(crate::metrics::Phase::Decimate, || {
+        series_of(f, layout.rejected(p), false, (x0, x1), cols)
+    });
+    if line.is_empty() && rejected.is_empty() {
         return placeholder(plot.area(), &title, "waiting for measurements…").map(|_| Drawn {
             iterations: rows.len(),
             ..Drawn::default()
@@ -329,7 +349,14 @@ pub fn draw_parameter<DB: DrawingBackend>(
         targets
             .iter()
             .flat_map(|&(_, _, t, tol)| [t - tol, t + tol])
-            .chain(overlay.iter().map(|p| p.1)),
+            .chain(overlay.iter().map(|p| p.1))
+            // only rejected values in view: they are all there is to show
+            .chain(
+                line.is_empty()
+                    .then_some(rejected.iter().map(|p| p.1))
+                    .into_iter()
+                    .flatten(),
+            ),
     );
     let mut chart = styled_chart(
         plot,
@@ -391,15 +418,49 @@ pub fn draw_parameter<DB: DrawingBackend>(
             .draw_series(LineSeries::new(line.iter().copied(), c.stroke_width(1)))
             .map_err(err)?;
     }
+    draw_rejected(&mut chart, &rejected, (y0, y1))?;
     let px = chart.plotting_area().get_pixel_range().0;
     Ok(Drawn {
         iterations: rows.len(),
         points: line.len(),
         y_max: line.iter().map(|p| p.1).fold(f64::NAN, f64::max),
+        y_range: (y0, y1),
+        rejected: rejected.len(),
         overlay_points: overlay.len(),
         plot_px: Some((px.start as f64, px.end as f64)),
         x_range: (x0, x1),
     })
+}
+
+/// Colour of the values the tuner rejected.
+pub const REJECTED: RGBColor = RGBColor(120, 120, 120);
+
+/// Values the tuner rejected: hollow grey circles inside `[y0, y1]`, hollow
+/// triangles pinned to the nearer edge outside it.
+fn draw_rejected<DB: DrawingBackend>(
+    chart: &mut ChartContext<'_, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
+    points: &[(f64, f64)],
+    (y0, y1): (f64, f64),
+) -> Result<(), String> {
+    let style = REJECTED.stroke_width(1);
+    let inside = |v: f64| v >= y0 && v <= y1;
+    chart
+        .draw_series(
+            points
+                .iter()
+                .filter(|p| inside(p.1))
+                .map(|&p| Circle::new(p, 3, style)),
+        )
+        .map_err(err)?;
+    chart
+        .draw_series(
+            points
+                .iter()
+                .filter(|p| !inside(p.1))
+                .map(|&(x, v)| TriangleMarker::new((x, v.clamp(y0, y1)), 4, style)),
+        )
+        .map_err(err)?;
+    Ok(())
 }
 
 /// Every element of one parameter's gradient, ±1σ `√diag C` (one panel per gate).
@@ -461,6 +522,7 @@ pub fn draw_gradient<DB: DrawingBackend>(
             .map_err(err)?;
         if gi == 0 {
             drawn.points = line.len();
+            drawn.y_range = (y0, y1);
         }
     }
     Ok(drawn)
@@ -510,6 +572,7 @@ pub fn draw_gates<DB: DrawingBackend>(plot: &Plot<'_, DB>, f: &Frame<'_>) -> Res
         }
         if gi == 0 {
             drawn.points = line.len();
+            drawn.y_range = (y0, y1);
         }
     }
     Ok(drawn)
@@ -579,6 +642,8 @@ pub fn draw_lab_time<DB: DrawingBackend>(
         iterations: rows.len(),
         points: line.len(),
         y_max: line.iter().map(|p| p.1).fold(f64::NAN, f64::max),
+        y_range: (y0.max(0.0), y1),
+        rejected: 0,
         overlay_points: 0,
         plot_px: Some((px.start as f64, px.end as f64)),
         x_range: (x0, x1),

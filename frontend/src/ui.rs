@@ -13,7 +13,7 @@ use crate::history::RunHistory;
 use crate::metrics;
 use crate::model::{
     event_is_safety_relevant, event_name, fault_clears_text, fault_kind_text, format_lab_time,
-    moved_rows, status_class, status_hint, status_label,
+    moved_rows, stale_status_label, status_class, status_hint, status_label, tuned_badge,
 };
 use crate::schedule;
 use crate::series::{self, Drawn, Frame, XAxis};
@@ -51,7 +51,9 @@ pub fn series_key(h: &RunHistory, w: zoom::Window, axis: XAxis) -> ChartKey {
 /// The canvas takes the width of its container and the given height.
 /// After each draw it carries `data-iterations` (iterations in view),
 /// `data-points` (points of the main series after decimation), `data-ymax`
-/// (largest value drawn), `data-overlay-points` (points of a compared run),
+/// (largest value drawn), `data-y0`/`data-y1` (the y range of the first
+/// plot area), `data-rejected` (values drawn marked as rejected by the
+/// tuner), `data-overlay-points` (points of a compared run),
 /// `data-draws` (number of draws), `data-frames` (plot-area frames held on
 /// the frame canvas below it) and, for charts with
 /// one plot area, `data-px0`/`data-px1` (its pixel columns, CSS px) and
@@ -210,6 +212,9 @@ fn paint(
     set("data-iterations", drawn.iterations.to_string());
     set("data-points", drawn.points.to_string());
     set("data-ymax", drawn.y_max.to_string());
+    set("data-y0", drawn.y_range.0.to_string());
+    set("data-y1", drawn.y_range.1.to_string());
+    set("data-rejected", drawn.rejected.to_string());
     set("data-overlay-points", drawn.overlay_points.to_string());
     set("data-draws", draws.get_value().to_string());
     set("data-frames", layers.frames.len().to_string());
@@ -245,9 +250,14 @@ fn param_summary(p: &ParameterReport) -> impl IntoView {
     }
 }
 
-/// Headline numbers of a history (its newest record).
+/// Headline numbers of a history (its newest record); the tuned badge reads
+/// the run's `status` too ([`tuned_badge`]).
 #[component]
-pub fn Stats(history: RwSignal<RunHistory>) -> impl IntoView {
+pub fn Stats(
+    history: RwSignal<RunHistory>,
+    /// The run's status (`None`: not known).
+    status: Option<Signal<Option<RunStatus>>>,
+) -> impl IntoView {
     let last = Memo::new(move |_| history.with(|h| h.latest().cloned()));
     view! {
         <div class="stats">
@@ -258,9 +268,13 @@ pub fn Stats(history: RwSignal<RunHistory>) -> impl IntoView {
                     <span class="stat">"lab time " <b data-testid="lab-time">{format_lab_time(r.lab_seconds)}</b></span>
                     <span class="stat">"failed fits " <b>{r.failed_evaluations}</b></span>
                     {r.parameters.iter().map(param_summary).collect_view()}
-                    <span class=if r.tuned { "badge ok" } else { "badge" } data-testid="tuned">
-                        {if r.tuned { "tuned: all parameters in band" } else { "tuning…" }}
-                    </span>
+                    {move || {
+                        let (text, ok) = match status {
+                            Some(s) => s.with(|s| tuned_badge(r.tuned, s.as_ref())),
+                            None => tuned_badge(r.tuned, None),
+                        };
+                        view! { <span class=if ok { "badge ok" } else { "badge" } data-testid="tuned">{text}</span> }
+                    }}
                 }.into_any(),
             }}
         </div>
@@ -306,6 +320,7 @@ fn parameter_legend(i: usize, overlay: bool) -> impl IntoView {
             <span><i class="swatch" style=css></i>"measured ±1σ (decimated: min/max per pixel column)"</span>
             <span><i class="swatch target"></i>"target"</span>
             <span><i class="swatch band"></i>"tolerance band"</span>
+            <span title="too uncertain, outlier-gated or refused by the estimator: not acted on, and not setting the y range (▵ at the edge: outside it)"><i class="swatch rejected"></i>"rejected by the tuner"</span>
             {overlay.then(|| view! { <span><i class="swatch overlay"></i>"compared run"</span> })}
         </div>
     }
@@ -317,6 +332,8 @@ pub struct DashboardHooks {
     /// Called when the user inspects an iteration whose scans are not held
     /// (the live mode asks the server for them).
     pub want_scans: Option<Callback<u64>>,
+    /// The run's status, for the tuned badge (`None`: not known).
+    pub status: Option<Signal<Option<RunStatus>>>,
 }
 
 /// The plots of one run: parameters, gradients, gates, scans, lab time,
@@ -512,7 +529,7 @@ pub fn Dashboard(
     };
     view! {
         <div class="dashboard">
-            <Stats history=history />
+            <Stats history=history status=hooks.status />
             <Show when=move || history.with(|h| h.is_empty())>
                 <p class="hint">"Waiting for the first iteration…"</p>
             </Show>
@@ -672,8 +689,17 @@ pub fn readout_text(h: &RunHistory, k: u64) -> String {
     for (i, (name, unit)) in l.parameters.iter().enumerate() {
         let o = l.param(i);
         let (v, s) = (d[o], d[o + 1]);
+        let rejected = if d[l.rejected(i)].is_finite() {
+            " (rejected)"
+        } else {
+            ""
+        };
         if v.is_finite() {
-            parts.push(format!("{name} {} ± {} {unit}", fmt_num(v), fmt_num(s)));
+            parts.push(format!(
+                "{name} {} ± {} {unit}{rejected}",
+                fmt_num(v),
+                fmt_num(s)
+            ));
         } else {
             parts.push(format!("{name} –"));
         }
@@ -726,9 +752,10 @@ fn Inspector(history: RwSignal<RunHistory>, inspected: RwSignal<Option<u64>>) ->
                 .map(|(i, (name, unit))| {
                     let o = l.param(i);
                     format!(
-                        "{name}: {} ± {} {unit} (target {} ± {} {unit})",
+                        "{name}: {} ± {} {unit}{} (target {} ± {} {unit})",
                         fmt_num(d[o]),
                         fmt_num(d[o + 1]),
+                        if d[l.rejected(i)].is_finite() { ", rejected by the tuner" } else { "" },
                         fmt_num(d[o + 2]),
                         fmt_num(d[o + 3])
                     )
@@ -828,15 +855,29 @@ pub fn StatusBadge(
     /// Text while the status is not known.
     #[prop(into)]
     unknown: String,
+    /// Whether the page is connected to whoever owns the status (default
+    /// yes). When not, a status that is not final is shown grey as the last
+    /// one known ([`stale_status_label`]), with `data-stale="true"`.
+    #[prop(optional, into)]
+    connected: Option<Signal<bool>>,
 ) -> impl IntoView {
+    let connected = move || connected.is_none_or(|c| c.get());
+    let stale =
+        move || status.with(|s| s.as_ref().and_then(|s| stale_status_label(s, connected())));
     view! {
         <span
-            class=move || status.with(|s| s.as_ref().map_or_else(|| "status status-unknown".to_string(), status_class))
+            class=move || {
+                if stale().is_some() {
+                    return "status status-unknown status-stale".to_string();
+                }
+                status.with(|s| s.as_ref().map_or_else(|| "status status-unknown".to_string(), status_class))
+            }
             data-state=move || status.with(|s| s.as_ref().map_or("unknown", |s| s.name()))
+            data-stale=move || stale().is_some().to_string()
             data-testid=testid
             title=move || status.with(|s| s.as_ref().map(status_label))
         >
-            {move || status.with(|s| s.as_ref().map_or_else(|| unknown.clone(), status_label))}
+            {move || stale().unwrap_or_else(|| status.with(|s| s.as_ref().map_or_else(|| unknown.clone(), status_label)))}
         </span>
     }
 }

@@ -547,6 +547,89 @@ async fn dashboard_zooms_with_buttons_keys_and_window_and_keeps_a_spike() {
     assert!(showing().contains("4,900–4,999"), "{}", showing());
 }
 
+/// Issue 25: a value the tuner rejected (here too uncertain: 9,999 ± 8,000
+/// µV, and one outlier-gated) is drawn marked but does not set the y range,
+/// so the tolerance band (243–297 µV) stays readable; with error bars (few
+/// iterations) and decimated (5,000 iterations) alike. An accepted spike
+/// still sets it (see the zoom test).
+#[wasm_bindgen_test]
+async fn rejected_values_are_marked_and_do_not_set_the_y_range() {
+    use spintune::protocol::{EventKind, TunerEvent};
+    for n in [30usize, 5_000] {
+        let el = host();
+        let history = RwSignal::new(RunHistory::new());
+        let _h =
+            leptos::mount::mount_to(el.clone(), move || view! { <Dashboard history=history /> });
+        let mut recs = fake_records(n as u64);
+        let reject = |r: &mut spintune::protocol::IterationRecord, value: f64, kind: EventKind| {
+            r.parameters[1].value = Some(value);
+            r.parameters[1].std = Some(8_000.0);
+            r.events.push(TunerEvent {
+                level: "qubit".into(),
+                kind,
+            });
+        };
+        reject(
+            &mut recs[n / 2],
+            9_999.0,
+            EventKind::TooUncertain {
+                parameter: "w".into(),
+                value: 9_999.0,
+                std: 8_000.0,
+                unit: "µV".into(),
+            },
+        );
+        reject(
+            &mut recs[n / 3],
+            -4_000.0,
+            EventKind::OutlierGated {
+                parameter: "w".into(),
+                innovation: -4_270.0,
+                innovation_sigma: 30.0,
+                unit: "µV".into(),
+            },
+        );
+        history.update(|h| {
+            h.insert(recs);
+        });
+        let chart = || el.query_selector("canvas[data-chart=parameter-w]").unwrap();
+        let num = |k: &str| -> f64 {
+            chart()
+                .and_then(|c| c.get_attribute(k))
+                .and_then(|v| v.parse().ok())
+                .unwrap_or(f64::NAN)
+        };
+        wait_for("the w chart", Duration::from_secs(10), || {
+            num("data-iterations") == n as f64
+        })
+        .await;
+        let (y_max, y0, y1) = (num("data-ymax"), num("data-y0"), num("data-y1"));
+        assert!(
+            y_max < 400.0,
+            "{n}: the rejected 9,999 µV set the max: {y_max}"
+        );
+        assert!(
+            y0 > 0.0 && y0 <= 243.0 && y1 >= 297.0 && y1 < 500.0,
+            "{n}: y range {y0}–{y1} is not set by the accepted values and the band"
+        );
+        assert_eq!(
+            num("data-rejected"),
+            2.0,
+            "{n}: both rejected values are drawn"
+        );
+        // t_sr has the fake records' one outlier-gated value (iteration 5).
+        let tsr = el
+            .query_selector("canvas[data-chart=parameter-t_sr]")
+            .unwrap()
+            .unwrap();
+        assert_eq!(tsr.get_attribute("data-rejected").as_deref(), Some("1"));
+        // The hover read-out says so.
+        let readout = history.with_untracked(|h| spintune_web::ui::readout_text(h, n as u64 / 2));
+        assert!(readout.contains("w 9999 ± 8000 µV (rejected)"), "{readout}");
+        el.remove();
+    }
+}
+
 #[wasm_bindgen_test]
 async fn charts_redraw_only_when_their_inputs_change() {
     let el = host();
@@ -901,6 +984,15 @@ impl FakeSockets {
         .unwrap();
     }
 
+    /// The newest socket closes (the page's `onclose` runs), e.g. the server
+    /// went away (1006) or refused the upgrade.
+    fn close(&self, code: u16) {
+        js_sys::eval(&format!(
+            r#"(() => {{ const s = WebSocket.all.at(-1); s.readyState = 3; if (s.onclose) s.onclose(new CloseEvent("close", {{ code: {code} }})); }})()"#
+        ))
+        .unwrap();
+    }
+
     /// What the page sent on the newest socket, decoded.
     fn sent(&self) -> Vec<ClientMessage> {
         let list: js_sys::Array = js_sys::eval("WebSocket.all.at(-1).sent")
@@ -1041,4 +1133,260 @@ async fn live_moved_fault_offers_accept_positions_which_sends_the_command() {
         note.contains("Instrument fault") && note.contains("check the instrument, then Resume"),
         "{note}"
     );
+}
+
+/// Issue 25: the target editor follows the run's present target (a
+/// scheduled change shows) unless the user is editing that field, and Apply
+/// after editing only the tolerance sends the run's present target, not the
+/// one the editor first showed.
+#[wasm_bindgen_test]
+async fn live_target_editor_follows_scheduled_changes_unless_edited() {
+    let sockets = FakeSockets::install();
+    let el = host();
+    let base = ApiBase::new("http://127.0.0.1:9");
+    let _h = leptos::mount::mount_to(el.clone(), move || {
+        view! { <spintune_web::live::RunView run=1 base=base.clone() total_hint=Some(0) /> }
+    });
+    leptos::task::tick().await;
+    sockets.open();
+    sockets.receive(&ServerMessage::Hello {
+        version: PROTOCOL_VERSION,
+        run: summary(RunStatus::Running),
+    });
+    leptos::task::tick().await;
+    let mut recs = fake_records(6);
+    for r in &mut recs[3..] {
+        r.parameters[0].target = Some(70.0); // the schedule's change at iteration 3
+    }
+    recs[5].parameters[0].target = Some(45.0); // and another at 5
+    for r in &recs[..3] {
+        sockets.receive(&ServerMessage::Iteration { record: r.clone() });
+    }
+    let q = |sel: &str| -> Option<web_sys::HtmlElement> {
+        el.query_selector(&format!("[data-testid={sel}]"))
+            .unwrap()
+            .map(|e| e.unchecked_into())
+    };
+    let token: web_sys::HtmlInputElement = q("token").unwrap().unchecked_into();
+    token.set_value("secret");
+    token
+        .dispatch_event(&web_sys::Event::new("input").unwrap())
+        .unwrap();
+    q("unlock").unwrap().click();
+    leptos::task::tick().await;
+    sockets.receive(&ServerMessage::AuthOk);
+    leptos::task::tick().await;
+    let input = |sel: &str| -> web_sys::HtmlInputElement {
+        q(sel)
+            .unwrap_or_else(|| panic!("no {sel}"))
+            .unchecked_into()
+    };
+    wait_for("the editor", Duration::from_secs(5), || {
+        q("target-t_sr").is_some_and(|_| input("target-t_sr").value() == "20")
+    })
+    .await;
+    assert_eq!(input("tolerance-t_sr").value(), "2");
+
+    // The schedule changes the target: the editor shows it.
+    sockets.receive(&ServerMessage::Iteration {
+        record: recs[3].clone(),
+    });
+    wait_for(
+        "the scheduled target (stale: 20)",
+        Duration::from_secs(5),
+        || input("target-t_sr").value() == "70",
+    )
+    .await;
+
+    // Edit only the tolerance; another scheduled change arrives meanwhile.
+    let tol = input("tolerance-t_sr");
+    tol.set_value("5");
+    tol.dispatch_event(&web_sys::Event::new("input").unwrap())
+        .unwrap();
+    sockets.receive(&ServerMessage::Iteration {
+        record: recs[4].clone(),
+    });
+    sockets.receive(&ServerMessage::Iteration {
+        record: recs[5].clone(),
+    });
+    wait_for("the next scheduled target", Duration::from_secs(5), || {
+        input("target-t_sr").value() == "45"
+    })
+    .await;
+    assert_eq!(input("tolerance-t_sr").value(), "5", "the edit is kept");
+    let apply: web_sys::HtmlElement = el
+        .query_selector("form[data-parameter=t_sr] button[type=submit]")
+        .unwrap()
+        .unwrap()
+        .unchecked_into();
+    apply.click();
+    leptos::task::tick().await;
+    assert_eq!(
+        sockets.sent().last(),
+        Some(&ClientMessage::Control {
+            command: ControlCommand::SetTarget {
+                parameter: "t_sr".into(),
+                target: Some(45.0),
+                tolerance: Some(spintune::parameter::Tolerance::Absolute(5.0)),
+            }
+        }),
+        "{:?}",
+        sockets.sent()
+    );
+    // The untouched w editor still shows the run's w target.
+    assert_eq!(input("target-w").value(), "270");
+}
+
+/// Issue 25: a finished run opened from the list has no live frames: the
+/// page asks for the newest iteration's scans (`scans`) and shows them as
+/// the latest scans; its tuned badge does not say "tuning…".
+#[wasm_bindgen_test]
+async fn a_finished_run_shows_its_last_scans_and_no_tuning_badge() {
+    let sockets = FakeSockets::install();
+    let el = host();
+    let base = ApiBase::new("http://127.0.0.1:9");
+    let _h = leptos::mount::mount_to(el.clone(), move || {
+        view! { <spintune_web::live::RunView run=1 base=base.clone() total_hint=Some(6) /> }
+    });
+    leptos::task::tick().await;
+    sockets.open();
+    sockets.receive(&ServerMessage::Hello {
+        version: PROTOCOL_VERSION,
+        run: RunSummary {
+            iterations: 6,
+            ..summary(RunStatus::Finished)
+        },
+    });
+    let recs = fake_records(6);
+    sockets.receive(&ServerMessage::History {
+        records: recs.iter().map(|r| r.summary()).collect(),
+        more_before: false,
+    });
+    leptos::task::tick().await;
+    assert!(
+        sockets
+            .sent()
+            .contains(&ClientMessage::Scans { iteration: 5 }),
+        "{:?}",
+        sockets.sent()
+    );
+    sockets.receive(&ServerMessage::Scans {
+        iteration: 5,
+        scans: recs[5].scans.clone(),
+    });
+    let scan_in_view = || {
+        el.query_selector("canvas[data-chart=scan-0]")
+            .unwrap()
+            .and_then(|c| c.get_attribute("data-iterations"))
+            .and_then(|n| n.parse::<u64>().ok())
+            .unwrap_or(0)
+    };
+    wait_for("the last scan drawn", Duration::from_secs(5), || {
+        scan_in_view() > 0
+    })
+    .await;
+    let tuned = || {
+        el.query_selector("[data-testid=tuned]")
+            .unwrap()
+            .and_then(|t| t.text_content())
+            .unwrap_or_default()
+    };
+    wait_for("the tuned badge", Duration::from_secs(5), || {
+        !tuned().is_empty()
+    })
+    .await;
+    assert_eq!(tuned(), "not in band when the run ended");
+    // The run has ended: the socket closing is not a stale status.
+    sockets.close(1000);
+    leptos::task::tick().await;
+    let badge = el
+        .query_selector("[data-testid=run-status]")
+        .unwrap()
+        .unwrap();
+    assert_eq!(badge.get_attribute("data-stale").as_deref(), Some("false"));
+}
+
+/// Issue 25: with the server gone, a running run's badge is not a green
+/// "running" but the last status known, grey; back to live when the server
+/// answers again.
+#[wasm_bindgen_test]
+async fn the_status_badge_says_when_it_is_only_the_last_one_known() {
+    let sockets = FakeSockets::install();
+    let el = host();
+    let base = ApiBase::new("http://127.0.0.1:9");
+    let _h = leptos::mount::mount_to(el.clone(), move || {
+        view! { <spintune_web::live::RunView run=1 base=base.clone() total_hint=Some(0) /> }
+    });
+    leptos::task::tick().await;
+    sockets.open();
+    sockets.receive(&ServerMessage::Hello {
+        version: PROTOCOL_VERSION,
+        run: summary(RunStatus::Running),
+    });
+    leptos::task::tick().await;
+    let badge = || {
+        el.query_selector("[data-testid=run-status]")
+            .unwrap()
+            .unwrap()
+    };
+    assert_eq!(
+        badge().get_attribute("data-stale").as_deref(),
+        Some("false")
+    );
+    assert!(badge().class_list().contains("status-running"));
+    sockets.close(1006);
+    wait_for("the stale badge", Duration::from_secs(5), || {
+        badge().get_attribute("data-stale").as_deref() == Some("true")
+    })
+    .await;
+    assert!(!badge().class_list().contains("status-running"));
+    assert_eq!(
+        badge().text_content().as_deref(),
+        Some("running (last known; not connected)")
+    );
+}
+
+/// Issue 25: `#live/99` for a run the server does not have: the socket is
+/// refused before any hello, the page asks `GET /api/runs/99`, gets 404 and
+/// stops retrying, saying "no run 99".
+#[wasm_bindgen_test]
+async fn an_unknown_run_stops_retrying_and_says_so() {
+    let sockets = FakeSockets::install();
+    js_sys::eval(
+        r#"(() => {
+            globalThis.__asked = [];
+            if (!globalThis.__realFetch) globalThis.__realFetch = globalThis.fetch;
+            globalThis.fetch = async (u) => { globalThis.__asked.push(String(u)); return new Response("no run 99", { status: 404 }); };
+        })()"#,
+    )
+    .unwrap();
+    let el = host();
+    let base = ApiBase::new("http://127.0.0.1:9");
+    let _h = leptos::mount::mount_to(el.clone(), move || {
+        view! { <spintune_web::live::RunView run=99 base=base.clone() total_hint=Some(0) /> }
+    });
+    leptos::task::tick().await;
+    assert_eq!(sockets.count(), 1);
+    sockets.close(1006);
+    let conn = || {
+        el.query_selector("[data-testid=connection]")
+            .unwrap()
+            .unwrap()
+            .text_content()
+            .unwrap_or_default()
+    };
+    wait_for("no run 99", Duration::from_secs(5), || {
+        conn().contains("no run 99")
+    })
+    .await;
+    let asked = js_sys::eval("globalThis.__asked.join(' ')")
+        .unwrap()
+        .as_string()
+        .unwrap();
+    js_sys::eval("globalThis.fetch = globalThis.__realFetch").unwrap();
+    assert!(asked.contains("/api/runs/99"), "{asked}");
+    // No retry: still one socket after the first backoff would have elapsed.
+    sleep(1_200).await;
+    assert_eq!(sockets.count(), 1, "retried an unknown run");
+    assert!(conn().contains("closed"), "{}", conn());
 }

@@ -31,7 +31,7 @@ use crate::charts;
 use crate::history::RunHistory;
 use crate::model::ControlsEnabled;
 use crate::series::Drawn;
-use crate::ui::{Area, Chart, Dashboard, StatusBadge, StatusNote};
+use crate::ui::{Area, Chart, Dashboard, DashboardHooks, StatusBadge, StatusNote};
 use crate::widgets::NumberField;
 /// The teaching demo.
 #[component]
@@ -305,7 +305,7 @@ pub fn LocalMode() -> impl IntoView {
                 <Explanation />
             </aside>
             <section class="main">
-                <Dashboard history=history />
+                <Dashboard history=history hooks=DashboardHooks { status: Some(status.into()), ..DashboardHooks::default() } />
                 <h3>"Simulator ground truth " <small>"(what the tuner cannot see)"</small></h3>
                 <div class="grid2">
                     <Chart

@@ -7,7 +7,7 @@ use std::sync::Mutex;
 use pyo3::exceptions::{PyRuntimeError, PyStopIteration, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
-use spintune::driver::{RunError, SimulationConfig, SimulationRun};
+use spintune::driver::{Halt, SimulationConfig, SimulationRun};
 use spintune::protocol::{ControlCommand, IterationRecord, Request};
 use spintune::sim::{SimulatedDevice, Truth};
 
@@ -75,11 +75,11 @@ impl PySimulationRun {
         });
         match result {
             Ok(Some(record)) => Ok(Some(record)),
-            Ok(None) | Err(RunError::Paused) => Ok(None),
-            Err(RunError::Fault(f)) => Err(PyRuntimeError::new_err(format!(
+            Ok(None) | Err(Halt::Paused) => Ok(None),
+            Err(Halt::Fault(f)) => Err(PyRuntimeError::new_err(format!(
                 "the simulated run faulted: {f} (resume with control({{\"action\": \"resume\"}}))"
             ))),
-            Err(e @ RunError::Session(_)) => Err(PyRuntimeError::new_err(e.to_string())),
+            Err(e @ Halt::Session(_)) => Err(PyRuntimeError::new_err(e.to_string())),
         }
     }
 }

@@ -309,9 +309,10 @@ impl std::fmt::Display for CompensationError {
 
 impl std::error::Error for CompensationError {}
 
-/// Why a simulated run could not continue.
+/// Why a simulated run halted without a record (distinct from the
+/// backend's `run::RunError`, the error of a control action on a stored run).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum RunError {
+pub enum Halt {
     /// The session paused the run with a fault (device error, refused
     /// read-back, a request the guard refused). Resumable with
     /// [`SimulationRun::control`].
@@ -363,7 +364,7 @@ impl SimulationRun {
     /// Run until the next top-level iteration completes; `None` when the run
     /// is over (finished or stopped). A fault or a pause is an `Err` (the
     /// run can be resumed with [`SimulationRun::control`]).
-    pub fn next_iteration(&mut self) -> Result<Option<IterationRecord>, RunError> {
+    pub fn next_iteration(&mut self) -> Result<Option<IterationRecord>, Halt> {
         loop {
             match self.session.poll() {
                 Output::Execute(request) => {
@@ -375,8 +376,8 @@ impl SimulationRun {
                 Output::Save | Output::Publish(_) | Output::Sleep { .. } => {}
                 Output::Wait => {
                     return Err(match self.session.status() {
-                        RunStatus::Faulted { fault } => RunError::Fault(fault),
-                        _ => RunError::Paused,
+                        RunStatus::Faulted { fault } => Halt::Fault(fault),
+                        _ => Halt::Paused,
                     })
                 }
                 Output::Done(_) => return Ok(None),

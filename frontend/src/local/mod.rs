@@ -20,7 +20,7 @@ pub mod runner;
 pub mod settings;
 
 use leptos::prelude::*;
-use spintune::driver::RunError;
+use spintune::driver::Halt;
 use spintune::estimator::EstimatorKind;
 use spintune::protocol::{ControlCommand, RunStatus};
 
@@ -111,9 +111,9 @@ pub fn LocalMode() -> impl IntoView {
             Some(Ok(Some(_))) => false,
             // over, paused (also after a single step) or faulted: the
             // session's status says which
-            Some(Ok(None) | Err(RunError::Paused | RunError::Fault(_))) => false,
+            Some(Ok(None) | Err(Halt::Paused | Halt::Fault(_))) => false,
             // a bug in this driver: stop ticking rather than repeat it
-            Some(Err(e @ RunError::Session(_))) => {
+            Some(Err(e @ Halt::Session(_))) => {
                 error.set(Some(e.to_string()));
                 true
             }

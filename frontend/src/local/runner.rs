@@ -1,7 +1,7 @@
 //! [`LocalRunner`]: drives one in-browser [`SimulationRun`] through its
 //! session and keeps its records.
 
-use spintune::driver::{RunError, SimulationRun};
+use spintune::driver::{Halt, SimulationRun};
 use spintune::parameter::Tolerance;
 use spintune::protocol::{ControlCommand, IterationRecord, RunStatus};
 
@@ -53,10 +53,10 @@ impl LocalRunner {
 
     /// One tick of the animation: [`SimulationRun::next_iteration`], with the
     /// record kept. `Ok(Some(k))`: iteration `k` was recorded; `Ok(None)`: the
-    /// run is over (finished or stopped); `Err(RunError::Paused)`: paused
-    /// (also after a single step); `Err(RunError::Fault(_))`: the session
+    /// run is over (finished or stopped); `Err(Halt::Paused)`: paused
+    /// (also after a single step); `Err(Halt::Fault(_))`: the session
     /// paused the run with a fault (resumable).
-    pub fn advance(&mut self) -> Result<Option<u64>, RunError> {
+    pub fn advance(&mut self) -> Result<Option<u64>, Halt> {
         let Some(rec) = self.run.next_iteration()? else {
             return Ok(None);
         };
@@ -182,7 +182,7 @@ mod tests {
 
         assert_eq!(r.control(&ControlCommand::Pause), Ok(RunStatus::Paused));
         assert!(!r.is_advancing());
-        assert_eq!(r.advance(), Err(RunError::Paused));
+        assert_eq!(r.advance(), Err(Halt::Paused));
         assert_eq!(r.history.len(), 2);
 
         // A single step: exactly one more iteration, then paused again.
@@ -190,7 +190,7 @@ mod tests {
         assert!(r.is_advancing());
         assert_eq!(r.advance(), Ok(Some(2)));
         assert_eq!(r.status(), RunStatus::Paused);
-        assert_eq!(r.advance(), Err(RunError::Paused));
+        assert_eq!(r.advance(), Err(Halt::Paused));
         assert_eq!(r.history.len(), 3);
 
         // A target change while paused goes through the session too.
@@ -236,7 +236,7 @@ mod tests {
         let mut r = LocalRunner::from_run(SimulationRun::from_parts(session, device));
 
         let fault = match r.advance() {
-            Err(RunError::Fault(f)) => f,
+            Err(Halt::Fault(f)) => f,
             other => panic!("expected a fault, got {other:?}"),
         };
         assert_eq!(fault.kind, FaultKind::Device);
@@ -264,10 +264,10 @@ mod tests {
         // Resume: the session reads the gates back and retries the request,
         // which this device refuses again.
         assert_eq!(r.control(&ControlCommand::Resume), Ok(RunStatus::Running));
-        assert!(matches!(r.advance(), Err(RunError::Fault(f)) if f.kind == FaultKind::Device));
+        assert!(matches!(r.advance(), Err(Halt::Fault(f)) if f.kind == FaultKind::Device));
         // A faulted run can be held (paused) or stopped by the user.
         assert_eq!(r.control(&ControlCommand::Pause), Ok(RunStatus::Paused));
-        assert_eq!(r.advance(), Err(RunError::Paused));
+        assert_eq!(r.advance(), Err(Halt::Paused));
         assert_eq!(r.control(&ControlCommand::Stop), Ok(RunStatus::Stopped));
         assert_eq!(r.advance(), Ok(None));
     }
@@ -293,7 +293,7 @@ mod tests {
 
         assert_eq!(r.control(&ControlCommand::Resume), Ok(RunStatus::Running));
         let fault = match r.advance() {
-            Err(RunError::Fault(f)) => f,
+            Err(Halt::Fault(f)) => f,
             other => panic!("expected a moved fault, got {other:?}"),
         };
         assert_eq!(fault.kind, FaultKind::Moved);
@@ -310,7 +310,7 @@ mod tests {
 
         // Resume without accepting: the gate is read again, still far.
         assert_eq!(r.control(&ControlCommand::Resume), Ok(RunStatus::Running));
-        assert!(matches!(r.advance(), Err(RunError::Fault(f)) if f.kind == FaultKind::Moved));
+        assert!(matches!(r.advance(), Err(Halt::Fault(f)) if f.kind == FaultKind::Moved));
         // Accept: paused, nothing sent until resume.
         assert_eq!(
             r.control(&ControlCommand::AcceptPositions),
@@ -318,7 +318,7 @@ mod tests {
         );
         assert!(!ControlsEnabled::for_status(&r.status()).accept_positions);
         assert!(r.control(&ControlCommand::AcceptPositions).is_err());
-        assert_eq!(r.advance(), Err(RunError::Paused));
+        assert_eq!(r.advance(), Err(Halt::Paused));
         assert_eq!(r.control(&ControlCommand::Resume), Ok(RunStatus::Running));
         assert_eq!(r.advance(), Ok(Some(1)));
         assert_eq!(r.status(), RunStatus::Running);

@@ -53,6 +53,35 @@ async fn faulted(addr: std::net::SocketAddr, id: u64) -> spintune::protocol::Fau
     }
 }
 
+/// Answer the read request `read` (id `id`) from `device`, but with `gate`
+/// reported at `lie_mv`.
+async fn answer_read_lying(
+    ws: &mut Ws,
+    device: &mut SimulatedDevice,
+    id: u64,
+    read: &Request,
+    gate: &str,
+    lie_mv: f64,
+) {
+    let Response::VoltagesRead {
+        mut voltages_mv,
+        lab_seconds,
+    } = device.execute(read)
+    else {
+        panic!("not a read: {read:?}")
+    };
+    voltages_mv.insert(gate.into(), lie_mv);
+    answer(
+        ws,
+        id,
+        Response::VoltagesRead {
+            voltages_mv,
+            lab_seconds,
+        },
+    )
+    .await;
+}
+
 /// No request reaches the bridge for `ms`.
 async fn silent_for(ws: &mut Ws, ms: u64) -> bool {
     loop {
@@ -144,23 +173,7 @@ async fn faults_that_need_a_person_survive_a_bridge_reconnect() {
     let Request::ReadVoltages { .. } = &read else {
         panic!("resume must read every gate first: {read:?}")
     };
-    let Response::VoltagesRead {
-        mut voltages_mv,
-        lab_seconds,
-    } = device.execute(&read)
-    else {
-        panic!()
-    };
-    voltages_mv.insert("N".into(), 1e308);
-    answer(
-        &mut ws,
-        id,
-        Response::VoltagesRead {
-            voltages_mv,
-            lab_seconds,
-        },
-    )
-    .await;
+    answer_read_lying(&mut ws, &mut device, id, &read, "N", 1e308).await;
     let fault = faulted(addr, run.id).await;
     assert_eq!(fault.kind, FaultKind::Readback, "{fault}");
     assert!(fault.message.contains("outside its limits"), "{fault}");
@@ -199,23 +212,7 @@ async fn impossible_read_backs_fault_with_nothing_moved() {
         }
         let (id, read) = next_any_request(&mut ws).await;
         assert!(matches!(read, Request::ReadVoltages { .. }), "{read:?}");
-        let Response::VoltagesRead {
-            mut voltages_mv,
-            lab_seconds,
-        } = device.execute(&read)
-        else {
-            panic!()
-        };
-        voltages_mv.insert("N".into(), lie);
-        answer(
-            &mut ws,
-            id,
-            Response::VoltagesRead {
-                voltages_mv,
-                lab_seconds,
-            },
-        )
-        .await;
+        answer_read_lying(&mut ws, &mut device, id, &read, "N", lie).await;
         let fault = faulted(addr, run.id).await;
         assert_eq!(fault.kind, FaultKind::Readback, "{lie}: {fault}");
         assert!(silent_for(&mut ws, 500).await, "{lie}: something moved");

@@ -419,7 +419,7 @@ mod tests {
         let (dir, found) = crate_with(&[
             ("lib.rs", "pub mod a;\npub mod b;\npub use a::A;"),
             ("a.rs", "use crate::b::{B, self};\npub struct A;"),
-            ("b/mod.rs", "pub mod inner;\n// use crate::a::A; (a comment)\npub fn f() -> super::a::A { todo!() }\npub struct B;"),
+            ("b/mod.rs", "pub mod inner;\n// use crate::a::A; (a comment)\npub fn f() -> super::a::A { loop {} }\npub struct B;"),
             ("b/inner.rs", "use super::B;"),
         ]);
         let _ = fs::remove_dir_all(&dir);

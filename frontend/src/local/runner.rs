@@ -125,36 +125,15 @@ impl LocalRunner {
 
     /// The simulator's noiseless truth on an `n`×`n` grid in the (`gx`, `gy`)
     /// plane, ±`half_mv` around the present voltages (other gates fixed):
-    /// the larger of `|p − p*| / tolerance` over t_sr and w (≤ 1: in band).
+    /// the largest `|p − p*| / tolerance` over the top level's targeted
+    /// parameters (≤ 1: in band), computed by the core's simulator.
     pub fn landscape(&self, gx: &str, gy: &str, half_mv: f64, n: usize) -> Option<Landscape> {
         let device = self.run.device();
-        let v0 = device.voltages_mv().clone();
+        let v0 = device.voltages_mv();
         let (cx, cy) = (*v0.get(gx)?, *v0.get(gy)?);
-        let top = self.run.tuner().config().top();
-        let band = |name: &str| {
-            let p = top.parameters.iter().find(|p| p.name == name)?;
-            let t = p.target?;
-            Some((t, p.tolerance.half_width(t).max(1e-12)))
-        };
-        let (t_tsr, tol_tsr) = band("t_sr")?;
-        let (t_w, tol_w) = band("w")?;
-        let step = 2.0 * half_mv / (n.max(2) - 1) as f64;
-        let xs: Vec<f64> = (0..n).map(|i| cx - half_mv + step * i as f64).collect();
-        let ys: Vec<f64> = (0..n).map(|j| cy - half_mv + step * j as f64).collect();
-        let mut probe = device.clone();
-        let mut error = vec![f64::NAN; n * n];
-        for (j, y) in ys.iter().enumerate() {
-            for (i, x) in xs.iter().enumerate() {
-                let set = spintune::protocol::Request::SetVoltages {
-                    voltages_mv: [(gx.to_string(), *x), (gy.to_string(), *y)].into(),
-                };
-                if let spintune::protocol::Response::VoltagesSet { .. } = probe.execute(&set) {
-                    let t = probe.truth();
-                    error[j * n + i] =
-                        ((t.t_sr_ns - t_tsr).abs() / tol_tsr).max((t.w_uv - t_w).abs() / tol_w);
-                }
-            }
-        }
+        let parameters = &self.run.tuner().config().top().parameters;
+        let grid = device.error_grid(gx, gy, half_mv, n, parameters)?;
+        let (xs, ys, error) = (grid.xs, grid.ys, grid.error);
         let path = self.landscape_path(gx, gy);
         Some(Landscape {
             gx: gx.to_string(),

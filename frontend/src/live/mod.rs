@@ -19,6 +19,8 @@
 //! before its `hello` and closes the socket: the page then stops retrying and
 //! says why.
 
+pub mod client;
+
 use std::cell::RefCell;
 use std::collections::VecDeque;
 use std::rc::Rc;

@@ -156,11 +156,12 @@ impl Driver {
                 limit,
                 result,
             }),
-            Action::FetchScans { iteration, path } => self
-                .fetch::<Vec<IterationRecord>>(&path, move |result| Event::Scans {
+            Action::FetchScans { iteration, path } => {
+                self.fetch::<Vec<IterationRecord>>(&path, move |result| Event::Scans {
                     iteration,
                     result,
-                }),
+                })
+            }
             Action::ScheduleReconnect { delay_ms } => {
                 let weak = self.weak();
                 let timer = gloo_timers::callback::Timeout::new(delay_ms, move || {

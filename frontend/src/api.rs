@@ -74,16 +74,6 @@ fn js_err(e: wasm_bindgen::JsValue) -> String {
         .unwrap_or_else(|| format!("{e:?}"))
 }
 
-/// `GET url`: the HTTP status only (`Err`: the server cannot be reached).
-pub async fn http_status(url: &str) -> Result<u16, String> {
-    let window = leptos::prelude::window();
-    let resp = JsFuture::from(window.fetch_with_str(url))
-        .await
-        .map_err(|e| format!("cannot reach the server: {}", js_err(e)))?;
-    let resp: web_sys::Response = resp.dyn_into().map_err(js_err)?;
-    Ok(resp.status())
-}
-
 /// `GET url` and decode the JSON body.
 pub async fn get_json<T: DeserializeOwned>(url: &str) -> Result<T, String> {
     let window = leptos::prelude::window();

@@ -609,7 +609,7 @@ async fn rejected_values_are_marked_and_do_not_set_the_y_range() {
             "{n}: the rejected 9,999 µV set the max: {y_max}"
         );
         assert!(
-            y0 > 0.0 && y0 <= 243.0 && y1 >= 297.0 && y1 < 500.0,
+            y0 > 0.0 && y0 <= 243.0 && (297.0..500.0).contains(&y1),
             "{n}: y range {y0}–{y1} is not set by the accepted values and the band"
         );
         assert_eq!(

@@ -416,7 +416,7 @@ mod tests {
 
     #[test]
     fn a_use_cycle_between_two_files_is_found_and_structure_is_not_a_cycle() {
-        let (dir, found) = crate_with(&[
+        let (dir, found) = crate_with("cycle", &[
             ("lib.rs", "pub mod a;\npub mod b;\npub use a::A;"),
             ("a.rs", "use crate::b::{B, self};\npub struct A;"),
             ("b/mod.rs", "pub mod inner;\n// use crate::a::A; (a comment)\npub fn f() -> super::a::A { loop {} }\npub struct B;"),
@@ -434,7 +434,7 @@ mod tests {
 
     #[test]
     fn comments_strings_and_test_modules_make_no_edge() {
-        let (dir, found) = crate_with(&[
+        let (dir, found) = crate_with("no-edge", &[
             ("lib.rs", "pub mod a;\npub mod b;\npub mod c;"),
             ("a.rs", "use crate::b::B;\n"),
             (

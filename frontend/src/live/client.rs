@@ -649,7 +649,7 @@ impl LiveClient {
             Err(e) if is_not_found(&e) => {
                 let detail = error_detail(&e);
                 self.give_up(
-                    format!("the server has no run #{}", self.run),
+                    format!("no run {} on the server", self.run),
                     format!(
                         "The server has no run #{} ({detail}); it may have been deleted. Pick a run from the list.",
                         self.run

@@ -372,7 +372,7 @@ fn an_unknown_run_stops_retrying() {
     assert_eq!(
         v.client.conn(),
         &ConnState::Closed {
-            reason: "the server has no run #99".into()
+            reason: "no run 99 on the server".into()
         }
     );
     assert!(notices(&actions)[0].contains("no run with id 99"));

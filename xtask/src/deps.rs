@@ -401,9 +401,10 @@ fn strongly_connected(graph: &BTreeMap<PathBuf, BTreeSet<PathBuf>>) -> Vec<Vec<P
 mod tests {
     use super::*;
 
-    fn crate_with(files: &[(&str, &str)]) -> (PathBuf, Vec<Vec<PathBuf>>) {
-        let dir =
-            std::env::temp_dir().join(format!("xtask-deps-{}-{}", std::process::id(), files.len()));
+    /// A crate of `files` in a folder of its own (`tag`: one per test, so
+    /// tests running in parallel never share it).
+    fn crate_with(tag: &str, files: &[(&str, &str)]) -> (PathBuf, Vec<Vec<PathBuf>>) {
+        let dir = std::env::temp_dir().join(format!("xtask-deps-{}-{tag}", std::process::id()));
         let _ = fs::remove_dir_all(&dir);
         for (path, text) in files {
             let p = dir.join("c/src").join(path);

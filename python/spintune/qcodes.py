@@ -75,6 +75,7 @@ propagates.
 
 from __future__ import annotations
 
+import difflib
 import json
 import math
 import re
@@ -291,6 +292,32 @@ def gate_limits(
     return out
 
 
+#: The scans a tuner can ask for (``protocol::ScanKind``).
+SCAN_KINDS = ("sensing_dot", "chemical_potential", "transition_width", "reload_time")
+
+
+def _check_mapping(gates: Mapping[str, Any], scans: Mapping[str, Any]) -> None:
+    """Refuse one parameter mapped to two gates (setting one would move the
+    other behind the guard's back) and scan keys the tuner never asks for (a
+    misspelt key would leave its scan unmapped)."""
+    seen: Dict[int, str] = {}
+    for name, param in gates.items():
+        other = seen.get(id(param))
+        if other is not None:
+            raise ValueError(
+                f"gates {other!r} and {name!r} are mapped to the same parameter "
+                f"{getattr(param, 'full_name', param)!r}: each gate needs its own"
+            )
+        seen[id(param)] = name
+    for key in scans:
+        if key not in SCAN_KINDS:
+            close = difflib.get_close_matches(str(key), SCAN_KINDS, n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise ValueError(
+                f"scans: unknown scan {key!r}{hint}; the scans are {', '.join(SCAN_KINDS)}"
+            )
+
+
 def _scan_kinds(tuner_config: Mapping[str, Any]) -> List[str]:
     kinds: List[str] = []
     for level in tuner_config["levels"]:
@@ -403,6 +430,7 @@ class QcodesTuner:
         config["gates"] = gate_limits(config["gates"], gates, mv_per_unit)
         for g in config["gates"]:
             _check_readable(g["name"], gates[g["name"]])
+        _check_mapping(gates, scans)
         missing = [k for k in _scan_kinds(config) if k not in scans]
         if missing:
             raise ValueError(

@@ -293,6 +293,16 @@ def test_configuration_errors(station):
     del scans["sensing_dot"]
     with pytest.raises(ValueError, match="sensing_dot"):
         QcodesTuner(station["gates"], scans)
+    # a misspelt scan key is named (it would leave its scan unmapped)
+    scans = dict(station["scans"])
+    scans["reload_tme"] = scans["reload_time"]
+    with pytest.raises(ValueError, match="unknown scan 'reload_tme'.*did you mean 'reload_time'"):
+        QcodesTuner(station["gates"], scans)
+    # one parameter mapped to two gates: setting one would move the other
+    twice = dict(station["gates"])
+    twice["T"] = twice["N"]
+    with pytest.raises(ValueError, match="gates 'N' and 'T' are mapped to the same parameter"):
+        QcodesTuner(twice, station["scans"])
     station["dac"].N.vals = Numbers(0.1, 0.2)
     with pytest.raises(ValueError, match="gate N.*no overlap"):
         QcodesTuner(station["gates"], station["scans"])

@@ -10,10 +10,11 @@ mod common;
 
 use std::time::{Duration, Instant};
 
+use common::bridge_client::next_bridge;
 use common::*;
 use futures_util::{SinkExt, StreamExt};
 use serde_json::{json, Value};
-use spintune::protocol::{BridgeServerMessage, RunStatus, ServerMessage, PROTOCOL_VERSION};
+use spintune::protocol::{BridgeServerMessage, RunStatus, ServerMessage};
 use spintune::session::SessionConfig;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_tungstenite::tungstenite::Message;
@@ -121,32 +122,14 @@ async fn next_error(ws: &mut Ws) -> String {
     }
 }
 
+/// A bridge socket after the server's `hello` (the shared test client).
 async fn bridge_connect(addr: std::net::SocketAddr, id: u64) -> Ws {
-    let url = format!("ws://{addr}/api/runs/{id}/bridge?protocol={PROTOCOL_VERSION}");
-    let (mut ws, _) = tokio::time::timeout(STEP, tokio_tungstenite::connect_async(url))
-        .await
-        .expect("connect timed out")
-        .expect("connect");
+    let mut ws = common::bridge_client::bridge_connect(addr, id).await;
     assert!(matches!(
         next_bridge(&mut ws).await,
         BridgeServerMessage::Hello { .. }
     ));
     ws
-}
-
-async fn next_bridge(ws: &mut Ws) -> BridgeServerMessage {
-    loop {
-        let m = tokio::time::timeout(STEP, ws.next())
-            .await
-            .expect("no bridge frame in time")
-            .expect("socket closed")
-            .expect("socket error");
-        match m {
-            Message::Text(t) => return serde_json::from_str(t.as_str()).unwrap(),
-            Message::Ping(_) | Message::Pong(_) => continue,
-            other => panic!("unexpected frame {other:?}"),
-        }
-    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -4,6 +4,9 @@
 //! refused with an error naming the field. (NaN cannot be written in JSON; in
 //! TOML `nan` is refused by the same checks, see the last test.)
 
+mod common;
+
+use common::json_nodes;
 use serde_json::{json, Value};
 use spintune_server::config::RunConfig;
 
@@ -43,26 +46,12 @@ fn full_config() -> Value {
 }
 
 /// (path as the config errors write it, pointer) of every number in `v`.
-fn numbers(v: &Value, path: String, pointer: String, out: &mut Vec<(String, String)>) {
-    match v {
-        Value::Number(_) => out.push((path, pointer)),
-        Value::Object(m) => {
-            for (k, x) in m {
-                let p = if path.is_empty() {
-                    k.clone()
-                } else {
-                    format!("{path}.{k}")
-                };
-                numbers(x, p, format!("{pointer}/{k}"), out);
-            }
-        }
-        Value::Array(a) => {
-            for (i, x) in a.iter().enumerate() {
-                numbers(x, format!("{path}[{i}]"), format!("{pointer}/{i}"), out);
-            }
-        }
-        _ => {}
-    }
+fn numbers(v: &Value) -> Vec<(String, String)> {
+    json_nodes(v)
+        .into_iter()
+        .filter(|(_, _, x)| x.is_number())
+        .map(|(p, ptr, _)| (p, ptr))
+        .collect()
 }
 
 #[test]
@@ -73,8 +62,7 @@ fn the_full_config_is_valid() {
 #[test]
 fn every_numeric_field_refuses_huge_values_naming_the_field() {
     let base = full_config();
-    let mut fields = Vec::new();
-    numbers(&base, String::new(), String::new(), &mut fields);
+    let fields = numbers(&base);
     assert!(
         fields.len() > 50,
         "only {} numeric fields found",
@@ -107,8 +95,7 @@ fn every_numeric_field_refuses_huge_values_naming_the_field() {
 #[test]
 fn every_integer_field_but_the_seed_refuses_huge_values_naming_the_field() {
     let base = full_config();
-    let mut fields = Vec::new();
-    numbers(&base, String::new(), String::new(), &mut fields);
+    let fields = numbers(&base);
     let mut accepted = Vec::new();
     let mut unnamed = Vec::new();
     let ints: Vec<_> = fields
@@ -174,8 +161,7 @@ fn sweep_points_and_ramp_plans_are_bounded() {
     // Sweep points above the core's bound are refused naming the field.
     let mut v = full_config();
     let mut found = Vec::new();
-    let mut all = Vec::new();
-    numbers(&v, String::new(), String::new(), &mut all);
+    let all = numbers(&v);
     for (path, pointer) in &all {
         if path.ends_with("points") {
             found.push((path.clone(), pointer.clone()));
@@ -213,8 +199,7 @@ fn the_leakage_check_needs_the_qdac2_profile() {
 #[test]
 fn the_core_validation_bounds_gates_and_the_device_model_itself() {
     let base = serde_json::to_value(spintune::driver::SimulationConfig::paper_default()).unwrap();
-    let mut fields = Vec::new();
-    numbers(&base, String::new(), String::new(), &mut fields);
+    let fields = numbers(&base);
     let mut accepted = Vec::new();
     let mut checked = 0;
     for (path, pointer) in &fields {
@@ -272,8 +257,7 @@ fn the_session_read_back_tolerance_is_bounded_in_the_core() {
 fn the_core_validation_bounds_every_tuner_number_itself() {
     let base =
         serde_json::to_value(spintune::driver::SimulationConfig::paper_default().tuner).unwrap();
-    let mut fields = Vec::new();
-    numbers(&base, String::new(), String::new(), &mut fields);
+    let fields = numbers(&base);
     let mut accepted = Vec::new();
     let mut checked = 0;
     for (path, pointer) in &fields {

@@ -75,26 +75,11 @@ fn bases() -> Vec<Value> {
 }
 
 /// Every node of `v`: (path as config errors write it, JSON pointer).
-fn nodes(v: &Value, path: String, pointer: String, out: &mut Vec<(String, String)>) {
-    match v {
-        Value::Object(m) => {
-            for (k, x) in m {
-                let p = if path.is_empty() {
-                    k.clone()
-                } else {
-                    format!("{path}.{k}")
-                };
-                nodes(x, p, format!("{pointer}/{k}"), out);
-            }
-        }
-        Value::Array(a) => {
-            for (i, x) in a.iter().enumerate() {
-                nodes(x, format!("{path}[{i}]"), format!("{pointer}/{i}"), out);
-            }
-        }
-        _ => {}
-    }
-    out.push((path, pointer));
+fn nodes(v: &Value) -> Vec<(String, String)> {
+    json_nodes(v)
+        .into_iter()
+        .map(|(p, ptr, _)| (p, ptr))
+        .collect()
 }
 
 /// Arrays that may be empty in a valid config.
@@ -201,8 +186,7 @@ fn mutations_at(base: &Value, path: &str, pointer: &str) -> Vec<Mutated> {
 
 /// Every single mutation of every node of `base`.
 fn all_mutations(base: &Value) -> Vec<Mutated> {
-    let mut all = Vec::new();
-    nodes(base, String::new(), String::new(), &mut all);
+    let all = nodes(base);
     all.iter()
         .flat_map(|(path, pointer)| mutations_at(base, path, pointer))
         .collect()
@@ -210,8 +194,7 @@ fn all_mutations(base: &Value) -> Vec<Mutated> {
 
 /// Mutation `kind` (taken modulo the mutations that fit) of node `pick` of `base`.
 fn mutate(base: &Value, pick: prop::sample::Index, kind: usize) -> Mutated {
-    let mut all = Vec::new();
-    nodes(base, String::new(), String::new(), &mut all);
+    let all = nodes(base);
     let (path, pointer) = &all[pick.index(all.len())];
     let mut options = mutations_at(base, path, pointer);
     let n = options.len();

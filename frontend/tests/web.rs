@@ -1010,6 +1010,18 @@ impl Drop for FakeSockets {
     }
 }
 
+/// Run 1's live view mounted on fake sockets (the run list said 0
+/// iterations); the handle keeps it mounted.
+async fn mount_live_run(el: &web_sys::HtmlElement) -> (FakeSockets, impl Sized) {
+    let sockets = FakeSockets::install();
+    let base = ApiBase::new("http://127.0.0.1:9");
+    let handle = leptos::mount::mount_to(el.clone(), move || {
+        view! { <spintune_web::live::RunView run=1 base=base.clone() total_hint=Some(0) /> }
+    });
+    leptos::task::tick().await;
+    (sockets, handle)
+}
+
 fn summary(status: RunStatus) -> RunSummary {
     RunSummary {
         id: 1,
@@ -1028,13 +1040,8 @@ fn summary(status: RunStatus) -> RunSummary {
 /// goes away for any other status.
 #[wasm_bindgen_test]
 async fn live_moved_fault_offers_accept_positions_which_sends_the_command() {
-    let sockets = FakeSockets::install();
     let el = host();
-    let base = ApiBase::new("http://127.0.0.1:9");
-    let _h = leptos::mount::mount_to(el.clone(), move || {
-        view! { <spintune_web::live::RunView run=1 base=base.clone() total_hint=Some(0) /> }
-    });
-    leptos::task::tick().await;
+    let (sockets, _h) = mount_live_run(&el).await;
     assert_eq!(sockets.count(), 1);
     assert!(
         sockets
@@ -1141,13 +1148,8 @@ async fn live_moved_fault_offers_accept_positions_which_sends_the_command() {
 /// one the editor first showed.
 #[wasm_bindgen_test]
 async fn live_target_editor_follows_scheduled_changes_unless_edited() {
-    let sockets = FakeSockets::install();
     let el = host();
-    let base = ApiBase::new("http://127.0.0.1:9");
-    let _h = leptos::mount::mount_to(el.clone(), move || {
-        view! { <spintune_web::live::RunView run=1 base=base.clone() total_hint=Some(0) /> }
-    });
-    leptos::task::tick().await;
+    let (sockets, _h) = mount_live_run(&el).await;
     sockets.open();
     sockets.receive(&ServerMessage::Hello {
         version: PROTOCOL_VERSION,
@@ -1311,13 +1313,8 @@ async fn a_finished_run_shows_its_last_scans_and_no_tuning_badge() {
 /// answers again.
 #[wasm_bindgen_test]
 async fn the_status_badge_says_when_it_is_only_the_last_one_known() {
-    let sockets = FakeSockets::install();
     let el = host();
-    let base = ApiBase::new("http://127.0.0.1:9");
-    let _h = leptos::mount::mount_to(el.clone(), move || {
-        view! { <spintune_web::live::RunView run=1 base=base.clone() total_hint=Some(0) /> }
-    });
-    leptos::task::tick().await;
+    let (sockets, _h) = mount_live_run(&el).await;
     sockets.open();
     sockets.receive(&ServerMessage::Hello {
         version: PROTOCOL_VERSION,

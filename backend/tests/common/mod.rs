@@ -344,3 +344,38 @@ pub fn serve_args(dir: &TempDir, viewer_buffer: usize) -> ServeArgs {
     ] as [&std::ffi::OsStr; 15])
     .serve
 }
+
+/// Every node of a JSON document as (path as config errors write it, e.g.
+/// `tuner.levels[0].name`; JSON pointer; the value), children before their
+/// parent, the document itself last (path and pointer empty).
+pub fn json_nodes(v: &Value) -> Vec<(String, String, &Value)> {
+    fn walk<'a>(
+        v: &'a Value,
+        path: String,
+        pointer: String,
+        out: &mut Vec<(String, String, &'a Value)>,
+    ) {
+        match v {
+            Value::Object(m) => {
+                for (k, x) in m {
+                    let p = if path.is_empty() {
+                        k.clone()
+                    } else {
+                        format!("{path}.{k}")
+                    };
+                    walk(x, p, format!("{pointer}/{k}"), out);
+                }
+            }
+            Value::Array(a) => {
+                for (i, x) in a.iter().enumerate() {
+                    walk(x, format!("{path}[{i}]"), format!("{pointer}/{i}"), out);
+                }
+            }
+            _ => {}
+        }
+        out.push((path, pointer, v));
+    }
+    let mut out = Vec::new();
+    walk(v, String::new(), String::new(), &mut out);
+    out
+}

@@ -24,7 +24,7 @@ pub struct BenchArgs {
     /// Number of seeds (seeds 1..=N).
     #[arg(long, default_value_t = 100)]
     pub seeds: u64,
-    /// Comma-separated strategies (default: all): kalman, kalman-adaptive-q,
+    /// Comma-separated strategies (default: all): default, kalman, kalman-adaptive-q,
     /// kalman-log, kalman-tr, kalman-log-tr, kalman-log-tr-multi,
     /// kalman-log-tr-multi-bare, broyden,
     /// fixed-jacobian, fd-newton, oracle, oracle-log, oracle-log-multi-bare.
@@ -33,6 +33,11 @@ pub struct BenchArgs {
     /// Device description (TOML or JSON) overriding the simulator's defaults.
     #[arg(long)]
     pub device: Option<PathBuf>,
+    /// Run config (TOML, as for `spintune run`) whose tuner the `default`
+    /// strategy runs (default: the built-in default, what `spintune run`
+    /// does with a config that has no `tuner` section).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
     /// Write machine-readable results here.
     #[arg(long)]
     pub json: Option<PathBuf>,
@@ -101,6 +106,10 @@ pub fn run(args: BenchArgs) -> Result<(), CliError> {
     }
     base.validate()
         .map_err(|e| CliError::input(e.to_string()))?;
+    let product = match &args.config {
+        Some(path) => crate::cli::load_config(path)?.simulation.tuner,
+        None => SimulationConfig::recommended().tuner,
+    };
     if !(args.tolerance.is_finite() && args.tolerance > 0.0) {
         return Err(CliError::input("--tolerance must be a positive number"));
     }
@@ -178,7 +187,7 @@ pub fn run(args: BenchArgs) -> Result<(), CliError> {
                 let i = next.fetch_add(1, Ordering::Relaxed);
                 let Some(&(d, seed)) = work.get(i) else { break };
                 let (device, cfg) = &devices[d];
-                match run_seed(cfg, &protocol, &strategies, seed, false) {
+                match run_seed(cfg, &product, &protocol, &strategies, seed, false) {
                     Ok(mut r) => {
                         r.iter_mut().for_each(|x| x.device = *device);
                         results.lock().unwrap().extend(r)
@@ -228,8 +237,15 @@ pub fn run(args: BenchArgs) -> Result<(), CliError> {
     }
     if let Some(path) = &args.plot {
         let strategy = strategies[0];
-        let r = run_seed(&base, &protocol, &[strategy], args.plot_seed, true)
-            .map_err(|e| CliError::runtime(e.to_string()))?;
+        let r = run_seed(
+            &base,
+            &product,
+            &protocol,
+            &[strategy],
+            args.plot_seed,
+            true,
+        )
+        .map_err(|e| CliError::runtime(e.to_string()))?;
         draw_figure(path, &r[0].records, strategy.name(), args.plot_seed)?;
         eprintln!("wrote {}", path.display());
     }
@@ -292,12 +308,12 @@ pub fn markdown_table(
         protocol.relative_tolerance * 100.0,
         protocol.compensation_error * 100.0
     );
-    s.push_str("| strategy | iterations/change median | p90 | max | moves/change median | p90 | lab min/change median | p90 | not converged | limit violations | failed fits | not converged where an oracle converged | ratio to oracle | ratio to oracle-log | truth queries |\n");
-    s.push_str("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
+    s.push_str("| strategy | iterations/change median | p90 | max | moves/change median | p90 | lab min/change median | p90 | cold start lab min median | p90 | truly in band at tuned | not converged | limit violations | failed fits | not converged where an oracle converged | ratio to oracle | ratio to oracle-log | truth queries |\n");
+    s.push_str("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
     let ratio = |x: Option<f64>| x.map_or("–".to_string(), |x| format!("{x:.2}"));
     for r in summary {
         s.push_str(&format!(
-            "| {} | {:.1} | {:.1} | {:.0} | {:.1} | {:.1} | {:.1} | {:.1} | {} / {} | {} | {} | {} | {} | {} | {} |\n",
+            "| {} | {:.1} | {:.1} | {:.0} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {} | {} / {} | {} | {} | {} | {} | {} | {} |\n",
             r.name,
             r.iterations_per_change.median,
             r.iterations_per_change.p90,
@@ -306,6 +322,10 @@ pub fn markdown_table(
             r.moves_per_change.p90,
             r.lab_minutes_per_change.median,
             r.lab_minutes_per_change.p90,
+            r.cold_start_lab_minutes.median,
+            r.cold_start_lab_minutes.p90,
+            r.truly_in_band_at_tuned
+                .map_or("–".to_string(), |x| format!("{:.3}", x)),
             r.not_converged,
             r.changes,
             r.limit_violations,

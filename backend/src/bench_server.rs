@@ -427,7 +427,7 @@ impl Bench {
         serve.limits.max_viewers_per_run = viewers.max(serve.limits.max_viewers_per_run);
         serve.limits.viewer_send_timeout_ms = args.viewer_send_timeout_ms;
         let server = start_server(&serve).await?;
-        let mut cfg = RunConfig::paper_default();
+        let mut cfg = RunConfig::recommended();
         cfg.simulation.name = "bench".into();
         let summary = server
             .manager

@@ -191,7 +191,7 @@ pub async fn start_server(args: &ServeArgs) -> Result<Server, CliError> {
     if create_demo {
         let mut config = match &args.demo_config {
             Some(path) => load_config(path)?,
-            None => RunConfig::paper_default(),
+            None => RunConfig::recommended(),
         };
         if args.demo_config.is_none() {
             // The paper's set-point cycle (its Fig. 3), then hold the last set point;
@@ -549,4 +549,42 @@ pub fn replay(args: ReplayArgs) -> Result<(), CliError> {
     let stdout = std::io::stdout();
     let mut lock = stdout.lock();
     crate::replay::run_file(&args.file, &mut lock).map_err(CliError::input)
+}
+
+/// `spintune config …`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ConfigArgs {
+    /// What to do with a config.
+    #[command(subcommand)]
+    pub action: ConfigAction,
+}
+
+/// Subcommands of `spintune config`.
+#[derive(Debug, Clone, clap::Subcommand)]
+pub enum ConfigAction {
+    /// Print the fully resolved run config of FILE (every default, the
+    /// levels a `description` derives, targets applied) as TOML that
+    /// `spintune run --config` reads back unchanged.
+    Resolve {
+        /// Run config (TOML).
+        file: PathBuf,
+        /// Print JSON (the body of `POST /api/runs`) instead of TOML.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+/// `spintune config resolve FILE`.
+pub fn config(args: ConfigArgs) -> Result<(), CliError> {
+    let ConfigAction::Resolve { file, json } = args.action;
+    let config = load_config(&file)?;
+    let text = if json {
+        serde_json::to_string_pretty(&config.to_document()).map_err(CliError::runtime)? + "\n"
+    } else {
+        config.to_toml().map_err(CliError::runtime)?
+    };
+    use std::io::Write;
+    std::io::stdout()
+        .write_all(text.as_bytes())
+        .map_err(CliError::runtime)
 }

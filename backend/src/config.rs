@@ -3,7 +3,7 @@
 //!
 //! A run config is a [`SimulationConfig`] (`name`, `seed`, `device`, `tuner`)
 //! plus a few backend-only settings. Every key is optional: what is not given
-//! comes from [`SimulationConfig::paper_default`]. Tables are merged key by key
+//! comes from [`SimulationConfig::recommended`]. Tables are merged key by key
 //! into the default (so `[device]` may set one field only); arrays replace the
 //! default array as a whole; a table whose tag (`kind`, `type`, …) differs from
 //! the default's replaces it as a whole (it is another enum variant).
@@ -114,10 +114,12 @@ impl From<ConfigError> for ConfigParseError {
 }
 
 impl RunConfig {
-    /// The paper's default run (default device, default tuner, seed and name).
-    pub fn paper_default() -> Self {
+    /// The default run (default device, the recommended tuner
+    /// [`SimulationConfig::recommended`], seed and name): what an empty
+    /// config file gives.
+    pub fn recommended() -> Self {
         Self {
-            simulation: SimulationConfig::paper_default(),
+            simulation: SimulationConfig::recommended(),
             backend: BackendSettings::default(),
         }
     }
@@ -176,6 +178,39 @@ impl RunConfig {
         })
     }
 
+    /// The config as one flat document, the layout of a config file
+    /// (simulation keys and backend keys side by side, unset options left
+    /// out, `device` entries of gates the run does not have left out:
+    /// [`spintune::run_config::prune_device_gates`]): parsed back with [`RunConfig::from_value`] it gives this
+    /// config again.
+    pub fn to_document(&self) -> Value {
+        fn drop_nulls(v: &mut Value) {
+            match v {
+                Value::Object(m) => {
+                    m.retain(|_, x| !x.is_null());
+                    m.values_mut().for_each(drop_nulls);
+                }
+                Value::Array(a) => a.iter_mut().for_each(drop_nulls),
+                _ => {}
+            }
+        }
+        let mut doc = serde_json::to_value(&self.simulation).unwrap_or_default();
+        spintune::run_config::prune_device_gates(&mut doc);
+        if let (Value::Object(d), Ok(Value::Object(b))) =
+            (&mut doc, serde_json::to_value(&self.backend))
+        {
+            d.extend(b);
+        }
+        drop_nulls(&mut doc);
+        doc
+    }
+
+    /// [`RunConfig::to_document`] as TOML (what `spintune config resolve` prints).
+    pub fn to_toml(&self) -> Result<String, ConfigParseError> {
+        toml::to_string_pretty(&self.to_document())
+            .map_err(|e| ConfigParseError(format!("cannot write the config as TOML: {e}")))
+    }
+
     /// Run name.
     pub fn name(&self) -> &str {
         &self.simulation.name
@@ -229,11 +264,11 @@ mod tests {
     use super::*;
 
     #[test]
-    fn empty_toml_is_paper_default() {
+    fn empty_toml_is_the_recommended_default() {
         let c = RunConfig::from_toml_str("").unwrap();
         assert_eq!(
             serde_json::to_value(&c.simulation).unwrap(),
-            serde_json::to_value(SimulationConfig::paper_default()).unwrap()
+            serde_json::to_value(SimulationConfig::recommended()).unwrap()
         );
     }
 

@@ -20,6 +20,8 @@ enum Command {
     Serve(cli::ServeArgs),
     /// A full tuning run without the browser, from a TOML config.
     Run(cli::RunArgs),
+    /// Work with run configs (`spintune config resolve FILE`).
+    Config(cli::ConfigArgs),
     /// Export a stored run as CSV or JSON (one row per iteration).
     Export(cli::ExportArgs),
     /// Offline Kalman replay of a recorded sequence (JSON), to choose Q.
@@ -35,6 +37,7 @@ fn main() {
     let result: Result<(), CliError> = match cli.command {
         Command::Serve(args) => runtime().block_on(cli::serve(args)),
         Command::Run(args) => runtime().block_on(cli::run(args)),
+        Command::Config(args) => cli::config(args),
         Command::Export(args) => cli::export(args),
         Command::Replay(args) => cli::replay(args),
         Command::Bench(args) => spintune_server::bench::run(args),

@@ -78,6 +78,10 @@ pub const MULTI_MOVES: u32 = 2;
 /// A strategy: how the top level estimates its Jacobian and steps.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub enum Strategy {
+    /// Exactly what `spintune run` does with a config that has no `tuner`
+    /// section ([`SimulationConfig::recommended`], or the tuner given to
+    /// [`run_seed`]): its own cold start included, on the world's device.
+    Default,
     /// The paper's filter, constant Q.
     Kalman,
     /// Q growing with the step.
@@ -114,7 +118,8 @@ pub enum Strategy {
 
 impl Strategy {
     /// All strategies in report order.
-    pub const ALL: [Strategy; 13] = [
+    pub const ALL: [Strategy; 14] = [
+        Strategy::Default,
         Strategy::Kalman,
         Strategy::KalmanAdaptiveQ,
         Strategy::KalmanLog,
@@ -133,6 +138,7 @@ impl Strategy {
     /// Command-line name.
     pub fn name(self) -> &'static str {
         match self {
+            Strategy::Default => "default",
             Strategy::Kalman => "kalman",
             Strategy::KalmanAdaptiveQ => "kalman-adaptive-q",
             Strategy::KalmanLog => "kalman-log",
@@ -156,7 +162,8 @@ impl Strategy {
 
     fn estimator(self) -> EstimatorKind {
         match self {
-            Strategy::Kalman
+            Strategy::Default
+            | Strategy::Kalman
             | Strategy::KalmanLog
             | Strategy::KalmanTr
             | Strategy::KalmanLogTr
@@ -184,7 +191,8 @@ impl Strategy {
     pub fn is_kalman(self) -> bool {
         matches!(
             self,
-            Strategy::Kalman
+            Strategy::Default
+                | Strategy::Kalman
                 | Strategy::KalmanAdaptiveQ
                 | Strategy::KalmanLog
                 | Strategy::KalmanTr
@@ -328,6 +336,18 @@ pub struct SeedResult {
     pub device: u64,
     /// One entry per set point.
     pub changes: Vec<ChangeResult>,
+    /// Lab minutes from the run's start (initial gradient and lower levels
+    /// included) to the first record declared tuned at the first set point
+    /// (`None` if the first change did not converge).
+    #[serde(default)]
+    pub cold_start_lab_minutes: Option<f64>,
+    /// Records declared tuned (every change, every iteration).
+    #[serde(default)]
+    pub tuned_records: u64,
+    /// Of those, the records whose device truly had both parameters in
+    /// their bands (the world's truth, never seen by the tuner).
+    #[serde(default)]
+    pub truly_in_band: u64,
     /// Requests the safety limits refused, plus top-level moves above the
     /// step limit (each move checked on its way to the device).
     pub limit_violations: u64,
@@ -457,20 +477,21 @@ pub struct BenchmarkError {
     pub message: String,
 }
 
-/// Run every strategy on one seed. `keep_records` keeps the iteration records.
-pub fn run_seed(
+/// The world's configuration of one seed: `base` on seed `seed` with the
+/// lab's imperfect virtual-gate matrix ([`perturbed_compensation`]) and the
+/// protocol's tolerance band on the top level's parameters. The initial
+/// measurement only (`max_iterations = 0`); the targets come with the
+/// protocol's first change.
+fn world_config(
     base: &SimulationConfig,
     protocol: &BenchmarkProtocol,
-    strategies: &[Strategy],
     seed: u64,
-    keep_records: bool,
-) -> Result<Vec<SeedResult>, BenchmarkError> {
-    let err = |m: String| BenchmarkError { seed, message: m };
-    // --- the world: the simulated lab and its imperfect configuration ---
+) -> SimulationConfig {
     let mut cfg = base.clone();
     cfg.seed = seed;
     cfg.tuner.max_iterations = Some(0);
     cfg.tuner.stop_when_tuned = false;
+    cfg.tuner.schedule.clear();
     let device_config = cfg.device.clone();
     for level in &mut cfg.tuner.levels {
         if let LevelKind::Newton(n) = &mut level.kind {
@@ -488,51 +509,95 @@ pub fn run_seed(
             }
         }
     }
-    let top = cfg.tuner.top_mut();
-    top.estimator = EstimatorKind::Kalman;
-    for p in &mut top.parameters {
+    for p in &mut cfg.tuner.top_mut().parameters {
         p.tolerance = Tolerance::Relative(protocol.relative_tolerance);
     }
-    // --- the experimenter: the shared starting point, on a sealed device ---
-    let mut init = SimulationRun::new(cfg).map_err(|e| err(e.to_string()))?;
-    init.device_mut().seal_truth();
-    while init
-        .next_iteration()
-        .map_err(|e| err(e.to_string()))?
-        .is_some()
-    {}
-    let lab = LabKnowledge {
-        config: init.tuner().config_with_learned_gradients(),
-        start_values: init.tuner().last_measured(0).unwrap_or_default().to_vec(),
-    };
-    let start_lab_seconds = init.tuner().lab_seconds();
-    if init.device().truth_queries() != 0 {
-        return Err(err("the initial measurement queried the truth".into()));
-    }
-    // The world hands on the device state after the initial measurement
-    // (RNG, drifts, clock); only the oracles get it with the truth unsealed.
-    let mut after_init = init.device().clone();
-    after_init.truth_sealed = false;
+    cfg
+}
 
+/// Run a config's initial measurement (its cold start: the initial gradient
+/// with the lower levels) on a sealed device; returns the run, ready to go on.
+fn cold_start(cfg: SimulationConfig) -> Result<SimulationRun, String> {
+    let mut init = SimulationRun::new(cfg).map_err(|e| e.to_string())?;
+    init.device_mut().seal_truth();
+    while init.next_iteration().map_err(|e| e.to_string())?.is_some() {}
+    if init.device().truth_queries() != 0 {
+        return Err("the initial measurement queried the truth".into());
+    }
+    Ok(init)
+}
+
+/// Run every strategy on one seed. `keep_records` keeps the iteration records.
+///
+/// `base` is the paper's setup ([`SimulationConfig::paper_default`], its
+/// device possibly replaced): every strategy but [`Strategy::Default`]
+/// starts from one shared initial measurement of it. [`Strategy::Default`]
+/// runs `product` (the tuner `spintune run` uses, e.g.
+/// [`SimulationConfig::recommended`]'s) on the same device and seed from
+/// its own cold start.
+pub fn run_seed(
+    base: &SimulationConfig,
+    product: &TunerConfig,
+    protocol: &BenchmarkProtocol,
+    strategies: &[Strategy],
+    seed: u64,
+    keep_records: bool,
+) -> Result<Vec<SeedResult>, BenchmarkError> {
+    let err = |m: String| BenchmarkError { seed, message: m };
+    let classic = strategies.iter().any(|s| *s != Strategy::Default);
+    // --- the world: the simulated lab and its imperfect configuration ---
+    let mut cfg = world_config(base, protocol, seed);
+    cfg.tuner.top_mut().estimator = EstimatorKind::Kalman;
+    // --- the experimenter: the shared starting point, on a sealed device ---
+    let shared = classic.then(|| cold_start(cfg)).transpose().map_err(err)?;
     strategies
         .iter()
         .map(|&strategy| {
-            let tcfg = configure_strategy(strategy, &lab, protocol);
-            let tuner = Tuner::new(tcfg).map_err(|e| err(format!("{}: {e}", strategy.name())))?;
-            let mut dev = after_init.clone();
-            if !strategy.is_oracle() {
-                dev.seal_truth();
+            let named = |m: String| err(format!("{}: {m}", strategy.name()));
+            if strategy == Strategy::Default {
+                let mut world = base.clone();
+                world.tuner = product.clone();
+                let init = cold_start(world_config(&world, protocol, seed)).map_err(named)?;
+                let start = init.tuner().lab_seconds();
+                let mut tuner = init.tuner().clone();
+                tuner.set_max_iterations(None);
+                return run_protocol(
+                    strategy,
+                    seed,
+                    tuner,
+                    init.device().clone(),
+                    protocol,
+                    start,
+                    keep_records,
+                )
+                .map_err(named);
             }
+            let init = shared
+                .as_ref()
+                .expect("a classic strategy ran the shared start");
+            let lab = LabKnowledge {
+                config: init.tuner().config_with_learned_gradients(),
+                start_values: init.tuner().last_measured(0).unwrap_or_default().to_vec(),
+            };
+            let tcfg = configure_strategy(strategy, &lab, protocol);
+            let mut tuner = Tuner::new(tcfg).map_err(|e| named(e.to_string()))?;
+            // The lab clock goes on from the shared initial measurement.
+            tuner.charge_lab_time(init.tuner().lab_seconds());
+            // The world hands on the device state after the initial
+            // measurement (RNG, drifts, clock); only the oracles get it
+            // with the truth unsealed.
+            let mut dev = init.device().clone();
+            dev.truth_sealed = !strategy.is_oracle();
             run_protocol(
                 strategy,
                 seed,
                 tuner,
                 dev,
                 protocol,
-                start_lab_seconds,
+                init.tuner().lab_seconds(),
                 keep_records,
             )
-            .map_err(|m| err(format!("{}: {m}", strategy.name())))
+            .map_err(named)
         })
         .collect()
 }
@@ -558,6 +623,8 @@ fn run_protocol(
     let mut changes = Vec::new();
     let mut records = Vec::new();
     let mut lab_at_change = start_lab_seconds;
+    let (mut tuned_records, mut truly_in_band) = (0u64, 0u64);
+    let band = protocol.relative_tolerance;
     for &(t_sr, w) in &protocol.set_points {
         let tol = Some(Tolerance::Relative(protocol.relative_tolerance));
         for (parameter, target) in [("t_sr", t_sr), ("w", w)] {
@@ -574,6 +641,16 @@ fn run_protocol(
         let mut last_lab = lab_at_change;
         for k in 0..protocol.iterations_per_set_point {
             let rec = run.next()?;
+            if rec.tuned {
+                // The world's side: where the device truly is when the
+                // tuner declares it tuned (no move follows a tuned record).
+                let truth = run.device.truth();
+                tuned_records += 1;
+                if (truth.t_sr_ns - t_sr).abs() <= band * t_sr && (truth.w_uv - w).abs() <= band * w
+                {
+                    truly_in_band += 1;
+                }
+            }
             if converged.is_none() && rec.tuned {
                 converged = Some(ChangeResult {
                     iterations: Some(k),
@@ -604,10 +681,17 @@ fn run_protocol(
         .zip(tuner.consistency(0).unwrap_or_default().iter().copied())
         .filter(|(_, c)| c.count > 0)
         .collect();
+    let cold_start_lab_minutes = changes
+        .first()
+        .and_then(|c: &ChangeResult| c.lab_minutes)
+        .map(|m| start_lab_seconds / 60.0 + m);
     Ok(SeedResult {
         strategy,
         seed,
         device: 0,
+        cold_start_lab_minutes,
+        tuned_records,
+        truly_in_band,
         changes,
         limit_violations: run.violations,
         failed_fits: tuner.failed_evaluations(),
@@ -695,6 +779,15 @@ pub struct StrategySummary {
     /// without an oracle run).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub not_converged_where_oracle_converged: Option<u64>,
+    /// Lab minutes from a run's start to the first record declared tuned
+    /// at the first set point: median, p90, max over the seeds where it
+    /// converged ([`SeedResult::cold_start_lab_minutes`]).
+    #[serde(default = "Quantiles::nan")]
+    pub cold_start_lab_minutes: Quantiles,
+    /// Fraction of the records declared tuned whose device was truly in
+    /// both bands (world side; `None` without a tuned record).
+    #[serde(default)]
+    pub truly_in_band_at_tuned: Option<f64>,
     /// Must be 0.
     pub limit_violations: u64,
     /// Failed fits over all seeds.
@@ -804,6 +897,18 @@ pub fn summarize(
                 iterations_per_change: quantiles(&iters),
                 lab_minutes_per_change: quantiles(&minutes),
                 moves_per_change: quantiles(&moves),
+                cold_start_lab_minutes: quantiles(
+                    &mine
+                        .iter()
+                        .filter_map(|r| r.cold_start_lab_minutes)
+                        .collect::<Vec<_>>(),
+                ),
+                truly_in_band_at_tuned: {
+                    let tuned: u64 = mine.iter().map(|r| r.tuned_records).sum();
+                    (tuned > 0).then(|| {
+                        mine.iter().map(|r| r.truly_in_band).sum::<u64>() as f64 / tuned as f64
+                    })
+                },
                 not_converged: changes.iter().filter(|c| c.iterations.is_none()).count() as u64,
                 not_converged_where_oracle_converged: oracle_missed(results, &mine),
                 limit_violations: mine.iter().map(|r| r.limit_violations).sum(),
@@ -962,6 +1067,9 @@ mod tests {
                     lab_minutes: i.map(|x| x as f64 * 2.0),
                 })
                 .collect(),
+            cold_start_lab_minutes: None,
+            tuned_records: 0,
+            truly_in_band: 0,
             limit_violations: 0,
             failed_fits: 1,
             truth_queries: 0,

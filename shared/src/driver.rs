@@ -100,6 +100,7 @@ impl SimulationConfig {
             initial_gradient: InitialGradient::FiniteDifference {
                 step_mv: 4.0,
                 repetitions: 3,
+                recentre_between_offsets: true,
             },
             solver: SolverConfig::default(),
             outlier_sigma: Some(5.0),
@@ -127,6 +128,7 @@ impl SimulationConfig {
             initial_gradient: InitialGradient::FiniteDifference {
                 step_mv: 2.0,
                 repetitions: 1,
+                recentre_between_offsets: true,
             },
             solver: SolverConfig {
                 // the transition lines are scanned over ±4 mV: small corrections only
@@ -180,6 +182,44 @@ impl SimulationConfig {
             seed: 1,
             device,
             tuner,
+        }
+    }
+
+    /// The product's default (what `spintune run`, the server, the
+    /// browser and Python use when a config has no `tuner` section): the
+    /// paper's device ([`crate::description::DeviceDescription::paper_device`])
+    /// with the strategy measured best in `spintune bench`
+    /// (docs/benchmarks.md): `t_sr` and `w` tuned in log space with a
+    /// relative process noise of
+    /// [`crate::description::RECOMMENDED_RELATIVE_Q_PER_MV`], the covariance-aware trust-region
+    /// step, up to two limited moves per measurement with the lower levels
+    /// after the last, and a cold start of one finite-difference repetition
+    /// (6 mV offsets) that re-centres the lines and the sensor only before
+    /// and after the offsets.
+    ///
+    /// ```
+    /// use spintune::driver::SimulationConfig;
+    /// use spintune::parameter::Transform;
+    /// let cfg = SimulationConfig::recommended();
+    /// assert!(cfg.tuner.top().parameters.iter().all(|p| p.transform == Transform::Log));
+    /// assert_eq!(cfg.tuner.top().solver.max_moves_per_iteration, 2);
+    /// assert!(cfg.validate().is_ok());
+    /// ```
+    pub fn recommended() -> Self {
+        let mut tuner = crate::description::DeviceDescription::paper_device()
+            .tuner()
+            .expect("the paper device's description is valid (tested)");
+        for p in &mut tuner.top_mut().parameters {
+            p.target = match p.name.as_str() {
+                "t_sr" => Some(PAPER_FIRST_TARGET.0),
+                "w" => Some(PAPER_FIRST_TARGET.1),
+                _ => None,
+            };
+        }
+        Self {
+            name: "recommended".into(),
+            tuner,
+            ..Self::paper_default()
         }
     }
 

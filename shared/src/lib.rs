@@ -21,6 +21,7 @@
 pub mod benchmark;
 pub mod config_error;
 pub mod config_merge;
+pub mod description;
 pub mod detmath;
 pub mod driver;
 pub mod estimator;

@@ -3,7 +3,10 @@
 //! backend's run config (TOML/JSON) and by Python's dicts alike.
 //!
 //! Every key is optional: what is not given comes from
-//! [`SimulationConfig::paper_default`]. Tables are merged key by key into the
+//! [`SimulationConfig::recommended`]. A `description` table (a lab's device
+//! in a few lines, [`DeviceDescription`]) replaces the default tuner's
+//! gates and levels by those it derives; `tuner` keys still merge over them
+//! (`tuner.gates` and `tuner.levels` are then refused: one source of levels). Tables are merged key by key into the
 //! default; arrays replace the default array whole; a table whose tag
 //! (`kind`, `type`, …) differs from the default's replaces it whole
 //! ([`crate::config_merge::merge`]). `targets` and `tolerances` apply to the
@@ -16,6 +19,7 @@ use serde_json::{Map, Value};
 
 use crate::config_error::ConfigError;
 use crate::config_merge::merge;
+use crate::description::DeviceDescription;
 use crate::driver::SimulationConfig;
 use crate::parameter::Tolerance;
 use crate::safety::GateSpec;
@@ -41,10 +45,31 @@ pub fn resolve_simulation(
     targets: &BTreeMap<String, f64>,
     tolerances: &BTreeMap<String, Tolerance>,
 ) -> Result<SimulationConfig, ConfigError> {
+    let mut user = user;
+    let description = user.remove("description");
     let user = Value::Object(user);
     crate::tuner::check_magnitudes(&user, "")?;
     let user_device = user.get("device").cloned();
-    let mut merged = serde_json::to_value(SimulationConfig::paper_default())
+    let mut default = SimulationConfig::recommended();
+    if let Some(d) = description {
+        crate::tuner::check_magnitudes(&d, "description")?;
+        for key in ["gates", "levels"] {
+            if user.get("tuner").and_then(|t| t.get(key)).is_some() {
+                return Err(ConfigError::new(
+                    format!("tuner.{key}"),
+                    "`description` derives the gates and levels: give either `description` or `tuner.gates`/`tuner.levels`",
+                ));
+            }
+        }
+        let d: DeviceDescription = serde_path_to_error::deserialize(d).map_err(|e| {
+            let path = e.path().to_string();
+            let field = if path == "." { String::new() } else { path };
+            ConfigError::new(field, e.inner().to_string()).within("description")
+        })?;
+        default.tuner = d.tuner().map_err(|e| e.within("description"))?;
+        default.name = "described device".into();
+    }
+    let mut merged = serde_json::to_value(default)
         .map_err(|e| ConfigError::new("", format!("internal: default config: {e}")))?;
     merge(&mut merged, user);
     let mut simulation: SimulationConfig =
@@ -111,65 +136,155 @@ fn apply_targets(
 /// maps may name gates a custom `tuner.gates` leaves out. Call after the
 /// config deserialized (the shapes are right).
 fn check_device_gates(user: Option<&Value>, gates: &[GateSpec]) -> Result<(), ConfigError> {
-    let Some(Value::Object(device)) = user else {
+    let Some(device) = user else {
         return Ok(());
     };
-    let known = |name: &str, field: String| -> Result<(), ConfigError> {
+    let mut device = device.clone();
+    visit_device_gates(&mut device, &mut |name, field| {
         if gates.iter().any(|g| g.name == name) {
-            return Ok(());
+            return Ok(true);
         }
         let names: Vec<&str> = gates.iter().map(|g| g.name.as_str()).collect();
         Err(ConfigError::new(
             field,
             format!("{name:?} is not a gate of `tuner.gates` (known: {names:?})"),
         ))
+    })
+}
+
+/// A resolved config as a document (`serde_json` of a
+/// [`SimulationConfig`]) without the `device` entries for gates the run does
+/// not have (per-gate map keys and quadratic terms; the simulator computes
+/// only with the run's gates, so they have no effect): the document reads
+/// back through [`resolve_simulation`], which refuses a gate of the user's
+/// `device` table that is not in `tuner.gates`.
+///
+/// ```
+/// use spintune::run_config::{prune_device_gates, resolve_simulation};
+/// let user = serde_json::json!({"tuner": {"gates": [
+///     {"name": "N", "min_mv": -900, "max_mv": -500, "initial_mv": -700},
+/// ]}});
+/// // (the default levels name other gates: only the document is shown here)
+/// let mut doc = serde_json::to_value(spintune::driver::SimulationConfig::paper_default()).unwrap();
+/// doc["tuner"]["gates"] = user["tuner"]["gates"].clone();
+/// prune_device_gates(&mut doc);
+/// assert!(doc["device"]["reference_mv"].get("N").is_some());
+/// assert!(doc["device"]["reference_mv"].get("SA").is_none());
+/// ```
+pub fn prune_device_gates(doc: &mut Value) {
+    let gates: Vec<String> = doc
+        .pointer("/tuner/gates")
+        .and_then(Value::as_array)
+        .map(|a| {
+            a.iter()
+                .filter_map(|g| Some(g.get("name")?.as_str()?.to_string()))
+                .collect()
+        })
+        .unwrap_or_default();
+    if let Some(device) = doc.get_mut("device") {
+        let _ = visit_device_gates(device, &mut |name, _| Ok(gates.iter().any(|g| g == name)));
+    }
+}
+
+/// Visit every gate a `device` table names (per-gate map keys, both ends
+/// of quadratic terms; `sensing_dot.gate` is checked but never removed):
+/// `keep(gate, field)` says whether the entry stays, or fails.
+fn visit_device_gates(
+    device: &mut Value,
+    keep: &mut dyn FnMut(&str, String) -> Result<bool, ConfigError>,
+) -> Result<(), ConfigError> {
+    let Value::Object(device) = device else {
+        return Ok(());
     };
-    let keys = |v: Option<&Value>, field: &str| -> Result<(), ConfigError> {
-        if let Some(Value::Object(m)) = v {
-            for k in m.keys() {
-                known(k, format!("device.{field}.{k}"))?;
-            }
-        }
-        Ok(())
-    };
-    let terms = |v: Option<&Value>, field: &str| -> Result<(), ConfigError> {
-        if let Some(Value::Array(a)) = v {
-            for (i, t) in a.iter().enumerate() {
-                for end in ["a", "b"] {
-                    if let Some(Value::String(g)) = t.get(end) {
-                        known(g, format!("device.{field}[{i}].{end}"))?;
-                    }
+    let maps = [
+        ("reference_mv", None),
+        ("tunnel_coupling_uev", Some("linear_per_mv")),
+        ("lead_rate_per_ns", Some("linear_per_mv")),
+        ("crosstalk", Some("line_a_per_mv")),
+        ("crosstalk", Some("line_b_per_mv")),
+        ("sensing_dot", Some("lever_per_mv")),
+    ];
+    for (outer, inner) in maps {
+        let field = match inner {
+            Some(i) => format!("device.{outer}.{i}"),
+            None => format!("device.{outer}"),
+        };
+        let map = match inner {
+            Some(i) => device.get_mut(outer).and_then(|o| o.get_mut(i)),
+            None => device.get_mut(outer),
+        };
+        if let Some(Value::Object(m)) = map {
+            let mut kept = Map::new();
+            for (k, v) in std::mem::take(m) {
+                if keep(&k, format!("{field}.{k}"))? {
+                    kept.insert(k, v);
                 }
             }
+            *m = kept;
         }
-        Ok(())
-    };
-    keys(device.get("reference_mv"), "reference_mv")?;
-    for model in ["tunnel_coupling_uev", "lead_rate_per_ns"] {
-        let m = device.get(model);
-        keys(
-            m.and_then(|m| m.get("linear_per_mv")),
-            &format!("{model}.linear_per_mv"),
-        )?;
-        terms(
-            m.and_then(|m| m.get("quadratic_per_mv2")),
-            &format!("{model}.quadratic_per_mv2"),
-        )?;
     }
-    let x = device.get("crosstalk");
-    for line in ["line_a", "line_b"] {
-        let map = format!("{line}_per_mv");
-        keys(x.and_then(|x| x.get(&map)), &format!("crosstalk.{map}"))?;
-        let quad = format!("{line}_quadratic");
-        terms(x.and_then(|x| x.get(&quad)), &format!("crosstalk.{quad}"))?;
+    let terms = [
+        ("tunnel_coupling_uev", "quadratic_per_mv2"),
+        ("lead_rate_per_ns", "quadratic_per_mv2"),
+        ("crosstalk", "line_a_quadratic"),
+        ("crosstalk", "line_b_quadratic"),
+    ];
+    for (outer, inner) in terms {
+        if let Some(Value::Array(a)) = device.get_mut(outer).and_then(|o| o.get_mut(inner)) {
+            let mut kept = Vec::new();
+            for (i, t) in std::mem::take(a).into_iter().enumerate() {
+                let mut ok = true;
+                for end in ["a", "b"] {
+                    if let Some(Value::String(g)) = t.get(end) {
+                        ok &= keep(g, format!("device.{outer}.{inner}[{i}].{end}"))?;
+                    }
+                }
+                if ok {
+                    kept.push(t);
+                }
+            }
+            *a = kept;
+        }
     }
-    let sd = device.get("sensing_dot");
-    keys(
-        sd.and_then(|s| s.get("lever_per_mv")),
-        "sensing_dot.lever_per_mv",
-    )?;
-    if let Some(Value::String(g)) = sd.and_then(|s| s.get("gate")) {
-        known(g, "device.sensing_dot.gate".into())?;
+    if let Some(Value::String(g)) = device.get("sensing_dot").and_then(|s| s.get("gate")) {
+        keep(g, "device.sensing_dot.gate".into())?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn resolve(v: serde_json::Value) -> Result<SimulationConfig, ConfigError> {
+        resolve_simulation(
+            v.as_object().unwrap().clone(),
+            &BTreeMap::new(),
+            &BTreeMap::new(),
+        )
+    }
+
+    #[test]
+    fn a_description_replaces_the_levels_and_tuner_keys_merge_over_it() {
+        let d = serde_json::to_value(DeviceDescription::paper_device()).unwrap();
+        let sim = resolve(serde_json::json!({
+            "description": d,
+            "tuner": {"max_iterations": 7},
+        }))
+        .unwrap();
+        assert_eq!(sim.tuner.max_iterations, Some(7));
+        assert_eq!(
+            sim.tuner.levels,
+            DeviceDescription::paper_device().tuner().unwrap().levels
+        );
+        let e = resolve(serde_json::json!({
+            "description": serde_json::to_value(DeviceDescription::paper_device()).unwrap(),
+            "tuner": {"gates": []},
+        }))
+        .unwrap_err();
+        assert_eq!(e.field, "tuner.gates");
+        let e = resolve(serde_json::json!({"description": {"gates": []}})).unwrap_err();
+        assert_eq!(e.field, "description");
+        assert!(e.message.contains("qubit"), "{e}");
+    }
 }

@@ -17,6 +17,7 @@ fn short_protocol() -> BenchmarkProtocol {
 fn non_oracle_strategies_never_query_the_truth() {
     let results = run_seed(
         &SimulationConfig::paper_default(),
+        &SimulationConfig::recommended().tuner,
         &short_protocol(),
         &Strategy::ALL,
         3,
@@ -43,6 +44,7 @@ fn non_oracle_strategies_never_query_the_truth() {
 fn kalman_strategies_report_filter_consistency_for_t_sr_and_w() {
     let results = run_seed(
         &SimulationConfig::paper_default(),
+        &SimulationConfig::recommended().tuner,
         &short_protocol(),
         &[Strategy::Kalman, Strategy::KalmanLog],
         5,

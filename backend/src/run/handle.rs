@@ -157,7 +157,7 @@ impl RunHandle {
     ) -> Self {
         Self {
             quarantine: Some(error),
-            ..Self::new(id, RunConfig::paper_default(), summary, viewer_buffer)
+            ..Self::new(id, RunConfig::recommended(), summary, viewer_buffer)
         }
     }
 

@@ -540,7 +540,7 @@ mod tests {
         let store = Arc::new(Store::open(&dir.join("p.db")).unwrap());
         let manager = Manager::open(store.clone(), ManagerOptions::default()).unwrap();
         let id = manager
-            .create(RunConfig::paper_default(), true)
+            .create(RunConfig::recommended(), true)
             .await
             .unwrap()
             .id;

@@ -24,6 +24,14 @@ pub enum InitialGradient {
         step_mv: f64,
         /// Number of repetitions (≥ 1).
         repetitions: u32,
+        /// Run the levels of `after_move` (sensing dot, line re-centring)
+        /// after every offset (`true`, the paper's procedure) or only before
+        /// the first measurement and after the return to the base point
+        /// (`false`: an offset of `step_mv` moves the lines and the sensor
+        /// by a fraction of their scan windows, so the scans stay usable and
+        /// the cold start costs a fraction of the lab time). Default `true`.
+        #[serde(default = "default_true")]
+        recentre_between_offsets: bool,
     },
     /// Known gradient rows (one per parameter, unit/mV) and covariances.
     Given {
@@ -60,6 +68,10 @@ pub struct Compensation {
     /// the lines after every move.
     #[serde(default = "default_compensation_uncertainty")]
     pub relative_uncertainty: f64,
+}
+
+fn default_true() -> bool {
+    true
 }
 
 fn default_compensation_uncertainty() -> f64 {
@@ -588,6 +600,7 @@ fn validate_newton(n: &NewtonConfig, has_gate: &dyn Fn(&str) -> bool) -> Result<
         InitialGradient::FiniteDifference {
             step_mv,
             repetitions,
+            ..
         } => {
             if !(step_mv.is_finite() && *step_mv > 0.0) {
                 return Err(ConfigError::new("initial_gradient.step_mv", "must be > 0"));

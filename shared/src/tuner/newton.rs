@@ -307,6 +307,7 @@ impl Tuner {
         let InitialGradient::FiniteDifference {
             step_mv,
             repetitions,
+            recentre_between_offsets,
         } = cfg.initial_gradient
         else {
             return ops;
@@ -319,7 +320,9 @@ impl Tuner {
         for rep in 0..reps {
             if rep > 0 {
                 ops.push_back(Op::Move(base.clone()));
-                ops.extend(children.iter().cloned());
+                if recentre_between_offsets {
+                    ops.extend(children.iter().cloned());
+                }
             }
             ops.extend(scans.iter().cloned());
             ops.push_back(Op::Decide(Decision::FdBase(rep)));
@@ -327,7 +330,9 @@ impl Tuner {
                 let mut v = base.clone();
                 v[j] += step_mv;
                 ops.push_back(Op::Move(v));
-                ops.extend(children.iter().cloned());
+                if recentre_between_offsets {
+                    ops.extend(children.iter().cloned());
+                }
                 ops.extend(scans.iter().cloned());
                 ops.push_back(Op::Decide(Decision::FdPoint(rep, j)));
             }

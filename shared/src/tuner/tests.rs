@@ -168,6 +168,7 @@ fn qubit(estimator: EstimatorKind) -> NewtonConfig {
         initial_gradient: InitialGradient::FiniteDifference {
             step_mv: 3.0,
             repetitions: 2,
+            recentre_between_offsets: true,
         },
         solver: SolverConfig::default(),
         outlier_sigma: Some(5.0),

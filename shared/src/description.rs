@@ -178,6 +178,22 @@ impl DeviceDescription {
     /// `lines.compensation`, …).
     pub fn tuner(&self) -> Result<TunerConfig, ConfigError> {
         let q = &self.qubit;
+        let positive = |field: &str, v: f64| {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err(ConfigError::new(
+                    field,
+                    format!("must be a finite number > 0, got {v}"),
+                ))
+            }
+        };
+        positive("qubit.step_limit_mv", q.step_limit_mv)?;
+        positive("qubit.relative_tolerance", q.relative_tolerance)?;
+        if let Some(l) = &self.lines {
+            positive("lines.step_limit_mv", l.step_limit_mv)?;
+            positive("lines.tolerance_mv", l.tolerance_mv)?;
+        }
         let mut parameters = Vec::new();
         for (i, name) in q.parameters.iter().enumerate() {
             let Some((_, scan, unit)) = QUBIT_PARAMETERS.iter().find(|p| p.0 == name) else {

@@ -97,3 +97,59 @@ fn the_labs_virtual_gate_matrix_is_not_the_simulators() {
     assert!(rel.iter().all(|r| *r <= 0.2 + 1e-12), "{rel:?}");
     assert!(rel.iter().any(|r| *r > 0.05), "{rel:?}");
 }
+
+/// Lab time runs on through a strategy's start: every change costs
+/// positive lab time, and a strategy's cold start is at least the lab time
+/// of the initial measurement it started from (measured here on its own:
+/// the paper's finite differences for the classic strategies, the
+/// recommended cold start for `default`).
+#[test]
+fn cold_start_includes_the_initial_measurement_and_changes_cost_lab_time() {
+    use spintune::driver::SimulationRun;
+    let init_minutes = |mut cfg: SimulationConfig| {
+        cfg.seed = 2;
+        cfg.tuner.max_iterations = Some(0);
+        let mut run = SimulationRun::new(cfg).unwrap();
+        while run.next_iteration().unwrap().is_some() {}
+        run.tuner().lab_seconds() / 60.0
+    };
+    let paper_init = init_minutes(SimulationConfig::paper_default());
+    let recommended_init = init_minutes(SimulationConfig::recommended());
+    assert!(
+        recommended_init < paper_init,
+        "{recommended_init} vs {paper_init}"
+    );
+    let results = run_seed(
+        &SimulationConfig::paper_default(),
+        &SimulationConfig::recommended().tuner,
+        &short_protocol(),
+        &[Strategy::Default, Strategy::KalmanLogTrMultiBare],
+        2,
+        false,
+    )
+    .unwrap();
+    for r in &results {
+        for c in &r.changes {
+            assert!(
+                c.lab_minutes.is_none_or(|m| m > 0.0),
+                "{:?}: {c:?}",
+                r.strategy
+            );
+        }
+        let init = if r.strategy == Strategy::Default {
+            recommended_init
+        } else {
+            paper_init
+        };
+        let cold = r
+            .cold_start_lab_minutes
+            .expect("the first change converged");
+        assert!(
+            cold > init,
+            "{:?}: cold start {cold} ≤ initial measurement {init}",
+            r.strategy
+        );
+        assert!(r.truly_in_band <= r.tuned_records);
+        assert!(r.tuned_records > 0);
+    }
+}

@@ -21,6 +21,7 @@ fn multi_move_strategies_make_more_moves_than_iterations_within_the_limit() {
     ];
     let results = run_seed(
         &SimulationConfig::paper_default(),
+        &SimulationConfig::recommended().tuner,
         &protocol,
         &strategies,
         2,

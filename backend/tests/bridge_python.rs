@@ -71,7 +71,9 @@ async fn python_bridge_client_serves_a_run_and_reconnects() {
 
     let dir = TempDir::new("pybridge");
     let srv = server(&dir, 256).await;
-    let n = 4;
+    // enough iterations that 180 answers end mid-run with the recommended
+    // tuner's cheaper cold start
+    let n = 40;
     let run = create_run(
         srv.addr,
         &json!({
@@ -105,7 +107,7 @@ async fn python_bridge_client_serves_a_run_and_reconnects() {
                 .contains("lab bridge disconnected while request 181"),
             "{fault}"
         ),
-        other => panic!("expected a pause, got {other:?}"),
+        other => panic!("expected a pause, got {other:?} ({paused:?})"),
     }
     assert!(paused.iterations < n, "{paused:?}");
     first.stop();

@@ -12,7 +12,7 @@ use spintune_server::config::RunConfig;
 
 /// A complete config as JSON: the paper default plus every backend table.
 fn full_config() -> Value {
-    let mut v = serde_json::to_value(RunConfig::paper_default().simulation).unwrap();
+    let mut v = serde_json::to_value(RunConfig::recommended().simulation).unwrap();
     let gates: Vec<String> = spintune::sim::default_gates()
         .into_iter()
         .map(|g| g.name)

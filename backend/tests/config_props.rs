@@ -23,7 +23,7 @@ use spintune_server::config::RunConfig;
 
 /// Valid configs the mutations start from.
 fn bases() -> Vec<Value> {
-    let mut full = serde_json::to_value(RunConfig::paper_default().simulation).unwrap();
+    let mut full = serde_json::to_value(RunConfig::recommended().simulation).unwrap();
     let gates: Vec<String> = spintune::sim::default_gates()
         .into_iter()
         .map(|g| g.name)
@@ -57,7 +57,7 @@ fn bases() -> Vec<Value> {
     );
     obj.get_mut("tuner").unwrap()["schedule"] =
         json!([{ "at_iteration": 3, "targets": { "t_sr": 30.0 } }]);
-    let mut simulator = serde_json::to_value(RunConfig::paper_default().simulation).unwrap();
+    let mut simulator = serde_json::to_value(RunConfig::recommended().simulation).unwrap();
     simulator["driver"] = json!("simulator");
     simulator["targets"] = json!({ "t_sr": 20.0 });
     let mut out = vec![full, simulator];

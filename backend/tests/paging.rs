@@ -26,7 +26,7 @@ fn template() -> IterationRecord {
 
 /// A run without a task (created paused, then stopped) to publish into.
 async fn idle_run(srv: &Server) -> u64 {
-    let mut cfg = spintune_server::config::RunConfig::paper_default();
+    let mut cfg = spintune_server::config::RunConfig::recommended();
     cfg.simulation.name = "paging".into();
     let id = srv.manager.create(cfg, true).await.unwrap().id;
     srv.manager.control(id, ControlCommand::Stop).await.unwrap();

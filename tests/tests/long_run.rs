@@ -72,7 +72,7 @@ fn write_long_run(db: &Path) -> u64 {
 /// keep their scans; with `spike`, t_sr at [`SPIKE_AT`] is [`SPIKE_NS`].
 fn write_run(store: &Store, real: &[IterationRecord], name: &str, n: u64, spike: bool) -> u64 {
     let per_iteration_s = real[39].lab_seconds / 40.0;
-    let config = serde_json::to_string(&RunConfig::paper_default()).unwrap();
+    let config = serde_json::to_string(&RunConfig::recommended()).unwrap();
     let id = store
         .create_run(name, &config, &RunStatus::Finished, "{}")
         .expect("create run");

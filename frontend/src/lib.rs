@@ -56,6 +56,8 @@ pub fn App(
         mode.unwrap_or_else(|| Mode::from_hash(&window().location().hash().unwrap_or_default()));
     let mode = RwSignal::new(initial);
     provide_context(mode);
+    // The in-browser mode's run lives as long as the page, not the tab.
+    provide_context(crate::local::LocalState::new());
     let go = move |m: Mode| {
         if m == Mode::Local {
             let _ = window().location().set_hash("local");

@@ -58,7 +58,7 @@ pub fn hmm(hours: &f64) -> String {
 
 /// What a time-series chart shows.
 #[derive(Clone, Copy)]
-pub struct Frame<'a> {
+pub struct Viewport<'a> {
     /// The run.
     pub history: &'a RunHistory,
     /// Iterations shown.
@@ -69,7 +69,7 @@ pub struct Frame<'a> {
     pub overlay: Option<&'a RunHistory>,
 }
 
-impl Frame<'_> {
+impl Viewport<'_> {
     fn range(&self) -> std::ops::Range<usize> {
         self.history.range(self.window.lo, self.window.hi)
     }
@@ -148,7 +148,7 @@ fn plot_columns<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, y_area: u32) 
 /// is `None`.
 #[allow(clippy::type_complexity)]
 fn series_of(
-    f: &Frame<'_>,
+    f: &Viewport<'_>,
     o: usize,
     sigma: bool,
     (x0, x1): (f64, f64),
@@ -289,7 +289,7 @@ fn value_range(
 /// those outside it are pinned to the nearer edge as hollow triangles.
 pub fn draw_parameter<DB: DrawingBackend>(
     plot: &Plot<'_, DB>,
-    f: &Frame<'_>,
+    f: &Viewport<'_>,
     p: usize,
     series: usize,
 ) -> Result<Drawn, String> {
@@ -466,7 +466,7 @@ fn draw_rejected<DB: DrawingBackend>(
 /// Every element of one parameter's gradient, ±1σ `√diag C` (one panel per gate).
 pub fn draw_gradient<DB: DrawingBackend>(
     plot: &Plot<'_, DB>,
-    f: &Frame<'_>,
+    f: &Viewport<'_>,
     g: usize,
 ) -> Result<Drawn, String> {
     let layout = f.history.layout();
@@ -529,7 +529,10 @@ pub fn draw_gradient<DB: DrawingBackend>(
 }
 
 /// The tuning gates' voltages (one panel per gate).
-pub fn draw_gates<DB: DrawingBackend>(plot: &Plot<'_, DB>, f: &Frame<'_>) -> Result<Drawn, String> {
+pub fn draw_gates<DB: DrawingBackend>(
+    plot: &Plot<'_, DB>,
+    f: &Viewport<'_>,
+) -> Result<Drawn, String> {
     let layout = f.history.layout();
     if layout.gates.is_empty() {
         return placeholder(plot.area(), "gate voltages", "waiting for data…")
@@ -582,7 +585,7 @@ pub fn draw_gates<DB: DrawingBackend>(plot: &Plot<'_, DB>, f: &Frame<'_>) -> Res
 /// tuned iterations marked green.
 pub fn draw_lab_time<DB: DrawingBackend>(
     plot: &Plot<'_, DB>,
-    f: &Frame<'_>,
+    f: &Viewport<'_>,
 ) -> Result<Drawn, String> {
     let rows = f.rows();
     if rows.is_empty() {

@@ -16,7 +16,7 @@ use crate::model::{
     moved_rows, stale_status_label, status_class, status_hint, status_label, tuned_badge,
 };
 use crate::schedule;
-use crate::series::{self, Drawn, Frame, XAxis};
+use crate::series::{self, Drawn, Viewport, XAxis};
 use crate::zoom::{self, View};
 
 /// Where a [`Chart`] draws: the data canvas layered over the frame canvas
@@ -81,7 +81,7 @@ where
     let id = schedule::new_id();
     on_cleanup(move || schedule::cancel(id));
     let draw = std::rc::Rc::new(draw);
-    let frames = std::rc::Rc::new(charts::Frames::default());
+    let frames = std::rc::Rc::new(charts::LayerCache::default());
     Effect::new(move |prev: Option<Option<ChartKey>>| {
         let k = key();
         let canvas = node.get()?;
@@ -127,7 +127,7 @@ struct Layers<'a> {
     data: &'a web_sys::HtmlCanvasElement,
     /// Frames (captions, axes, tick labels, grids), below.
     frame: &'a web_sys::HtmlCanvasElement,
-    frames: &'a charts::Frames,
+    frames: &'a charts::LayerCache,
 }
 
 /// Set `canvas` to `w` × `h` device pixels (only if different: writing the
@@ -589,7 +589,7 @@ pub fn Dashboard(
                                             let ax = axis.get();
                                             let ov = overlay.map(|o| o.read());
                                             history.with(|h| {
-                                                let f = Frame { history: h, window: w, axis: ax, overlay: ov.as_ref().and_then(|o| o.as_ref()) };
+                                                let f = Viewport { history: h, window: w, axis: ax, overlay: ov.as_ref().and_then(|o| o.as_ref()) };
                                                 series::draw_parameter(a, &f, i, i)
                                             })
                                         }
@@ -612,7 +612,7 @@ pub fn Dashboard(
                             draw=move |a: &Area| {
                                 let w = draw_window.get();
                                 let ax = axis.get();
-                                history.with(|h| series::draw_gradient(a, &Frame { history: h, window: w, axis: ax, overlay: None }, g))
+                                history.with(|h| series::draw_gradient(a, &Viewport { history: h, window: w, axis: ax, overlay: None }, g))
                             }
                         />
                     }
@@ -625,7 +625,7 @@ pub fn Dashboard(
                     draw=move |a: &Area| {
                         let w = draw_window.get();
                         let ax = axis.get();
-                        history.with(|h| series::draw_gates(a, &Frame { history: h, window: w, axis: ax, overlay: None }))
+                        history.with(|h| series::draw_gates(a, &Viewport { history: h, window: w, axis: ax, overlay: None }))
                     }
                 />
                 <div class="chart-box" on:mousedown=mouse_down on:mouseup=mouse_up on:mousemove=mouse_move>
@@ -635,7 +635,7 @@ pub fn Dashboard(
                         key=move || history.with(|h| series_key(h, draw_window.get(), XAxis::Iteration))
                         draw=move |a: &Area| {
                             let w = draw_window.get();
-                            history.with(|h| series::draw_lab_time(a, &Frame { history: h, window: w, axis: XAxis::Iteration, overlay: None }))
+                            history.with(|h| series::draw_lab_time(a, &Viewport { history: h, window: w, axis: XAxis::Iteration, overlay: None }))
                         }
                     />
                     <div class="legend"><span><i class="swatch lab"></i>"cumulative lab time"</span><span><i class="swatch band"></i>"tuned"</span></div>

@@ -245,9 +245,10 @@ async fn local_runner_reaches_a_new_target() {
         ..LocalSettings::default()
     };
     let mut r = LocalRunner::new(&settings).unwrap();
+    let mut h = RunHistory::new();
     // Paper set point I first, then move t_sr to 70 ns (paper set point II).
     for _ in 0..60 {
-        assert!(r.advance().unwrap().is_some());
+        assert!(r.advance(&mut h).unwrap().is_some());
         if r.tuned_at.is_some() {
             break;
         }
@@ -259,7 +260,7 @@ async fn local_runner_reaches_a_new_target() {
     assert_eq!(r.set_targets(70.0, 270.0, 0.1), Ok(RunStatus::Running));
     assert_eq!(r.tuned_at, None);
     for _ in 0..60 {
-        assert!(r.advance().unwrap().is_some());
+        assert!(r.advance(&mut h).unwrap().is_some());
         if r.tuned_at.is_some() {
             break;
         }
@@ -270,11 +271,11 @@ async fn local_runner_reaches_a_new_target() {
         .expect("tuned to (70 ns, 270 µV) within 60 iterations");
     assert!(second > first);
     // The ground-truth heat map has an in-band region.
-    let land = r.landscape("SB", "T", 30.0, 21).unwrap();
+    let land = r.landscape(&h, "SB", "T", 30.0, 21).unwrap();
     assert_eq!(land.error.len(), 21 * 21);
     assert!(land.error.iter().any(|e| *e <= 1.0), "no in-band cell");
     assert!(land.error.iter().all(|e| e.is_finite()));
-    let last = r.history.last().unwrap();
+    let last = h.latest().unwrap();
     let t_sr = last.parameters.iter().find(|p| p.name == "t_sr").unwrap();
     assert!((t_sr.value.unwrap() - 70.0).abs() <= 7.0 + 3.0 * t_sr.std.unwrap_or(0.0));
 }

@@ -133,6 +133,28 @@ pub struct Drawn {
     pub plot_px: Option<(f64, f64)>,
     /// Data x range of the plot area.
     pub x_range: (f64, f64),
+    /// Charts of several panels ([`panel_grid`]): the width of one column
+    /// of panels (CSS px) and the number of columns; `plot_px` is then the
+    /// first panel's.
+    pub panels: Option<(f64, usize)>,
+}
+
+/// Narrowest a panel of a multi-panel chart may be, CSS px.
+pub const MIN_PANEL_PX: f64 = 230.0;
+
+/// `(rows, columns)` for `n` panels in a chart `width` CSS px wide: all in
+/// one row when each gets at least [`MIN_PANEL_PX`], else two columns,
+/// else one (a phone: one panel per row).
+pub fn panel_grid(n: usize, width: f64) -> (usize, usize) {
+    let n = n.max(1);
+    let cols = if width >= MIN_PANEL_PX * n as f64 {
+        n
+    } else if n >= 2 && width >= 2.0 * MIN_PANEL_PX {
+        2
+    } else {
+        1
+    };
+    (n.div_ceil(cols), cols)
 }
 
 fn plot_columns<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, y_area: u32) -> usize {
@@ -429,6 +451,7 @@ pub fn draw_parameter<DB: DrawingBackend>(
         overlay_points: overlay.len(),
         plot_px: Some((px.start as f64, px.end as f64)),
         x_range: (x0, x1),
+        panels: None,
     })
 }
 
@@ -476,11 +499,14 @@ pub fn draw_gradient<DB: DrawingBackend>(
     };
     let rows = f.rows();
     let (x0, x1) = f.x_range();
-    let panels = plot.split_evenly((1, layout.gates.len().max(1)));
+    let width = plot.area().dim_in_pixel().0 as f64;
+    let grid = panel_grid(layout.gates.len(), width);
+    let panels = plot.split_evenly(grid);
     let mut drawn = Drawn {
         iterations: rows.len(),
         y_max: f64::NAN,
         x_range: (x0, x1),
+        panels: Some((width / grid.1 as f64, grid.1)),
         ..Drawn::default()
     };
     for (gi, (gate, panel)) in layout.gates.iter().zip(panels.iter()).enumerate() {
@@ -523,6 +549,8 @@ pub fn draw_gradient<DB: DrawingBackend>(
         if gi == 0 {
             drawn.points = line.len();
             drawn.y_range = (y0, y1);
+            let px = chart.plotting_area().get_pixel_range().0;
+            drawn.plot_px = Some((px.start as f64, px.end as f64));
         }
     }
     Ok(drawn)
@@ -540,11 +568,14 @@ pub fn draw_gates<DB: DrawingBackend>(
     }
     let rows = f.rows();
     let (x0, x1) = f.x_range();
-    let panels = plot.split_evenly((1, layout.gates.len()));
+    let width = plot.area().dim_in_pixel().0 as f64;
+    let grid = panel_grid(layout.gates.len(), width);
+    let panels = plot.split_evenly(grid);
     let mut drawn = Drawn {
         iterations: rows.len(),
         y_max: f64::NAN,
         x_range: (x0, x1),
+        panels: Some((width / grid.1 as f64, grid.1)),
         ..Drawn::default()
     };
     for (gi, (gate, panel)) in layout.gates.iter().zip(panels.iter()).enumerate() {
@@ -576,6 +607,8 @@ pub fn draw_gates<DB: DrawingBackend>(
         if gi == 0 {
             drawn.points = line.len();
             drawn.y_range = (y0, y1);
+            let px = chart.plotting_area().get_pixel_range().0;
+            drawn.plot_px = Some((px.start as f64, px.end as f64));
         }
     }
     Ok(drawn)
@@ -650,6 +683,7 @@ pub fn draw_lab_time<DB: DrawingBackend>(
         overlay_points: 0,
         plot_px: Some((px.start as f64, px.end as f64)),
         x_range: (x0, x1),
+        panels: None,
     })
 }
 
@@ -661,6 +695,16 @@ pub fn fmt(x: f64) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn panels_collapse_to_two_columns_then_one_on_narrow_screens() {
+        assert_eq!(panel_grid(4, 1100.0), (1, 4));
+        assert_eq!(panel_grid(4, 700.0), (2, 2));
+        assert_eq!(panel_grid(4, 400.0), (4, 1));
+        assert_eq!(panel_grid(0, 400.0), (1, 1));
+        assert_eq!(panel_grid(3, 500.0), (2, 2));
+    }
     use crate::model::fake_records;
 
     #[cfg_attr(not(target_arch = "wasm32"), test)]

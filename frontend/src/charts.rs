@@ -11,8 +11,14 @@ use crate::axis::nice_range;
 use crate::landscape::Landscape;
 use crate::model::padded_range;
 
+/// Why a figure could not be drawn (plotters' backend or layout error, as
+/// text): the one error type of the drawing layer.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("drawing failed: {0}")]
+pub struct DrawError(pub String);
+
 /// Result of drawing a figure.
-pub type DrawResult = Result<(), String>;
+pub type DrawResult = Result<(), DrawError>;
 
 pub(crate) const FONT: &str = "sans-serif";
 
@@ -31,8 +37,8 @@ pub const PALETTE: [RGBColor; 8] = [
 pub(crate) const BAND: RGBColor = RGBColor(0, 158, 115);
 pub(crate) const TARGET: RGBColor = RGBColor(0, 110, 80);
 
-pub(crate) fn err<E: std::fmt::Debug>(e: E) -> String {
-    format!("{e:?}")
+pub(crate) fn err<E: std::fmt::Debug>(e: E) -> DrawError {
+    DrawError(format!("{e:?}"))
 }
 
 /// Pixel rectangle in absolute backend pixels: `(x range, y range)`.
@@ -173,7 +179,7 @@ pub(crate) fn styled_chart<'a, DB: DrawingBackend>(
     y: std::ops::Range<f64>,
     small: bool,
     x_fmt: &dyn Fn(&f64) -> String,
-) -> Result<ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>, String> {
+) -> Result<ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>, DrawError> {
     let (y0, y1) = nice_range(y.start, y.end);
     let y = y0..y1;
     let Some((bg, frames)) = &plot.bg else {
@@ -216,7 +222,7 @@ pub(crate) fn styled_chart<'a, DB: DrawingBackend>(
                     small,
                     x_fmt,
                 )?;
-                Ok::<_, String>(c.plotting_area().get_pixel_range())
+                Ok::<_, DrawError>(c.plotting_area().get_pixel_range())
             })?;
             let mut entries = frames.entries.borrow_mut();
             entries.retain(|e| e.region != reg);
@@ -250,7 +256,7 @@ fn styled_chart_inner<'a, DB: DrawingBackend>(
     y: std::ops::Range<f64>,
     small: bool,
     x_fmt: &dyn Fn(&f64) -> String,
-) -> Result<ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>, String> {
+) -> Result<ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>, DrawError> {
     let (caption_px, margin, x_area, y_area, label_px, desc_px) = if small {
         (15, 6, 34, 58, 11, 12)
     } else {

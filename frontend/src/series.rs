@@ -12,7 +12,8 @@ use plotters::coord::Shift;
 use plotters::prelude::*;
 
 use crate::charts::{
-    bar_width, color, err, int_label, num_label, placeholder, styled_chart, Plot, BAND, TARGET,
+    bar_width, color, err, int_label, num_label, placeholder, styled_chart, DrawError, Plot, BAND,
+    TARGET,
 };
 use crate::decimate::{min_max, Columns};
 use crate::history::{Row, RunHistory};
@@ -230,7 +231,7 @@ fn draw_band<DB: DrawingBackend>(
     (x0, x1): (f64, f64),
     cols: usize,
     c: RGBColor,
-) -> Result<(), String> {
+) -> Result<(), DrawError> {
     let gap = 2.5 * (x1 - x0) / cols.max(1) as f64;
     let style = c.mix(0.25);
     let mut start = 0;
@@ -314,7 +315,7 @@ pub fn draw_parameter<DB: DrawingBackend>(
     f: &Viewport<'_>,
     p: usize,
     series: usize,
-) -> Result<Drawn, String> {
+) -> Result<Drawn, DrawError> {
     let layout = f.history.layout();
     let Some((name, unit)) = layout.parameters.get(p) else {
         return placeholder(plot.area(), "parameter", "waiting for measurements…")
@@ -464,7 +465,7 @@ fn draw_rejected<DB: DrawingBackend>(
     chart: &mut ChartContext<'_, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
     points: &[(f64, f64)],
     (y0, y1): (f64, f64),
-) -> Result<(), String> {
+) -> Result<(), DrawError> {
     let style = REJECTED.stroke_width(1);
     let inside = |v: f64| v >= y0 && v <= y1;
     chart
@@ -491,7 +492,7 @@ pub fn draw_gradient<DB: DrawingBackend>(
     plot: &Plot<'_, DB>,
     f: &Viewport<'_>,
     g: usize,
-) -> Result<Drawn, String> {
+) -> Result<Drawn, DrawError> {
     let layout = f.history.layout();
     let Some((name, unit)) = layout.gradients.get(g) else {
         return placeholder(plot.area(), "gradient", "waiting for a gradient estimate…")
@@ -560,7 +561,7 @@ pub fn draw_gradient<DB: DrawingBackend>(
 pub fn draw_gates<DB: DrawingBackend>(
     plot: &Plot<'_, DB>,
     f: &Viewport<'_>,
-) -> Result<Drawn, String> {
+) -> Result<Drawn, DrawError> {
     let layout = f.history.layout();
     if layout.gates.is_empty() {
         return placeholder(plot.area(), "gate voltages", "waiting for data…")
@@ -619,7 +620,7 @@ pub fn draw_gates<DB: DrawingBackend>(
 pub fn draw_lab_time<DB: DrawingBackend>(
     plot: &Plot<'_, DB>,
     f: &Viewport<'_>,
-) -> Result<Drawn, String> {
+) -> Result<Drawn, DrawError> {
     let rows = f.rows();
     if rows.is_empty() {
         return placeholder(plot.area(), "lab time", "waiting for data…").map(|_| Drawn::default());

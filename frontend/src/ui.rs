@@ -77,7 +77,7 @@ pub fn Chart<K, F>(
 ) -> impl IntoView
 where
     K: Fn() -> ChartKey + 'static,
-    F: Fn(&Area) -> Result<Drawn, String> + 'static,
+    F: Fn(&Area) -> Result<Drawn, charts::DrawError> + 'static,
 {
     let node = NodeRef::<html::Canvas>::new();
     let back = NodeRef::<html::Canvas>::new();
@@ -228,7 +228,7 @@ fn paint(
     layers: &Layers<'_>,
     height: u32,
     panels: Option<usize>,
-    draw: &dyn Fn(&Area) -> Result<Drawn, String>,
+    draw: &dyn Fn(&Area) -> Result<Drawn, charts::DrawError>,
     draws: StoredValue<u64>,
 ) {
     let t0 = metrics::now_ms();

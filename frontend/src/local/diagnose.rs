@@ -50,7 +50,28 @@ pub fn why_not_tuned(
         .iter()
         .flatten()
         .fold(0.0f64, |m, x| m.max(x.abs()));
-    if largest_step < 0.05 * settings.max_step_mv {
+    let rejected = (0..l.parameters.len())
+        .map(|p| {
+            history.column(l.rejected(p))[recent.clone()]
+                .iter()
+                .filter(|x| x.is_finite())
+                .count()
+        })
+        .max()
+        .unwrap_or(0);
+    let mostly_rejected = rejected * 2 >= recent.len();
+    if mostly_rejected {
+        reasons.push(format!(
+            "{rejected} of the last {} measurements were too uncertain to act on (their error bars are wider than the ±{:.0} % tolerance band): the measurement noise (× {}) is too large for this tolerance",
+            recent.len(),
+            100.0 * settings.tolerance,
+            settings.noise_scale
+        ));
+    }
+    // Frozen because nothing is acted on: the sentence above says why.
+    if largest_step < 0.05 * settings.max_step_mv
+        && (biggest_cell > LARGE_COMPENSATION || !mostly_rejected)
+    {
         let why = if biggest_cell > LARGE_COMPENSATION {
             format!(
                 "a virtual-gate matrix entry of {biggest_cell} mV/mV makes every gate step move a plunger {biggest_cell} times as far, so the step limit cuts each step to almost nothing (the paper's entries are below 1)"
@@ -61,23 +82,6 @@ pub fn why_not_tuned(
         reasons.push(format!(
             "the gates have nearly stopped (no step above {:.2} mV in the last {RECENT_STEPS} iterations): {why}",
             largest_step
-        ));
-    }
-    let rejected = (0..l.parameters.len())
-        .map(|p| {
-            history.column(l.rejected(p))[recent.clone()]
-                .iter()
-                .filter(|x| x.is_finite())
-                .count()
-        })
-        .max()
-        .unwrap_or(0);
-    if rejected * 2 >= recent.len() {
-        reasons.push(format!(
-            "{rejected} of the last {} measurements were too uncertain to act on (their error bars are wider than the ±{:.0} % tolerance band): the measurement noise (× {}) is too large for this tolerance",
-            recent.len(),
-            100.0 * settings.tolerance,
-            settings.noise_scale
         ));
     }
     if settings.q_tsr == 0.0 || settings.q_w == 0.0 {
@@ -126,13 +130,13 @@ mod tests {
         };
         let (h, tuned) = run(&s, 25);
         let why = why_not_tuned(&s, &h, tuned, 0);
-        if tuned.is_none() {
-            let why = why.expect("an explanation after 25 iterations");
-            assert!(why.starts_with("Not tuned after 25 iterations"), "{why}");
-            assert!(why.contains("Q σ = 0"), "{why}");
-        } else {
-            assert_eq!(why, None);
-        }
+        assert_eq!(tuned, None, "tuned with noise × 5 and Q = 0?");
+        let why = why.expect("an explanation after 25 iterations");
+        assert!(why.starts_with("Not tuned after 25 iterations"), "{why}");
+        assert!(why.contains("too uncertain to act on"), "{why}");
+        assert!(why.contains("noise (× 5)"), "{why}");
+        assert!(why.contains("Q σ = 0"), "{why}");
+        assert!(!why.contains("nearly stopped"), "{why}");
         // Young runs and tuned runs get no explanation.
         assert_eq!(why_not_tuned(&s, &h, Some(3), 0), None);
         assert_eq!(why_not_tuned(&s, &h, None, 20), None);

@@ -74,35 +74,100 @@ fn js_err(e: wasm_bindgen::JsValue) -> String {
         .unwrap_or_else(|| format!("{e:?}"))
 }
 
+/// Why a request to the server failed: the one error type of the
+/// dashboard's HTTP boundary.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ApiError {
+    /// No answer (network, CORS, server down).
+    #[error("cannot reach the server: {0}")]
+    Unreachable(String),
+    /// An answer with an error status; `detail` is the body when it is short
+    /// text (empty otherwise).
+    #[error("HTTP {status}{}", if detail.is_empty() { String::new() } else { format!(": {detail}") })]
+    Status {
+        /// HTTP status.
+        status: u16,
+        /// The body (e.g. `{"error":"no run with id 99"}`), or empty.
+        detail: String,
+    },
+    /// A 2xx answer that is not what was asked for.
+    #[error("unexpected reply: {0}")]
+    Reply(String),
+}
+
+impl ApiError {
+    /// Whether the server said it has no such thing (404).
+    pub fn is_not_found(&self) -> bool {
+        matches!(self, ApiError::Status { status: 404, .. })
+    }
+
+    /// The server's words: the `error` field of a JSON body
+    /// (`{"error":"no run with id 99"}` → `no run with id 99`), else the
+    /// whole message.
+    pub fn detail(&self) -> String {
+        if let ApiError::Status { detail, .. } = self {
+            if let Some(e) = serde_json::from_str::<serde_json::Value>(detail)
+                .ok()
+                .and_then(|v| v.get("error")?.as_str().map(str::to_string))
+            {
+                return e;
+            }
+        }
+        self.to_string()
+    }
+}
+
 /// `GET url` and decode the JSON body.
-pub async fn get_json<T: DeserializeOwned>(url: &str) -> Result<T, String> {
+pub async fn get_json<T: DeserializeOwned>(url: &str) -> Result<T, ApiError> {
     let window = leptos::prelude::window();
+    let unreachable = |e| ApiError::Unreachable(js_err(e));
     let resp = JsFuture::from(window.fetch_with_str(url))
         .await
-        .map_err(|e| format!("cannot reach the server: {}", js_err(e)))?;
-    let resp: web_sys::Response = resp.dyn_into().map_err(js_err)?;
+        .map_err(unreachable)?;
+    let resp: web_sys::Response = resp.dyn_into().map_err(unreachable)?;
     let status = resp.status();
-    let text = JsFuture::from(resp.text().map_err(js_err)?)
+    let text = JsFuture::from(resp.text().map_err(unreachable)?)
         .await
-        .map_err(js_err)?
+        .map_err(unreachable)?
         .as_string()
         .unwrap_or_default();
     if !(200..300).contains(&status) {
         let detail = text.trim();
-        return Err(
-            if detail.is_empty() || detail.starts_with('<') || detail.len() > 200 {
-                format!("HTTP {status}")
-            } else {
-                format!("HTTP {status}: {detail}")
-            },
-        );
+        let detail = if detail.starts_with('<') || detail.len() > 200 {
+            String::new()
+        } else {
+            detail.to_string()
+        };
+        return Err(ApiError::Status { status, detail });
     }
-    serde_json::from_str(&text).map_err(|e| format!("unexpected reply: {e}"))
+    serde_json::from_str(&text).map_err(|e| ApiError::Reply(e.to_string()))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn api_errors_say_what_the_server_said() {
+        let e = ApiError::Status {
+            status: 404,
+            detail: r#"{"error":"no run with id 99"}"#.into(),
+        };
+        assert!(e.is_not_found());
+        assert_eq!(e.detail(), "no run with id 99");
+        assert_eq!(e.to_string(), r#"HTTP 404: {"error":"no run with id 99"}"#);
+        let e = ApiError::Status {
+            status: 503,
+            detail: String::new(),
+        };
+        assert!(!e.is_not_found());
+        assert_eq!(e.to_string(), "HTTP 503");
+        assert_eq!(
+            ApiError::Unreachable("x".into()).to_string(),
+            "cannot reach the server: x"
+        );
+    }
 
     #[cfg_attr(not(target_arch = "wasm32"), test)]
     #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]

@@ -11,8 +11,14 @@ use crate::axis::nice_range;
 use crate::landscape::Landscape;
 use crate::model::padded_range;
 
+/// Why a figure could not be drawn (plotters' backend or layout error, as
+/// text): the one error type of the drawing layer.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("drawing failed: {0}")]
+pub struct DrawError(pub String);
+
 /// Result of drawing a figure.
-pub type DrawResult = Result<(), String>;
+pub type DrawResult = Result<(), DrawError>;
 
 pub(crate) const FONT: &str = "sans-serif";
 
@@ -31,8 +37,8 @@ pub const PALETTE: [RGBColor; 8] = [
 pub(crate) const BAND: RGBColor = RGBColor(0, 158, 115);
 pub(crate) const TARGET: RGBColor = RGBColor(0, 110, 80);
 
-pub(crate) fn err<E: std::fmt::Debug>(e: E) -> String {
-    format!("{e:?}")
+pub(crate) fn err<E: std::fmt::Debug>(e: E) -> DrawError {
+    DrawError(format!("{e:?}"))
 }
 
 /// Pixel rectangle in absolute backend pixels: `(x range, y range)`.
@@ -41,7 +47,7 @@ pub type PixelRect = (std::ops::Range<i32>, std::ops::Range<i32>);
 /// What a frame (caption, axes, tick labels, grid) of one plot area shows:
 /// equal keys draw equal frames.
 #[derive(Debug, Clone, PartialEq)]
-struct FrameKey {
+struct AxesKey {
     caption: String,
     x_desc: String,
     y_desc: String,
@@ -55,10 +61,10 @@ struct FrameKey {
 
 /// A frame drawn on the background canvas.
 #[derive(Debug)]
-struct FrameEntry {
+struct CachedAxes {
     /// The plot area's whole region (absolute pixels).
     region: PixelRect,
-    key: FrameKey,
+    key: AxesKey,
     /// Its data rectangle (absolute pixels).
     plot: PixelRect,
     /// Used in the current draw.
@@ -66,14 +72,14 @@ struct FrameEntry {
 }
 
 /// The frames a chart holds on its background canvas, by region. Between
-/// [`Frames::begin`] and [`Frames::end`] every plot area drawn marks its
+/// [`LayerCache::begin`] and [`LayerCache::end`] every plot area drawn marks its
 /// frame used; frames not used in a draw are stale (the layout changed).
 #[derive(Debug, Default)]
-pub struct Frames {
-    entries: std::cell::RefCell<Vec<FrameEntry>>,
+pub struct LayerCache {
+    entries: std::cell::RefCell<Vec<CachedAxes>>,
 }
 
-impl Frames {
+impl LayerCache {
     /// A draw begins.
     pub fn begin(&self) {
         for e in self.entries.borrow_mut().iter_mut() {
@@ -83,7 +89,7 @@ impl Frames {
 
     /// A draw ended: drop the frames it did not use; `true` if there were
     /// any (their pixels are still on the background canvas: clear it,
-    /// [`Frames::clear`] and draw again).
+    /// [`LayerCache::clear`] and draw again).
     pub fn end(&self) -> bool {
         let mut e = self.entries.borrow_mut();
         let n = e.len();
@@ -96,7 +102,7 @@ impl Frames {
         self.entries.borrow_mut().clear();
     }
 
-    /// Frames held.
+    /// Cached frames held.
     pub fn len(&self) -> usize {
         self.entries.borrow().len()
     }
@@ -110,10 +116,10 @@ impl Frames {
 /// Where a figure is drawn. Single: everything on one area. Layered: the
 /// data on `area` (a transparent canvas cleared before every draw) and the
 /// frames of the plot areas on a background canvas of the same geometry,
-/// redrawn only when a frame's [`FrameKey`] changed ([`Frames`]).
+/// redrawn only when a frame's [`AxesKey`] changed ([`LayerCache`]).
 pub struct Plot<'a, DB: DrawingBackend> {
     fg: DrawingArea<DB, Shift>,
-    bg: Option<(DrawingArea<DB, Shift>, &'a Frames)>,
+    bg: Option<(DrawingArea<DB, Shift>, &'a LayerCache)>,
 }
 
 impl<'a, DB: DrawingBackend> Plot<'a, DB> {
@@ -126,7 +132,7 @@ impl<'a, DB: DrawingBackend> Plot<'a, DB> {
     pub fn layered(
         fg: DrawingArea<DB, Shift>,
         bg: DrawingArea<DB, Shift>,
-        frames: &'a Frames,
+        frames: &'a LayerCache,
     ) -> Self {
         Self {
             fg,
@@ -173,7 +179,7 @@ pub(crate) fn styled_chart<'a, DB: DrawingBackend>(
     y: std::ops::Range<f64>,
     small: bool,
     x_fmt: &dyn Fn(&f64) -> String,
-) -> Result<ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>, String> {
+) -> Result<ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>, DrawError> {
     let (y0, y1) = nice_range(y.start, y.end);
     let y = y0..y1;
     let Some((bg, frames)) = &plot.bg else {
@@ -181,7 +187,7 @@ pub(crate) fn styled_chart<'a, DB: DrawingBackend>(
             styled_chart_inner(&plot.fg, caption, x_desc, y_desc, x, y, small, x_fmt)
         });
     };
-    let key = FrameKey {
+    let key = AxesKey {
         caption: caption.to_string(),
         x_desc: x_desc.to_string(),
         y_desc: y_desc.to_string(),
@@ -216,11 +222,11 @@ pub(crate) fn styled_chart<'a, DB: DrawingBackend>(
                     small,
                     x_fmt,
                 )?;
-                Ok::<_, String>(c.plotting_area().get_pixel_range())
+                Ok::<_, DrawError>(c.plotting_area().get_pixel_range())
             })?;
             let mut entries = frames.entries.borrow_mut();
             entries.retain(|e| e.region != reg);
-            entries.push(FrameEntry {
+            entries.push(CachedAxes {
                 region: reg.clone(),
                 key,
                 plot: r.clone(),
@@ -250,7 +256,7 @@ fn styled_chart_inner<'a, DB: DrawingBackend>(
     y: std::ops::Range<f64>,
     small: bool,
     x_fmt: &dyn Fn(&f64) -> String,
-) -> Result<ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>, String> {
+) -> Result<ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>, DrawError> {
     let (caption_px, margin, x_area, y_area, label_px, desc_px) = if small {
         (15, 6, 34, 58, 11, 12)
     } else {

@@ -7,6 +7,7 @@ pub mod api;
 pub mod axis;
 pub mod charts;
 pub mod decimate;
+pub mod export;
 pub mod history;
 pub mod landscape;
 pub mod live;
@@ -45,6 +46,74 @@ impl Mode {
     }
 }
 
+/// The page's colours: the system's preference (`prefers-color-scheme`), or
+/// dark or light as chosen (kept in `localStorage["spintune-theme"]`), set
+/// as `data-theme` on `<html>` for the style sheet.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Theme {
+    /// As the system says.
+    Auto,
+    /// Dark.
+    Dark,
+    /// Light.
+    Light,
+}
+
+impl Theme {
+    /// Name in `data-theme` and in storage.
+    pub fn name(self) -> &'static str {
+        match self {
+            Theme::Auto => "auto",
+            Theme::Dark => "dark",
+            Theme::Light => "light",
+        }
+    }
+
+    /// The toggle's text.
+    pub fn label(self) -> &'static str {
+        match self {
+            Theme::Auto => "◐ auto",
+            Theme::Dark => "☾ dark",
+            Theme::Light => "☀ light",
+        }
+    }
+
+    /// The next one on a click: auto → dark → light → auto.
+    pub fn next(self) -> Self {
+        match self {
+            Theme::Auto => Theme::Dark,
+            Theme::Dark => Theme::Light,
+            Theme::Light => Theme::Auto,
+        }
+    }
+
+    fn storage() -> Option<web_sys::Storage> {
+        window().local_storage().ok().flatten()
+    }
+
+    /// The one chosen last on this browser (auto if none).
+    pub fn stored() -> Self {
+        match Self::storage()
+            .and_then(|s| s.get_item("spintune-theme").ok().flatten())
+            .as_deref()
+        {
+            Some("dark") => Theme::Dark,
+            Some("light") => Theme::Light,
+            _ => Theme::Auto,
+        }
+    }
+
+    /// Show and remember it.
+    pub fn apply(self) {
+        if let Some(html) = document().document_element() {
+            let _ = html.set_attribute("data-theme", self.name());
+        }
+        if let Some(s) = Self::storage() {
+            let _ = s.set_item("spintune-theme", self.name());
+        }
+    }
+}
+
 /// The whole page.
 #[component]
 pub fn App(
@@ -56,12 +125,16 @@ pub fn App(
         mode.unwrap_or_else(|| Mode::from_hash(&window().location().hash().unwrap_or_default()));
     let mode = RwSignal::new(initial);
     provide_context(mode);
+    // The in-browser mode's run lives as long as the page, not the tab.
+    provide_context(crate::local::LocalState::new());
     let go = move |m: Mode| {
         if m == Mode::Local {
             let _ = window().location().set_hash("local");
         }
         mode.set(m);
     };
+    let theme = RwSignal::new(Theme::stored());
+    Effect::new(move |_| theme.get().apply());
     view! {
         <header class="topbar">
             <h1>"spintune"</h1>
@@ -69,6 +142,9 @@ pub fn App(
             <nav class="tabs">
                 <button class:active=move || mode.get() == Mode::Live data-testid="tab-live" on:click=move |_| go(Mode::Live)>"Live runs"</button>
                 <button class:active=move || mode.get() == Mode::Local data-testid="tab-local" on:click=move |_| go(Mode::Local)>"In-browser simulation"</button>
+                <button class="theme-toggle" data-testid="theme" data-theme=move || theme.get().name()
+                    title="colours: as the system says (auto), dark or light"
+                    on:click=move |_| theme.update(|t| *t = t.next())>{move || theme.get().label()}</button>
             </nav>
         </header>
         {move || match mode.get() {

@@ -18,6 +18,9 @@
 //!   A change that needs more than one frame's budget is drawn over
 //!   consecutive frames ([`crate::schedule`]): its cost is the sum of its
 //!   entries, and each entry is what one frame cost;
+//! * `localSliceMs` / `maxLocalSliceMs` / `localSlices` — the in-browser
+//!   mode's simulation between two yields to the browser (a slice of an
+//!   iteration, `local::SLICE_MS`): the latest, the largest, how many;
 //! * `wasmMemoryBytes` — size of the module's linear memory
 //!   (`WebAssembly.Memory.buffer.byteLength`), bytes.
 
@@ -36,6 +39,10 @@ struct Metrics {
     first_chart_ms: Option<f64>,
     /// (update ms, frames ms) of the last finished updates.
     recent: VecDeque<(f64, f64)>,
+    /// In-browser simulation slices: latest, largest (ms), count.
+    slice_ms: f64,
+    max_slice_ms: f64,
+    slices: u64,
 }
 
 /// Finished updates kept in `recentUpdateMs` (bounded).
@@ -92,6 +99,20 @@ pub fn note_draw(ms: f64, iterations: usize) {
     publish();
 }
 
+/// A slice of the in-browser simulation took `ms` on the main thread.
+pub fn note_local_slice(ms: f64) {
+    if !ms.is_finite() {
+        return;
+    }
+    METRICS.with(|m| {
+        let mut m = m.borrow_mut();
+        m.slice_ms = ms;
+        m.max_slice_ms = m.max_slice_ms.max(ms);
+        m.slices += 1;
+    });
+    publish();
+}
+
 /// What part of a chart draw a [`phase`] timed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Phase {
@@ -142,6 +163,9 @@ pub fn publish() {
         set("decimateMs", m.decimate_ms);
         set("axesMs", m.axes_ms);
         set("firstChartMs", m.first_chart_ms.unwrap_or(f64::NAN));
+        set("localSliceMs", m.slice_ms);
+        set("maxLocalSliceMs", m.max_slice_ms);
+        set("localSlices", m.slices as f64);
         let list = |f: fn(&(f64, f64)) -> f64| {
             m.recent
                 .iter()

@@ -1,107 +1,10 @@
-//! Client-side state that does not depend on the DOM: the de-duplicated
-//! iteration history of one run, and helpers that turn records into series.
+//! Client-side state that does not depend on the DOM: labels of statuses,
+//! faults and events, which controls a status enables, and helpers that turn
+//! records into numbers (the one history type is `history::RunHistory`).
 
 use spintune::protocol::{
     ClearedBy, EventKind, Fault, FaultKind, GradientReport, IterationRecord, MovedGate, RunStatus,
 };
-
-/// What happened when a record was offered to a [`History`].
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Push {
-    /// Appended as the next iteration.
-    Appended,
-    /// Already known (iteration below the next expected one); ignored.
-    Duplicate,
-    /// Iterations are missing between the last known one and this record; ignored.
-    /// The caller should resubscribe from `expected`.
-    Gap {
-        /// The iteration that should have come next.
-        expected: u64,
-        /// The iteration that arrived.
-        got: u64,
-    },
-}
-
-/// The iterations of one run, strictly consecutive, oldest first.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct History {
-    records: Vec<IterationRecord>,
-}
-
-impl History {
-    /// An empty history.
-    pub fn new() -> Self {
-        Self::default()
-    }
-
-    /// All records, oldest first.
-    pub fn records(&self) -> &[IterationRecord] {
-        &self.records
-    }
-
-    /// The latest record.
-    pub fn last(&self) -> Option<&IterationRecord> {
-        self.records.last()
-    }
-
-    /// Number of records.
-    pub fn len(&self) -> usize {
-        self.records.len()
-    }
-
-    /// Whether there are no records.
-    pub fn is_empty(&self) -> bool {
-        self.records.is_empty()
-    }
-
-    /// The iteration to ask the server for next (`?from=`): last + 1, or 0.
-    pub fn next_iteration(&self) -> u64 {
-        self.records.last().map_or(0, |r| r.iteration + 1)
-    }
-
-    /// Offer one record. The first record of an empty history is accepted
-    /// whatever its number (a server may start a history later than 0).
-    pub fn push(&mut self, record: IterationRecord) -> Push {
-        if self.records.is_empty() {
-            self.records.push(record);
-            return Push::Appended;
-        }
-        let expected = self.next_iteration();
-        if record.iteration < expected {
-            Push::Duplicate
-        } else if record.iteration > expected {
-            Push::Gap {
-                expected,
-                got: record.iteration,
-            }
-        } else {
-            self.records.push(record);
-            Push::Appended
-        }
-    }
-
-    /// Offer records in order; stops at the first gap and reports it.
-    /// Returns the number appended.
-    pub fn extend(
-        &mut self,
-        records: impl IntoIterator<Item = IterationRecord>,
-    ) -> Result<usize, Push> {
-        let mut n = 0;
-        for r in records {
-            match self.push(r) {
-                Push::Appended => n += 1,
-                Push::Duplicate => {}
-                gap @ Push::Gap { .. } => return Err(gap),
-            }
-        }
-        Ok(n)
-    }
-
-    /// Forget everything.
-    pub fn clear(&mut self) {
-        self.records.clear();
-    }
-}
 
 /// ±1σ of each gradient element: `√diag C` (None when the estimator has no covariance).
 pub fn gradient_sigmas(g: &GradientReport) -> Option<Vec<f64>> {
@@ -603,29 +506,6 @@ pub fn fake_records(n: u64) -> Vec<IterationRecord> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[cfg_attr(not(target_arch = "wasm32"), test)]
-    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
-    fn history_dedups_and_detects_gaps() {
-        let recs = fake_records(6);
-        let mut h = History::new();
-        assert_eq!(h.next_iteration(), 0);
-        assert_eq!(h.extend(recs[0..3].iter().cloned()), Ok(3));
-        // Reconnect overlap: 1..4 → 1, 2 duplicates, 3 appended.
-        assert_eq!(h.extend(recs[1..4].iter().cloned()), Ok(1));
-        assert_eq!(h.next_iteration(), 4);
-        assert_eq!(
-            h.push(recs[5].clone()),
-            Push::Gap {
-                expected: 4,
-                got: 5
-            }
-        );
-        assert_eq!(h.len(), 4);
-        assert_eq!(h.push(recs[4].clone()), Push::Appended);
-        let its: Vec<u64> = h.records().iter().map(|r| r.iteration).collect();
-        assert_eq!(its, vec![0, 1, 2, 3, 4]);
-    }
 
     #[cfg_attr(not(target_arch = "wasm32"), test)]
     #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]

@@ -12,7 +12,8 @@ use plotters::coord::Shift;
 use plotters::prelude::*;
 
 use crate::charts::{
-    bar_width, color, err, int_label, num_label, placeholder, styled_chart, Plot, BAND, TARGET,
+    bar_width, color, err, int_label, num_label, placeholder, styled_chart, DrawError, Plot, BAND,
+    TARGET,
 };
 use crate::decimate::{min_max, Columns};
 use crate::history::{Row, RunHistory};
@@ -58,7 +59,7 @@ pub fn hmm(hours: &f64) -> String {
 
 /// What a time-series chart shows.
 #[derive(Clone, Copy)]
-pub struct Frame<'a> {
+pub struct Viewport<'a> {
     /// The run.
     pub history: &'a RunHistory,
     /// Iterations shown.
@@ -69,7 +70,7 @@ pub struct Frame<'a> {
     pub overlay: Option<&'a RunHistory>,
 }
 
-impl Frame<'_> {
+impl Viewport<'_> {
     fn range(&self) -> std::ops::Range<usize> {
         self.history.range(self.window.lo, self.window.hi)
     }
@@ -133,6 +134,28 @@ pub struct Drawn {
     pub plot_px: Option<(f64, f64)>,
     /// Data x range of the plot area.
     pub x_range: (f64, f64),
+    /// Charts of several panels ([`panel_grid`]): the width of one column
+    /// of panels (CSS px) and the number of columns; `plot_px` is then the
+    /// first panel's.
+    pub panels: Option<(f64, usize)>,
+}
+
+/// Narrowest a panel of a multi-panel chart may be, CSS px.
+pub const MIN_PANEL_PX: f64 = 230.0;
+
+/// `(rows, columns)` for `n` panels in a chart `width` CSS px wide: all in
+/// one row when each gets at least [`MIN_PANEL_PX`], else two columns,
+/// else one (a phone: one panel per row).
+pub fn panel_grid(n: usize, width: f64) -> (usize, usize) {
+    let n = n.max(1);
+    let cols = if width >= MIN_PANEL_PX * n as f64 {
+        n
+    } else if n >= 2 && width >= 2.0 * MIN_PANEL_PX {
+        2
+    } else {
+        1
+    };
+    (n.div_ceil(cols), cols)
 }
 
 fn plot_columns<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, y_area: u32) -> usize {
@@ -148,7 +171,7 @@ fn plot_columns<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, y_area: u32) 
 /// is `None`.
 #[allow(clippy::type_complexity)]
 fn series_of(
-    f: &Frame<'_>,
+    f: &Viewport<'_>,
     o: usize,
     sigma: bool,
     (x0, x1): (f64, f64),
@@ -208,7 +231,7 @@ fn draw_band<DB: DrawingBackend>(
     (x0, x1): (f64, f64),
     cols: usize,
     c: RGBColor,
-) -> Result<(), String> {
+) -> Result<(), DrawError> {
     let gap = 2.5 * (x1 - x0) / cols.max(1) as f64;
     let style = c.mix(0.25);
     let mut start = 0;
@@ -289,10 +312,10 @@ fn value_range(
 /// those outside it are pinned to the nearer edge as hollow triangles.
 pub fn draw_parameter<DB: DrawingBackend>(
     plot: &Plot<'_, DB>,
-    f: &Frame<'_>,
+    f: &Viewport<'_>,
     p: usize,
     series: usize,
-) -> Result<Drawn, String> {
+) -> Result<Drawn, DrawError> {
     let layout = f.history.layout();
     let Some((name, unit)) = layout.parameters.get(p) else {
         return placeholder(plot.area(), "parameter", "waiting for measurements…")
@@ -429,6 +452,7 @@ pub fn draw_parameter<DB: DrawingBackend>(
         overlay_points: overlay.len(),
         plot_px: Some((px.start as f64, px.end as f64)),
         x_range: (x0, x1),
+        panels: None,
     })
 }
 
@@ -441,7 +465,7 @@ fn draw_rejected<DB: DrawingBackend>(
     chart: &mut ChartContext<'_, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
     points: &[(f64, f64)],
     (y0, y1): (f64, f64),
-) -> Result<(), String> {
+) -> Result<(), DrawError> {
     let style = REJECTED.stroke_width(1);
     let inside = |v: f64| v >= y0 && v <= y1;
     chart
@@ -466,9 +490,9 @@ fn draw_rejected<DB: DrawingBackend>(
 /// Every element of one parameter's gradient, ±1σ `√diag C` (one panel per gate).
 pub fn draw_gradient<DB: DrawingBackend>(
     plot: &Plot<'_, DB>,
-    f: &Frame<'_>,
+    f: &Viewport<'_>,
     g: usize,
-) -> Result<Drawn, String> {
+) -> Result<Drawn, DrawError> {
     let layout = f.history.layout();
     let Some((name, unit)) = layout.gradients.get(g) else {
         return placeholder(plot.area(), "gradient", "waiting for a gradient estimate…")
@@ -476,11 +500,14 @@ pub fn draw_gradient<DB: DrawingBackend>(
     };
     let rows = f.rows();
     let (x0, x1) = f.x_range();
-    let panels = plot.split_evenly((1, layout.gates.len().max(1)));
+    let width = plot.area().dim_in_pixel().0 as f64;
+    let grid = panel_grid(layout.gates.len(), width);
+    let panels = plot.split_evenly(grid);
     let mut drawn = Drawn {
         iterations: rows.len(),
         y_max: f64::NAN,
         x_range: (x0, x1),
+        panels: Some((width / grid.1 as f64, grid.1)),
         ..Drawn::default()
     };
     for (gi, (gate, panel)) in layout.gates.iter().zip(panels.iter()).enumerate() {
@@ -523,13 +550,18 @@ pub fn draw_gradient<DB: DrawingBackend>(
         if gi == 0 {
             drawn.points = line.len();
             drawn.y_range = (y0, y1);
+            let px = chart.plotting_area().get_pixel_range().0;
+            drawn.plot_px = Some((px.start as f64, px.end as f64));
         }
     }
     Ok(drawn)
 }
 
 /// The tuning gates' voltages (one panel per gate).
-pub fn draw_gates<DB: DrawingBackend>(plot: &Plot<'_, DB>, f: &Frame<'_>) -> Result<Drawn, String> {
+pub fn draw_gates<DB: DrawingBackend>(
+    plot: &Plot<'_, DB>,
+    f: &Viewport<'_>,
+) -> Result<Drawn, DrawError> {
     let layout = f.history.layout();
     if layout.gates.is_empty() {
         return placeholder(plot.area(), "gate voltages", "waiting for data…")
@@ -537,11 +569,14 @@ pub fn draw_gates<DB: DrawingBackend>(plot: &Plot<'_, DB>, f: &Frame<'_>) -> Res
     }
     let rows = f.rows();
     let (x0, x1) = f.x_range();
-    let panels = plot.split_evenly((1, layout.gates.len()));
+    let width = plot.area().dim_in_pixel().0 as f64;
+    let grid = panel_grid(layout.gates.len(), width);
+    let panels = plot.split_evenly(grid);
     let mut drawn = Drawn {
         iterations: rows.len(),
         y_max: f64::NAN,
         x_range: (x0, x1),
+        panels: Some((width / grid.1 as f64, grid.1)),
         ..Drawn::default()
     };
     for (gi, (gate, panel)) in layout.gates.iter().zip(panels.iter()).enumerate() {
@@ -573,6 +608,8 @@ pub fn draw_gates<DB: DrawingBackend>(plot: &Plot<'_, DB>, f: &Frame<'_>) -> Res
         if gi == 0 {
             drawn.points = line.len();
             drawn.y_range = (y0, y1);
+            let px = chart.plotting_area().get_pixel_range().0;
+            drawn.plot_px = Some((px.start as f64, px.end as f64));
         }
     }
     Ok(drawn)
@@ -582,8 +619,8 @@ pub fn draw_gates<DB: DrawingBackend>(plot: &Plot<'_, DB>, f: &Frame<'_>) -> Res
 /// tuned iterations marked green.
 pub fn draw_lab_time<DB: DrawingBackend>(
     plot: &Plot<'_, DB>,
-    f: &Frame<'_>,
-) -> Result<Drawn, String> {
+    f: &Viewport<'_>,
+) -> Result<Drawn, DrawError> {
     let rows = f.rows();
     if rows.is_empty() {
         return placeholder(plot.area(), "lab time", "waiting for data…").map(|_| Drawn::default());
@@ -647,6 +684,7 @@ pub fn draw_lab_time<DB: DrawingBackend>(
         overlay_points: 0,
         plot_px: Some((px.start as f64, px.end as f64)),
         x_range: (x0, x1),
+        panels: None,
     })
 }
 
@@ -658,6 +696,16 @@ pub fn fmt(x: f64) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn panels_collapse_to_two_columns_then_one_on_narrow_screens() {
+        assert_eq!(panel_grid(4, 1100.0), (1, 4));
+        assert_eq!(panel_grid(4, 700.0), (2, 2));
+        assert_eq!(panel_grid(4, 400.0), (4, 1));
+        assert_eq!(panel_grid(0, 400.0), (1, 1));
+        assert_eq!(panel_grid(3, 500.0), (2, 2));
+    }
     use crate::model::fake_records;
 
     #[cfg_attr(not(target_arch = "wasm32"), test)]

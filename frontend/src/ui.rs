@@ -16,7 +16,7 @@ use crate::model::{
     moved_rows, stale_status_label, status_class, status_hint, status_label, tuned_badge,
 };
 use crate::schedule;
-use crate::series::{self, Drawn, Frame, XAxis};
+use crate::series::{self, Drawn, Viewport, XAxis};
 use crate::zoom::{self, View};
 
 /// Where a [`Chart`] draws: the data canvas layered over the frame canvas
@@ -70,10 +70,14 @@ pub fn Chart<K, F>(
     key: K,
     /// Draws the figure.
     draw: F,
+    /// Panels of a multi-panel chart ([`series::panel_grid`]): `height` is
+    /// then one row's, and the canvas grows by the rows the width needs.
+    #[prop(optional)]
+    panels: Option<Signal<usize>>,
 ) -> impl IntoView
 where
     K: Fn() -> ChartKey + 'static,
-    F: Fn(&Area) -> Result<Drawn, String> + 'static,
+    F: Fn(&Area) -> Result<Drawn, charts::DrawError> + 'static,
 {
     let node = NodeRef::<html::Canvas>::new();
     let back = NodeRef::<html::Canvas>::new();
@@ -81,7 +85,7 @@ where
     let id = schedule::new_id();
     on_cleanup(move || schedule::cancel(id));
     let draw = std::rc::Rc::new(draw);
-    let frames = std::rc::Rc::new(charts::Frames::default());
+    let frames = std::rc::Rc::new(charts::LayerCache::default());
     Effect::new(move |prev: Option<Option<ChartKey>>| {
         let k = key();
         let canvas = node.get()?;
@@ -102,13 +106,25 @@ where
                     frame: &background,
                     frames: &frames,
                 };
-                untrack(|| paint(&layers, height, &*draw, draws));
+                untrack(|| {
+                    let rows = panels.map(|n| n.get());
+                    paint(&layers, height, rows, &*draw, draws)
+                });
             }),
         );
         Some(k)
     });
+    let file = format!("spintune-{name}.png");
+    let save = move |_| {
+        if let (Some(data), Some(frame)) = (node.get_untracked(), back.get_untracked()) {
+            if let Some(url) = composite(&data, &frame).and_then(|c| c.to_data_url().ok()) {
+                download(&url, &file);
+            }
+        }
+    };
     view! {
         <div class="chart-stack">
+            <button class="save-png link" title="save this chart with its axes and labels as PNG" data-testid=format!("save-{name}") on:click=save>"PNG"</button>
             <canvas node_ref=back class="chart-frame" aria-hidden="true" style=format!("height:{height}px")></canvas>
             <canvas
                 node_ref=node
@@ -121,13 +137,64 @@ where
     }
 }
 
+/// One canvas with a chart's frames (axes, labels, grid) and its data on
+/// top, as the page shows them: what "save image" should give (each layer
+/// alone is half a figure).
+pub fn composite(
+    data: &web_sys::HtmlCanvasElement,
+    frame: &web_sys::HtmlCanvasElement,
+) -> Option<web_sys::HtmlCanvasElement> {
+    use wasm_bindgen::JsCast;
+    let out: web_sys::HtmlCanvasElement =
+        document().create_element("canvas").ok()?.dyn_into().ok()?;
+    out.set_width(data.width());
+    out.set_height(data.height());
+    let ctx: web_sys::CanvasRenderingContext2d = out.get_context("2d").ok()??.dyn_into().ok()?;
+    ctx.set_fill_style_str("#ffffff");
+    ctx.fill_rect(0.0, 0.0, data.width() as f64, data.height() as f64);
+    ctx.draw_image_with_html_canvas_element(frame, 0.0, 0.0)
+        .ok()?;
+    ctx.draw_image_with_html_canvas_element(data, 0.0, 0.0)
+        .ok()?;
+    Some(out)
+}
+
+/// Let the browser download `url` (a data: or blob: URL) as `file`.
+pub fn download(url: &str, file: &str) {
+    use wasm_bindgen::JsCast;
+    let Some(a) = document()
+        .create_element("a")
+        .ok()
+        .and_then(|a| a.dyn_into::<web_sys::HtmlAnchorElement>().ok())
+    else {
+        return;
+    };
+    a.set_href(url);
+    a.set_download(file);
+    a.click();
+}
+
+/// Download `text` as a file of type `mime`.
+pub fn download_text(text: &str, file: &str, mime: &str) {
+    let parts = js_sys::Array::of1(&wasm_bindgen::JsValue::from_str(text));
+    let opts = web_sys::BlobPropertyBag::new();
+    opts.set_type(mime);
+    let Ok(blob) = web_sys::Blob::new_with_str_sequence_and_options(&parts, &opts) else {
+        return;
+    };
+    if let Ok(url) = web_sys::Url::create_object_url_with_blob(&blob) {
+        download(&url, file);
+        let _ = web_sys::Url::revoke_object_url(&url);
+    }
+}
+
 /// The two canvases of a [`Chart`] and the frames held on the lower one.
 struct Layers<'a> {
     /// Data (transparent, on top; carries the `data-` attributes).
     data: &'a web_sys::HtmlCanvasElement,
     /// Frames (captions, axes, tick labels, grids), below.
     frame: &'a web_sys::HtmlCanvasElement,
-    frames: &'a charts::Frames,
+    frames: &'a charts::LayerCache,
 }
 
 /// Set `canvas` to `w` × `h` device pixels (only if different: writing the
@@ -160,13 +227,24 @@ fn prepare(canvas: &web_sys::HtmlCanvasElement, w: u32, h: u32, ratio: f64, clea
 fn paint(
     layers: &Layers<'_>,
     height: u32,
-    draw: &dyn Fn(&Area) -> Result<Drawn, String>,
+    panels: Option<usize>,
+    draw: &dyn Fn(&Area) -> Result<Drawn, charts::DrawError>,
     draws: StoredValue<u64>,
 ) {
     let t0 = metrics::now_ms();
     let canvas = layers.data;
     let ratio = window().device_pixel_ratio().clamp(1.0, 2.0);
-    let css_w = canvas.client_width().max(280) as f64;
+    let css_w = canvas.client_width().max(200) as f64;
+    let height = match panels {
+        Some(n) => height * series::panel_grid(n, css_w).0 as u32,
+        None => height,
+    };
+    let style = format!("height:{height}px");
+    for c in [canvas, layers.frame] {
+        if c.get_attribute("style").as_deref() != Some(style.as_str()) {
+            let _ = c.set_attribute("style", &style);
+        }
+    }
     let (w, h) = ((css_w * ratio) as u32, (height as f64 * ratio) as u32);
     prepare(canvas, w, h, ratio, true);
     if prepare(layers.frame, w, h, ratio, false) {
@@ -223,6 +301,10 @@ fn paint(
         set("data-px1", b.to_string());
         set("data-x0", drawn.x_range.0.to_string());
         set("data-x1", drawn.x_range.1.to_string());
+    }
+    if let Some((w, cols)) = drawn.panels {
+        set("data-panel-w", w.to_string());
+        set("data-cols", cols.to_string());
     }
     metrics::note_draw(metrics::now_ms() - t0, drawn.iterations);
 }
@@ -298,6 +380,11 @@ pub fn grouped(n: u64) -> String {
 /// and `data-x*` attributes), in the given x axis.
 fn iteration_at(canvas: &web_sys::Element, px: f64, axis: XAxis, h: &RunHistory) -> Option<f64> {
     let num = |k: &str| canvas.get_attribute(k)?.parse::<f64>().ok();
+    // A multi-panel chart: every panel column has the first one's x axis.
+    let px = match num("data-panel-w") {
+        Some(w) if w > 0.0 => px - (px / w).floor() * w,
+        _ => px,
+    };
     let x = zoom::pixel_to_data(
         px,
         num("data-px0")?,
@@ -350,7 +437,17 @@ pub fn Dashboard(
     let view_sel = RwSignal::new(View::All);
     let axis = RwSignal::new(XAxis::Iteration);
     let inspected = RwSignal::new(None::<u64>);
-    let hover = RwSignal::new(None::<u64>);
+    let hover = RwSignal::new(None::<Hover>);
+    // The window's width in steps of 40 CSS px: the charts redraw (and
+    // multi-panel charts re-flow) when it changes.
+    let width = RwSignal::new(viewport_width_step());
+    let resize = window_event_listener(leptos::ev::resize, move |_| {
+        let w = viewport_width_step();
+        if width.get_untracked() != w {
+            width.set(w);
+        }
+    });
+    on_cleanup(move || resize.remove());
     let drag_from = StoredValue::new(None::<f64>);
     let extent = Memo::new(move |_| history.with(|h| h.extent()));
     let window_m = Memo::new(move |_| {
@@ -442,6 +539,7 @@ pub fn Dashboard(
                 .collect::<Vec<_>>()
         })
     });
+    let n_gates = Signal::derive(move || history.with(|h| h.layout().gates.len()));
     let latest_scans =
         Memo::new(move |_| history.with(|h| h.latest_scans().map_or(0, |(_, s)| s.len())));
     let events = Memo::new(move |_| history.with(|h| h.recent_events(6)));
@@ -519,13 +617,55 @@ pub fn Dashboard(
                 .and_then(|k| h.nearest(k))
                 .map(|r| r.iteration)
         });
-        if hover.get_untracked() != k {
-            hover.set(k);
+        let next = k.map(|k| Hover {
+            iteration: k,
+            chart: canvas.get_attribute("data-chart").unwrap_or_default(),
+            at: (ev.client_x() as f64, ev.client_y() as f64),
+        });
+        if hover.with_untracked(|h| *h != next) {
+            hover.set(next);
         }
     };
     let readout = move || {
-        let k = hover.get().or(inspected.get())?;
+        if let Some(h) = hover.get() {
+            return Some(history.with(|hist| {
+                let mut t = readout_text(hist, h.iteration);
+                if let Some(g) = h.chart.strip_prefix("gradient-") {
+                    t.push_str(" · ");
+                    t.push_str(&gradient_readout(hist, h.iteration, g));
+                }
+                t
+            }));
+        }
+        let k = inspected.get()?;
         Some(history.with(|h| readout_text(h, k)))
+    };
+    // Next to the pointer while hovering (kept inside the window).
+    let readout_style = move || {
+        hover.with(|h| {
+            h.as_ref().map_or_else(String::new, |h| {
+                let (vw, vh) = (
+                    window()
+                        .inner_width()
+                        .ok()
+                        .and_then(|v| v.as_f64())
+                        .unwrap_or(1000.0),
+                    window()
+                        .inner_height()
+                        .ok()
+                        .and_then(|v| v.as_f64())
+                        .unwrap_or(800.0),
+                );
+                let w = (vw - 16.0).min(420.0);
+                let left = (h.at.0 + 14.0).min(vw - w - 8.0).max(8.0);
+                let top = if h.at.1 + 120.0 > vh {
+                    h.at.1 - 110.0
+                } else {
+                    h.at.1 + 16.0
+                };
+                format!("left:{left:.0}px;top:{top:.0}px;max-width:{w:.0}px")
+            })
+        })
     };
     view! {
         <div class="dashboard">
@@ -559,9 +699,16 @@ pub fn Dashboard(
                         <option value="lab">"lab time (h:mm)"</option>
                     </select>
                 </label>
+                <button data-testid="export-window-csv" title="the iterations in the window, every number with its unit, as CSV"
+                    on:click=move |_| {
+                        let w = window_m.get_untracked();
+                        let csv = history.with_untracked(|h| crate::export::window_csv(h, w.lo, w.hi));
+                        download_text(&csv, "spintune-window.csv", "text/csv");
+                    }>"CSV of the window"</button>
                 <span class="showing" data-testid="showing">{showing}</span>
             </div>
-            <p class="readout" data-testid="readout">{move || readout().unwrap_or_else(|| "Hover a chart to read values; click to inspect an iteration; drag to zoom; double-click to show the whole run. Keys on the charts: + − ← → 0.".into())}</p>
+            <p class="readout" class:floating=move || hover.with(|h| h.is_some()) style=readout_style data-testid="readout"
+                data-chart=move || hover.with(|h| h.as_ref().map(|h| h.chart.clone()).unwrap_or_default())>{move || readout().unwrap_or_else(|| "Hover a chart to read values; click to inspect an iteration; drag to zoom; double-click to show the whole run. Keys on the charts: + − ← → 0.".into())}</p>
             <div class="timeseries" tabindex="0" data-testid="charts" aria-label="run charts: + and − zoom, arrow keys pan, 0 resets"
                 on:keydown=on_key
                 on:dblclick=move |_| set_view(View::All)
@@ -581,6 +728,7 @@ pub fn Dashboard(
                                         height=270
                                         key=move || {
                                             let mut k = history.with(|h| series_key(h, draw_window.get(), axis.get()));
+                                            k.push(width.get());
                                             k.push(overlay.map_or(0, |o| o.with(|o| o.as_ref().map_or(0, |h| h.version()))));
                                             k
                                         }
@@ -589,7 +737,7 @@ pub fn Dashboard(
                                             let ax = axis.get();
                                             let ov = overlay.map(|o| o.read());
                                             history.with(|h| {
-                                                let f = Frame { history: h, window: w, axis: ax, overlay: ov.as_ref().and_then(|o| o.as_ref()) };
+                                                let f = Viewport { history: h, window: w, axis: ax, overlay: ov.as_ref().and_then(|o| o.as_ref()) };
                                                 series::draw_parameter(a, &f, i, i)
                                             })
                                         }
@@ -605,37 +753,43 @@ pub fn Dashboard(
                     each=move || gradients.get().into_iter().enumerate()
                     key=|(i, n)| (*i, n.clone())
                     children=move |(g, name)| view! {
+                        <div class="chart-box" on:mousedown=mouse_down on:mouseup=mouse_up on:mousemove=mouse_move>
                         <Chart
                             name=format!("gradient-{name}")
                             height=210
-                            key=move || history.with(|h| series_key(h, draw_window.get(), axis.get()))
+                            panels=n_gates
+                            key=move || { let mut k = history.with(|h| series_key(h, draw_window.get(), axis.get())); k.push(width.get()); k }
                             draw=move |a: &Area| {
                                 let w = draw_window.get();
                                 let ax = axis.get();
-                                history.with(|h| series::draw_gradient(a, &Frame { history: h, window: w, axis: ax, overlay: None }, g))
+                                history.with(|h| series::draw_gradient(a, &Viewport { history: h, window: w, axis: ax, overlay: None }, g))
                             }
                         />
+                        </div>
                     }
                 />
                 <h3>"Gate voltages"</h3>
+                <div class="chart-box" on:mousedown=mouse_down on:mouseup=mouse_up on:mousemove=mouse_move>
                 <Chart
                     name="gates"
                     height=200
-                    key=move || history.with(|h| series_key(h, draw_window.get(), axis.get()))
+                    panels=n_gates
+                    key=move || { let mut k = history.with(|h| series_key(h, draw_window.get(), axis.get())); k.push(width.get()); k }
                     draw=move |a: &Area| {
                         let w = draw_window.get();
                         let ax = axis.get();
-                        history.with(|h| series::draw_gates(a, &Frame { history: h, window: w, axis: ax, overlay: None }))
+                        history.with(|h| series::draw_gates(a, &Viewport { history: h, window: w, axis: ax, overlay: None }))
                     }
                 />
+                </div>
                 <div class="chart-box" on:mousedown=mouse_down on:mouseup=mouse_up on:mousemove=mouse_move>
                     <Chart
                         name="lab-time"
                         height=220
-                        key=move || history.with(|h| series_key(h, draw_window.get(), XAxis::Iteration))
+                        key=move || { let mut k = history.with(|h| series_key(h, draw_window.get(), XAxis::Iteration)); k.push(width.get()); k }
                         draw=move |a: &Area| {
                             let w = draw_window.get();
-                            history.with(|h| series::draw_lab_time(a, &Frame { history: h, window: w, axis: XAxis::Iteration, overlay: None }))
+                            history.with(|h| series::draw_lab_time(a, &Viewport { history: h, window: w, axis: XAxis::Iteration, overlay: None }))
                         }
                     />
                     <div class="legend"><span><i class="swatch lab"></i>"cumulative lab time"</span><span><i class="swatch band"></i>"tuned"</span></div>
@@ -674,6 +828,52 @@ pub fn Dashboard(
             </Show>
         </div>
     }
+}
+
+/// Where the pointer is over a chart: the iteration under it, the chart
+/// (`data-chart`) and the pointer's position in the window (CSS px).
+#[derive(Debug, Clone, PartialEq)]
+struct Hover {
+    iteration: u64,
+    chart: String,
+    at: (f64, f64),
+}
+
+/// `window.innerWidth` in steps of 40 CSS px.
+fn viewport_width_step() -> u64 {
+    let w = window()
+        .inner_width()
+        .ok()
+        .and_then(|v| v.as_f64())
+        .unwrap_or(0.0);
+    (w / 40.0).round().max(0.0) as u64
+}
+
+/// The estimate of parameter `name`'s gradient at iteration `k`, every
+/// gate, ±1σ with units (the hover read-out over a gradient chart), e.g.
+/// "∂t_sr/∂V_N 0.52 ± 0.08 ns/mV".
+pub fn gradient_readout(h: &RunHistory, k: u64, name: &str) -> String {
+    let l = h.layout();
+    let (Some(g), Some(d)) = (l.gradients.iter().position(|x| x.0 == name), h.values(k)) else {
+        return String::new();
+    };
+    let unit = &l.gradients[g].1;
+    l.gates
+        .iter()
+        .enumerate()
+        .map(|(gi, gate)| {
+            let o = l.grad(g, gi);
+            let (v, s) = (d[o], d[o + 1]);
+            if !v.is_finite() {
+                format!("∂{name}/∂V_{gate} –")
+            } else if s.is_finite() {
+                format!("∂{name}/∂V_{gate} {} ± {} {unit}", fmt_num(v), fmt_num(s))
+            } else {
+                format!("∂{name}/∂V_{gate} {} {unit}", fmt_num(v))
+            }
+        })
+        .collect::<Vec<_>>()
+        .join(" · ")
 }
 
 /// Values of iteration `k` with units, for the hover read-out.
@@ -738,6 +938,17 @@ fn scan_legend(scan: Option<&spintune::protocol::ScanReport>) -> impl IntoView {
 #[component]
 fn Inspector(history: RwSignal<RunHistory>, inspected: RwSignal<Option<u64>>) -> impl IntoView {
     let k = move || inspected.get().unwrap_or(0);
+    // A click on a chart far above must not open it off-screen: bring it
+    // into view (the least scrolling that shows it) whenever it changes.
+    let node = NodeRef::<html::Section>::new();
+    Effect::new(move |_| {
+        let _ = inspected.get();
+        if let Some(el) = node.get() {
+            let opts = web_sys::ScrollIntoViewOptions::new();
+            opts.set_block(web_sys::ScrollLogicalPosition::Nearest);
+            el.scroll_into_view_with_scroll_into_view_options(&opts);
+        }
+    });
     let details = move || {
         let k = k();
         history.with(|h| {
@@ -790,7 +1001,7 @@ fn Inspector(history: RwSignal<RunHistory>, inspected: RwSignal<Option<u64>>) ->
         history.with(|h| h.scans(k).map(|s| s.len()))
     });
     view! {
-        <section class="inspector" data-testid="inspector" data-iteration=move || k().to_string()>
+        <section class="inspector" node_ref=node data-testid="inspector" data-iteration=move || k().to_string()>
             <h3>{move || format!("Iteration {} ", grouped(k()))}
                 <button class="link" on:click=move |_| inspected.set(None)>"close"</button>
             </h3>

@@ -245,9 +245,10 @@ async fn local_runner_reaches_a_new_target() {
         ..LocalSettings::default()
     };
     let mut r = LocalRunner::new(&settings).unwrap();
+    let mut h = RunHistory::new();
     // Paper set point I first, then move t_sr to 70 ns (paper set point II).
     for _ in 0..60 {
-        assert!(r.advance().unwrap().is_some());
+        assert!(r.advance(&mut h).unwrap().is_some());
         if r.tuned_at.is_some() {
             break;
         }
@@ -259,7 +260,7 @@ async fn local_runner_reaches_a_new_target() {
     assert_eq!(r.set_targets(70.0, 270.0, 0.1), Ok(RunStatus::Running));
     assert_eq!(r.tuned_at, None);
     for _ in 0..60 {
-        assert!(r.advance().unwrap().is_some());
+        assert!(r.advance(&mut h).unwrap().is_some());
         if r.tuned_at.is_some() {
             break;
         }
@@ -270,11 +271,11 @@ async fn local_runner_reaches_a_new_target() {
         .expect("tuned to (70 ns, 270 µV) within 60 iterations");
     assert!(second > first);
     // The ground-truth heat map has an in-band region.
-    let land = r.landscape("SB", "T", 30.0, 21).unwrap();
+    let land = r.landscape(&h, "SB", "T", 30.0, 21).unwrap();
     assert_eq!(land.error.len(), 21 * 21);
     assert!(land.error.iter().any(|e| *e <= 1.0), "no in-band cell");
     assert!(land.error.iter().all(|e| e.is_finite()));
-    let last = r.history.last().unwrap();
+    let last = h.latest().unwrap();
     let t_sr = last.parameters.iter().find(|p| p.name == "t_sr").unwrap();
     assert!((t_sr.value.unwrap() - 70.0).abs() <= 7.0 + 3.0 * t_sr.std.unwrap_or(0.0));
 }
@@ -1386,4 +1387,388 @@ async fn an_unknown_run_stops_retrying_and_says_so() {
     sleep(1_200).await;
     assert_eq!(sockets.count(), 1, "retried an unknown run");
     assert!(conn().contains("closed"), "{}", conn());
+}
+
+// ---- Issue 25, second round -------------------------------------------------
+
+/// The page's style sheet for a test's lifetime (layout tests need it; the
+/// test page of wasm-bindgen-test has none).
+struct Css(web_sys::Element);
+
+impl Css {
+    fn load() -> Self {
+        let style = document().create_element("style").unwrap();
+        style.set_text_content(Some(include_str!("../style.css")));
+        document().head().unwrap().append_child(&style).unwrap();
+        Css(style)
+    }
+}
+
+impl Drop for Css {
+    fn drop(&mut self) {
+        self.0.remove();
+    }
+}
+
+fn el_rect(el: &web_sys::Element) -> (f64, f64, f64, f64) {
+    let r = el.get_bounding_client_rect();
+    (r.left(), r.top(), r.right(), r.bottom())
+}
+
+fn inner_height() -> f64 {
+    window().inner_height().unwrap().as_f64().unwrap()
+}
+
+/// A synthetic mouse event on `el` at fraction `fx` of its width and `fy`
+/// of its height (client coordinates); returns (clientX, clientY).
+fn mouse(el: &web_sys::Element, kind: &str, fx: f64, fy: f64) -> (f64, f64) {
+    let (l, t, r, b) = el_rect(el);
+    let (x, y) = (l + fx * (r - l), t + fy * (b - t));
+    let init = web_sys::MouseEventInit::new();
+    init.set_bubbles(true);
+    init.set_client_x(x as i32);
+    init.set_client_y(y as i32);
+    let ev = web_sys::MouseEvent::new_with_mouse_event_init_dict(kind, &init).unwrap();
+    el.dispatch_event(&ev).unwrap();
+    (x, y)
+}
+
+async fn drawn_dashboard(el: &web_sys::HtmlElement, n: u64) -> RwSignal<RunHistory> {
+    let history = RwSignal::new(RunHistory::new());
+    let _h = leptos::mount::mount_to(el.clone(), move || view! { <Dashboard history=history /> });
+    std::mem::forget(_h);
+    history.update(|h| {
+        h.insert(fake_records(n));
+    });
+    let want = n.to_string();
+    wait_for("charts drawn", Duration::from_secs(10), || {
+        ["parameter-t_sr", "gradient-t_sr", "gates"]
+            .iter()
+            .all(|c| {
+                el.query_selector(&format!("canvas[data-chart={c}]"))
+                    .unwrap()
+                    .and_then(|c| c.get_attribute("data-iterations"))
+                    .as_deref()
+                    == Some(want.as_str())
+            })
+    })
+    .await;
+    history
+}
+
+/// Issue 25: a click on a chart high on the page opens the inspector in
+/// view (it sits below every time series, ~1,000 px lower); the hover
+/// read-out follows the pointer and, over a gradient chart, shows the
+/// gradient's values with units.
+#[wasm_bindgen_test]
+async fn a_click_shows_the_inspector_in_view_and_the_readout_follows_the_pointer() {
+    let _css = Css::load();
+    let el = host();
+    drawn_dashboard(&el, 30).await;
+    let chart = el
+        .query_selector("canvas[data-chart=parameter-t_sr]")
+        .unwrap()
+        .unwrap();
+    chart.scroll_into_view();
+    sleep(50).await;
+    mouse(&chart, "mousedown", 0.6, 0.5);
+    mouse(&chart, "mouseup", 0.6, 0.5);
+    let inspector = || el.query_selector("[data-testid=inspector]").unwrap();
+    wait_for("the inspector", Duration::from_secs(5), || {
+        inspector().is_some()
+    })
+    .await;
+    wait_for("the inspector in view", Duration::from_secs(5), || {
+        let (_, top, _, bottom) = el_rect(&inspector().unwrap());
+        top < inner_height() && bottom > 0.0 && top >= -1.0
+    })
+    .await;
+
+    // Hover over a gradient chart: the read-out floats next to the pointer
+    // with the gradient's values.
+    let grad = el
+        .query_selector("canvas[data-chart=gradient-t_sr]")
+        .unwrap()
+        .unwrap();
+    grad.scroll_into_view();
+    sleep(50).await;
+    // the third panel of four (a different gate's panel maps the same x)
+    let (x, y) = mouse(&grad, "mousemove", 0.7, 0.5);
+    leptos::task::tick().await;
+    let readout = el.query_selector("[data-testid=readout]").unwrap().unwrap();
+    let t = readout.text_content().unwrap_or_default();
+    assert!(readout.class_list().contains("floating"), "not floating");
+    assert!(t.contains("∂t_sr/∂V_N") && t.contains("ns/mV"), "{t}");
+    assert!(t.contains(" ns") && t.contains(" mV"), "{t}");
+    // Beside the pointer (moved left when it would leave the window), inside the window.
+    let (l, top, r, bottom) = el_rect(&readout);
+    let vw = window().inner_width().unwrap().as_f64().unwrap();
+    assert!(
+        l <= x + 20.0 && r >= x - 20.0 && (top - y).abs() < 140.0,
+        "read-out at ({l}, {top})–({r}, {bottom}), pointer at ({x}, {y})"
+    );
+    assert!(l >= 0.0 && r <= vw && top >= 0.0 && bottom <= inner_height());
+    // Leaving the charts: back in the page's flow.
+    let charts = el.query_selector("[data-testid=charts]").unwrap().unwrap();
+    charts
+        .dispatch_event(&web_sys::Event::new("mouseleave").unwrap())
+        .unwrap();
+    leptos::task::tick().await;
+    assert!(!readout.class_list().contains("floating"));
+}
+
+/// Issue 25: on a phone-wide screen the four-panel charts (gradients, gate
+/// voltages) stack their panels in one column instead of four ~60 px ones;
+/// on a wide one they stay in a row.
+#[wasm_bindgen_test]
+async fn multi_panel_charts_stack_their_panels_on_a_narrow_screen() {
+    let _css = Css::load();
+    let narrow = host();
+    narrow.set_attribute("style", "width: 400px").unwrap();
+    drawn_dashboard(&narrow, 10).await;
+    let cols = |el: &web_sys::HtmlElement, c: &str| {
+        el.query_selector(&format!("canvas[data-chart={c}]"))
+            .unwrap()
+            .and_then(|c| c.get_attribute("data-cols"))
+            .unwrap_or_default()
+    };
+    for c in ["gradient-t_sr", "gradient-w", "gates"] {
+        assert_eq!(cols(&narrow, c), "1", "{c} at 400 px");
+    }
+    let g: web_sys::HtmlElement = narrow
+        .query_selector("canvas[data-chart=gates]")
+        .unwrap()
+        .unwrap()
+        .unchecked_into();
+    assert_eq!(g.offset_height(), 4 * 200, "one 200 px row per gate");
+    assert!(
+        narrow.scroll_width() <= 400,
+        "the dashboard is {} px wide in 400 px",
+        narrow.scroll_width()
+    );
+    let wide = host();
+    wide.set_attribute("style", "width: 1200px").unwrap();
+    drawn_dashboard(&wide, 10).await;
+    assert_eq!(cols(&wide, "gates"), "4");
+}
+
+/// Issue 25: "Save image" of a chart: the composite has the frame (axes,
+/// labels: opaque where the data layer is transparent) and the data.
+#[wasm_bindgen_test]
+async fn a_saved_chart_image_has_its_axes_and_its_data() {
+    let el = host();
+    drawn_dashboard(&el, 12).await;
+    let data: web_sys::HtmlCanvasElement = el
+        .query_selector("canvas[data-chart=parameter-t_sr]")
+        .unwrap()
+        .unwrap()
+        .unchecked_into();
+    let frame: web_sys::HtmlCanvasElement =
+        data.previous_element_sibling().unwrap().unchecked_into();
+    let pixels = |c: &web_sys::HtmlCanvasElement| {
+        let ctx: web_sys::CanvasRenderingContext2d =
+            c.get_context("2d").unwrap().unwrap().unchecked_into();
+        ctx.get_image_data(0.0, 0.0, c.width() as f64, c.height() as f64)
+            .unwrap()
+            .data()
+            .0
+    };
+    let out = spintune_web::ui::composite(&data, &frame).unwrap();
+    let (d, f, o) = (pixels(&data), pixels(&frame), pixels(&out));
+    assert_eq!(o.len(), d.len());
+    // Every pixel of the composite is opaque; the data layer alone is mostly transparent.
+    assert!(o.chunks(4).all(|p| p[3] == 255));
+    let transparent = d.chunks(4).filter(|p| p[3] == 0).count();
+    assert!(transparent > d.len() / 8, "data layer not transparent");
+    // Dark pixels (axes, tick labels) of the frame are in the composite, and so is the data.
+    let dark = |p: &[u8]| p[3] > 200 && p[0] < 100 && p[1] < 100 && p[2] < 100;
+    let frame_dark = f.chunks(4).filter(|p| dark(p)).count();
+    let out_dark = o.chunks(4).filter(|p| dark(p)).count();
+    assert!(
+        frame_dark > 100 && out_dark >= frame_dark,
+        "{frame_dark} {out_dark}"
+    );
+    let data_px = d.chunks(4).filter(|p| p[3] > 0).count();
+    let differs = o.chunks(4).zip(f.chunks(4)).filter(|(a, b)| a != b).count();
+    assert!(data_px > 0 && differs > data_px / 4, "{data_px} {differs}");
+    assert!(el
+        .query_selector("[data-testid=save-parameter-t_sr]")
+        .unwrap()
+        .is_some());
+}
+
+fn q(el: &web_sys::HtmlElement, sel: &str) -> web_sys::HtmlElement {
+    el.query_selector(&format!("[data-testid={sel}]"))
+        .unwrap()
+        .unwrap_or_else(|| panic!("no {sel}"))
+        .unchecked_into()
+}
+
+fn type_into(el: &web_sys::HtmlElement, sel: &str, value: &str) {
+    let i: web_sys::HtmlInputElement = q(el, sel).unchecked_into();
+    i.set_value(value);
+    i.dispatch_event(&web_sys::Event::new("change").unwrap())
+        .unwrap();
+}
+
+fn maybe_text(el: &web_sys::HtmlElement, sel: &str) -> Option<String> {
+    el.query_selector(&format!("[data-testid={sel}]"))
+        .unwrap()
+        .and_then(|e| e.text_content())
+}
+
+/// Issue 25: an invalid setting is named next to its field in plain words
+/// (once; no config path), a cleared field or seed −3 is not silently
+/// replaced, the run refuses to start while one is marked, and the Run
+/// button stays in the sidebar.
+#[wasm_bindgen_test]
+async fn invalid_settings_are_named_next_to_their_field() {
+    let _css = Css::load();
+    let el = host();
+    let _h = leptos::mount::mount_to(el.clone(), move || view! { <App mode=Mode::Local /> });
+    leptos::task::tick().await;
+    let cases = [
+        ("local-q-tsr", "-1", "must be 0 or more"),
+        ("local-max-step", "0", "more than 0 mV"),
+        ("local-seed", "-3", "whole number, 0 or more"),
+        ("local-tolerance", "0", "between 0 and 1"),
+        ("local-max-iterations", "", "empty: enter a number"),
+    ];
+    for (field, value, says) in cases {
+        type_into(&el, field, value);
+        leptos::task::tick().await;
+        let e = maybe_text(&el, &format!("{field}-error")).unwrap_or_default();
+        assert!(e.contains(says), "{field} = {value:?}: {e:?}");
+        assert!(!e.contains("tuner.") && !e.contains("levels["), "{e}");
+    }
+    // Each message once: one per marked field, nothing repeated elsewhere.
+    assert_eq!(el.query_selector_all(".field-error").unwrap().length(), 5);
+    q(&el, "local-run").click();
+    leptos::task::tick().await;
+    let e = maybe_text(&el, "local-error").unwrap_or_default();
+    assert_eq!(
+        e,
+        "a setting above is not valid: fix the marked field first"
+    );
+    assert!(maybe_text(&el, "local-state").unwrap().contains("ready"));
+    // The seed field keeps showing what was typed; the settings keep 1.
+    let run = q(&el, "local-run");
+    let sidebar = el.query_selector(".sidebar").unwrap().unwrap();
+    assert!(
+        el_rect(&run).2 <= el_rect(&sidebar).2 + 0.5,
+        "Run pushed out of the sidebar"
+    );
+    assert!(
+        sidebar.scroll_width() <= sidebar.client_width() + 1,
+        "sidebar scrolls sideways"
+    );
+    // Fix them: the marks go, the run starts.
+    for (field, value) in [
+        ("local-q-tsr", "0.075"),
+        ("local-max-step", "10"),
+        ("local-seed", "3"),
+        ("local-tolerance", "0.1"),
+        ("local-max-iterations", "150"),
+        ("local-delay", "0"),
+    ] {
+        type_into(&el, field, value);
+    }
+    leptos::task::tick().await;
+    assert_eq!(el.query_selector_all(".field-error").unwrap().length(), 0);
+    q(&el, "local-run").click();
+    wait_for("running", Duration::from_secs(10), || {
+        q(&el, "local-state").get_attribute("data-state").as_deref() == Some("running")
+    })
+    .await;
+    assert_eq!(maybe_text(&el, "local-error"), None);
+    q(&el, "local-stop").click();
+}
+
+/// Issue 25: switching to "Live runs" and back keeps the in-browser run
+/// going (its state belongs to the page, not to the tab); the simulation
+/// yields to the browser between slices of an iteration.
+#[wasm_bindgen_test]
+async fn the_in_browser_run_survives_a_trip_to_the_live_runs() {
+    let el = host();
+    let _h = leptos::mount::mount_to(el.clone(), move || view! { <App mode=Mode::Local /> });
+    leptos::task::tick().await;
+    type_into(&el, "local-delay", "0");
+    q(&el, "local-run").click();
+    let iteration = |el: &web_sys::HtmlElement| -> Option<u64> {
+        maybe_text(el, "iteration").and_then(|t| t.trim().parse().ok())
+    };
+    wait_for("two iterations", Duration::from_secs(60), || {
+        iteration(&el).is_some_and(|k| k >= 1)
+    })
+    .await;
+    let before = iteration(&el).unwrap();
+    q(&el, "tab-live").click();
+    leptos::task::tick().await;
+    assert!(el
+        .query_selector("[data-testid=local-run]")
+        .unwrap()
+        .is_none());
+    sleep(300).await;
+    q(&el, "tab-local").click();
+    leptos::task::tick().await;
+    assert_eq!(
+        q(&el, "local-state").get_attribute("data-state").as_deref(),
+        Some("running"),
+        "{}",
+        q(&el, "local-status").inner_text()
+    );
+    assert!(iteration(&el).is_some_and(|k| k >= before), "history lost");
+    wait_for("the run going on", Duration::from_secs(60), || {
+        iteration(&el).is_some_and(|k| k > before)
+    })
+    .await;
+    q(&el, "local-pause").click();
+    let slices = js_sys::eval(
+        "[window.__spintune_metrics.maxLocalSliceMs, window.__spintune_metrics.localSlices]",
+    )
+    .unwrap();
+    web_sys::console::log_2(
+        &"budget: in-browser slices (max ms, count), debug wasm:".into(),
+        &slices,
+    );
+    let _ = js_sys::eval("window.location.hash = ''");
+}
+
+/// Issue 25: dark mode: the toggle cycles auto → dark → light and sets
+/// `data-theme` on `<html>`, which the style sheet turns into colours.
+#[wasm_bindgen_test]
+async fn the_theme_toggle_switches_to_dark_and_back() {
+    let _css = Css::load();
+    let el = host();
+    let _h = leptos::mount::mount_to(el.clone(), move || view! { <App mode=Mode::Local /> });
+    leptos::task::tick().await;
+    let html = document().document_element().unwrap();
+    let theme = || html.get_attribute("data-theme").unwrap_or_default();
+    let start = theme();
+    let mut seen = vec![start.clone()];
+    for _ in 0..3 {
+        q(&el, "theme").click();
+        leptos::task::tick().await;
+        seen.push(theme());
+    }
+    assert_eq!(seen.first(), seen.last(), "{seen:?}");
+    assert!(
+        seen.contains(&"dark".to_string()) && seen.contains(&"light".to_string()),
+        "{seen:?}"
+    );
+    while theme() != "dark" {
+        q(&el, "theme").click();
+        leptos::task::tick().await;
+    }
+    let bg = window()
+        .get_computed_style(&document().body().unwrap())
+        .unwrap()
+        .unwrap()
+        .get_property_value("background-color")
+        .unwrap();
+    assert_eq!(bg, "rgb(17, 22, 28)");
+    while theme() != "auto" {
+        q(&el, "theme").click();
+        leptos::task::tick().await;
+    }
 }

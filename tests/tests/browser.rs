@@ -211,7 +211,8 @@ async fn dashboard_live_control_reconnect_and_in_browser_mode() {
         .await
         .unwrap();
     click(&c, "[data-testid=local-run]").await;
-    wait_text(&c, "[data-testid=local-error]", "PB per SB", 10).await;
+    // Named once, at the cell; the run says where to look.
+    wait_text(&c, "[data-testid=local-error]", "fix the marked cell", 10).await;
     wait_text(&c, "[data-testid=local-state]", "ready", 5).await;
     set_value(&c, "[data-testid=comp-PB-SB]", "5e6").await;
     wait_text(&c, "[data-testid=comp-error]", "out of range", 10).await;

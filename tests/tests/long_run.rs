@@ -475,15 +475,23 @@ async fn long_run_pages_decimates_zooms_inspects_and_races() {
     assert!(!overflow, "the page scrolls sideways at 420 px");
     c.set_window_size(1400, 900).await.unwrap();
 
-    // --- Teaching: two estimators race on the same seeded device ----------------------
+    // --- Teaching: two estimators race on the same seeded devices ---------------------
+    // (3 seeds each, through the paper's first 3 set points.)
     click(&c, "[data-testid=tab-local]").await;
     click(&c, "[data-testid=race-start]").await;
-    let a = wait_text(&c, "[data-testid=race-a]", "tuned at iteration", 180).await;
-    let b = wait_text(&c, "[data-testid=race-b]", "tuned at iteration", 180).await;
+    let done = async |id: &str| {
+        wait(&format!("{id} to finish"), 240, async || {
+            text(&c, &format!("[data-testid={id}]"))
+                .await
+                .filter(|t| t.contains("seeds reached") || t.contains("no seed reached"))
+        })
+        .await
+    };
+    let a = done("race-a").await;
+    let b = done("race-b").await;
     eprintln!("race: A {a:?}; B {b:?}");
-    for t in [&a, &b] {
-        assert!(t.contains("lab min"), "{t}");
-    }
+    assert!(a.contains("3 of 3 seeds reached all 3 set points"), "{a}");
+    assert!(a.contains("lab min (mean ± sd; "), "{a}");
     wait("the race heat map with both paths", 20, async || {
         num_attr(&c, "canvas[data-chart=race-landscape]", "data-iterations")
             .await

@@ -54,6 +54,7 @@ use spintune::protocol::{
     DEFAULT_HISTORY_PAGE, MAX_HISTORY_PAGE, PROTOCOL_VERSION,
 };
 
+use crate::api::ApiError;
 use crate::history::RunHistory;
 use crate::model::status_is_final;
 
@@ -152,7 +153,7 @@ pub enum Event {
     Start,
     /// The answer to [`Action::FetchSummary`]; an error is the HTTP
     /// client's text (`"HTTP 404: …"` for a refused request).
-    Summary(Result<RunSummary, String>),
+    Summary(Result<RunSummary, ApiError>),
     /// The socket opened.
     Opened(SocketId),
     /// The socket could not even be created (`WebSocket::new` failed).
@@ -192,14 +193,14 @@ pub enum Event {
         /// The request's `limit`.
         limit: u32,
         /// The records, or the HTTP client's error.
-        result: Result<Vec<IterationRecord>, String>,
+        result: Result<Vec<IterationRecord>, ApiError>,
     },
     /// The answer to [`Action::FetchScans`].
     Scans {
         /// The iteration asked for.
         iteration: u64,
         /// The stored records from it on (its scans are taken), or the error.
-        result: Result<Vec<IterationRecord>, String>,
+        result: Result<Vec<IterationRecord>, ApiError>,
     },
     /// The time, ms (any monotonic clock): a due reconnection is made.
     Tick {
@@ -638,7 +639,7 @@ impl LiveClient {
         self.notice(notice);
     }
 
-    fn on_summary(&mut self, result: Result<RunSummary, String>, history: &RunHistory) {
+    fn on_summary(&mut self, result: Result<RunSummary, ApiError>, history: &RunHistory) {
         let Some(why) = self.summary_fetch.take() else {
             return;
         };
@@ -646,8 +647,8 @@ impl LiveClient {
             return;
         }
         match result {
-            Err(e) if is_not_found(&e) => {
-                let detail = error_detail(&e);
+            Err(e) if e.is_not_found() => {
+                let detail = e.detail();
                 self.give_up(
                     format!("no run {} on the server", self.run),
                     format!(
@@ -919,7 +920,7 @@ impl LiveClient {
         &mut self,
         before: u64,
         limit: u32,
-        result: Result<Vec<IterationRecord>, String>,
+        result: Result<Vec<IterationRecord>, ApiError>,
         history: &mut RunHistory,
     ) {
         self.page_in_flight = None;
@@ -934,28 +935,6 @@ impl LiveClient {
             Err(e) => self.notice(format!("cannot load older iterations: {e}")),
         }
     }
-}
-
-/// Whether an HTTP client error is the server's 404 (`"HTTP 404…"`, as
-/// `api::get_json` reports it).
-pub fn is_not_found(error: &str) -> bool {
-    error
-        .strip_prefix("HTTP 404")
-        .is_some_and(|rest| rest.is_empty() || rest.starts_with(':'))
-}
-
-/// The server's words in an HTTP client error: the `error` field of a JSON
-/// body (`HTTP 404: {"error":"no run with id 99"}` → `no run with id 99`),
-/// else the text itself.
-pub fn error_detail(error: &str) -> String {
-    let body = error
-        .split_once(": ")
-        .map_or(error, |(_, body)| body)
-        .trim();
-    serde_json::from_str::<serde_json::Value>(body)
-        .ok()
-        .and_then(|v| v.get("error")?.as_str().map(str::to_string))
-        .unwrap_or_else(|| error.to_string())
 }
 
 #[cfg(test)]

@@ -12,7 +12,7 @@ use wasm_bindgen::prelude::*;
 use web_sys::{CloseEvent, MessageEvent, WebSocket};
 
 use super::client::{Action, AuthState, ConnState, Event, LiveClient, PagingMode, SocketId};
-use crate::api::{get_json, ApiBase};
+use crate::api::{get_json, ApiBase, ApiError};
 use crate::history::RunHistory;
 
 /// What the page shows of a run's connection.
@@ -194,7 +194,7 @@ impl Driver {
     fn fetch<T: serde::de::DeserializeOwned + 'static>(
         &self,
         path: &str,
-        event: impl FnOnce(Result<T, String>) -> Event + 'static,
+        event: impl FnOnce(Result<T, ApiError>) -> Event + 'static,
     ) {
         let url = self.0.borrow().base.url(path);
         let weak = self.weak();

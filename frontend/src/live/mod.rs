@@ -45,7 +45,7 @@ pub fn LiveMode(base: ApiBase) -> impl IntoView {
                         let _ = error.try_set(None);
                     }
                     Err(e) => {
-                        let _ = error.try_set(Some(e));
+                        let _ = error.try_set(Some(e.to_string()));
                     }
                 }
                 let _ = loaded.try_set(true);

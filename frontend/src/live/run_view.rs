@@ -11,7 +11,7 @@ use spintune::protocol::{
 
 use super::client::{AuthState, ConnState, Event, PagingMode};
 use super::driver::{Driver, Signals};
-use crate::api::{get_json, ApiBase};
+use crate::api::{get_json, ApiBase, ApiError};
 use crate::history::RunHistory;
 use crate::model::{ControlsEnabled, Followed};
 use crate::ui::{Dashboard, DashboardHooks, StatusBadge, StatusNote};
@@ -21,7 +21,7 @@ pub const OVERLAY_MAX: u64 = 20_000;
 
 /// The newest `max` iterations of run `id`, over HTTP in pages of
 /// [`MAX_HISTORY_PAGE`] (scans dropped on arrival).
-pub async fn load_history_http(base: &ApiBase, id: u64, max: u64) -> Result<RunHistory, String> {
+pub async fn load_history_http(base: &ApiBase, id: u64, max: u64) -> Result<RunHistory, ApiError> {
     let summary: RunSummary = get_json(&base.url(&format!("/api/runs/{id}"))).await?;
     let mut h = RunHistory::new();
     h.set_total(summary.iterations);

@@ -17,6 +17,7 @@ use spintune::driver::SimulationConfig;
 use spintune::driver::PAPER_DEFAULT_COMPENSATION;
 
 use super::settings::{default_matrix, LocalSettings};
+use super::LocalError;
 use crate::widgets::NumberField;
 
 /// Row (compensating plunger) and column (tuning gate) names of the matrix,
@@ -50,20 +51,12 @@ pub fn perturbed(settings: &LocalSettings, seed: u64) -> Vec<Vec<f64>> {
 /// refused cell (row, column) if one is at fault and the message.
 pub fn check(settings: &LocalSettings) -> Result<(), (Option<(usize, usize)>, String)> {
     match settings.try_config() {
-        Ok(_) => Ok(()),
-        Err(e) if e.starts_with("virtual-gate matrix") => {
-            let cell = settings
-                .to_config()
-                .with_compensation(
-                    settings.compensation.clone(),
-                    settings.compensation_uncertainty,
-                )
-                .err()
-                .and_then(|e| e.cell);
-            Err((cell, e))
+        Err(LocalError::Compensation(c)) => {
+            let cell = c.cell;
+            Err((cell, LocalError::Compensation(c).to_string()))
         }
-        // Another setting is refused: the run's error names it.
-        Err(_) => Ok(()),
+        // Another setting is refused: its field says so.
+        _ => Ok(()),
     }
 }
 
@@ -184,7 +177,7 @@ mod tests {
         let Err(e) = s.build() else {
             panic!("an invalid matrix must not start a run");
         };
-        assert!(e.contains("PB per SB"), "{e}");
+        assert!(e.to_string().contains("PB per SB"), "{e}");
         // Out of the core's bounds.
         s.compensation[1][2] = 5e6;
         let (cell, msg) = check(&s).unwrap_err();
@@ -195,7 +188,12 @@ mod tests {
         s.compensation_uncertainty = -1.0;
         let (cell, msg) = check(&s).unwrap_err();
         assert_eq!(cell, None);
-        assert!(msg.contains("relative_uncertainty"), "{msg}");
+        // In plain words: no config path.
+        assert!(msg.contains("matrix uncertainty"), "{msg}");
+        assert!(
+            !msg.contains("relative_uncertainty") && !msg.contains("tuner."),
+            "{msg}"
+        );
     }
 
     #[cfg_attr(not(target_arch = "wasm32"), test)]

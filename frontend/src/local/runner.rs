@@ -1,20 +1,43 @@
-//! [`LocalRunner`]: drives one in-browser [`SimulationRun`] through its
-//! session and keeps its records.
+//! [`LocalRunner`]: drives one in-browser run (session + simulated device)
+//! through its session. Its records go into the [`RunHistory`] the page lends to
+//! [`LocalRunner::advance`] (the one history type of the dashboard, as in the
+//! live mode's client).
 
-use spintune::driver::{Halt, SimulationRun};
+use spintune::driver::Halt;
 use spintune::parameter::Tolerance;
 use spintune::protocol::{ControlCommand, IterationRecord, RunStatus};
+use spintune::session::{Output, RunSession, SessionConfig};
+use spintune::sim::SimulatedDevice;
+use spintune::tuner::Tuner;
 
 use super::settings::LocalSettings;
+use super::LocalError;
+use crate::history::RunHistory;
 use crate::landscape::Landscape;
-use crate::model::History;
 
-/// Drives a [`SimulationRun`] and collects its records. Every change of
-/// the run's course goes through the session ([`LocalRunner::control`]).
+/// Targets and tolerances of one record, per parameter.
+type Targets = Vec<(Option<f64>, Option<f64>)>;
+
+/// How far [`LocalRunner::advance_for`] got.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Progress {
+    /// Iteration `k` completed and was recorded.
+    Recorded(u64),
+    /// The time slice ran out within an iteration (call again).
+    Working,
+    /// The run is over (finished or stopped).
+    Over,
+}
+
+/// Drives a run session against the simulated device (what
+/// `spintune::driver::SimulationRun` does, but in time slices so the page
+/// never blocks for a whole iteration); every change of the run's course goes
+/// through the session ([`LocalRunner::control`]).
 pub struct LocalRunner {
-    run: SimulationRun,
-    /// Iterations so far.
-    pub history: History,
+    session: RunSession,
+    device: SimulatedDevice,
+    /// Targets of the latest record (a change resets [`LocalRunner::tuned_at`]).
+    last_targets: Option<Targets>,
     /// First iteration at which every parameter was in band since the targets
     /// last changed (by the user or by the schedule).
     pub tuned_at: Option<u64>,
@@ -22,27 +45,42 @@ pub struct LocalRunner {
 
 impl LocalRunner {
     /// Start from settings (the session starts running).
-    pub fn new(settings: &LocalSettings) -> Result<Self, String> {
-        Ok(Self::from_run(settings.build()?))
+    pub fn new(settings: &LocalSettings) -> Result<Self, LocalError> {
+        let cfg = settings.try_config()?;
+        let device = cfg.simulated_device().map_err(LocalError::Config)?;
+        let session =
+            RunSession::new(cfg.tuner, SessionConfig::default()).map_err(LocalError::Config)?;
+        Ok(Self::from_parts(session, device))
     }
 
-    /// Drive an existing run (e.g. one with a specially prepared device).
-    pub fn from_run(run: SimulationRun) -> Self {
+    /// Drive a session against a device (e.g. a specially prepared one).
+    pub fn from_parts(session: RunSession, device: SimulatedDevice) -> Self {
         Self {
-            run,
-            history: History::new(),
+            session,
+            device,
+            last_targets: None,
             tuned_at: None,
         }
     }
 
-    /// The run.
-    pub fn run(&self) -> &SimulationRun {
-        &self.run
+    /// The tuner.
+    pub fn tuner(&self) -> &Tuner {
+        self.session.tuner()
+    }
+
+    /// The simulated device.
+    pub fn device(&self) -> &SimulatedDevice {
+        &self.device
+    }
+
+    /// The simulated device, to change it behind the run's back (tests).
+    pub fn device_mut(&mut self) -> &mut SimulatedDevice {
+        &mut self.device
     }
 
     /// The session's status.
     pub fn status(&self) -> RunStatus {
-        self.run.session().status()
+        self.session.status()
     }
 
     /// Whether the session wants iterations (running or stepping): the
@@ -51,57 +89,96 @@ impl LocalRunner {
         matches!(self.status(), RunStatus::Running | RunStatus::Stepping)
     }
 
-    /// One tick of the animation: [`SimulationRun::next_iteration`], with the
-    /// record kept. `Ok(Some(k))`: iteration `k` was recorded; `Ok(None)`: the
+    /// One whole iteration, its record inserted into `history`.
+    /// `Ok(Some(k))`: iteration `k` was recorded; `Ok(None)`: the
     /// run is over (finished or stopped); `Err(Halt::Paused)`: paused
     /// (also after a single step); `Err(Halt::Fault(_))`: the session
     /// paused the run with a fault (resumable).
-    pub fn advance(&mut self) -> Result<Option<u64>, Halt> {
-        let Some(rec) = self.run.next_iteration()? else {
-            return Ok(None);
-        };
-        let k = rec.iteration;
-        self.record(rec);
-        Ok(Some(k))
+    pub fn advance(&mut self, history: &mut RunHistory) -> Result<Option<u64>, Halt> {
+        match self.advance_for(history, f64::INFINITY, &|| 0.0)? {
+            Progress::Recorded(k) => Ok(Some(k)),
+            Progress::Over => Ok(None),
+            Progress::Working => unreachable!("an unlimited slice ends with the iteration"),
+        }
     }
 
-    fn record(&mut self, rec: IterationRecord) {
-        let targets = |r: &IterationRecord| {
-            r.parameters
-                .iter()
-                .map(|p| (p.target, p.tolerance))
-                .collect::<Vec<_>>()
-        };
-        if self
-            .history
-            .last()
-            .is_some_and(|prev| targets(prev) != targets(&rec))
-        {
+    /// Work on the run for about `budget_ms` (by the clock `now`, ms): the
+    /// session's requests are executed one by one (a scan and its fit each)
+    /// until an iteration completes, the run stops or waits, or the time
+    /// is used up after a request ([`Progress::Working`]; call again after
+    /// yielding to the browser). Errors as [`LocalRunner::advance`].
+    pub fn advance_for(
+        &mut self,
+        history: &mut RunHistory,
+        budget_ms: f64,
+        now: &dyn Fn() -> f64,
+    ) -> Result<Progress, Halt> {
+        let t0 = now();
+        loop {
+            match self.session.poll() {
+                Output::Execute(request) => {
+                    let response = self.device.execute(&request);
+                    self.session.feed(response)?;
+                    if now() - t0 >= budget_ms {
+                        return Ok(Progress::Working);
+                    }
+                }
+                Output::Commit(record) => {
+                    let k = record.iteration;
+                    self.record(*record, history);
+                    return Ok(Progress::Recorded(k));
+                }
+                // nothing to persist, no wall clock to wait on
+                Output::Save | Output::Publish(_) | Output::Sleep { .. } => {}
+                Output::Wait => {
+                    return Err(match self.session.status() {
+                        RunStatus::Faulted { fault } => Halt::Fault(fault),
+                        _ => Halt::Paused,
+                    })
+                }
+                Output::Done(_) => return Ok(Progress::Over),
+            }
+        }
+    }
+
+    fn record(&mut self, rec: IterationRecord, history: &mut RunHistory) {
+        let targets: Targets = rec
+            .parameters
+            .iter()
+            .map(|p| (p.target, p.tolerance))
+            .collect();
+        if self.last_targets.as_ref().is_some_and(|t| *t != targets) {
             self.tuned_at = None;
         }
         if rec.tuned && self.tuned_at.is_none() {
             self.tuned_at = Some(rec.iteration);
         }
-        self.history.push(rec);
+        self.last_targets = Some(targets);
+        history.insert([rec]);
+        history.set_total(history.len() as u64);
     }
 
     /// Apply a control command through the session; the new status, or why
     /// the session refused it (nothing changed then).
-    pub fn control(&mut self, command: &ControlCommand) -> Result<RunStatus, String> {
-        self.run.control(command).map_err(|e| e.to_string())
+    pub fn control(&mut self, command: &ControlCommand) -> Result<RunStatus, LocalError> {
+        self.session.control(command).map_err(LocalError::Refused)
     }
 
     /// Change both targets (and the relative tolerance) through the session
     /// (they apply from the next iteration). Both are checked before either
     /// is applied.
-    pub fn set_targets(&mut self, t_sr: f64, w: f64, tolerance: f64) -> Result<RunStatus, String> {
+    pub fn set_targets(
+        &mut self,
+        t_sr: f64,
+        w: f64,
+        tolerance: f64,
+    ) -> Result<RunStatus, LocalError> {
         let tolerance = Some(Tolerance::Relative(tolerance));
         let changes = [("t_sr", t_sr), ("w", w)];
         for (parameter, target) in changes {
-            self.run
-                .tuner()
+            self.tuner()
                 .validate_target(parameter, Some(target), tolerance)
-                .map_err(|e| e.to_string())?;
+                .map_err(LocalError::Target)?;
         }
         for (parameter, target) in changes {
             self.control(&ControlCommand::SetTarget {
@@ -114,12 +191,18 @@ impl LocalRunner {
         Ok(self.status())
     }
 
-    /// The run's path in the (`gx`, `gy`) plane, mV.
-    pub fn landscape_path(&self, gx: &str, gy: &str) -> Vec<(f64, f64)> {
-        self.history
-            .records()
-            .iter()
-            .filter_map(|r| Some((*r.voltages_mv.get(gx)?, *r.voltages_mv.get(gy)?)))
+    /// The run's path in the (`gx`, `gy`) plane, mV, from its `history`.
+    pub fn landscape_path(history: &RunHistory, gx: &str, gy: &str) -> Vec<(f64, f64)> {
+        let l = history.layout();
+        let gate = |g: &str| l.gates.iter().position(|x| x == g).map(|i| l.gate(i));
+        let (Some(cx), Some(cy)) = (gate(gx), gate(gy)) else {
+            return Vec::new();
+        };
+        let (xs, ys) = (history.column(cx), history.column(cy));
+        xs.iter()
+            .zip(ys)
+            .filter(|(x, y)| x.is_finite() && y.is_finite())
+            .map(|(x, y)| (*x, *y))
             .collect()
     }
 
@@ -127,14 +210,21 @@ impl LocalRunner {
     /// plane, ±`half_mv` around the present voltages (other gates fixed):
     /// the largest `|p − p*| / tolerance` over the top level's targeted
     /// parameters (≤ 1: in band), computed by the core's simulator.
-    pub fn landscape(&self, gx: &str, gy: &str, half_mv: f64, n: usize) -> Option<Landscape> {
-        let device = self.run.device();
+    pub fn landscape(
+        &self,
+        history: &RunHistory,
+        gx: &str,
+        gy: &str,
+        half_mv: f64,
+        n: usize,
+    ) -> Option<Landscape> {
+        let device = &self.device;
         let v0 = device.voltages_mv();
         let (cx, cy) = (*v0.get(gx)?, *v0.get(gy)?);
-        let parameters = &self.run.tuner().config().top().parameters;
+        let parameters = &self.tuner().config().top().parameters;
         let grid = device.error_grid(gx, gy, half_mv, n, parameters)?;
         let (xs, ys, error) = (grid.xs, grid.ys, grid.error);
-        let path = self.landscape_path(gx, gy);
+        let path = Self::landscape_path(history, gx, gy);
         Some(Landscape {
             gx: gx.to_string(),
             gy: gy.to_string(),
@@ -155,22 +245,23 @@ mod tests {
     #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
     fn pause_step_resume_stop_go_through_the_session() {
         let mut r = LocalRunner::new(&LocalSettings::default()).unwrap();
+        let mut h = RunHistory::new();
         assert_eq!(r.status(), RunStatus::Running);
-        assert_eq!(r.advance(), Ok(Some(0)));
-        assert_eq!(r.advance(), Ok(Some(1)));
+        assert_eq!(r.advance(&mut h), Ok(Some(0)));
+        assert_eq!(r.advance(&mut h), Ok(Some(1)));
 
         assert_eq!(r.control(&ControlCommand::Pause), Ok(RunStatus::Paused));
         assert!(!r.is_advancing());
-        assert_eq!(r.advance(), Err(Halt::Paused));
-        assert_eq!(r.history.len(), 2);
+        assert_eq!(r.advance(&mut h), Err(Halt::Paused));
+        assert_eq!(h.len(), 2);
 
         // A single step: exactly one more iteration, then paused again.
         assert_eq!(r.control(&ControlCommand::Step), Ok(RunStatus::Stepping));
         assert!(r.is_advancing());
-        assert_eq!(r.advance(), Ok(Some(2)));
+        assert_eq!(r.advance(&mut h), Ok(Some(2)));
         assert_eq!(r.status(), RunStatus::Paused);
-        assert_eq!(r.advance(), Err(Halt::Paused));
-        assert_eq!(r.history.len(), 3);
+        assert_eq!(r.advance(&mut h), Err(Halt::Paused));
+        assert_eq!(h.len(), 3);
 
         // A target change while paused goes through the session too.
         assert_eq!(r.set_targets(70.0, 270.0, 0.1), Ok(RunStatus::Paused));
@@ -178,21 +269,54 @@ mod tests {
         assert!(r.set_targets(70.0, 270.0, -1.0).is_err());
 
         assert_eq!(r.control(&ControlCommand::Resume), Ok(RunStatus::Running));
-        assert_eq!(r.advance(), Ok(Some(3)));
-        let t_sr = r.history.records()[3]
-            .parameters
-            .iter()
-            .find(|p| p.name == "t_sr")
-            .unwrap();
-        assert_eq!(t_sr.target, Some(70.0));
+        assert_eq!(r.advance(&mut h), Ok(Some(3)));
+        let l = h.layout();
+        let t_sr = l.param_index("t_sr").unwrap();
+        assert_eq!(h.values(3).unwrap()[l.param(t_sr) + 2], 70.0);
 
         assert_eq!(r.control(&ControlCommand::Stop), Ok(RunStatus::Stopped));
-        assert_eq!(r.advance(), Ok(None));
+        assert_eq!(r.advance(&mut h), Ok(None));
         assert!(r.control(&ControlCommand::Resume).is_err());
         assert_eq!(r.status(), RunStatus::Stopped);
-        assert_eq!(r.history.len(), 4);
-        let its: Vec<u64> = r.history.records().iter().map(|r| r.iteration).collect();
+        assert_eq!(h.len(), 4);
+        let its: Vec<u64> = h.rows().iter().map(|r| r.iteration).collect();
         assert_eq!(its, vec![0, 1, 2, 3]);
+    }
+
+    /// Time slices: with no time budget every request is its own slice, and
+    /// the records are exactly those of whole iterations.
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn slices_of_an_iteration_give_the_same_records() {
+        let settings = LocalSettings::default();
+        let (mut a, mut b) = (
+            LocalRunner::new(&settings).unwrap(),
+            LocalRunner::new(&settings).unwrap(),
+        );
+        let (mut ha, mut hb) = (RunHistory::new(), RunHistory::new());
+        for _ in 0..3 {
+            a.advance(&mut ha).unwrap();
+        }
+        let mut slices = 0;
+        while hb.len() < 3 {
+            match b.advance_for(&mut hb, 0.0, &|| 0.0).unwrap() {
+                Progress::Working => slices += 1,
+                Progress::Recorded(_) => {}
+                Progress::Over => panic!("over early"),
+            }
+        }
+        assert!(slices >= 3 * 4, "only {slices} slices in 3 iterations");
+        assert_eq!(ha.rows(), hb.rows());
+        let bits = |h: &RunHistory| {
+            h.values(2)
+                .unwrap()
+                .iter()
+                .map(|v| v.to_bits())
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(bits(&ha), bits(&hb));
+        // Pause between slices: the session finishes nothing more.
+        assert_eq!(b.control(&ControlCommand::Pause), Ok(RunStatus::Paused));
     }
 
     /// A run whose device refuses to move gate N more than 0.5 mV: the
@@ -212,9 +336,10 @@ mod tests {
         n.max_mv = n.initial_mv + 0.5;
         let device = SimulatedDevice::new(cfg.device.clone(), &gates, cfg.seed).unwrap();
         let session = RunSession::new(cfg.tuner, SessionConfig::default()).unwrap();
-        let mut r = LocalRunner::from_run(SimulationRun::from_parts(session, device));
+        let mut r = LocalRunner::from_parts(session, device);
+        let mut h = RunHistory::new();
 
-        let fault = match r.advance() {
+        let fault = match r.advance(&mut h) {
             Err(Halt::Fault(f)) => f,
             other => panic!("expected a fault, got {other:?}"),
         };
@@ -238,17 +363,17 @@ mod tests {
         );
         assert!(ControlsEnabled::for_status(&status).resume);
         assert!(!ControlsEnabled::for_status(&status).accept_positions);
-        assert!(r.history.is_empty());
+        assert!(h.is_empty());
 
         // Resume: the session reads the gates back and retries the request,
         // which this device refuses again.
         assert_eq!(r.control(&ControlCommand::Resume), Ok(RunStatus::Running));
-        assert!(matches!(r.advance(), Err(Halt::Fault(f)) if f.kind == FaultKind::Device));
+        assert!(matches!(r.advance(&mut h), Err(Halt::Fault(f)) if f.kind == FaultKind::Device));
         // A faulted run can be held (paused) or stopped by the user.
         assert_eq!(r.control(&ControlCommand::Pause), Ok(RunStatus::Paused));
-        assert_eq!(r.advance(), Err(Halt::Paused));
+        assert_eq!(r.advance(&mut h), Err(Halt::Paused));
         assert_eq!(r.control(&ControlCommand::Stop), Ok(RunStatus::Stopped));
-        assert_eq!(r.advance(), Ok(None));
+        assert_eq!(r.advance(&mut h), Ok(None));
     }
 
     /// Gate N moved by hand while the run was paused: resume reads it back
@@ -261,17 +386,18 @@ mod tests {
         use spintune::protocol::{ClearedBy, FaultKind, Request, Response};
 
         let mut r = LocalRunner::new(&LocalSettings::default()).unwrap();
-        assert_eq!(r.advance(), Ok(Some(0)));
+        let mut h = RunHistory::new();
+        assert_eq!(r.advance(&mut h), Ok(Some(0)));
         assert_eq!(r.control(&ControlCommand::Pause), Ok(RunStatus::Paused));
-        let left = r.run.device().voltages_mv()["N"];
+        let left = r.device().voltages_mv()["N"];
         let moved_to = left + 5.0;
-        let answer = r.run.device_mut().execute(&Request::SetVoltages {
+        let answer = r.device_mut().execute(&Request::SetVoltages {
             voltages_mv: [("N".to_string(), moved_to)].into(),
         });
         assert!(matches!(answer, Response::VoltagesSet { .. }), "{answer:?}");
 
         assert_eq!(r.control(&ControlCommand::Resume), Ok(RunStatus::Running));
-        let fault = match r.advance() {
+        let fault = match r.advance(&mut h) {
             Err(Halt::Fault(f)) => f,
             other => panic!("expected a moved fault, got {other:?}"),
         };
@@ -289,7 +415,7 @@ mod tests {
 
         // Resume without accepting: the gate is read again, still far.
         assert_eq!(r.control(&ControlCommand::Resume), Ok(RunStatus::Running));
-        assert!(matches!(r.advance(), Err(Halt::Fault(f)) if f.kind == FaultKind::Moved));
+        assert!(matches!(r.advance(&mut h), Err(Halt::Fault(f)) if f.kind == FaultKind::Moved));
         // Accept: paused, nothing sent until resume.
         assert_eq!(
             r.control(&ControlCommand::AcceptPositions),
@@ -297,9 +423,9 @@ mod tests {
         );
         assert!(!ControlsEnabled::for_status(&r.status()).accept_positions);
         assert!(r.control(&ControlCommand::AcceptPositions).is_err());
-        assert_eq!(r.advance(), Err(Halt::Paused));
+        assert_eq!(r.advance(&mut h), Err(Halt::Paused));
         assert_eq!(r.control(&ControlCommand::Resume), Ok(RunStatus::Running));
-        assert_eq!(r.advance(), Ok(Some(1)));
+        assert_eq!(r.advance(&mut h), Ok(Some(1)));
         assert_eq!(r.status(), RunStatus::Running);
     }
 }

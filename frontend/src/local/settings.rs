@@ -5,6 +5,82 @@ use spintune::driver::{SimulationConfig, SimulationRun, PAPER_DEFAULT_COMPENSATI
 use spintune::estimator::EstimatorKind;
 use spintune::parameter::Tolerance;
 
+use super::LocalError;
+
+/// A number the student types in the sidebar, checked before it is applied
+/// ([`Field::check`]): the message says in plain words what is allowed,
+/// without the core's config paths.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Field {
+    /// Q σ of ∂t_sr/∂V, ns/mV per mV.
+    QTsr,
+    /// Q σ of ∂w/∂V, µV/mV per mV.
+    QW,
+    /// Factor on the measurement noise.
+    Noise,
+    /// Step limit, mV.
+    MaxStep,
+    /// Device seed.
+    Seed,
+    /// Target t_sr, ns.
+    TargetTsr,
+    /// Target w, µV.
+    TargetW,
+    /// Relative tolerance.
+    Tolerance,
+    /// Iteration limit.
+    MaxIterations,
+    /// Pause between iterations, ms.
+    Delay,
+}
+
+impl Field {
+    /// How the sidebar names it.
+    pub fn label(self) -> &'static str {
+        match self {
+            Field::QTsr => "Q σ of ∂t_sr/∂V",
+            Field::QW => "Q σ of ∂w/∂V",
+            Field::Noise => "measurement noise",
+            Field::MaxStep => "step limit",
+            Field::Seed => "seed",
+            Field::TargetTsr => "t_sr target",
+            Field::TargetW => "w target",
+            Field::Tolerance => "tolerance",
+            Field::MaxIterations => "iteration limit",
+            Field::Delay => "pause between iterations",
+        }
+    }
+
+    /// Whether `v` is allowed here; the plain reason if not.
+    pub fn check(self, v: f64) -> Result<(), String> {
+        let whole = v.fract() == 0.0;
+        let ok = match self {
+            Field::QTsr | Field::QW => (0.0..=1e3).contains(&v),
+            Field::Noise => (0.0..=100.0).contains(&v),
+            Field::MaxStep => v > 0.0 && v <= 1e3,
+            Field::Seed => whole && (0.0..=9.0e15).contains(&v),
+            Field::TargetTsr | Field::TargetW => v > 0.0 && v <= 1e6,
+            Field::Tolerance => v > 0.0 && v < 1.0,
+            Field::MaxIterations => whole && (1.0..=1e6).contains(&v),
+            Field::Delay => whole && (0.0..=60_000.0).contains(&v),
+        };
+        if ok && v.is_finite() {
+            return Ok(());
+        }
+        Err(match self {
+            Field::QTsr | Field::QW => "must be 0 or more (at most 1000); 0 means the filter stops learning once it is sure",
+            Field::Noise => "must be between 0 and 100 (× the default noise)",
+            Field::MaxStep => "must be more than 0 mV (at most 1000 mV): with 0 the tuner cannot move",
+            Field::Seed => "must be a whole number, 0 or more",
+            Field::TargetTsr | Field::TargetW => "must be more than 0 (at most 1,000,000)",
+            Field::Tolerance => "must be between 0 and 1 (0.1 = ±10 % of the target)",
+            Field::MaxIterations => "must be a whole number from 1 to 1,000,000",
+            Field::Delay => "must be a whole number of ms from 0 to 60,000",
+        }
+        .to_string())
+    }
+}
+
 /// What the student can choose.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LocalSettings {
@@ -61,12 +137,43 @@ impl Default for LocalSettings {
 }
 
 impl LocalSettings {
+    /// Every field's value with [`Field::check`]: the first refused one.
+    pub fn check(&self) -> Result<(), LocalError> {
+        let fields = [
+            (Field::QTsr, self.q_tsr),
+            (Field::QW, self.q_w),
+            (Field::Noise, self.noise_scale),
+            (Field::MaxStep, self.max_step_mv),
+            (Field::Seed, self.seed as f64),
+            (Field::TargetTsr, self.target_tsr),
+            (Field::TargetW, self.target_w),
+            (Field::Tolerance, self.tolerance),
+            (Field::MaxIterations, self.max_iterations as f64),
+            (Field::Delay, self.delay_ms as f64),
+        ];
+        for (field, v) in fields {
+            field
+                .check(v)
+                .map_err(|message| LocalError::Field { field, message })?;
+        }
+        Ok(())
+    }
+
     /// The simulation config: the paper's setup with these choices applied
-    /// (an invalid virtual-gate matrix is refused, naming the cell).
-    pub fn try_config(&self) -> Result<SimulationConfig, String> {
+    /// (each field checked first, [`LocalSettings::check`]; an invalid
+    /// virtual-gate matrix is refused naming the cell).
+    pub fn try_config(&self) -> Result<SimulationConfig, LocalError> {
+        self.check()?;
         self.to_config()
             .with_compensation(self.compensation.clone(), self.compensation_uncertainty)
-            .map_err(|e| format!("virtual-gate matrix: {e}"))
+            .map_err(|e| {
+                // Anything else the core refuses is not the matrix's fault.
+                if e.error.field.contains("compensation") {
+                    LocalError::Compensation(e)
+                } else {
+                    LocalError::Config(e.error)
+                }
+            })
     }
 
     /// The simulation config: the paper's setup with these choices applied
@@ -111,8 +218,8 @@ impl LocalSettings {
     }
 
     /// A fresh run with these settings.
-    pub fn build(&self) -> Result<SimulationRun, String> {
-        SimulationRun::new(self.try_config()?).map_err(|e| e.to_string())
+    pub fn build(&self) -> Result<SimulationRun, LocalError> {
+        SimulationRun::new(self.try_config()?).map_err(LocalError::Config)
     }
 }
 

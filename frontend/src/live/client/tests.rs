@@ -4,6 +4,7 @@
 use spintune::protocol::{Fault, FaultKind, RunStatus};
 
 use super::*;
+use crate::api::ApiError;
 use crate::model::{fake_records, status_label};
 
 /// A client and the history it fills, fed by the test.
@@ -154,7 +155,7 @@ fn the_first_socket_asks_for_the_newest_page_and_states_the_protocol_path() {
     // A server that cannot be reached: connect anyway (and retry from there).
     let mut v = Viewer::new(3, None);
     v.feed(Event::Start);
-    let actions = v.feed(Event::Summary(Err("cannot reach the server: x".into())));
+    let actions = v.feed(Event::Summary(Err(ApiError::Unreachable("x".into()))));
     assert_eq!(opened(&actions), Some((SocketId(0), 0)));
 }
 
@@ -298,7 +299,7 @@ fn a_dropped_socket_reconnects_with_growing_bounded_delays_resuming_after_the_he
         assert_eq!(actions.get(3), (attempt > 1).then_some(&check));
         if attempt > 1 {
             assert_eq!(
-                v.feed(Event::Summary(Err("cannot reach the server: x".into()))),
+                v.feed(Event::Summary(Err(ApiError::Unreachable("x".into())))),
                 []
             );
         }
@@ -365,9 +366,10 @@ fn an_unknown_run_stops_retrying() {
     // `#live/99`: the summary is a 404 → closed, no socket, no retry.
     let mut v = Viewer::new(99, None);
     v.feed(Event::Start);
-    let actions = v.feed(Event::Summary(Err(
-        r#"HTTP 404: {"error":"no run with id 99"}"#.into(),
-    )));
+    let actions = v.feed(Event::Summary(Err(ApiError::Status {
+        status: 404,
+        detail: r#"{"error":"no run with id 99"}"#.into(),
+    })));
     assert_eq!(opened(&actions), None);
     assert_eq!(
         v.client.conn(),
@@ -391,9 +393,10 @@ fn an_unknown_run_stops_retrying() {
     assert!(actions.contains(&Action::FetchSummary {
         path: "/api/runs/99".into()
     }));
-    let actions = v.feed(Event::Summary(Err(
-        r#"HTTP 404: {"error":"no run with id 99"}"#.into(),
-    )));
+    let actions = v.feed(Event::Summary(Err(ApiError::Status {
+        status: 404,
+        detail: r#"{"error":"no run with id 99"}"#.into(),
+    })));
     assert!(actions.contains(&Action::CancelReconnect), "{actions:?}");
     assert!(matches!(v.client.conn(), ConnState::Closed { .. }));
     assert_eq!(v.feed(Event::Tick { now_ms: 3_600_000 }), []);
@@ -638,7 +641,10 @@ fn a_server_refusing_socket_paging_is_paged_over_http() {
     // An HTTP failure is a notice.
     let actions = v.feed(Event::Scans {
         iteration: 43,
-        result: Err("HTTP 500".into()),
+        result: Err(ApiError::Status {
+            status: 500,
+            detail: String::new(),
+        }),
     });
     assert_eq!(
         notices(&actions),
@@ -798,18 +804,4 @@ fn undecodable_frames_and_close_reasons_are_notices() {
     });
     assert_eq!(notices(&actions), ["cannot open ws://x: SyntaxError"]);
     assert!(actions.contains(&Action::ScheduleReconnect { delay_ms: 1000 }));
-}
-
-#[cfg_attr(not(target_arch = "wasm32"), test)]
-#[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
-fn http_errors_are_read() {
-    assert!(is_not_found(r#"HTTP 404: {"error":"no run with id 99"}"#));
-    assert!(is_not_found("HTTP 404"));
-    assert!(!is_not_found("HTTP 4040"));
-    assert!(!is_not_found("cannot reach the server: HTTP 404"));
-    assert_eq!(
-        error_detail(r#"HTTP 404: {"error":"no run with id 99"}"#),
-        "no run with id 99"
-    );
-    assert_eq!(error_detail("HTTP 404"), "HTTP 404");
 }

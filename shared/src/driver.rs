@@ -36,6 +36,10 @@ impl Default for SimulationConfig {
     }
 }
 
+/// The paper's process noise σ_Q of the gradient of `(t_sr, w)`:
+/// 0.075 ns/mV and 0.3 µV/mV per mV of step (linear space).
+pub const PAPER_PROCESS_NOISE_PER_MV: (f64, f64) = (0.075, 0.3);
+
 /// Paper targets: t_sr = 20 ns, w = 270 µV (set point I).
 pub const PAPER_FIRST_TARGET: (f64, f64) = (20.0, 270.0);
 
@@ -84,7 +88,7 @@ impl SimulationConfig {
                     target: Some(PAPER_FIRST_TARGET.0),
                     tolerance: Tolerance::Relative(0.1),
                     transform: Transform::Linear,
-                    process_noise_per_mv: 0.075,
+                    process_noise_per_mv: PAPER_PROCESS_NOISE_PER_MV.0,
                 },
                 ParameterSpec {
                     name: "w".into(),
@@ -93,7 +97,7 @@ impl SimulationConfig {
                     target: Some(PAPER_FIRST_TARGET.1),
                     tolerance: Tolerance::Relative(0.1),
                     transform: Transform::Linear,
-                    process_noise_per_mv: 0.3,
+                    process_noise_per_mv: PAPER_PROCESS_NOISE_PER_MV.1,
                 },
             ],
             estimator: EstimatorKind::Kalman,

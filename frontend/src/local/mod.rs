@@ -415,6 +415,18 @@ pub fn LocalMode() -> impl IntoView {
                 <fieldset>
                     <legend>"Tuner and device (apply on Reset)"</legend>
                     <label class="field">
+                        <span class="field-label">"step rule"</span>
+                        <select data-testid="local-rule" on:change=move |ev| {
+                            if let Some(r) = settings::Rule::from_name(&event_target_value(&ev)) {
+                                settings.update(|s| s.rule = r);
+                            }
+                        }>
+                            {settings::Rule::ALL.into_iter().map(|r| view! {
+                                <option value=r.name() selected=move || settings.with(|s| s.rule == r)>{r.label()}</option>
+                            }).collect_view()}
+                        </select>
+                    </label>
+                    <label class="field">
                         <span class="field-label">"estimator"</span>
                         <select data-testid="local-estimator" on:change=move |ev| {
                             if let Some(k) = EstimatorKind::from_name(&event_target_value(&ev)) {

@@ -1,9 +1,13 @@
 //! What the student chooses in the in-browser mode, and the simulation
-//! config it makes (the paper's setup with these choices applied).
+//! config it makes (the recommended setup, or the paper's rule, with these
+//! choices applied).
 
-use spintune::driver::{SimulationConfig, SimulationRun, PAPER_DEFAULT_COMPENSATION};
+use spintune::description::RECOMMENDED_RELATIVE_Q_PER_MV;
+use spintune::driver::{
+    SimulationConfig, SimulationRun, PAPER_DEFAULT_COMPENSATION, PAPER_PROCESS_NOISE_PER_MV,
+};
 use spintune::estimator::EstimatorKind;
-use spintune::parameter::Tolerance;
+use spintune::parameter::{Tolerance, Transform};
 
 use super::LocalError;
 
@@ -81,14 +85,59 @@ impl Field {
     }
 }
 
+/// Which step rule the qubit level follows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Rule {
+    /// The product's default ([`SimulationConfig::recommended`]): log space,
+    /// trust-region step, two moves per measurement, a cheap cold start.
+    #[default]
+    Recommended,
+    /// The paper's own rule ([`SimulationConfig::paper_default`]): linear
+    /// space, pseudo-inverse step, one move, three finite-difference
+    /// repetitions; for teaching and comparison.
+    Paper,
+}
+
+impl Rule {
+    /// Both, in menu order.
+    pub const ALL: [Rule; 2] = [Rule::Recommended, Rule::Paper];
+
+    /// Menu value.
+    pub fn name(self) -> &'static str {
+        match self {
+            Rule::Recommended => "recommended",
+            Rule::Paper => "paper",
+        }
+    }
+
+    /// Menu label.
+    pub fn label(self) -> &'static str {
+        match self {
+            Rule::Recommended => "recommended (log space, trust region, 2 moves)",
+            Rule::Paper => "the paper's (linear, pseudo-inverse, 1 move)",
+        }
+    }
+
+    /// Parse a menu value.
+    pub fn from_name(s: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|r| r.name() == s)
+    }
+}
+
 /// What the student can choose.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LocalSettings {
+    /// Step rule of the qubit level.
+    pub rule: Rule,
     /// Gradient estimator of the qubit level.
     pub estimator: EstimatorKind,
-    /// Process noise σ of the t_sr gradient, ns/mV per mV of step (Q = σ² I).
+    /// Process noise σ of the t_sr gradient, ns/mV per mV of step (Q = σ² I;
+    /// the paper's 0.075). Under [`Rule::Recommended`] (log space) the
+    /// gradient is relative: σ scales the recommended relative Q by
+    /// σ / 0.075 (so the default means the default in both rules).
     pub q_tsr: f64,
-    /// Process noise σ of the w gradient, µV/mV per mV of step.
+    /// Process noise σ of the w gradient, µV/mV per mV of step (the paper's
+    /// 0.3; scaled likewise under [`Rule::Recommended`]).
     pub q_w: f64,
     /// Factor on the simulator's white measurement noise (1 = default device).
     pub noise_scale: f64,
@@ -118,9 +167,10 @@ pub struct LocalSettings {
 impl Default for LocalSettings {
     fn default() -> Self {
         Self {
+            rule: Rule::default(),
             estimator: EstimatorKind::Kalman,
-            q_tsr: 0.075,
-            q_w: 0.3,
+            q_tsr: PAPER_PROCESS_NOISE_PER_MV.0,
+            q_w: PAPER_PROCESS_NOISE_PER_MV.1,
             noise_scale: 1.0,
             max_step_mv: 10.0,
             seed: 1,
@@ -176,10 +226,13 @@ impl LocalSettings {
             })
     }
 
-    /// The simulation config: the paper's setup with these choices applied
-    /// (not validated: see [`LocalSettings::try_config`]).
+    /// The simulation config: the chosen rule's setup with these choices
+    /// applied (not validated: see [`LocalSettings::try_config`]).
     pub fn to_config(&self) -> SimulationConfig {
-        let mut cfg = SimulationConfig::paper_default();
+        let mut cfg = match self.rule {
+            Rule::Recommended => SimulationConfig::recommended(),
+            Rule::Paper => SimulationConfig::paper_default(),
+        };
         cfg.name = "in-browser".into();
         cfg.seed = self.seed;
         cfg.tuner.max_iterations = Some(self.max_iterations);
@@ -192,14 +245,24 @@ impl LocalSettings {
         top.estimator = self.estimator;
         top.solver.max_step_mv = self.max_step_mv;
         for p in &mut top.parameters {
+            // Q as the paper states it, or relative in log space (scaled from
+            // the recommended Q by the same factor as from the paper's).
+            let q = |sigma: f64, paper: f64| match p.transform {
+                Transform::Linear => sigma,
+                Transform::Log => RECOMMENDED_RELATIVE_Q_PER_MV * sigma / paper,
+            };
+            let (q_tsr, q_w) = (
+                q(self.q_tsr, PAPER_PROCESS_NOISE_PER_MV.0),
+                q(self.q_w, PAPER_PROCESS_NOISE_PER_MV.1),
+            );
             match p.name.as_str() {
                 "t_sr" => {
-                    p.process_noise_per_mv = self.q_tsr;
+                    p.process_noise_per_mv = q_tsr;
                     p.target = Some(self.target_tsr);
                     p.tolerance = Tolerance::Relative(self.tolerance);
                 }
                 "w" => {
-                    p.process_noise_per_mv = self.q_w;
+                    p.process_noise_per_mv = q_w;
                     p.target = Some(self.target_w);
                     p.tolerance = Tolerance::Relative(self.tolerance);
                 }
@@ -234,6 +297,42 @@ pub fn default_matrix() -> Vec<Vec<f64>> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The in-browser mode runs the product's default unless the student
+    /// picks the paper's rule; the Q fields mean the same in both (the
+    /// paper's σ, or the recommended relative σ scaled by the same factor).
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn the_recommended_rule_is_the_default_and_the_paper_rule_is_a_choice() {
+        let s = LocalSettings::default();
+        let top = s.to_config().tuner.top().clone();
+        let recommended = SimulationConfig::recommended().tuner.top().clone();
+        assert_eq!(top.solver, recommended.solver);
+        assert_eq!(top.initial_gradient, recommended.initial_gradient);
+        for p in &top.parameters {
+            assert_eq!(p.transform, Transform::Log);
+            assert_eq!(p.process_noise_per_mv, RECOMMENDED_RELATIVE_Q_PER_MV);
+        }
+        let ten_times = LocalSettings {
+            q_tsr: 0.75,
+            ..LocalSettings::default()
+        };
+        let t_sr = ten_times.to_config().tuner.top().parameters[0].clone();
+        assert_eq!(t_sr.name, "t_sr");
+        assert!((t_sr.process_noise_per_mv - 10.0 * RECOMMENDED_RELATIVE_Q_PER_MV).abs() < 1e-15);
+        let paper = LocalSettings {
+            rule: Rule::Paper,
+            ..LocalSettings::default()
+        };
+        let top = paper.to_config().tuner.top().clone();
+        assert_eq!(
+            top.solver,
+            SimulationConfig::paper_default().tuner.top().solver
+        );
+        assert_eq!(top.parameters[0].transform, Transform::Linear);
+        assert_eq!(top.parameters[0].process_noise_per_mv, 0.075);
+        assert!(paper.build().is_ok() && s.build().is_ok());
+    }
 
     #[cfg_attr(not(target_arch = "wasm32"), test)]
     #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]

@@ -241,6 +241,7 @@ pub fn event_name(e: &EventKind) -> &'static str {
         EventKind::ScheduledTargetNotApplied { .. } => "scheduled_target_not_applied",
         EventKind::MoveRefused { .. } => "move_refused",
         EventKind::InstrumentMoved { .. } => "instrument_moved",
+        EventKind::ConfirmationSkipped { .. } => "confirmation_skipped",
     }
 }
 

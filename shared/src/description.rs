@@ -121,6 +121,12 @@ pub struct LinesDescription {
     /// Step limit of one plunger correction, mV (default 2).
     #[serde(default = "default_line_step_mv")]
     pub step_limit_mv: f64,
+    /// Skip the confirming scan after a correction when the filter predicts
+    /// both lines inside the tolerance with this many σ of margin (default
+    /// 2; `null`: always confirm). Chosen on random devices
+    /// (docs/benchmarks.md, "Skipping the confirming line scan").
+    #[serde(default = "default_line_skip_sigma")]
+    pub skip_confirmation_sigma: Option<f64>,
 }
 
 /// The sensing-dot level.
@@ -159,6 +165,9 @@ fn default_line_tolerance_mv() -> f64 {
 fn default_line_step_mv() -> f64 {
     2.0
 }
+fn default_line_skip_sigma() -> Option<f64> {
+    Some(2.0)
+}
 fn default_sd_half_width_mv() -> f64 {
     6.0
 }
@@ -171,7 +180,8 @@ impl DeviceDescription {
     /// strategy (log space, relative Q [`RECOMMENDED_RELATIVE_Q_PER_MV`],
     /// trust-region step, two moves per measurement with the lower levels
     /// after the last, a cold start of one finite-difference repetition of
-    /// [`RECOMMENDED_FD_STEP_MV`] without re-centring between offsets);
+    /// [`RECOMMENDED_FD_STEP_MV`] without re-centring between offsets; the
+    /// line level skips its confirming scan when confident);
     /// after each qubit move the sensing dot (if described), then the line
     /// level (if described; itself followed by the sensing dot). The result
     /// is validated; errors name the description's field (`qubit.gates[1]`,
@@ -254,6 +264,7 @@ impl DeviceDescription {
                 max_iterations_per_call: 1,
                 hold_initial_values: false,
                 compensation,
+                skip_confirmation_sigma: None,
             }),
             after_move: after_qubit,
         });
@@ -291,6 +302,7 @@ impl DeviceDescription {
                     max_iterations_per_call: 3,
                     hold_initial_values: false,
                     compensation: None,
+                    skip_confirmation_sigma: l.skip_confirmation_sigma,
                 }),
                 after_move: if self.sensing_dot.is_some() {
                     vec!["sensing_dot".into()]
@@ -391,6 +403,7 @@ impl DeviceDescription {
                 compensation_uncertainty: default_compensation_uncertainty(),
                 tolerance_mv: default_line_tolerance_mv(),
                 step_limit_mv: default_line_step_mv(),
+                skip_confirmation_sigma: default_line_skip_sigma(),
             }),
             sensing_dot: Some(SensingDotDescription {
                 gate: sd.gate,
@@ -414,7 +427,7 @@ mod tests {
     /// The paper's device described in a few lines derives exactly the
     /// paper's hierarchy with the recommended qubit strategy: every level
     /// field that `paper_default` states by hand comes out the same but the
-    /// strategy's.
+    /// strategy's (and the line level's skipped confirmation).
     #[test]
     fn paper_device_derives_the_paper_hierarchy_with_the_recommended_strategy() {
         let derived = DeviceDescription::paper_device().tuner().unwrap();
@@ -436,6 +449,9 @@ mod tests {
         // the paper states its targets; a description leaves them to the run config
         for p in &mut top.parameters {
             p.target = None;
+        }
+        if let LevelKind::Newton(lines) = &mut paper.levels[1].kind {
+            lines.skip_confirmation_sigma = Some(2.0);
         }
         assert_eq!(derived, paper);
     }

@@ -113,6 +113,7 @@ impl SimulationConfig {
             max_iterations_per_call: 1,
             hold_initial_values: false,
             compensation: Some(compensation),
+            skip_confirmation_sigma: None,
         };
         let chemical = NewtonConfig {
             gates: plungers.iter().map(|s| s.to_string()).collect(),
@@ -145,6 +146,7 @@ impl SimulationConfig {
             max_iterations_per_call: 3,
             hold_initial_values: false,
             compensation: None,
+            skip_confirmation_sigma: None,
         };
         let sensing = SensingDotConfig {
             gate: device.sensing_dot.gate.clone(),

@@ -529,6 +529,19 @@ pub enum EventKind {
         /// Why.
         reason: String,
     },
+    /// A lower level ended its call after a correction without the
+    /// confirming scan: the filter predicted this parameter inside its band
+    /// with margin (`NewtonConfig::skip_confirmation_sigma`).
+    ConfirmationSkipped {
+        /// Parameter name.
+        parameter: String,
+        /// Predicted value after the correction (`unit`).
+        predicted: f64,
+        /// Its predicted standard deviation (`unit`).
+        std: f64,
+        /// Unit of the parameter.
+        unit: String,
+    },
     /// The instrument's read-back differed from where the run expected the
     /// gate; the tuner continues from the read-back.
     InstrumentMoved {
@@ -544,6 +557,15 @@ pub enum EventKind {
 impl std::fmt::Display for EventKind {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
+            EventKind::ConfirmationSkipped {
+                parameter,
+                predicted,
+                std,
+                unit,
+            } => write!(
+                f,
+                "{parameter}: confirming scan skipped, predicted {predicted:.3} ± {std:.3} {unit} (inside its band)"
+            ),
             EventKind::NotRepresentable {
                 parameter,
                 transform,

@@ -113,6 +113,14 @@ pub struct NewtonConfig {
     /// Linear virtual-gate correction applied with each move.
     #[serde(default)]
     pub compensation: Option<Compensation>,
+    /// For levels run as children: after a correction, end the call
+    /// without the confirming measurement when the filter predicts every
+    /// targeted parameter inside its band with this many standard
+    /// deviations of margin (prediction `y + g·Δv`, variance
+    /// `Δv C Δvᵀ + δy²`, in estimator space). The next call measures
+    /// anyway. `None` (default): always confirm. Ignored for the top level.
+    #[serde(default)]
+    pub skip_confirmation_sigma: Option<f64>,
 }
 
 fn default_min_step_mv() -> f64 {
@@ -674,6 +682,14 @@ fn validate_newton(n: &NewtonConfig, has_gate: &dyn Fn(&str) -> bool) -> Result<
             return Err(ConfigError::new(
                 "outlier_sigma",
                 "must be > 0 (or null for no gating)",
+            ));
+        }
+    }
+    if let Some(k) = n.skip_confirmation_sigma {
+        if !(k.is_finite() && (0.0..=10.0).contains(&k)) {
+            return Err(ConfigError::new(
+                "skip_confirmation_sigma",
+                "must be a number in [0, 10] (or null: always confirm)",
             ));
         }
     }

@@ -746,11 +746,65 @@ impl Tuner {
         self.push_ops(ops);
     }
 
+    /// For a child level that just stepped, with
+    /// [`NewtonConfig::skip_confirmation_sigma`] `k`: the events of a
+    /// skipped confirmation if the filter predicts every targeted parameter
+    /// inside its band after the step, `k` predicted standard deviations
+    /// from either edge (estimator space: prediction `y + g·Δv`, variance
+    /// `Δv C Δvᵀ + δy²`); `None` to measure again.
+    fn confidently_in_band(&self, level: usize) -> Option<Vec<EventKind>> {
+        let (cfg, state) = self.newton(level);
+        let k = cfg.skip_confirmation_sigma?;
+        let snapshot = state.snapshot.as_ref()?;
+        let es = state.estimators.as_ref()?;
+        if snapshot.tuned || snapshot.step_mv.iter().all(|d| *d == 0.0) {
+            return None;
+        }
+        let dv = DVector::from_column_slice(&snapshot.step_mv);
+        let mut events = Vec::new();
+        for (i, p) in cfg.parameters.iter().enumerate() {
+            let Some(target) = p.target else { continue };
+            let (y, var_y) = snapshot.samples.get(i).copied().flatten()?;
+            let e = es.get(i)?;
+            let predicted = y + e.gradient().dot(&dv);
+            let var_g = e
+                .covariance()
+                .map_or(0.0, |c| (dv.transpose() * c * &dv)[(0, 0)]);
+            let std = (var_g + var_y).sqrt();
+            let h = p.tolerance.half_width(target);
+            let lo = p.transform.forward_value(target - h)?;
+            let hi = p.transform.forward_value(target + h)?;
+            if !(predicted.is_finite() && std.is_finite())
+                || predicted - k * std < lo
+                || predicted + k * std > hi
+            {
+                return None;
+            }
+            // back in parameter units for the record (linear or log space)
+            let (value, value_std) = match p.transform {
+                crate::parameter::Transform::Linear => (predicted, std),
+                crate::parameter::Transform::Log => (predicted.exp(), predicted.exp() * std),
+            };
+            events.push(EventKind::ConfirmationSkipped {
+                parameter: p.name.clone(),
+                predicted: value,
+                std: value_std,
+                unit: p.unit.clone(),
+            });
+        }
+        (!events.is_empty()).then_some(events)
+    }
+
     fn end_iteration(&mut self, level: usize) -> Option<IterationRecord> {
         if level != 0 {
             let max = self.newton(level).0.max_iterations_per_call;
+            let skip = self.confidently_in_band(level);
             let (_, state) = self.newton_mut(level);
             state.iterations_this_call += 1;
+            if let Some(events) = skip {
+                state.events.extend(events);
+                return None;
+            }
             if state.iterations_this_call < max {
                 let ops = self.round_ops(level);
                 self.push_ops(ops);

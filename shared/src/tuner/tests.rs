@@ -177,6 +177,7 @@ fn qubit(estimator: EstimatorKind) -> NewtonConfig {
         max_iterations_per_call: 1,
         hold_initial_values: false,
         compensation: None,
+        skip_confirmation_sigma: None,
     }
 }
 
@@ -228,6 +229,7 @@ fn hierarchical() -> TunerConfig {
         max_iterations_per_call: 3,
         hold_initial_values: false,
         compensation: None,
+        skip_confirmation_sigma: None,
     };
     TunerConfig {
         gates: gates(),

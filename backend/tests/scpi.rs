@@ -21,8 +21,8 @@ use spintune::safety::GateSpec;
 use spintune::sim::default_gates;
 use spintune_server::cli::Server;
 use spintune_server::config::{MeasureSource, ScpiConfig, ScpiProfile};
-use spintune_server::devices::scpi::ScpiSource;
-use spintune_server::devices::DeviceError;
+use spintune_server::DeviceError;
+use spintune_server::ScpiSource;
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::net::TcpListener;
 

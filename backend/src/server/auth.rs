@@ -105,11 +105,6 @@ impl Auth {
         }
     }
 
-    /// The token (for printing at start).
-    pub fn token(&self) -> &str {
-        &self.token
-    }
-
     /// Check `presented` for a client at `ip`.
     pub fn check(&self, ip: Option<IpAddr>, presented: &str) -> Result<(), Refusal> {
         self.check_at(ip, presented, Instant::now())
@@ -162,7 +157,8 @@ impl Auth {
     }
 
     /// Addresses tracked now (for tests of the bound).
-    pub fn tracked(&self) -> usize {
+    #[cfg(test)]
+    fn tracked(&self) -> usize {
         self.table.lock().unwrap_or_else(|p| p.into_inner()).len()
     }
 }

@@ -59,7 +59,7 @@ mod source;
 mod tests;
 
 #[cfg(test)]
-use commands::{plan_ramp, query_command, set_command, slew_command};
+use commands::{plan_ramp, query_command, scpi_number, set_command, slew_command};
 pub use config::{MeasureSource, ScpiConfig, ScpiProfile};
 pub use device::ScpiDevice;
 pub use source::ScpiSource;

@@ -12,11 +12,12 @@ use serde_json::{json, Value};
 use spintune::protocol::{ServerMessage, PROTOCOL_VERSION};
 use tokio_tungstenite::tungstenite::client::IntoClientRequest;
 
-/// `spintune serve` with the token from the environment (no `--token`).
-fn spawn_with_env_token(db: &std::path::Path) -> Served {
+/// `spintune serve` with `args` and the token from the environment (no `--token`).
+fn spawn_with_env_token(db: &std::path::Path, args: &[&str]) -> Served {
     Serve::new(db)
         .without_token_flag()
         .env("SPINTUNE_TOKEN", TOKEN)
+        .args(args)
         .spawn()
 }
 
@@ -66,7 +67,7 @@ async fn paused_run(addr: SocketAddr) -> u64 {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn websocket_from_a_foreign_origin_is_refused_same_origin_and_scripts_accepted() {
     let dir = TempDir::new("origin-ws");
-    let served = spawn_with_env_token(&dir.0.join("s.db"));
+    let served = spawn_with_env_token(&dir.0.join("s.db"), &[]);
     let addr = served.addr;
     let id = paused_run(addr).await;
 
@@ -93,7 +94,7 @@ async fn websocket_from_a_foreign_origin_is_refused_same_origin_and_scripts_acce
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_foreign_origin_cannot_change_state_even_with_the_token() {
     let dir = TempDir::new("origin-post");
-    let served = spawn_with_env_token(&dir.0.join("s.db"));
+    let served = spawn_with_env_token(&dir.0.join("s.db"), &[]);
     let addr = served.addr;
     let id = paused_run(addr).await;
     let head = format!(
@@ -112,7 +113,7 @@ async fn a_foreign_origin_cannot_change_state_even_with_the_token() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_foreign_host_header_is_refused_naming_allow_host() {
     let dir = TempDir::new("host");
-    let served = spawn_with_env_token(&dir.0.join("s.db"));
+    let served = spawn_with_env_token(&dir.0.join("s.db"), &[]);
     let addr = served.addr;
     let (status, body) = raw(
         addr,
@@ -138,16 +139,15 @@ async fn a_foreign_host_header_is_refused_naming_allow_host() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn allow_origin_and_allow_host_admit_the_named_page_and_name() {
     let dir = TempDir::new("allow");
-    let served = Serve::new(&dir.0.join("s.db"))
-        .without_token_flag()
-        .env("SPINTUNE_TOKEN", TOKEN)
-        .args([
+    let served = spawn_with_env_token(
+        &dir.0.join("s.db"),
+        &[
             "--allow-origin",
             "https://dash.lab.example",
             "--allow-host",
             "spintune.lab.example",
-        ])
-        .spawn();
+        ],
+    );
     let addr = served.addr;
     let id = paused_run(addr).await;
     let mut ws = ws_with_origin(addr, id, Some("https://dash.lab.example"))
@@ -248,7 +248,7 @@ async fn the_token_flag_still_works_but_warns_that_ps_shows_it() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn wrong_tokens_are_throttled_per_address_on_rest_and_sockets() {
     let dir = TempDir::new("throttle");
-    let served = spawn_with_env_token(&dir.0.join("s.db"));
+    let served = spawn_with_env_token(&dir.0.join("s.db"), &[]);
     let addr = served.addr;
     let id = paused_run(addr).await;
     let head = |token: &str| {

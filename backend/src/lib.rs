@@ -4,13 +4,20 @@
 //!
 //! See [`server`] for the HTTP/WebSocket API and [`config`] for run configs.
 
+// What the binary (`main.rs`), the integration tests and the workspace's
+// `tests` crate name; everything else is `pub(crate)`, so that rustc and
+// clippy report what nothing uses.
 pub mod bench;
 pub mod bench_server;
 pub mod cli;
 pub mod config;
-pub mod devices;
+pub(crate) mod devices;
 pub(crate) mod export;
 pub mod replay;
 pub(crate) mod run;
 pub mod server;
 pub mod store;
+
+/// The SCPI driver's TCP client and the instruments' error type (for the
+/// driver's tests against a fake instrument, `tests/scpi.rs`).
+pub use devices::{scpi::ScpiSource, DeviceError};

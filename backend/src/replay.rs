@@ -19,7 +19,7 @@ use std::io::Write;
 
 use nalgebra::{DMatrix, DVector};
 use serde::Deserialize;
-use spintune::kalman::{KalmanGradient, ProcessNoise};
+use spintune::kalman::{FilterError, KalmanGradient, ProcessNoise};
 
 /// One recorded measurement.
 #[derive(Debug, Clone, Deserialize)]
@@ -62,51 +62,118 @@ pub struct ReplayLine {
     pub covariance: Vec<Vec<f64>>,
 }
 
-fn matrix(rows: &[Vec<f64>], n: usize, what: &str) -> Result<DMatrix<f64>, String> {
+/// Why a replay failed; every message names the field, the update or the file.
+#[derive(Debug, thiserror::Error)]
+pub enum ReplayError {
+    /// The input is not valid JSON of the documented shape (`at`: the path
+    /// of the offending field, `None` for the document itself).
+    #[error("invalid replay input{}: {error}", at_field(.at))]
+    Input {
+        at: Option<String>,
+        error: serde_json::Error,
+    },
+    /// `gates` is empty.
+    #[error("`gates` must name at least one gate")]
+    NoGates,
+    /// A list has the wrong length (`unit`: rows or entries).
+    #[error("`{field}` has {got} {unit}, expected {expected}{}", if *.per_gate { " (one per gate)" } else { "" })]
+    Length {
+        field: String,
+        unit: &'static str,
+        got: usize,
+        expected: usize,
+        per_gate: bool,
+    },
+    /// NaN or ±∞ where a number is needed.
+    #[error("`{field}` is not a finite number")]
+    NotFinite { field: String },
+    /// A negative or non-finite variance.
+    #[error("`steps[{step}].variance` must be finite and non-negative, got {value}")]
+    Variance { step: usize, value: f64 },
+    /// The core refused the initial gradient and covariance.
+    #[error("invalid initial state: {0}")]
+    InitialState(FilterError),
+    /// The core refused the outlier gate.
+    #[error("invalid `outlier_sigma`: {0}")]
+    OutlierSigma(FilterError),
+    /// The core refused update `step` (`steps[step-1] → steps[step]`).
+    #[error("update {step} (steps[{}] → steps[{step}]): {error}", .step - 1)]
+    Update { step: usize, error: FilterError },
+    /// The input file could not be read.
+    #[error("cannot read {}: {error}", path.display())]
+    Read {
+        path: std::path::PathBuf,
+        error: std::io::Error,
+    },
+    /// An output line could not be written.
+    #[error("cannot write output: {0}")]
+    Write(std::io::Error),
+    /// An output line could not be serialized.
+    #[error("{0}")]
+    Serialize(serde_json::Error),
+}
+
+fn at_field(at: &Option<String>) -> String {
+    at.as_ref()
+        .map(|p| format!(" at `{p}`"))
+        .unwrap_or_default()
+}
+
+fn matrix(rows: &[Vec<f64>], n: usize, what: &str) -> Result<DMatrix<f64>, ReplayError> {
     if rows.len() != n {
-        return Err(format!(
-            "`{what}` has {} rows, expected {n} (one per gate)",
-            rows.len()
-        ));
+        return Err(ReplayError::Length {
+            field: what.to_string(),
+            unit: "rows",
+            got: rows.len(),
+            expected: n,
+            per_gate: true,
+        });
     }
     for (i, r) in rows.iter().enumerate() {
         if r.len() != n {
-            return Err(format!(
-                "`{what}[{i}]` has {} entries, expected {n}",
-                r.len()
-            ));
+            return Err(ReplayError::Length {
+                field: format!("{what}[{i}]"),
+                unit: "entries",
+                got: r.len(),
+                expected: n,
+                per_gate: false,
+            });
         }
         if let Some(j) = r.iter().position(|x| !x.is_finite()) {
-            return Err(format!("`{what}[{i}][{j}]` is not a finite number"));
+            return Err(ReplayError::NotFinite {
+                field: format!("{what}[{i}][{j}]"),
+            });
         }
     }
     Ok(DMatrix::from_fn(n, n, |i, j| rows[i][j]))
 }
 
 /// Parse the input text. Errors name the offending field.
-pub fn parse(text: &str) -> Result<ReplayInput, String> {
+pub fn parse(text: &str) -> Result<ReplayInput, ReplayError> {
     let de = &mut serde_json::Deserializer::from_str(text);
     serde_path_to_error::deserialize(de).map_err(|e| {
         let path = e.path().to_string();
-        if path == "." {
-            format!("invalid replay input: {}", e.inner())
-        } else {
-            format!("invalid replay input at `{path}`: {}", e.inner())
+        ReplayError::Input {
+            at: (path != ".").then_some(path),
+            error: e.into_inner(),
         }
     })
 }
 
 /// Run the replay; every update's result in order.
-pub fn replay(input: &ReplayInput) -> Result<Vec<ReplayLine>, String> {
+pub fn replay(input: &ReplayInput) -> Result<Vec<ReplayLine>, ReplayError> {
     let n = input.gates.len();
     if n == 0 {
-        return Err("`gates` must name at least one gate".into());
+        return Err(ReplayError::NoGates);
     }
     if input.initial_gradient.len() != n {
-        return Err(format!(
-            "`initial_gradient` has {} entries, expected {n} (one per gate)",
-            input.initial_gradient.len()
-        ));
+        return Err(ReplayError::Length {
+            field: "initial_gradient".into(),
+            unit: "entries",
+            got: input.initial_gradient.len(),
+            expected: n,
+            per_gate: true,
+        });
     }
     let c0 = matrix(&input.initial_covariance, n, "initial_covariance")?;
     let q = matrix(&input.process_noise, n, "process_noise")?;
@@ -115,28 +182,35 @@ pub fn replay(input: &ReplayInput) -> Result<Vec<ReplayLine>, String> {
         c0,
         ProcessNoise::Constant { q },
     )
-    .map_err(|e| format!("invalid initial state: {e}"))?;
+    .map_err(ReplayError::InitialState)?;
     let mut filter = filter
         .with_outlier_sigma(input.outlier_sigma)
-        .map_err(|e| format!("invalid `outlier_sigma`: {e}"))?;
+        .map_err(ReplayError::OutlierSigma)?;
     for (k, s) in input.steps.iter().enumerate() {
         if s.voltages.len() != n {
-            return Err(format!(
-                "`steps[{k}].voltages` has {} entries, expected {n} (one per gate)",
-                s.voltages.len()
-            ));
+            return Err(ReplayError::Length {
+                field: format!("steps[{k}].voltages"),
+                unit: "entries",
+                got: s.voltages.len(),
+                expected: n,
+                per_gate: true,
+            });
         }
         if let Some(j) = s.voltages.iter().position(|x| !x.is_finite()) {
-            return Err(format!("`steps[{k}].voltages[{j}]` is not a finite number"));
+            return Err(ReplayError::NotFinite {
+                field: format!("steps[{k}].voltages[{j}]"),
+            });
         }
         if !s.value.is_finite() {
-            return Err(format!("`steps[{k}].value` is not a finite number"));
+            return Err(ReplayError::NotFinite {
+                field: format!("steps[{k}].value"),
+            });
         }
         if !(s.variance.is_finite() && s.variance >= 0.0) {
-            return Err(format!(
-                "`steps[{k}].variance` must be finite and non-negative, got {}",
-                s.variance
-            ));
+            return Err(ReplayError::Variance {
+                step: k,
+                value: s.variance,
+            });
         }
     }
     let mut out = Vec::with_capacity(input.steps.len().saturating_sub(1));
@@ -145,7 +219,7 @@ pub fn replay(input: &ReplayInput) -> Result<Vec<ReplayLine>, String> {
         let dv = DVector::from_fn(n, |i, _| b.voltages[i] - a.voltages[i]);
         filter
             .update(&dv, b.value - a.value, a.variance + b.variance)
-            .map_err(|e| format!("update {k} (steps[{}] → steps[{k}]): {e}", k - 1))?;
+            .map_err(|error| ReplayError::Update { step: k, error })?;
         let c = filter.covariance();
         out.push(ReplayLine {
             step: k,
@@ -159,13 +233,15 @@ pub fn replay(input: &ReplayInput) -> Result<Vec<ReplayLine>, String> {
 }
 
 /// Read `path`, replay, write JSON lines to `out`.
-pub fn run_file(path: &std::path::Path, out: &mut dyn Write) -> Result<(), String> {
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+pub fn run_file(path: &std::path::Path, out: &mut dyn Write) -> Result<(), ReplayError> {
+    let text = std::fs::read_to_string(path).map_err(|error| ReplayError::Read {
+        path: path.to_path_buf(),
+        error,
+    })?;
     let input = parse(&text)?;
     for line in replay(&input)? {
-        let s = serde_json::to_string(&line).map_err(|e| e.to_string())?;
-        writeln!(out, "{s}").map_err(|e| format!("cannot write output: {e}"))?;
+        let s = serde_json::to_string(&line).map_err(ReplayError::Serialize)?;
+        writeln!(out, "{s}").map_err(ReplayError::Write)?;
     }
     Ok(())
 }
@@ -193,7 +269,9 @@ mod tests {
 
     #[test]
     fn errors_name_the_problem() {
-        let e = parse(r#"{"gates":["a"],"bogus":1}"#).unwrap_err();
+        let e = parse(r#"{"gates":["a"],"bogus":1}"#)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("bogus"), "{e}");
         let e = replay(
             &parse(
@@ -202,7 +280,8 @@ mod tests {
             )
             .unwrap(),
         )
-        .unwrap_err();
+        .unwrap_err()
+        .to_string();
         assert!(e.contains("initial_gradient"), "{e}");
     }
 }

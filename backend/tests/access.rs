@@ -5,83 +5,31 @@
 
 mod common;
 
-use std::io::{BufRead, BufReader};
 use std::net::{IpAddr, SocketAddr};
-use std::process::{Command, Stdio};
-use std::time::Duration;
 
 use common::*;
 use serde_json::{json, Value};
 use spintune::protocol::{ServerMessage, PROTOCOL_VERSION};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_tungstenite::tungstenite::client::IntoClientRequest;
 
-/// `spintune serve` with extra arguments and environment; returns the
-/// process, its address and the lines it printed up to the address (stdout).
-fn spawn(args: &[&str], env: &[(&str, &str)], db: &std::path::Path) -> (Proc, SocketAddr, String) {
-    let mut cmd = Command::new(env!("CARGO_BIN_EXE_spintune"));
-    cmd.args(["serve", "--bind", "127.0.0.1:0", "--demo", "never"])
+/// `spintune serve` with `args` and the token from the environment (no `--token`).
+fn spawn_with_env_token(db: &std::path::Path, args: &[&str]) -> Served {
+    Serve::new(db)
+        .without_token_flag()
+        .env("SPINTUNE_TOKEN", TOKEN)
         .args(args)
-        .arg("--db")
-        .arg(db)
-        .arg("--dist")
-        .arg(db.with_file_name("no-dist"))
-        .env_remove("SPINTUNE_TOKEN")
-        .env_remove("SPINTUNE_TOKEN_FILE")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::inherit());
-    for (k, v) in env {
-        cmd.env(k, v);
-    }
-    let mut child = cmd.spawn().expect("spawn spintune serve");
-    let stdout = child.stdout.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let mut seen = String::new();
-        let mut addr = None;
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            seen.push_str(&line);
-            seen.push('\n');
-            if let Some(rest) = line.strip_prefix("Dashboard: http://") {
-                addr = Some(rest.trim_end_matches('/').to_string());
-            }
-            if line.starts_with("Store:") {
-                let _ = tx.send((addr.clone().unwrap_or_default(), seen.clone()));
-            }
-        }
-    });
-    let (addr, printed) = rx
-        .recv_timeout(Duration::from_secs(20))
-        .expect("server did not start");
-    (Proc(child), addr.parse().unwrap(), printed)
+        .spawn()
 }
 
-/// One raw HTTP/1.1 request (`head` = request line + headers, no blank line),
-/// optionally from source address `from`; returns (status, body).
+/// One raw request with a JSON body ([`raw_request`]), from `from` if given.
 async fn raw(addr: SocketAddr, from: Option<IpAddr>, head: &str, body: &str) -> (u16, String) {
-    tokio::time::timeout(STEP, async {
-        let mut s = match from {
-            Some(ip) => {
-                let sock = tokio::net::TcpSocket::new_v4().unwrap();
-                sock.bind(SocketAddr::new(ip, 0)).unwrap();
-                sock.connect(addr).await.unwrap()
-            }
-            None => tokio::net::TcpStream::connect(addr).await.unwrap(),
-        };
-        let req = format!(
-            "{head}\r\nConnection: close\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n{body}",
-            body.len()
-        );
-        s.write_all(req.as_bytes()).await.unwrap();
-        let mut buf = Vec::new();
-        s.read_to_end(&mut buf).await.unwrap();
-        let text = String::from_utf8_lossy(&buf).to_string();
-        let status: u16 = text[9..12].parse().unwrap();
-        let body = text.split_once("\r\n\r\n").map(|x| x.1).unwrap_or("").to_string();
-        (status, body)
-    })
+    raw_request(
+        addr,
+        from,
+        &format!("{head}\r\nContent-Type: application/json"),
+        body,
+    )
     .await
-    .expect("request timed out")
 }
 
 /// A WebSocket upgrade to the viewer socket with `Origin: origin` (if any):
@@ -119,7 +67,8 @@ async fn paused_run(addr: SocketAddr) -> u64 {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn websocket_from_a_foreign_origin_is_refused_same_origin_and_scripts_accepted() {
     let dir = TempDir::new("origin-ws");
-    let (_p, addr, _) = spawn(&[], &[("SPINTUNE_TOKEN", TOKEN)], &dir.0.join("s.db"));
+    let served = spawn_with_env_token(&dir.0.join("s.db"), &[]);
+    let addr = served.addr;
     let id = paused_run(addr).await;
 
     let (status, body) = ws_with_origin(addr, id, Some("https://evil.example"))
@@ -145,7 +94,8 @@ async fn websocket_from_a_foreign_origin_is_refused_same_origin_and_scripts_acce
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_foreign_origin_cannot_change_state_even_with_the_token() {
     let dir = TempDir::new("origin-post");
-    let (_p, addr, _) = spawn(&[], &[("SPINTUNE_TOKEN", TOKEN)], &dir.0.join("s.db"));
+    let served = spawn_with_env_token(&dir.0.join("s.db"), &[]);
+    let addr = served.addr;
     let id = paused_run(addr).await;
     let head = format!(
         "POST /api/runs/{id}/control HTTP/1.1\r\nHost: {addr}\r\nOrigin: https://evil.example\r\nAuthorization: Bearer {TOKEN}"
@@ -163,7 +113,8 @@ async fn a_foreign_origin_cannot_change_state_even_with_the_token() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_foreign_host_header_is_refused_naming_allow_host() {
     let dir = TempDir::new("host");
-    let (_p, addr, _) = spawn(&[], &[("SPINTUNE_TOKEN", TOKEN)], &dir.0.join("s.db"));
+    let served = spawn_with_env_token(&dir.0.join("s.db"), &[]);
+    let addr = served.addr;
     let (status, body) = raw(
         addr,
         None,
@@ -188,16 +139,16 @@ async fn a_foreign_host_header_is_refused_naming_allow_host() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn allow_origin_and_allow_host_admit_the_named_page_and_name() {
     let dir = TempDir::new("allow");
-    let (_p, addr, _) = spawn(
+    let served = spawn_with_env_token(
+        &dir.0.join("s.db"),
         &[
             "--allow-origin",
             "https://dash.lab.example",
             "--allow-host",
             "spintune.lab.example",
         ],
-        &[("SPINTUNE_TOKEN", TOKEN)],
-        &dir.0.join("s.db"),
     );
+    let addr = served.addr;
     let id = paused_run(addr).await;
     let mut ws = ws_with_origin(addr, id, Some("https://dash.lab.example"))
         .await
@@ -225,7 +176,11 @@ async fn allow_origin_and_allow_host_admit_the_named_page_and_name() {
 async fn token_from_the_environment_works_and_is_not_printed() {
     let dir = TempDir::new("tok-env");
     let secret = "env-secret-123";
-    let (_p, addr, printed) = spawn(&[], &[("SPINTUNE_TOKEN", secret)], &dir.0.join("s.db"));
+    let served = Serve::new(&dir.0.join("s.db"))
+        .without_token_flag()
+        .env("SPINTUNE_TOKEN", secret)
+        .spawn();
+    let (addr, printed) = (served.addr, &served.printed);
     assert!(!printed.contains(secret), "{printed}");
     assert!(
         printed.contains("Control token: from SPINTUNE_TOKEN"),
@@ -242,11 +197,11 @@ async fn token_from_a_file_is_trimmed_and_works() {
     let dir = TempDir::new("tok-file");
     let file = dir.0.join("token");
     std::fs::write(&file, "file-secret-456\n").unwrap();
-    let (_p, addr, printed) = spawn(
-        &["--token-file", file.to_str().unwrap()],
-        &[],
-        &dir.0.join("s.db"),
-    );
+    let served = Serve::new(&dir.0.join("s.db"))
+        .without_token_flag()
+        .args(["--token-file".as_ref(), file.as_os_str()])
+        .spawn();
+    let (addr, printed) = (served.addr, &served.printed);
     assert!(!printed.contains("file-secret-456"), "{printed}");
     let (s, b) = http(
         addr,
@@ -266,21 +221,10 @@ fn an_empty_or_missing_token_file_stops_the_server_naming_the_path() {
     std::fs::write(&empty, " \n").unwrap();
     let missing = dir.0.join("missing-token");
     for (path, what) in [(&empty, "empty"), (&missing, "cannot read")] {
-        let out = Command::new(env!("CARGO_BIN_EXE_spintune"))
-            .args([
-                "serve",
-                "--bind",
-                "127.0.0.1:0",
-                "--demo",
-                "never",
-                "--token-file",
-            ])
-            .arg(path)
-            .arg("--db")
-            .arg(dir.0.join("s.db"))
-            .env_remove("SPINTUNE_TOKEN")
-            .output()
-            .unwrap();
+        let out = Serve::new(&dir.0.join("s.db"))
+            .without_token_flag()
+            .args(["--token-file".as_ref(), path.as_os_str()])
+            .exit();
         assert_eq!(out.status.code(), Some(2));
         let err = String::from_utf8_lossy(&out.stderr);
         assert!(
@@ -290,23 +234,11 @@ fn an_empty_or_missing_token_file_stops_the_server_naming_the_path() {
     }
 }
 
-#[test]
-fn the_token_flag_still_works_but_warns_that_ps_shows_it() {
+#[tokio::test]
+async fn the_token_flag_still_works_but_warns_that_ps_shows_it() {
     let dir = TempDir::new("tok-flag");
-    let mut child = serve_command(&dir.0.join("s.db"))
-        .env_remove("SPINTUNE_TOKEN")
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let line = BufReader::new(stderr)
-        .lines()
-        .map_while(Result::ok)
-        .find(|l| l.contains("warning"));
-    let _ = child.kill();
-    let _ = child.wait();
-    let line = line.expect("no warning on stderr");
+    let mut served = Serve::new(&dir.0.join("s.db")).spawn();
+    let line = served.stderr_line("warning", STEP).await;
     assert!(
         line.contains("ps") && line.contains("SPINTUNE_TOKEN") && line.contains("--token-file"),
         "{line}"
@@ -316,7 +248,8 @@ fn the_token_flag_still_works_but_warns_that_ps_shows_it() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn wrong_tokens_are_throttled_per_address_on_rest_and_sockets() {
     let dir = TempDir::new("throttle");
-    let (_p, addr, _) = spawn(&[], &[("SPINTUNE_TOKEN", TOKEN)], &dir.0.join("s.db"));
+    let served = spawn_with_env_token(&dir.0.join("s.db"), &[]);
+    let addr = served.addr;
     let id = paused_run(addr).await;
     let head = |token: &str| {
         format!(
@@ -432,21 +365,11 @@ fn both_token_sources_at_once_are_refused_with_a_clear_message() {
     let dir = TempDir::new("tok-both");
     let file = dir.0.join("token");
     std::fs::write(&file, "from-file").unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_spintune"))
-        .args([
-            "serve",
-            "--bind",
-            "127.0.0.1:0",
-            "--demo",
-            "never",
-            "--token-file",
-        ])
-        .arg(&file)
-        .arg("--db")
-        .arg(dir.0.join("s.db"))
+    let out = Serve::new(&dir.0.join("s.db"))
+        .without_token_flag()
         .env("SPINTUNE_TOKEN", "from-env")
-        .output()
-        .unwrap();
+        .args(["--token-file".as_ref(), file.as_os_str()])
+        .exit();
     assert_eq!(out.status.code(), Some(2));
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(

@@ -247,7 +247,7 @@ async fn a_lying_bridge_and_a_crash_never_cause_a_step_above_the_limit() {
         seen
     }
 
-    let (mut proc1, addr) = spawn_server(&db);
+    let (proc1, addr) = spawn_server(&db);
     let run = create_run(addr, &cfg).await;
     let mut ws = bridge(addr, run.id).await;
     let first = serve_checked(&mut ws, &mut device, &mut violations, 30).await;
@@ -308,9 +308,7 @@ async fn a_lying_bridge_and_a_crash_never_cause_a_step_above_the_limit() {
     );
 
     // Crash; meanwhile someone moves T by 18.5 mV.
-    proc1.0.kill().unwrap();
-    proc1.0.wait().unwrap();
-    drop(proc1);
+    proc1.kill_9();
     drop(ws);
     let t = device.voltages_mv()["T"];
     device.execute(&Request::SetVoltages {

@@ -1,10 +1,10 @@
 //! The binary's offline subcommands: replay (good and malformed input, exit
 //! code 2) and config errors.
 
-use std::process::Command;
+mod common;
 
 fn spintune(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_spintune"))
+    common::spintune()
         .args(args)
         .output()
         .expect("run spintune")
@@ -180,7 +180,7 @@ fn headless_run_refuses_a_bridge_config() {
     std::fs::create_dir_all(&dir).unwrap();
     let cfg = dir.join("bridge.toml");
     std::fs::write(&cfg, "driver = \"bridge\"\n").unwrap();
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_spintune"))
+    let out = common::spintune()
         .args(["run", "--quiet", "--db"])
         .arg(dir.join("x.db"))
         .arg("--config")

@@ -4,7 +4,6 @@
 
 mod common;
 
-use std::process::Command;
 use std::time::{Duration, Instant};
 
 use common::*;
@@ -20,15 +19,13 @@ async fn kill_9_mid_run_then_resume_continues_bit_identically() {
     let n: u64 = 10;
     let config = small_config("crash", n, 40);
 
-    let (mut proc1, addr) = spawn_server(&db);
+    let (proc1, addr) = spawn_server(&db);
     let run = create_run(addr, &config).await;
     wait_status(addr, run.id, |r| r.iterations >= 4).await;
     let seen_before = records(addr, run.id).await;
     assert!(seen_before.len() >= 4);
     // SIGKILL, no chance to clean up.
-    proc1.0.kill().unwrap();
-    proc1.0.wait().unwrap();
-    drop(proc1);
+    proc1.kill_9();
 
     let (_proc2, addr) = spawn_server(&db);
     let listed = get_run(addr, run.id).await;
@@ -80,7 +77,7 @@ async fn kill_9_mid_run_then_resume_continues_bit_identically() {
     assert_eq!(records(addr, again.id).await, resumed);
 
     // Export works on the stored run (CLI, same store while the server runs).
-    let out = Command::new(env!("CARGO_BIN_EXE_spintune"))
+    let out = spintune()
         .args(["export", &run.id.to_string(), "--format", "json", "--db"])
         .arg(&db)
         .output()

@@ -16,7 +16,6 @@ use futures_util::{SinkExt, StreamExt};
 use serde_json::{json, Value};
 use spintune::protocol::{BridgeServerMessage, RunStatus, ServerMessage};
 use spintune::session::SessionConfig;
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_tungstenite::tungstenite::Message;
 
 async fn run_count(addr: std::net::SocketAddr) -> usize {
@@ -361,17 +360,16 @@ fn a_stalled_request_body_is_answered_408_within_the_body_read_timeout() {
         let head = format!(
             "POST /api/runs HTTP/1.1\r\nHost: {addr}\r\nAuthorization: Bearer {TOKEN}\r\nContent-Type: application/json\r\nContent-Length: 100\r\n\r\n{{\"seed\":1,"
         );
-        s.write_all(head.as_bytes()).await.unwrap();
         let sent = Instant::now();
-        let mut buf = Vec::new();
         // The server answers and closes; the client never sends the rest.
-        let read = tokio::time::timeout(
+        let read = common::raw_http::exchange(
+            &mut s,
+            head.as_bytes(),
             BODY_READ_TIMEOUT + HEADER_READ_TIMEOUT / 2,
-            s.read_to_end(&mut buf),
         )
         .await;
         let waited = sent.elapsed();
-        assert!(read.is_ok(), "connection still open after {waited:?}");
+        let buf = read.unwrap_or_else(|| panic!("connection still open after {waited:?}"));
         let text = String::from_utf8_lossy(&buf);
         assert!(text.starts_with("HTTP/1.1 408"), "{text}");
         assert!(text.contains("did not arrive within"), "{text}");

@@ -8,7 +8,6 @@
 mod common;
 
 use std::net::SocketAddr;
-use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 use common::*;
@@ -19,60 +18,9 @@ use tokio::net::TcpStream;
 use tokio::sync::mpsc;
 use tokio_tungstenite::tungstenite::Message;
 
-/// `spintune serve` as a process, with its stderr lines.
-struct Served {
-    proc: Proc,
-    addr: SocketAddr,
-    stderr: mpsc::UnboundedReceiver<String>,
-}
-
+/// `spintune serve` with the store in `dir` and `extra` flags.
 fn spawn(dir: &TempDir, extra: &[&str]) -> Served {
-    use std::io::{BufRead, BufReader};
-    let mut child = serve_command(&dir.0.join("limits.db"))
-        .args(extra)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("spawn spintune serve");
-    let stdout = child.stdout.take().unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            if let Some(rest) = line.strip_prefix("Dashboard: http://") {
-                let _ = tx.send(rest.trim_end_matches('/').to_string());
-            }
-        }
-    });
-    let (etx, erx) = mpsc::unbounded_channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            eprintln!("server: {line}");
-            let _ = etx.send(line);
-        }
-    });
-    let addr = rx
-        .recv_timeout(Duration::from_secs(20))
-        .expect("server did not print its address");
-    Served {
-        proc: Proc(child),
-        addr: addr.parse().unwrap(),
-        stderr: erx,
-    }
-}
-
-/// Wait for a stderr line containing `needle`.
-async fn stderr_line(served: &mut Served, needle: &str, within: Duration) -> String {
-    tokio::time::timeout(within, async {
-        loop {
-            let line = served.stderr.recv().await.expect("server stderr closed");
-            if line.contains(needle) {
-                return line;
-            }
-        }
-    })
-    .await
-    .unwrap_or_else(|_| panic!("no server log line with {needle:?} within {within:?}"))
+    Serve::new(&dir.0.join("limits.db")).args(extra).spawn()
 }
 
 /// VmRSS of a process, KiB.
@@ -138,21 +86,7 @@ async fn raw_viewer(addr: SocketAddr, id: u64) -> TcpStream {
     s
 }
 
-/// Read until the peer closes (EOF or reset); returns the bytes read.
-async fn read_until_closed(s: &mut TcpStream, within: Duration) -> Vec<u8> {
-    tokio::time::timeout(within, async {
-        let mut all = Vec::new();
-        let mut buf = vec![0u8; 64 * 1024];
-        loop {
-            match s.read(&mut buf).await {
-                Ok(0) | Err(_) => return all,
-                Ok(n) => all.extend_from_slice(&buf[..n]),
-            }
-        }
-    })
-    .await
-    .expect("the server did not close the connection in time")
-}
+const NOT_CLOSED: &str = "the server did not close the connection in time";
 
 fn contains(hay: &[u8], needle: &[u8]) -> bool {
     hay.windows(needle.len()).any(|w| w == needle)
@@ -187,12 +121,12 @@ async fn a_viewer_that_never_reads_is_disconnected_after_the_send_timeout_while_
     let mut stalled = stalled_viewer(addr, run.id).await;
     stall(&mut stalled, 40, 2000).await;
     let stalled_at = Instant::now();
-    let line = stderr_line(
-        &mut served,
-        &format!("viewer of run {} disconnected: send timed out", run.id),
-        send_timeout + Duration::from_secs(10),
-    )
-    .await;
+    let line = served
+        .stderr_line(
+            &format!("viewer of run {} disconnected: send timed out", run.id),
+            send_timeout + Duration::from_secs(10),
+        )
+        .await;
     let after = stalled_at.elapsed();
     assert!(
         after < send_timeout + Duration::from_secs(4),
@@ -249,7 +183,9 @@ async fn a_viewer_that_never_answers_pings_is_disconnected_and_one_that_answers_
     });
     let mut silent = raw_viewer(addr, run.id).await;
     let start = Instant::now();
-    let bytes = read_until_closed(&mut silent, Duration::from_secs(10)).await;
+    let bytes = read_until_closed(&mut silent, Duration::from_secs(10))
+        .await
+        .expect(NOT_CLOSED);
     let after = start.elapsed();
     assert!(
         contains(&bytes, b"no pong"),
@@ -285,7 +221,9 @@ async fn a_connection_that_never_finishes_its_headers_is_closed_after_the_header
         let mut s = TcpStream::connect(addr).await.unwrap();
         s.write_all(partial).await.unwrap();
         let start = Instant::now();
-        let bytes = read_until_closed(&mut s, Duration::from_secs(10)).await;
+        let bytes = read_until_closed(&mut s, Duration::from_secs(10))
+            .await
+            .expect(NOT_CLOSED);
         let after = start.elapsed();
         assert!(
             after >= Duration::from_millis(900) && after < Duration::from_secs(5),
@@ -340,7 +278,7 @@ async fn the_per_ip_connection_cap_refuses_the_65th_connection() {
     let _ = extra
         .write_all(format!("GET /api/version HTTP/1.1\r\nHost: {addr}\r\n\r\n").as_bytes())
         .await;
-    let bytes = read_until_closed(&mut extra, STEP).await;
+    let bytes = read_until_closed(&mut extra, STEP).await.expect(NOT_CLOSED);
     assert!(bytes.is_empty(), "{}", String::from_utf8_lossy(&bytes));
     // Closing one makes room again.
     drop(open.pop());
@@ -355,7 +293,7 @@ async fn the_per_ip_connection_cap_refuses_the_65th_connection() {
                     .as_bytes(),
                 )
                 .await;
-            let bytes = read_until_closed(&mut s, STEP).await;
+            let bytes = read_until_closed(&mut s, STEP).await.expect(NOT_CLOSED);
             if bytes.starts_with(b"HTTP/1.1 200") {
                 return;
             }

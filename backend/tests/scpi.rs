@@ -21,8 +21,8 @@ use spintune::safety::GateSpec;
 use spintune::sim::default_gates;
 use spintune_server::cli::Server;
 use spintune_server::config::{MeasureSource, ScpiConfig, ScpiProfile};
-use spintune_server::devices::scpi::ScpiSource;
-use spintune_server::devices::DeviceError;
+use spintune_server::DeviceError;
+use spintune_server::ScpiSource;
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::net::TcpListener;
 
@@ -580,12 +580,10 @@ async fn concurrent_resumes_after_kill_9_start_one_task_and_nothing_reaches_the_
     let mut cfg = run_config(inst.addr, 10_000);
     cfg["iteration_delay_ms"] = json!(delay_ms);
 
-    let (mut proc1, addr) = spawn_server(&db);
+    let (proc1, addr) = spawn_server(&db);
     let run = create_run(addr, &cfg).await;
     wait_status(addr, run.id, |r| r.iterations >= 2).await;
-    proc1.0.kill().unwrap();
-    proc1.0.wait().unwrap();
-    drop(proc1);
+    proc1.kill_9();
     let connections_before = inst.log().last().map_or(0, |(c, _)| *c);
 
     let (_proc2, addr) = spawn_server(&db);
@@ -657,7 +655,7 @@ async fn headless_run_exits_non_zero_on_a_device_fault_and_leaves_the_run_resuma
     std::fs::write(&cfg_path, toml_cfg).unwrap();
     let db = dir.0.join("h.db");
     let out = tokio::task::spawn_blocking(move || {
-        std::process::Command::new(env!("CARGO_BIN_EXE_spintune"))
+        spintune()
             .args(["run", "--quiet", "--config"])
             .arg(&cfg_path)
             .arg("--db")

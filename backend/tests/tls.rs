@@ -8,14 +8,13 @@ mod common;
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
 use std::sync::Arc;
 use std::time::Duration;
 
-use common::{serve_command_demo, spawn_serve_command, Proc, TempDir};
+use common::raw_http::exchange;
+use common::{Serve, Served, TempDir};
 use futures_util::StreamExt;
 use spintune::protocol::{ServerMessage, PROTOCOL_VERSION};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 use tokio_rustls::rustls;
 use tokio_tungstenite::tungstenite::Message;
@@ -32,16 +31,16 @@ fn write_cert(dir: &TempDir) -> (PathBuf, PathBuf, rcgen::CertifiedKey) {
 
 /// `serve` with a demo run (paced, so it is live while the test runs) and
 /// the given TLS flags.
-fn serve_cmd(dir: &TempDir, tls: &[&std::ffi::OsStr]) -> Command {
-    let mut cmd = serve_command_demo(&dir.0.join("tls.db"), "always");
-    cmd.args(["--iteration-delay-ms", "50"]).args(tls);
-    cmd
+fn serve_cmd(dir: &TempDir, tls: &[&std::ffi::OsStr]) -> Serve {
+    Serve::new(&dir.0.join("tls.db"))
+        .demo("always")
+        .args(["--iteration-delay-ms", "50"])
+        .args(tls)
 }
 
-/// Start `serve` over TLS; returns the process and the address it printed
-/// after `Dashboard: https://`.
-fn spawn_tls(dir: &TempDir, cert: &Path, key: &Path) -> (Proc, SocketAddr) {
-    let cmd = serve_cmd(
+/// Start `serve` over TLS (it prints `Dashboard: https://…`).
+fn spawn_tls(dir: &TempDir, cert: &Path, key: &Path) -> Served {
+    serve_cmd(
         dir,
         &[
             "--tls-cert".as_ref(),
@@ -49,8 +48,9 @@ fn spawn_tls(dir: &TempDir, cert: &Path, key: &Path) -> (Proc, SocketAddr) {
             "--tls-key".as_ref(),
             key.as_os_str(),
         ],
-    );
-    spawn_serve_command(cmd, "https")
+    )
+    .https()
+    .spawn()
 }
 
 /// A TLS connection to `addr` as `localhost`, trusting only `ck`'s certificate.
@@ -76,24 +76,30 @@ async fn tls_connect(
         .expect("TLS handshake")
 }
 
+/// `GET path` over HTTPS with `Host: host` (trusting only `ck`); the whole answer.
+async fn https_get(addr: SocketAddr, ck: &rcgen::CertifiedKey, path: &str, host: &str) -> Vec<u8> {
+    let mut s = tls_connect(addr, ck).await;
+    let req = format!("GET {path} HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n");
+    exchange(&mut s, req.as_bytes(), Duration::from_secs(10))
+        .await
+        .expect("HTTPS answer timed out")
+}
+
 #[tokio::test]
 async fn https_and_wss_are_served_with_the_given_certificate() {
     let dir = TempDir::new("tls");
     let (cert, key, ck) = write_cert(&dir);
-    let (_proc, addr) = spawn_tls(&dir, &cert, &key);
+    let served = spawn_tls(&dir, &cert, &key);
+    let addr = served.addr;
 
     // HTTPS: GET /api/version.
-    let mut s = tls_connect(addr, &ck).await;
-    let req = format!(
-        "GET /api/version HTTP/1.1\r\nHost: localhost:{}\r\nConnection: close\r\n\r\n",
-        addr.port()
-    );
-    s.write_all(req.as_bytes()).await.unwrap();
-    let mut body = Vec::new();
-    tokio::time::timeout(Duration::from_secs(10), s.read_to_end(&mut body))
-        .await
-        .expect("HTTPS answer timed out")
-        .ok();
+    let body = https_get(
+        addr,
+        &ck,
+        "/api/version",
+        &format!("localhost:{}", addr.port()),
+    )
+    .await;
     let text = String::from_utf8_lossy(&body);
     assert!(text.starts_with("HTTP/1.1 200"), "answer: {text}");
     assert!(
@@ -144,43 +150,31 @@ async fn https_and_wss_are_served_with_the_given_certificate() {
 async fn plain_http_to_the_tls_port_gets_no_http_answer_and_tls_still_works() {
     let dir = TempDir::new("tls-plain");
     let (cert, key, ck) = write_cert(&dir);
-    let (_proc, addr) = spawn_tls(&dir, &cert, &key);
+    let served = spawn_tls(&dir, &cert, &key);
+    let addr = served.addr;
     let mut tcp = TcpStream::connect(addr).await.unwrap();
-    tcp.write_all(b"GET /api/runs HTTP/1.1\r\nHost: localhost\r\n\r\n")
-        .await
-        .unwrap();
-    let mut answer = Vec::new();
     // The server ends the connection after the failed handshake (a TLS
     // alert at most): never an HTTP response, never a run list.
-    tokio::time::timeout(Duration::from_secs(15), tcp.read_to_end(&mut answer))
-        .await
-        .expect("the server kept a plain-HTTP connection open")
-        .ok();
+    let answer = exchange(
+        &mut tcp,
+        b"GET /api/runs HTTP/1.1\r\nHost: localhost\r\n\r\n",
+        Duration::from_secs(15),
+    )
+    .await
+    .expect("the server kept a plain-HTTP connection open");
     assert!(
         !answer.starts_with(b"HTTP/"),
         "plain HTTP was answered: {}",
         String::from_utf8_lossy(&answer)
     );
     // The listener is unharmed.
-    let mut s = tls_connect(addr, &ck).await;
-    s.write_all(b"GET /api/runs HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n")
-        .await
-        .unwrap();
-    let mut body = Vec::new();
-    tokio::time::timeout(Duration::from_secs(10), s.read_to_end(&mut body))
-        .await
-        .expect("HTTPS answer timed out")
-        .ok();
+    let body = https_get(addr, &ck, "/api/runs", "localhost").await;
     assert!(body.starts_with(b"HTTP/1.1 200"));
 }
 
 /// `serve` with these TLS flags exits 2 at once; returns its stderr.
 fn refused(dir: &TempDir, tls: &[&std::ffi::OsStr]) -> String {
-    let out = serve_cmd(dir, tls)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .output()
-        .unwrap();
+    let out = serve_cmd(dir, tls).exit();
     assert_eq!(out.status.code(), Some(2), "flags {tls:?} were accepted");
     String::from_utf8_lossy(&out.stderr).into_owned()
 }

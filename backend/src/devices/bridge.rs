@@ -39,7 +39,6 @@ use spintune::protocol::{BridgeServerMessage, Request, Response};
 use spintune::ConfigError;
 use tokio::sync::{mpsc, oneshot, watch};
 
-use super::DriverKind;
 use super::{BoxFuture, Device, DeviceError};
 
 /// Time a freshly connected bridge has to authenticate, s.
@@ -369,10 +368,6 @@ impl Device for BridgeDevice {
 
     fn checkpoint(&self) -> Result<Value, serde_json::Error> {
         Ok(Value::Null)
-    }
-
-    fn driver(&self) -> DriverKind {
-        DriverKind::Bridge
     }
 
     fn recovered(&self) -> BoxFuture<'static, ()> {

@@ -250,9 +250,6 @@ pub trait Device: Send + Sync {
     /// for a device without restorable state (a real instrument).
     fn checkpoint(&self) -> Result<Value, serde_json::Error>;
 
-    /// Which driver this is.
-    fn driver(&self) -> DriverKind;
-
     /// After a fault ([`Response::Error`]) paused the run: resolves when the
     /// device may work again without a user's `resume` (the lab bridge
     /// reconnected). Called at the time of the fault. Default: never.

@@ -4,7 +4,6 @@ use serde_json::Value;
 use spintune::protocol::{Request, Response};
 use spintune::sim::SimulatedDevice;
 
-use super::DriverKind;
 use super::{BoxFuture, Device};
 
 /// The embedded simulated double dot.
@@ -36,9 +35,5 @@ impl Device for SimulatorDevice {
 
     fn checkpoint(&self) -> Result<Value, serde_json::Error> {
         serde_json::to_value(&self.device)
-    }
-
-    fn driver(&self) -> DriverKind {
-        DriverKind::Simulator
     }
 }

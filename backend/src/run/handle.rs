@@ -1,5 +1,5 @@
 //! A run known to the manager ([`RunHandle`]): its config, its summary, the
-//! broadcast channel of its live frames, the ring of its newest summaries
+//! broadcast channel of its live updates, the ring of its newest summaries
 //! ([`RECENT_SUMMARIES`]), its open viewer sockets, the control channel of
 //! its task (if one drives it) and its lifecycle lock.
 
@@ -12,7 +12,7 @@ use spintune::protocol::{ControlCommand, RunSummary, ServerMessage};
 use tokio::sync::{broadcast, mpsc, oneshot};
 
 use super::error::RunError;
-use super::frames::Frame;
+use super::viewer_update::ViewerUpdate;
 use crate::config::RunConfig;
 
 /// Summaries of the newest iterations each run keeps in memory (one default
@@ -56,7 +56,7 @@ pub struct RunHandle {
     /// The run's configuration.
     pub config: RunConfig,
     summary: Mutex<RunSummary>,
-    tx: broadcast::Sender<Frame>,
+    tx: broadcast::Sender<ViewerUpdate>,
     control: Mutex<Option<mpsc::Sender<ControlMsg>>>,
     /// Why the stored run is unreadable (`Some`: quarantined; listed, never driven).
     quarantine: Option<String>,
@@ -180,8 +180,8 @@ impl RunHandle {
             .clone()
     }
 
-    /// Subscribe to the run's live frames.
-    pub fn subscribe(&self) -> broadcast::Receiver<Frame> {
+    /// Subscribe to the run's live updates.
+    pub fn subscribe(&self) -> broadcast::Receiver<ViewerUpdate> {
         self.tx.subscribe()
     }
 
@@ -202,12 +202,12 @@ impl RunHandle {
     }
 
     pub(super) fn broadcast_status(&self, run: RunSummary) {
-        self.broadcast(Frame::message(&ServerMessage::Status { run }));
+        self.broadcast(ViewerUpdate::message(&ServerMessage::Status { run }));
     }
 
-    /// Send a frame to the run's viewers (none listening is fine).
-    pub(super) fn broadcast(&self, frame: Frame) {
-        let _ = self.tx.send(frame);
+    /// Send an update to the run's viewers (none listening is fine).
+    pub(super) fn broadcast(&self, update: ViewerUpdate) {
+        let _ = self.tx.send(update);
     }
 
     pub(super) fn control_sender(&self) -> Option<mpsc::Sender<ControlMsg>> {

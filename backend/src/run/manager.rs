@@ -20,11 +20,11 @@ use tokio::sync::{mpsc, oneshot};
 
 use super::checkpoint::Checkpoint;
 use super::error::RunError;
-use super::frames::Frame;
 use super::handle::{ControlMsg, RunHandle};
 use super::persist::{self, blocking};
 use super::task::RunTask;
 use super::viewer_limits::ViewerLimits;
+use super::viewer_update::ViewerUpdate;
 use crate::config::{DriverKind, RunConfig};
 use crate::devices::bridge::{BridgeLink, Links};
 use crate::devices::{self, Device, SimulatorDevice};
@@ -432,7 +432,7 @@ impl Manager {
         blocking(move || store.delete_run(id)).await?;
         self.bridges.remove(id);
         if let Some(h) = self.runs().remove(&id) {
-            h.broadcast(Frame::message(&ServerMessage::Error {
+            h.broadcast(ViewerUpdate::message(&ServerMessage::Error {
                 message: format!("run {id} was deleted"),
             }));
         }

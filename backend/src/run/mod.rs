@@ -5,9 +5,9 @@
 //! and device state) to the [`Store`](crate::store::Store) in one
 //! transaction, (2) updates the run's summary and its ring of recent
 //! summaries ([`RECENT_SUMMARIES`]), (3) broadcasts the pre-serialized
-//! `ServerMessage::Iteration` frame ([`frames`]: summary and full text,
+//! `ServerMessage::Iteration` ([`viewer_update`]: summary and full text,
 //! shared by all viewers) over a bounded `tokio::sync::broadcast` channel
-//! ([`ManagerOptions::viewer_buffer`] frames). A slow viewer never blocks the
+//! ([`ManagerOptions::viewer_buffer`] updates). A slow viewer never blocks the
 //! run: it lags, is told so, and is sent the newest page of summaries (see
 //! [`crate::server`]).
 //!
@@ -32,26 +32,30 @@
 //! | [`persist`] | a run's writes: the store first, then memory and viewers |
 //! | [`checkpoint`] | [`Checkpoint`](checkpoint::Checkpoint): schema, version, migration of older checkpoints |
 //! | [`error`] | [`RunError`] |
-//! | [`frames`] | pre-serialized viewer frames |
+//! | [`viewer_update`] | [`ViewerUpdate`]: what a run broadcasts to its viewers, pre-serialized, with its typed [`RunEvent`] |
 //! | [`viewer_limits`] | limits of a run's viewer sockets |
 //!
 //! Imports go one way: `manager` → `task` → `persist` → `handle` →
-//! `frames`, `error`; nothing here imports `crate::server`.
+//! `viewer_update`, `error`; nothing here imports `crate::server`.
 
 mod checkpoint;
 mod error;
-mod frames;
 mod handle;
 mod manager;
 mod persist;
 mod task;
 pub mod viewer_limits;
+mod viewer_update;
 
 pub use error::RunError;
-pub use frames::{history_frame_text, Frame, FrameEvent};
 pub use handle::ViewerSlot;
 pub use manager::{Manager, ManagerOptions};
 pub use viewer_limits::ViewerLimits;
+/// The former name of [`RunEvent`], still used by `crate::cli` (its owner
+/// renames the import; then this alias goes).
+#[doc(hidden)]
+pub type FrameEvent = RunEvent;
+pub use viewer_update::{history_message_json, RunEvent, ViewerUpdate};
 // Named by ARCHITECTURE.md (invariant 8, the bounds) as `run::…`.
 #[allow(unused_imports)]
 pub use {handle::RECENT_SUMMARIES, manager::CONTROL_QUEUE};

@@ -10,8 +10,8 @@ use axum::extract::ws::Utf8Bytes;
 use spintune::protocol::{IterationRecord, RunStatus, RunSummary};
 
 use super::error::RunError;
-use super::frames::{iteration_frame_text, Frame, FrameEvent};
 use super::handle::RunHandle;
+use super::viewer_update::{iteration_message_json, RunEvent, ViewerUpdate};
 use crate::store::{Store, StoreError};
 
 /// Waits before each attempt to store a run's `failed` status, ms.
@@ -146,10 +146,10 @@ pub(super) async fn commit_and_broadcast(
     let seq = handle.summary().iterations;
     let store = store.clone();
     let id = handle.id;
-    let full = iteration_frame_text(&record_json);
+    let full = iteration_message_json(&record_json);
     let summary_json = serde_json::to_string(&record.summary())
         .map_err(|e| RunError::Internal(format!("cannot serialize a summary: {e}")))?;
-    let text = iteration_frame_text(&summary_json);
+    let text = iteration_message_json(&summary_json);
     blocking(move || {
         store.commit_iteration(
             id,
@@ -168,11 +168,11 @@ pub(super) async fn commit_and_broadcast(
         s.tuned = tuned;
     });
     handle.remember_summary(seq, Utf8Bytes::from(summary_json));
-    handle.broadcast(Frame {
+    handle.broadcast(ViewerUpdate {
         seq: Some(seq),
         text: Utf8Bytes::from(text),
         full: Some(Utf8Bytes::from(full)),
-        event: FrameEvent::Iteration(record),
+        event: RunEvent::Iteration(record),
     });
     Ok(seq)
 }

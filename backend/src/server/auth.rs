@@ -23,7 +23,7 @@
 
 use std::collections::HashMap;
 use std::net::{IpAddr, SocketAddr};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
@@ -105,11 +105,6 @@ impl Auth {
         }
     }
 
-    /// The token (for printing at start).
-    pub fn token(&self) -> &str {
-        &self.token
-    }
-
     /// Check `presented` for a client at `ip`.
     pub fn check(&self, ip: Option<IpAddr>, presented: &str) -> Result<(), Refusal> {
         self.check_at(ip, presented, Instant::now())
@@ -162,7 +157,8 @@ impl Auth {
     }
 
     /// Addresses tracked now (for tests of the bound).
-    pub fn tracked(&self) -> usize {
+    #[cfg(test)]
+    fn tracked(&self) -> usize {
         self.table.lock().unwrap_or_else(|p| p.into_inner()).len()
     }
 }
@@ -194,17 +190,32 @@ pub enum TokenSource {
     Random,
 }
 
+/// Why a token file gave no token; the message names the path.
+#[derive(Debug, thiserror::Error)]
+pub enum TokenFileError {
+    /// The file could not be read.
+    #[error("cannot read the token file {}: {error}", path.display())]
+    Unreadable {
+        path: PathBuf,
+        error: std::io::Error,
+    },
+    /// The file holds only white space.
+    #[error("the token file {} is empty; put the control token in it", path.display())]
+    Empty { path: PathBuf },
+}
+
 /// Read a token file: contents trimmed; an unreadable or empty file is an
 /// error naming the path.
-pub fn read_token_file(path: &Path) -> Result<String, String> {
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| format!("cannot read the token file {}: {e}", path.display()))?;
+pub fn read_token_file(path: &Path) -> Result<String, TokenFileError> {
+    let text = std::fs::read_to_string(path).map_err(|error| TokenFileError::Unreadable {
+        path: path.to_path_buf(),
+        error,
+    })?;
     let token = text.trim();
     if token.is_empty() {
-        return Err(format!(
-            "the token file {} is empty; put the control token in it",
-            path.display()
-        ));
+        return Err(TokenFileError::Empty {
+            path: path.to_path_buf(),
+        });
     }
     Ok(token.to_string())
 }
@@ -323,13 +334,13 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         let empty = dir.join("empty");
         std::fs::write(&empty, "  \n").unwrap();
-        let e = read_token_file(&empty).unwrap_err();
+        let e = read_token_file(&empty).unwrap_err().to_string();
         assert!(
             e.contains(&empty.display().to_string()) && e.contains("empty"),
             "{e}"
         );
         let missing = dir.join("missing");
-        let e = read_token_file(&missing).unwrap_err();
+        let e = read_token_file(&missing).unwrap_err().to_string();
         assert!(e.contains(&missing.display().to_string()), "{e}");
         let good = dir.join("good");
         std::fs::write(&good, "s3cret\n").unwrap();

@@ -68,7 +68,7 @@
 //! | [`bridge_socket`] | the lab bridge's WebSocket |
 //! | [`socket`] | what both sockets share: the version check, refusals, the 1009 close |
 //! | [`parse`] | strict parsing of commands, frames, Content-Types, ids, query numbers |
-//! | [`error`] | [`ApiError`]: status and `{"error": …}` |
+//! | [`error`] | [`ApiError`](error::ApiError): status and `{"error": …}` |
 //! | [`dashboard`] | the dashboard's static files (no symbolic links) |
 //! | [`auth`], [`origin`], [`listener`], [`tls`], [`redact`] | token checks and throttling, Host/Origin checks, connections, TLS, the redacted config |
 
@@ -91,7 +91,6 @@ mod socket;
 pub(crate) mod tls;
 mod viewer;
 
-pub use error::ApiError;
 pub use parse::{parse_client_message, parse_control};
 pub use viewer::MAX_LIVE_BATCH;
 
@@ -112,7 +111,7 @@ pub use crate::run::viewer_limits::{
 
 /// Shared state of the HTTP handlers.
 #[derive(Clone)]
-pub struct AppState {
+pub(crate) struct AppState {
     /// The run manager.
     pub manager: Arc<Manager>,
     /// The control token and the failed-auth throttle ([`auth`]).
@@ -135,7 +134,7 @@ impl AppState {
 }
 
 /// Build the router. `dist` is the dashboard directory (Trunk output).
-pub fn router(state: AppState, dist: PathBuf) -> Router {
+pub(crate) fn router(state: AppState, dist: PathBuf) -> Router {
     let access = state.access.clone();
     let api = Router::new()
         .route("/api/version", get(http::version))

@@ -26,6 +26,17 @@ use axum::response::{IntoResponse, Response};
 
 use super::error::ApiError;
 
+/// A malformed `--allow-origin` or `--allow-host` value, named with its flag.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum AccessError {
+    /// An origin that is not `scheme://host[:port]`.
+    #[error("--allow-origin {0:?}: expected scheme://host[:port], e.g. https://lab.example:8443")]
+    Origin(String),
+    /// A host that is empty or holds a `/`.
+    #[error("--allow-host {0:?}: expected a host name such as lab.example")]
+    Host(String),
+}
+
 /// Which Hosts and Origins the server accepts besides its own.
 #[derive(Debug, Clone, Default)]
 pub struct Access {
@@ -44,25 +55,21 @@ impl Access {
         bind: Option<SocketAddr>,
         hosts: &[String],
         origins: &[String],
-    ) -> Result<Self, String> {
+    ) -> Result<Self, AccessError> {
         let mut o = BTreeSet::new();
         for origin in origins {
             if origin.trim() == "null" {
                 o.insert("null".to_string());
                 continue;
             }
-            let parsed = parse_origin(origin).ok_or_else(|| {
-                format!("--allow-origin {origin:?}: expected scheme://host[:port], e.g. https://lab.example:8443")
-            })?;
+            let parsed = parse_origin(origin).ok_or_else(|| AccessError::Origin(origin.clone()))?;
             o.insert(parsed.normalized());
         }
         let mut h = BTreeSet::new();
         for host in hosts {
             let host = host.trim().trim_end_matches('.').to_ascii_lowercase();
             if host.is_empty() || host.contains('/') {
-                return Err(format!(
-                    "--allow-host {host:?}: expected a host name such as lab.example"
-                ));
+                return Err(AccessError::Host(host));
             }
             h.insert(host);
         }
@@ -284,7 +291,9 @@ mod tests {
 
     #[test]
     fn a_malformed_allow_origin_is_refused_naming_it() {
-        let e = Access::new(None, &[], &["lab.example".into()]).unwrap_err();
+        let e = Access::new(None, &[], &["lab.example".into()])
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("--allow-origin \"lab.example\""), "{e}");
     }
 }

@@ -20,7 +20,7 @@ use super::error::{ApiError, ApiResult};
 use super::parse::{parse_client_message, parse_id, parse_u64};
 use super::socket::{refuse_socket, too_big_close, version_mismatch};
 use super::{auth, AppState, MAX_VIEWER_MESSAGE};
-use crate::run::{history_frame_text, Frame, ViewerSlot};
+use crate::run::{history_message_json, ViewerSlot, ViewerUpdate};
 
 /// How long the server tries to send a close frame to a viewer it drops for
 /// a timeout.
@@ -134,7 +134,7 @@ async fn history_page(
     let handle = state.manager.get(id).ok()?;
     if let Some(page) = handle.recent_page(before, limit, from) {
         let records: Vec<&str> = page.records.iter().map(Utf8Bytes::as_str).collect();
-        let text = history_frame_text(&records, page.more_before);
+        let text = history_message_json(&records, page.more_before);
         return Some((Message::Text(Utf8Bytes::from(text)), page.end));
     }
     drop(handle);
@@ -154,7 +154,7 @@ async fn history_page(
     } else {
         page.more_before
     };
-    let text = history_frame_text(records, more_before);
+    let text = history_message_json(records, more_before);
     Some((Message::Text(Utf8Bytes::from(text)), end))
 }
 
@@ -333,8 +333,8 @@ async fn live_batch(
     state: &AppState,
     id: u64,
     socket: &mut WebSocket,
-    rx: &mut tokio::sync::broadcast::Receiver<Frame>,
-    first: Frame,
+    rx: &mut tokio::sync::broadcast::Receiver<ViewerUpdate>,
+    first: ViewerUpdate,
     next: &mut u64,
     scans: bool,
     timeout: Duration,
@@ -342,10 +342,10 @@ async fn live_batch(
     use futures_util::SinkExt;
     use tokio::sync::broadcast::error::TryRecvError;
     let deadline = tokio::time::Instant::now() + timeout;
-    let mut frame = first;
+    let mut update = first;
     let mut lag = None;
     for n in 1.. {
-        match frame.seq {
+        match update.seq {
             Some(seq) if seq < *next => {}
             seq => {
                 if let Some(seq) = seq {
@@ -360,9 +360,9 @@ async fn live_batch(
                     }
                     *next = seq + 1;
                 }
-                let text = match (&frame.full, scans) {
+                let text = match (&update.full, scans) {
                     (Some(full), true) => full.clone(),
-                    _ => frame.text,
+                    _ => update.text,
                 };
                 by_deadline(socket.feed(Message::Text(text)), deadline, timeout).await?;
             }
@@ -371,7 +371,7 @@ async fn live_batch(
             break;
         }
         match rx.try_recv() {
-            Ok(f) => frame = f,
+            Ok(u) => update = u,
             Err(TryRecvError::Lagged(skipped)) => {
                 lag = Some(skipped);
                 break;

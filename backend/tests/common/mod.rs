@@ -1,22 +1,27 @@
 //! Helpers shared by the integration tests: a real server on an ephemeral
-//! loopback port, a tiny HTTP/1.1 client, and WebSocket helpers. Everything is
-//! bounded in time.
+//! loopback port (in this process, [`server`]; or the binary as a process,
+//! [`serve`]), a raw HTTP/1.1 client ([`raw_http`]), and WebSocket helpers.
+//! Everything is bounded in time.
 #![allow(dead_code)]
 
 pub mod bridge_client;
+pub mod raw_http;
+pub mod serve;
 
-use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
 use futures_util::{SinkExt, StreamExt};
 use serde_json::Value;
 use spintune::protocol::{IterationRecord, RunStatus, RunSummary, ServerMessage, PROTOCOL_VERSION};
 use spintune_server::cli::{start_server, DemoMode, ServeArgs, Server};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_tungstenite::tungstenite::Message;
+
+#[allow(unused_imports)]
+pub use raw_http::{raw_request, read_until_closed};
+#[allow(unused_imports)]
+pub use serve::{spawn_server, spintune, Proc, Serve, Served};
 
 pub const TOKEN: &str = "test-token";
 pub const STEP: Duration = Duration::from_secs(20);
@@ -85,47 +90,14 @@ pub async fn http_typed(
     content_type: Option<&str>,
     body: Option<&str>,
 ) -> (u16, String) {
-    tokio::time::timeout(STEP, async {
-        let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
-        let body = body.unwrap_or("");
-        let auth = token
-            .map(|t| format!("Authorization: Bearer {t}\r\n"))
-            .unwrap_or_default();
-        let ctype = content_type
-            .map(|t| format!("Content-Type: {t}\r\n"))
-            .unwrap_or_default();
-        let req = format!(
-            "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n{auth}{ctype}Content-Length: {}\r\n\r\n{body}",
-            body.len()
-        );
-        s.write_all(req.as_bytes()).await.unwrap();
-        let mut buf = Vec::new();
-        s.read_to_end(&mut buf).await.unwrap();
-        let text = String::from_utf8_lossy(&buf).to_string();
-        let status: u16 = text[9..12].parse().unwrap();
-        let (head, rest) = text.split_once("\r\n\r\n").unwrap();
-        let body = if head.to_ascii_lowercase().contains("transfer-encoding: chunked") {
-            dechunk(rest)
-        } else {
-            rest.to_string()
-        };
-        (status, body)
-    })
-    .await
-    .expect("HTTP request timed out")
-}
-
-fn dechunk(mut s: &str) -> String {
-    let mut out = String::new();
-    while let Some((len, rest)) = s.split_once("\r\n") {
-        let n = usize::from_str_radix(len.trim(), 16).unwrap_or(0);
-        if n == 0 {
-            break;
-        }
-        out.push_str(&rest[..n]);
-        s = &rest[n + 2..];
-    }
-    out
+    let auth = token
+        .map(|t| format!("\r\nAuthorization: Bearer {t}"))
+        .unwrap_or_default();
+    let ctype = content_type
+        .map(|t| format!("\r\nContent-Type: {t}"))
+        .unwrap_or_default();
+    let head = format!("{method} {path} HTTP/1.1\r\nHost: {addr}{auth}{ctype}");
+    raw_request(addr, None, &head, body.unwrap_or("")).await
 }
 
 pub async fn create_run(addr: SocketAddr, config: &Value) -> RunSummary {
@@ -243,74 +215,6 @@ pub async fn collect(ws: &mut Ws, n: usize) -> Vec<IterationRecord> {
         }
     }
     out
-}
-
-/// A child process killed (SIGKILL) and reaped on drop.
-pub struct Proc(pub Child);
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-/// `spintune serve` on an ephemeral loopback port with the store `db`, no
-/// demo, the token [`TOKEN`] and no dashboard (`no-dist` beside `db`); add
-/// flags, stdio and environment to it.
-pub fn serve_command(db: &std::path::Path) -> Command {
-    serve_command_demo(db, "never")
-}
-
-/// [`serve_command`] with `--demo MODE` (`never`, `auto`, `always`).
-pub fn serve_command_demo(db: &std::path::Path, demo: &str) -> Command {
-    let mut cmd = Command::new(env!("CARGO_BIN_EXE_spintune"));
-    cmd.args([
-        "serve",
-        "--bind",
-        "127.0.0.1:0",
-        "--demo",
-        demo,
-        "--token",
-        TOKEN,
-    ])
-    .arg("--db")
-    .arg(db)
-    .arg("--dist")
-    .arg(db.with_file_name("no-dist"));
-    cmd
-}
-
-/// Start `spintune serve` on an ephemeral port; returns the process and its address.
-pub fn spawn_server(db: &std::path::Path) -> (Proc, SocketAddr) {
-    spawn_serve_command(serve_command(db), "http")
-}
-
-/// Run a `spintune serve` command (stdout piped, stderr inherited) and wait
-/// for its `Dashboard: SCHEME://ADDR/` line; panics on another scheme.
-pub fn spawn_serve_command(mut cmd: Command, scheme: &str) -> (Proc, SocketAddr) {
-    let mut child = cmd
-        .stdout(Stdio::piped())
-        .stderr(Stdio::inherit())
-        .spawn()
-        .expect("spawn spintune serve");
-    let stdout = child.stdout.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            if let Some(rest) = line.strip_prefix("Dashboard: ") {
-                let _ = tx.send(rest.trim_end_matches('/').to_string());
-            }
-        }
-    });
-    let proc = Proc(child);
-    let url = rx
-        .recv_timeout(Duration::from_secs(20))
-        .expect("server did not print its address");
-    let addr = url
-        .strip_prefix(&format!("{scheme}://"))
-        .unwrap_or_else(|| panic!("expected a {scheme}:// URL, got {url:?}"));
-    (proc, addr.parse().unwrap())
 }
 
 /// `spintune serve` arguments as the command line would give them (every

@@ -12,16 +12,8 @@ pub const SCPI_SPECIAL_MAGNITUDE: f64 = 9.9e37;
 
 /// A number an instrument answered, if it is a real measurement: it parses,
 /// is finite and is not one of SCPI's special values (NaN `9.91E37`,
-/// overflow `±9.9E37`).
-///
-/// ```
-/// use spintune_server::devices::scpi::scpi_number;
-/// assert_eq!(scpi_number(" -0.75 "), Some(-0.75));
-/// assert_eq!(scpi_number("9.91E37"), None);
-/// assert_eq!(scpi_number("-9.9e37"), None);
-/// assert_eq!(scpi_number("nan"), None);
-/// assert_eq!(scpi_number("1 V"), None);
-/// ```
+/// overflow `±9.9E37`); e.g. `" -0.75 "` is −0.75, `9.91E37`, `-9.9e37`,
+/// `nan` and `1 V` are not numbers (tests: `scpi::tests`).
 pub fn scpi_number(answer: &str) -> Option<f64> {
     let v: f64 = answer.trim().parse().ok()?;
     (v.is_finite() && v.abs() < SCPI_SPECIAL_MAGNITUDE).then_some(v)

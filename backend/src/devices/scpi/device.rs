@@ -9,7 +9,7 @@ use spintune::protocol::{Request, Response};
 
 use super::source::ScpiSource;
 use crate::devices::bridge::BridgeDevice;
-use crate::devices::{BoxFuture, Device, DeviceError, DriverKind, SimulatorDevice};
+use crate::devices::{BoxFuture, Device, DeviceError, SimulatorDevice};
 
 /// The measurement half of a SCPI run.
 enum Measurer {
@@ -118,10 +118,6 @@ impl Device for ScpiDevice {
             Measurer::Simulator(sim) => sim.checkpoint(),
             Measurer::Bridge(_) => Ok(Value::Null),
         }
-    }
-
-    fn driver(&self) -> DriverKind {
-        DriverKind::Scpi
     }
 
     fn recovered(&self) -> BoxFuture<'static, ()> {

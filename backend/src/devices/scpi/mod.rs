@@ -35,7 +35,7 @@
 //!
 //! Numbers from the instrument are believed only if they are finite and not
 //! SCPI's special values (`9.91E37` is NaN, `±9.9E37` is ±infinity/overflow,
-//! [`scpi_number`]); anything else drops the connection and faults.
+//! [`scpi_number`](commands::scpi_number)); anything else drops the connection and faults.
 //!
 //! Any I/O error or timeout drops the connection and forgets the instrument
 //! state. The failed request is reported as an error (the run pauses with the
@@ -47,7 +47,7 @@
 //! | file | what it is |
 //! |---|---|
 //! | [`config`] | the `[scpi]` table ([`ScpiConfig`], [`ScpiProfile`], [`MeasureSource`]), its bounds and validation |
-//! | [`commands`] | the command strings, numbers from the instrument ([`scpi_number`]), the ramp plan ([`plan_ramp`]) |
+//! | [`commands`] | the command strings, numbers from the instrument ([`scpi_number`](commands::scpi_number)), the ramp plan ([`plan_ramp`](commands::plan_ramp)) |
 //! | [`source`] | [`ScpiSource`]: the TCP client of the DC source and the checks above |
 //! | [`device`] | [`ScpiDevice`]: the source for the gates plus a measuring device |
 
@@ -58,13 +58,8 @@ mod source;
 #[cfg(test)]
 mod tests;
 
-pub use commands::{
-    current_command, fixed_mode_command, plan_ramp, query_command, readback_command, scpi_number,
-    set_command, slew_command, SCPI_SPECIAL_MAGNITUDE,
-};
-pub use config::{
-    MeasureSource, ScpiConfig, ScpiProfile, MAX_LEAKAGE_NA, MAX_RAMP_STAGES, MAX_RAMP_STEP_MV,
-    MAX_READBACK_TOLERANCE_MV, MAX_SLEW_V_PER_S, MAX_TIMEOUT_MS,
-};
+#[cfg(test)]
+use commands::{plan_ramp, query_command, scpi_number, set_command, slew_command};
+pub use config::{MeasureSource, ScpiConfig, ScpiProfile};
 pub use device::ScpiDevice;
 pub use source::ScpiSource;

@@ -243,11 +243,6 @@ impl ScpiSource {
         Ok(out)
     }
 
-    /// Voltages last read back from the instrument, mV (empty when not connected).
-    pub fn known_mv(&self) -> &BTreeMap<String, f64> {
-        &self.known
-    }
-
     /// Safely move the gates in `target` (gate → mV) and return the read-back
     /// voltages (mV). See the module documentation for the checks.
     pub async fn set(

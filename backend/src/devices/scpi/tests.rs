@@ -150,6 +150,15 @@ async fn refusals_and_connection_failures_are_typed() {
 }
 
 #[test]
+fn instrument_numbers_are_finite_and_not_scpi_special_values() {
+    assert_eq!(scpi_number(" -0.75 "), Some(-0.75));
+    assert_eq!(scpi_number("9.91E37"), None);
+    assert_eq!(scpi_number("-9.9e37"), None);
+    assert_eq!(scpi_number("nan"), None);
+    assert_eq!(scpi_number("1 V"), None);
+}
+
+#[test]
 fn commands_are_in_volts() {
     assert_eq!(set_command(4, -777.5), "sour4:volt -0.777500");
     assert_eq!(query_command(12), "sour12:volt?");

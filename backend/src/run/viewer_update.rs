@@ -1,7 +1,8 @@
-//! Frames for a run's viewers: pre-serialized JSON of a
-//! [`spintune::protocol::ServerMessage`], shared (not copied) between all
-//! viewers, and the hand-built `iteration`/`history` frames around records
-//! that are already serialized (the same bytes that were stored).
+//! What a run broadcasts to its viewers: a [`ViewerUpdate`] is the
+//! pre-serialized JSON of one [`spintune::protocol::ServerMessage`], shared
+//! (not copied) between all viewers, with its typed [`RunEvent`]; and the
+//! hand-built `iteration`/`history` messages around records that are already
+//! serialized (the same bytes that were stored).
 //!
 //! An iteration is serialized twice, once: as a *summary* (the record with
 //! `scans` empty, what viewers get by default) and in full (for viewers that
@@ -13,26 +14,26 @@ use std::sync::Arc;
 use axum::extract::ws::Utf8Bytes;
 use spintune::protocol::{IterationRecord, RunSummary, ServerMessage};
 
-/// One frame for a run's viewers: the JSON text for sockets, and the same
-/// content typed for in-process observers (the headless CLI), so nobody
-/// re-parses JSON.
+/// One update broadcast to a run's viewers: the JSON text for sockets (one
+/// WebSocket text frame), and the same content typed for in-process
+/// observers (the headless CLI), so nobody re-parses JSON.
 #[derive(Debug, Clone)]
-pub struct Frame {
-    /// For `Iteration` frames: the record's position in the store (0-based).
+pub struct ViewerUpdate {
+    /// For an iteration: the record's position in the store (0-based).
     pub seq: Option<u64>,
-    /// JSON text of the `ServerMessage`; for `Iteration` frames the
-    /// record's *summary* (`scans` empty).
+    /// JSON text of the `ServerMessage`; for an iteration the record's
+    /// *summary* (`scans` empty).
     pub text: Utf8Bytes,
-    /// For `Iteration` frames: the frame with the full record (scans and
+    /// For an iteration: the message with the full record (scans and
     /// fits), for viewers that subscribed to scans.
     pub full: Option<Utf8Bytes>,
-    /// What the frame says, typed.
-    pub event: FrameEvent,
+    /// What the update says, typed.
+    pub event: RunEvent,
 }
 
-/// The typed content of a [`Frame`].
+/// The typed content of a [`ViewerUpdate`].
 #[derive(Debug, Clone)]
-pub enum FrameEvent {
+pub enum RunEvent {
     /// A committed iteration.
     Iteration(Arc<IterationRecord>),
     /// The run's status changed.
@@ -41,13 +42,13 @@ pub enum FrameEvent {
     Other,
 }
 
-impl Frame {
-    /// A frame for any server message (no seq).
+impl ViewerUpdate {
+    /// An update of any server message (no seq).
     pub fn message(msg: &ServerMessage) -> Self {
         let event = match msg {
-            ServerMessage::Status { run } => FrameEvent::Status(run.clone()),
-            ServerMessage::Iteration { record } => FrameEvent::Iteration(Arc::new(record.clone())),
-            _ => FrameEvent::Other,
+            ServerMessage::Status { run } => RunEvent::Status(run.clone()),
+            ServerMessage::Iteration { record } => RunEvent::Iteration(Arc::new(record.clone())),
+            _ => RunEvent::Other,
         };
         Self {
             seq: None,
@@ -60,12 +61,12 @@ impl Frame {
 
 /// `{"type":"iteration","record":…}` built around an already serialized record,
 /// identical to serializing `ServerMessage::Iteration`.
-pub fn iteration_frame_text(record_json: &str) -> String {
+pub fn iteration_message_json(record_json: &str) -> String {
     format!("{{\"type\":\"iteration\",\"record\":{record_json}}}")
 }
 
 /// `{"type":"history","records":[…],"more_before":…}` from serialized records.
-pub fn history_frame_text<S: AsRef<str>>(records_json: &[S], more_before: bool) -> String {
+pub fn history_message_json<S: AsRef<str>>(records_json: &[S], more_before: bool) -> String {
     let mut s = String::with_capacity(
         40 + records_json
             .iter()
@@ -91,12 +92,12 @@ mod tests {
     use serde_json::Value;
 
     #[test]
-    fn hand_built_frames_match_serde() {
+    fn hand_built_messages_match_serde() {
         let rec = r#"{"iteration":3}"#;
-        let v: Value = serde_json::from_str(&iteration_frame_text(rec)).unwrap();
+        let v: Value = serde_json::from_str(&iteration_message_json(rec)).unwrap();
         assert_eq!(v["type"], "iteration");
         assert_eq!(v["record"]["iteration"], 3);
-        let h: Value = serde_json::from_str(&history_frame_text(
+        let h: Value = serde_json::from_str(&history_message_json(
             &[rec.to_string(), rec.to_string()],
             true,
         ))
@@ -108,6 +109,6 @@ mod tests {
             more_before: false,
         })
         .unwrap();
-        assert_eq!(history_frame_text::<String>(&[], false), empty);
+        assert_eq!(history_message_json::<String>(&[], false), empty);
     }
 }

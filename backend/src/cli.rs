@@ -9,7 +9,7 @@ use std::time::Duration;
 use spintune::protocol::RunStatus;
 
 use crate::config::RunConfig;
-use crate::run::{FrameEvent, Manager, ManagerOptions};
+use crate::run::{Manager, ManagerOptions, RunEvent};
 use crate::server::auth::{random_token, read_token_file, Auth, TokenSource};
 use crate::server::origin::Access;
 use crate::server::{router, AppState};
@@ -374,12 +374,12 @@ pub async fn run(args: RunArgs) -> Result<(), CliError> {
             frame = rx.recv() => match frame {
                 Ok(frame) => {
                     match frame.event {
-                        FrameEvent::Iteration(record) => {
+                        RunEvent::Iteration(record) => {
                             bar.set_position(record.iteration + 1);
                             bar.set_message(progress_line(&record));
                             last = Some((*record).clone());
                         }
-                        FrameEvent::Status(run) => match run.status {
+                        RunEvent::Status(run) => match run.status {
                             // Nobody can resume a headless run: leave it
                             // resumable in the store and say so.
                             RunStatus::Faulted { fault: f } => {

@@ -51,10 +51,6 @@ pub use error::RunError;
 pub use handle::ViewerSlot;
 pub use manager::{Manager, ManagerOptions};
 pub use viewer_limits::ViewerLimits;
-/// The former name of [`RunEvent`], still used by `crate::cli` (its owner
-/// renames the import; then this alias goes).
-#[doc(hidden)]
-pub type FrameEvent = RunEvent;
 pub use viewer_update::{history_message_json, RunEvent, ViewerUpdate};
 // Named by ARCHITECTURE.md (invariant 8, the bounds) as `run::…`.
 #[allow(unused_imports)]

@@ -10,6 +10,7 @@ use pyo3::prelude::*;
 mod config;
 mod convert;
 mod kalman;
+mod ramp;
 mod session;
 mod simulation;
 
@@ -20,6 +21,7 @@ fn core_module(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<kalman::PyKalmanGradient>()?;
     m.add_function(wrap_pyfunction!(kalman::newton_step, m)?)?;
     m.add_class::<session::PyRunSession>()?;
+    m.add_class::<ramp::PyRamp>()?;
     m.add_function(wrap_pyfunction!(session::resolve_tuner_config, m)?)?;
     m.add_class::<simulation::PySimulationRun>()?;
     m.add_class::<simulation::PySimulatedDevice>()?;

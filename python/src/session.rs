@@ -222,6 +222,13 @@ impl PyRunSession {
         Ok(Self { inner })
     }
 
+    /// Pickling: ``RunSession.restore(checkpoint())`` (so, like any
+    /// restored session, an unpickled one reads every gate first).
+    fn __reduce__<'py>(slf: &Bound<'py, Self>) -> PyResult<(Bound<'py, PyAny>, (String,))> {
+        let text = slf.borrow().checkpoint()?;
+        Ok((slf.get_type().getattr("restore")?, (text,)))
+    }
+
     fn __repr__(&self) -> String {
         format!("RunSession(status={:?})", self.inner.status().name())
     }

@@ -139,6 +139,15 @@ fn filter_error(e: FilterError) -> PyErr {
     PyValueError::new_err(format!("{e}{arg}"))
 }
 
+/// What ``KalmanGradient.checkpoint()`` holds.
+#[derive(serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct FilterCheckpoint {
+    filter: CoreFilter,
+    outlier_sigma: Option<f64>,
+    min_step_mv: f64,
+}
+
 /// The paper's Kalman filter for the gradient of one parameter over n gates
 /// (Teske et al., APL 2019, eqs. 2–4; the core's `spintune::kalman::KalmanGradient`
 /// with a constant process noise `Q`).
@@ -159,15 +168,6 @@ fn filter_error(e: FilterError) -> PyErr {
 /// Lists or numpy arrays are accepted. NaN/∞ entries, a covariance that is
 /// not symmetric PSD and wrong shapes raise ``ValueError`` naming the
 /// argument.
-/// What ``KalmanGradient.checkpoint()`` holds.
-#[derive(serde::Serialize, serde::Deserialize)]
-#[serde(deny_unknown_fields)]
-struct FilterCheckpoint {
-    filter: CoreFilter,
-    outlier_sigma: Option<f64>,
-    min_step_mv: f64,
-}
-
 #[pyclass(name = "KalmanGradient", module = "spintune")]
 #[derive(Clone)]
 pub struct PyKalmanGradient {

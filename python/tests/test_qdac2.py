@@ -221,6 +221,13 @@ def test_qdac2_from_reset_ramp_then_tune_within_limits(qdac_station, capsys):
     # than 201 sets per sweep
     assert sets < 201 * sweeps
 
+    # the QCoDeS dataset as xarray: integer iterations, UDUNITS units
+    x = tuner.to_xarray()
+    assert x["iteration"].dtype == np.int64
+    assert list(x["iteration"].values) == [r["iteration"] for r in tuner.records]
+    assert x["w"].attrs["units"] == "uV" and x["t_sr"].attrs["units"] == "ns"
+    assert x["grad_w_T"].attrs["units"] == "uV/mV"
+
     # a second ramp is refused: the run knows where it left the gates
     with pytest.raises(RuntimeError, match="before the first run"):
         tuner.ramp_to()

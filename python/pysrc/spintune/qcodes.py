@@ -88,6 +88,7 @@ import qcodes
 from qcodes.dataset import Measurement, load_or_create_experiment
 
 from . import Ramp, RunSession, resolve_tuner_config
+from ._xarray import udunits
 
 __all__ = [
     "QcodesTuner",
@@ -888,6 +889,30 @@ class QcodesTuner:
 
     # -- the QCoDeS dataset --------------------------------------------------
 
+    def to_xarray(self, dataset: Any = None) -> Any:
+        """A QCoDeS dataset of this tuner (default: the last of
+        :attr:`datasets`; or a ``run_id``) as an ``xarray.Dataset`` with an
+        integer ``iteration`` coordinate. QCoDeS stores a ``numeric``
+        setpoint as float64 (its ``array`` type would keep integers, but
+        then every dependent, the text ``record`` too, must be an array,
+        which QCoDeS cannot store for text), so ``to_xarray_dataset()``
+        gives float iterations; this converts them back (exactly: they are
+        whole numbers below 2**53). Units are UDUNITS (``uV``)."""
+        import numpy as np
+        from qcodes.dataset import load_by_id
+
+        if dataset is None:
+            if not self.datasets:
+                raise ValueError("no dataset yet: run() first")
+            dataset = self.datasets[-1]
+        elif isinstance(dataset, (int, np.integer)):
+            dataset = load_by_id(int(dataset))
+        ds = dataset.to_xarray_dataset()
+        k = ds["iteration"].values
+        if k.size and not np.array_equal(k, np.round(k)):
+            raise ValueError("the dataset's iteration values are not whole numbers")
+        return ds.assign_coords(iteration=("iteration", k.astype(np.int64), ds["iteration"].attrs))
+
     def _register(self, meas: Measurement) -> Dict[str, str]:
         cols: Dict[str, str] = {}
 
@@ -902,6 +927,7 @@ class QcodesTuner:
         for g in self._gates:
             reg(f"V_{g}", f"{g} voltage", "mV")
         for p, unit in self._top_params:
+            unit = udunits(unit)
             reg(p, p, unit)
             reg(f"{p}_std", f"std of {p}", unit)
             reg(f"{p}_target", f"target of {p}", unit)

@@ -13,10 +13,12 @@ Usage (from the repository root, with the package installed and the
    cycled, their `iteration` renumbered (synthetic, but of realistic size
    and shape).
 3. Each measurement runs in a fresh Python process (so one does not inherit
-   another's memory): wall time (`time.perf_counter`), peak Python
-   allocations (`tracemalloc`) and the process's peak resident memory
-   (`resource.getrusage(...).ru_maxrss`, which includes the interpreter,
-   numpy and xarray: the baseline after the imports is printed too).
+   another's memory): wall time (`time.perf_counter`) and the process's
+   peak resident memory (`resource.getrusage(...).ru_maxrss`, which
+   includes the interpreter, numpy and xarray: the baseline after the
+   imports is printed too); then once more with `tracemalloc` for the peak
+   of Python's own allocations (tracemalloc slows allocation-heavy code, so
+   its run is not timed).
 """
 
 from __future__ import annotations
@@ -34,9 +36,10 @@ import time
 MEASURE = r'''
 import json, resource, sys, time, tracemalloc
 import numpy, xarray, spintune
-path, what = sys.argv[1], sys.argv[2]
+path, what, trace = sys.argv[1], sys.argv[2], sys.argv[3] == "trace"
 base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-tracemalloc.start()
+if trace:
+    tracemalloc.start()
 t0 = time.perf_counter()
 run = spintune.open_store(path).run(1)
 if what == "to_xarray":
@@ -53,7 +56,7 @@ elif what == "scans":
 elif what == "records_full":
     out = {"iterations": len(run.records)}
 seconds = time.perf_counter() - t0
-_, peak = tracemalloc.get_traced_memory()
+peak = tracemalloc.get_traced_memory()[1] if trace else 0
 out.update(seconds=seconds, tracemalloc_peak_mb=peak / 2**20,
            maxrss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, base_rss_mb=base_rss)
 print(json.dumps(out))
@@ -102,10 +105,17 @@ def main() -> int:
         whats = ["to_xarray", "iter_records", "scans"] + (["records_full"] if args.full else [])
         ok = True
         for what in whats:
-            out = subprocess.run(
-                [sys.executable, "-c", MEASURE, str(path), what], capture_output=True, text=True, check=True
-            )
-            r = json.loads(out.stdout)
+            def measure(trace: str) -> dict:
+                out = subprocess.run(
+                    [sys.executable, "-c", MEASURE, str(path), what, trace],
+                    capture_output=True,
+                    text=True,
+                    check=True,
+                )
+                return json.loads(out.stdout)
+
+            r = measure("time")
+            r["tracemalloc_peak_mb"] = measure("trace")["tracemalloc_peak_mb"]
             extra = f", dataset {r['dataset_mb']:.1f} MB" if "dataset_mb" in r else ""
             print(
                 f"{what:>13}: {r['iterations']} iterations in {r['seconds']:.2f} s, "

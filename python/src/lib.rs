@@ -7,6 +7,7 @@
 
 use pyo3::prelude::*;
 
+mod columns;
 mod config;
 mod convert;
 mod kalman;
@@ -22,6 +23,7 @@ fn core_module(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(kalman::newton_step, m)?)?;
     m.add_class::<session::PyRunSession>()?;
     m.add_class::<ramp::PyRamp>()?;
+    m.add_class::<columns::PyRecordColumns>()?;
     m.add_function(wrap_pyfunction!(session::resolve_tuner_config, m)?)?;
     m.add_class::<simulation::PySimulationRun>()?;
     m.add_class::<simulation::PySimulatedDevice>()?;

@@ -51,18 +51,40 @@ def test_scans_on_request_for_a_range(stored):
 
 
 def test_to_xarray_without_scans_parses_no_scan(stored, monkeypatch):
+    """What reaches a parser — Python's json.loads or the core's record
+    columns — holds no raw scan: SQLite cut them out."""
+    import spintune._core
+
     parsed = []
     real_loads = json.loads
+    real_columns = spintune._core.RecordColumns
 
     def loads(text, *a, **k):
         parsed.append(text)
         return real_loads(text, *a, **k)
 
+    class Spy:
+        def __init__(self):
+            self._c = real_columns()
+
+        def add_json(self, texts):
+            parsed.extend(texts)
+            self._c.add_json(texts)
+
+        def add(self, record):
+            parsed.append(json.dumps(record))
+            self._c.add(record)
+
+        def finish(self):
+            return self._c.finish()
+
     monkeypatch.setattr(spintune.store.json, "loads", loads)
+    monkeypatch.setattr(spintune._core, "RecordColumns", Spy)
     ds = stored.to_xarray()
-    assert parsed and not any('"scans"' in t or '"traces"' in t for t in parsed)
+    assert len(parsed) == 5
+    assert not any('"scans"' in t or '"traces"' in t for t in parsed), parsed[0][:200]
     assert "scans" not in ds
-    monkeypatch.setattr(spintune.store.json, "loads", real_loads)
+    monkeypatch.undo()
     reference = records_to_dataset(stored.records, ds.attrs)
     xr.testing.assert_identical(ds, reference)
     assert ds["iteration"].dtype == np.int64

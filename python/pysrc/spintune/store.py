@@ -119,10 +119,10 @@ class StoredRun:
             args.append(int(stop))
         return where, args
 
-    def _stream(self, sql: str, args: List[Any]) -> Iterator[Dict[str, Any]]:
-        """Rows of ``sql`` (selecting ``seq`` and a JSON text, filtered by
-        ``args``), parsed, in ``seq`` order, fetched in batches by keyset
-        (each batch its own short read; nothing is held open between)."""
+    def _batches(self, sql: str, args: List[Any]) -> Iterator[List[Any]]:
+        """Rows of ``sql`` (selecting ``seq`` first, filtered by ``args``) in
+        ``seq`` order, in batches of :attr:`BATCH` fetched by keyset (each
+        batch its own short read; nothing is held open between)."""
         after = -1
         while True:
             with self._store._connect() as conn:
@@ -132,10 +132,15 @@ class StoredRun:
             if not rows:
                 return
             after = rows[-1][0]
-            for _, text in rows:
-                yield json.loads(text)
+            yield rows
             if len(rows) < self.BATCH:
                 return
+
+    def _stream(self, sql: str, args: List[Any]) -> Iterator[Dict[str, Any]]:
+        """The JSON texts of :meth:`_batches`, parsed one at a time."""
+        for rows in self._batches(sql, args):
+            for _, text in rows:
+                yield json.loads(text)
 
     @property
     def checkpoint(self) -> str:
@@ -150,10 +155,18 @@ class StoredRun:
         :meth:`iter_records` as a stream. ``scans=False`` (default) reads no
         raw scan; ``scans=True`` adds the variable ``scans`` (per iteration,
         the JSON text of its raw scans)."""
-        from ._xarray import records_to_dataset
+        from ._core import RecordColumns
+        from ._xarray import columns_to_dataset
 
-        ds = records_to_dataset(
-            self.iter_records(scans=False),
+        columns = RecordColumns()
+        where, args = self._range(None, None)
+        for batch in self._batches(
+            f"SELECT seq, json_remove(record, '$.scans', '$.events') FROM iterations WHERE {where}",
+            args,
+        ):
+            columns.add_json([text for _, text in batch])
+        ds = columns_to_dataset(
+            columns,
             {
                 "title": f"spintune run {self.id}: {self.name}",
                 "name": self.name,

@@ -330,11 +330,21 @@ fn files_under(dirs: &[&Path]) -> Vec<PathBuf> {
 fn wheel_inputs_fingerprint(root: &Path) -> String {
     use std::hash::{Hash, Hasher};
     let mut h = std::collections::hash_map::DefaultHasher::new();
-    let mut files = files_under(&[&root.join("python/src"), &root.join("python/pysrc"), &root.join("shared")]);
+    let mut files = files_under(&[
+        &root.join("python/src"),
+        &root.join("python/pysrc"),
+        &root.join("shared"),
+    ]);
     files.extend(
-        ["python/Cargo.toml", "python/pyproject.toml", "python/README.md", "Cargo.toml", "Cargo.lock"]
-            .iter()
-            .map(|f| root.join(f)),
+        [
+            "python/Cargo.toml",
+            "python/pyproject.toml",
+            "python/README.md",
+            "Cargo.toml",
+            "Cargo.lock",
+        ]
+        .iter()
+        .map(|f| root.join(f)),
     );
     for f in files {
         f.strip_prefix(root).unwrap_or(&f).hash(&mut h);
@@ -351,7 +361,8 @@ fn wheel_inputs_fingerprint(root: &Path) -> String {
 fn build_wheel(venv: &Path) -> PathBuf {
     step("Python wheel (maturin, abi3, manylinux2014, zig linker)");
     let root = env::current_dir().expect("cwd");
-    let out = PathBuf::from(env::var("CARGO_TARGET_DIR").expect("set in main")).join("wheels/spintune");
+    let out =
+        PathBuf::from(env::var("CARGO_TARGET_DIR").expect("set in main")).join("wheels/spintune");
     let stamp = out.join("inputs.fingerprint");
     let fingerprint = wheel_inputs_fingerprint(&root);
     let find_wheel = || -> Option<PathBuf> {
@@ -372,7 +383,8 @@ fn build_wheel(venv: &Path) -> PathBuf {
     let python = venv.join("bin/python").to_string_lossy().into_owned();
     // maturin finds `python -m ziglang` through the interpreter it runs on.
     let path = env::join_paths(
-        std::iter::once(venv.join("bin")).chain(env::split_paths(&env::var_os("PATH").unwrap_or_default())),
+        std::iter::once(venv.join("bin"))
+            .chain(env::split_paths(&env::var_os("PATH").unwrap_or_default())),
     )
     .expect("valid PATH");
     run_python(
@@ -406,7 +418,11 @@ fn build_wheel(venv: &Path) -> PathBuf {
 /// needs no Rust toolchain.
 fn path_without_rust() -> std::ffi::OsString {
     let keep: Vec<PathBuf> = env::split_paths(&env::var_os("PATH").unwrap_or_default())
-        .filter(|d| !["cargo", "rustc", "rustup"].iter().any(|t| d.join(t).exists()))
+        .filter(|d| {
+            !["cargo", "rustc", "rustup"]
+                .iter()
+                .any(|t| d.join(t).exists())
+        })
         .collect();
     env::join_paths(keep).expect("valid PATH")
 }
@@ -454,7 +470,12 @@ fn python_tests() {
         &venv,
         Some(&path),
     );
-    run_python(&python, &["-m", "pytest", "python/tests", "-q"], &venv, Some(&path));
+    run_python(
+        &python,
+        &["-m", "pytest", "python/tests", "-q"],
+        &venv,
+        Some(&path),
+    );
     eprintln!(
         "  Python package step: {:.0} s",
         started.elapsed().as_secs_f64()

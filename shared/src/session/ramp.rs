@@ -28,7 +28,7 @@
 //! let mut dac = 0.0; // the instrument, reset to 0 mV
 //! let mut sets = 0;
 //! loop {
-//!     match ramp.poll() {
+//!     match ramp.poll().unwrap() {
 //!         RampOutput::Execute(Request::ReadVoltages { .. }) => ramp
 //!             .feed(Response::VoltagesRead { voltages_mv: BTreeMap::from([("SD1".into(), dac)]), lab_seconds: 0.0 })
 //!             .unwrap(),

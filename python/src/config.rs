@@ -16,25 +16,83 @@ use spintune::parameter::Tolerance;
 use spintune::run_config::resolve_simulation;
 use spintune::tuner::TunerConfig;
 
-use crate::convert::{from_py, from_value, to_value};
+use spintune::ConfigError;
 
-fn user_object(config: Option<&Bound<'_, PyAny>>, what: &str) -> PyResult<Map<String, Value>> {
+use crate::convert::{from_py, plain, to_value};
+
+/// A config error as the core displays it (`invalid config at `field`:
+/// message`), the one format of every config error of the package.
+pub fn config_error(e: ConfigError) -> PyErr {
+    PyValueError::new_err(e.to_string())
+}
+
+/// Deserialize a config value; an error names the field below `prefix`
+/// (`tuner` → `invalid config at `tuner.levels[0].kind`: …`).
+fn config_from_value<T: serde::de::DeserializeOwned>(value: Value, prefix: &str) -> PyResult<T> {
+    serde_path_to_error::deserialize(value).map_err(|e| {
+        let path = e.path().to_string();
+        let field = if path == "." { String::new() } else { path };
+        config_error(ConfigError::new(field, e.inner().to_string()).within(prefix))
+    })
+}
+
+/// The first NaN or infinite float in a plain Python value (dicts, lists),
+/// as a config error naming its field: JSON has no NaN, so without this
+/// check it would arrive as `null` ("invalid type: null, expected f64").
+fn check_finite(obj: &Bound<'_, PyAny>, path: &str) -> PyResult<()> {
+    use pyo3::types::{PyDict, PyFloat, PyList};
+    if let Ok(f) = obj.cast::<PyFloat>() {
+        let v = f.value();
+        if !v.is_finite() {
+            return Err(config_error(ConfigError::new(
+                path,
+                format!("{v} is not a finite number"),
+            )));
+        }
+    } else if let Ok(d) = obj.cast::<PyDict>() {
+        for (k, v) in d.iter() {
+            let key = k.str()?.to_string();
+            let sub = if path.is_empty() {
+                key
+            } else {
+                format!("{path}.{key}")
+            };
+            check_finite(&v, &sub)?;
+        }
+    } else if let Ok(l) = obj.cast::<PyList>() {
+        for (i, v) in l.iter().enumerate() {
+            check_finite(&v, &format!("{path}[{i}]"))?;
+        }
+    }
+    Ok(())
+}
+
+/// A user's (partial) config dict as JSON; `prefix` is where it sits in the
+/// run config (`""` for the whole, `tuner` for the tuner table).
+fn user_object(config: Option<&Bound<'_, PyAny>>, prefix: &str) -> PyResult<Map<String, Value>> {
     match config {
         None => Ok(Map::new()),
         Some(obj) if obj.is_none() => Ok(Map::new()),
-        Some(obj) => match from_py::<Value>(obj, what)? {
-            Value::Object(m) => Ok(m),
-            other => Err(PyValueError::new_err(format!(
-                "invalid {what}: expected a dict, got {}",
-                match other {
-                    Value::Array(_) => "a list",
-                    Value::String(_) => "a string",
-                    Value::Number(_) => "a number",
-                    Value::Bool(_) => "a bool",
-                    _ => "None",
-                }
-            ))),
-        },
+        Some(obj) => {
+            let p = plain(obj)?;
+            check_finite(&p, prefix)?;
+            match from_py::<Value>(&p, "config")? {
+                Value::Object(m) => Ok(m),
+                other => Err(config_error(ConfigError::new(
+                    prefix,
+                    format!(
+                        "expected a dict, got {}",
+                        match other {
+                            Value::Array(_) => "a list",
+                            Value::String(_) => "a string",
+                            Value::Number(_) => "a number",
+                            Value::Bool(_) => "a bool",
+                            _ => "None",
+                        }
+                    ),
+                ))),
+            }
+        }
     }
 }
 
@@ -43,45 +101,48 @@ fn user_object(config: Option<&Bound<'_, PyAny>>, what: &str) -> PyResult<Map<St
 /// `targets`, `tolerances` (applied to the top level), `driver` (must be
 /// `"simulator"`) and `iteration_delay_ms` (no wall clock here: ignored).
 pub fn simulation_config(config: Option<&Bound<'_, PyAny>>) -> PyResult<SimulationConfig> {
-    let mut user = user_object(config, "config")?;
+    let mut user = user_object(config, "")?;
     for key in ["scpi", "bridge"] {
         if user.contains_key(key) {
-            return Err(PyValueError::new_err(format!(
-                "invalid config at `{key}`: a simulated run has no instruments; `{key}` is a server setting (use spintune.RunSession or spintune.qcodes for instruments)"
+            return Err(config_error(ConfigError::new(
+                key,
+                format!("a simulated run has no instruments; `{key}` is a server setting (use spintune.RunSession or spintune.qcodes for instruments)"),
             )));
         }
     }
     if let Some(d) = user.remove("driver") {
         if d != Value::String("simulator".into()) {
-            return Err(PyValueError::new_err(format!(
-                "invalid config at `driver`: a simulated run drives the simulator, got {d}"
+            return Err(config_error(ConfigError::new(
+                "driver",
+                format!("a simulated run drives the simulator, got {d}"),
             )));
         }
     }
     user.remove("iteration_delay_ms");
     let targets: BTreeMap<String, f64> = match user.remove("targets") {
-        Some(v) => from_value(v, "config at `targets`")?,
+        Some(v) => config_from_value(v, "targets")?,
         None => BTreeMap::new(),
     };
     let tolerances: BTreeMap<String, Tolerance> = match user.remove("tolerances") {
-        Some(v) => from_value(v, "config at `tolerances`")?,
+        Some(v) => config_from_value(v, "tolerances")?,
         None => BTreeMap::new(),
     };
     // The core's one merge and validation (the server's too).
-    let sim = resolve_simulation(user, &targets, &tolerances)
-        .map_err(|e| PyValueError::new_err(e.to_string()))?;
+    let sim = resolve_simulation(user, &targets, &tolerances).map_err(config_error)?;
     Ok(sim)
 }
 
 /// A complete, validated [`TunerConfig`] from a (partial) `tuner` dict,
 /// merged into the paper default's tuner.
 pub fn tuner_config(config: Option<&Bound<'_, PyAny>>) -> PyResult<TunerConfig> {
-    let user = user_object(config, "tuner config")?;
+    let user = user_object(config, "tuner")?;
+    spintune::tuner::check_magnitudes(&Value::Object(user.clone()), "tuner")
+        .map_err(config_error)?;
     let mut merged = to_value(&SimulationConfig::paper_default().tuner)?;
     merge(&mut merged, Value::Object(user));
-    let tuner: TunerConfig = from_value(merged, "tuner config")?;
+    let tuner: TunerConfig = config_from_value(merged, "tuner")?;
     tuner
         .validate()
-        .map_err(|e| PyValueError::new_err(e.within("tuner").to_string()))?;
+        .map_err(|e| config_error(e.within("tuner")))?;
     Ok(tuner)
 }

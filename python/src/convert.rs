@@ -70,18 +70,6 @@ pub fn from_py<T: DeserializeOwned>(obj: &Bound<'_, PyAny>, what: &str) -> PyRes
     })
 }
 
-/// Deserialize a core type from a JSON value; a `ValueError` names the field.
-pub fn from_value<T: DeserializeOwned>(value: serde_json::Value, what: &str) -> PyResult<T> {
-    serde_path_to_error::deserialize(value).map_err(|e| {
-        let path = e.path().to_string();
-        if path == "." {
-            PyValueError::new_err(format!("invalid {what}: {}", e.inner()))
-        } else {
-            PyValueError::new_err(format!("invalid {what} at `{path}`: {}", e.inner()))
-        }
-    })
-}
-
 /// Serialize a core type into plain Python objects (its JSON shape).
 pub fn to_py<'py, T: Serialize + ?Sized>(
     py: Python<'py>,

@@ -139,6 +139,15 @@ fn filter_error(e: FilterError) -> PyErr {
     PyValueError::new_err(format!("{e}{arg}"))
 }
 
+/// What ``KalmanGradient.checkpoint()`` holds.
+#[derive(serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct FilterCheckpoint {
+    filter: CoreFilter,
+    outlier_sigma: Option<f64>,
+    min_step_mv: f64,
+}
+
 /// The paper's Kalman filter for the gradient of one parameter over n gates
 /// (Teske et al., APL 2019, eqs. 2–4; the core's `spintune::kalman::KalmanGradient`
 /// with a constant process noise `Q`).
@@ -287,6 +296,38 @@ impl PyKalmanGradient {
     #[getter]
     fn n(&self) -> usize {
         self.inner.dimension()
+    }
+
+    /// The filter as a JSON string (gradient, covariance, process noise,
+    /// outlier gate, small-step threshold; every float exact).
+    /// ``KalmanGradient.restore(text)`` gives an identical filter; pickling
+    /// goes through it.
+    fn checkpoint(&self) -> PyResult<String> {
+        serde_json::to_string(&FilterCheckpoint {
+            filter: self.inner.clone(),
+            outlier_sigma: self.outlier_sigma,
+            min_step_mv: self.min_step_mv,
+        })
+        .map_err(|e| PyValueError::new_err(format!("cannot serialize the filter: {e}")))
+    }
+
+    /// A filter from ``checkpoint()``'s string.
+    #[staticmethod]
+    fn restore(checkpoint: &str) -> PyResult<Self> {
+        let de = &mut serde_json::Deserializer::from_str(checkpoint);
+        let c: FilterCheckpoint = serde_path_to_error::deserialize(de)
+            .map_err(|e| PyValueError::new_err(format!("invalid checkpoint: {e}")))?;
+        Ok(Self {
+            inner: c.filter,
+            outlier_sigma: c.outlier_sigma,
+            min_step_mv: c.min_step_mv,
+        })
+    }
+
+    /// Pickling: ``KalmanGradient.restore(checkpoint())``.
+    fn __reduce__<'py>(slf: &Bound<'py, Self>) -> PyResult<(Bound<'py, PyAny>, (String,))> {
+        let text = slf.borrow().checkpoint()?;
+        Ok((slf.get_type().getattr("restore")?, (text,)))
     }
 
     /// An independent copy of the filter.

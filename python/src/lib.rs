@@ -7,9 +7,11 @@
 
 use pyo3::prelude::*;
 
+mod columns;
 mod config;
 mod convert;
 mod kalman;
+mod ramp;
 mod session;
 mod simulation;
 
@@ -20,6 +22,8 @@ fn core_module(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<kalman::PyKalmanGradient>()?;
     m.add_function(wrap_pyfunction!(kalman::newton_step, m)?)?;
     m.add_class::<session::PyRunSession>()?;
+    m.add_class::<ramp::PyRamp>()?;
+    m.add_class::<columns::PyRecordColumns>()?;
     m.add_function(wrap_pyfunction!(session::resolve_tuner_config, m)?)?;
     m.add_class::<simulation::PySimulationRun>()?;
     m.add_class::<simulation::PySimulatedDevice>()?;

@@ -194,6 +194,22 @@ impl PyRunSession {
         to_py(py, self.inner.guard().readback_mv())
     }
 
+    /// Where the run left each gate, gate → ``[lo, hi]`` mV (a range: the
+    /// last accepted read-back, widened to what a request since may have
+    /// visited; kept in the checkpoint). Empty before the run first read its
+    /// gates: a gate found elsewhere than this range is a ``moved`` fault.
+    #[getter]
+    fn left_mv<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let spans: std::collections::BTreeMap<&String, [f64; 2]> = self
+            .inner
+            .guard()
+            .left_mv()
+            .iter()
+            .map(|(g, s)| (g, [s.lo_mv, s.hi_mv]))
+            .collect();
+        to_py(py, &spans)
+    }
+
     /// The complete tuner config in use (gates with limits in mV, levels, …).
     #[getter]
     fn tuner_config<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
@@ -220,6 +236,13 @@ impl PyRunSession {
         let inner: RunSession = serde_path_to_error::deserialize(de)
             .map_err(|e| PyValueError::new_err(format!("invalid checkpoint: {e}")))?;
         Ok(Self { inner })
+    }
+
+    /// Pickling: ``RunSession.restore(checkpoint())`` (so, like any
+    /// restored session, an unpickled one reads every gate first).
+    fn __reduce__<'py>(slf: &Bound<'py, Self>) -> PyResult<(Bound<'py, PyAny>, (String,))> {
+        let text = slf.borrow().checkpoint()?;
+        Ok((slf.get_type().getattr("restore")?, (text,)))
     }
 
     fn __repr__(&self) -> String {

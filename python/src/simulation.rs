@@ -49,6 +49,22 @@ pub struct PySimulationRun {
     config: SimulationConfig,
 }
 
+/// What ``SimulationRun.checkpoint()`` holds.
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RunCheckpoint {
+    config: SimulationConfig,
+    run: SimulationRun,
+    records: Vec<IterationRecord>,
+}
+
+#[derive(serde::Serialize)]
+struct RunCheckpointRef<'a> {
+    config: &'a SimulationConfig,
+    run: &'a SimulationRun,
+    records: &'a [IterationRecord],
+}
+
 /// The run and its records, behind one lock.
 struct Inner {
     run: SimulationRun,
@@ -223,6 +239,46 @@ impl PySimulationRun {
     fn to_netcdf(&self, py: Python<'_>, path: &Bound<'_, PyAny>) -> PyResult<()> {
         self.to_xarray(py)?.call_method1("to_netcdf", (path,))?;
         Ok(())
+    }
+
+    /// The whole run as a JSON string: config, session, simulated device
+    /// (its RNG and lab clock included) and the records so far.
+    /// ``SimulationRun.restore(text)`` continues bit for bit where this one
+    /// is; pickling goes through it.
+    fn checkpoint(&self, py: Python<'_>) -> PyResult<String> {
+        let config = &self.config;
+        self.with(py, |inner| {
+            serde_json::to_string(&RunCheckpointRef {
+                config,
+                run: &inner.run,
+                records: &inner.records,
+            })
+        })
+        .map_err(|e| PyRuntimeError::new_err(format!("cannot serialize the run: {e}")))
+    }
+
+    /// A run from ``checkpoint()``'s string.
+    #[staticmethod]
+    fn restore(py: Python<'_>, checkpoint: &str) -> PyResult<Self> {
+        let c: RunCheckpoint = py
+            .detach(|| {
+                let de = &mut serde_json::Deserializer::from_str(checkpoint);
+                serde_path_to_error::deserialize(de)
+            })
+            .map_err(|e| PyValueError::new_err(format!("invalid checkpoint: {e}")))?;
+        Ok(Self {
+            inner: Mutex::new(Inner {
+                run: c.run,
+                records: c.records,
+            }),
+            config: c.config,
+        })
+    }
+
+    /// Pickling: ``SimulationRun.restore(checkpoint())``.
+    fn __reduce__<'py>(slf: &Bound<'py, Self>) -> PyResult<(Bound<'py, PyAny>, (String,))> {
+        let text = slf.get().checkpoint(slf.py())?;
+        Ok((slf.get_type().getattr("restore")?, (text,)))
     }
 
     fn __repr__(&self, py: Python<'_>) -> String {

@@ -7,6 +7,9 @@
 //!   end-to-end tests), the Python package's tests (pytest, in a virtual
 //!   environment under `~/.cache/spintune/venv`) and the wasm tests in
 //!   headless Chromium.
+//! * `cargo xtask wheel` — the Python package as an abi3 manylinux2014 wheel
+//!   (maturin with the zig linker of the `ziglang` pip package), the wheel
+//!   the Python tests install into a venv without Rust on the PATH.
 //!
 //! Every install step is skipped when the right version is already present
 //! (binaryen's `wasm-opt`, which Trunk runs on the dashboard, comes from npm
@@ -54,6 +57,10 @@ fn main() {
         Some("install") => {
             install_tools(true);
         }
+        Some("wheel") => {
+            let wheel = build_wheel(&python_env());
+            println!("{}", wheel.display());
+        }
         Some("python-test") => {
             // The Python step of `test` alone (it needs the debug server
             // binary for its bit-identity tests: built unless SPINTUNE_BIN is set).
@@ -65,7 +72,7 @@ fn main() {
         }
         _ => {
             eprintln!(
-                "usage: cargo xtask <command>\n\n  run [server args]  build the dashboard and start the server on the simulator\n  test [--no-lint]   run formatting/lint checks and every test (native, browser, Python, wasm)\n  deps               list module import cycles (fails if there is one)\n  install            install the tools only (wasm target, trunk, wasm-bindgen, binaryen wasm-opt, chromium)\n  python-test        only the Python package step of `test` (venv, maturin build, pytest)"
+                "usage: cargo xtask <command>\n\n  run [server args]  build the dashboard and start the server on the simulator\n  test [--no-lint]   run formatting/lint checks and every test (native, browser, Python, wasm)\n  deps               list module import cycles (fails if there is one)\n  install            install the tools only (wasm target, trunk, wasm-bindgen, binaryen wasm-opt, chromium)\n  python-test        only the Python package step of `test` (wheel, clean venv without Rust, pytest)\n  wheel              build the abi3 manylinux2014 wheel (maturin + zig) into $CARGO_TARGET_DIR/wheels/spintune"
             );
             exit(2);
         }
@@ -185,26 +192,39 @@ fn test(flags: &[String]) {
     );
 }
 
-/// Python packages the tests need: (import name, pip name).
-const PYTHON_DEPS: [(&str, &str); 7] = [
+/// Python packages of the build/tool environment (`~/.cache/spintune/venv`):
+/// (import name, pip name). `websockets` for the lab-bridge client that the
+/// native tests run (`SPINTUNE_PYTHON`); maturin and ziglang (its zig
+/// linker) build the wheel.
+const PYTHON_DEPS: [(&str, &str); 9] = [
     ("websockets", "websockets"),
     ("maturin", "maturin"),
+    ("ziglang", "ziglang"),
     ("pytest", "pytest"),
     ("numpy", "numpy"),
     ("xarray", "xarray"),
     ("netCDF4", "netcdf4"),
     ("qcodes", "qcodes"),
+    ("tqdm", "tqdm"),
 ];
 
-/// The Python environment of the tests: a virtual environment outside the
-/// clone (`$SPINTUNE_VENV`, default `~/.cache/spintune/venv`) with the test
-/// dependencies, installed only if missing. Exported as `SPINTUNE_PYTHON`
-/// (the interpreter) for the native tests that run Python (the lab bridge
-/// client); nothing is installed inside a test. Returns the venv directory.
-fn python_env() -> PathBuf {
-    let venv = env::var_os("SPINTUNE_VENV")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| home().join(".cache/spintune/venv"));
+/// What the Python tests import, installed into the wheel's test venv
+/// (`~/.cache/spintune/venv-wheel`): (import name, pip name).
+const WHEEL_TEST_DEPS: [(&str, &str); 9] = [
+    ("pytest", "pytest"),
+    ("numpy", "numpy"),
+    ("xarray", "xarray"),
+    ("netCDF4", "netcdf4"),
+    ("qcodes", "qcodes"),
+    ("qcodes_contrib_drivers", "qcodes_contrib_drivers"),
+    ("pyvisa_sim", "pyvisa-sim"),
+    ("tqdm", "tqdm"),
+    ("websockets", "websockets"),
+];
+
+/// A virtual environment at `venv` (created if missing) with `deps`
+/// (installed only if their import fails). `path`: the PATH pip runs with.
+fn ensure_venv(venv: &Path, deps: &[(&str, &str)], path: Option<&std::ffi::OsStr>) {
     let python = venv.join("bin/python");
     if python.is_file() {
         eprintln!("  venv {}: present", venv.display());
@@ -217,7 +237,7 @@ fn python_env() -> PathBuf {
         cmd("python3", &["-m", "venv", &venv.to_string_lossy()]);
     }
     let python = python.to_string_lossy().into_owned();
-    let missing: Vec<&str> = PYTHON_DEPS
+    let missing: Vec<&str> = deps
         .iter()
         .filter(|(module, _)| {
             !Command::new(&python)
@@ -230,7 +250,7 @@ fn python_env() -> PathBuf {
         .map(|(_, pip)| *pip)
         .collect();
     if missing.is_empty() {
-        eprintln!("  Python test dependencies: present");
+        eprintln!("  Python packages: present");
     } else {
         let mut args = vec![
             "-m",
@@ -240,58 +260,222 @@ fn python_env() -> PathBuf {
             "--disable-pip-version-check",
         ];
         args.extend(&missing);
-        cmd(&python, &args);
+        run_python(&python, &args, venv, path);
     }
-    env::set_var("SPINTUNE_PYTHON", &python);
+}
+
+/// Run `python args…` with `VIRTUAL_ENV=venv` and (if given) that PATH; exit on failure.
+fn run_python(python: &str, args: &[&str], venv: &Path, path: Option<&std::ffi::OsStr>) {
+    eprintln!("  $ {python} {}", args.join(" "));
+    let mut c = Command::new(python);
+    c.args(args).env("VIRTUAL_ENV", venv);
+    if let Some(path) = path {
+        c.env("PATH", path);
+    }
+    match c.status() {
+        Ok(s) if s.success() => {}
+        Ok(s) => {
+            eprintln!("xtask: `python {}` failed ({s})", args.join(" "));
+            exit(s.code().unwrap_or(1));
+        }
+        Err(e) => {
+            eprintln!("xtask: could not start {python}: {e}");
+            exit(1);
+        }
+    }
+}
+
+/// The build/tool environment of the Python steps: a virtual environment
+/// outside the clone (`$SPINTUNE_VENV`, default `~/.cache/spintune/venv`)
+/// with [`PYTHON_DEPS`], installed only if missing. Exported as
+/// `SPINTUNE_PYTHON` (the interpreter) for the native tests that run Python
+/// (the lab bridge client); nothing is installed inside a test. Returns the
+/// venv directory.
+fn python_env() -> PathBuf {
+    let venv = env::var_os("SPINTUNE_VENV")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| home().join(".cache/spintune/venv"));
+    ensure_venv(&venv, &PYTHON_DEPS, None);
+    env::set_var("SPINTUNE_PYTHON", venv.join("bin/python"));
     venv
 }
 
-/// The Python package (`python/`): built by maturin into the shared
-/// `CARGO_TARGET_DIR`, installed into the test venv ([`python_env`]), then
-/// pytest.
-fn python_tests() {
-    step("Python package (maturin build + pytest)");
-    let started = Instant::now();
-    let venv = python_env();
+/// Every file under `dirs` (recursively), sorted.
+fn files_under(dirs: &[&Path]) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    let mut stack: Vec<PathBuf> = dirs.iter().map(|d| d.to_path_buf()).collect();
+    while let Some(p) = stack.pop() {
+        if p.is_dir() {
+            if let Ok(rd) = std::fs::read_dir(&p) {
+                for e in rd.flatten() {
+                    let name = e.file_name();
+                    let name = name.to_string_lossy();
+                    if name == "__pycache__" || name == "target" || name.starts_with('.') {
+                        continue;
+                    }
+                    stack.push(e.path());
+                }
+            }
+        } else {
+            out.push(p);
+        }
+    }
+    out.sort();
+    out
+}
+
+/// A fingerprint of what the wheel is built from (the Python package, the
+/// core, the workspace manifests and lock file): the wheel is rebuilt only
+/// when it changes.
+fn wheel_inputs_fingerprint(root: &Path) -> String {
+    use std::hash::{Hash, Hasher};
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    let mut files = files_under(&[
+        &root.join("python/src"),
+        &root.join("python/pysrc"),
+        &root.join("shared"),
+    ]);
+    files.extend(
+        [
+            "python/Cargo.toml",
+            "python/pyproject.toml",
+            "python/README.md",
+            "Cargo.toml",
+            "Cargo.lock",
+        ]
+        .iter()
+        .map(|f| root.join(f)),
+    );
+    for f in files {
+        f.strip_prefix(root).unwrap_or(&f).hash(&mut h);
+        std::fs::read(&f).unwrap_or_default().hash(&mut h);
+    }
+    format!("{:016x}", h.finish())
+}
+
+/// Build the wheel (abi3, manylinux2014, linked with zig from the `ziglang`
+/// package) into `$CARGO_TARGET_DIR/wheels/spintune` and return its path.
+/// Cached: the build is skipped when the wheel's inputs have not changed
+/// since the last build (and cargo's release build in the target dir is
+/// incremental anyway).
+fn build_wheel(venv: &Path) -> PathBuf {
+    step("Python wheel (maturin, abi3, manylinux2014, zig linker)");
+    let root = env::current_dir().expect("cwd");
+    let out =
+        PathBuf::from(env::var("CARGO_TARGET_DIR").expect("set in main")).join("wheels/spintune");
+    let stamp = out.join("inputs.fingerprint");
+    let fingerprint = wheel_inputs_fingerprint(&root);
+    let find_wheel = || -> Option<PathBuf> {
+        std::fs::read_dir(&out)
+            .ok()?
+            .flatten()
+            .map(|e| e.path())
+            .find(|p| p.extension().is_some_and(|e| e == "whl"))
+    };
+    if std::fs::read_to_string(&stamp).ok().as_deref() == Some(fingerprint.as_str()) {
+        if let Some(w) = find_wheel() {
+            eprintln!("  {}: up to date", w.display());
+            return w;
+        }
+    }
+    let _ = std::fs::remove_dir_all(&out);
+    std::fs::create_dir_all(&out).expect("wheel dir");
     let python = venv.join("bin/python").to_string_lossy().into_owned();
-    // maturin (the build backend, from the venv since the build is not
-    // isolated) must be on PATH; cargo builds into the shared target dir.
-    let venv_bin = venv.join("bin");
+    // maturin finds `python -m ziglang` through the interpreter it runs on.
     let path = env::join_paths(
-        std::iter::once(venv_bin).chain(env::split_paths(&env::var_os("PATH").unwrap_or_default())),
+        std::iter::once(venv.join("bin"))
+            .chain(env::split_paths(&env::var_os("PATH").unwrap_or_default())),
     )
     .expect("valid PATH");
-    let run = |args: &[&str]| {
-        eprintln!("  $ {python} {}", args.join(" "));
-        let status = Command::new(&python)
-            .args(args)
-            .env("PATH", &path)
-            .env("VIRTUAL_ENV", &venv)
-            .status();
-        match status {
-            Ok(s) if s.success() => {}
-            Ok(s) => {
-                eprintln!("xtask: `python {}` failed ({s})", args.join(" "));
-                exit(s.code().unwrap_or(1));
-            }
-            Err(e) => {
-                eprintln!("xtask: could not start {python}: {e}");
-                exit(1);
-            }
-        }
-    };
-    run(&[
-        "-m",
-        "pip",
-        "install",
-        "--quiet",
-        "--disable-pip-version-check",
-        "--no-build-isolation",
-        "--no-deps",
-        "--force-reinstall",
-        "./python",
-    ]);
-    run(&["-m", "pytest", "python/tests", "-q"]);
+    run_python(
+        &python,
+        &[
+            "-m",
+            "maturin",
+            "build",
+            "--release",
+            "--zig",
+            "--compatibility",
+            "manylinux2014",
+            "-m",
+            "python/Cargo.toml",
+            "--out",
+            &out.to_string_lossy(),
+        ],
+        venv,
+        Some(&path),
+    );
+    let wheel = find_wheel().unwrap_or_else(|| {
+        eprintln!("xtask: maturin wrote no wheel into {}", out.display());
+        exit(1);
+    });
+    std::fs::write(&stamp, &fingerprint).expect("write the wheel's fingerprint");
+    wheel
+}
+
+/// PATH without Rust: every entry that holds `cargo`, `rustc` or `rustup`
+/// is dropped (e.g. `~/.cargo/bin`), so the tests show that the wheel
+/// needs no Rust toolchain.
+fn path_without_rust() -> std::ffi::OsString {
+    let keep: Vec<PathBuf> = env::split_paths(&env::var_os("PATH").unwrap_or_default())
+        .filter(|d| {
+            !["cargo", "rustc", "rustup"]
+                .iter()
+                .any(|t| d.join(t).exists())
+        })
+        .collect();
+    env::join_paths(keep).expect("valid PATH")
+}
+
+/// The Python package step: build the wheel ([`build_wheel`]), install it
+/// into a venv of its own (`$SPINTUNE_WHEEL_VENV`, default
+/// `~/.cache/spintune/venv-wheel`, created once, test dependencies
+/// installed only if missing) and run pytest there — pip and pytest with no
+/// Rust on the PATH.
+fn python_tests() {
+    step("Python package (wheel into a venv without Rust on the PATH, then pytest)");
+    let started = Instant::now();
+    let build_venv = python_env();
+    let wheel = build_wheel(&build_venv);
+    let venv = env::var_os("SPINTUNE_WHEEL_VENV")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| home().join(".cache/spintune/venv-wheel"));
+    let path = path_without_rust();
+    ensure_venv(&venv, &WHEEL_TEST_DEPS, Some(&path));
+    let python = venv.join("bin/python").to_string_lossy().into_owned();
+    // The venv's bin first (so `python` in a test's subprocess is this one).
+    let path = env::join_paths(std::iter::once(venv.join("bin")).chain(env::split_paths(&path)))
+        .expect("valid PATH");
+    run_python(
+        &python,
+        &[
+            "-c",
+            "import shutil, sys\nfound = [t for t in ('cargo', 'rustc', 'rustup') if shutil.which(t)]\nsys.exit(f'Rust on the PATH of the wheel tests: {found}' if found else 0)",
+        ],
+        &venv,
+        Some(&path),
+    );
+    run_python(
+        &python,
+        &[
+            "-m",
+            "pip",
+            "install",
+            "--quiet",
+            "--disable-pip-version-check",
+            "--no-deps",
+            "--force-reinstall",
+            &wheel.to_string_lossy(),
+        ],
+        &venv,
+        Some(&path),
+    );
+    run_python(
+        &python,
+        &["-m", "pytest", "python/tests", "-q"],
+        &venv,
+        Some(&path),
+    );
     eprintln!(
         "  Python package step: {:.0} s",
         started.elapsed().as_secs_f64()

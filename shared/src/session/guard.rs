@@ -55,7 +55,7 @@ pub enum ReadbackError {
     /// A read-back lies outside the gate's limits (an instrument that reports
     /// this is faulty, or the gate was moved outside them by hand).
     #[error(
-        "gate {gate}: read-back {value_mv} mV lies outside its limits [{min_mv}, {max_mv}] mV"
+        "gate {gate} reads {value_mv} mV, outside its limits [{min_mv}, {max_mv}] mV: nothing was moved; ramp it into its limits first"
     )]
     OutOfLimits {
         /// Gate name.

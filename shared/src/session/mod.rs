@@ -66,6 +66,7 @@
 //! ```
 
 pub mod guard;
+pub mod ramp;
 
 use serde::{Deserialize, Serialize};
 

@@ -87,9 +87,17 @@ import numpy as np
 import qcodes
 from qcodes.dataset import Measurement, load_or_create_experiment
 
-from . import RunSession, resolve_tuner_config
+from . import Ramp, RunSession, resolve_tuner_config
+from ._xarray import udunits
 
-__all__ = ["QcodesTuner", "ScanFailed", "TuningFault", "sweep_points_mv", "gate_limits"]
+__all__ = [
+    "QcodesTuner",
+    "ScanFailed",
+    "TuningFault",
+    "sweep_points_mv",
+    "gate_limits",
+    "qdac2_dc_sweep",
+]
 
 
 class ScanFailed(Exception):
@@ -104,7 +112,14 @@ class TuningFault(RuntimeError):
 
     def __init__(self, fault: Mapping[str, Any]):
         self.fault = dict(fault)
-        super().__init__(f"{fault.get('kind', '?')} fault: {fault.get('message', '')}")
+        message = str(fault.get("message", ""))
+        if fault.get("kind") == "readback" and "outside its limits" in message:
+            # e.g. a DAC at its reset state (0 V), outside the tuning window
+            message += (
+                " with QcodesTuner.ramp_to() (to the config's initial_mv, in steps within "
+                "the limits), then run() again"
+            )
+        super().__init__(f"{fault.get('kind', '?')} fault: {message}")
 
 
 _UNIT_MV = {"V": 1000.0, "mV": 1.0, "uV": 1e-3, "µV": 1e-3, "μV": 1e-3}
@@ -115,6 +130,48 @@ def sweep_points_mv(sweep: Mapping[str, Any]) -> np.ndarray:
     "points"}``, in order: ``points`` evenly spaced values from ``from_mv`` to
     ``to_mv`` (the core's guard has checked every one against the limits)."""
     return np.linspace(float(sweep["from_mv"]), float(sweep["to_mv"]), int(sweep["points"]))
+
+
+def qdac2_dc_sweep(channel: Any, sweep: Mapping[str, Any], *, dwell_s: float = 1e-3) -> Any:
+    """Program a ``sensing_dot`` sweep request on a QDAC-II channel's own DC
+    sweep generator (``qcodes_contrib_drivers``' ``QDac2Channel.dc_sweep``,
+    stepped) instead of ``points`` single VISA sets: one programming of
+    start/stop/points/dwell, the instrument steps through the points itself
+    (201 points at the default dwell: 0.2 s instead of 201 round trips).
+
+    The points are exactly the request's (``sweep_points_mv(sweep)``, which
+    the core's guard checked: every point inside the limits, the first within
+    ``max_step_mv`` of the gate's read-back, the spacing at most
+    ``max_step_mv``); the generator's ``values_V()`` is compared with them
+    and a mismatch aborts before anything starts (``RuntimeError``).
+
+    Returns the driver's ``Sweep_Context``: arm your digitizer (e.g. on
+    ``ctx.start_marker()`` / ``ctx.step_end_marker()``), then
+    ``ctx.start()`` and wait for the end (``ctx.time_s()``). **Then set the
+    channel back where it was** (``dc_constant_V(start)``, one sweep
+    half-width from the last point, which the config keeps within
+    ``max_step_mv``): the generator leaves the output at the sweep's last
+    point in sweep mode, while ``dc_constant_V.get()`` (``sour:volt?``)
+    reads the fixed-mode level — a read-back that is not the output, against
+    which the next step would be checked. Back in fixed mode the read-back
+    is the output again.
+    """
+    points_mv = sweep_points_mv(sweep)
+    ctx = channel.dc_sweep(
+        start_V=float(sweep["from_mv"]) / 1000.0,
+        stop_V=float(sweep["to_mv"]) / 1000.0,
+        points=int(sweep["points"]),
+        dwell_s=dwell_s,
+        stepped=True,
+    )
+    planned_mv = np.asarray(ctx.values_V(), dtype=float) * 1000.0
+    if planned_mv.shape != points_mv.shape or not np.allclose(planned_mv, points_mv, rtol=0, atol=1e-6):
+        ctx.abort()
+        raise RuntimeError(
+            f"QDAC-II sweep of {sweep['gate']}: the generator would visit {planned_mv.tolist()[:3]}… "
+            f"mV, not the requested {points_mv.tolist()[:3]}… mV; aborted"
+        )
+    return ctx
 
 
 def _mv_per_unit(name: str, param: Any, override: Optional[Mapping[str, float]]) -> float:
@@ -365,6 +422,44 @@ def _outcome(kind: str, result: Any) -> Dict[str, Any]:
     )
 
 
+class _Progress:
+    """A progress bar: ``tqdm`` (``tqdm.auto``, so notebooks get a widget)
+    if installed, else a printed line per 10 %; nothing if not ``enabled``."""
+
+    def __init__(self, enabled: bool, what: str):
+        self._what = what
+        self._bar: Any = None
+        self._enabled = enabled
+        self._printed = -1
+        self._tqdm: Any = None
+        if enabled:
+            try:
+                from tqdm.auto import tqdm
+
+                self._tqdm = tqdm
+            except ImportError:
+                self._tqdm = None
+
+    def update(self, done: int, total: Optional[int]) -> None:
+        if not self._enabled or not total:
+            return
+        if self._tqdm is not None:
+            if self._bar is None:
+                self._bar = self._tqdm(total=total, desc=self._what, unit="step")
+            self._bar.total = total
+            self._bar.n = done
+            self._bar.refresh()
+            return
+        tenth = (10 * done) // total
+        if tenth != self._printed:
+            self._printed = tenth
+            print(f"{self._what}: {done}/{total} steps", flush=True)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+
+
 def _ident(name: str) -> str:
     s = re.sub(r"\W", "_", name)
     return s if s.isidentifier() else "_" + s
@@ -460,6 +555,124 @@ class QcodesTuner:
             self.ramps[gate] = _configure_ramp(
                 gate, self._gates[gate], float(g["max_step_mv"]), self._scale[gate], inter_delay_s
             )
+
+    # -- getting to the working point ----------------------------------------
+
+    def travel_limits(
+        self, travel_limits_mv: Optional[Mapping[str, Tuple[float, float]]] = None
+    ) -> List[Dict[str, Any]]:
+        """The range each gate may be ramped through (list of gate dicts with
+        ``name``, ``min_mv``, ``max_mv``, ``max_step_mv``, mV): the gate
+        parameter's validator range (converted to mV), narrowed to
+        ``travel_limits_mv[gate] = (lo, hi)`` if given; a gate with neither
+        travels only inside its tuning limits. ``max_step_mv`` is the
+        tuner config's."""
+        out = []
+        for g in self.tuner_config["gates"]:
+            name = g["name"]
+            param, scale = self._gates[name], self._scale[name]
+            vlo, vhi = _validator_range(param)
+            lo = vlo * scale if vlo is not None else None
+            hi = vhi * scale if vhi is not None else None
+            if travel_limits_mv and name in travel_limits_mv:
+                tlo, thi = (float(x) for x in travel_limits_mv[name])
+                lo = tlo if lo is None else max(lo, tlo)
+                hi = thi if hi is None else min(hi, thi)
+            if lo is None or hi is None:
+                lo = float(g["min_mv"]) if lo is None else lo
+                hi = float(g["max_mv"]) if hi is None else hi
+            out.append(
+                {"name": name, "min_mv": lo, "max_mv": hi, "max_step_mv": float(g["max_step_mv"])}
+            )
+        return out
+
+    def ramp_to(
+        self,
+        working_point_mv: Optional[Mapping[str, float]] = None,
+        *,
+        travel_limits_mv: Optional[Mapping[str, Tuple[float, float]]] = None,
+        progress: bool = True,
+    ) -> Dict[str, float]:
+        """Move the gates from where the instrument says they are to a working
+        point (mV), in steps within the limits, before the run starts — e.g.
+        from a DAC's reset state (0 V) into the tuning window.
+
+        The ramp is the core's (:class:`spintune.Ramp`), through the same
+        safety guard as the tuning: every gate is read first; then all gates
+        move together along straight lines, each set checked against the
+        travel range (:meth:`travel_limits`) and the gate's ``max_step_mv``
+        from the last **read-back**, each read-back against the set value
+        (``readback_tolerance_mv``). The working point must lie inside the
+        tuning limits (:attr:`limits`), so the run accepts it.
+
+        Args:
+            working_point_mv: gate → mV; default: every gate's ``initial_mv``
+                of the tuner config. Only the gates named are moved.
+            travel_limits_mv: gate → ``(lo, hi)`` mV, narrowing the range a
+                gate may be ramped through (default: the parameter's
+                validator range; the tuning limits without a validator).
+            progress: show a progress bar (``tqdm`` if installed, else one
+                printed line per 10 %).
+
+        Returns the final read-backs, gate → mV.
+
+        Raises ``ValueError`` (nothing more is moved) if a target is outside
+        the tuning limits, a gate reads outside its travel range (``"SD1
+        reads 0 mV, outside [-750, -450] mV …"``) or the instrument's answer
+        is refused; ``RuntimeError`` once the run has started (its gates would
+        read as moved). An exception of a gate parameter propagates after the
+        ramp is ended.
+        """
+        if self.session.left_mv:
+            raise RuntimeError(
+                "ramp_to is for before the run: this run has started, and would find its "
+                "gates moved (a `moved` fault); ramp before the first run()"
+            )
+        limits = self.limits
+        if working_point_mv is None:
+            target = {g["name"]: float(g["initial_mv"]) for g in self.tuner_config["gates"]}
+        else:
+            unknown = [g for g in working_point_mv if g not in limits]
+            if unknown:
+                raise ValueError(
+                    f"ramp_to: unknown gates {', '.join(map(str, unknown))}; the gates are "
+                    + ", ".join(limits)
+                )
+            target = {g: float(v) for g, v in working_point_mv.items()}
+        # The working point must be one the run accepts: the core checks it
+        # against the tuning limits.
+        tuning = [{"name": g, **lim} for g, lim in limits.items()]
+        try:
+            Ramp(tuning, target)
+        except ValueError as e:
+            raise ValueError(f"ramp_to: the working point is outside the tuning limits: {e}") from None
+        travel = self.travel_limits(travel_limits_mv)
+        ramp = Ramp(travel, target, readback_tolerance_mv=self.session.readback_tolerance_mv)
+        bar = _Progress(progress, "ramp to the working point")
+        try:
+            while True:
+                out = ramp.poll()
+                if out["output"] == "done":
+                    break
+                request = out["request"]
+                try:
+                    response = self._execute(request)
+                except Exception as e:
+                    ramp.feed({"response": "error", "message": f"{type(e).__name__}: {e}"})
+                    raise
+                try:
+                    ramp.feed(response)
+                except ValueError as e:
+                    if request["request"] == "read_voltages" and "reads" in str(e):
+                        raise ValueError(
+                            f"ramp_to: {e} (the travel range is the gate parameter's validator "
+                            "range, narrowed by travel_limits_mv)"
+                        ) from None
+                    raise
+                bar.update(ramp.steps_done, ramp.steps_planned)
+        finally:
+            bar.close()
+        return dict(ramp.readback_mv)
 
     # -- state and control ---------------------------------------------------
 
@@ -676,6 +889,30 @@ class QcodesTuner:
 
     # -- the QCoDeS dataset --------------------------------------------------
 
+    def to_xarray(self, dataset: Any = None) -> Any:
+        """A QCoDeS dataset of this tuner (default: the last of
+        :attr:`datasets`; or a ``run_id``) as an ``xarray.Dataset`` with an
+        integer ``iteration`` coordinate. QCoDeS stores a ``numeric``
+        setpoint as float64 (its ``array`` type would keep integers, but
+        then every dependent, the text ``record`` too, must be an array,
+        which QCoDeS cannot store for text), so ``to_xarray_dataset()``
+        gives float iterations; this converts them back (exactly: they are
+        whole numbers below 2**53). Units are UDUNITS (``uV``)."""
+        import numpy as np
+        from qcodes.dataset import load_by_id
+
+        if dataset is None:
+            if not self.datasets:
+                raise ValueError("no dataset yet: run() first")
+            dataset = self.datasets[-1]
+        elif isinstance(dataset, (int, np.integer)):
+            dataset = load_by_id(int(dataset))
+        ds = dataset.to_xarray_dataset()
+        k = ds["iteration"].values
+        if k.size and not np.array_equal(k, np.round(k)):
+            raise ValueError("the dataset's iteration values are not whole numbers")
+        return ds.assign_coords(iteration=("iteration", k.astype(np.int64), ds["iteration"].attrs))
+
     def _register(self, meas: Measurement) -> Dict[str, str]:
         cols: Dict[str, str] = {}
 
@@ -690,6 +927,7 @@ class QcodesTuner:
         for g in self._gates:
             reg(f"V_{g}", f"{g} voltage", "mV")
         for p, unit in self._top_params:
+            unit = udunits(unit)
             reg(p, p, unit)
             reg(f"{p}_std", f"std of {p}", unit)
             reg(f"{p}_target", f"target of {p}", unit)

@@ -8,7 +8,15 @@ reads it, with Python's ``sqlite3`` (the file is opened read-only)::
     store = spintune.open_store("spintune.db")
     for run in store:
         print(run.id, run.name, run.status["state"], run.iterations)
-    ds = store[1].to_xarray()
+    ds = store[1].to_xarray()            # no raw scans parsed
+    for record in store[1].iter_records():   # streamed, without scans
+        ...
+    store[1].scans(100, 110)             # raw scans of iterations 100..109
+
+At lab scale (a 20,000-iteration run, ~15 KB a record of which ~88 % are
+raw scans) the raw scans are cut out by SQLite (``json_remove``) before
+Python parses a record, and records are streamed in batches, never held
+all at once: see ``docs/python.md`` for the measured time and memory.
 """
 
 from __future__ import annotations
@@ -16,7 +24,7 @@ from __future__ import annotations
 import json
 import os
 import sqlite3
-from typing import Any, Iterator, Optional
+from typing import Any, Dict, Iterator, List, Optional
 
 
 class StoredRun:
@@ -58,14 +66,81 @@ class StoredRun:
 
     @property
     def records(self) -> list:
-        """Every committed iteration record (list of dicts, JSON ``IterationRecord``), in order."""
+        """Every committed iteration record (list of dicts, JSON
+        ``IterationRecord``, raw scans included), in order. Holds the whole
+        run in memory: for a long run prefer :meth:`iter_records` or
+        :meth:`to_xarray`."""
         if self._records is None:
+            self._records = list(self.iter_records(scans=True))
+        return self._records
+
+    #: Rows fetched from SQLite at a time by the streaming readers.
+    BATCH = 1000
+
+    def iter_records(
+        self,
+        *,
+        scans: bool = False,
+        start: Optional[int] = None,
+        stop: Optional[int] = None,
+    ) -> Iterator[Dict[str, Any]]:
+        """Stream the records, oldest first, one dict at a time (read in
+        batches of :attr:`BATCH` rows; memory stays flat however long the
+        run). ``scans=False`` (default): without the raw scans (key
+        ``scans`` absent) — SQLite removes them before Python parses the
+        record. ``start``/``stop``: only iterations ``start <= k < stop``
+        (the record's ``iteration``)."""
+        column = "record" if scans else "json_remove(record, '$.scans')"
+        where, args = self._range(start, stop)
+        yield from self._stream(f"SELECT seq, {column} FROM iterations WHERE {where}", args)
+
+    def scans(self, start: Optional[int] = None, stop: Optional[int] = None) -> Dict[int, List[Any]]:
+        """The raw scans of iterations ``start <= k < stop`` (all if not
+        given): iteration → list of scans (as in a record's ``scans``). Only
+        these records' scans are parsed."""
+        where, args = self._range(start, stop)
+        out: Dict[int, List[Any]] = {}
+        for rec in self._stream(
+            "SELECT seq, json_object('iteration', json_extract(record, '$.iteration'), "
+            f"'scans', json_extract(record, '$.scans')) FROM iterations WHERE {where}",
+            args,
+        ):
+            out[int(rec["iteration"])] = rec["scans"] if rec["scans"] is not None else []
+        return out
+
+    def _range(self, start: Optional[int], stop: Optional[int]):
+        where = "run_id = ?"
+        args: List[Any] = [self.id]
+        if start is not None:
+            where += " AND json_extract(record, '$.iteration') >= ?"
+            args.append(int(start))
+        if stop is not None:
+            where += " AND json_extract(record, '$.iteration') < ?"
+            args.append(int(stop))
+        return where, args
+
+    def _batches(self, sql: str, args: List[Any]) -> Iterator[List[Any]]:
+        """Rows of ``sql`` (selecting ``seq`` first, filtered by ``args``) in
+        ``seq`` order, in batches of :attr:`BATCH` fetched by keyset (each
+        batch its own short read; nothing is held open between)."""
+        after = -1
+        while True:
             with self._store._connect() as conn:
                 rows = conn.execute(
-                    "SELECT record FROM iterations WHERE run_id = ? ORDER BY seq", (self.id,)
+                    f"{sql} AND seq > ? ORDER BY seq LIMIT ?", (*args, after, self.BATCH)
                 ).fetchall()
-            self._records = [json.loads(r[0]) for r in rows]
-        return self._records
+            if not rows:
+                return
+            after = rows[-1][0]
+            yield rows
+            if len(rows) < self.BATCH:
+                return
+
+    def _stream(self, sql: str, args: List[Any]) -> Iterator[Dict[str, Any]]:
+        """The JSON texts of :meth:`_batches`, parsed one at a time."""
+        for rows in self._batches(sql, args):
+            for _, text in rows:
+                yield json.loads(text)
 
     @property
     def checkpoint(self) -> str:
@@ -74,13 +149,24 @@ class StoredRun:
             (text,) = conn.execute("SELECT checkpoint FROM runs WHERE id = ?", (self.id,)).fetchone()
         return text
 
-    def to_xarray(self):
+    def to_xarray(self, scans: bool = False):
         """The records as an ``xarray.Dataset`` over ``iteration`` (see
-        ``SimulationRun.to_xarray`` for the variables and units)."""
-        from ._xarray import records_to_dataset
+        ``SimulationRun.to_xarray`` for the variables and units), built from
+        :meth:`iter_records` as a stream. ``scans=False`` (default) reads no
+        raw scan; ``scans=True`` adds the variable ``scans`` (per iteration,
+        the JSON text of its raw scans)."""
+        from ._core import RecordColumns
+        from ._xarray import columns_to_dataset
 
-        return records_to_dataset(
-            self.records,
+        columns = RecordColumns()
+        where, args = self._range(None, None)
+        for batch in self._batches(
+            f"SELECT seq, json_remove(record, '$.scans', '$.events') FROM iterations WHERE {where}",
+            args,
+        ):
+            columns.add_json([text for _, text in batch])
+        ds = columns_to_dataset(
+            columns,
             {
                 "title": f"spintune run {self.id}: {self.name}",
                 "name": self.name,
@@ -89,6 +175,19 @@ class StoredRun:
                 "spintune_config": json.dumps(self.config),
             },
         )
+        if scans:
+            import numpy as np
+
+            by_iteration = self.scans()
+            ds["scans"] = (
+                ("iteration",),
+                np.asarray(
+                    [json.dumps(by_iteration.get(int(k), [])) for k in ds["iteration"].values],
+                    dtype=object,
+                ),
+                {"long_name": "raw scans of the iteration (JSON)"},
+            )
+        return ds
 
     def to_netcdf(self, path) -> None:
         """Write ``to_xarray()`` to a netCDF file."""

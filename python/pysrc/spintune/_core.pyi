@@ -7,7 +7,7 @@ core's serde types (``protocol::Request``, ``Response``, ``IterationRecord``,
 """
 
 from os import PathLike
-from typing import Any, Dict, Iterator, List, Mapping, Optional, Sequence, Union
+from typing import Any, Dict, Iterator, List, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import numpy.typing as npt
@@ -55,6 +55,11 @@ class KalmanGradient:
     @property
     def n(self) -> int:
         """Number of gates."""
+    def checkpoint(self) -> str:
+        """JSON of the filter (every float exact); pickling goes through it."""
+    @staticmethod
+    def restore(checkpoint: str) -> "KalmanGradient": ...
+    def __reduce__(self) -> Tuple[Any, Tuple[str]]: ...
     def copy(self) -> "KalmanGradient": ...
     def __copy__(self) -> "KalmanGradient": ...
     def __deepcopy__(self, memo: Any) -> "KalmanGradient": ...
@@ -104,6 +109,32 @@ class RunSession:
         """The session as JSON."""
     @staticmethod
     def restore(checkpoint: str) -> "RunSession": ...
+    def __reduce__(self) -> Tuple[Any, Tuple[str]]: ...
+    @property
+    def left_mv(self) -> Dict[str, List[float]]:
+        """Where the run left each gate, gate → [lo, hi] mV (empty before the first read)."""
+
+class Ramp:
+    """The core's ramp of gates to a working point (mV), in steps within the
+    limits, through the run session's guard."""
+
+    def __init__(
+        self,
+        gates: Sequence[Mapping[str, Any]],
+        target_mv: Mapping[str, float],
+        readback_tolerance_mv: float = 0.05,
+    ) -> None: ...
+    def poll(self) -> JsonDict:
+        """``{"output": "execute", "request": {...}}`` or ``{"output": "done"}``."""
+    def feed(self, response: Mapping[str, Any]) -> None: ...
+    @property
+    def steps_done(self) -> int: ...
+    @property
+    def steps_planned(self) -> Optional[int]: ...
+    @property
+    def readback_mv(self) -> Dict[str, float]: ...
+    @property
+    def target_mv(self) -> Dict[str, float]: ...
 
 def resolve_tuner_config(tuner_config: Optional[Mapping[str, Any]] = None) -> JsonDict:
     """A partial tuner config merged into the paper default and validated."""
@@ -132,6 +163,20 @@ class SimulationRun:
     def to_xarray(self) -> Any:
         """``xarray.Dataset`` over ``iteration`` (variables with ``units``)."""
     def to_netcdf(self, path: Union[str, "PathLike[str]"]) -> None: ...
+    def checkpoint(self) -> str:
+        """JSON of the whole run (config, session, device, records); pickling goes through it."""
+    @staticmethod
+    def restore(checkpoint: str) -> "SimulationRun": ...
+    def __reduce__(self) -> Tuple[Any, Tuple[str]]: ...
+
+class RecordColumns:
+    """Internal: iteration records → the columns of ``to_xarray()``'s Dataset."""
+
+    def __init__(self) -> None: ...
+    def add(self, record: Mapping[str, Any]) -> None: ...
+    def add_json(self, texts: List[str]) -> None: ...
+    def finish(self) -> JsonDict: ...
+    def __len__(self) -> int: ...
 
 class SimulatedDevice:
     """The simulated double dot alone: ``execute(request) -> response``."""

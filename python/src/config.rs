@@ -1,7 +1,7 @@
 //! Run configs from Python dicts: the core's one merge and validation
 //! ([`spintune::run_config::resolve_simulation`], the server's too): every
 //! key is optional, tables are merged key by key into
-//! [`SimulationConfig::paper_default`], arrays replace the default array
+//! [`SimulationConfig::recommended`] (or a `description`'s levels), arrays replace the default array
 //! whole, and a table whose tag (`kind`, …) differs from the default's
 //! replaces it whole.
 
@@ -133,12 +133,19 @@ pub fn simulation_config(config: Option<&Bound<'_, PyAny>>) -> PyResult<Simulati
 }
 
 /// A complete, validated [`TunerConfig`] from a (partial) `tuner` dict,
-/// merged into the paper default's tuner.
+/// merged into the recommended tuner, or into the tuner a device
+/// description derives when the dict has a `description` key (the core's
+/// one derivation, [`spintune::run_config::default_tuner`]; the other keys
+/// merge over it, `gates`/`levels` are refused next to it).
 pub fn tuner_config(config: Option<&Bound<'_, PyAny>>) -> PyResult<TunerConfig> {
-    let user = user_object(config, "tuner")?;
+    let mut user = user_object(config, "tuner")?;
+    let description = user.remove("description");
     spintune::tuner::check_magnitudes(&Value::Object(user.clone()), "tuner")
         .map_err(config_error)?;
-    let mut merged = to_value(&SimulationConfig::paper_default().tuner)?;
+    let user_tuner = Value::Object(user.clone());
+    let base = spintune::run_config::default_tuner(description, Some(&user_tuner))
+        .map_err(config_error)?;
+    let mut merged = to_value(&base)?;
     merge(&mut merged, Value::Object(user));
     let tuner: TunerConfig = config_from_value(merged, "tuner")?;
     tuner

@@ -28,6 +28,7 @@ fn core_module(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<simulation::PySimulationRun>()?;
     m.add_class::<simulation::PySimulatedDevice>()?;
     m.add_function(wrap_pyfunction!(simulation::default_config, m)?)?;
+    m.add_function(wrap_pyfunction!(simulation::paper_config, m)?)?;
     m.add_function(wrap_pyfunction!(simulation::resolve_config, m)?)?;
     m.add("PROTOCOL_VERSION", spintune::protocol::PROTOCOL_VERSION)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;

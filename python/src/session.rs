@@ -251,8 +251,11 @@ impl PyRunSession {
 }
 
 /// A (partial) tuner config dict (the run config's ``tuner`` table) merged
-/// into the paper default's tuner and validated, as ``RunSession`` sees it.
-/// Raises ``ValueError`` naming the field.
+/// into the recommended tuner and validated, as ``RunSession`` sees it. With
+/// a ``description`` key (a lab's device in a few lines: ``gates``,
+/// ``qubit``, optional ``lines`` and ``sensing_dot``, as in the CLI's
+/// ``[description]``) every level is derived from it and the other keys
+/// merge over. Raises ``ValueError`` naming the field.
 #[pyfunction]
 #[pyo3(signature = (tuner_config = None))]
 pub fn resolve_tuner_config<'py>(

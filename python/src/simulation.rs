@@ -378,15 +378,25 @@ impl PySimulatedDevice {
     }
 }
 
-/// The paper's default run config (dict: ``name``, ``seed``, ``device``,
-/// ``tuner``; voltages in mV, t_sr in ns, w in µV).
+/// The default run config (dict: ``name``, ``seed``, ``device``,
+/// ``tuner``; voltages in mV, t_sr in ns, w in µV): the recommended
+/// strategy on the paper's device, what a config without ``tuner`` gets.
 #[pyfunction]
 pub fn default_config(py: Python<'_>) -> PyResult<Bound<'_, PyAny>> {
+    to_py(py, &SimulationConfig::recommended())
+}
+
+/// The paper's own rule on its device (linear space, pseudo-inverse step,
+/// one move per measurement, three finite-difference repetitions), for
+/// teaching and comparison; pass it as the config of ``SimulationRun``.
+#[pyfunction]
+pub fn paper_config(py: Python<'_>) -> PyResult<Bound<'_, PyAny>> {
     to_py(py, &SimulationConfig::paper_default())
 }
 
-/// A (partial) run config dict merged into the paper default and validated,
-/// as ``SimulationRun`` sees it. Raises ``ValueError`` naming the field.
+/// A (partial) run config dict merged into the default (the recommended
+/// strategy, or the levels of a ``description`` key) and validated, as
+/// ``SimulationRun`` sees it. Raises ``ValueError`` naming the field.
 #[pyfunction]
 #[pyo3(signature = (config = None))]
 pub fn resolve_config<'py>(

@@ -34,7 +34,7 @@ def test_stubs_cover_the_native_module():
 
 def test_public_names_and_docstrings_with_units():
     for name in ["KalmanGradient", "newton_step", "SimulationRun", "RunSession", "SimulatedDevice",
-                 "open_store", "default_config", "resolve_config", "resolve_tuner_config"]:
+                 "open_store", "default_config", "paper_config", "resolve_config", "resolve_tuner_config"]:
         obj = getattr(spintune, name)
         assert obj.__doc__ and len(obj.__doc__) > 40, name
     assert spintune.KalmanGradient.__module__ == "spintune"

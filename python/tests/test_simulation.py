@@ -126,6 +126,49 @@ def test_resolve_config_is_the_merge_of_the_run_config():
     assert spintune.resolve_tuner_config({"max_iterations": 7}) == merged["tuner"]
 
 
+LAB_DESCRIPTION = {
+    "gates": [
+        {"name": "N", "min_mv": -900, "max_mv": -500, "initial_mv": -700},
+        {"name": "T", "min_mv": -850, "max_mv": -450, "initial_mv": -650},
+        {"name": "SA", "min_mv": -1020, "max_mv": -620, "initial_mv": -820},
+        {"name": "SB", "min_mv": -980, "max_mv": -580, "initial_mv": -780},
+        {"name": "PA", "min_mv": -550, "max_mv": -50, "initial_mv": -300, "max_step_mv": 30},
+        {"name": "PB", "min_mv": -570, "max_mv": -70, "initial_mv": -320, "max_step_mv": 30},
+        {"name": "SD1", "min_mv": -750, "max_mv": -450, "initial_mv": -600, "max_step_mv": 30},
+    ],
+    "qubit": {"gates": ["N", "SA", "SB", "T"]},
+    "lines": {"gates": ["PA", "PB"],
+              "compensation": [[-0.36, -0.50, 0.0042, -0.039], [-0.12, 0.013, -0.50, -0.46]]},
+    "sensing_dot": {"gate": "SD1"},
+}
+
+
+def test_the_default_is_the_recommended_strategy_and_the_paper_rule_a_choice():
+    top = spintune.default_config()["tuner"]["levels"][0]
+    assert [p["transform"] for p in top["parameters"]] == ["log", "log"]
+    assert top["solver"]["max_moves_per_iteration"] == 2
+    paper = spintune.paper_config()["tuner"]["levels"][0]
+    assert [p["transform"] for p in paper["parameters"]] == ["linear", "linear"]
+    assert paper["solver"]["rule"] == "pseudo_inverse"
+
+
+def test_a_device_description_derives_the_levels_and_tunes_the_simulator():
+    tuner = spintune.resolve_tuner_config({"description": LAB_DESCRIPTION, "max_iterations": 30})
+    assert [l["name"] for l in tuner["levels"]] == ["qubit", "chemical_potential", "sensing_dot"]
+    assert tuner["max_iterations"] == 30
+    run = spintune.SimulationRun({
+        "description": LAB_DESCRIPTION,
+        "targets": {"t_sr": 20.0, "w": 270.0},
+        "tuner": {"max_iterations": 30, "stop_when_tuned": True},
+    })
+    records = run.run()
+    assert records and records[-1]["tuned"]
+    with pytest.raises(ValueError, match=r"description\.qubit\.gates\[1\]"):
+        spintune.resolve_tuner_config({"description": {**LAB_DESCRIPTION, "qubit": {"gates": ["N", "X"]}}})
+    with pytest.raises(ValueError, match=r"tuner\.levels"):
+        spintune.resolve_tuner_config({"description": LAB_DESCRIPTION, "levels": []})
+
+
 def assert_units(ds):
     """UDUNITS-clean: every numeric data variable has a unit, none is
     spelt with a micro sign; the coordinates (iteration numbers, gate names)
@@ -149,8 +192,10 @@ def test_to_xarray_round_trips_through_netcdf(tmp_path):
     assert list(ds["iteration"].values) == [0, 1, 2, 3]
     assert ds["t_sr"].attrs["units"] == "ns" and ds["w"].attrs["units"] == "uV"
     assert ds["t_sr_std"].attrs["units"] == "ns" and ds["w_target"].attrs["units"] == "uV"
-    assert ds["grad_w"].attrs["units"] == "uV/mV" and ds["failed_evaluations"].attrs["units"] == "1"
-    assert ds["grad_t_sr"].attrs["units"] == "ns/mV" and ds["grad_w"].dims == ("iteration", "tuning_gate")
+    # the default tunes w in log space: its gradient is ∂ln w/∂V, 1/mV
+    assert ds["grad_w"].attrs["units"] == "1/mV" and ds["failed_evaluations"].attrs["units"] == "1"
+    assert ds["grad_t_sr"].attrs["units"] == "1/mV" and ds["grad_w"].dims == ("iteration", "tuning_gate")
+    assert "log space" in ds["grad_t_sr"].attrs["long_name"]
     assert ds["voltage"].attrs["units"] == "mV" and ds["lab_seconds"].attrs["units"] == "s"
     assert_units(ds)
     np.testing.assert_array_equal(ds["t_sr"].values, [r["parameters"][0]["value"] for r in records])

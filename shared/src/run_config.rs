@@ -52,21 +52,7 @@ pub fn resolve_simulation(
     let user_device = user.get("device").cloned();
     let mut default = SimulationConfig::recommended();
     if let Some(d) = description {
-        crate::tuner::check_magnitudes(&d, "description")?;
-        for key in ["gates", "levels"] {
-            if user.get("tuner").and_then(|t| t.get(key)).is_some() {
-                return Err(ConfigError::new(
-                    format!("tuner.{key}"),
-                    "`description` derives the gates and levels: give either `description` or `tuner.gates`/`tuner.levels`",
-                ));
-            }
-        }
-        let d: DeviceDescription = serde_path_to_error::deserialize(d).map_err(|e| {
-            let path = e.path().to_string();
-            let field = if path == "." { String::new() } else { path };
-            ConfigError::new(field, e.inner().to_string()).within("description")
-        })?;
-        default.tuner = d.tuner().map_err(|e| e.within("description"))?;
+        default.tuner = default_tuner(Some(d), user.get("tuner"))?;
         default.name = "described device".into();
     }
     let mut merged = serde_json::to_value(default)
@@ -86,6 +72,46 @@ pub fn resolve_simulation(
     apply_targets(&mut simulation, targets, tolerances)?;
     simulation.validate()?;
     Ok(simulation)
+}
+
+/// The tuner a user's `tuner` keys merge into: the recommended one
+/// ([`SimulationConfig::recommended`]), or the one a device `description`
+/// derives ([`DeviceDescription::tuner`]; errors named `description.…`).
+/// Next to a description, `tuner.gates` and `tuner.levels` are refused (one
+/// source of levels). Used by [`resolve_simulation`] and by Python's tuner
+/// configs.
+///
+/// ```
+/// use spintune::description::DeviceDescription;
+/// use spintune::run_config::default_tuner;
+/// let d = serde_json::to_value(DeviceDescription::paper_device()).unwrap();
+/// let t = default_tuner(Some(d.clone()), None).unwrap();
+/// assert_eq!(t.levels.len(), 3);
+/// let user_tuner = serde_json::json!({"levels": []});
+/// assert_eq!(default_tuner(Some(d), Some(&user_tuner)).unwrap_err().field, "tuner.levels");
+/// ```
+pub fn default_tuner(
+    description: Option<Value>,
+    user_tuner: Option<&Value>,
+) -> Result<crate::tuner::TunerConfig, ConfigError> {
+    let Some(d) = description else {
+        return Ok(SimulationConfig::recommended().tuner);
+    };
+    crate::tuner::check_magnitudes(&d, "description")?;
+    for key in ["gates", "levels"] {
+        if user_tuner.and_then(|t| t.get(key)).is_some() {
+            return Err(ConfigError::new(
+                format!("tuner.{key}"),
+                "`description` derives the gates and levels: give either `description` or `tuner.gates`/`tuner.levels`",
+            ));
+        }
+    }
+    let d: DeviceDescription = serde_path_to_error::deserialize(d).map_err(|e| {
+        let path = e.path().to_string();
+        let field = if path == "." { String::new() } else { path };
+        ConfigError::new(field, e.inner().to_string()).within("description")
+    })?;
+    d.tuner().map_err(|e| e.within("description"))
 }
 
 /// Targets and tolerances of the top level's parameters (`targets.NAME`,

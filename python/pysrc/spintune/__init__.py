@@ -28,6 +28,7 @@ from ._core import (
     __version__,
     default_config,
     newton_step,
+    paper_config,
     resolve_config,
     resolve_tuner_config,
 )
@@ -46,6 +47,7 @@ __all__ = [
     "default_config",
     "newton_step",
     "open_store",
+    "paper_config",
     "resolve_config",
     "resolve_tuner_config",
     "records_to_dataset",

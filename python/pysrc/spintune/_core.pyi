@@ -137,7 +137,7 @@ class Ramp:
     def target_mv(self) -> Dict[str, float]: ...
 
 def resolve_tuner_config(tuner_config: Optional[Mapping[str, Any]] = None) -> JsonDict:
-    """A partial tuner config merged into the paper default and validated."""
+    """A partial tuner config (optionally with a device ``description``) merged into the recommended tuner and validated."""
 
 class SimulationRun:
     """A run of the paper's setup on the simulated double dot; iterating
@@ -192,7 +192,10 @@ class SimulatedDevice:
     def truth(self) -> Dict[str, float]: ...
 
 def default_config() -> JsonDict:
-    """The paper's default run config (name, seed, device, tuner)."""
+    """The default run config (name, seed, device, tuner): the recommended strategy."""
+
+def paper_config() -> JsonDict:
+    """The paper's own rule on its device (linear, pseudo-inverse, one move)."""
 
 def resolve_config(config: Optional[Mapping[str, Any]] = None) -> JsonDict:
-    """A partial run config merged into the paper default and validated."""
+    """A partial run config (optionally with a device ``description``) merged into the default and validated."""

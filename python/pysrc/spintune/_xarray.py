@@ -37,8 +37,10 @@ def _f(x: Any) -> float:
 
 def udunits(unit: str) -> str:
     """A unit string as UDUNITS spells it: the micro sign (``µ``, ``μ``)
-    becomes ``u`` (``µV`` → ``uV``, ``µV/mV`` → ``uV/mV``)."""
-    return unit.replace("\u00b5", "u").replace("\u03bc", "u")
+    becomes ``u`` (``µV`` → ``uV``, ``µV/mV`` → ``uV/mV``), and a
+    log-space gradient's ``1/mV (log space)`` is ``1/mV`` (its
+    ``long_name`` says log space)."""
+    return unit.replace(" (log space)", "").replace("\u00b5", "u").replace("\u03bc", "u")
 
 
 def records_to_dataset(
@@ -78,16 +80,17 @@ def columns_to_dataset(columns: Any, attrs: Optional[Mapping[str, Any]] = None):
         ):
             data[name + suffix] = (("iteration",), np.ascontiguousarray(block[:, j]), meta(unit, f"{what} {name}"))
     for name, unit, grad, std in c["gradients"]:
+        of = f"ln {name} (log space)" if "(log space)" in unit else name
         unit = udunits(unit)
         data[f"grad_{name}"] = (
             ("iteration", "tuning_gate"),
             grad,
-            meta(unit, f"estimated gradient of {name} (after the update)"),
+            meta(unit, f"estimated gradient of {of} (after the update)"),
         )
         data[f"grad_{name}_std"] = (
             ("iteration", "tuning_gate"),
             std,
-            meta(unit, f"standard deviation of the gradient of {name}"),
+            meta(unit, f"standard deviation of the gradient of {of}"),
         )
     data["voltage"] = (("iteration", "gate"), c["voltage"], meta("mV", "gate voltage at the measurement"))
     data["step"] = (("iteration", "tuning_gate"), c["step"], meta("mV", "step decided in the iteration"))

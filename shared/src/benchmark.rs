@@ -467,14 +467,46 @@ pub fn perturbed_compensation(
         .collect()
 }
 
-/// Why a seed could not be benchmarked.
+/// Why a seed could not be benchmarked: the seed, the strategy (if one
+/// strategy failed) and the cause.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("seed {seed}: {message}")]
+#[error("seed {seed}: {}{cause}", strategy.map(|s| format!("{}: ", s.name())).unwrap_or_default())]
 pub struct BenchmarkError {
     /// Seed.
     pub seed: u64,
+    /// The strategy that failed (`None`: the shared initial measurement).
+    pub strategy: Option<Strategy>,
     /// What went wrong.
-    pub message: String,
+    pub cause: SeedFailure,
+}
+
+/// What ended a seed's benchmark early.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SeedFailure {
+    /// A configuration the core refused.
+    #[error("invalid configuration: {0}")]
+    Config(#[from] crate::config_error::ConfigError),
+    /// The initial measurement asked for the simulator's truth.
+    #[error("the initial measurement queried the truth")]
+    TruthQueried,
+    /// The simulated run halted (fault, pause, driver bug).
+    #[error(transparent)]
+    Halt(#[from] crate::driver::Halt),
+    /// The benchmark's driver broke the session's protocol (a bug).
+    #[error(transparent)]
+    Session(#[from] crate::session::SessionError),
+    /// A control command (a target change) was refused.
+    #[error(transparent)]
+    Control(#[from] crate::session::ControlError),
+    /// The run faulted (the guard refusing a request counts as a limit violation).
+    #[error("run faulted: {0}")]
+    Faulted(crate::protocol::Fault),
+    /// The run waits for something else (e.g. paused).
+    #[error("run waiting ({0:?})")]
+    Waiting(RunStatus),
+    /// The tuner finished before the protocol did.
+    #[error("tuner finished unexpectedly")]
+    Finished,
 }
 
 /// The world's configuration of one seed: `base` on seed `seed` with the
@@ -517,12 +549,12 @@ fn world_config(
 
 /// Run a config's initial measurement (its cold start: the initial gradient
 /// with the lower levels) on a sealed device; returns the run, ready to go on.
-fn cold_start(cfg: SimulationConfig) -> Result<SimulationRun, String> {
-    let mut init = SimulationRun::new(cfg).map_err(|e| e.to_string())?;
+fn cold_start(cfg: SimulationConfig) -> Result<SimulationRun, SeedFailure> {
+    let mut init = SimulationRun::new(cfg)?;
     init.device_mut().seal_truth();
-    while init.next_iteration().map_err(|e| e.to_string())?.is_some() {}
+    while init.next_iteration()?.is_some() {}
     if init.device().truth_queries() != 0 {
-        return Err("the initial measurement queried the truth".into());
+        return Err(SeedFailure::TruthQueried);
     }
     Ok(init)
 }
@@ -543,17 +575,26 @@ pub fn run_seed(
     seed: u64,
     keep_records: bool,
 ) -> Result<Vec<SeedResult>, BenchmarkError> {
-    let err = |m: String| BenchmarkError { seed, message: m };
+    let err = |strategy: Option<Strategy>| {
+        move |cause: SeedFailure| BenchmarkError {
+            seed,
+            strategy,
+            cause,
+        }
+    };
     let classic = strategies.iter().any(|s| *s != Strategy::Default);
     // --- the world: the simulated lab and its imperfect configuration ---
     let mut cfg = world_config(base, protocol, seed);
     cfg.tuner.top_mut().estimator = EstimatorKind::Kalman;
     // --- the experimenter: the shared starting point, on a sealed device ---
-    let shared = classic.then(|| cold_start(cfg)).transpose().map_err(err)?;
+    let shared = classic
+        .then(|| cold_start(cfg))
+        .transpose()
+        .map_err(err(None))?;
     strategies
         .iter()
         .map(|&strategy| {
-            let named = |m: String| err(format!("{}: {m}", strategy.name()));
+            let named = err(Some(strategy));
             if strategy == Strategy::Default {
                 let mut world = base.clone();
                 world.tuner = product.clone();
@@ -580,7 +621,7 @@ pub fn run_seed(
                 start_values: init.tuner().last_measured(0).unwrap_or_default().to_vec(),
             };
             let tcfg = configure_strategy(strategy, &lab, protocol);
-            let mut tuner = Tuner::new(tcfg).map_err(|e| named(e.to_string()))?;
+            let mut tuner = Tuner::new(tcfg).map_err(|e| named(e.into()))?;
             // The lab clock goes on from the shared initial measurement.
             tuner.charge_lab_time(init.tuner().lab_seconds());
             // The world hands on the device state after the initial
@@ -610,7 +651,7 @@ fn run_protocol(
     protocol: &BenchmarkProtocol,
     start_lab_seconds: f64,
     keep_records: bool,
-) -> Result<SeedResult, String> {
+) -> Result<SeedResult, SeedFailure> {
     let top = tuner.config().top();
     let mut run = Harness {
         top_gates: top.gates.clone(),
@@ -628,13 +669,11 @@ fn run_protocol(
     for &(t_sr, w) in &protocol.set_points {
         let tol = Some(Tolerance::Relative(protocol.relative_tolerance));
         for (parameter, target) in [("t_sr", t_sr), ("w", w)] {
-            run.session
-                .control(&ControlCommand::SetTarget {
-                    parameter: parameter.into(),
-                    target: Some(target),
-                    tolerance: tol,
-                })
-                .map_err(|e| e.to_string())?;
+            run.session.control(&ControlCommand::SetTarget {
+                parameter: parameter.into(),
+                target: Some(target),
+                tolerance: tol,
+            })?;
         }
         let moves_at_change = run.moves;
         let mut converged: Option<ChangeResult> = None;
@@ -718,7 +757,7 @@ struct Harness {
 }
 
 impl Harness {
-    fn next(&mut self) -> Result<IterationRecord, String> {
+    fn next(&mut self) -> Result<IterationRecord, SeedFailure> {
         loop {
             match self.session.poll() {
                 Output::Execute(request) => {
@@ -738,7 +777,7 @@ impl Harness {
                         }
                     }
                     let response = self.device.execute(&request);
-                    self.session.feed(response).map_err(|e| e.to_string())?;
+                    self.session.feed(response)?;
                 }
                 Output::Commit(record) => return Ok(*record),
                 Output::Save | Output::Publish(_) | Output::Sleep { .. } => {}
@@ -748,12 +787,12 @@ impl Harness {
                             if fault.kind == FaultKind::Safety {
                                 self.violations += 1;
                             }
-                            format!("run faulted: {fault}")
+                            SeedFailure::Faulted(fault)
                         }
-                        other => format!("run waiting ({other:?})"),
+                        other => SeedFailure::Waiting(other),
                     })
                 }
-                Output::Done(_) => return Err("tuner finished unexpectedly".into()),
+                Output::Done(_) => return Err(SeedFailure::Finished),
             }
         }
     }

@@ -43,17 +43,7 @@ pub const PAPER_PROCESS_NOISE_PER_MV: (f64, f64) = (0.075, 0.3);
 /// Paper targets: t_sr = 20 ns, w = 270 µV (set point I).
 pub const PAPER_FIRST_TARGET: (f64, f64) = (20.0, 270.0);
 
-/// The virtual-gate matrix of the default configuration (rows PA, PB;
-/// columns N, SA, SB, T; mV of plunger per mV of tuning gate): configuration
-/// a lab writes down after measuring the transition-line slopes, here
-/// rounded to two significant digits (so within about 5 % of the default
-/// simulated device's first-order crosstalk, with a stated uncertainty of
-/// 20 %, `Compensation::relative_uncertainty`). Nothing computes it from the
-/// simulator at run time (ARCHITECTURE.md invariant 7); the benchmark
-/// replaces it per seed by a perturbed matrix
-/// ([`crate::benchmark::perturbed_compensation`]).
-pub const PAPER_DEFAULT_COMPENSATION: [[f64; 4]; 2] =
-    [[-0.36, -0.50, 0.0042, -0.039], [-0.12, 0.013, -0.50, -0.46]];
+pub use crate::description::PAPER_DEFAULT_COMPENSATION;
 
 impl SimulationConfig {
     /// The paper's setup on the default simulated device: the qubit level tunes

@@ -14,7 +14,7 @@
 //! a Kalman-tuned PA/PB level (which itself re-tunes the sensing dot after each
 //! of its moves), then measure w and t_sr again.
 //!
-//! Internally every active level is a frame on a stack holding a queue of
+//! Internally every active level is an entry on a stack (`ActiveLevel`) holding a queue of
 //! micro-operations (move, measure, run child, decide); the whole machine is
 //! plain data and serde-serializable, so a checkpoint taken after any
 //! [`Action::Iteration`] resumes bit-identically (invariant 4).
@@ -137,15 +137,18 @@ enum Decision {
     SdFallbackFinish { base_mv: f64 },
 }
 
+/// A level that is running: its queue of micro-operations (one entry of
+/// the tuner's stack; the serialized shape is unchanged from when this was
+/// called `Frame`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-struct Frame {
+struct ActiveLevel {
     level: usize,
     ops: VecDeque<Op>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 enum Pending {
-    /// A set request, with the operation (and its frame) that planned it, so
+    /// A set request, with the operation (and its level) that planned it, so
     /// it can be re-planned when the instrument reads back elsewhere.
     Set(Request, Op),
     Measure(Request, usize),
@@ -174,7 +177,7 @@ pub struct Tuner {
     safety: SafetyLimits,
     voltages_mv: BTreeMap<String, f64>,
     levels: Vec<LevelState>,
-    stack: Vec<Frame>,
+    stack: Vec<ActiveLevel>,
     pending: Option<Pending>,
     iteration: u64,
     lab_seconds: f64,
@@ -417,8 +420,8 @@ impl Tuner {
         );
         if replan {
             if let Some(Pending::Set(_, op)) = self.pending.take() {
-                if let Some(frame) = self.stack.last_mut() {
-                    frame.ops.push_front(op);
+                if let Some(active) = self.stack.last_mut() {
+                    active.ops.push_front(op);
                 }
             }
         }
@@ -435,11 +438,11 @@ impl Tuner {
             if self.finished {
                 return Action::Finished;
             }
-            let Some(frame) = self.stack.last_mut() else {
+            let Some(active) = self.stack.last_mut() else {
                 if let LevelState::Newton(top) = &self.levels[0] {
                     if !top.is_initialised() {
                         let ops = self.init_ops(0);
-                        self.stack.push(Frame { level: 0, ops });
+                        self.stack.push(ActiveLevel { level: 0, ops });
                         continue;
                     }
                 }
@@ -455,8 +458,8 @@ impl Tuner {
                 self.push_level(0);
                 continue;
             };
-            let level = frame.level;
-            let Some(op) = frame.ops.pop_front() else {
+            let level = active.level;
+            let Some(op) = active.ops.pop_front() else {
                 self.stack.pop();
                 continue;
             };
@@ -661,15 +664,18 @@ impl Tuner {
                 ops
             }
         };
-        self.stack.push(Frame { level, ops });
+        self.stack.push(ActiveLevel { level, ops });
     }
 
     fn push_ops(&mut self, ops: impl IntoIterator<Item = Op>) {
-        let frame = self.stack.last_mut().expect("decisions run inside a frame");
-        // decisions queue their follow-ups before whatever the frame still holds
+        let active = self
+            .stack
+            .last_mut()
+            .expect("decisions run inside an active level");
+        // decisions queue their follow-ups before whatever the level still holds
         let mut new: VecDeque<Op> = ops.into_iter().collect();
-        new.extend(frame.ops.drain(..));
-        frame.ops = new;
+        new.extend(active.ops.drain(..));
+        active.ops = new;
     }
 
     fn after_move_ops(&self, level: usize) -> Vec<Op> {
@@ -761,8 +767,8 @@ impl Tuner {
                 }
                 (Decision::SdFallbackPoint { .. }, Some(v)) => {
                     // found: stop the raster here and park
-                    if let Some(frame) = self.stack.last_mut() {
-                        frame.ops.clear();
+                    if let Some(active) = self.stack.last_mut() {
+                        active.ops.clear();
                     }
                     self.push_ops([Op::SetGate(sd.gate, v)]);
                 }

@@ -276,7 +276,7 @@ fn parse_strategies(names: &[String]) -> Result<Vec<Strategy>, CliError> {
         .collect()
 }
 
-fn load_device(path: &Path) -> Result<DeviceConfig, CliError> {
+pub(crate) fn load_device(path: &Path) -> Result<DeviceConfig, CliError> {
     let text = std::fs::read_to_string(path)
         .map_err(|e| CliError::input(format!("cannot read {}: {e}", path.display())))?;
     let is_json = path.extension().is_some_and(|e| e == "json");
@@ -542,7 +542,7 @@ fn draw_figure(
 }
 
 /// plotters draws text with a font we hand it: the first of the usual system sans fonts.
-fn register_font() -> Result<(), CliError> {
+pub(crate) fn register_font() -> Result<(), CliError> {
     const CANDIDATES: [&str; 4] = [
         "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
         "/usr/share/fonts/truetype/liberation/LiberationSans-Regular.ttf",

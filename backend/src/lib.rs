@@ -12,6 +12,7 @@ pub mod bench_server;
 pub mod cli;
 pub mod config;
 pub(crate) mod devices;
+pub mod drift_day;
 pub(crate) mod export;
 pub mod replay;
 pub(crate) mod run;

@@ -26,6 +26,9 @@ enum Command {
     Export(cli::ExportArgs),
     /// Offline Kalman replay of a recorded sequence (JSON), to choose Q.
     Replay(cli::ReplayArgs),
+    /// An untended stretch of lab time on the simulated device: how its slow
+    /// drift carries w and t_sr out of their band.
+    DriftDay(spintune_server::drift_day::DriftDayArgs),
     /// The paper's set-point benchmark over many seeds, all strategies side by side.
     Bench(spintune_server::bench::BenchArgs),
     /// Load bench of the server: N WebSocket viewers on one run at a fixed rate.
@@ -41,6 +44,7 @@ fn main() {
         Command::Export(args) => cli::export(args),
         Command::Replay(args) => cli::replay(args),
         Command::Bench(args) => spintune_server::bench::run(args),
+        Command::DriftDay(args) => spintune_server::drift_day::run(args),
         Command::BenchServer(args) => spintune_server::bench_server::main(args),
     };
     if let Err(e) = result {

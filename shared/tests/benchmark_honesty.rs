@@ -122,7 +122,11 @@ fn cold_start_includes_the_initial_measurement_and_changes_cost_lab_time() {
     let results = run_seed(
         &SimulationConfig::paper_default(),
         &SimulationConfig::recommended().tuner,
-        &short_protocol(),
+        &BenchmarkProtocol {
+            // long enough for every first change to converge
+            iterations_per_set_point: 12,
+            ..short_protocol()
+        },
         &[Strategy::Default, Strategy::KalmanLogTrMultiBare],
         2,
         false,

@@ -12,7 +12,15 @@ use nalgebra::DVector;
 use spintune::fit::evaluate_with;
 use spintune::fit::uncertainty::SIMULATED_DEVICE_REFERENCES;
 use spintune::protocol::{RawScan, Request, Response, ScanKind, ScanOutcome, ScanRequest};
-use spintune::sim::{default_gates, DeviceConfig, SimulatedDevice};
+use spintune::sim::{default_gates, DeviceConfig, SimulatedDevice, SlowDrift};
+
+/// The default device without the slow drift of t_c and Γ: this test is
+/// about one scan's error bar at a fixed device state.
+fn device_config() -> DeviceConfig {
+    let mut c = DeviceConfig::default();
+    c.noise.slow = SlowDrift::none();
+    c
+}
 
 fn set(dev: &mut SimulatedDevice, gate: &str, mv: f64) {
     let r = dev.execute(&Request::SetVoltages {
@@ -36,7 +44,7 @@ fn measure(dev: &mut SimulatedDevice, kind: ScanKind) -> RawScan {
 /// Gate voltages (mV) where the noiseless device has `t_sr_ns`, `w_uv`,
 /// centred lines and the sensing dot on its flank.
 fn set_point_voltages(t_sr_ns: f64, w_uv: f64) -> Vec<(String, f64)> {
-    let mut dev = SimulatedDevice::new(DeviceConfig::default(), &default_gates(), 0).unwrap();
+    let mut dev = SimulatedDevice::new(device_config(), &default_gates(), 0).unwrap();
     let gates = ["N", "SA", "SB", "T", "PA", "PB"];
     let params = ["t_sr", "w", "mu_a_mv", "mu_b_mv"];
     for _ in 0..40 {
@@ -69,8 +77,7 @@ fn set_point_voltages(t_sr_ns: f64, w_uv: f64) -> Vec<(String, f64)> {
 fn coverage(voltages: &[(String, f64)], kind: ScanKind, name: &str, scans: u64) -> f64 {
     let (mut inside, mut fitted) = (0usize, 0usize);
     for seed in 0..scans {
-        let mut dev =
-            SimulatedDevice::new(DeviceConfig::default(), &default_gates(), 1000 + seed).unwrap();
+        let mut dev = SimulatedDevice::new(device_config(), &default_gates(), 1000 + seed).unwrap();
         for (g, v) in voltages {
             set(&mut dev, g, *v);
         }

@@ -89,6 +89,8 @@ fn charge_jumps_fail_or_inflate_the_variance() {
     let mut config = DeviceConfig::default();
     config.noise.charge_jump_rate_per_s = 0.05;
     config.noise.charge_jump_sd_mv = 1.0;
+    // charge jumps only: t_c and Γ stay put while the truth is compared
+    config.noise.slow = spintune::sim::SlowDrift::none();
     let mut checked = 0;
     for seed in 0..60 {
         let mut dev = SimulatedDevice::new(config.clone(), &default_gates(), seed).unwrap();
@@ -135,6 +137,7 @@ fn noiseless_scans_give_the_exact_model_quantities() {
         (n.white_sd, n.white_mu, n.white_w, n.white_tsr) = (0.0, 0.0, 0.0, 0.0);
         (n.drift_mu_mv, n.drift_sd_mv, n.drift_signal) = (0.0, 0.0, 0.0);
         n.charge_jump_rate_per_s = 0.0;
+        n.slow = spintune::sim::SlowDrift::none();
         config.tunnel_coupling_uev.at_reference = t_c;
         config.lead_rate_per_ns.at_reference = gamma;
         let mut dev = SimulatedDevice::new(config, &default_gates(), 1).unwrap();

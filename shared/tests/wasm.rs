@@ -46,8 +46,9 @@ fn hash(records: &[IterationRecord]) -> u64 {
     h
 }
 
-/// Golden value, computed natively by this very test; wasm must agree.
-const GOLDEN: u64 = 0x1950_ce7b_e4f1_ffa8;
+/// Golden value, computed natively by this very test (re-recorded when the
+/// default device gained the slow drift of t_c and Γ); wasm must agree.
+const GOLDEN: u64 = 0x0139_fb0b_0d5c_71f3;
 
 #[cfg_attr(not(target_arch = "wasm32"), native_test)]
 #[cfg_attr(target_arch = "wasm32", wasm_test)]

@@ -328,7 +328,20 @@ impl Guard {
         answered: &BTreeMap<String, f64>,
     ) -> Result<(), ReadbackError> {
         let result = self.validate_set(requested, answered);
-        match &result {
+        self.settle(&result, answered, requested.keys().chain(answered.keys()));
+        result
+    }
+
+    /// After a validated answer: adopt every answered read-back (the gate
+    /// is now left exactly there); after a refused one: forget `gates`
+    /// (unknown until read again).
+    fn settle<'a>(
+        &mut self,
+        result: &Result<(), ReadbackError>,
+        answered: &BTreeMap<String, f64>,
+        gates: impl Iterator<Item = &'a String>,
+    ) {
+        match result {
             Ok(()) => {
                 for (g, &v) in answered {
                     self.readback_mv.insert(g.clone(), v);
@@ -336,12 +349,11 @@ impl Guard {
                 }
             }
             Err(_) => {
-                for g in requested.keys().chain(answered.keys()) {
+                for g in gates {
                     self.readback_mv.remove(g);
                 }
             }
         }
-        result
     }
 
     fn validate_set(
@@ -380,19 +392,7 @@ impl Guard {
         answered: &BTreeMap<String, f64>,
     ) -> Result<(), ReadbackError> {
         let result = self.validate_read(requested, answered);
-        match &result {
-            Ok(()) => {
-                for (g, &v) in answered {
-                    self.readback_mv.insert(g.clone(), v);
-                    self.left_mv.insert(g.clone(), Span::point(v));
-                }
-            }
-            Err(_) => {
-                for g in requested {
-                    self.readback_mv.remove(g);
-                }
-            }
-        }
+        self.settle(&result, answered, requested.iter());
         result
     }
 

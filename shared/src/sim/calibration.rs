@@ -56,7 +56,8 @@ fn mean_std(v: &[f64]) -> (f64, f64) {
 /// `r = √max(0, δp₀² − mean((κ·s_p)²)) / mean(p)` of
 /// [`crate::fit::uncertainty::UncertaintyRule::FitCovariance`] (the scatter the
 /// fits' own errors do not explain). Failed fits are skipped;
-/// Charge jumps are switched off for the reference series. `Err` if fewer
+/// Charge jumps and the slow drift of t_c and Γ are switched off for the
+/// reference series. `Err` if fewer
 /// than half of either kind succeed or `scans < 10`.
 ///
 /// ```
@@ -78,6 +79,9 @@ pub fn calibrate_reference(
     // the series, which nobody would accept as a reference).
     let mut quiet = config.clone();
     quiet.noise.charge_jump_rate_per_s = 0.0;
+    // nor the slow drift of t_c and Γ: a reference is one scan's scatter
+    // at a fixed device state, not the device's drift over the series
+    quiet.noise.slow = super::config::SlowDrift::none();
     let mut device = SimulatedDevice::new(quiet, gates, seed)?;
     let (mut w, mut w_sigma, mut t, mut t_sigma) = (vec![], vec![], vec![], vec![]);
     // (κ·s_p)² of each fit: the part of the scatter a single scan shows

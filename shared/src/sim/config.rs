@@ -149,6 +149,77 @@ pub struct NoiseConfig {
     pub charge_jump_rate_per_s: f64,
     /// Std of the persistent shift of u caused by one charge jump, mV.
     pub charge_jump_sd_mv: f64,
+    /// Slow drift of the tunnel coupling and the lead rate (so of w and
+    /// t_sr) over lab hours.
+    #[serde(default)]
+    pub slow: SlowDrift,
+}
+
+/// Slow drift of the inter-dot tunnel coupling t_c and the lead rate Γ,
+/// the quantities behind w and t_sr: an Ornstein–Uhlenbeck process on
+/// `ln t_c` and on `ln Γ` (hour-scale correlation time), rare jumps of
+/// both (two-level fluctuators, charge rearrangements near the barriers),
+/// and a day-scale trend of `ln Γ`. With the defaults an untouched tuned
+/// point typically leaves a ±10 % band of t_sr or w within one to a few
+/// lab hours (`shared/tests/slow_drift.rs`; docs/simulator-drift.md).
+/// All zero: no slow drift (and no random numbers drawn for it).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SlowDrift {
+    /// Correlation time of the drift of `ln t_c` and `ln Γ`, s (default 4 h).
+    pub time_s: f64,
+    /// Stationary std of `ln t_c` (relative drift of t_c; default 0.06).
+    pub tunnel_coupling_rel: f64,
+    /// Stationary std of `ln Γ` (relative drift of Γ, so of t_sr; default 0.1).
+    pub lead_rate_rel: f64,
+    /// Rate of jumps of `ln t_c` and `ln Γ`, 1/s of lab time (default one
+    /// per 8 h).
+    pub jump_rate_per_s: f64,
+    /// Std of one jump of `ln t_c` and of `ln Γ` (default 0.05).
+    pub jump_rel: f64,
+    /// Linear trend of `ln Γ`, per hour of lab time (default 0.01: t_sr
+    /// shortens by about 1 % per hour, ~20 % over a day).
+    pub lead_rate_trend_per_hour: f64,
+}
+
+impl Default for SlowDrift {
+    fn default() -> Self {
+        Self {
+            time_s: 4.0 * 3600.0,
+            tunnel_coupling_rel: 0.06,
+            lead_rate_rel: 0.1,
+            jump_rate_per_s: 1.0 / (8.0 * 3600.0),
+            jump_rel: 0.05,
+            lead_rate_trend_per_hour: 0.01,
+        }
+    }
+}
+
+impl SlowDrift {
+    /// No slow drift at all.
+    ///
+    /// ```
+    /// assert!(spintune::sim::SlowDrift::none().is_none());
+    /// assert!(!spintune::sim::SlowDrift::default().is_none());
+    /// ```
+    pub fn none() -> Self {
+        Self {
+            time_s: 4.0 * 3600.0,
+            tunnel_coupling_rel: 0.0,
+            lead_rate_rel: 0.0,
+            jump_rate_per_s: 0.0,
+            jump_rel: 0.0,
+            lead_rate_trend_per_hour: 0.0,
+        }
+    }
+
+    /// Whether every amplitude is zero (nothing drifts).
+    pub fn is_none(&self) -> bool {
+        self.tunnel_coupling_rel == 0.0
+            && self.lead_rate_rel == 0.0
+            && (self.jump_rate_per_s == 0.0 || self.jump_rel == 0.0)
+            && self.lead_rate_trend_per_hour == 0.0
+    }
 }
 
 /// Scan grids and scan-quality constants.
@@ -353,6 +424,7 @@ impl Default for DeviceConfig {
                 drift_signal: 0.005,
                 charge_jump_rate_per_s: 3e-4,
                 charge_jump_sd_mv: 1.0,
+                slow: SlowDrift::default(),
             },
             scans: ScanSettings {
                 detuning_half_range_mv: 2.0,
@@ -519,6 +591,32 @@ impl DeviceConfig {
             non_negative(name, v)?;
         }
         positive("noise.drift_time_s", n.drift_time_s)?;
+        let sl = &n.slow;
+        positive("noise.slow.time_s", sl.time_s)?;
+        for (name, v) in [
+            ("noise.slow.tunnel_coupling_rel", sl.tunnel_coupling_rel),
+            ("noise.slow.lead_rate_rel", sl.lead_rate_rel),
+            ("noise.slow.jump_rate_per_s", sl.jump_rate_per_s),
+            ("noise.slow.jump_rel", sl.jump_rel),
+        ] {
+            non_negative(name, v)?;
+            if v > 10.0 {
+                return Err(ConfigError::new(
+                    name,
+                    format!("must be at most 10, got {v}"),
+                ));
+            }
+        }
+        finite(
+            "noise.slow.lead_rate_trend_per_hour",
+            sl.lead_rate_trend_per_hour,
+        )?;
+        if sl.lead_rate_trend_per_hour.abs() > 1.0 {
+            return Err(ConfigError::new(
+                "noise.slow.lead_rate_trend_per_hour",
+                "must be within ±1 per hour",
+            ));
+        }
         let s = &self.scans;
         positive("scans.detuning_half_range_mv", s.detuning_half_range_mv)?;
         points("scans.detuning_points", s.detuning_points)?;

@@ -225,6 +225,33 @@ impl SimulatedDevice {
         self.truth_queries
     }
 
+    /// Lab time passes with nothing done (the device left alone, e.g.
+    /// between checks of a tuned point): the drifts and charge jumps evolve
+    /// over `seconds` (in steps of at most a minute; the OU updates are
+    /// exact for any step) and the lab clock advances. Non-finite or
+    /// negative durations do nothing.
+    ///
+    /// ```
+    /// use spintune::sim::{default_gates, DeviceConfig, SimulatedDevice};
+    /// let mut dev = SimulatedDevice::new(DeviceConfig::default(), &default_gates(), 3).unwrap();
+    /// let before = dev.truth().t_sr_ns;
+    /// dev.idle(6.0 * 3600.0);
+    /// assert_eq!(dev.lab_seconds(), 6.0 * 3600.0);
+    /// assert_ne!(dev.truth().t_sr_ns, before); // Γ drifted
+    /// ```
+    pub fn idle(&mut self, seconds: f64) {
+        if !(seconds.is_finite() && seconds > 0.0) {
+            return;
+        }
+        let mut left = seconds;
+        while left > 0.0 {
+            let dt = left.min(60.0);
+            self.drift.advance(&self.config.noise, dt, &mut self.rng);
+            left -= dt;
+        }
+        self.clock.advance(seconds);
+    }
+
     /// Present drift and charge-jump state (what [`SimulatedDevice::truth`] leaves out).
     pub fn drift(&self) -> &DriftState {
         &self.drift
@@ -329,7 +356,9 @@ impl SimulatedDevice {
             .collect())
     }
 
-    /// Noiseless ground truth at the present voltages.
+    /// Noiseless ground truth at the present voltages: the model with the
+    /// slow drift of t_c and Γ ([`crate::sim::SlowDrift`], the device's
+    /// physical state now), without the fast drifts and noise of the scans.
     pub fn truth(&self) -> Truth {
         self.truth_at(&self.voltages_mv)
     }
@@ -337,8 +366,8 @@ impl SimulatedDevice {
     pub(crate) fn truth_at(&self, voltages_mv: &BTreeMap<String, f64>) -> Truth {
         let c = &self.config;
         let d = model::deviations(c, voltages_mv);
-        let t_c_uev = model::tunnel_coupling_uev(c, &d);
-        let gamma_per_ns = model::lead_rate_per_ns(c, &d);
+        let t_c_uev = model::tunnel_coupling_uev(c, &d) * self.drift.tunnel_coupling_factor();
+        let gamma_per_ns = model::lead_rate_per_ns(c, &d) * self.drift.lead_rate_factor();
         let lines = model::raw_lines_mv(c, &d);
         let u = model::sd_potential_mv(c, &d);
         let (_, slope) = model::sd_signal(c, u);

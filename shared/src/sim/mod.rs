@@ -32,7 +32,7 @@ pub mod scans;
 
 pub use calibration::{calibrate_reference, CalibrationError};
 pub use clock::LabClock;
-pub use config::DeviceConfig;
+pub use config::{DeviceConfig, SlowDrift};
 pub use device::{SimulatedDevice, Truth};
 pub use gates::default_gates;
 pub use landscape::ErrorGrid;

@@ -12,6 +12,7 @@
 //! | white noise of each scan kind | log-uniform ×[0.5, 2] |
 //! | drift amplitudes (lines, sensing dot, signal) | log-uniform ×[0.5, 2] |
 //! | charge-jump rate | log-uniform ×[0.5, 2] |
+//! | slow drift of t_c and Γ: amplitudes, jump rate, trend of Γ | log-uniform ×[0.5, 2] |
 //!
 //! The values at the reference (t_sr = 45 ns, t_c) and the gates are those
 //! of the base. A drawn device whose benchmark targets cannot be reached
@@ -88,6 +89,16 @@ pub fn random_device(base: &DeviceConfig, seed: u64) -> DeviceConfig {
         &mut n.drift_sd_mv,
         &mut n.drift_signal,
         &mut n.charge_jump_rate_per_s,
+    ] {
+        *x *= noise(&mut rng);
+    }
+    // drawn last, so every device's other parameters are those drawn before
+    let slow = &mut n.slow;
+    for x in [
+        &mut slow.tunnel_coupling_rel,
+        &mut slow.lead_rate_rel,
+        &mut slow.jump_rate_per_s,
+        &mut slow.lead_rate_trend_per_hour,
     ] {
         *x *= noise(&mut rng);
     }

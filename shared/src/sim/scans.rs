@@ -196,7 +196,7 @@ impl SimulatedDevice {
         let cfg = self.config.clone();
         let x = model::detuning_grid(&cfg);
         let d = model::deviations(&cfg, &self.voltages_mv);
-        let t_c = model::tunnel_coupling_uev(&cfg, &d);
+        let t_c = model::tunnel_coupling_uev(&cfg, &d) * self.drift.tunnel_coupling_factor();
         let dt = cfg.durations.transition_width_s / x.len() as f64;
         let (q, rf, tol) = (
             cfg.sensing_dot.charge_shift_mv,
@@ -225,7 +225,7 @@ impl SimulatedDevice {
         let s = &cfg.scans;
         let x = model::grid(s.load_from_ns, s.load_to_ns, s.load_points);
         let d = model::deviations(&cfg, &self.voltages_mv);
-        let t_sr = 1.0 / model::lead_rate_per_ns(&cfg, &d);
+        let t_sr = 1.0 / (model::lead_rate_per_ns(&cfg, &d) * self.drift.lead_rate_factor());
         let dt = cfg.durations.reload_time_s / x.len() as f64;
         let q = cfg.sensing_dot.charge_shift_mv;
         let y = self.record(&x, cfg.noise.white_tsr, dt, |t, [_, b]| {

@@ -572,8 +572,17 @@ fn wasm_bindgen_version() -> String {
     exit(1);
 }
 
+/// The checkout this xtask was run from. `cargo run` sets
+/// `CARGO_MANIFEST_DIR` for the process; the compile-time value is only the
+/// fallback: with a `CARGO_TARGET_DIR` shared by several checkouts, cargo
+/// reuses one xtask binary for all of them (its fingerprint does not
+/// include the checkout's path), so a path baked in at compile time would
+/// send a run in one checkout to the sources of another.
 fn workspace_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
+    let manifest_dir = env::var_os("CARGO_MANIFEST_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")));
+    manifest_dir
         .parent()
         .expect("xtask lives in the workspace")
         .to_path_buf()

@@ -18,7 +18,7 @@ use crate::charts::{
 use crate::decimate::{min_max, Columns};
 use crate::history::{Row, RunHistory};
 use crate::model::padded_range;
-use crate::zoom::Window;
+use crate::zoom::{pin, Window, YRange};
 
 /// What the x axis shows.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -130,6 +130,9 @@ pub struct Drawn {
     pub rejected: usize,
     /// Points of the compared run drawn (parameter charts).
     pub overlay_points: usize,
+    /// Accepted values drawn pinned to an edge of a manual y range
+    /// ([`YRange::Manual`], parameter charts; after decimation).
+    pub pinned: usize,
     /// Pixel columns `[left, right]` of the plot area (CSS px), if it has one.
     pub plot_px: Option<(f64, f64)>,
     /// Data x range of the plot area.
@@ -310,11 +313,18 @@ fn value_range(
 /// refused) are hollow grey circles without error bars and do not set the y
 /// range (one such value of 238 ± 288 ns would hide every tolerance band);
 /// those outside it are pinned to the nearer edge as hollow triangles.
+///
+/// `y` chooses the y range ([`YRange`]): robust (the above), full (rejected
+/// values and every band too) or typed; with a typed range, accepted values
+/// outside it are pinned to the nearer edge as filled triangles (error bars,
+/// bands and the compared run are cut at the edge, targets outside are not
+/// drawn). The axis keeps its unit in every case.
 pub fn draw_parameter<DB: DrawingBackend>(
     plot: &Plot<'_, DB>,
     f: &Viewport<'_>,
     p: usize,
     series: usize,
+    y: YRange,
 ) -> Result<Drawn, DrawError> {
     let layout = f.history.layout();
     let Some((name, unit)) = layout.parameters.get(p) else {
@@ -366,7 +376,7 @@ pub fn draw_parameter<DB: DrawingBackend>(
             Some(min_max(&xy, x0, x1, cols))
         })
         .unwrap_or_default();
-    let (y0, y1) = value_range(
+    let auto = value_range(
         &line,
         &bands,
         targets
@@ -381,6 +391,52 @@ pub fn draw_parameter<DB: DrawingBackend>(
                     .flatten(),
             ),
     );
+    let full = || {
+        padded_range(
+            line.iter()
+                .map(|p| p.1)
+                .chain(bands.iter().flat_map(|b| [b.1, b.2]))
+                .chain(pts.iter().flatten().flat_map(|p| [p.1 - p.2, p.1 + p.2]))
+                .chain(
+                    targets
+                        .iter()
+                        .flat_map(|&(_, _, t, tol)| [t - tol, t + tol]),
+                )
+                .chain(overlay.iter().map(|p| p.1))
+                .chain(rejected.iter().map(|p| p.1)),
+            0.08,
+        )
+    };
+    let (y0, y1) = match y {
+        YRange::Full => full(),
+        _ => y.resolve(auto, auto),
+    };
+    // A typed range cuts what lies outside it at its edges.
+    let manual = matches!(y, YRange::Manual(..));
+    let cut = |v: f64| if manual { pin(v, (y0, y1)).0 } else { v };
+    let mut pinned: Vec<(f64, f64)> = Vec::new();
+    let (line, bands, pts, overlay, targets) = if manual {
+        pinned.extend(
+            line.iter()
+                .filter(|p| pin(p.1, (y0, y1)).1)
+                .map(|&(x, v)| (x, cut(v))),
+        );
+        (
+            line.iter().map(|&(x, v)| (x, cut(v))).collect(),
+            bands
+                .iter()
+                .map(|&(x, lo, hi)| (x, cut(lo), cut(hi)))
+                .collect(),
+            pts,
+            overlay.iter().map(|&(x, v)| (x, cut(v))).collect(),
+            targets
+                .into_iter()
+                .filter(|t| !pin(t.2, (y0, y1)).1)
+                .collect(),
+        )
+    } else {
+        (line, bands, pts, overlay, targets)
+    };
     let mut chart = styled_chart(
         plot,
         &format!(
@@ -431,9 +487,18 @@ pub fn draw_parameter<DB: DrawingBackend>(
             ))
             .map_err(err)?;
         chart
-            .draw_series(pts.iter().map(|&(k, v, s)| {
-                ErrorBar::new_vertical(k, v - s, v, v + s, c.filled(), bar_width(pts.len()))
-            }))
+            .draw_series(pts.iter().filter(|p| !manual || !pin(p.1, (y0, y1)).1).map(
+                |&(k, v, s)| {
+                    ErrorBar::new_vertical(
+                        k,
+                        cut(v - s),
+                        v,
+                        cut(v + s),
+                        c.filled(),
+                        bar_width(pts.len()),
+                    )
+                },
+            ))
             .map_err(err)?;
     } else {
         draw_band(&mut chart, &bands, (x0, x1), cols, c)?;
@@ -442,6 +507,13 @@ pub fn draw_parameter<DB: DrawingBackend>(
             .map_err(err)?;
     }
     draw_rejected(&mut chart, &rejected, (y0, y1))?;
+    chart
+        .draw_series(
+            pinned
+                .iter()
+                .map(|&p| TriangleMarker::new(p, 4, c.filled())),
+        )
+        .map_err(err)?;
     let px = chart.plotting_area().get_pixel_range().0;
     Ok(Drawn {
         iterations: rows.len(),
@@ -450,6 +522,7 @@ pub fn draw_parameter<DB: DrawingBackend>(
         y_range: (y0, y1),
         rejected: rejected.len(),
         overlay_points: overlay.len(),
+        pinned: pinned.len(),
         plot_px: Some((px.start as f64, px.end as f64)),
         x_range: (x0, x1),
         panels: None,
@@ -682,6 +755,7 @@ pub fn draw_lab_time<DB: DrawingBackend>(
         y_range: (y0.max(0.0), y1),
         rejected: 0,
         overlay_points: 0,
+        pinned: 0,
         plot_px: Some((px.start as f64, px.end as f64)),
         x_range: (x0, x1),
         panels: None,

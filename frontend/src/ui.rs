@@ -17,7 +17,8 @@ use crate::model::{
 };
 use crate::schedule;
 use crate::series::{self, Drawn, Viewport, XAxis};
-use crate::zoom::{self, View};
+use crate::widgets::NumberField;
+use crate::zoom::{self, View, YRange};
 
 /// Where a [`Chart`] draws: the data canvas layered over the frame canvas
 /// ([`charts::Plot`]).
@@ -294,6 +295,7 @@ fn paint(
     set("data-y1", drawn.y_range.1.to_string());
     set("data-rejected", drawn.rejected.to_string());
     set("data-overlay-points", drawn.overlay_points.to_string());
+    set("data-pinned", drawn.pinned.to_string());
     set("data-draws", draws.get_value().to_string());
     set("data-frames", layers.frames.len().to_string());
     if let Some((a, b)) = drawn.plot_px {
@@ -409,6 +411,80 @@ fn parameter_legend(i: usize, overlay: bool) -> impl IntoView {
             <span><i class="swatch band"></i>"tolerance band"</span>
             <span title="too uncertain, outlier-gated or refused by the estimator: not acted on, and not setting the y range (▵ at the edge: outside it)"><i class="swatch rejected"></i>"rejected by the tuner"</span>
             {overlay.then(|| view! { <span><i class="swatch overlay"></i>"compared run"</span> })}
+        </div>
+    }
+}
+
+/// The y range of one parameter chart ([`YRange`]): robust (auto), full
+/// (rejected values too) or a typed min–max in the chart's unit. Manual
+/// starts from the range drawn; a min not below the max is refused with
+/// the reason. Test ids: `yrange-<name>`, `yrange-<name>-min`, `-max`.
+#[component]
+fn YRangeControl(
+    name: String,
+    unit: String,
+    y_range: RwSignal<YRange>,
+    drawn_y: StoredValue<(f64, f64)>,
+) -> impl IntoView {
+    // NumberField takes 'static ids: a few bytes per parameter chart, made
+    // again only when a run with other parameters is shown.
+    let id: &'static str = Box::leak(format!("yrange-{name}").into_boxed_str());
+    let id_min: &'static str = Box::leak(format!("{id}-min").into_boxed_str());
+    let id_max: &'static str = Box::leak(format!("{id}-max").into_boxed_str());
+    let unit: &'static str = Box::leak(unit.into_boxed_str());
+    let bounds = move || match y_range.get() {
+        YRange::Manual(lo, hi) => (lo, hi),
+        _ => drawn_y.get_value(),
+    };
+    let lo = Signal::derive(move || bounds().0);
+    let hi = Signal::derive(move || bounds().1);
+    let set_lo = Callback::new(move |v: f64| {
+        if let Some(r) = YRange::manual(v, bounds().1) {
+            y_range.set(r);
+        }
+    });
+    let set_hi = Callback::new(move |v: f64| {
+        if let Some(r) = YRange::manual(bounds().0, v) {
+            y_range.set(r);
+        }
+    });
+    let check_lo = Callback::new(move |v: f64| {
+        if v < hi.get_untracked() {
+            Ok(())
+        } else {
+            Err("must be below the max".to_string())
+        }
+    });
+    let check_hi = Callback::new(move |v: f64| {
+        if v > lo.get_untracked() {
+            Ok(())
+        } else {
+            Err("must be above the min".to_string())
+        }
+    });
+    view! {
+        <div class="yrange">
+            <label class="field" title="auto: the accepted values, trusted bands and targets (rejected values do not widen it); full: everything, rejected values too; manual: type min and max (values outside are pinned to the edge as ▲/▼)">
+                <span class="field-label">"y range"</span>
+                <select data-testid=id on:change=move |ev| {
+                    match event_target_value(&ev).as_str() {
+                        "full" => y_range.set(YRange::Full),
+                        "manual" => {
+                            let (a, b) = drawn_y.get_value();
+                            y_range.set(YRange::manual(a, b).unwrap_or(YRange::Manual(0.0, 1.0)));
+                        }
+                        _ => y_range.set(YRange::Auto),
+                    }
+                }>
+                    <option value="auto" selected=move || y_range.get() == YRange::Auto>"auto (robust)"</option>
+                    <option value="full" selected=move || y_range.get() == YRange::Full>"full (rejected too)"</option>
+                    <option value="manual" selected=move || matches!(y_range.get(), YRange::Manual(..))>"manual min–max"</option>
+                </select>
+            </label>
+            <Show when=move || matches!(y_range.get(), YRange::Manual(..))>
+                <NumberField label="min" unit=unit testid=id_min step="any" get=lo set=set_lo check=check_lo />
+                <NumberField label="max" unit=unit testid=id_max step="any" get=hi set=set_hi check=check_hi />
+            </Show>
         </div>
     }
 }
@@ -721,6 +797,9 @@ pub fn Dashboard(
                         key=|(i, n)| (*i, n.clone())
                         children=move |(i, name)| {
                             let has_overlay = move || overlay.is_some_and(|o| o.with(|o| o.is_some()));
+                            let y_range = RwSignal::new(YRange::Auto);
+                            let drawn_y = StoredValue::new((f64::NAN, f64::NAN));
+                            let unit = history.with_untracked(|h| h.layout().parameters.get(i).map(|p| p.1.clone()).unwrap_or_default());
                             view! {
                                 <div class="chart-box" on:mousedown=mouse_down on:mouseup=mouse_up on:mousemove=mouse_move>
                                     <Chart
@@ -730,19 +809,25 @@ pub fn Dashboard(
                                             let mut k = history.with(|h| series_key(h, draw_window.get(), axis.get()));
                                             k.push(width.get());
                                             k.push(overlay.map_or(0, |o| o.with(|o| o.as_ref().map_or(0, |h| h.version()))));
+                                            k.extend(y_range.get().key());
                                             k
                                         }
                                         draw=move |a: &Area| {
                                             let w = draw_window.get();
                                             let ax = axis.get();
                                             let ov = overlay.map(|o| o.read());
-                                            history.with(|h| {
+                                            let drawn = history.with(|h| {
                                                 let f = Viewport { history: h, window: w, axis: ax, overlay: ov.as_ref().and_then(|o| o.as_ref()) };
-                                                series::draw_parameter(a, &f, i, i)
-                                            })
+                                                series::draw_parameter(a, &f, i, i, y_range.get_untracked())
+                                            });
+                                            if let Ok(d) = &drawn {
+                                                drawn_y.set_value(d.y_range);
+                                            }
+                                            drawn
                                         }
                                     />
                                     {move || parameter_legend(i, has_overlay())}
+                                    <YRangeControl name=name.clone() unit=unit.clone() y_range=y_range drawn_y=drawn_y />
                                 </div>
                             }
                         }

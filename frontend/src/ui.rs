@@ -489,6 +489,68 @@ fn YRangeControl(
     }
 }
 
+/// "What the filter believes" ([`crate::belief`]), for students: at the
+/// inspected iteration (else the latest) each gradient element ∂p/∂V ±1σ
+/// with its unit, the gates' move since the previous iteration and, per
+/// parameter, the change the filter predicted (g·Δv) next to the one
+/// measured, in plain words.
+#[component]
+fn BeliefPanel(history: RwSignal<RunHistory>, inspected: RwSignal<Option<u64>>) -> impl IntoView {
+    let belief = Memo::new(move |_| {
+        let k = inspected
+            .get()
+            .or_else(|| history.with(|h| h.rows().last().map(|r| r.iteration)))?;
+        history.with(|h| crate::belief::belief(h, k))
+    });
+    let pm = |v: f64, s: f64| {
+        if s.is_finite() {
+            format!("{} ± {}", series::fmt(v), series::fmt(s))
+        } else {
+            series::fmt(v)
+        }
+    };
+    view! {
+        <Show when=move || belief.with(|b| b.is_some())>
+            <section class="belief" data-testid="belief"
+                data-iteration=move || belief.with(|b| b.as_ref().map(|b| b.iteration.to_string()).unwrap_or_default())>
+                <h3>{move || belief.with(|b| b.as_ref().map(|b| format!("What the filter believes at iteration {}", b.iteration)).unwrap_or_default())}</h3>
+                <p class="hint">"How the measured parameters change when each gate moves by 1 mV (±1σ: how unsure the filter still is). A gradient in 1/mV is of ln p (log space): 0.01 /mV means p grows by about 1 % per mV."
+                    {move || if inspected.get().is_some() { " Showing the inspected iteration." } else { " Showing the latest iteration; click a chart to pick another." }}</p>
+                <div class="belief-table">
+                <table data-testid="belief-gradients">
+                    <thead><tr>
+                        <th>"∂p/∂V"</th>
+                        {move || belief.with(|b| b.as_ref().and_then(|b| b.gradients.first()).map(|g| g.elements.iter().map(|e| view! { <th>{e.gate.clone()}</th> }).collect_view()))}
+                        <th>"unit"</th>
+                    </tr></thead>
+                    <tbody>
+                        {move || belief.with(|b| b.as_ref().map(|b| b.gradients.iter().map(|g| view! {
+                            <tr>
+                                <th>{g.parameter.clone()}</th>
+                                {g.elements.iter().map(|e| view! { <td>{pm(e.value, e.sigma)}</td> }).collect_view()}
+                                <td>{g.unit.clone()}</td>
+                            </tr>
+                        }).collect_view()))}
+                    </tbody>
+                </table>
+                </div>
+                {move || belief.with(|b| b.as_ref().map(|b| match b.previous {
+                    None => view! { <p data-testid="belief-moves">"No previous iteration loaded: nothing to compare a prediction with."</p> }.into_any(),
+                    Some(j) => {
+                        let moves = b.moves.iter().map(|(g, d)| format!("{g} {} mV", series::fmt(*d))).collect::<Vec<_>>().join(", ");
+                        view! {
+                            <p data-testid="belief-moves">{format!("Between iteration {j} and {} the gates moved by Δv: {moves}. With the gradient it held after iteration {j}, the filter predicted:", b.iteration)}</p>
+                            <ul>
+                                {b.predictions.iter().map(|p| view! { <li data-testid="belief-prediction">{crate::belief::sentence(p)}</li> }).collect_view()}
+                            </ul>
+                        }.into_any()
+                    }
+                }))}
+            </section>
+        </Show>
+    }
+}
+
 /// What the dashboard shows besides the history: callbacks of its owner.
 #[derive(Clone, Copy, Default)]
 pub struct DashboardHooks {
@@ -853,6 +915,7 @@ pub fn Dashboard(
                         </div>
                     }
                 />
+                <BeliefPanel history=history inspected=inspected />
                 <h3>"Gate voltages"</h3>
                 <div class="chart-box" on:mousedown=mouse_down on:mouseup=mouse_up on:mousemove=mouse_move>
                 <Chart

@@ -17,7 +17,7 @@ use crate::model::{
 };
 use crate::schedule;
 use crate::series::{self, Drawn, Viewport, XAxis};
-use crate::widgets::NumberField;
+use crate::widgets::{FieldError, NumberField};
 use crate::zoom::{self, View, YRange};
 
 /// Where a [`Chart`] draws: the data canvas layered over the frame canvas
@@ -452,14 +452,14 @@ fn YRangeControl(
         if v < hi.get_untracked() {
             Ok(())
         } else {
-            Err("must be below the max".to_string())
+            Err(FieldError::new("must be below the max"))
         }
     });
     let check_hi = Callback::new(move |v: f64| {
         if v > lo.get_untracked() {
             Ok(())
         } else {
-            Err("must be above the min".to_string())
+            Err(FieldError::new("must be above the min"))
         }
     });
     view! {

@@ -159,7 +159,7 @@ fn signed(v: f64) -> String {
 pub fn sentence(p: &Prediction) -> String {
     let expected = if p.log_space {
         format!(
-            "ln {} to change by g·Δv = {}, i.e. {} × {:.3} = {} {}",
+            "ln {} to change by g·Δv = {}, i.e. {} × {:.3}: a change of {} {}",
             p.parameter,
             signed(p.g_dv),
             p.parameter,

@@ -295,6 +295,7 @@ fn paint(
     set("data-y1", drawn.y_range.1.to_string());
     set("data-rejected", drawn.rejected.to_string());
     set("data-overlay-points", drawn.overlay_points.to_string());
+    set("data-overlay-shift", drawn.overlay_shift.to_string());
     set("data-pinned", drawn.pinned.to_string());
     set("data-draws", draws.get_value().to_string());
     set("data-frames", layers.frames.len().to_string());
@@ -567,13 +568,22 @@ pub struct DashboardHooks {
 #[component]
 pub fn Dashboard(
     history: RwSignal<RunHistory>,
-    /// A second run drawn on the parameter charts.
+    /// A second run drawn for comparison on the parameter, gradient and
+    /// gate charts.
     #[prop(optional)]
     overlay: Option<RwSignal<Option<RunHistory>>>,
     #[prop(optional)] hooks: DashboardHooks,
 ) -> impl IntoView {
     let view_sel = RwSignal::new(View::All);
     let axis = RwSignal::new(XAxis::Iteration);
+    // The compared run: shown, its version and whether it is aligned on
+    // the first set-point change (part of the charts' keys).
+    let align = RwSignal::new(false);
+    let has_overlay = move || overlay.is_some_and(|o| o.with(|o| o.is_some()));
+    let overlay_key = move || {
+        overlay.map_or(0, |o| o.with(|o| o.as_ref().map_or(0, |h| h.version()))) * 2
+            + align.get() as u64
+    };
     let inspected = RwSignal::new(None::<u64>);
     let hover = RwSignal::new(None::<Hover>);
     // The window's width in steps of 40 CSS px: the charts redraw (and
@@ -843,6 +853,13 @@ pub fn Dashboard(
                         let csv = history.with_untracked(|h| crate::export::window_csv(h, w.lo, w.hi));
                         download_text(&csv, "spintune-window.csv", "text/csv");
                     }>"CSV of the window"</button>
+                <Show when=has_overlay>
+                    <label title="shift the compared run so that its first set-point change lines up with this run's (unshifted if either has none)">
+                        <input type="checkbox" data-testid="overlay-align" prop:checked=move || align.get()
+                            on:change=move |ev| align.set(event_target_checked(&ev)) />
+                        " align the compared run on the first set-point change"
+                    </label>
+                </Show>
                 <span class="showing" data-testid="showing">{showing}</span>
             </div>
             <p class="readout" class:floating=move || hover.with(|h| h.is_some()) style=readout_style data-testid="readout"
@@ -858,7 +875,6 @@ pub fn Dashboard(
                         each=move || names.get().into_iter().enumerate()
                         key=|(i, n)| (*i, n.clone())
                         children=move |(i, name)| {
-                            let has_overlay = move || overlay.is_some_and(|o| o.with(|o| o.is_some()));
                             let y_range = RwSignal::new(YRange::Auto);
                             let drawn_y = StoredValue::new((f64::NAN, f64::NAN));
                             let unit = history.with_untracked(|h| h.layout().parameters.get(i).map(|p| p.1.clone()).unwrap_or_default());
@@ -870,7 +886,7 @@ pub fn Dashboard(
                                         key=move || {
                                             let mut k = history.with(|h| series_key(h, draw_window.get(), axis.get()));
                                             k.push(width.get());
-                                            k.push(overlay.map_or(0, |o| o.with(|o| o.as_ref().map_or(0, |h| h.version()))));
+                                            k.push(overlay_key());
                                             k.extend(y_range.get().key());
                                             k
                                         }
@@ -879,7 +895,7 @@ pub fn Dashboard(
                                             let ax = axis.get();
                                             let ov = overlay.map(|o| o.read());
                                             let drawn = history.with(|h| {
-                                                let f = Viewport { history: h, window: w, axis: ax, overlay: ov.as_ref().and_then(|o| o.as_ref()) };
+                                                let f = Viewport { history: h, window: w, axis: ax, overlay: ov.as_ref().and_then(|o| o.as_ref()), align: align.get() };
                                                 series::draw_parameter(a, &f, i, i, y_range.get_untracked())
                                             });
                                             if let Ok(d) = &drawn {
@@ -905,13 +921,15 @@ pub fn Dashboard(
                             name=format!("gradient-{name}")
                             height=210
                             panels=n_gates
-                            key=move || { let mut k = history.with(|h| series_key(h, draw_window.get(), axis.get())); k.push(width.get()); k }
+                            key=move || { let mut k = history.with(|h| series_key(h, draw_window.get(), axis.get())); k.push(width.get()); k.push(overlay_key()); k }
                             draw=move |a: &Area| {
                                 let w = draw_window.get();
                                 let ax = axis.get();
-                                history.with(|h| series::draw_gradient(a, &Viewport { history: h, window: w, axis: ax, overlay: None }, g))
+                                let ov = overlay.map(|o| o.read());
+                                history.with(|h| series::draw_gradient(a, &Viewport { history: h, window: w, axis: ax, overlay: ov.as_ref().and_then(|o| o.as_ref()), align: align.get() }, g))
                             }
                         />
+                        {move || has_overlay().then(|| view! { <div class="legend"><span><i class="swatch overlay"></i>"compared run (same unit only)"</span></div> })}
                         </div>
                     }
                 />
@@ -922,13 +940,15 @@ pub fn Dashboard(
                     name="gates"
                     height=200
                     panels=n_gates
-                    key=move || { let mut k = history.with(|h| series_key(h, draw_window.get(), axis.get())); k.push(width.get()); k }
+                    key=move || { let mut k = history.with(|h| series_key(h, draw_window.get(), axis.get())); k.push(width.get()); k.push(overlay_key()); k }
                     draw=move |a: &Area| {
                         let w = draw_window.get();
                         let ax = axis.get();
-                        history.with(|h| series::draw_gates(a, &Viewport { history: h, window: w, axis: ax, overlay: None }))
+                        let ov = overlay.map(|o| o.read());
+                        history.with(|h| series::draw_gates(a, &Viewport { history: h, window: w, axis: ax, overlay: ov.as_ref().and_then(|o| o.as_ref()), align: align.get() }))
                     }
                 />
+                {move || has_overlay().then(|| view! { <div class="legend"><span><i class="swatch overlay"></i>"compared run"</span></div> })}
                 </div>
                 <div class="chart-box" on:mousedown=mouse_down on:mouseup=mouse_up on:mousemove=mouse_move>
                     <Chart
@@ -937,7 +957,7 @@ pub fn Dashboard(
                         key=move || { let mut k = history.with(|h| series_key(h, draw_window.get(), XAxis::Iteration)); k.push(width.get()); k }
                         draw=move |a: &Area| {
                             let w = draw_window.get();
-                            history.with(|h| series::draw_lab_time(a, &Viewport { history: h, window: w, axis: XAxis::Iteration, overlay: None }))
+                            history.with(|h| series::draw_lab_time(a, &Viewport { history: h, window: w, axis: XAxis::Iteration, overlay: None, align: false }))
                         }
                     />
                     <div class="legend"><span><i class="swatch lab"></i>"cumulative lab time"</span><span><i class="swatch band"></i>"tuned"</span></div>

@@ -391,7 +391,7 @@ pub fn RacePanel(settings: RwSignal<LocalSettings>) -> impl IntoView {
                             (None, None) => (0, 10),
                         };
                         let w = View::All.window(lo as f64, hi as f64);
-                        series::draw_parameter(ar, &Viewport { history: h, window: w, axis: XAxis::Iteration, overlay: Some(&*ov) }, p, 0, crate::zoom::YRange::Auto)
+                        series::draw_parameter(ar, &Viewport { history: h, window: w, axis: XAxis::Iteration, overlay: Some(&*ov), align: false }, p, 0, crate::zoom::YRange::Auto)
                     })
                 }
             />

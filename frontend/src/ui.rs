@@ -440,12 +440,12 @@ fn YRangeControl(
     let lo = Signal::derive(move || bounds().0);
     let hi = Signal::derive(move || bounds().1);
     let set_lo = Callback::new(move |v: f64| {
-        if let Some(r) = YRange::manual(v, bounds().1) {
+        if let Some(r) = YRange::manual(v, hi.get_untracked()) {
             y_range.set(r);
         }
     });
     let set_hi = Callback::new(move |v: f64| {
-        if let Some(r) = YRange::manual(bounds().0, v) {
+        if let Some(r) = YRange::manual(lo.get_untracked(), v) {
             y_range.set(r);
         }
     });

@@ -505,6 +505,23 @@ impl RunHistory {
         Some(self.columns.iter().map(|c| c[i]).collect())
     }
 
+    /// The first iteration whose target of some parameter differs from the
+    /// row before (both set): where a run's first set-point change took
+    /// effect, for aligning a compared run on it.
+    pub fn first_target_change(&self) -> Option<u64> {
+        let cols: Vec<&[f64]> = (0..self.layout.parameters.len())
+            .map(|p| self.column(self.layout.param(p) + 2))
+            .collect();
+        (1..self.rows.len())
+            .find(|&i| {
+                cols.iter().any(|c| {
+                    let (a, b) = (c[i - 1], c[i]);
+                    a.is_finite() && b.is_finite() && a != b
+                })
+            })
+            .map(|i| self.rows[i].iteration)
+    }
+
     /// The row of iteration `k`.
     pub fn row(&self, k: u64) -> Option<&Row> {
         self.rows
@@ -794,6 +811,26 @@ mod tests {
         let before = h.rows_version();
         h.clear();
         assert_ne!(h.rows_version(), before);
+    }
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn the_first_set_point_change_is_found() {
+        let mut recs = fake_records(12);
+        let mut h = RunHistory::new();
+        h.insert(recs.clone());
+        assert_eq!(h.first_target_change(), None);
+        // w's target changes at 7 (and again at 9); a missing target is no change.
+        recs[3].parameters[1].target = None;
+        for r in &mut recs[7..] {
+            r.parameters[1].target = Some(300.0);
+        }
+        for r in &mut recs[9..] {
+            r.parameters[0].target = Some(30.0);
+        }
+        let mut h = RunHistory::new();
+        h.insert(recs);
+        assert_eq!(h.first_target_change(), Some(7));
     }
 
     fn its(h: &RunHistory) -> Vec<u64> {

@@ -5,6 +5,7 @@
 
 pub mod api;
 pub mod axis;
+pub mod belief;
 pub mod charts;
 pub mod decimate;
 pub mod export;

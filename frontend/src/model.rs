@@ -6,6 +6,25 @@ use spintune::protocol::{
     ClearedBy, EventKind, Fault, FaultKind, GradientReport, IterationRecord, MovedGate, RunStatus,
 };
 
+/// Why a typed value is not applied, in plain words for the person typing
+/// (e.g. "not a number", "must be between 0 and 1 (0.1 = ±10 % of the
+/// target)"); shown next to the field as it is ([`std::fmt::Display`]).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{message}")]
+pub struct FieldError {
+    /// The reason.
+    pub message: String,
+}
+
+impl FieldError {
+    /// A refusal with this reason.
+    pub fn new(message: impl Into<String>) -> Self {
+        Self {
+            message: message.into(),
+        }
+    }
+}
+
 /// ±1σ of each gradient element: `√diag C` (None when the estimator has no covariance).
 pub fn gradient_sigmas(g: &GradientReport) -> Option<Vec<f64>> {
     let c = g.covariance.as_ref()?;

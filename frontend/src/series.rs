@@ -18,7 +18,7 @@ use crate::charts::{
 use crate::decimate::{min_max, Columns};
 use crate::history::{Row, RunHistory};
 use crate::model::padded_range;
-use crate::zoom::Window;
+use crate::zoom::{pin, Window, YRange};
 
 /// What the x axis shows.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -66,8 +66,12 @@ pub struct Viewport<'a> {
     pub window: Window,
     /// The x axis.
     pub axis: XAxis,
-    /// A second run drawn for comparison on the parameter charts.
+    /// A second run drawn for comparison (parameters, gradients, gates).
     pub overlay: Option<&'a RunHistory>,
+    /// Shift the compared run so that its first set-point change lines up
+    /// with this run's ([`RunHistory::first_target_change`]; unshifted when
+    /// either run has none).
+    pub align: bool,
 }
 
 impl Viewport<'_> {
@@ -105,6 +109,51 @@ impl Viewport<'_> {
         }
     }
 
+    /// How far the compared run is shifted: `(iterations, x units)`.
+    pub fn overlay_shift(&self) -> (f64, f64) {
+        let Some(o) = self.overlay.filter(|_| self.align) else {
+            return (0.0, 0.0);
+        };
+        let both = self
+            .history
+            .first_target_change()
+            .zip(o.first_target_change());
+        let Some((a, b)) = both else {
+            return (0.0, 0.0);
+        };
+        let (ra, rb) = (self.history.row(a), o.row(b));
+        let dx = match (ra, rb) {
+            (Some(ra), Some(rb)) => self.axis.x(ra) - self.axis.x(rb),
+            _ => 0.0,
+        };
+        (a as f64 - b as f64, dx)
+    }
+
+    /// The compared run's column (chosen in its own layout by `col`; none
+    /// if it has no such series) over the window, shifted
+    /// ([`Viewport::overlay_shift`]) and decimated to `cols` pixel columns.
+    fn overlay_line(
+        &self,
+        col: impl Fn(&crate::history::Layout) -> Option<usize>,
+        (x0, x1): (f64, f64),
+        cols: usize,
+    ) -> Vec<(f64, f64)> {
+        let Some(h) = self.overlay else {
+            return Vec::new();
+        };
+        let Some(c) = col(h.layout()) else {
+            return Vec::new();
+        };
+        let (dk, dx) = self.overlay_shift();
+        let r = h.range(self.window.lo - dk, self.window.hi - dk);
+        let xy: Vec<(f64, f64)> = h.rows()[r.clone()]
+            .iter()
+            .zip(h.column(c).get(r).unwrap_or(&[]))
+            .map(|(row, v)| (self.axis.x(row) + dx, *v))
+            .collect();
+        min_max(&xy, x0, x1, cols)
+    }
+
     fn x_fmt(&self) -> &'static dyn Fn(&f64) -> String {
         match self.axis {
             XAxis::Iteration => &int_label,
@@ -128,8 +177,13 @@ pub struct Drawn {
     /// Values drawn marked as rejected by the tuner (parameter charts;
     /// after decimation), whether inside the y range or pinned to its edge.
     pub rejected: usize,
-    /// Points of the compared run drawn (parameter charts).
+    /// Points of the compared run drawn (all panels).
     pub overlay_points: usize,
+    /// Iterations the compared run is shifted by ([`Viewport::overlay_shift`]).
+    pub overlay_shift: f64,
+    /// Accepted values drawn pinned to an edge of a manual y range
+    /// ([`YRange::Manual`], parameter charts; after decimation).
+    pub pinned: usize,
     /// Pixel columns `[left, right]` of the plot area (CSS px), if it has one.
     pub plot_px: Option<(f64, f64)>,
     /// Data x range of the plot area.
@@ -310,11 +364,18 @@ fn value_range(
 /// refused) are hollow grey circles without error bars and do not set the y
 /// range (one such value of 238 ± 288 ns would hide every tolerance band);
 /// those outside it are pinned to the nearer edge as hollow triangles.
+///
+/// `y` chooses the y range ([`YRange`]): robust (the above), full (rejected
+/// values and every band too) or typed; with a typed range, accepted values
+/// outside it are pinned to the nearer edge as filled triangles (error bars,
+/// bands and the compared run are cut at the edge, targets outside are not
+/// drawn). The axis keeps its unit in every case.
 pub fn draw_parameter<DB: DrawingBackend>(
     plot: &Plot<'_, DB>,
     f: &Viewport<'_>,
     p: usize,
     series: usize,
+    y: YRange,
 ) -> Result<Drawn, DrawError> {
     let layout = f.history.layout();
     let Some((name, unit)) = layout.parameters.get(p) else {
@@ -352,21 +413,8 @@ pub fn draw_parameter<DB: DrawingBackend>(
             )
         })
         .collect();
-    let overlay: Vec<(f64, f64)> = f
-        .overlay
-        .and_then(|h| {
-            let q = h.layout().param_index(name)?;
-            let oo = h.layout().param(q);
-            let r = h.range(f.window.lo, f.window.hi);
-            let xy: Vec<(f64, f64)> = h.rows()[r.clone()]
-                .iter()
-                .zip(&h.column(oo)[r])
-                .map(|(row, v)| (f.axis.x(row), *v))
-                .collect();
-            Some(min_max(&xy, x0, x1, cols))
-        })
-        .unwrap_or_default();
-    let (y0, y1) = value_range(
+    let overlay = f.overlay_line(|l| l.param_index(name).map(|q| l.param(q)), (x0, x1), cols);
+    let auto = value_range(
         &line,
         &bands,
         targets
@@ -381,6 +429,52 @@ pub fn draw_parameter<DB: DrawingBackend>(
                     .flatten(),
             ),
     );
+    let full = || {
+        padded_range(
+            line.iter()
+                .map(|p| p.1)
+                .chain(bands.iter().flat_map(|b| [b.1, b.2]))
+                .chain(pts.iter().flatten().flat_map(|p| [p.1 - p.2, p.1 + p.2]))
+                .chain(
+                    targets
+                        .iter()
+                        .flat_map(|&(_, _, t, tol)| [t - tol, t + tol]),
+                )
+                .chain(overlay.iter().map(|p| p.1))
+                .chain(rejected.iter().map(|p| p.1)),
+            0.08,
+        )
+    };
+    let (y0, y1) = match y {
+        YRange::Full => full(),
+        _ => y.resolve(auto, auto),
+    };
+    // A typed range cuts what lies outside it at its edges.
+    let manual = matches!(y, YRange::Manual(..));
+    let cut = |v: f64| if manual { pin(v, (y0, y1)).0 } else { v };
+    let mut pinned: Vec<(f64, f64)> = Vec::new();
+    let (line, bands, pts, overlay, targets) = if manual {
+        pinned.extend(
+            line.iter()
+                .filter(|p| pin(p.1, (y0, y1)).1)
+                .map(|&(x, v)| (x, cut(v))),
+        );
+        (
+            line.iter().map(|&(x, v)| (x, cut(v))).collect(),
+            bands
+                .iter()
+                .map(|&(x, lo, hi)| (x, cut(lo), cut(hi)))
+                .collect(),
+            pts,
+            overlay.iter().map(|&(x, v)| (x, cut(v))).collect(),
+            targets
+                .into_iter()
+                .filter(|t| !pin(t.2, (y0, y1)).1)
+                .collect(),
+        )
+    } else {
+        (line, bands, pts, overlay, targets)
+    };
     let mut chart = styled_chart(
         plot,
         &format!(
@@ -414,14 +508,7 @@ pub fn draw_parameter<DB: DrawingBackend>(
             PathElement::new(vec![(a - half, t), (b + half, t)], TARGET.stroke_width(2))
         }))
         .map_err(err)?;
-    if !overlay.is_empty() {
-        chart
-            .draw_series(LineSeries::new(
-                overlay.iter().copied(),
-                RGBColor(110, 110, 110).stroke_width(1),
-            ))
-            .map_err(err)?;
-    }
+    draw_overlay(&mut chart, &overlay)?;
     let c = color(series);
     if let Some(pts) = &pts {
         chart
@@ -431,9 +518,18 @@ pub fn draw_parameter<DB: DrawingBackend>(
             ))
             .map_err(err)?;
         chart
-            .draw_series(pts.iter().map(|&(k, v, s)| {
-                ErrorBar::new_vertical(k, v - s, v, v + s, c.filled(), bar_width(pts.len()))
-            }))
+            .draw_series(pts.iter().filter(|p| !manual || !pin(p.1, (y0, y1)).1).map(
+                |&(k, v, s)| {
+                    ErrorBar::new_vertical(
+                        k,
+                        cut(v - s),
+                        v,
+                        cut(v + s),
+                        c.filled(),
+                        bar_width(pts.len()),
+                    )
+                },
+            ))
             .map_err(err)?;
     } else {
         draw_band(&mut chart, &bands, (x0, x1), cols, c)?;
@@ -442,6 +538,13 @@ pub fn draw_parameter<DB: DrawingBackend>(
             .map_err(err)?;
     }
     draw_rejected(&mut chart, &rejected, (y0, y1))?;
+    chart
+        .draw_series(
+            pinned
+                .iter()
+                .map(|&p| TriangleMarker::new(p, 4, c.filled())),
+        )
+        .map_err(err)?;
     let px = chart.plotting_area().get_pixel_range().0;
     Ok(Drawn {
         iterations: rows.len(),
@@ -450,10 +553,28 @@ pub fn draw_parameter<DB: DrawingBackend>(
         y_range: (y0, y1),
         rejected: rejected.len(),
         overlay_points: overlay.len(),
+        overlay_shift: f.overlay_shift().0,
+        pinned: pinned.len(),
         plot_px: Some((px.start as f64, px.end as f64)),
         x_range: (x0, x1),
         panels: None,
     })
+}
+
+/// The compared run: a thin grey line.
+fn draw_overlay<DB: DrawingBackend>(
+    chart: &mut ChartContext<'_, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
+    points: &[(f64, f64)],
+) -> Result<(), DrawError> {
+    if !points.is_empty() {
+        chart
+            .draw_series(LineSeries::new(
+                points.iter().copied(),
+                RGBColor(110, 110, 110).stroke_width(1),
+            ))
+            .map_err(err)?;
+    }
+    Ok(())
 }
 
 /// Colour of the values the tuner rejected.
@@ -516,7 +637,18 @@ pub fn draw_gradient<DB: DrawingBackend>(
         let (line, bands, pts) = crate::metrics::phase(crate::metrics::Phase::Decimate, || {
             series_of(f, o, true, (x0, x1), cols)
         });
-        let (y0, y1) = value_range(&line, &bands, std::iter::empty());
+        // The compared run's element, if its gradient has the same unit.
+        let overlay = f.overlay_line(
+            |l| {
+                let g2 = l.gradients.iter().position(|x| x == &layout.gradients[g])?;
+                let j = l.gates.iter().position(|x| x == gate)?;
+                Some(l.grad(g2, j))
+            },
+            (x0, x1),
+            cols,
+        );
+        drawn.overlay_points += overlay.len();
+        let (y0, y1) = value_range(&line, &bands, overlay.iter().map(|p| p.1));
         let mut chart = styled_chart(
             panel,
             &format!("∂{name}/∂V_{gate}"),
@@ -527,6 +659,7 @@ pub fn draw_gradient<DB: DrawingBackend>(
             true,
             f.x_fmt(),
         )?;
+        draw_overlay(&mut chart, &overlay)?;
         let c = color(gi);
         if let Some(pts) = &pts {
             chart
@@ -585,7 +718,13 @@ pub fn draw_gates<DB: DrawingBackend>(
         let (line, _, _) = crate::metrics::phase(crate::metrics::Phase::Decimate, || {
             series_of(f, o, false, (x0, x1), cols)
         });
-        let (y0, y1) = padded_range(line.iter().map(|p| p.1), 0.1);
+        let overlay = f.overlay_line(
+            |l| l.gates.iter().position(|x| x == gate).map(|j| l.gate(j)),
+            (x0, x1),
+            cols,
+        );
+        drawn.overlay_points += overlay.len();
+        let (y0, y1) = padded_range(line.iter().chain(&overlay).map(|p| p.1), 0.1);
         let mut chart = styled_chart(
             panel,
             &format!("V_{gate}"),
@@ -596,6 +735,7 @@ pub fn draw_gates<DB: DrawingBackend>(
             true,
             f.x_fmt(),
         )?;
+        draw_overlay(&mut chart, &overlay)?;
         let c = color(gi);
         chart
             .draw_series(LineSeries::new(line.iter().copied(), c.stroke_width(2)))
@@ -682,6 +822,8 @@ pub fn draw_lab_time<DB: DrawingBackend>(
         y_range: (y0.max(0.0), y1),
         rejected: 0,
         overlay_points: 0,
+        overlay_shift: 0.0,
+        pinned: 0,
         plot_px: Some((px.start as f64, px.end as f64)),
         x_range: (x0, x1),
         panels: None,

@@ -17,7 +17,8 @@ use crate::model::{
 };
 use crate::schedule;
 use crate::series::{self, Drawn, Viewport, XAxis};
-use crate::zoom::{self, View};
+use crate::widgets::{FieldError, NumberField};
+use crate::zoom::{self, View, YRange};
 
 /// Where a [`Chart`] draws: the data canvas layered over the frame canvas
 /// ([`charts::Plot`]).
@@ -294,6 +295,8 @@ fn paint(
     set("data-y1", drawn.y_range.1.to_string());
     set("data-rejected", drawn.rejected.to_string());
     set("data-overlay-points", drawn.overlay_points.to_string());
+    set("data-overlay-shift", drawn.overlay_shift.to_string());
+    set("data-pinned", drawn.pinned.to_string());
     set("data-draws", draws.get_value().to_string());
     set("data-frames", layers.frames.len().to_string());
     if let Some((a, b)) = drawn.plot_px {
@@ -413,6 +416,142 @@ fn parameter_legend(i: usize, overlay: bool) -> impl IntoView {
     }
 }
 
+/// The y range of one parameter chart ([`YRange`]): robust (auto), full
+/// (rejected values too) or a typed min–max in the chart's unit. Manual
+/// starts from the range drawn; a min not below the max is refused with
+/// the reason. Test ids: `yrange-<name>`, `yrange-<name>-min`, `-max`.
+#[component]
+fn YRangeControl(
+    name: String,
+    unit: String,
+    y_range: RwSignal<YRange>,
+    drawn_y: StoredValue<(f64, f64)>,
+) -> impl IntoView {
+    // NumberField takes 'static ids: a few bytes per parameter chart, made
+    // again only when a run with other parameters is shown.
+    let id: &'static str = Box::leak(format!("yrange-{name}").into_boxed_str());
+    let id_min: &'static str = Box::leak(format!("{id}-min").into_boxed_str());
+    let id_max: &'static str = Box::leak(format!("{id}-max").into_boxed_str());
+    let unit: &'static str = Box::leak(unit.into_boxed_str());
+    let bounds = move || match y_range.get() {
+        YRange::Manual(lo, hi) => (lo, hi),
+        _ => drawn_y.get_value(),
+    };
+    let lo = Signal::derive(move || bounds().0);
+    let hi = Signal::derive(move || bounds().1);
+    let set_lo = Callback::new(move |v: f64| {
+        if let Some(r) = YRange::manual(v, hi.get_untracked()) {
+            y_range.set(r);
+        }
+    });
+    let set_hi = Callback::new(move |v: f64| {
+        if let Some(r) = YRange::manual(lo.get_untracked(), v) {
+            y_range.set(r);
+        }
+    });
+    let check_lo = Callback::new(move |v: f64| {
+        if v < hi.get_untracked() {
+            Ok(())
+        } else {
+            Err(FieldError::new("must be below the max"))
+        }
+    });
+    let check_hi = Callback::new(move |v: f64| {
+        if v > lo.get_untracked() {
+            Ok(())
+        } else {
+            Err(FieldError::new("must be above the min"))
+        }
+    });
+    view! {
+        <div class="yrange">
+            <label class="field" title="auto: the accepted values, trusted bands and targets (rejected values do not widen it); full: everything, rejected values too; manual: type min and max (values outside are pinned to the edge as ▲/▼)">
+                <span class="field-label">"y range"</span>
+                <select data-testid=id on:change=move |ev| {
+                    match event_target_value(&ev).as_str() {
+                        "full" => y_range.set(YRange::Full),
+                        "manual" => {
+                            let (a, b) = drawn_y.get_value();
+                            y_range.set(YRange::manual(a, b).unwrap_or(YRange::Manual(0.0, 1.0)));
+                        }
+                        _ => y_range.set(YRange::Auto),
+                    }
+                }>
+                    <option value="auto" selected=move || y_range.get() == YRange::Auto>"auto (robust)"</option>
+                    <option value="full" selected=move || y_range.get() == YRange::Full>"full (rejected too)"</option>
+                    <option value="manual" selected=move || matches!(y_range.get(), YRange::Manual(..))>"manual min–max"</option>
+                </select>
+            </label>
+            <Show when=move || matches!(y_range.get(), YRange::Manual(..))>
+                <NumberField label="min" unit=unit testid=id_min step="any" get=lo set=set_lo check=check_lo />
+                <NumberField label="max" unit=unit testid=id_max step="any" get=hi set=set_hi check=check_hi />
+            </Show>
+        </div>
+    }
+}
+
+/// "What the filter believes" ([`crate::belief`]), for students: at the
+/// inspected iteration (else the latest) each gradient element ∂p/∂V ±1σ
+/// with its unit, the gates' move since the previous iteration and, per
+/// parameter, the change the filter predicted (g·Δv) next to the one
+/// measured, in plain words.
+#[component]
+fn BeliefPanel(history: RwSignal<RunHistory>, inspected: RwSignal<Option<u64>>) -> impl IntoView {
+    let belief = Memo::new(move |_| {
+        let k = inspected
+            .get()
+            .or_else(|| history.with(|h| h.rows().last().map(|r| r.iteration)))?;
+        history.with(|h| crate::belief::belief(h, k))
+    });
+    let pm = |v: f64, s: f64| {
+        if s.is_finite() {
+            format!("{} ± {}", series::fmt(v), series::fmt(s))
+        } else {
+            series::fmt(v)
+        }
+    };
+    view! {
+        <Show when=move || belief.with(|b| b.is_some())>
+            <section class="belief" data-testid="belief"
+                data-iteration=move || belief.with(|b| b.as_ref().map(|b| b.iteration.to_string()).unwrap_or_default())>
+                <h3>{move || belief.with(|b| b.as_ref().map(|b| format!("What the filter believes at iteration {}", b.iteration)).unwrap_or_default())}</h3>
+                <p class="hint">"How the measured parameters change when each gate moves by 1 mV (±1σ: how unsure the filter still is). A gradient in 1/mV is of ln p (log space): 0.01 /mV means p grows by about 1 % per mV."
+                    {move || if inspected.get().is_some() { " Showing the inspected iteration." } else { " Showing the latest iteration; click a chart to pick another." }}</p>
+                <div class="belief-table">
+                <table data-testid="belief-gradients">
+                    <thead><tr>
+                        <th>"∂p/∂V"</th>
+                        {move || belief.with(|b| b.as_ref().and_then(|b| b.gradients.first()).map(|g| g.elements.iter().map(|e| view! { <th>{e.gate.clone()}</th> }).collect_view()))}
+                        <th>"unit"</th>
+                    </tr></thead>
+                    <tbody>
+                        {move || belief.with(|b| b.as_ref().map(|b| b.gradients.iter().map(|g| view! {
+                            <tr>
+                                <th>{g.parameter.clone()}</th>
+                                {g.elements.iter().map(|e| view! { <td>{pm(e.value, e.sigma)}</td> }).collect_view()}
+                                <td>{g.unit.clone()}</td>
+                            </tr>
+                        }).collect_view()))}
+                    </tbody>
+                </table>
+                </div>
+                {move || belief.with(|b| b.as_ref().map(|b| match b.previous {
+                    None => view! { <p data-testid="belief-moves">"No previous iteration loaded: nothing to compare a prediction with."</p> }.into_any(),
+                    Some(j) => {
+                        let moves = b.moves.iter().map(|(g, d)| format!("{g} {} mV", series::fmt(*d))).collect::<Vec<_>>().join(", ");
+                        view! {
+                            <p data-testid="belief-moves">{format!("Between iteration {j} and {} the gates moved by Δv: {moves}. With the gradient it held after iteration {j}, the filter predicted:", b.iteration)}</p>
+                            <ul>
+                                {b.predictions.iter().map(|p| view! { <li data-testid="belief-prediction">{crate::belief::sentence(p)}</li> }).collect_view()}
+                            </ul>
+                        }.into_any()
+                    }
+                }))}
+            </section>
+        </Show>
+    }
+}
+
 /// What the dashboard shows besides the history: callbacks of its owner.
 #[derive(Clone, Copy, Default)]
 pub struct DashboardHooks {
@@ -429,13 +568,22 @@ pub struct DashboardHooks {
 #[component]
 pub fn Dashboard(
     history: RwSignal<RunHistory>,
-    /// A second run drawn on the parameter charts.
+    /// A second run drawn for comparison on the parameter, gradient and
+    /// gate charts.
     #[prop(optional)]
     overlay: Option<RwSignal<Option<RunHistory>>>,
     #[prop(optional)] hooks: DashboardHooks,
 ) -> impl IntoView {
     let view_sel = RwSignal::new(View::All);
     let axis = RwSignal::new(XAxis::Iteration);
+    // The compared run: shown, its version and whether it is aligned on
+    // the first set-point change (part of the charts' keys).
+    let align = RwSignal::new(false);
+    let has_overlay = move || overlay.is_some_and(|o| o.with(|o| o.is_some()));
+    let overlay_key = move || {
+        overlay.map_or(0, |o| o.with(|o| o.as_ref().map_or(0, |h| h.version()))) * 2
+            + align.get() as u64
+    };
     let inspected = RwSignal::new(None::<u64>);
     let hover = RwSignal::new(None::<Hover>);
     // The window's width in steps of 40 CSS px: the charts redraw (and
@@ -705,6 +853,13 @@ pub fn Dashboard(
                         let csv = history.with_untracked(|h| crate::export::window_csv(h, w.lo, w.hi));
                         download_text(&csv, "spintune-window.csv", "text/csv");
                     }>"CSV of the window"</button>
+                <Show when=has_overlay>
+                    <label title="shift the compared run so that its first set-point change lines up with this run's (unshifted if either has none)">
+                        <input type="checkbox" data-testid="overlay-align" prop:checked=move || align.get()
+                            on:change=move |ev| align.set(event_target_checked(&ev)) />
+                        " align the compared run on the first set-point change"
+                    </label>
+                </Show>
                 <span class="showing" data-testid="showing">{showing}</span>
             </div>
             <p class="readout" class:floating=move || hover.with(|h| h.is_some()) style=readout_style data-testid="readout"
@@ -720,7 +875,9 @@ pub fn Dashboard(
                         each=move || names.get().into_iter().enumerate()
                         key=|(i, n)| (*i, n.clone())
                         children=move |(i, name)| {
-                            let has_overlay = move || overlay.is_some_and(|o| o.with(|o| o.is_some()));
+                            let y_range = RwSignal::new(YRange::Auto);
+                            let drawn_y = StoredValue::new((f64::NAN, f64::NAN));
+                            let unit = history.with_untracked(|h| h.layout().parameters.get(i).map(|p| p.1.clone()).unwrap_or_default());
                             view! {
                                 <div class="chart-box" on:mousedown=mouse_down on:mouseup=mouse_up on:mousemove=mouse_move>
                                     <Chart
@@ -729,20 +886,26 @@ pub fn Dashboard(
                                         key=move || {
                                             let mut k = history.with(|h| series_key(h, draw_window.get(), axis.get()));
                                             k.push(width.get());
-                                            k.push(overlay.map_or(0, |o| o.with(|o| o.as_ref().map_or(0, |h| h.version()))));
+                                            k.push(overlay_key());
+                                            k.extend(y_range.get().key());
                                             k
                                         }
                                         draw=move |a: &Area| {
                                             let w = draw_window.get();
                                             let ax = axis.get();
                                             let ov = overlay.map(|o| o.read());
-                                            history.with(|h| {
-                                                let f = Viewport { history: h, window: w, axis: ax, overlay: ov.as_ref().and_then(|o| o.as_ref()) };
-                                                series::draw_parameter(a, &f, i, i)
-                                            })
+                                            let drawn = history.with(|h| {
+                                                let f = Viewport { history: h, window: w, axis: ax, overlay: ov.as_ref().and_then(|o| o.as_ref()), align: align.get() };
+                                                series::draw_parameter(a, &f, i, i, y_range.get_untracked())
+                                            });
+                                            if let Ok(d) = &drawn {
+                                                drawn_y.set_value(d.y_range);
+                                            }
+                                            drawn
                                         }
                                     />
                                     {move || parameter_legend(i, has_overlay())}
+                                    <YRangeControl name=name.clone() unit=unit.clone() y_range=y_range drawn_y=drawn_y />
                                 </div>
                             }
                         }
@@ -758,29 +921,34 @@ pub fn Dashboard(
                             name=format!("gradient-{name}")
                             height=210
                             panels=n_gates
-                            key=move || { let mut k = history.with(|h| series_key(h, draw_window.get(), axis.get())); k.push(width.get()); k }
+                            key=move || { let mut k = history.with(|h| series_key(h, draw_window.get(), axis.get())); k.push(width.get()); k.push(overlay_key()); k }
                             draw=move |a: &Area| {
                                 let w = draw_window.get();
                                 let ax = axis.get();
-                                history.with(|h| series::draw_gradient(a, &Viewport { history: h, window: w, axis: ax, overlay: None }, g))
+                                let ov = overlay.map(|o| o.read());
+                                history.with(|h| series::draw_gradient(a, &Viewport { history: h, window: w, axis: ax, overlay: ov.as_ref().and_then(|o| o.as_ref()), align: align.get() }, g))
                             }
                         />
+                        {move || has_overlay().then(|| view! { <div class="legend"><span><i class="swatch overlay"></i>"compared run (same unit only)"</span></div> })}
                         </div>
                     }
                 />
+                <BeliefPanel history=history inspected=inspected />
                 <h3>"Gate voltages"</h3>
                 <div class="chart-box" on:mousedown=mouse_down on:mouseup=mouse_up on:mousemove=mouse_move>
                 <Chart
                     name="gates"
                     height=200
                     panels=n_gates
-                    key=move || { let mut k = history.with(|h| series_key(h, draw_window.get(), axis.get())); k.push(width.get()); k }
+                    key=move || { let mut k = history.with(|h| series_key(h, draw_window.get(), axis.get())); k.push(width.get()); k.push(overlay_key()); k }
                     draw=move |a: &Area| {
                         let w = draw_window.get();
                         let ax = axis.get();
-                        history.with(|h| series::draw_gates(a, &Viewport { history: h, window: w, axis: ax, overlay: None }))
+                        let ov = overlay.map(|o| o.read());
+                        history.with(|h| series::draw_gates(a, &Viewport { history: h, window: w, axis: ax, overlay: ov.as_ref().and_then(|o| o.as_ref()), align: align.get() }))
                     }
                 />
+                {move || has_overlay().then(|| view! { <div class="legend"><span><i class="swatch overlay"></i>"compared run"</span></div> })}
                 </div>
                 <div class="chart-box" on:mousedown=mouse_down on:mouseup=mouse_up on:mousemove=mouse_move>
                     <Chart
@@ -789,7 +957,7 @@ pub fn Dashboard(
                         key=move || { let mut k = history.with(|h| series_key(h, draw_window.get(), XAxis::Iteration)); k.push(width.get()); k }
                         draw=move |a: &Area| {
                             let w = draw_window.get();
-                            history.with(|h| series::draw_lab_time(a, &Viewport { history: h, window: w, axis: XAxis::Iteration, overlay: None }))
+                            history.with(|h| series::draw_lab_time(a, &Viewport { history: h, window: w, axis: XAxis::Iteration, overlay: None, align: false }))
                         }
                     />
                     <div class="legend"><span><i class="swatch lab"></i>"cumulative lab time"</span><span><i class="swatch band"></i>"tuned"</span></div>

@@ -2,22 +2,24 @@
 
 use leptos::prelude::*;
 
+pub use crate::model::FieldError;
+
 /// What a [`NumberField`] says of the text typed into it: `Ok(v)` to apply,
 /// or the plain reason it is not applied (an empty field, not a number, or
 /// what `check` refused).
 pub fn parse_field(
     text: &str,
-    check: Option<&dyn Fn(f64) -> Result<(), String>>,
-) -> Result<f64, String> {
+    check: Option<&dyn Fn(f64) -> Result<(), FieldError>>,
+) -> Result<f64, FieldError> {
     let text = text.trim();
     if text.is_empty() {
-        return Err("empty: enter a number".into());
+        return Err(FieldError::new("empty: enter a number"));
     }
     let v = text
         .parse::<f64>()
         .ok()
         .filter(|v| v.is_finite())
-        .ok_or_else(|| "not a number".to_string())?;
+        .ok_or_else(|| FieldError::new("not a number"))?;
     if let Some(check) = check {
         check(v)?;
     }
@@ -39,7 +41,7 @@ pub(crate) fn NumberField(
     set: Callback<f64>,
     /// Which values are allowed (all finite numbers if not given).
     #[prop(optional)]
-    check: Option<Callback<f64, Result<(), String>>>,
+    check: Option<Callback<f64, Result<(), FieldError>>>,
     /// The fields now holding a value that was not applied.
     #[prop(optional)]
     invalid: Option<RwSignal<Vec<&'static str>>>,
@@ -70,7 +72,7 @@ pub(crate) fn NumberField(
                         let checker = check.map(|c| move |v: f64| c.run(v));
                         let parsed = parse_field(
                             &event_target_value(&ev),
-                            checker.as_ref().map(|c| c as &dyn Fn(f64) -> Result<(), String>),
+                            checker.as_ref().map(|c| c as &dyn Fn(f64) -> Result<(), FieldError>),
                         );
                         match parsed {
                             Ok(v) => {
@@ -79,7 +81,7 @@ pub(crate) fn NumberField(
                                 set.run(v);
                             }
                             Err(e) => {
-                                problem.set(Some(e));
+                                problem.set(Some(e.to_string()));
                                 mark(true);
                             }
                         }
@@ -101,17 +103,23 @@ mod tests {
     #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
     fn a_cleared_or_refused_field_says_why_and_is_not_applied() {
         assert_eq!(parse_field(" 2.5 ", None), Ok(2.5));
-        assert_eq!(parse_field("", None).unwrap_err(), "empty: enter a number");
-        assert_eq!(parse_field("abc", None).unwrap_err(), "not a number");
+        assert_eq!(
+            parse_field("", None).unwrap_err().to_string(),
+            "empty: enter a number"
+        );
+        assert_eq!(
+            parse_field("abc", None).unwrap_err(),
+            FieldError::new("not a number")
+        );
         let positive = |v: f64| {
             if v > 0.0 {
                 Ok(())
             } else {
-                Err("must be more than 0".to_string())
+                Err(FieldError::new("must be more than 0"))
             }
         };
         assert_eq!(
-            parse_field("-3", Some(&positive)).unwrap_err(),
+            parse_field("-3", Some(&positive)).unwrap_err().message,
             "must be more than 0"
         );
         assert_eq!(parse_field("3", Some(&positive)), Ok(3.0));

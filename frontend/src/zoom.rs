@@ -141,9 +141,100 @@ pub fn drag_window(a: f64, b: f64, px0: f64, px1: f64, w: Window) -> Option<Wind
     })
 }
 
+/// How a parameter chart chooses its y range (the x window is shared, the
+/// y range is each chart's own).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub enum YRange {
+    /// Robust (the default): the accepted values, the bands that are not
+    /// much wider than the median band, the targets with their tolerance
+    /// bands, the compared run; values the tuner rejected and distrusted
+    /// bands do not widen it.
+    #[default]
+    Auto,
+    /// Everything drawn: rejected values and every band too.
+    Full,
+    /// `[lo, hi]` as typed (finite, `lo < hi`); values outside are pinned
+    /// to the nearer edge and marked.
+    Manual(f64, f64),
+}
+
+impl YRange {
+    /// Menu value.
+    pub fn name(self) -> &'static str {
+        match self {
+            YRange::Auto => "auto",
+            YRange::Full => "full",
+            YRange::Manual(..) => "manual",
+        }
+    }
+
+    /// A manual range, if `lo < hi` and both are finite.
+    pub fn manual(lo: f64, hi: f64) -> Option<YRange> {
+        (lo.is_finite() && hi.is_finite() && lo < hi).then_some(YRange::Manual(lo, hi))
+    }
+
+    /// Part of a chart's redraw key.
+    pub fn key(self) -> [u64; 3] {
+        match self {
+            YRange::Auto => [0, 0, 0],
+            YRange::Full => [1, 0, 0],
+            YRange::Manual(lo, hi) => [2, lo.to_bits(), hi.to_bits()],
+        }
+    }
+
+    /// The y range to draw: `auto` is the robust range of the data, `full`
+    /// the range of everything drawn; a manual range as it is.
+    pub fn resolve(self, auto: (f64, f64), full: (f64, f64)) -> (f64, f64) {
+        match self {
+            YRange::Auto => auto,
+            YRange::Full => full,
+            YRange::Manual(lo, hi) => (lo, hi),
+        }
+    }
+}
+
+/// `v` inside `[y0, y1]`, and whether it had to be moved there (a value
+/// outside the y range is drawn pinned to the nearer edge, marked).
+pub fn pin(v: f64, (y0, y1): (f64, f64)) -> (f64, bool) {
+    let c = v.clamp(y0, y1);
+    (c, c != v)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn a_y_range_is_robust_full_or_typed_and_pins_what_lies_outside() {
+        let (auto, full) = ((10.0, 30.0), (-200.0, 500.0));
+        assert_eq!(YRange::default(), YRange::Auto);
+        assert_eq!(YRange::Auto.resolve(auto, full), auto);
+        assert_eq!(YRange::Full.resolve(auto, full), full);
+        assert_eq!(YRange::manual(5.0, 8.0), Some(YRange::Manual(5.0, 8.0)));
+        assert_eq!(YRange::Manual(5.0, 8.0).resolve(auto, full), (5.0, 8.0));
+        // Empty, reversed or non-finite manual ranges are refused.
+        assert_eq!(YRange::manual(8.0, 8.0), None);
+        assert_eq!(YRange::manual(8.0, 5.0), None);
+        assert_eq!(YRange::manual(f64::NAN, 5.0), None);
+        assert_eq!(YRange::manual(0.0, f64::INFINITY), None);
+        // Each choice redraws the chart (its key differs).
+        let keys = [
+            YRange::Auto.key(),
+            YRange::Full.key(),
+            YRange::Manual(5.0, 8.0).key(),
+            YRange::Manual(5.0, 9.0).key(),
+        ];
+        for (i, a) in keys.iter().enumerate() {
+            for b in &keys[i + 1..] {
+                assert_ne!(a, b);
+            }
+        }
+        assert_eq!(pin(6.0, (5.0, 8.0)), (6.0, false));
+        assert_eq!(pin(8.0, (5.0, 8.0)), (8.0, false));
+        assert_eq!(pin(9.5, (5.0, 8.0)), (8.0, true));
+        assert_eq!(pin(-1.0, (5.0, 8.0)), (5.0, true));
+    }
 
     #[cfg_attr(not(target_arch = "wasm32"), test)]
     #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]

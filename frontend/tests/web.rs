@@ -1441,16 +1441,23 @@ async fn drawn_dashboard(el: &web_sys::HtmlElement, n: u64) -> RwSignal<RunHisto
         h.insert(fake_records(n));
     });
     let want = n.to_string();
+    // Every time series (the charts of a frame may be drawn over two).
     wait_for("charts drawn", Duration::from_secs(10), || {
-        ["parameter-t_sr", "gradient-t_sr", "gates"]
-            .iter()
-            .all(|c| {
-                el.query_selector(&format!("canvas[data-chart={c}]"))
-                    .unwrap()
-                    .and_then(|c| c.get_attribute("data-iterations"))
-                    .as_deref()
-                    == Some(want.as_str())
-            })
+        [
+            "parameter-t_sr",
+            "parameter-w",
+            "gradient-t_sr",
+            "gradient-w",
+            "gates",
+        ]
+        .iter()
+        .all(|c| {
+            el.query_selector(&format!("canvas[data-chart={c}]"))
+                .unwrap()
+                .and_then(|c| c.get_attribute("data-iterations"))
+                .as_deref()
+                == Some(want.as_str())
+        })
     })
     .await;
     history
@@ -1771,4 +1778,106 @@ async fn the_theme_toggle_switches_to_dark_and_back() {
         q(&el, "theme").click();
         leptos::task::tick().await;
     }
+}
+
+fn canvas_attr(el: &web_sys::HtmlElement, chart: &str, name: &str) -> Option<String> {
+    el.query_selector(&format!("canvas[data-chart={chart}]"))
+        .unwrap()
+        .and_then(|c| c.get_attribute(name))
+}
+
+/// Issue 25, run comparison: a compared run is drawn on the parameter, the
+/// gradient and the gate charts; "align" shifts it so that its first
+/// set-point change lines up with this run's.
+#[wasm_bindgen_test]
+async fn a_compared_run_is_drawn_on_every_time_series_and_aligns_on_a_set_point_change() {
+    let el = host();
+    let with_change = |n: u64, at: usize| {
+        let mut recs = fake_records(n);
+        for r in &mut recs[at..] {
+            r.parameters[0].target = Some(30.0);
+        }
+        recs
+    };
+    let history = RwSignal::new(RunHistory::new());
+    let overlay = RwSignal::new(None::<RunHistory>);
+    let _h = leptos::mount::mount_to(
+        el.clone(),
+        move || view! { <Dashboard history=history overlay=overlay /> },
+    );
+    std::mem::forget(_h);
+    history.update(|h| {
+        h.insert(with_change(30, 12));
+    });
+    wait_for("charts drawn", Duration::from_secs(10), || {
+        ["parameter-t_sr", "gradient-t_sr", "gates"]
+            .iter()
+            .all(|c| canvas_attr(&el, c, "data-iterations").as_deref() == Some("30"))
+    })
+    .await;
+    for c in ["parameter-t_sr", "gradient-t_sr", "gates"] {
+        assert_eq!(
+            canvas_attr(&el, c, "data-overlay-points").as_deref(),
+            Some("0")
+        );
+    }
+    assert!(el
+        .query_selector("[data-testid=overlay-align]")
+        .unwrap()
+        .is_none());
+    overlay.set(Some({
+        let mut h = RunHistory::new();
+        h.insert(with_change(20, 5));
+        h
+    }));
+    wait_for(
+        "the compared run on every chart",
+        Duration::from_secs(10),
+        || {
+            [
+                "parameter-t_sr",
+                "parameter-w",
+                "gradient-t_sr",
+                "gradient-w",
+                "gates",
+            ]
+            .iter()
+            .all(|c| {
+                canvas_attr(&el, c, "data-overlay-points")
+                    .and_then(|v| v.parse::<usize>().ok())
+                    .is_some_and(|n| n > 0)
+            })
+        },
+    )
+    .await;
+    assert_eq!(
+        canvas_attr(&el, "parameter-t_sr", "data-overlay-shift").as_deref(),
+        Some("0")
+    );
+    let align: web_sys::HtmlInputElement = el
+        .query_selector("[data-testid=overlay-align]")
+        .unwrap()
+        .expect("the align toggle when a run is compared")
+        .unchecked_into();
+    align.set_checked(true);
+    align
+        .dispatch_event(&web_sys::Event::new("change").unwrap())
+        .unwrap();
+    wait_for(
+        "aligned on the set-point change",
+        Duration::from_secs(10),
+        || canvas_attr(&el, "parameter-t_sr", "data-overlay-shift").as_deref() == Some("7"),
+    )
+    .await;
+    // Shifted by 7 iterations, the compared run (0–19) covers 7–26: still drawn.
+    let n: usize = canvas_attr(&el, "gates", "data-overlay-points")
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(n > 0);
+    overlay.set(None);
+    wait_for("the compared run removed", Duration::from_secs(10), || {
+        canvas_attr(&el, "gradient-t_sr", "data-overlay-points").as_deref() == Some("0")
+    })
+    .await;
 }

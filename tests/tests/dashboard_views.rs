@@ -1,6 +1,7 @@
 //! Browser end-to-end test of the dashboard's layout (issue 25): at 420 px
 //! the page does not scroll sideways and the four-panel charts stack their
-//! panels; a click on a chart opens the inspector in view; light and dark.
+//! panels; a click on a chart opens the inspector in view; a parameter
+//! chart's y range can be typed, full or auto; light and dark.
 //!
 //! Screenshots at 1400 px and 420 px, light and dark, of the live and the
 //! in-browser mode go to `<target>/e2e-screenshots/dashboard-*.png`; with
@@ -54,6 +55,120 @@ async fn picture(c: &Client, name: &str) {
     }
 }
 
+async fn num(c: &Client, css: &str, name: &str) -> f64 {
+    attr(c, css, name)
+        .await
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(f64::NAN)
+}
+
+/// "What the filter believes" follows the inspected iteration: the
+/// gradient table (a row per parameter, ±σ, unit) and, per parameter, the
+/// change predicted for the last move next to the one measured.
+async fn the_filter_s_belief_at_the_inspected_iteration(c: &Client) {
+    let k = attr(c, "[data-testid=inspector]", "data-iteration")
+        .await
+        .unwrap();
+    let shown = wait("the belief at the inspected iteration", 10, async || {
+        attr(c, "[data-testid=belief]", "data-iteration")
+            .await
+            .filter(|b| *b == k)
+    })
+    .await;
+    assert_eq!(shown, k);
+    let v = js(
+        c,
+        "const t = document.querySelector('[data-testid=belief-gradients]');
+         return [t.tBodies[0].rows.length, t.tBodies[0].rows[0].cells.length, t.tBodies[0].rows[0].innerText,
+                 document.querySelectorAll('[data-testid=belief-prediction]').length,
+                 document.querySelector('[data-testid=belief-moves]').innerText,
+                 [...document.querySelectorAll('[data-testid=belief-prediction]')].map(e => e.innerText).join(' | ')];",
+    )
+    .await;
+    eprintln!("belief at iteration {k}: {} / {} / {}", v[2], v[4], v[5]);
+    assert_eq!(v[0].as_u64(), Some(2), "a row per parameter: {v}");
+    assert_eq!(v[1].as_u64(), Some(6), "name, 4 gates, unit: {v}");
+    let row = v[2].as_str().unwrap();
+    assert!(row.contains('±') && row.contains("/mV"), "{row}");
+    let moves = v[4].as_str().unwrap();
+    if k != "0" && moves.starts_with("Between") {
+        assert_eq!(v[3].as_u64(), Some(2), "{v}");
+        let said = v[5].as_str().unwrap();
+        assert!(
+            said.contains("the filter expected") && said.contains("it measured"),
+            "{said}"
+        );
+    }
+}
+
+/// The t_sr chart's y range: manual (a typed range above every value pins
+/// them all to the top edge; a min above the max is refused with the
+/// reason), full, and back to auto.
+async fn y_range_of_a_parameter_chart(c: &Client) {
+    const TSR: &str = "canvas[data-chart=parameter-t_sr]";
+    let (a0, a1) = (num(c, TSR, "data-y0").await, num(c, TSR, "data-y1").await);
+    assert!(a0 < a1, "auto y range {a0}..{a1}");
+    assert_eq!(num(c, TSR, "data-pinned").await, 0.0);
+    set_value(c, "[data-testid=yrange-t_sr]", "manual").await;
+    wait("the min and max fields", 10, async || {
+        text(c, "[data-testid=yrange-t_sr-max]").await
+    })
+    .await;
+    let span = a1 - a0;
+    let (lo, hi) = (
+        format!("{:.3}", a1 + 10.0 * span),
+        format!("{:.3}", a1 + 20.0 * span),
+    );
+    set_value(c, "[data-testid=yrange-t_sr-max]", &hi).await;
+    set_value(c, "[data-testid=yrange-t_sr-min]", &lo).await;
+    let (lo, hi): (f64, f64) = (lo.parse().unwrap(), hi.parse().unwrap());
+    wait("the typed y range drawn", 10, async || {
+        (num(c, TSR, "data-y0").await == lo && num(c, TSR, "data-y1").await == hi).then_some(())
+    })
+    .await;
+    let (pinned, points) = (
+        num(c, TSR, "data-pinned").await,
+        num(c, TSR, "data-points").await,
+    );
+    assert!(
+        points >= 1.0 && pinned == points,
+        "every value below the typed range is pinned: {pinned} of {points}"
+    );
+    // A min above the max is refused, with the reason; the range stays.
+    set_value(c, "[data-testid=yrange-t_sr-min]", &format!("{}", hi + 1.0)).await;
+    let why = wait_text(
+        c,
+        "[data-testid=yrange-t_sr-min-error]",
+        "below the max",
+        10,
+    )
+    .await;
+    eprintln!("y range: refused min: {why}");
+    assert_eq!(num(c, TSR, "data-y0").await, lo);
+    // Full: the range holds every value again, nothing pinned.
+    set_value(c, "[data-testid=yrange-t_sr]", "full").await;
+    wait("the full y range", 10, async || {
+        let (y0, y1, ymax) = (
+            num(c, TSR, "data-y0").await,
+            num(c, TSR, "data-y1").await,
+            num(c, TSR, "data-ymax").await,
+        );
+        (y0 < ymax && ymax <= y1 && num(c, TSR, "data-pinned").await == 0.0).then_some(())
+    })
+    .await;
+    assert!(text(c, "[data-testid=yrange-t_sr-min]").await.is_none());
+    set_value(c, "[data-testid=yrange-t_sr]", "auto").await;
+    wait("back to auto", 10, async || {
+        let (y0, y1, ymax) = (
+            num(c, TSR, "data-y0").await,
+            num(c, TSR, "data-y1").await,
+            num(c, TSR, "data-ymax").await,
+        );
+        (y0 < ymax && ymax <= y1 && y1 < lo).then_some(())
+    })
+    .await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn narrow_and_wide_light_and_dark_and_the_inspector_in_view() {
     let tmp = std::env::temp_dir().join(format!("spintune-e2e-views-{}", std::process::id()));
@@ -102,6 +217,8 @@ async fn narrow_and_wide_light_and_dark_and_the_inspector_in_view() {
     })
     .await;
     eprintln!("inspector top at {in_view:.0} px of 900");
+    the_filter_s_belief_at_the_inspected_iteration(&c).await;
+    y_range_of_a_parameter_chart(&c).await;
     js(&c, "window.scrollTo(0, 0); return true;").await;
     set_theme(&c, "light").await;
     picture(&c, "live-1400-light").await;

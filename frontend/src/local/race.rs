@@ -26,7 +26,7 @@ use crate::history::RunHistory;
 use crate::metrics;
 use crate::series::{self, Drawn, Viewport, XAxis};
 use crate::ui::{Area, Chart};
-use crate::widgets::NumberField;
+use crate::widgets::{FieldError, NumberField};
 use crate::zoom::View;
 
 /// One contestant's choices.
@@ -391,7 +391,7 @@ pub fn RacePanel(settings: RwSignal<LocalSettings>) -> impl IntoView {
                             (None, None) => (0, 10),
                         };
                         let w = View::All.window(lo as f64, hi as f64);
-                        series::draw_parameter(ar, &Viewport { history: h, window: w, axis: XAxis::Iteration, overlay: Some(&*ov) }, p, 0)
+                        series::draw_parameter(ar, &Viewport { history: h, window: w, axis: XAxis::Iteration, overlay: Some(&*ov), align: false }, p, 0, crate::zoom::YRange::Auto)
                     })
                 }
             />
@@ -402,7 +402,7 @@ pub fn RacePanel(settings: RwSignal<LocalSettings>) -> impl IntoView {
         if v.fract() == 0.0 && (1.0..=10.0).contains(&v) {
             Ok(())
         } else {
-            Err("a whole number from 1 to 10".to_string())
+            Err(FieldError::new("a whole number from 1 to 10"))
         }
     });
     let set_sp = Callback::new(move |v: f64| set_points.set(v));
@@ -410,10 +410,10 @@ pub fn RacePanel(settings: RwSignal<LocalSettings>) -> impl IntoView {
         if v.fract() == 0.0 && (1.0..=PAPER_SET_POINTS.len() as f64).contains(&v) {
             Ok(())
         } else {
-            Err(format!(
+            Err(FieldError::new(format!(
                 "a whole number from 1 to {}",
                 PAPER_SET_POINTS.len()
-            ))
+            )))
         }
     });
     let legend = || {

@@ -10,6 +10,7 @@ use spintune::estimator::EstimatorKind;
 use spintune::parameter::{Tolerance, Transform};
 
 use super::LocalError;
+use crate::model::FieldError;
 
 /// A number the student types in the sidebar, checked before it is applied
 /// ([`Field::check`]): the message says in plain words what is allowed,
@@ -56,7 +57,7 @@ impl Field {
     }
 
     /// Whether `v` is allowed here; the plain reason if not.
-    pub fn check(self, v: f64) -> Result<(), String> {
+    pub fn check(self, v: f64) -> Result<(), FieldError> {
         let whole = v.fract() == 0.0;
         let ok = match self {
             Field::QTsr | Field::QW => (0.0..=1e3).contains(&v),
@@ -71,7 +72,7 @@ impl Field {
         if ok && v.is_finite() {
             return Ok(());
         }
-        Err(match self {
+        Err(FieldError::new(match self {
             Field::QTsr | Field::QW => "must be 0 or more (at most 1000); 0 means the filter stops learning once it is sure",
             Field::Noise => "must be between 0 and 100 (× the default noise)",
             Field::MaxStep => "must be more than 0 mV (at most 1000 mV): with 0 the tuner cannot move",
@@ -80,8 +81,7 @@ impl Field {
             Field::Tolerance => "must be between 0 and 1 (0.1 = ±10 % of the target)",
             Field::MaxIterations => "must be a whole number from 1 to 1,000,000",
             Field::Delay => "must be a whole number of ms from 0 to 60,000",
-        }
-        .to_string())
+        }))
     }
 }
 
@@ -202,9 +202,10 @@ impl LocalSettings {
             (Field::Delay, self.delay_ms as f64),
         ];
         for (field, v) in fields {
-            field
-                .check(v)
-                .map_err(|message| LocalError::Field { field, message })?;
+            field.check(v).map_err(|e| LocalError::Field {
+                field,
+                message: e.message,
+            })?;
         }
         Ok(())
     }
@@ -297,6 +298,34 @@ pub fn default_matrix() -> Vec<Vec<f64>> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A refused field value is a typed [`FieldError`] whose text is the
+    /// plain reason shown next to the field; the settings' check names the
+    /// field with the same reason.
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn a_refused_field_is_a_typed_error_with_the_plain_reason() {
+        assert_eq!(Field::Tolerance.check(0.1), Ok(()));
+        let e: FieldError = Field::Tolerance.check(1.5).unwrap_err();
+        assert_eq!(
+            e,
+            FieldError::new("must be between 0 and 1 (0.1 = ±10 % of the target)")
+        );
+        assert_eq!(e.to_string(), e.message);
+        assert_eq!(
+            Field::Seed.check(1.5).unwrap_err().to_string(),
+            "must be a whole number, 0 or more"
+        );
+        assert!(Field::MaxStep.check(f64::NAN).is_err());
+        let s = LocalSettings {
+            tolerance: 1.5,
+            ..LocalSettings::default()
+        };
+        assert_eq!(
+            s.check().unwrap_err().to_string(),
+            "tolerance: must be between 0 and 1 (0.1 = ±10 % of the target)"
+        );
+    }
 
     /// The in-browser mode runs the product's default unless the student
     /// picks the paper's rule; the Q fields mean the same in both (the

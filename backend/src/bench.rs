@@ -280,15 +280,16 @@ pub(crate) fn load_device(path: &Path) -> Result<DeviceConfig, CliError> {
     let text = std::fs::read_to_string(path)
         .map_err(|e| CliError::input(format!("cannot read {}: {e}", path.display())))?;
     let is_json = path.extension().is_some_and(|e| e == "json");
-    let parsed: Result<DeviceConfig, String> = if is_json {
+    let invalid = |m: &dyn std::fmt::Display| {
+        CliError::input(format!("invalid device file {}: {m}", path.display()))
+    };
+    let device: DeviceConfig = if is_json {
         let de = &mut serde_json::Deserializer::from_str(&text);
         serde_path_to_error::deserialize(de)
-            .map_err(|e| format!("at `{}`: {}", e.path(), e.inner()))
+            .map_err(|e| invalid(&format_args!("at `{}`: {}", e.path(), e.inner())))?
     } else {
-        toml::from_str(&text).map_err(|e| e.to_string())
+        toml::from_str(&text).map_err(|e| invalid(&e))?
     };
-    let device = parsed
-        .map_err(|m| CliError::input(format!("invalid device file {}: {m}", path.display())))?;
     device
         .validate()
         .map_err(|m| CliError::input(format!("invalid device file {}: {m}", path.display())))?;

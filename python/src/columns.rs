@@ -92,18 +92,62 @@ struct Columns {
     counts: HashMap<String, Vec<i64>>,
 }
 
+/// Why a record could not join the columns.
+#[derive(Debug)]
+enum ColumnsError {
+    /// Its top-level gates differ from the first record's.
+    GatesDiffer {
+        iteration: i64,
+        found: Vec<String>,
+        first: Vec<String>,
+    },
+    /// A record of a JSON batch is malformed.
+    Invalid {
+        index: usize,
+        path: String,
+        message: String,
+    },
+}
+
+impl std::fmt::Display for ColumnsError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ColumnsError::GatesDiffer {
+                iteration,
+                found,
+                first,
+            } => write!(
+                f,
+                "iteration {iteration}: top-level gates {found:?} differ from {first:?}; one dataset holds one tuner"
+            ),
+            ColumnsError::Invalid {
+                index,
+                path,
+                message,
+            } => write!(f, "record {index} of the batch: invalid at `{path}`: {message}"),
+        }
+    }
+}
+
+impl From<ColumnsError> for PyErr {
+    fn from(e: ColumnsError) -> Self {
+        PyValueError::new_err(e.to_string())
+    }
+}
+
 impl Columns {
-    fn add(&mut self, r: LightRecord) -> Result<(), String> {
+    fn add(&mut self, r: LightRecord) -> Result<(), ColumnsError> {
         let m = match &self.tuning_gates {
             None => {
                 self.tuning_gates = Some(r.gates.clone());
                 r.gates.len()
             }
             Some(t) if *t != r.gates => {
-                return Err(format!(
-                "iteration {}: top-level gates {:?} differ from {:?}; one dataset holds one tuner",
-                r.iteration, r.gates, t
-            ))
+                return Err(ColumnsError::GatesDiffer {
+                    iteration: r.iteration,
+                    found: r.gates.clone(),
+                    first: t.clone(),
+                })
             }
             Some(t) => t.len(),
         };
@@ -202,7 +246,7 @@ impl PyRecordColumns {
     /// Add one record (dict, the JSON ``IterationRecord``).
     fn add(&mut self, record: &Bound<'_, PyAny>) -> PyResult<()> {
         let r: LightRecord = from_py(record, "record")?;
-        self.inner.add(r).map_err(PyValueError::new_err)
+        Ok(self.inner.add(r)?)
     }
 
     /// Add records given as JSON texts (a list of ``str``), in order.
@@ -220,18 +264,17 @@ impl PyRecordColumns {
         py.detach(|| {
             for (i, s) in strs.iter().enumerate() {
                 let de = &mut serde_json::Deserializer::from_str(s);
-                let r: LightRecord = serde_path_to_error::deserialize(de).map_err(|e| {
-                    format!(
-                        "record {i} of the batch: invalid at `{}`: {}",
-                        e.path(),
-                        e.inner()
-                    )
-                })?;
+                let r: LightRecord =
+                    serde_path_to_error::deserialize(de).map_err(|e| ColumnsError::Invalid {
+                        index: i,
+                        path: e.path().to_string(),
+                        message: e.inner().to_string(),
+                    })?;
                 inner.add(r)?;
             }
-            Ok::<(), String>(())
-        })
-        .map_err(PyValueError::new_err)
+            Ok::<(), ColumnsError>(())
+        })?;
+        Ok(())
     }
 
     /// Number of records added.

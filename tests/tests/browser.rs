@@ -163,6 +163,17 @@ async fn dashboard_live_control_reconnect_and_in_browser_mode() {
     .await;
     click(&c, "[data-testid=pause]").await;
     wait_text(&c, "[data-testid=run-status]", "paused", 15).await;
+    // The run list follows the header at once (it polls only every 4 s).
+    wait(
+        "the sidebar's state of the run after the pause",
+        1,
+        async || {
+            attr(&c, "button.run.selected [data-state]", "data-state")
+                .await
+                .filter(|s| s == "paused")
+        },
+    )
+    .await;
     tokio::time::sleep(Duration::from_millis(1200)).await;
     let paused_at = iterations_drawn(&c).await;
     tokio::time::sleep(Duration::from_millis(1500)).await;

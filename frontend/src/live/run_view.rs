@@ -78,6 +78,24 @@ pub fn RunView(
         })
     };
     let status = Signal::derive(move || sig.summary.with(|s| s.as_ref().map(|s| s.status.clone())));
+    // The run list in the sidebar shows what the socket just said about
+    // this run (not what its next poll, seconds later, will say).
+    if let Some(runs) = runs {
+        Effect::new(move |_| {
+            let Some(summary) = sig.summary.get() else {
+                return;
+            };
+            let stale = runs
+                .with_untracked(|list| list.iter().any(|e| e.id == summary.id && *e != summary));
+            if stale {
+                runs.update(|list| {
+                    if let Some(entry) = list.iter_mut().find(|e| e.id == summary.id) {
+                        *entry = summary;
+                    }
+                });
+            }
+        });
+    }
     let want_scans = Callback::new(move |k: u64| feed(Event::WantScans(k)));
     let hooks = DashboardHooks {
         want_scans: Some(want_scans),

@@ -345,6 +345,17 @@ impl std::fmt::Display for CompensationError {
 
 impl std::error::Error for CompensationError {}
 
+/// What one [`SimulationRun::step`] did.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Step {
+    /// One device request was executed and its answer fed to the session.
+    Executed,
+    /// A top-level iteration completed.
+    Iteration(Box<IterationRecord>),
+    /// The run is over (finished or stopped).
+    Over,
+}
+
 /// Why a simulated run halted without a record (distinct from the
 /// backend's `run::RunError`, the error of a control action on a stored run).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -397,17 +408,38 @@ impl SimulationRun {
         Self { session, device }
     }
 
-    /// Run until the next top-level iteration completes; `None` when the run
-    /// is over (finished or stopped). A fault or a pause is an `Err` (the
-    /// run can be resumed with [`SimulationRun::control`]).
-    pub fn next_iteration(&mut self) -> Result<Option<IterationRecord>, Halt> {
+    /// One step of the run: at most one device request executed and fed
+    /// back, or the iteration that just completed, or the end. A driver
+    /// that must yield between requests (the browser's time slices) calls
+    /// this; [`SimulationRun::next_iteration`] loops over it. A fault or a
+    /// pause is an `Err` (resumable with [`SimulationRun::control`]).
+    ///
+    /// ```
+    /// use spintune::driver::{SimulationConfig, SimulationRun, Step};
+    /// let mut cfg = SimulationConfig::recommended();
+    /// cfg.tuner.max_iterations = Some(1);
+    /// let mut run = SimulationRun::new(cfg).unwrap();
+    /// let mut requests = 0;
+    /// let record = loop {
+    ///     match run.step().unwrap() {
+    ///         Step::Executed => requests += 1,
+    ///         Step::Iteration(r) => break r,
+    ///         Step::Over => unreachable!(),
+    ///     }
+    /// };
+    /// assert_eq!(record.iteration, 0);
+    /// assert!(requests > 10);
+    /// assert!(matches!(run.step().unwrap(), Step::Over));
+    /// ```
+    pub fn step(&mut self) -> Result<Step, Halt> {
         loop {
             match self.session.poll() {
                 Output::Execute(request) => {
                     let response = self.device.execute(&request);
                     self.session.feed(response)?;
+                    return Ok(Step::Executed);
                 }
-                Output::Commit(record) => return Ok(Some(*record)),
+                Output::Commit(record) => return Ok(Step::Iteration(record)),
                 // nothing to persist, no wall clock to wait on
                 Output::Save | Output::Publish(_) | Output::Sleep { .. } => {}
                 Output::Wait => {
@@ -416,7 +448,20 @@ impl SimulationRun {
                         _ => Halt::Paused,
                     })
                 }
-                Output::Done(_) => return Ok(None),
+                Output::Done(_) => return Ok(Step::Over),
+            }
+        }
+    }
+
+    /// Run until the next top-level iteration completes; `None` when the run
+    /// is over (finished or stopped). A fault or a pause is an `Err` (the
+    /// run can be resumed with [`SimulationRun::control`]).
+    pub fn next_iteration(&mut self) -> Result<Option<IterationRecord>, Halt> {
+        loop {
+            match self.step()? {
+                Step::Executed => {}
+                Step::Iteration(record) => return Ok(Some(*record)),
+                Step::Over => return Ok(None),
             }
         }
     }

@@ -3,10 +3,10 @@
 //! [`LocalRunner::advance`] (the one history type of the dashboard, as in the
 //! live mode's client).
 
-use spintune::driver::Halt;
+use spintune::driver::{Halt, SimulationRun, Step};
 use spintune::parameter::Tolerance;
 use spintune::protocol::{ControlCommand, IterationRecord, RunStatus};
-use spintune::session::{Output, RunSession, SessionConfig};
+use spintune::session::RunSession;
 use spintune::sim::SimulatedDevice;
 use spintune::tuner::Tuner;
 
@@ -29,13 +29,12 @@ pub enum Progress {
     Over,
 }
 
-/// Drives a run session against the simulated device (what
-/// `spintune::driver::SimulationRun` does, but in time slices so the page
-/// never blocks for a whole iteration); every change of the run's course goes
-/// through the session ([`LocalRunner::control`]).
+/// Drives a [`SimulationRun`] (session + simulated device) in time slices
+/// of its steps, so the page never blocks for a whole iteration; every
+/// change of the run's course goes through the session
+/// ([`LocalRunner::control`]).
 pub struct LocalRunner {
-    session: RunSession,
-    device: SimulatedDevice,
+    run: SimulationRun,
     /// Targets of the latest record (a change resets [`LocalRunner::tuned_at`]).
     last_targets: Option<Targets>,
     /// First iteration at which every parameter was in band since the targets
@@ -46,18 +45,18 @@ pub struct LocalRunner {
 impl LocalRunner {
     /// Start from settings (the session starts running).
     pub fn new(settings: &LocalSettings) -> Result<Self, LocalError> {
-        let cfg = settings.try_config()?;
-        let device = cfg.simulated_device().map_err(LocalError::Config)?;
-        let session =
-            RunSession::new(cfg.tuner, SessionConfig::default()).map_err(LocalError::Config)?;
-        Ok(Self::from_parts(session, device))
+        let run = SimulationRun::new(settings.try_config()?).map_err(LocalError::Config)?;
+        Ok(Self::with_run(run))
     }
 
     /// Drive a session against a device (e.g. a specially prepared one).
     pub fn from_parts(session: RunSession, device: SimulatedDevice) -> Self {
+        Self::with_run(SimulationRun::from_parts(session, device))
+    }
+
+    fn with_run(run: SimulationRun) -> Self {
         Self {
-            session,
-            device,
+            run,
             last_targets: None,
             tuned_at: None,
         }
@@ -65,22 +64,22 @@ impl LocalRunner {
 
     /// The tuner.
     pub fn tuner(&self) -> &Tuner {
-        self.session.tuner()
+        self.run.tuner()
     }
 
     /// The simulated device.
     pub fn device(&self) -> &SimulatedDevice {
-        &self.device
+        self.run.device()
     }
 
     /// The simulated device, to change it behind the run's back (tests).
     pub fn device_mut(&mut self) -> &mut SimulatedDevice {
-        &mut self.device
+        self.run.device_mut()
     }
 
     /// The session's status.
     pub fn status(&self) -> RunStatus {
-        self.session.status()
+        self.run.session().status()
     }
 
     /// Whether the session wants iterations (running or stepping): the
@@ -115,28 +114,18 @@ impl LocalRunner {
     ) -> Result<Progress, Halt> {
         let t0 = now();
         loop {
-            match self.session.poll() {
-                Output::Execute(request) => {
-                    let response = self.device.execute(&request);
-                    self.session.feed(response)?;
+            match self.run.step()? {
+                Step::Executed => {
                     if now() - t0 >= budget_ms {
                         return Ok(Progress::Working);
                     }
                 }
-                Output::Commit(record) => {
+                Step::Iteration(record) => {
                     let k = record.iteration;
                     self.record(*record, history);
                     return Ok(Progress::Recorded(k));
                 }
-                // nothing to persist, no wall clock to wait on
-                Output::Save | Output::Publish(_) | Output::Sleep { .. } => {}
-                Output::Wait => {
-                    return Err(match self.session.status() {
-                        RunStatus::Faulted { fault } => Halt::Fault(fault),
-                        _ => Halt::Paused,
-                    })
-                }
-                Output::Done(_) => return Ok(Progress::Over),
+                Step::Over => return Ok(Progress::Over),
             }
         }
     }
@@ -161,7 +150,7 @@ impl LocalRunner {
     /// Apply a control command through the session; the new status, or why
     /// the session refused it (nothing changed then).
     pub fn control(&mut self, command: &ControlCommand) -> Result<RunStatus, LocalError> {
-        self.session.control(command).map_err(LocalError::Refused)
+        self.run.control(command).map_err(LocalError::Refused)
     }
 
     /// Change both targets (and the relative tolerance) through the session
@@ -218,7 +207,7 @@ impl LocalRunner {
         half_mv: f64,
         n: usize,
     ) -> Option<Landscape> {
-        let device = &self.device;
+        let device = self.run.device();
         let v0 = device.voltages_mv();
         let (cx, cy) = (*v0.get(gx)?, *v0.get(gy)?);
         let parameters = &self.tuner().config().top().parameters;

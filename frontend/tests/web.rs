@@ -1023,6 +1023,16 @@ async fn mount_live_run(el: &web_sys::HtmlElement) -> (FakeSockets, impl Sized) 
     (sockets, handle)
 }
 
+/// Open the run's socket and let the server greet with `run`.
+async fn greet(sockets: &FakeSockets, run: RunSummary) {
+    sockets.open();
+    sockets.receive(&ServerMessage::Hello {
+        version: PROTOCOL_VERSION,
+        run,
+    });
+    leptos::task::tick().await;
+}
+
 fn summary(status: RunStatus) -> RunSummary {
     RunSummary {
         id: 1,
@@ -1151,12 +1161,7 @@ async fn live_moved_fault_offers_accept_positions_which_sends_the_command() {
 async fn live_target_editor_follows_scheduled_changes_unless_edited() {
     let el = host();
     let (sockets, _h) = mount_live_run(&el).await;
-    sockets.open();
-    sockets.receive(&ServerMessage::Hello {
-        version: PROTOCOL_VERSION,
-        run: summary(RunStatus::Running),
-    });
-    leptos::task::tick().await;
+    greet(&sockets, summary(RunStatus::Running)).await;
     let mut recs = fake_records(6);
     for r in &mut recs[3..] {
         r.parameters[0].target = Some(70.0); // the schedule's change at iteration 3
@@ -1316,12 +1321,7 @@ async fn a_finished_run_shows_its_last_scans_and_no_tuning_badge() {
 async fn the_status_badge_says_when_it_is_only_the_last_one_known() {
     let el = host();
     let (sockets, _h) = mount_live_run(&el).await;
-    sockets.open();
-    sockets.receive(&ServerMessage::Hello {
-        version: PROTOCOL_VERSION,
-        run: summary(RunStatus::Running),
-    });
-    leptos::task::tick().await;
+    greet(&sockets, summary(RunStatus::Running)).await;
     let badge = || {
         el.query_selector("[data-testid=run-status]")
             .unwrap()

@@ -276,6 +276,7 @@ mod tests {
             failed_evaluations: 0,
             scans: vec![],
             events: vec![],
+            keep: None,
         }
     }
 

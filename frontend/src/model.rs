@@ -261,6 +261,10 @@ pub fn event_name(e: &EventKind) -> &'static str {
         EventKind::MoveRefused { .. } => "move_refused",
         EventKind::InstrumentMoved { .. } => "instrument_moved",
         EventKind::ConfirmationSkipped { .. } => "confirmation_skipped",
+        EventKind::KeepCheck { .. } => "keep_check",
+        EventKind::RetuneStarted { .. } => "retune_started",
+        EventKind::BackInBand { .. } => "back_in_band",
+        EventKind::NotBackInBand { .. } => "not_back_in_band",
     }
 }
 
@@ -518,6 +522,7 @@ pub fn fake_records(n: u64) -> Vec<IterationRecord> {
                     }],
                     _ => vec![],
                 },
+                keep: None,
             }
         })
         .collect()

@@ -98,6 +98,9 @@ mod native {
                     }
                 }
                 Request::TrueJacobian { .. } => Response::error("no oracle"),
+                Request::Wait { seconds } => Response::Waited {
+                    lab_seconds: *seconds,
+                },
             }
         }
     }

@@ -240,7 +240,20 @@ pub enum Request {
         /// Parameter names (rows).
         parameters: Vec<String>,
     },
+    /// Let `seconds` of lab time pass without touching the device (keep
+    /// mode's idle time between checks; answered by [`Response::Waited`]).
+    /// A simulator advances its clock; a lab driver sleeps. At most
+    /// [`MAX_WAIT_SECONDS`]; a longer idle is several waits.
+    Wait {
+        /// Lab time to let pass, s (0 < seconds ≤ [`MAX_WAIT_SECONDS`]).
+        seconds: f64,
+    },
 }
+
+/// The longest single [`Request::Wait`], s (10 min): a keep run's idle
+/// time is cut into waits no longer than this, so a record of progress
+/// and a checkpoint follow at least this often in lab time.
+pub const MAX_WAIT_SECONDS: f64 = 600.0;
 
 /// The device's answer to a [`Request`].
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -275,6 +288,11 @@ pub enum Response {
         values: Vec<f64>,
         /// Row-major m×n Jacobian, unit/mV.
         jacobian: Vec<Vec<f64>>,
+    },
+    /// Answer to [`Request::Wait`]: the lab time that passed, s.
+    Waited {
+        /// Lab time that passed, s.
+        lab_seconds: f64,
     },
     /// The device could not execute the request.
     Error {
@@ -401,6 +419,39 @@ pub struct IterationRecord {
     pub scans: Vec<ScanReport>,
     /// Notable events of this iteration (gated outliers, failed fits, clipped steps).
     pub events: Vec<TunerEvent>,
+    /// Keep mode (issue 23): what this iteration was and when the next check
+    /// is planned; `None` for a run without keep mode.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub keep: Option<KeepReport>,
+}
+
+/// What an iteration of a keep-mode run was ([`IterationRecord::keep`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum KeepPhase {
+    /// Tuning to the targets for the first time (or after a target change).
+    Tuning,
+    /// A check while keeping: some parameters measured, no move.
+    Check,
+    /// Re-tuning after a check found a parameter out of its band.
+    Retune,
+}
+
+/// Keep mode's state after an iteration: the phase, the planned next check
+/// and the model's present out-of-band probabilities.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct KeepReport {
+    /// What this iteration was.
+    pub phase: KeepPhase,
+    /// Lab clock time of the next planned check, s since the run's start
+    /// (`None` while tuning or re-tuning).
+    pub next_check_lab_seconds: Option<f64>,
+    /// The parameters the next check measures.
+    #[serde(default)]
+    pub next_check: Vec<String>,
+    /// Lab time spent out of band so far in the present re-tune, s (0 when in band).
+    #[serde(default)]
+    pub out_of_band_lab_seconds: f64,
 }
 
 impl IterationRecord {
@@ -552,6 +603,39 @@ pub enum EventKind {
         /// Where the instrument reads, mV.
         read_mv: f64,
     },
+    /// Keep mode measured a parameter to check that it is still in its band.
+    KeepCheck {
+        /// Parameter name.
+        parameter: String,
+        /// Measured value (`unit`); `None` if the scan gave none.
+        value: Option<f64>,
+        /// Whether the value is inside the band.
+        in_band: bool,
+        /// The drift model's probability of being out of band just before
+        /// the check (what scheduled it).
+        predicted_out_of_band: f64,
+        /// Unit of the parameter.
+        unit: String,
+    },
+    /// Keep mode starts re-tuning: a check found a parameter out of band.
+    RetuneStarted {
+        /// Why (which parameter, its value and band).
+        reason: String,
+    },
+    /// Keep mode is back in band after a re-tune.
+    BackInBand {
+        /// Lab time from the failed check to back in band, s.
+        after_lab_seconds: f64,
+    },
+    /// Keep mode has not got back into band within the configured lab time
+    /// (`KeepConfig::alert_after_s`): an alert for a person. Raised once per
+    /// re-tune.
+    NotBackInBand {
+        /// Lab time out of band so far, s.
+        out_of_band_lab_seconds: f64,
+        /// The configured limit, s.
+        limit_lab_seconds: f64,
+    },
 }
 
 impl std::fmt::Display for EventKind {
@@ -618,6 +702,39 @@ impl std::fmt::Display for EventKind {
             } => write!(
                 f,
                 "gate {gate} reads {read_mv:.3} mV, the run expected {expected_mv:.3} mV; continuing from the read-back"
+            ),
+            EventKind::KeepCheck {
+                parameter,
+                value,
+                in_band,
+                predicted_out_of_band,
+                unit,
+            } => {
+                let verdict = if *in_band { "in band" } else { "OUT of band" };
+                match value {
+                    Some(v) => write!(f, "check {parameter}: {v:.3} {unit}, {verdict}")?,
+                    None => write!(f, "check {parameter}: no value")?,
+                }
+                write!(
+                    f,
+                    " (predicted P(out) {:.1} %)",
+                    100.0 * predicted_out_of_band
+                )
+            }
+            EventKind::RetuneStarted { reason } => write!(f, "re-tuning: {reason}"),
+            EventKind::BackInBand { after_lab_seconds } => write!(
+                f,
+                "back in band after {:.1} lab min",
+                after_lab_seconds / 60.0
+            ),
+            EventKind::NotBackInBand {
+                out_of_band_lab_seconds,
+                limit_lab_seconds,
+            } => write!(
+                f,
+                "ALERT: not back in band after {:.1} lab min (limit {:.1} min)",
+                out_of_band_lab_seconds / 60.0,
+                limit_lab_seconds / 60.0
             ),
         }
     }

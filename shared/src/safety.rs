@@ -36,6 +36,10 @@ pub enum SafetyError {
     /// The gate is not configured.
     #[error("unknown gate {0:?}")]
     UnknownGate(String),
+    /// A wait that is not a finite number of seconds in
+    /// `(0, protocol::MAX_WAIT_SECONDS]`.
+    #[error("a wait of {0} s (allowed: more than 0, at most 600 s)")]
+    InvalidWait(f64),
     /// NaN or infinite voltage.
     #[error("gate {gate}: voltage {value_mv} mV is not a finite number")]
     NotFinite {

@@ -261,7 +261,7 @@ impl Instrument {
                     }
                 }
             }
-            Request::ReadVoltages { .. } | Request::TrueJacobian { .. } => {}
+            Request::ReadVoltages { .. } | Request::TrueJacobian { .. } | Request::Wait { .. } => {}
         }
         Ok(())
     }
@@ -430,6 +430,9 @@ impl Instrument {
                 }
             }
             Request::TrueJacobian { .. } => Response::error("no oracle here"),
+            Request::Wait { seconds } => Response::Waited {
+                lab_seconds: *seconds,
+            },
         }
     }
 }

@@ -35,7 +35,7 @@ use std::time::Duration;
 use axum::extract::ws::Utf8Bytes;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
-use spintune::protocol::{BridgeServerMessage, Request, Response};
+use spintune::protocol::{BridgeServerMessage, Request, Response, MAX_WAIT_SECONDS};
 use spintune::ConfigError;
 use tokio::sync::{mpsc, oneshot, watch};
 
@@ -282,6 +282,7 @@ fn describe(request: &Request) -> String {
         Request::Measure { scan } => format!("measure {:?}", scan.kind),
         Request::ReadVoltages { gates } => format!("read_voltages {}", gates.join(",")),
         Request::TrueJacobian { .. } => "true_jacobian".into(),
+        Request::Wait { seconds } => format!("wait {seconds} s"),
     }
 }
 
@@ -327,6 +328,18 @@ impl BridgeDevice {
     }
 
     async fn execute_inner(&mut self, request: Request) -> Response {
+        if let Request::Wait { seconds } = request {
+            // Lab time passes in the lab: the server waits itself (the run
+            // task abandons the wait on stop); nothing reaches the bridge.
+            let start = tokio::time::Instant::now();
+            tokio::time::sleep(Duration::from_secs_f64(
+                seconds.clamp(0.0, MAX_WAIT_SECONDS),
+            ))
+            .await;
+            return Response::Waited {
+                lab_seconds: start.elapsed().as_secs_f64(),
+            };
+        }
         let at_send = self.link.connection();
         let response = self.exchange(request).await;
         if matches!(response, Response::Error { .. }) {

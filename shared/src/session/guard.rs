@@ -227,7 +227,7 @@ impl Guard {
                     widen(&s.gate, s.to_mv);
                 }
             }
-            Request::ReadVoltages { .. } | Request::TrueJacobian { .. } => {}
+            Request::ReadVoltages { .. } | Request::TrueJacobian { .. } | Request::Wait { .. } => {}
         }
     }
 
@@ -276,6 +276,16 @@ impl Guard {
                 Ok(())
             }
             Request::TrueJacobian { .. } => Ok(()),
+            Request::Wait { seconds } => {
+                if seconds.is_finite()
+                    && *seconds > 0.0
+                    && *seconds <= crate::protocol::MAX_WAIT_SECONDS
+                {
+                    Ok(())
+                } else {
+                    Err(SafetyError::InvalidWait(*seconds))
+                }
+            }
         }
     }
 
@@ -484,7 +494,9 @@ pub fn touched_gates(request: &Request) -> Vec<String> {
     match request {
         Request::SetVoltages { voltages_mv } => voltages_mv.keys().cloned().collect(),
         Request::Measure { scan } => scan.sweep.iter().map(|s| s.gate.clone()).collect(),
-        Request::ReadVoltages { .. } | Request::TrueJacobian { .. } => Vec::new(),
+        Request::ReadVoltages { .. } | Request::TrueJacobian { .. } | Request::Wait { .. } => {
+            Vec::new()
+        }
     }
 }
 

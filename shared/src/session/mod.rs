@@ -523,6 +523,7 @@ impl RunSession {
                     (Request::SetVoltages { .. }, Response::VoltagesSet { .. })
                         | (Request::Measure { .. }, Response::Scanned { .. })
                         | (Request::TrueJacobian { .. }, Response::TrueJacobian { .. })
+                        | (Request::Wait { .. }, Response::Waited { .. })
                 );
                 if !fits {
                     self.wrong_answer(request_name(&request), &response);
@@ -688,6 +689,7 @@ fn request_name(r: &Request) -> &'static str {
         Request::ReadVoltages { .. } => "read_voltages",
         Request::Measure { .. } => "measure",
         Request::TrueJacobian { .. } => "true_jacobian",
+        Request::Wait { .. } => "wait",
     }
 }
 
@@ -697,6 +699,7 @@ fn response_name(r: &Response) -> &'static str {
         Response::VoltagesRead { .. } => "voltages_read",
         Response::Scanned { .. } => "scanned",
         Response::TrueJacobian { .. } => "true_jacobian",
+        Response::Waited { .. } => "waited",
         Response::Error { .. } => "error",
     }
 }

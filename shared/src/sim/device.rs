@@ -297,6 +297,21 @@ impl SimulatedDevice {
                     lab_seconds: 0.0,
                 },
             },
+            Request::Wait { seconds } => {
+                if !(seconds.is_finite()
+                    && *seconds > 0.0
+                    && *seconds <= crate::protocol::MAX_WAIT_SECONDS)
+                {
+                    return Response::error(format!(
+                        "a wait of {seconds} s (allowed: more than 0, at most {} s)",
+                        crate::protocol::MAX_WAIT_SECONDS
+                    ));
+                }
+                self.idle(*seconds);
+                Response::Waited {
+                    lab_seconds: *seconds,
+                }
+            }
             Request::TrueJacobian { .. } if self.truth_sealed => {
                 self.truth_queries += 1;
                 Response::error(

@@ -858,6 +858,7 @@ impl Tuner {
             failed_evaluations: self.failed_evaluations,
             scans: state.scans.values().cloned().collect(),
             events: Vec::new(),
+            keep: None,
         };
         // Collect events of every level, attributed to their level.
         let mut events = std::mem::take(&mut self.events);

@@ -113,6 +113,9 @@ impl Toy {
             Request::TrueJacobian { .. } | Request::ReadVoltages { .. } => {
                 Response::error("toy has no oracle and is not read back (the tuner never asks)")
             }
+            Request::Wait { seconds } => Response::Waited {
+                lab_seconds: *seconds,
+            },
         }
     }
 }

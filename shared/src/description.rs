@@ -343,6 +343,7 @@ impl DeviceDescription {
             max_iterations: None,
             schedule: Vec::new(),
             fit_references: self.fit_references,
+            keep: None,
         };
         tuner.validate().map_err(|e| self.name_field(e))?;
         Ok(tuner)

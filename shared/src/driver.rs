@@ -172,6 +172,7 @@ impl SimulationConfig {
             schedule: Vec::new(),
             // calibrated on exactly this device (`DeviceConfig::default()`)
             fit_references: SIMULATED_DEVICE_REFERENCES,
+            keep: None,
         };
         Self {
             name: "paper default".into(),

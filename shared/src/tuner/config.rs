@@ -296,6 +296,10 @@ pub struct TunerConfig {
     /// ([`crate::fit::uncertainty::SIMULATED_DEVICE_REFERENCES`]).
     #[serde(default)]
     pub fit_references: References,
+    /// Keep mode: once tuned, keep the top level in tune while the device
+    /// drifts ([`super::KeepConfig`]; `None`: stop or go on as configured).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub keep: Option<super::KeepConfig>,
 }
 
 /// New targets for some parameters from a given top-level iteration on.
@@ -444,6 +448,9 @@ impl TunerConfig {
                     "must be a finite number in [0, 1)",
                 ));
             }
+        }
+        if let Some(k) = &self.keep {
+            k.validate().map_err(|e| e.within("keep"))?;
         }
         let has_gate = |name: &str| self.gates.iter().any(|g| g.name == name);
         for (li, level) in self.levels.iter().enumerate() {

@@ -31,6 +31,7 @@
 
 mod config;
 pub mod finite_difference;
+mod keep;
 mod newton;
 
 use std::collections::{BTreeMap, VecDeque};
@@ -44,6 +45,8 @@ pub use config::{
     ScheduledTargets, SensingDotConfig, SensingDotFallback, TunerConfig, MAX_FALLBACK_SWEEPS,
     MAX_SWEEP_POINTS,
 };
+pub use keep::{DriftModel, KeepConfig, KeepSchedule, MAX_KEEP_SECONDS, MIN_CHECK_INTERVAL_S};
+use keep::{KeepNext, KeepState};
 pub use newton::Consistency;
 use newton::NewtonState;
 
@@ -135,6 +138,8 @@ enum Decision {
     SdFallbackPoint { base_mv: f64 },
     /// No sweep of the fallback found a flank: the second gate goes back to `base_mv`.
     SdFallbackFinish { base_mv: f64 },
+    /// Keep mode: a check's scans are in.
+    KeepCheck,
 }
 
 /// A level that is running: its queue of micro-operations (one entry of
@@ -153,12 +158,17 @@ enum Pending {
     Set(Request, Op),
     Measure(Request, usize),
     Jacobian(Request, usize),
+    /// Keep mode lets lab time pass.
+    Wait(Request),
 }
 
 impl Pending {
     fn request(&self) -> &Request {
         match self {
-            Pending::Set(r, _) | Pending::Measure(r, _) | Pending::Jacobian(r, _) => r,
+            Pending::Set(r, _)
+            | Pending::Measure(r, _)
+            | Pending::Jacobian(r, _)
+            | Pending::Wait(r) => r,
         }
     }
 }
@@ -186,6 +196,9 @@ pub struct Tuner {
     finished: bool,
     /// Events since the last iteration record, oldest first.
     events: Vec<TunerEvent>,
+    /// Keep mode's state (`None` unless the config has `keep`).
+    #[serde(default)]
+    keep: Option<KeepState>,
 }
 
 impl Tuner {
@@ -208,7 +221,6 @@ impl Tuner {
             });
         }
         Ok(Self {
-            config,
             safety,
             voltages_mv,
             levels,
@@ -220,6 +232,11 @@ impl Tuner {
             failed_evaluations: 0,
             finished: false,
             events: Vec::new(),
+            keep: config
+                .keep
+                .as_ref()
+                .map(|_| KeepState::new(config.top().parameters.len())),
+            config,
         })
     }
 
@@ -339,9 +356,14 @@ impl Tuner {
                 p.tolerance = tol;
             }
         }
-        if self.config.stop_when_tuned {
+        if self.config.stop_when_tuned || self.keep.is_some() {
             // a new target may need more work; max_iterations still applies
             self.finished = false;
+        }
+        if let Some(k) = &mut self.keep {
+            if level == 0 {
+                k.target_changed();
+            }
         }
         Ok(())
     }
@@ -455,7 +477,18 @@ impl Tuner {
                     continue;
                 }
                 self.apply_schedule();
-                self.push_level(0);
+                match self.keep_next() {
+                    None | Some(KeepNext::Tune) => self.push_level(0),
+                    Some(KeepNext::Wait(req)) => {
+                        self.pending = Some(Pending::Wait(req.clone()));
+                        return Action::Request(req);
+                    }
+                    Some(KeepNext::Check(ops)) => self.stack.push(ActiveLevel {
+                        level: 0,
+                        ops: ops.into(),
+                    }),
+                    Some(KeepNext::Finish) => self.finished = true,
+                }
                 continue;
             };
             let level = active.level;
@@ -492,9 +525,12 @@ impl Tuner {
                 }
                 Op::Child(child) => self.push_level(child),
                 Op::Decide(d) => {
-                    if let Some(record) = self.decide(level, d) {
+                    if let Some(mut record) = self.decide(level, d) {
                         self.iteration += 1;
-                        if self.config.stop_when_tuned && record.tuned {
+                        if self.keep.is_some() {
+                            // keep mode decides when the run ends
+                            self.keep_after_record(&mut record);
+                        } else if self.config.stop_when_tuned && record.tuned {
                             self.finished = true;
                         }
                         return Action::Iteration(record);
@@ -559,6 +595,12 @@ impl Tuner {
                             .and_then(|v| v.into_iter().find(|p| p.name == "sd_flank_mv"));
                     }
                 }
+            }
+            (Pending::Wait(_), Response::Waited { lab_seconds }) => {
+                self.add_lab_time(lab_seconds);
+            }
+            (Pending::Wait(_), _) => {
+                return Err(TunerError::UnexpectedResponse { expected: "waited" })
             }
             (Pending::Jacobian(_, level), Response::TrueJacobian { values, jacobian }) => {
                 let level = *level;
@@ -737,6 +779,9 @@ impl Tuner {
     }
 
     fn decide(&mut self, level: usize, d: Decision) -> Option<IterationRecord> {
+        if d == Decision::KeepCheck {
+            return self.keep_check();
+        }
         if let Decision::SdPark
         | Decision::SdFallbackPoint { .. }
         | Decision::SdFallbackFinish { .. } = d

@@ -294,6 +294,55 @@ impl Tuner {
         }
     }
 
+    /// Keep mode: the top level's measured samples and values of a check
+    /// (estimator space and parameter units, config order).
+    pub(super) fn take_check_samples(
+        &mut self,
+    ) -> (Vec<Option<Sample>>, Vec<Option<ParameterValue>>) {
+        let cfg = self.newton(0).0.clone();
+        let (_, state) = self.newton_mut(0);
+        state.take_samples(&cfg)
+    }
+
+    /// Keep mode: a check's measurements are the top level's round (no step):
+    /// its record shows them, `tuned` as decided by the check.
+    pub(super) fn set_check_snapshot(
+        &mut self,
+        samples: Vec<Option<Sample>>,
+        raw: Vec<Option<ParameterValue>>,
+        tuned: bool,
+    ) {
+        let v_now = self.level_voltages(0);
+        let all_v = self.voltages_mv.clone();
+        let (_, state) = self.newton_mut(0);
+        state.snapshot = Some(Snapshot {
+            voltages_mv: all_v,
+            step_mv: vec![0.0; v_now.len()],
+            level_voltages_mv: v_now,
+            samples,
+            raw,
+            tuned,
+        });
+    }
+
+    /// The top level's samples of its last round (estimator space).
+    pub(super) fn top_snapshot_samples(&self) -> Vec<Option<Sample>> {
+        let (_, state) = self.newton(0);
+        state
+            .snapshot
+            .as_ref()
+            .map(|s| s.samples.clone())
+            .unwrap_or_default()
+    }
+
+    /// Keep mode starts a re-tune: the top level's references are hours old
+    /// (the device drifted without a move), so the next round starts a
+    /// fresh baseline instead of learning the drift as a gradient.
+    pub(super) fn forget_top_references(&mut self) {
+        let (_, state) = self.newton_mut(0);
+        state.forget_references();
+    }
+
     /// Operations that measure the initial gradient, if the level still needs one.
     pub(super) fn init_ops(&mut self, level: usize) -> std::collections::VecDeque<Op> {
         let mut ops = std::collections::VecDeque::new();
@@ -391,7 +440,8 @@ impl Tuner {
             Decision::EndIteration => self.end_iteration(level),
             Decision::SdPark
             | Decision::SdFallbackPoint { .. }
-            | Decision::SdFallbackFinish { .. } => None,
+            | Decision::SdFallbackFinish { .. }
+            | Decision::KeepCheck => None,
         }
     }
 
@@ -436,6 +486,7 @@ impl Tuner {
     }
 
     fn evaluate(&mut self, level: usize) {
+        let band_scale = self.band_scale(level);
         let cfg = self.newton(level).0.clone();
         let v_now = self.level_voltages(level);
         let all_v = self.voltages_mv.clone();
@@ -548,11 +599,18 @@ impl Tuner {
                 }
             }
         }
+        // keep mode settles the top level inside a narrower band (1 otherwise)
+        let scale = band_scale;
         let tuned = cfg
             .parameters
             .iter()
             .zip(&trusted)
-            .all(|(p, v)| p.target.is_none() || v.as_ref().is_some_and(|v| p.in_band(v.value)));
+            .all(|(p, v)| match p.target {
+                None => true,
+                Some(t) => v
+                    .as_ref()
+                    .is_some_and(|v| (v.value - t).abs() <= scale * p.tolerance.half_width(t)),
+            });
         let missing_targeted = cfg
             .parameters
             .iter()
@@ -795,7 +853,7 @@ impl Tuner {
         (!events.is_empty()).then_some(events)
     }
 
-    fn end_iteration(&mut self, level: usize) -> Option<IterationRecord> {
+    pub(super) fn end_iteration(&mut self, level: usize) -> Option<IterationRecord> {
         if level != 0 {
             let max = self.newton(level).0.max_iterations_per_call;
             let skip = self.confidently_in_band(level);

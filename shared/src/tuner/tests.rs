@@ -196,6 +196,7 @@ fn flat(estimator: EstimatorKind) -> TunerConfig {
         max_iterations: Some(25),
         schedule: Vec::new(),
         fit_references: Default::default(),
+        keep: None,
     }
 }
 
@@ -262,6 +263,7 @@ fn hierarchical() -> TunerConfig {
         max_iterations: Some(25),
         schedule: Vec::new(),
         fit_references: Default::default(),
+        keep: None,
     }
 }
 

@@ -22,6 +22,8 @@
 //! counts every such request (0 for every non-oracle strategy; the test
 //! `non_oracle_strategies_never_query_the_truth` holds it).
 
+pub mod keep;
+
 use std::collections::BTreeMap;
 
 use rand::{Rng, SeedableRng};
@@ -32,7 +34,7 @@ use crate::driver::{SimulationConfig, SimulationRun};
 use crate::estimator::EstimatorKind;
 use crate::parameter::{Tolerance, Transform};
 use crate::protocol::{
-    ControlCommand, FaultKind, IterationRecord, ParameterValue, Request, RunStatus,
+    ControlCommand, FaultKind, IterationRecord, ParameterValue, Request, Response, RunStatus,
 };
 use crate::session::Output;
 use crate::session::{RunSession, SessionConfig};
@@ -507,6 +509,9 @@ pub enum SeedFailure {
     /// The tuner finished before the protocol did.
     #[error("tuner finished unexpectedly")]
     Finished,
+    /// The simulated device gave an answer that does not fit the request.
+    #[error("unexpected device answer: {0:?}")]
+    Unexpected(crate::protocol::Response),
 }
 
 /// The world's configuration of one seed: `base` on seed `seed` with the
@@ -514,7 +519,7 @@ pub enum SeedFailure {
 /// protocol's tolerance band on the top level's parameters. The initial
 /// measurement only (`max_iterations = 0`); the targets come with the
 /// protocol's first change.
-fn world_config(
+pub(crate) fn world_config(
     base: &SimulationConfig,
     protocol: &BenchmarkProtocol,
     seed: u64,
@@ -757,26 +762,32 @@ struct Harness {
 }
 
 impl Harness {
+    /// The world's side of one request: count top-level moves and every
+    /// move longer than the step limit (checked per move), then execute.
+    fn execute(&mut self, request: &Request) -> Response {
+        if let Request::SetVoltages { voltages_mv } = request {
+            let now = self.device.voltages_mv();
+            let norm = self
+                .top_gates
+                .iter()
+                .filter_map(|g| Some((voltages_mv.get(g)? - now.get(g)?).powi(2)))
+                .sum::<f64>()
+                .sqrt();
+            if norm > 1e-6 {
+                self.moves += 1;
+            }
+            if !norm.is_finite() || norm > self.max_step_mv * (1.0 + 1e-9) {
+                self.violations += 1;
+            }
+        }
+        self.device.execute(request)
+    }
+
     fn next(&mut self) -> Result<IterationRecord, SeedFailure> {
         loop {
             match self.session.poll() {
                 Output::Execute(request) => {
-                    if let Request::SetVoltages { voltages_mv } = &request {
-                        let now = self.device.voltages_mv();
-                        let norm = self
-                            .top_gates
-                            .iter()
-                            .filter_map(|g| Some((voltages_mv.get(g)? - now.get(g)?).powi(2)))
-                            .sum::<f64>()
-                            .sqrt();
-                        if norm > 1e-6 {
-                            self.moves += 1;
-                        }
-                        if !norm.is_finite() || norm > self.max_step_mv * (1.0 + 1e-9) {
-                            self.violations += 1;
-                        }
-                    }
-                    let response = self.device.execute(&request);
+                    let response = self.execute(&request);
                     self.session.feed(response)?;
                 }
                 Output::Commit(record) => return Ok(*record),
@@ -903,7 +914,7 @@ pub fn quantile(values: &[f64], q: f64) -> f64 {
     v[lo] + (v[hi] - v[lo]) * (pos - lo as f64)
 }
 
-fn quantiles(values: &[f64]) -> Quantiles {
+pub(crate) fn quantiles(values: &[f64]) -> Quantiles {
     Quantiles {
         median: quantile(values, 0.5),
         p90: quantile(values, 0.9),

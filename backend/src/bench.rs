@@ -141,68 +141,22 @@ pub fn run(args: BenchArgs) -> Result<(), CliError> {
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
         .max(1);
-    let (devices, random_devices) = match args.random_devices {
-        None => (vec![(0, base.clone())], None),
-        Some(n) => {
-            let (drawn, rejected) = draw_devices(&base, &protocol, n, args.device_seed);
-            if drawn.len() < n {
-                return Err(CliError::runtime(format!(
-                    "only {} of {n} random devices have reachable targets ({rejected} rejected)",
-                    drawn.len()
-                )));
-            }
-            eprintln!("{n} random devices ({rejected} rejected: targets outside the gate limits)");
-            let report = RandomDevices {
-                device_seeds: drawn.iter().map(|(k, _)| *k).collect(),
-                rejected,
-            };
-            let configs = drawn
-                .into_iter()
-                .map(|(k, device)| {
-                    let mut cfg = base.clone();
-                    cfg.device = device;
-                    (k, cfg)
-                })
-                .collect();
-            (configs, Some(report))
-        }
-    };
+    let (devices, random_devices) =
+        select_devices(&base, &protocol, args.random_devices, args.device_seed)?;
     let work: Vec<(usize, u64)> = (0..devices.len())
         .flat_map(|d| (1..=args.seeds).map(move |s| (d, s)))
         .collect();
-    let bar = ProgressBar::new(work.len() as u64);
-    bar.set_style(
-        ProgressStyle::with_template(
-            "{spinner} seeds {pos}/{len} [{bar:30}] {elapsed} (eta {eta}) {msg}",
-        )
-        .expect("valid template")
-        .progress_chars("=> "),
-    );
-    let next = AtomicUsize::new(0);
-    let results: Mutex<Vec<SeedResult>> = Mutex::new(Vec::new());
-    let failures: Mutex<Vec<String>> = Mutex::new(Vec::new());
-    std::thread::scope(|scope| {
-        for _ in 0..threads {
-            scope.spawn(|| loop {
-                let i = next.fetch_add(1, Ordering::Relaxed);
-                let Some(&(d, seed)) = work.get(i) else { break };
-                let (device, cfg) = &devices[d];
-                match run_seed(cfg, &product, &protocol, &strategies, seed, false) {
-                    Ok(mut r) => {
-                        r.iter_mut().for_each(|x| x.device = *device);
-                        results.lock().unwrap().extend(r)
-                    }
-                    Err(e) => failures
-                        .lock()
-                        .unwrap()
-                        .push(format!("device {device}: {e}")),
-                }
-                bar.inc(1);
-            });
+    let (results, failures) = parallel_map(&work, threads, |&(d, seed)| {
+        let (device, cfg) = &devices[d];
+        match run_seed(cfg, &product, &protocol, &strategies, seed, false) {
+            Ok(mut r) => {
+                r.iter_mut().for_each(|x| x.device = *device);
+                Ok(r)
+            }
+            Err(e) => Err(format!("device {device}: {e}")),
         }
     });
-    bar.finish_and_clear();
-    let mut results = results.into_inner().unwrap();
+    let mut results: Vec<SeedResult> = results.into_iter().flatten().collect();
     results.sort_by_key(|r| {
         (
             r.device,
@@ -210,7 +164,6 @@ pub fn run(args: BenchArgs) -> Result<(), CliError> {
             Strategy::ALL.iter().position(|s| *s == r.strategy),
         )
     });
-    let failures = failures.into_inner().unwrap();
     for f in &failures {
         eprintln!("warning: {f}");
     }
@@ -256,6 +209,81 @@ pub fn run(args: BenchArgs) -> Result<(), CliError> {
         )));
     }
     Ok(())
+}
+
+/// A benchmarked device: its device seed (0: the given device) and config.
+pub(crate) type DeviceUnderTest = (u64, SimulationConfig);
+
+/// The devices to benchmark: `base` alone (device seed 0), or `n` random
+/// devices drawn around it from `device_seed` on (with the report of which).
+pub(crate) fn select_devices(
+    base: &SimulationConfig,
+    protocol: &BenchmarkProtocol,
+    random_devices: Option<usize>,
+    device_seed: u64,
+) -> Result<(Vec<DeviceUnderTest>, Option<RandomDevices>), CliError> {
+    let Some(n) = random_devices else {
+        return Ok((vec![(0, base.clone())], None));
+    };
+    let (drawn, rejected) = draw_devices(base, protocol, n, device_seed);
+    if drawn.len() < n {
+        return Err(CliError::runtime(format!(
+            "only {} of {n} random devices have reachable targets ({rejected} rejected)",
+            drawn.len()
+        )));
+    }
+    eprintln!("{n} random devices ({rejected} rejected: targets outside the gate limits)");
+    let report = RandomDevices {
+        device_seeds: drawn.iter().map(|(k, _)| *k).collect(),
+        rejected,
+    };
+    let configs = drawn
+        .into_iter()
+        .map(|(k, device)| {
+            let mut cfg = base.clone();
+            cfg.device = device;
+            (k, cfg)
+        })
+        .collect();
+    Ok((configs, Some(report)))
+}
+
+/// `f` over `work` on `threads` threads with a progress bar; the results
+/// in no particular order and the failures' messages.
+pub(crate) fn parallel_map<W: Sync, T: Send>(
+    work: &[W],
+    threads: usize,
+    f: impl Fn(&W) -> Result<T, String> + Sync,
+) -> (Vec<T>, Vec<String>) {
+    let bar = ProgressBar::new(work.len() as u64);
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{spinner} seeds {pos}/{len} [{bar:30}] {elapsed} (eta {eta}) {msg}",
+        )
+        .expect("valid template")
+        .progress_chars("=> "),
+    );
+    let next = AtomicUsize::new(0);
+    let results: Mutex<Vec<T>> = Mutex::new(Vec::new());
+    let failures: Mutex<Vec<String>> = Mutex::new(Vec::new());
+    std::thread::scope(|scope| {
+        for _ in 0..threads.max(1) {
+            scope.spawn(|| loop {
+                let i = next.fetch_add(1, Ordering::Relaxed);
+                let Some(w) = work.get(i) else { break };
+                match f(w) {
+                    Ok(r) => results.lock().unwrap().push(r),
+                    Err(e) => failures.lock().unwrap().push(e),
+                }
+                bar.inc(1);
+            });
+        }
+    });
+    bar.finish_and_clear();
+    (
+        results.into_inner().unwrap(),
+        failures.into_inner().unwrap(),
+    )
 }
 
 fn parse_strategies(names: &[String]) -> Result<Vec<Strategy>, CliError> {

@@ -31,6 +31,8 @@ enum Command {
     DriftDay(spintune_server::drift_day::DriftDayArgs),
     /// The paper's set-point benchmark over many seeds, all strategies side by side.
     Bench(spintune_server::bench::BenchArgs),
+    /// Keep a tuned qubit in tune for hours of drift, every keep strategy side by side.
+    BenchKeep(spintune_server::bench_keep::BenchKeepArgs),
     /// Load bench of the server: N WebSocket viewers on one run at a fixed rate.
     BenchServer(spintune_server::bench_server::BenchServerArgs),
 }
@@ -45,6 +47,7 @@ fn main() {
         Command::Replay(args) => cli::replay(args),
         Command::Bench(args) => spintune_server::bench::run(args),
         Command::DriftDay(args) => spintune_server::drift_day::run(args),
+        Command::BenchKeep(args) => spintune_server::bench_keep::run(args),
         Command::BenchServer(args) => spintune_server::bench_server::main(args),
     };
     if let Err(e) = result {

@@ -47,6 +47,8 @@ pub const MIN_CHECK_INTERVAL_S: f64 = 10.0;
 pub const MAX_KEEP_SECONDS: f64 = 30.0 * 86_400.0;
 /// Weight of the drift prior, s of observed drift it counts as (2 h).
 pub const PRIOR_WEIGHT_S: f64 = 7_200.0;
+/// The learned diffusion never falls below this fraction of the prior's.
+pub const DIFFUSION_FLOOR: f64 = 0.25;
 
 /// When keep mode checks (the strategies of `spintune bench-keep`).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -87,7 +89,7 @@ fn default_min_check_interval_s() -> f64 {
     120.0
 }
 fn default_max_check_interval_s() -> f64 {
-    4.0 * 3600.0
+    3600.0
 }
 fn default_alert_after_s() -> f64 {
     1800.0
@@ -122,7 +124,7 @@ pub struct KeepConfig {
     /// Shortest time between two checks of a parameter, s (≥ 10, default 120).
     #[serde(default = "default_min_check_interval_s")]
     pub min_check_interval_s: f64,
-    /// Longest time between two checks of a parameter, s (default 4 h, at most 30 days).
+    /// Longest time between two checks of a parameter, s (default 1 h, at most 30 days).
     #[serde(default = "default_max_check_interval_s")]
     pub max_check_interval_s: f64,
     /// Lab time out of band (from the check that found it) after which a
@@ -271,11 +273,13 @@ impl DriftModel {
         }
     }
 
-    /// The learned diffusion, estimator units² per s (never below 1 % of the prior).
+    /// The learned diffusion, estimator units² per s (never below
+    /// [`DIFFUSION_FLOOR`] of the prior: a quiet stretch does not make the
+    /// model blind to the next jump).
     pub fn diffusion(&self) -> f64 {
         let q = (self.prior_diffusion * PRIOR_WEIGHT_S + self.excess_sum)
             / (PRIOR_WEIGHT_S + self.dt_sum);
-        q.max(0.01 * self.prior_diffusion)
+        q.max(DIFFUSION_FLOOR * self.prior_diffusion)
     }
 
     /// Predicted mean and variance at lab time `t_s`.
@@ -288,7 +292,7 @@ impl DriftModel {
     pub fn out_of_band_probability(&self, t_s: f64, lo: f64, hi: f64) -> f64 {
         let (m, v) = self.predict(t_s);
         let s = v.sqrt();
-        if !(s > 0.0) {
+        if s.is_nan() || s <= 0.0 {
             return if (lo..=hi).contains(&m) { 0.0 } else { 1.0 };
         }
         normal_cdf((lo - m) / s) + normal_cdf((m - hi) / s)
@@ -325,7 +329,11 @@ impl DriftModel {
         }
         let dt = (t_s - self.at_s).max(0.0);
         let nu = y - self.mean;
-        self.excess_sum += nu * nu - self.variance - r;
+        // Winsorised at 3σ of the prediction: a jump raises the diffusion,
+        // but one wild value cannot make the model expect wild drift for hours.
+        let s_pred = self.variance + self.diffusion() * dt + r;
+        let nu2 = (nu * nu).min(9.0 * s_pred);
+        self.excess_sum += nu2 - self.variance - r;
         self.dt_sum += dt;
         let (m, p) = self.predict(t_s);
         let s = p + r;
@@ -537,11 +545,16 @@ impl Tuner {
         let (samples, raw) = self.take_check_samples();
         let s = self.keep.as_mut()?;
         let checking = s.checking.clone();
-        let missing: Vec<usize> = checking
-            .iter()
-            .copied()
-            .filter(|&i| samples.get(i).copied().flatten().is_none())
-            .collect();
+        let top = self.config.top().clone();
+        let trusted = |i: usize| {
+            let p = &top.parameters[i];
+            samples.get(i).copied().flatten().is_some()
+                && raw.get(i).cloned().flatten().is_some_and(|v| {
+                    p.target
+                        .is_some_and(|t| v.variance.sqrt() <= p.tolerance.half_width(t))
+                })
+        };
+        let missing: Vec<usize> = checking.iter().copied().filter(|&i| !trusted(i)).collect();
         if !missing.is_empty() && !s.check_retried {
             // Usually the sensor lost its flank or a line moved: re-tune the
             // lower levels (no move of the top level's gates) and measure again.
@@ -551,7 +564,6 @@ impl Tuner {
             self.push_ops(ops);
             return None;
         }
-        let top = self.config.top().clone();
         let mut reasons = Vec::new();
         let mut events = Vec::new();
         let s = self.keep.as_mut()?;
@@ -566,7 +578,12 @@ impl Tuner {
                 .and_then(Option::as_ref)
                 .map_or(0.0, |m| m.out_of_band_probability(now, lo, hi));
             s.last_check_s[i] = now;
-            let value = raw.get(i).cloned().flatten();
+            // A value whose error bar is wider than its band says nothing
+            // about where the parameter is (as in the tuner's evaluation).
+            let value = raw.get(i).cloned().flatten().filter(|v| {
+                p.target
+                    .is_some_and(|t| v.variance.sqrt() <= p.tolerance.half_width(t))
+            });
             let in_band = value.as_ref().is_some_and(|v| p.in_band(v.value));
             events.push(EventKind::KeepCheck {
                 parameter: p.name.clone(),
@@ -575,7 +592,12 @@ impl Tuner {
                 predicted_out_of_band: predicted,
                 unit: p.unit.clone(),
             });
-            match (samples.get(i).copied().flatten(), value) {
+            let sample = samples
+                .get(i)
+                .copied()
+                .flatten()
+                .filter(|_| value.is_some());
+            match (sample, value) {
                 (Some((y, r)), Some(v)) => {
                     if let Some(m) = s.models.get_mut(i).and_then(Option::as_mut) {
                         m.update(y, r, now);
@@ -589,13 +611,16 @@ impl Tuner {
                         out_of_band_probability,
                     } = k.schedule
                     {
+                        // Re-tune early only where a re-tune would move: the
+                        // estimate is outside the settle band and the model
+                        // expects the band edge before the next check could come.
                         let soon = now + k.min_check_interval_s;
-                        let p_out = s
-                            .models
-                            .get(i)
-                            .and_then(Option::as_ref)
-                            .map_or(0.0, |m| m.out_of_band_probability(soon, lo, hi));
-                        if p_out >= out_of_band_probability {
+                        let model = s.models.get(i).and_then(Option::as_ref);
+                        let p_out = model.map_or(0.0, |m| m.out_of_band_probability(soon, lo, hi));
+                        let centre = 0.5 * (lo + hi);
+                        let settle = k.settle_band_fraction * 0.5 * (hi - lo);
+                        let unsettled = model.is_some_and(|m| (m.mean - centre).abs() > settle);
+                        if unsettled && p_out >= out_of_band_probability {
                             reasons.push(format!(
                                 "{} = {:.3} {} is predicted to leave its band within {:.0} min (P = {:.0} %)",
                                 p.name,

@@ -62,6 +62,9 @@ pub type GradientRow = (DVector<f64>, Option<DMatrix<f64>>);
 
 /// What the driver should do next.
 #[derive(Debug, Clone, PartialEq)]
+// An iteration record is handed out once per iteration (not per request):
+// moving it is cheaper than an allocation per record.
+#[allow(clippy::large_enum_variant)]
 pub enum Action {
     /// Execute this request and [`Tuner::feed`] the response.
     Request(Request),

@@ -1,0 +1,338 @@
+//! `spintune bench-keep`: keep a tuned qubit in tune for H lab hours while
+//! the simulated device drifts, every keep strategy side by side (protocol
+//! and statistics in `spintune::benchmark::keep`; this module only runs
+//! seeds in parallel, shows progress, writes reports and draws a day).
+
+use std::path::{Path, PathBuf};
+
+use clap::Args;
+use serde::Serialize;
+use spintune::benchmark::keep::{
+    run_keep_seed, summarize_keep, KeepSample, KeepSeedResult, KeepStrategy, KeepSummary,
+};
+use spintune::benchmark::BenchmarkProtocol;
+use spintune::driver::SimulationConfig;
+
+use crate::bench::{load_device, parallel_map, select_devices, RandomDevices};
+use crate::cli::CliError;
+
+/// Longest keep window, lab hours (a week).
+pub const MAX_HOURS: f64 = 168.0;
+/// Most seeds per device.
+pub const MAX_SEEDS: u64 = 10_000;
+
+/// Arguments of `spintune bench-keep`.
+#[derive(Debug, Args)]
+pub struct BenchKeepArgs {
+    /// Lab hours kept after the first tuned point (0 < H ≤ 168).
+    #[arg(long, default_value_t = 24.0)]
+    pub hours: f64,
+    /// Number of seeds (seeds 1..=N, at most 10,000).
+    #[arg(long, default_value_t = 20)]
+    pub seeds: u64,
+    /// Comma-separated strategies (default: all): predictive, fixed-10min,
+    /// fixed-30min, fixed-60min, never.
+    #[arg(long, value_delimiter = ',')]
+    pub strategies: Vec<String>,
+    /// Device description (TOML or JSON) overriding the simulator's defaults.
+    #[arg(long)]
+    pub device: Option<PathBuf>,
+    /// Run config (TOML, as for `spintune run`) whose tuner (and `tuner.keep`
+    /// settings) the strategies use (default: the built-in default).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Benchmark N random devices drawn around the device instead of it alone.
+    #[arg(long)]
+    pub random_devices: Option<usize>,
+    /// Device seed of the first random device (then +1, +2, …).
+    #[arg(long, default_value_t = 1)]
+    pub device_seed: u64,
+    /// Relative tolerance band of both parameters (0.1 = ±10 %).
+    #[arg(long, default_value_t = 0.1)]
+    pub tolerance: f64,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Write machine-readable results here.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+    /// Draw one seed's day (true t_sr and w, band, checks, re-tunes) to this PNG.
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
+    /// Seed drawn by `--plot` (its first strategy).
+    #[arg(long, default_value_t = 1)]
+    pub plot_seed: u64,
+}
+
+/// The JSON report.
+#[derive(Debug, Serialize)]
+pub struct BenchKeepReport {
+    /// Lab hours kept.
+    pub hours: f64,
+    /// Seeds per device.
+    pub seeds: u64,
+    /// Relative tolerance of both parameters.
+    pub relative_tolerance: f64,
+    /// One object per strategy.
+    pub strategies: Vec<KeepSummary>,
+    /// With `--random-devices`: the devices.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub random_devices: Option<RandomDevices>,
+}
+
+/// Run `spintune bench-keep`.
+pub fn run(args: BenchKeepArgs) -> Result<(), CliError> {
+    if !(args.hours.is_finite() && args.hours > 0.0 && args.hours <= MAX_HOURS) {
+        return Err(CliError::input(format!(
+            "--hours must be more than 0 and at most {MAX_HOURS}"
+        )));
+    }
+    if !(1..=MAX_SEEDS).contains(&args.seeds) {
+        return Err(CliError::input(format!(
+            "--seeds must be between 1 and {MAX_SEEDS}"
+        )));
+    }
+    if !(args.tolerance.is_finite() && args.tolerance > 0.0 && args.tolerance < 1.0) {
+        return Err(CliError::input("--tolerance must be in (0, 1)"));
+    }
+    let strategies = parse_strategies(&args.strategies)?;
+    let mut base = SimulationConfig::paper_default();
+    if let Some(path) = &args.device {
+        base.device = load_device(path)?;
+    }
+    base.validate()
+        .map_err(|e| CliError::input(e.to_string()))?;
+    let product = match &args.config {
+        Some(path) => crate::cli::load_config(path)?.simulation.tuner,
+        None => SimulationConfig::recommended().tuner,
+    };
+    let protocol = BenchmarkProtocol {
+        relative_tolerance: args.tolerance,
+        ..BenchmarkProtocol::default()
+    };
+    let threads = args
+        .threads
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
+        .max(1);
+    let (devices, random_devices) =
+        select_devices(&base, &protocol, args.random_devices, args.device_seed)?;
+    let work: Vec<(usize, u64, KeepStrategy)> = (0..devices.len())
+        .flat_map(|d| (1..=args.seeds).flat_map(move |s| KeepStrategy::ALL.map(|k| (d, s, k))))
+        .filter(|(_, _, k)| strategies.contains(k))
+        .collect();
+    let (mut results, failures) = parallel_map(&work, threads, |&(d, seed, strategy)| {
+        let (device, cfg) = &devices[d];
+        run_keep_seed(cfg, &product, strategy, &protocol, args.hours, seed, false)
+            .map(|mut r| {
+                r.device = *device;
+                r
+            })
+            .map_err(|e| format!("device {device}, {}: {e}", strategy.name()))
+    });
+    results.sort_by_key(|r| (r.device, r.seed, r.strategy as u8));
+    for f in &failures {
+        eprintln!("warning: {f}");
+    }
+    let summary = summarize_keep(&results, &strategies, args.hours);
+    println!(
+        "{}",
+        markdown_table(&summary, devices.len() as u64 * args.seeds, &args)
+    );
+    if let Some(path) = &args.json {
+        let report = BenchKeepReport {
+            hours: args.hours,
+            seeds: args.seeds,
+            relative_tolerance: args.tolerance,
+            strategies: summary,
+            random_devices,
+        };
+        let text = serde_json::to_string_pretty(&report).expect("serializable report");
+        std::fs::write(path, text)
+            .map_err(|e| CliError::runtime(format!("cannot write {}: {e}", path.display())))?;
+        eprintln!("wrote {}", path.display());
+    }
+    if let Some(path) = &args.plot {
+        let strategy = strategies[0];
+        let r = run_keep_seed(
+            &devices[0].1,
+            &product,
+            strategy,
+            &protocol,
+            args.hours,
+            args.plot_seed,
+            true,
+        )
+        .map_err(|e| CliError::runtime(e.to_string()))?;
+        let targets = product
+            .top()
+            .parameters
+            .iter()
+            .filter_map(|p| Some((p.name.clone(), p.target?)))
+            .collect::<Vec<_>>();
+        draw_day(path, &r, &targets, args.tolerance, args.hours)?;
+        eprintln!("wrote {}", path.display());
+    }
+    if !failures.is_empty() {
+        return Err(CliError::runtime(format!(
+            "{} run(s) failed",
+            failures.len()
+        )));
+    }
+    Ok(())
+}
+
+fn parse_strategies(names: &[String]) -> Result<Vec<KeepStrategy>, CliError> {
+    if names.is_empty() {
+        return Ok(KeepStrategy::ALL.to_vec());
+    }
+    names
+        .iter()
+        .map(|n| {
+            KeepStrategy::parse(n.trim()).ok_or_else(|| {
+                let all: Vec<&str> = KeepStrategy::ALL.iter().map(|s| s.name()).collect();
+                CliError::input(format!(
+                    "unknown keep strategy {n:?}; choose from {}",
+                    all.join(", ")
+                ))
+            })
+        })
+        .collect()
+}
+
+/// The markdown table printed at the end.
+pub fn markdown_table(summary: &[KeepSummary], runs: u64, args: &BenchKeepArgs) -> String {
+    let mut s = format!(
+        "Runs (devices × seeds): {runs}; {:.0} lab hours kept after the first tuned point, tolerance ±{:.0} %.\n\n",
+        args.hours,
+        args.tolerance * 100.0
+    );
+    s.push_str("| strategy | fraction in band (mean) | median | p10 | min | measurement min/h | re-tunes/day | checks/day | longest out of band, min (median) | p90 | max | alerts | not tuned | limit violations | truth queries |\n");
+    s.push_str("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
+    for r in summary {
+        s.push_str(&format!(
+            "| {} | {:.4} | {:.4} | {:.4} | {:.4} | {:.2} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {} | {} | {} | {} |\n",
+            r.name,
+            r.fraction_in_band,
+            r.fraction_in_band_low.median,
+            r.fraction_in_band_low.p90,
+            r.fraction_in_band_low.max,
+            r.measurement_minutes_per_hour,
+            r.retunes_per_day,
+            r.checks_per_day,
+            r.longest_out_of_band_minutes.median,
+            r.longest_out_of_band_minutes.p90,
+            r.longest_out_of_band_minutes.max,
+            r.alerts,
+            r.not_tuned,
+            r.limit_violations,
+            r.truth_queries,
+        ));
+    }
+    s
+}
+
+/// A day of one run: true t_sr and w relative to their targets, the band,
+/// and the lab times of checks and re-tunes.
+fn draw_day(
+    path: &Path,
+    r: &KeepSeedResult,
+    targets: &[(String, f64)],
+    tolerance: f64,
+    hours: f64,
+) -> Result<(), CliError> {
+    use plotters::prelude::*;
+    crate::bench::register_font()?;
+    let err = |e: &dyn std::fmt::Display| CliError::runtime(format!("plot: {e}"));
+    let target = |name: &str| {
+        targets
+            .iter()
+            .find(|(n, _)| n == name)
+            .map_or(f64::NAN, |t| t.1)
+    };
+    let (t_sr0, w0) = (target("t_sr"), target("w"));
+    let root = BitMapBackend::new(path, (1200, 900)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| err(&e))?;
+    let title = format!(
+        "spintune bench-keep: {} on seed {}, {:.0} lab h — fraction in band {:.3}, {:.2} measurement min/h, {} checks, {} re-tunes",
+        r.strategy.name(),
+        r.seed,
+        hours,
+        r.fraction_in_band,
+        r.measurement_minutes_per_hour,
+        r.checks,
+        r.retunes
+    );
+    let root = root
+        .titled(&title, ("sans-serif", 18))
+        .map_err(|e| err(&e))?;
+    let panels = root.split_evenly((2, 1));
+    let kept: Vec<&KeepSample> = r.trace.iter().filter(|s| s.hours >= 0.0).collect();
+    for (pi, (name, unit)) in [("t_sr", "ns"), ("w", "µV")].into_iter().enumerate() {
+        let target = if pi == 0 { t_sr0 } else { w0 };
+        let value = |s: &KeepSample| if pi == 0 { s.t_sr_ns } else { s.w_uv };
+        let (lo, hi) = kept.iter().map(|s| value(s)).fold(
+            (
+                target * (1.0 - 1.5 * tolerance),
+                target * (1.0 + 1.5 * tolerance),
+            ),
+            |(lo, hi), v| (lo.min(v), hi.max(v)),
+        );
+        let mut chart = ChartBuilder::on(&panels[pi])
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(80)
+            .build_cartesian_2d(0f64..hours, lo..hi)
+            .map_err(|e| err(&e))?;
+        chart
+            .configure_mesh()
+            .x_desc("lab time since first tuned (h)")
+            .y_desc(format!("true {name} ({unit})"))
+            .draw()
+            .map_err(|e| err(&e))?;
+        chart
+            .draw_series(std::iter::once(Rectangle::new(
+                [
+                    (0.0, target * (1.0 - tolerance)),
+                    (hours, target * (1.0 + tolerance)),
+                ],
+                RGBColor(120, 200, 120).mix(0.25).filled(),
+            )))
+            .map_err(|e| err(&e))?
+            .label(format!("±{:.0} % band", tolerance * 100.0))
+            .legend(|(x, y)| {
+                Rectangle::new(
+                    [(x, y - 5), (x + 20, y + 5)],
+                    RGBColor(120, 200, 120).mix(0.25).filled(),
+                )
+            });
+        chart
+            .draw_series(LineSeries::new(
+                kept.iter().map(|s| (s.hours, value(s))),
+                RGBColor(31, 119, 180).stroke_width(2),
+            ))
+            .map_err(|e| err(&e))?
+            .label(format!("true {name} (world side)"))
+            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], RGBColor(31, 119, 180)));
+        for (mark, color, label) in [
+            ("check", RGBColor(90, 90, 90), "check"),
+            ("retune", RGBColor(214, 39, 40), "re-tune started"),
+        ] {
+            chart
+                .draw_series(
+                    kept.iter()
+                        .filter(|s| s.mark == mark)
+                        .map(|s| Circle::new((s.hours, value(s)), 3, color.filled())),
+                )
+                .map_err(|e| err(&e))?
+                .label(label)
+                .legend(move |(x, y)| Circle::new((x + 10, y), 3, color.filled()));
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .draw()
+            .map_err(|e| err(&e))?;
+    }
+    root.present().map_err(|e| err(&e))
+}

@@ -309,11 +309,35 @@ pub struct RunArgs {
     /// No progress display (final summary only).
     #[arg(long)]
     pub quiet: bool,
+    /// Keep mode: once tuned, keep the qubit in tune for this many lab hours
+    /// (0 < HOURS ≤ 720; the config's `[tuner.keep]` settings, or the defaults).
+    #[arg(long, value_name = "HOURS")]
+    pub keep: Option<f64>,
 }
+
+/// Longest `spintune run --keep`, lab hours (30 days).
+pub const MAX_KEEP_HOURS: f64 = 720.0;
 
 /// `spintune run --config FILE`: a full headless run with a progress display.
 pub async fn run(args: RunArgs) -> Result<(), CliError> {
-    let config = load_config(&args.config)?;
+    let mut config = load_config(&args.config)?;
+    if let Some(hours) = args.keep {
+        if !(hours.is_finite() && hours > 0.0 && hours <= MAX_KEEP_HOURS) {
+            return Err(CliError::input(format!(
+                "--keep must be a number of lab hours in (0, {MAX_KEEP_HOURS}], got {hours}"
+            )));
+        }
+        let tuner = &mut config.simulation.tuner;
+        let keep = tuner.keep.get_or_insert_with(Default::default);
+        keep.duration_s = Some(hours * 3600.0);
+        // the keep duration ends the run, not an iteration count
+        tuner.stop_when_tuned = false;
+        tuner.max_iterations = None;
+        tuner
+            .validate()
+            .map_err(|e| CliError::input(format!("--keep: {}", e.within("tuner"))))?;
+    }
+    let keeping = config.simulation.tuner.keep.is_some();
     if config.backend.uses_bridge() {
         // The bridge client connects over the server's WebSocket, which `run` does not start.
         return Err(CliError::input(format!(
@@ -353,12 +377,12 @@ pub async fn run(args: RunArgs) -> Result<(), CliError> {
         indicatif::ProgressBar::hidden()
     } else {
         match max {
-            Some(n) => indicatif::ProgressBar::new(n),
-            None => indicatif::ProgressBar::new_spinner(),
+            Some(n) if !keeping => indicatif::ProgressBar::new(n),
+            _ => indicatif::ProgressBar::new_spinner(),
         }
     };
     bar.set_style(
-        indicatif::ProgressStyle::with_template(if max.is_some() {
+        indicatif::ProgressStyle::with_template(if max.is_some() && !keeping {
             "{spinner} [{bar:30}] {pos}/{len} {msg}"
         } else {
             "{spinner} {pos} iterations {msg}"
@@ -368,6 +392,7 @@ pub async fn run(args: RunArgs) -> Result<(), CliError> {
     );
     bar.set_message(format!("run {id} ({})", summary.name));
     let mut last: Option<spintune::protocol::IterationRecord> = None;
+    let mut tally = spintune::tuner::KeepTally::default();
     let mut fault: Option<spintune::protocol::Fault> = None;
     let interrupted = loop {
         tokio::select! {
@@ -376,7 +401,12 @@ pub async fn run(args: RunArgs) -> Result<(), CliError> {
                     match frame.event {
                         RunEvent::Iteration(record) => {
                             bar.set_position(record.iteration + 1);
-                            bar.set_message(progress_line(&record));
+                            tally.add(&record);
+                            let mut line = progress_line(&record);
+                            if keeping {
+                                line.push_str(&tally.describe(&record));
+                            }
+                            bar.set_message(line);
                             last = Some((*record).clone());
                         }
                         RunEvent::Status(run) => match run.status {
@@ -439,6 +469,11 @@ pub async fn run(args: RunArgs) -> Result<(), CliError> {
         final_summary.lab_seconds / 60.0,
         if final_summary.tuned { "yes" } else { "no" }
     );
+    if keeping {
+        if let Some(r) = &last {
+            println!("  keep:{}", tally.describe(r).trim_start_matches(" |"));
+        }
+    }
     if let Some(r) = &last {
         for p in &r.parameters {
             println!(

@@ -32,6 +32,7 @@
 mod config;
 pub mod finite_difference;
 mod keep;
+mod keep_tally;
 mod newton;
 
 use std::collections::{BTreeMap, VecDeque};
@@ -47,6 +48,7 @@ pub use config::{
 };
 pub use keep::{DriftModel, KeepConfig, KeepSchedule, MAX_KEEP_SECONDS, MIN_CHECK_INTERVAL_S};
 use keep::{KeepNext, KeepState};
+pub use keep_tally::KeepTally;
 pub use newton::Consistency;
 use newton::NewtonState;
 

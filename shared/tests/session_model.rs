@@ -52,6 +52,9 @@ static EXECUTED: AtomicU64 = AtomicU64::new(0);
 /// `moved` faults published and positions accepted, over all cases.
 static MOVED: AtomicU64 = AtomicU64::new(0);
 static ACCEPTED: AtomicU64 = AtomicU64::new(0);
+/// Keep mode: check records committed and waits executed.
+static KEEP_CHECKS: AtomicU64 = AtomicU64::new(0);
+static WAITS: AtomicU64 = AtomicU64::new(0);
 
 const CASES: u32 = 500;
 const MAX_SCRIPT: usize = 300;
@@ -459,6 +462,13 @@ fn next_request(
                 }
                 committed.push(rec.iteration);
                 COMMITS.fetch_add(1, Ordering::Relaxed);
+                if rec
+                    .keep
+                    .as_ref()
+                    .is_some_and(|k| k.phase == spintune::protocol::KeepPhase::Check)
+                {
+                    KEEP_CHECKS.fetch_add(1, Ordering::Relaxed);
+                }
                 *checkpoint = serde_json::to_string(session).unwrap();
             }
             Output::Save => *checkpoint = serde_json::to_string(session).unwrap(),
@@ -481,7 +491,10 @@ fn next_request(
 }
 
 fn run_script(script: &[Action]) -> Result<(), TestCaseError> {
-    let cfg = tuner_config();
+    run_script_with(tuner_config(), script)
+}
+
+fn run_script_with(cfg: TunerConfig, script: &[Action]) -> Result<(), TestCaseError> {
     let mut dev = Instrument::new(&cfg);
     let mut session = RunSession::new(
         cfg,
@@ -507,6 +520,9 @@ fn run_script(script: &[Action]) -> Result<(), TestCaseError> {
                 // invariants 1 and 2
                 dev.check_request(&req).map_err(TestCaseError::fail)?;
                 EXECUTED.fetch_add(1, Ordering::Relaxed);
+                if matches!(req, Request::Wait { .. }) {
+                    WAITS.fetch_add(1, Ordering::Relaxed);
+                }
                 let how = match (how, &req) {
                     (Answer::LyingRead(d), Request::ReadVoltages { gates }) => {
                         // The lie is told about the first gate of the answer.
@@ -661,4 +677,41 @@ fn session_holds_safety_and_lifecycle_invariants_over_1e5_random_steps() {
         accepted >= u64::from(CASES) / 5,
         "{accepted} positions accepted"
     );
+}
+
+/// The same invariants with keep mode on: once tuned, the run waits
+/// (`Request::Wait`), checks and re-tunes; crashes, faults, lies and target
+/// changes land in every phase of it. The scripts must reach keep mode.
+#[test]
+fn keep_mode_session_holds_the_same_invariants() {
+    use proptest::test_runner::{RngAlgorithm, TestRng, TestRunner};
+    let mut cfg = tuner_config();
+    cfg.max_iterations = None;
+    cfg.keep = Some(spintune::tuner::KeepConfig {
+        min_check_interval_s: 10.0,
+        max_check_interval_s: 60.0,
+        batch_window_s: 0.0,
+        ..spintune::tuner::KeepConfig::default()
+    });
+    let mut runner = TestRunner::new_with_rng(
+        ProptestConfig {
+            cases: CASES / 5,
+            ..ProptestConfig::default()
+        },
+        TestRng::deterministic_rng(RngAlgorithm::ChaCha),
+    );
+    let result = runner.run(
+        &prop::collection::vec(action(), MAX_SCRIPT / 2..=MAX_SCRIPT),
+        |script| run_script_with(cfg.clone(), &script),
+    );
+    if let Err(e) = result {
+        panic!("{e}");
+    }
+    let (checks, waits) = (
+        KEEP_CHECKS.load(Ordering::Relaxed),
+        WAITS.load(Ordering::Relaxed),
+    );
+    eprintln!("keep mode: {checks} checks committed, {waits} waits executed");
+    assert!(checks >= u64::from(CASES / 5), "{checks} checks");
+    assert!(waits >= u64::from(CASES / 5), "{waits} waits");
 }

@@ -530,3 +530,33 @@ def test_instrument_step_and_inter_delay_from_the_limits(station):
     assert dac.N.inter_delay == 0.0
     with pytest.raises(ValueError, match="inter_delay_s"):
         QcodesTuner(station["gates"], station["scans"], inter_delay_s=-1.0)
+
+
+def test_keep_mode_waits_through_sleep_then_checks_on_the_instruments(station):
+    """Keep mode (the tuner config's ``keep`` table): once tuned, lab time
+    passes through ``sleep`` (here it advances the simulated device's clock,
+    so it drifts as a real one would), then checks measure again; the gates
+    stay within every limit and step throughout."""
+    start_mv = dict(station["device"].voltages_mv)
+    waited = []
+
+    def sleep(seconds):
+        waited.append(seconds)
+        r = station["device"].execute({"request": "wait", "seconds": seconds})
+        assert r["response"] == "waited"
+
+    tuner = QcodesTuner(
+        station["gates"],
+        station["scans"],
+        {"keep": {"duration_s": 4 * 3600.0, "min_check_interval_s": 60.0}},
+        experiment=station["exp"],
+        sleep=sleep,
+        **FAST,
+    )
+    tuner.run()
+    assert tuner.status == {"state": "finished"}
+    phases = [r["keep"]["phase"] for r in tuner.records]
+    assert phases[0] == "tuning" and "check" in phases, phases
+    assert 3 * 3600.0 < sum(waited) <= 4 * 3600.0 + 1.0
+    assert max(waited) <= 600.0  # one wait request is at most 10 lab minutes
+    check_instrument_log(station["dac"], tuner.limits, start_mv)

@@ -278,3 +278,19 @@ def test_a_background_run_can_be_watched_and_stopped_from_another_thread():
     assert run.status == {"state": "stopped"}
     assert len(run.records) >= max(seen)
     assert len(run.records) < 10_000
+
+
+def test_keep_mode_in_python_checks_retunes_and_exports():
+    """``SimulationRun`` with a ``keep`` table: tuned once, then kept for
+    six lab hours of drift; every record says what it was."""
+    run = spintune.SimulationRun({"seed": 3, "tuner": {"keep": {"duration_s": 6 * 3600.0}}})
+    records = run.run()
+    assert run.status == {"state": "finished"}
+    phases = [r["keep"]["phase"] for r in records]
+    assert phases[0] == "tuning"
+    assert phases.count("check") >= 3
+    assert records[-1]["lab_seconds"] > 4 * 3600.0
+    keeping = [r for r in records if r["keep"]["next_check_lab_seconds"] is not None]
+    assert keeping and all(r["keep"]["next_check_lab_seconds"] > r["lab_seconds"] for r in keeping)
+    ds = run.to_xarray()
+    assert ds.sizes["iteration"] == len(records)

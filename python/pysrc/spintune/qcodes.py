@@ -11,7 +11,8 @@ The adapter only
   the tuner config's ``gates`` before it creates the session;
 * executes the session's requests: ``read_voltages`` → ``param.get()``,
   ``set_voltages`` → ``param.set()`` then ``param.get()`` (the read-back),
-  ``measure`` → your scan callable;
+  ``measure`` → your scan callable, ``wait`` (keep mode, ``tuner_config``'s
+  ``keep`` table: lab time between checks) → ``sleep``;
 * records each committed iteration into a ``qcodes.dataset`` Measurement.
 
 Units: the tuner works in mV. A gate parameter in V (``unit="V"``) is set to
@@ -487,7 +488,8 @@ class QcodesTuner:
             ``load_or_create_experiment("spintune", sample_name=name)``).
         station: QCoDeS station recorded with the datasets' snapshot.
         name: name of the QCoDeS measurement.
-        sleep: function used for the session's ``sleep`` outputs, s.
+        sleep: function used for the session's ``sleep`` outputs and keep
+            mode's ``wait`` requests (lab time between checks), s.
         inter_delay_s: least time between two sets of one gate parameter, s
             (QCoDeS ``inter_delay``; default 1 ms, ``None`` leaves it as it
             is). A larger ``inter_delay`` already set is kept.
@@ -885,6 +887,11 @@ class QcodesTuner:
             except ScanFailed as e:
                 outcome = {"kind": "failed", "reason": str(e) or "scan failed"}
             return {"response": "scanned", "outcome": outcome, "lab_seconds": time.monotonic() - t0}
+        if kind == "wait":
+            # keep mode: lab time passes between checks (at most 600 s per request);
+            # nothing touches the instrument
+            self._sleep(float(request["seconds"]))
+            return {"response": "waited", "lab_seconds": time.monotonic() - t0}
         return {"response": "error", "message": f"`{kind}` is not available on instruments"}
 
     # -- the QCoDeS dataset --------------------------------------------------

@@ -12,11 +12,12 @@
 //! * `filter_plus_newton` — what one iteration does numerically: `m` calls of
 //!   [`KalmanGradient::update`] with the step `Δv` and the measured changes
 //!   `Δz` (with variances), the Jacobian assembled from the `m` gradients, and
-//!   one [`newton_step`] (SVD pseudo-inverse) with the paper's 10 mV limit;
+//!   one [`newton_step`] (minimum-norm pseudo-inverse step: QR of `Jᵀ` for a
+//!   clearly full-rank `J`, as here, SVD otherwise) with the paper's 10 mV limit;
 //! * `filter_only` — the `m` filter updates alone;
 //! * `newton_only` — [`newton_step`] alone on the updated Jacobian;
 //! * `baseline_normal_eq` — the same limited step from the normal equations
-//!   `Δv = −Jᵀ (J Jᵀ)⁻¹ Δ` by Cholesky (no SVD, no rank handling). A yardstick
+//!   `Δv = −Jᵀ (J Jᵀ)⁻¹ Δ` by Cholesky (no rank handling). A yardstick
 //!   for the solver's cost measured in the same run, not a replacement: it
 //!   fails on rank-deficient `J`, which `newton_step` handles.
 //!
@@ -162,7 +163,7 @@ mod native {
 
         // Check that the timed code takes the path it should: every update is a
         // full update (not skipped or gated), J has full rank, and the baseline
-        // agrees with the SVD step.
+        // agrees with the solver's step.
         let mut updated = filters.clone();
         for (f, (z, v)) in updated.iter_mut().zip(dz.iter().zip(&dz2)) {
             let out = f.update(&dv_mv, *z, *v).expect("valid update");

@@ -10,8 +10,12 @@
 //!
 //! The covariance update uses the Joseph form
 //! `C ← (I − K H) C (I − K H)ᵀ + K Δz² Kᵀ + Q`, which equals the paper's form
-//! for the optimal gain but stays symmetric positive semi-definite under
-//! rounding; the result is symmetrised explicitly as well.
+//! for the optimal gain but is insensitive (to first order) to errors in the
+//! gain, so it stays symmetric positive semi-definite under rounding. It is
+//! evaluated as rank-one corrections, `C − K uᵀ − u Kᵀ + s K Kᵀ + Q` with
+//! `u = C Hᵀ` and `s = H C Hᵀ + Δz²`: O(n²) per update, in place, no n×n
+//! temporaries. `C` stays exactly symmetric: the correction is symmetric
+//! float for float, and `Q` is symmetrised once, when the filter is built.
 //!
 //! Units: gradients are in parameter units per mV (e.g. ns/mV, µV/mV); `C` and
 //! `Q` in (parameter units / mV)².
@@ -66,6 +70,55 @@ impl ProcessNoise {
                 q_ref * (ratio * ratio)
             }
         }
+    }
+
+    /// The matrix and the factor whose product [`ProcessNoise::for_step`]
+    /// returns, without forming it: `(Q, 1)` or `(Q_ref, (|Δv|/reference)²)`.
+    fn matrix_and_factor(&self, dv: &DVector<f64>) -> (&DMatrix<f64>, f64) {
+        match self {
+            ProcessNoise::Constant { q } => (q, 1.0),
+            ProcessNoise::StepScaled {
+                q_ref,
+                reference_step_mv,
+            } => {
+                let ratio = dv.norm() / reference_step_mv;
+                (q_ref, ratio * ratio)
+            }
+        }
+    }
+
+    /// The same policy with its matrix replaced by `(Q + Qᵀ)/2` (a no-op,
+    /// bit for bit, for a symmetric matrix).
+    fn symmetrised(self) -> Self {
+        match self {
+            ProcessNoise::Constant { q } => ProcessNoise::Constant { q: symmetrise(q) },
+            ProcessNoise::StepScaled {
+                q_ref,
+                reference_step_mv,
+            } => ProcessNoise::StepScaled {
+                q_ref: symmetrise(q_ref),
+                reference_step_mv,
+            },
+        }
+    }
+
+    /// Diagonal, symmetric or neither (exact comparisons).
+    fn shape(&self) -> QShape {
+        let (ProcessNoise::Constant { q } | ProcessNoise::StepScaled { q_ref: q, .. }) = self;
+        let n = q.nrows();
+        let mut shape = QShape::Diagonal;
+        for j in 0..n {
+            for i in 0..j {
+                let (upper, lower) = (q[(i, j)], q[(j, i)]);
+                if upper != lower {
+                    return QShape::Asymmetric;
+                }
+                if upper != 0.0 {
+                    shape = QShape::Symmetric;
+                }
+            }
+        }
+        shape
     }
 
     fn dimension(&self) -> (usize, usize) {
@@ -184,6 +237,9 @@ pub struct KalmanGradient {
     min_step_mv: f64,
     /// Gate innovations beyond this many predicted standard deviations; `None` = never gate.
     outlier_sigma: Option<f64>,
+    /// The shape of `Q` (cached; not part of the state).
+    #[serde(skip)]
+    noise_shape: NoiseShape,
 }
 
 impl KalmanGradient {
@@ -211,9 +267,10 @@ impl KalmanGradient {
         Ok(Self {
             gradient: g0,
             covariance: symmetrise(c0),
-            process_noise: q,
+            process_noise: q.symmetrised(),
             min_step_mv: 1e-6,
             outlier_sigma: None,
+            noise_shape: NoiseShape::default(),
         })
     }
 
@@ -305,16 +362,15 @@ impl KalmanGradient {
             return Ok(UpdateOutcome::SkippedSmallStep { step_norm_mv });
         }
         let h = dv; // as a column; H = hᵀ
-        let ch = &self.covariance * h; // C Hᵀ (n)
-        let s = h.dot(&ch) + dz2; // H C Hᵀ + Δz²
+        let u = &self.covariance * h; // u = C Hᵀ (n), (unit/mV)²·mV
+        let s = h.dot(&u) + dz2; // H C Hᵀ + Δz², (unit)²
         let innovation = z - h.dot(&self.gradient);
-        let q = self.process_noise.for_step(dv);
         if s <= 0.0 || !s.is_finite() {
             // No uncertainty in prediction or measurement: nothing sensible to learn.
             // Treat as an exact Broyden step in the limit.
             let hh = h.dot(h);
             self.gradient += h * (innovation / hh);
-            self.covariance = symmetrise(&self.covariance + q);
+            self.add_process_noise(dv);
             return Ok(UpdateOutcome::Updated {
                 innovation,
                 innovation_sigma: 0.0,
@@ -323,24 +379,134 @@ impl KalmanGradient {
         let innovation_sigma = s.sqrt();
         if let Some(limit) = self.outlier_sigma {
             if innovation.abs() > limit * innovation_sigma {
-                self.covariance = symmetrise(&self.covariance + q);
+                self.add_process_noise(dv);
                 return Ok(UpdateOutcome::Gated {
                     innovation,
                     innovation_sigma,
                 });
             }
         }
-        let k = ch / s; // Kalman gain (n)
-        let new_gradient = &self.gradient + &k * innovation;
-        // Joseph form: (I − K H) C (I − K H)ᵀ + K Δz² Kᵀ + Q
-        let ikh = DMatrix::identity(n, n) - &k * h.transpose();
-        let new_cov = &ikh * &self.covariance * ikh.transpose() + (&k * k.transpose()) * dz2 + q;
-        self.gradient = new_gradient;
-        self.covariance = symmetrise(new_cov);
+        let k = &u / s; // Kalman gain (n), unit/mV per unit
+        for (g, k) in self.gradient.iter_mut().zip(k.iter()) {
+            *g += k * innovation; // g ← g + K (z − H g)
+        }
+        self.joseph_update_plus_noise(&k, &u, s, dv);
         Ok(UpdateOutcome::Updated {
             innovation,
             innovation_sigma,
         })
+    }
+
+    /// `C ← (I − K H) C (I − K H)ᵀ + K Δz² Kᵀ + Q`, in place and in O(n²).
+    ///
+    /// With `u = C Hᵀ` and `s = H C Hᵀ + Δz²` (the values the gain was
+    /// computed from, `K = u / s`), the Joseph form expands into rank-one
+    /// corrections, `C − K uᵀ − u Kᵀ + s K Kᵀ`, i.e. the symmetric rank-two
+    /// update `C − K wᵀ − w Kᵀ` with `w = u − (s/2) K`. Like the product form
+    /// it is stationary in `K` (an error in the gain changes `C` only to
+    /// second order); it needs no n×n×n product and no n×n temporary.
+    fn joseph_update_plus_noise(
+        &mut self,
+        k: &DVector<f64>,
+        u: &DVector<f64>,
+        s: f64,
+        dv: &DVector<f64>,
+    ) {
+        let half_s = 0.5 * s;
+        let w = DVector::from_fn(k.len(), |i, _| u[i] - half_s * k[i]);
+        self.update_in_place(k.as_slice(), w.as_slice(), dv);
+    }
+
+    /// `C ← C + Q` in place (the gated and the exact-Broyden paths).
+    fn add_process_noise(&mut self, dv: &DVector<f64>) {
+        self.update_in_place(&[], &[], dv);
+    }
+
+    /// `C ← C − K wᵀ − w Kᵀ + Q` in place (`k`, `w` of length n, or both
+    /// empty for `C ← C + Q`), column by column over contiguous memory.
+    ///
+    /// Exactly symmetric: `C` is exactly symmetric on entry (an invariant:
+    /// [`KalmanGradient::new`] symmetrises `C(0)`), `kᵢwⱼ + wᵢkⱼ` is the same
+    /// float as `kⱼwᵢ + wⱼkᵢ`, and `Q` is symmetric (`new` symmetrises it;
+    /// a deserialised asymmetric `Q` gets the result symmetrised, as the
+    /// dense form did). A diagonal `Q` (the tuner's `σ² I`) is read on the
+    /// diagonal only, which saves reading n² entries per update.
+    fn update_in_place(&mut self, k: &[f64], w: &[f64], dv: &DVector<f64>) {
+        let n = self.dimension();
+        if n == 0 {
+            return;
+        }
+        let shape = *self
+            .noise_shape
+            .0
+            .get_or_insert_with(|| self.process_noise.shape());
+        let (q, q_factor) = self.process_noise.matrix_and_factor(dv);
+        let q = q.as_slice();
+        let c = self.covariance.as_mut_slice();
+        // Column-major: column j is c[j·n .. (j+1)·n].
+        for (j, (cj, qj)) in c.chunks_exact_mut(n).zip(q.chunks_exact(n)).enumerate() {
+            match (k.is_empty(), shape == QShape::Diagonal) {
+                (true, true) => {}
+                (true, false) => {
+                    for (c_ij, &q_ij) in cj.iter_mut().zip(qj) {
+                        *c_ij += q_ij * q_factor;
+                    }
+                }
+                (false, true) => {
+                    let (kj, wj) = (k[j], w[j]);
+                    for ((c_ij, &k_i), &w_i) in cj.iter_mut().zip(k).zip(w) {
+                        *c_ij -= k_i * wj + w_i * kj;
+                    }
+                }
+                (false, false) => {
+                    let (kj, wj) = (k[j], w[j]);
+                    for (((c_ij, &q_ij), &k_i), &w_i) in cj.iter_mut().zip(qj).zip(k).zip(w) {
+                        *c_ij = (*c_ij - (k_i * wj + w_i * kj)) + q_ij * q_factor;
+                    }
+                }
+            }
+            if shape == QShape::Diagonal {
+                cj[j] += qj[j] * q_factor;
+            }
+        }
+        if shape == QShape::Asymmetric {
+            symmetrise_in_place(&mut self.covariance);
+        }
+    }
+}
+
+/// `M ← (M + Mᵀ)/2` in place, for a square `M`.
+fn symmetrise_in_place(m: &mut DMatrix<f64>) {
+    let n = m.nrows();
+    let c = m.as_mut_slice();
+    for j in 0..n {
+        for i in 0..j {
+            let v = (c[j * n + i] + c[i * n + j]) * 0.5;
+            c[j * n + i] = v;
+            c[i * n + j] = v;
+        }
+    }
+}
+
+/// The structure of a process-noise matrix, as far as the update uses it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum QShape {
+    /// No non-zero entry off the diagonal.
+    Diagonal,
+    /// Exactly symmetric.
+    Symmetric,
+    /// Neither (only from deserialised state: `new` symmetrises `Q`).
+    Asymmetric,
+}
+
+/// The [`QShape`] of the process noise: a cache, not state (skipped by
+/// serde, equal to any other in `PartialEq`), filled on the first update.
+#[derive(Debug, Clone, Copy, Default)]
+struct NoiseShape(Option<QShape>);
+
+impl PartialEq for NoiseShape {
+    fn eq(&self, _: &Self) -> bool {
+        true
     }
 }
 
@@ -516,6 +682,209 @@ mod tests {
             ProcessNoise::isotropic(3, 0.1)
         )
         .is_err());
+    }
+
+    /// The textbook update with full matrix products (Joseph form, then `+ Q`):
+    /// the reference for the O(n²) rank-one evaluation.
+    fn dense_joseph(
+        g: &DVector<f64>,
+        c: &DMatrix<f64>,
+        q: &DMatrix<f64>,
+        h: &DVector<f64>,
+        z: f64,
+        dz2: f64,
+    ) -> (DVector<f64>, DMatrix<f64>) {
+        let n = h.len();
+        let s = (h.transpose() * c * h)[(0, 0)] + dz2;
+        let k = c * h / s;
+        let g = g + &k * (z - h.dot(g));
+        let ikh = DMatrix::identity(n, n) - &k * h.transpose();
+        let c = &ikh * c * ikh.transpose() + &k * k.transpose() * dz2 + q;
+        (g, c)
+    }
+
+    /// A random symmetric positive definite n×n matrix `(A Aᵀ + 0.01 I)·scale`.
+    fn spd(entries: &[f64], n: usize, scale: f64) -> DMatrix<f64> {
+        let a = DMatrix::from_column_slice(n, n, &entries[..n * n]);
+        (&a * a.transpose() + DMatrix::identity(n, n) * 0.01) * scale
+    }
+
+    /// Smallest eigenvalue over the trace (≥ 0 for a PSD matrix, up to rounding).
+    fn min_eigenvalue_over_trace(c: &DMatrix<f64>) -> f64 {
+        let eig = c.clone().symmetric_eigenvalues();
+        eig.min() / c.trace()
+    }
+
+    #[test]
+    fn asymmetric_q_is_symmetrised_once_and_c_stays_exactly_symmetric() {
+        let q =
+            DMatrix::from_row_slice(3, 3, &[1.0, 0.2, 0.0, 0.2 + 1e-12, 1.0, 0.0, 0.0, 0.0, 2.0]);
+        let mut f = KalmanGradient::new(
+            DVector::zeros(3),
+            DMatrix::identity(3, 3),
+            ProcessNoise::Constant { q: q.clone() },
+        )
+        .unwrap();
+        let ProcessNoise::Constant { q: stored } = f.process_noise().clone() else {
+            panic!("constant Q expected");
+        };
+        assert_eq!(stored, symmetrise(q));
+        for i in 0..20 {
+            let dv = DVector::from_vec(vec![1.0, -0.5 * i as f64, 0.3]);
+            f.update(&dv, 0.1 * i as f64, 0.5).unwrap();
+            let c = f.covariance();
+            assert_eq!(c, &c.transpose());
+        }
+    }
+
+    #[test]
+    fn deserialised_asymmetric_q_still_gives_a_symmetric_c() {
+        // `new` symmetrises Q; a state written elsewhere may not have.
+        let f = filter(2);
+        let mut json: serde_json::Value = serde_json::to_value(&f).unwrap();
+        // nalgebra writes a matrix as [column-major data, nrows, ncols]
+        json["process_noise"]["q"][0] = serde_json::json!([0.01, 1e-12, 0.0, 0.01]);
+        let mut f: KalmanGradient = serde_json::from_value(json).unwrap();
+        let ProcessNoise::Constant { q } = f.process_noise().clone() else {
+            panic!("constant Q expected");
+        };
+        assert_ne!(q, q.transpose());
+        let before = f.covariance().clone();
+        f.update(&DVector::from_vec(vec![1.0, 2.0]), 0.5, 0.1)
+            .unwrap();
+        let c = f.covariance();
+        assert_eq!(c, &c.transpose());
+        assert!(c != &before);
+    }
+
+    #[test]
+    fn gated_update_adds_q_exactly_as_the_dense_form() {
+        // Gated (and exact-Broyden) updates only add Q: bit for bit
+        // `symmetrise(C + Q)`, for a diagonal and for a full Q.
+        let c0 = spd(&[0.3, -1.0, 0.5, 0.2, 0.9, -0.4, 0.1, 0.7, -0.6], 3, 2.0);
+        for q in [
+            DMatrix::from_diagonal(&DVector::from_vec(vec![0.01, 0.02, 0.03])),
+            spd(&[0.5, 0.1, -0.2, 0.3, 0.4, 0.1, -0.3, 0.2, 0.6], 3, 0.01),
+        ] {
+            let mut f = KalmanGradient::new(
+                DVector::zeros(3),
+                c0.clone(),
+                ProcessNoise::Constant { q: q.clone() },
+            )
+            .unwrap()
+            .with_outlier_sigma(Some(1.0))
+            .unwrap();
+            let before = f.covariance().clone();
+            let out = f
+                .update(&DVector::from_vec(vec![1.0, 0.0, 0.0]), 1e6, 0.0)
+                .unwrap();
+            assert!(matches!(out, UpdateOutcome::Gated { .. }));
+            assert_eq!(f.covariance(), &symmetrise(&before + &q));
+        }
+    }
+
+    #[test]
+    fn serde_round_trip_continues_bit_identically() {
+        // The diagonal-Q cache is not state: a restored filter recomputes it.
+        let mut f = filter(4);
+        let dv = DVector::from_vec(vec![1.0, 2.0, -1.0, 0.5]);
+        f.update(&dv, 1.0, 0.1).unwrap();
+        let mut restored: KalmanGradient =
+            serde_json::from_str(&serde_json::to_string(&f).unwrap()).unwrap();
+        assert_eq!(restored, f);
+        f.update(&dv, -2.0, 0.3).unwrap();
+        restored.update(&dv, -2.0, 0.3).unwrap();
+        assert_eq!(restored.covariance(), f.covariance());
+        assert_eq!(restored.gradient(), f.gradient());
+    }
+
+    proptest! {
+        /// The in-place O(n²) update agrees with the textbook dense Joseph
+        /// form (full matrix products) to 1e-9 relative, over several
+        /// updates from random SPD covariances, with a full or a diagonal,
+        /// constant or step-scaled Q.
+        #[test]
+        fn rank_one_update_matches_dense_joseph_form(
+            n in 1usize..=12,
+            c_entries in proptest::collection::vec(-1.0f64..1.0, 144),
+            q_entries in proptest::collection::vec(-1.0f64..1.0, 144),
+            c_scale in prop_oneof![1e-6f64..1e-3, 1e-3f64..1.0, 1.0f64..1e4],
+            q_scale in prop_oneof![Just(0.0), 1e-8f64..1e-2],
+            diagonal_q in any::<bool>(),
+            step_scaled in any::<bool>(),
+            steps in proptest::collection::vec(
+                (proptest::collection::vec(-10.0f64..10.0, 12), -100.0f64..100.0, 0.0f64..100.0),
+                1..8),
+        ) {
+            let c0 = spd(&c_entries, n, c_scale);
+            let mut q = spd(&q_entries, n, q_scale);
+            if diagonal_q {
+                q = DMatrix::from_diagonal(&q.diagonal());
+            }
+            let reference_step_mv = 5.0;
+            let noise = if step_scaled {
+                ProcessNoise::StepScaled { q_ref: q.clone(), reference_step_mv }
+            } else {
+                ProcessNoise::Constant { q: q.clone() }
+            };
+            let g0 = DVector::from_fn(n, |i, _| c_entries[143 - i]);
+            let mut f = KalmanGradient::new(g0.clone(), c0.clone(), noise.clone()).unwrap();
+            let (mut g_ref, mut c_ref) = (g0, c0);
+            for (dv, z, dz2) in steps {
+                let dv = DVector::from_column_slice(&dv[..n]);
+                prop_assume!(dv.norm() > 1e-3);
+                let out = f.update(&dv, z, dz2).unwrap();
+                prop_assert!(matches!(out, UpdateOutcome::Updated { .. }), "{out:?}");
+                let q_step = noise.for_step(&dv);
+                let (g_new, c_new) = dense_joseph(&g_ref, &c_ref, &q_step, &dv, z, dz2);
+                // Rounding scale: the matrices that went into the update.
+                let c_scale = c_ref.norm().max(c_new.norm()) + q_step.norm();
+                let g_scale = g_ref.norm().max(g_new.norm()) + (g_new.clone() - &g_ref).norm();
+                prop_assert!(
+                    (f.covariance() - &c_new).norm() <= 1e-9 * c_scale,
+                    "C: {} vs {}", f.covariance(), c_new
+                );
+                prop_assert!(
+                    (f.gradient() - &g_new).norm() <= 1e-9 * g_scale,
+                    "g: {} vs {}", f.gradient(), g_new
+                );
+                (g_ref, c_ref) = (g_new, c_new);
+            }
+        }
+
+        /// Over many updates (including exact measurements, Δz² = 0, with
+        /// process noise, and tiny Δz² without) `C` stays exactly symmetric
+        /// and positive semi-definite: smallest eigenvalue ≥ −1e-12 · trace.
+        #[test]
+        fn covariance_stays_psd_over_many_updates(
+            n in 2usize..=10,
+            c_entries in proptest::collection::vec(-1.0f64..1.0, 100),
+            c_scale in prop_oneof![1e-6f64..1e-2, 1e-2f64..1e4],
+            q_sigma in prop_oneof![Just(0.0), 1e-4f64..0.3],
+            steps in proptest::collection::vec(
+                (proptest::collection::vec(-10.0f64..10.0, 10), -50.0f64..50.0,
+                 prop_oneof![Just(0.0), 1e-8f64..1e-3, 1e-3f64..100.0]),
+                100..200),
+        ) {
+            let mut f = KalmanGradient::new(
+                DVector::zeros(n),
+                spd(&c_entries, n, c_scale),
+                ProcessNoise::isotropic(n, q_sigma),
+            ).unwrap();
+            for (dv, z, dz2) in steps {
+                // An exact measurement with no process noise at all collapses C
+                // to rounding noise, where no λ_min/trace bound can hold.
+                let dz2 = if q_sigma == 0.0 { dz2.max(1e-8) } else { dz2 };
+                f.update(&DVector::from_column_slice(&dv[..n]), z, dz2).unwrap();
+                let c = f.covariance();
+                prop_assert_eq!(c, &c.transpose());
+                prop_assert!(c.iter().all(|x| x.is_finite()));
+                if c.trace() > 0.0 {
+                    let ratio = min_eigenvalue_over_trace(c);
+                    prop_assert!(ratio >= -1e-12, "λ_min / trace = {ratio:e}");
+                }
+            }
+        }
     }
 
     proptest! {

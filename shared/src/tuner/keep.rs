@@ -389,6 +389,10 @@ pub(super) struct KeepState {
     out_since_s: Option<f64>,
     /// Whether the present re-tune has raised its alert.
     alerted: bool,
+    /// Whether the next re-tune round starts from the check's values
+    /// (measuring only what the check did not).
+    #[serde(default)]
+    from_check: bool,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -404,7 +408,8 @@ pub(super) enum KeepNext {
     Tune,
     /// Let lab time pass.
     Wait(Request),
-    /// Run these operations on the top level (a check).
+    /// Run these operations on the top level (a check, or a re-tune round
+    /// that starts from a check's values).
     Check(Vec<Op>),
     /// The keep duration is over.
     Finish,
@@ -422,6 +427,7 @@ impl KeepState {
             keeping_since_s: None,
             out_since_s: None,
             alerted: false,
+            from_check: false,
         }
     }
 
@@ -490,6 +496,11 @@ impl Tuner {
         let s = self.keep.as_ref()?;
         let now = self.lab_seconds;
         if s.phase != Phase::Keeping {
+            if s.phase == Phase::Retune && s.from_check {
+                let ops = self.top_round_ops_for_missing();
+                self.keep.as_mut().expect("keep state present").from_check = false;
+                return Some(KeepNext::Check(ops));
+            }
             return Some(KeepNext::Tune);
         }
         let end = match (k.duration_s, s.keeping_since_s) {
@@ -649,6 +660,19 @@ impl Tuner {
         }
         if retune {
             self.forget_top_references();
+            // The re-tune's first round starts from the check's trusted values
+            // (a fresh measurement would only repeat them, with new noise).
+            let values: Vec<_> = checking
+                .iter()
+                .filter(|&&i| trusted(i))
+                .filter_map(|&i| raw.get(i).cloned().flatten())
+                .collect();
+            if !values.is_empty() {
+                self.restore_top_measurements(values);
+                if let Some(s) = self.keep.as_mut() {
+                    s.from_check = true;
+                }
+            }
         }
         self.set_check_snapshot(samples, raw, !retune);
         self.end_iteration(0)

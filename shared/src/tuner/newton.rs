@@ -335,6 +335,33 @@ impl Tuner {
             .unwrap_or_default()
     }
 
+    /// Keep mode: a check that starts a re-tune hands its trusted values to
+    /// the re-tune's first round (so it measures only what the check did not).
+    pub(super) fn restore_top_measurements(&mut self, values: Vec<ParameterValue>) {
+        let (_, state) = self.newton_mut(0);
+        for v in values {
+            state.measured.insert(v.name.clone(), v);
+        }
+    }
+
+    /// The top level's round, measuring only the scans whose parameters are
+    /// not yet measured this round (all of them after a normal round).
+    pub(super) fn top_round_ops_for_missing(&self) -> Vec<Op> {
+        let (cfg, state) = self.newton(0);
+        let mut kinds: Vec<ScanKind> = Vec::new();
+        for p in &cfg.parameters {
+            if !state.measured.contains_key(&p.name) && !kinds.contains(&p.scan) {
+                kinds.push(p.scan);
+            }
+        }
+        let mut ops: Vec<Op> = kinds
+            .into_iter()
+            .map(|kind| Op::Measure(ScanRequest { kind, sweep: None }))
+            .collect();
+        ops.push(Op::Decide(Decision::Evaluate));
+        ops
+    }
+
     /// Keep mode starts a re-tune: the top level's references are hours old
     /// (the device drifted without a move), so the next round starts a
     /// fresh baseline instead of learning the drift as a gradient.

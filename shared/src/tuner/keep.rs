@@ -36,6 +36,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::finite_difference::Sample;
 use super::{Decision, Op, Tuner};
 use crate::config_error::ConfigError;
 use crate::parameter::ParameterSpec;
@@ -100,6 +101,9 @@ fn default_prior_drift() -> f64 {
 fn default_batch_window_s() -> f64 {
     300.0
 }
+fn default_skip_confirmation_sigma() -> Option<f64> {
+    Some(2.0)
+}
 
 /// Keep-mode settings (`tuner.keep` in a run config). Every field has a default.
 ///
@@ -142,6 +146,14 @@ pub struct KeepConfig {
     /// A check also measures every parameter due within this much lab time, s (default 300).
     #[serde(default = "default_batch_window_s")]
     pub batch_window_s: f64,
+    /// A re-tune round whose step the filter predicts lands every targeted
+    /// parameter inside the settle band, this many predicted standard
+    /// deviations inside the tolerance band, ends the re-tune without a
+    /// confirming measurement (the drift models start from the prediction
+    /// and its variance, so the next check comes early); `None`: always
+    /// confirm (default 2).
+    #[serde(default = "default_skip_confirmation_sigma")]
+    pub skip_confirmation_sigma: Option<f64>,
 }
 
 impl Default for KeepConfig {
@@ -155,6 +167,7 @@ impl Default for KeepConfig {
             duration_s: None,
             prior_drift_band_per_sqrt_hour: default_prior_drift(),
             batch_window_s: default_batch_window_s(),
+            skip_confirmation_sigma: default_skip_confirmation_sigma(),
         }
     }
 }
@@ -238,6 +251,9 @@ impl KeepConfig {
             MAX_KEEP_SECONDS,
             true,
         )?;
+        if let Some(k) = self.skip_confirmation_sigma {
+            range("skip_confirmation_sigma", k, 0.0, 10.0, true)?;
+        }
         Ok(())
     }
 }
@@ -688,6 +704,53 @@ impl Tuner {
         let top = self.config.top().clone();
         let samples = self.top_snapshot_samples();
         let level = self.config.levels[0].name.clone();
+        let retuning = self
+            .keep
+            .as_ref()
+            .is_some_and(|s| !s.in_check && s.phase == Phase::Retune);
+        // A re-tune step the filter confidently predicts into the settle band
+        // ends the re-tune without a confirming round.
+        let skipped: Option<Vec<Option<Sample>>> = match k.skip_confirmation_sigma {
+            Some(sigmas) if retuning && !record.tuned => {
+                self.top_prediction_after_step().filter(|pred| {
+                    top.parameters.iter().enumerate().all(|(i, p)| {
+                        let Some((lo, hi)) = estimator_band(p) else {
+                            return true;
+                        };
+                        let Some((m, v)) = pred.get(i).copied().flatten() else {
+                            return false;
+                        };
+                        let centre = 0.5 * (lo + hi);
+                        let settle = k.settle_band_fraction * 0.5 * (hi - lo);
+                        let sd = v.max(0.0).sqrt();
+                        (m - centre).abs() <= settle
+                            && m - sigmas * sd >= lo
+                            && m + sigmas * sd <= hi
+                    })
+                })
+            }
+            _ => None,
+        };
+        if let Some(pred) = &skipped {
+            for (p, v) in top.parameters.iter().zip(pred) {
+                let Some((m, var)) = *v else { continue };
+                let (value, std) = match p.transform {
+                    crate::parameter::Transform::Linear => (m, var.sqrt()),
+                    crate::parameter::Transform::Log => (m.exp(), m.exp() * var.sqrt()),
+                };
+                record.events.push(TunerEvent {
+                    level: level.clone(),
+                    kind: EventKind::ConfirmationSkipped {
+                        parameter: p.name.clone(),
+                        predicted: value,
+                        std,
+                        unit: p.unit.clone(),
+                    },
+                });
+            }
+        }
+        let settled = record.tuned || skipped.is_some();
+        let samples = skipped.unwrap_or(samples);
         let Some(s) = self.keep.as_mut() else { return };
         let record_phase = if s.in_check {
             KeepPhase::Check
@@ -698,7 +761,7 @@ impl Tuner {
         };
         s.in_check = false;
         if matches!(record_phase, KeepPhase::Tuning | KeepPhase::Retune) {
-            if record.tuned {
+            if settled {
                 // Settled: (re)start every drift model at the measured values.
                 for (i, p) in top.parameters.iter().enumerate() {
                     let Some((lo, hi)) = estimator_band(p) else {

@@ -362,6 +362,35 @@ impl Tuner {
         ops
     }
 
+    /// Keep mode: after a top-level step, the filter's prediction of every
+    /// parameter (estimator space: `y + g·Δv`, variance `Δv C Δvᵀ + δy²`),
+    /// `None` per parameter without a sample; `None` if there was no step.
+    pub(super) fn top_prediction_after_step(&self) -> Option<Vec<Option<Sample>>> {
+        let (cfg, state) = self.newton(0);
+        let snapshot = state.snapshot.as_ref()?;
+        let es = state.estimators.as_ref()?;
+        if snapshot.tuned || snapshot.step_mv.iter().all(|d| *d == 0.0) {
+            return None;
+        }
+        let dv = DVector::from_column_slice(&snapshot.step_mv);
+        Some(
+            cfg.parameters
+                .iter()
+                .enumerate()
+                .map(|(i, _)| {
+                    let (y, var_y) = snapshot.samples.get(i).copied().flatten()?;
+                    let e = es.get(i)?;
+                    let predicted = y + e.gradient().dot(&dv);
+                    let var_g = e
+                        .covariance()
+                        .map_or(0.0, |c| (dv.transpose() * c * &dv)[(0, 0)]);
+                    let var = var_g + var_y;
+                    (predicted.is_finite() && var.is_finite()).then_some((predicted, var))
+                })
+                .collect(),
+        )
+    }
+
     /// Keep mode starts a re-tune: the top level's references are hours old
     /// (the device drifted without a move), so the next round starts a
     /// fresh baseline instead of learning the drift as a gradient.

@@ -335,6 +335,62 @@ impl Tuner {
             .unwrap_or_default()
     }
 
+    /// Keep mode: a check that starts a re-tune hands its trusted values to
+    /// the re-tune's first round (so it measures only what the check did not).
+    pub(super) fn restore_top_measurements(&mut self, values: Vec<ParameterValue>) {
+        let (_, state) = self.newton_mut(0);
+        for v in values {
+            state.measured.insert(v.name.clone(), v);
+        }
+    }
+
+    /// The top level's round, measuring only the scans whose parameters are
+    /// not yet measured this round (all of them after a normal round).
+    pub(super) fn top_round_ops_for_missing(&self) -> Vec<Op> {
+        let (cfg, state) = self.newton(0);
+        let mut kinds: Vec<ScanKind> = Vec::new();
+        for p in &cfg.parameters {
+            if !state.measured.contains_key(&p.name) && !kinds.contains(&p.scan) {
+                kinds.push(p.scan);
+            }
+        }
+        let mut ops: Vec<Op> = kinds
+            .into_iter()
+            .map(|kind| Op::Measure(ScanRequest { kind, sweep: None }))
+            .collect();
+        ops.push(Op::Decide(Decision::Evaluate));
+        ops
+    }
+
+    /// Keep mode: after a top-level step, the filter's prediction of every
+    /// parameter (estimator space: `y + g·Δv`, variance `Δv C Δvᵀ + δy²`),
+    /// `None` per parameter without a sample; `None` if there was no step.
+    pub(super) fn top_prediction_after_step(&self) -> Option<Vec<Option<Sample>>> {
+        let (cfg, state) = self.newton(0);
+        let snapshot = state.snapshot.as_ref()?;
+        let es = state.estimators.as_ref()?;
+        if snapshot.tuned || snapshot.step_mv.iter().all(|d| *d == 0.0) {
+            return None;
+        }
+        let dv = DVector::from_column_slice(&snapshot.step_mv);
+        Some(
+            cfg.parameters
+                .iter()
+                .enumerate()
+                .map(|(i, _)| {
+                    let (y, var_y) = snapshot.samples.get(i).copied().flatten()?;
+                    let e = es.get(i)?;
+                    let predicted = y + e.gradient().dot(&dv);
+                    let var_g = e
+                        .covariance()
+                        .map_or(0.0, |c| (dv.transpose() * c * &dv)[(0, 0)]);
+                    let var = var_g + var_y;
+                    (predicted.is_finite() && var.is_finite()).then_some((predicted, var))
+                })
+                .collect(),
+        )
+    }
+
     /// Keep mode starts a re-tune: the top level's references are hours old
     /// (the device drifted without a move), so the next round starts a
     /// fresh baseline instead of learning the drift as a gradient.

@@ -67,9 +67,7 @@ impl WebhookUrl {
                 text.len()
             ));
         }
-        let uri: Uri = text
-            .parse()
-            .map_err(|e| bad(&format!("not a URL ({e})")))?;
+        let uri: Uri = text.parse().map_err(|e| bad(&format!("not a URL ({e})")))?;
         match uri.scheme_str() {
             Some("http") => {}
             Some(_) => return Err(bad(
@@ -81,7 +79,10 @@ impl WebhookUrl {
         if authority.as_str().contains('@') {
             return Err(bad("user names or passwords in the URL are not supported"));
         }
-        let host = authority.host().trim_start_matches('[').trim_end_matches(']');
+        let host = authority
+            .host()
+            .trim_start_matches('[')
+            .trim_end_matches(']');
         if host.is_empty() {
             return Err(bad("the URL has no host"));
         }
@@ -92,9 +93,12 @@ impl WebhookUrl {
         })
     }
 
-    /// The URL as given.
-    pub fn as_str(&self) -> String {
-        self.uri.to_string()
+    /// The URL for logs: scheme and host only (a webhook's path may hold a
+    /// secret), e.g. `http://127.0.0.1:9000/…`.
+    pub fn shown(&self) -> String {
+        let authority = self.uri.authority().map_or("", |a| a.as_str());
+        let path = self.uri.path_and_query().map_or("/", |p| p.as_str());
+        format!("http://{authority}{}", if path == "/" { "/" } else { "/…" })
     }
 }
 
@@ -161,7 +165,10 @@ async fn sender(
     logged_full: Arc<AtomicBool>,
 ) {
     while let Some((alert, at)) = rx.recv().await {
-        let body = match serde_json::to_vec(&Body { alert: &alert, at: &at }) {
+        let body = match serde_json::to_vec(&Body {
+            alert: &alert,
+            at: &at,
+        }) {
             Ok(b) => b,
             Err(e) => {
                 eprintln!("alert webhook: cannot serialize an alert: {e}");
@@ -203,17 +210,16 @@ async fn deliver(url: &WebhookUrl, alert: &Alert, body: Vec<u8>) {
         let attempt = match tokio::time::timeout(WEBHOOK_TIMEOUT, post(url, body.clone())).await {
             Ok(Ok(status)) => Attempt::Answered(status),
             Ok(Err(e)) => Attempt::NoAnswer(e),
-            Err(_) => Attempt::NoAnswer(format!(
-                "no answer within {} s",
-                WEBHOOK_TIMEOUT.as_secs()
-            )),
+            Err(_) => {
+                Attempt::NoAnswer(format!("no answer within {} s", WEBHOOK_TIMEOUT.as_secs()))
+            }
         };
         let outcome = match &attempt {
             Attempt::Answered(s) if (200..300).contains(s) => {
                 if n > 0 {
                     eprintln!(
                         "alert webhook: delivered {what} to {} on attempt {} of {WEBHOOK_ATTEMPTS}",
-                        url.as_str(),
+                        url.shown(),
                         n + 1
                     );
                 }
@@ -225,21 +231,21 @@ async fn deliver(url: &WebhookUrl, alert: &Alert, body: Vec<u8>) {
         if !retryable(&attempt) {
             eprintln!(
                 "alert webhook: gave up on {what}: POST {} failed: {outcome} (a 4xx answer is not retried)",
-                url.as_str()
+                url.shown()
             );
             return;
         }
         if n + 1 < WEBHOOK_ATTEMPTS {
             eprintln!(
                 "alert webhook: POST {} for {what} failed (attempt {} of {WEBHOOK_ATTEMPTS}): {outcome}; retrying in {} s",
-                url.as_str(),
+                url.shown(),
                 n + 1,
                 WEBHOOK_BACKOFF[n].as_secs()
             );
         } else {
             eprintln!(
                 "alert webhook: gave up on {what} after {WEBHOOK_ATTEMPTS} attempts: POST {} failed: {outcome}",
-                url.as_str()
+                url.shown()
             );
         }
     }
@@ -350,6 +356,32 @@ mod tests {
         }
         let long = format!("http://x/{}", "a".repeat(MAX_WEBHOOK_URL));
         assert!(WebhookUrl::parse(&long).unwrap_err().contains("2048 bytes"));
+    }
+
+    #[test]
+    fn a_full_queue_drops_and_counts_without_waiting() {
+        let (tx, mut rx) = mpsc::channel(ALERT_QUEUE);
+        let sink = AlertSink {
+            tx,
+            dropped: Arc::new(AtomicU64::new(0)),
+            logged_full: Arc::new(AtomicBool::new(false)),
+        };
+        let alert = |run| Alert {
+            run,
+            name: "r".into(),
+            kind: spintune::protocol::AlertKind::Finished,
+            message: "finished".into(),
+            lab_seconds: 1.0,
+            iteration: Some(0),
+        };
+        for run in 0..ALERT_QUEUE as u64 + 5 {
+            sink.offer(alert(run), "2026-11-24T09:00:00Z".into());
+        }
+        assert_eq!(sink.dropped(), 5);
+        assert!(sink.logged_full.load(Ordering::Acquire));
+        // The queue holds the first ALERT_QUEUE, in order.
+        assert_eq!(rx.try_recv().unwrap().0.run, 0);
+        assert_eq!(rx.len(), ALERT_QUEUE - 1);
     }
 
     #[test]

@@ -23,9 +23,7 @@
 //! assert!(status_alert(&RunStatus::Finished, &run).is_none());
 //! ```
 
-use crate::protocol::{
-    Alert, AlertKind, EventKind, IterationRecord, RunStatus, RunSummary,
-};
+use crate::protocol::{Alert, AlertKind, EventKind, IterationRecord, RunStatus, RunSummary};
 
 /// The alert `run`'s new status raises, coming from `previous` (`None`:
 /// the status did not change in a way that needs a person).
@@ -182,8 +180,16 @@ mod tests {
         });
         let a = status_alert(&device, &moved).unwrap();
         assert_eq!(a.kind, AlertKind::Faulted);
-        assert!(a.message.starts_with("moved fault: gate SB reads -410 mV"), "{}", a.message);
-        assert!(a.message.contains("accepts the gates' positions"), "{}", a.message);
+        assert!(
+            a.message.starts_with("moved fault: gate SB reads -410 mV"),
+            "{}",
+            a.message
+        );
+        assert!(
+            a.message.contains("accepts the gates' positions"),
+            "{}",
+            a.message
+        );
         let disconnected = run(RunStatus::Faulted {
             fault: Fault::new(FaultKind::Disconnected, "bridge gone"),
         });

@@ -1,18 +1,22 @@
 //! A run known to the manager ([`RunHandle`]): its config, its summary, the
 //! broadcast channel of its live updates, the ring of its newest summaries
 //! ([`RECENT_SUMMARIES`]), its open viewer sockets, the control channel of
-//! its task (if one drives it) and its lifecycle lock.
+//! its task (if one drives it) and its lifecycle lock. Every status change
+//! and every committed record passes through here to its viewers, so this
+//! is where the run's alerts are raised ([`spintune::alert`] decides;
+//! [`RunHandle::raise`] sends them to the viewers and the webhook).
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 
 use axum::extract::ws::Utf8Bytes;
-use spintune::protocol::{ControlCommand, RunSummary, ServerMessage};
+use spintune::protocol::{Alert, ControlCommand, RunStatus, RunSummary, ServerMessage};
 use tokio::sync::{broadcast, mpsc, oneshot};
 
 use super::error::RunError;
 use super::viewer_update::ViewerUpdate;
+use crate::alerts::{now_rfc3339, AlertSink};
 use crate::config::RunConfig;
 
 /// Summaries of the newest iterations each run keeps in memory (one default
@@ -67,6 +71,11 @@ pub struct RunHandle {
     recent: Mutex<VecDeque<(u64, Utf8Bytes)>>,
     /// Open viewer sockets ([`RunHandle::add_viewer`]).
     viewer_sockets: Arc<AtomicUsize>,
+    /// The status last broadcast (what a new one is compared with to
+    /// decide an alert).
+    last_status: Mutex<RunStatus>,
+    /// The webhook's queue, if `--alert-webhook` is set.
+    alerts: Option<AlertSink>,
 }
 
 impl RunHandle {
@@ -75,10 +84,13 @@ impl RunHandle {
         config: RunConfig,
         summary: RunSummary,
         viewer_buffer: usize,
+        alerts: Option<AlertSink>,
     ) -> Self {
         Self {
             id,
             config,
+            last_status: Mutex::new(summary.status.clone()),
+            alerts,
             summary: Mutex::new(summary),
             tx: broadcast::channel(viewer_buffer.max(1)).0,
             control: Mutex::new(None),
@@ -157,7 +169,7 @@ impl RunHandle {
     ) -> Self {
         Self {
             quarantine: Some(error),
-            ..Self::new(id, RunConfig::recommended(), summary, viewer_buffer)
+            ..Self::new(id, RunConfig::recommended(), summary, viewer_buffer, None)
         }
     }
 
@@ -201,8 +213,28 @@ impl RunHandle {
         s.clone()
     }
 
+    /// Broadcast the run's status; raise the alert the change raises, if
+    /// any (after the status, so a viewer sees the status first).
     pub(super) fn broadcast_status(&self, run: RunSummary) {
+        let previous = std::mem::replace(
+            &mut *self.last_status.lock().unwrap_or_else(|p| p.into_inner()),
+            run.status.clone(),
+        );
+        let alert = spintune::alert::status_alert(&previous, &run);
         self.broadcast(ViewerUpdate::message(&ServerMessage::Status { run }));
+        if let Some(alert) = alert {
+            self.raise(alert);
+        }
+    }
+
+    /// Send `alert` to the run's viewers (those that subscribed to alerts)
+    /// and queue it for the webhook; never waits.
+    pub(super) fn raise(&self, alert: Alert) {
+        let at = now_rfc3339();
+        if let Some(sink) = &self.alerts {
+            sink.offer(alert.clone(), at.clone());
+        }
+        self.broadcast(ViewerUpdate::message(&ServerMessage::Alert { alert, at }));
     }
 
     /// Send an update to the run's viewers (none listening is fine).

@@ -20,7 +20,7 @@ use super::error::{ApiError, ApiResult};
 use super::parse::{parse_client_message, parse_id, parse_u64};
 use super::socket::{refuse_socket, too_big_close, version_mismatch};
 use super::{auth, AppState, MAX_VIEWER_MESSAGE};
-use crate::run::{history_message_json, ViewerSlot, ViewerUpdate};
+use crate::run::{history_message_json, RunEvent, ViewerSlot, ViewerUpdate};
 
 /// How long the server tries to send a close frame to a viewer it drops for
 /// a timeout.
@@ -77,6 +77,8 @@ enum ViewerRequest {
 struct ViewerState {
     /// Live `Iteration` frames carry the full record.
     scans: bool,
+    /// The run's `Alert` frames are sent (`subscribe` with `alerts: true`).
+    alerts: bool,
     /// A request for the socket loop.
     request: Option<ViewerRequest>,
 }
@@ -256,7 +258,8 @@ async fn viewer_loop(state: &AppState, id: u64, from: u64, socket: &mut WebSocke
         let result = tokio::select! {
             frame = rx.recv() => match frame {
                 Ok(frame) => {
-                    live_batch(state, id, socket, &mut rx, frame, &mut next, view.scans, timeout)
+                    let wants = Wants { scans: view.scans, alerts: view.alerts };
+                    live_batch(state, id, socket, &mut rx, frame, &mut next, wants, timeout)
                         .await
                 }
                 Err(RecvError::Lagged(skipped)) => {
@@ -318,6 +321,15 @@ async fn viewer_loop(state: &AppState, id: u64, from: u64, socket: &mut WebSocke
     }
 }
 
+/// What a viewer subscribed to (`subscribe`).
+#[derive(Debug, Clone, Copy)]
+struct Wants {
+    /// Full records (with scans) in live `Iteration` frames.
+    scans: bool,
+    /// `Alert` frames.
+    alerts: bool,
+}
+
 /// Most live frames written to one viewer between two flushes.
 pub const MAX_LIVE_BATCH: usize = 64;
 
@@ -336,7 +348,7 @@ async fn live_batch(
     rx: &mut tokio::sync::broadcast::Receiver<ViewerUpdate>,
     first: ViewerUpdate,
     next: &mut u64,
-    scans: bool,
+    wants: Wants,
     timeout: Duration,
 ) -> Result<(), ViewerEnd> {
     use futures_util::SinkExt;
@@ -347,6 +359,8 @@ async fn live_batch(
     for n in 1.. {
         match update.seq {
             Some(seq) if seq < *next => {}
+            // Alerts only to the sockets that asked for them.
+            _ if matches!(update.event, RunEvent::Alert(_)) && !wants.alerts => {}
             seq => {
                 if let Some(seq) = seq {
                     if seq > *next {
@@ -360,7 +374,7 @@ async fn live_batch(
                     }
                     *next = seq + 1;
                 }
-                let text = match (&update.full, scans) {
+                let text = match (&update.full, wants.scans) {
                     (Some(full), true) => full.clone(),
                     _ => update.text,
                 };
@@ -467,8 +481,9 @@ async fn client_message(
             view.request = Some(ViewerRequest::Scans { iteration });
             return None;
         }
-        ClientMessage::Subscribe { scans } => {
+        ClientMessage::Subscribe { scans, alerts } => {
             view.scans = scans;
+            view.alerts = alerts;
             return None;
         }
     })

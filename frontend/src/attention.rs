@@ -164,7 +164,7 @@ pub fn AlertBanner() -> impl IntoView {
                         key=|s| s.key
                         children=move |s| {
                             let key = s.key;
-                            let when = s.at.clone().map(|at| format!(" · raised {at}")).unwrap_or_default();
+                            let when = s.at.as_deref().map(|at| format!(" · raised {}", at.replace('T', " ").replace('Z', " UTC"))).unwrap_or_default();
                             view! {
                                 <li data-testid="alert-item" data-kind=s.alert.kind.name() data-run=s.alert.run>
                                     <span class="alert-text">{s.text()}{when}</span>
@@ -198,7 +198,7 @@ pub fn NotifyButton() -> impl IntoView {
         <Show when=move || can_ask.get()>
             <button class="notify" data-testid="alert-notify"
                 title="show a browser notification when a run faults, finishes or fails (asks the browser's permission)"
-                on:click=ask>"🔔 Notify me"</button>
+                on:click=ask>"Notify me"</button>
         </Show>
     }
 }

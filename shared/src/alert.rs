@@ -19,7 +19,8 @@
 //!     iterations: 12, lab_seconds: 90.0, tuned: true, driver: None };
 //! let a = status_alert(&RunStatus::Running, &run).unwrap();
 //! assert_eq!(a.kind, AlertKind::Finished);
-//! assert_eq!(a.message, "finished after 12 iterations (1.5 lab min), in band");
+//! assert_eq!(a.message, "finished after 12 iterations, in band");
+//! assert_eq!(a.lab_seconds, 90.0);
 //! assert!(status_alert(&RunStatus::Finished, &run).is_none());
 //! ```
 
@@ -51,10 +52,9 @@ pub fn status_alert(previous: &RunStatus, run: &RunSummary) -> Option<Alert> {
         (RunStatus::Finished, _) => (
             AlertKind::Finished,
             format!(
-                "finished after {} iteration{} ({:.1} lab min), {}",
+                "finished after {} iteration{}, {}",
                 run.iterations,
                 if run.iterations == 1 { "" } else { "s" },
-                run.lab_seconds / 60.0,
                 if run.tuned { "in band" } else { "not in band" }
             ),
         ),

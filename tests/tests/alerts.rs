@@ -1,7 +1,9 @@
 //! Browser end-to-end test of alerts (issue 23): a run the page follows
 //! finishes; the page lists the alert in its banner, prefixes the document
 //! title with the number of unseen alerts and badges the favicon (a PNG
-//! data URL); the banner's dismiss button clears all three.
+//! data URL); the banner's dismiss button clears all three. A run the page
+//! only lists (not the one it shows) raises its alert from the list's
+//! statuses.
 
 use fantoccini::Client;
 
@@ -45,7 +47,7 @@ async fn a_finished_run_raises_an_alert_in_the_title_favicon_and_banner_until_di
     let id = serde_json::from_str::<serde_json::Value>(json).unwrap()["id"]
         .as_u64()
         .unwrap();
-    let control = |action: &str| {
+    let control = |id: u64, action: &str| {
         http(
             port,
             "POST",
@@ -54,7 +56,7 @@ async fn a_finished_run_raises_an_alert_in_the_title_favicon_and_banner_until_di
             &format!(r#"{{"action":"{action}"}}"#),
         )
     };
-    let (s, body) = control("pause");
+    let (s, body) = control(id, "pause");
     assert_eq!(s, 200, "pause: {body}");
 
     let driver_port = free_port();
@@ -81,7 +83,7 @@ async fn a_finished_run_raises_an_alert_in_the_title_favicon_and_banner_until_di
     );
 
     // The run goes on and finishes: the alert arrives over the run's socket.
-    let (s, body) = control("resume");
+    let (s, body) = control(id, "resume");
     assert_eq!(s, 200, "resume: {body}");
     let item = wait_text(&c, "[data-testid=alert-item]", "finished", 60).await;
     assert!(item.contains(&format!("Run #{id}")), "{item}");
@@ -111,7 +113,33 @@ async fn a_finished_run_raises_an_alert_in_the_title_favicon_and_banner_until_di
             .then_some(())
     })
     .await;
-    assert_eq!(title_and_icon(&c).await, (title, icon));
+    assert_eq!(title_and_icon(&c).await, (title.clone(), icon));
+
+    // Another run, only listed: its alert comes from the run list's statuses.
+    let (s, body) = http(
+        port,
+        "POST",
+        "/api/runs",
+        Some(TOKEN),
+        r#"{"name":"listed only","seed":8,"iteration_delay_ms":300,"tuner":{"max_iterations":2}}"#,
+    );
+    assert_eq!(s, 201, "{body}");
+    let json = &body[body.find('{').unwrap()..=body.rfind('}').unwrap()];
+    let other = serde_json::from_str::<serde_json::Value>(json).unwrap()["id"]
+        .as_u64()
+        .unwrap();
+    let (s, body) = control(other, "pause");
+    assert_eq!(s, 200, "pause: {body}");
+    let listed = format!("button.run[data-run='{other}'] [data-state=paused]");
+    wait("the paused run in the list", 30, async || {
+        c.find(fantoccini::Locator::Css(&listed)).await.ok()
+    })
+    .await;
+    let (s, body) = control(other, "resume");
+    assert_eq!(s, 200, "resume: {body}");
+    let item = wait_text(&c, "[data-testid=alert-item]", "listed only", 30).await;
+    assert!(item.contains("finished after 2 iterations"), "{item}");
+    assert_eq!(title_and_icon(&c).await.0, format!("(1) ⚠ {title}"));
     let _ = c.close().await;
     let _ = std::fs::remove_dir_all(&tmp);
 }

@@ -23,6 +23,10 @@ use crate::config::RunConfig;
 /// history page), so the page sent after `Hello`/`Lagged` needs no store read.
 pub const RECENT_SUMMARIES: usize = spintune::protocol::DEFAULT_HISTORY_PAGE as usize;
 
+/// Alert frames buffered per viewer socket that asked for alerts; a viewer
+/// further behind skips the older ones.
+pub const ALERTS_PER_VIEWER: usize = 16;
+
 /// One open viewer socket of a run (counted until dropped; holds the count,
 /// not the run, so deleting the run still closes its channel).
 pub struct ViewerSlot(Arc<AtomicUsize>);
@@ -61,6 +65,8 @@ pub struct RunHandle {
     pub config: RunConfig,
     summary: Mutex<RunSummary>,
     tx: broadcast::Sender<ViewerUpdate>,
+    /// The run's alerts (`ServerMessage::Alert`), apart from the live frames.
+    alerts_tx: broadcast::Sender<ViewerUpdate>,
     control: Mutex<Option<mpsc::Sender<ControlMsg>>>,
     /// Why the stored run is unreadable (`Some`: quarantined; listed, never driven).
     quarantine: Option<String>,
@@ -93,6 +99,7 @@ impl RunHandle {
             alerts,
             summary: Mutex::new(summary),
             tx: broadcast::channel(viewer_buffer.max(1)).0,
+            alerts_tx: broadcast::channel(ALERTS_PER_VIEWER).0,
             control: Mutex::new(None),
             quarantine: None,
             lifecycle: tokio::sync::Mutex::new(()),
@@ -197,6 +204,11 @@ impl RunHandle {
         self.tx.subscribe()
     }
 
+    /// Subscribe to the run's alerts (the viewers that asked for them).
+    pub fn subscribe_alerts(&self) -> broadcast::Receiver<ViewerUpdate> {
+        self.alerts_tx.subscribe()
+    }
+
     /// Number of connected viewers.
     pub fn viewers(&self) -> usize {
         self.tx.receiver_count()
@@ -234,7 +246,9 @@ impl RunHandle {
         if let Some(sink) = &self.alerts {
             sink.offer(alert.clone(), at.clone());
         }
-        self.broadcast(ViewerUpdate::message(&ServerMessage::Alert { alert, at }));
+        let _ = self
+            .alerts_tx
+            .send(ViewerUpdate::message(&ServerMessage::Alert { alert, at }));
     }
 
     /// Send an update to the run's viewers (none listening is fine).

@@ -38,8 +38,8 @@ pub enum RunEvent {
     Iteration(Arc<IterationRecord>),
     /// The run's status changed.
     Status(RunSummary),
-    /// The run raised an alert (sent only to viewers that subscribed to
-    /// alerts).
+    /// The run raised an alert (on the run's alert channel, to viewers
+    /// that subscribed to alerts).
     Alert(Alert),
     /// Anything else (errors, notices).
     Other,

@@ -20,7 +20,7 @@ use super::error::{ApiError, ApiResult};
 use super::parse::{parse_client_message, parse_id, parse_u64};
 use super::socket::{refuse_socket, too_big_close, version_mismatch};
 use super::{auth, AppState, MAX_VIEWER_MESSAGE};
-use crate::run::{history_message_json, RunEvent, ViewerSlot, ViewerUpdate};
+use crate::run::{history_message_json, ViewerSlot, ViewerUpdate};
 
 /// How long the server tries to send a close frame to a viewer it drops for
 /// a timeout.
@@ -248,6 +248,10 @@ async fn viewer_loop(state: &AppState, id: u64, from: u64, socket: &mut WebSocke
     }
     let mut authed = false;
     let mut view = ViewerState::default();
+    // The run's alerts, on their own channel (so that they take no room in
+    // the live frames' ring of viewers that did not ask for them); only
+    // after `subscribe` with `alerts: true`.
+    let mut alerts: Option<tokio::sync::broadcast::Receiver<ViewerUpdate>> = None;
     let mut last_heard = tokio::time::Instant::now();
     let mut ping = tokio::time::interval_at(
         tokio::time::Instant::now() + limits.ping_interval,
@@ -258,8 +262,7 @@ async fn viewer_loop(state: &AppState, id: u64, from: u64, socket: &mut WebSocke
         let result = tokio::select! {
             frame = rx.recv() => match frame {
                 Ok(frame) => {
-                    let wants = Wants { scans: view.scans, alerts: view.alerts };
-                    live_batch(state, id, socket, &mut rx, frame, &mut next, wants, timeout)
+                    live_batch(state, id, socket, &mut rx, frame, &mut next, view.scans, timeout)
                         .await
                 }
                 Err(RecvError::Lagged(skipped)) => {
@@ -290,6 +293,12 @@ async fn viewer_loop(state: &AppState, id: u64, from: u64, socket: &mut WebSocke
                     Message::Close(_) => return ViewerEnd::Gone,
                     Message::Ping(_) | Message::Pong(_) => None,
                 };
+                if view.alerts != alerts.is_some() {
+                    alerts = match state.manager.get(id) {
+                        Ok(handle) if view.alerts => Some(handle.subscribe_alerts()),
+                        _ => None,
+                    };
+                }
                 let reply = match (reply, view.request.take()) {
                     (Some(reply), _) => Some(text_of(&reply)),
                     (None, Some(ViewerRequest::History { before, limit })) => {
@@ -308,6 +317,20 @@ async fn viewer_loop(state: &AppState, id: u64, from: u64, socket: &mut WebSocke
                     None => Ok(()),
                 }
             }
+            alert = async {
+                match alerts.as_mut() {
+                    Some(rx) => rx.recv().await,
+                    None => std::future::pending().await,
+                }
+            } => match alert {
+                Ok(update) => send_within(socket, Message::Text(update.text), timeout).await,
+                // More than `run::ALERTS_PER_VIEWER` alerts behind: the older are skipped.
+                Err(RecvError::Lagged(_)) => Ok(()),
+                Err(RecvError::Closed) => {
+                    alerts = None;
+                    Ok(())
+                }
+            },
             _ = ping.tick() => {
                 if last_heard.elapsed() >= limits.pong_timeout {
                     return ViewerEnd::Idle(limits.pong_timeout);
@@ -319,15 +342,6 @@ async fn viewer_loop(state: &AppState, id: u64, from: u64, socket: &mut WebSocke
             return e;
         }
     }
-}
-
-/// What a viewer subscribed to (`subscribe`).
-#[derive(Debug, Clone, Copy)]
-struct Wants {
-    /// Full records (with scans) in live `Iteration` frames.
-    scans: bool,
-    /// `Alert` frames.
-    alerts: bool,
 }
 
 /// Most live frames written to one viewer between two flushes.
@@ -348,7 +362,7 @@ async fn live_batch(
     rx: &mut tokio::sync::broadcast::Receiver<ViewerUpdate>,
     first: ViewerUpdate,
     next: &mut u64,
-    wants: Wants,
+    scans: bool,
     timeout: Duration,
 ) -> Result<(), ViewerEnd> {
     use futures_util::SinkExt;
@@ -359,8 +373,6 @@ async fn live_batch(
     for n in 1.. {
         match update.seq {
             Some(seq) if seq < *next => {}
-            // Alerts only to the sockets that asked for them.
-            _ if matches!(update.event, RunEvent::Alert(_)) && !wants.alerts => {}
             seq => {
                 if let Some(seq) = seq {
                     if seq > *next {
@@ -374,7 +386,7 @@ async fn live_batch(
                     }
                     *next = seq + 1;
                 }
-                let text = match (&update.full, wants.scans) {
+                let text = match (&update.full, scans) {
                     (Some(full), true) => full.clone(),
                     _ => update.text,
                 };

@@ -225,8 +225,9 @@ impl RunHandle {
         s.clone()
     }
 
-    /// Broadcast the run's status; raise the alert the change raises, if
-    /// any (after the status, so a viewer sees the status first).
+    /// Broadcast the run's status; then raise the alert the change raises,
+    /// if any ([`spintune::alert::status_alert`], comparing with the status
+    /// broadcast before).
     pub(super) fn broadcast_status(&self, run: RunSummary) {
         let previous = std::mem::replace(
             &mut *self.last_status.lock().unwrap_or_else(|p| p.into_inner()),

@@ -177,8 +177,11 @@ async fn connect(url: &str, full_frames: bool) -> Result<Ws, CliError> {
     .await
     .map_err(|e| CliError::runtime(format!("viewer cannot connect to {url}: {e}")))?;
     if full_frames {
-        let msg = serde_json::to_string(&ClientMessage::Subscribe { scans: true })
-            .expect("ClientMessage serializes");
+        let msg = serde_json::to_string(&ClientMessage::Subscribe {
+            scans: true,
+            alerts: false,
+        })
+        .expect("ClientMessage serializes");
         ws.send(Message::text(msg))
             .await
             .map_err(|e| CliError::runtime(format!("viewer cannot subscribe: {e}")))?;
@@ -419,6 +422,7 @@ impl Bench {
             viewer_buffer: args.viewer_buffer,
             demo: DemoMode::Never,
             demo_config: None,
+            alert_webhook: None,
             limits: Default::default(),
             security: Default::default(),
         };

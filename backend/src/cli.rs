@@ -89,6 +89,11 @@ pub struct ServeArgs {
     /// Config of the demo run (TOML); default: the paper's default run.
     #[arg(long)]
     pub demo_config: Option<PathBuf>,
+    /// POST every alert (a run faulted, finished, failed, or keep mode not
+    /// back in band in time) as JSON to this http:// URL (docs/alerts.md):
+    /// 5 s per attempt, at most 3 attempts, a queue of 64; never blocks a run.
+    #[arg(long, env = "SPINTUNE_ALERT_WEBHOOK", value_name = "URL")]
+    pub alert_webhook: Option<String>,
     /// Connection and viewer limits (timeouts, caps).
     #[command(flatten)]
     pub limits: crate::server::listener::LimitArgs,
@@ -166,6 +171,12 @@ pub async fn start_server(args: &ServeArgs) -> Result<Server, CliError> {
             args.iteration_delay_ms
         )));
     }
+    let webhook = args
+        .alert_webhook
+        .as_deref()
+        .map(crate::alerts::WebhookUrl::parse)
+        .transpose()
+        .map_err(CliError::input)?;
     let tls = args.security.tls.acceptor().map_err(CliError::input)?;
     let store = Arc::new(
         Store::open(&args.db)
@@ -179,6 +190,7 @@ pub async fn start_server(args: &ServeArgs) -> Result<Server, CliError> {
             viewer_buffer: args.viewer_buffer,
             recover: true,
             viewers: args.limits.viewer_limits(),
+            alerts: webhook.map(crate::alerts::AlertSink::start),
         },
     )
     .map_err(CliError::runtime)?;
@@ -261,6 +273,13 @@ pub async fn serve(args: ServeArgs) -> Result<(), CliError> {
                 "warning: --token puts the control token on the command line, where every user of this machine can read it (`ps`); set SPINTUNE_TOKEN or use --token-file instead"
             );
         }
+    }
+    if let Some(url) = args
+        .alert_webhook
+        .as_deref()
+        .and_then(|u| crate::alerts::WebhookUrl::parse(u).ok())
+    {
+        println!("Alerts: POSTed to {}", url.shown());
     }
     println!("Store: {}", args.db.display());
     if !args.dist.join("index.html").is_file() {

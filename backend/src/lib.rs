@@ -7,6 +7,7 @@
 // What the binary (`main.rs`), the integration tests and the workspace's
 // `tests` crate name; everything else is `pub(crate)`, so that rustc and
 // clippy report what nothing uses.
+pub mod alerts;
 pub mod bench;
 pub mod bench_keep;
 pub mod bench_server;

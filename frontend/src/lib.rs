@@ -3,7 +3,9 @@
 //! Two modes: **Live** streams a backend run over its WebSocket, **In-browser**
 //! runs the whole tuner against the simulated double dot inside the page.
 
+pub mod alerts;
 pub mod api;
+pub mod attention;
 pub mod axis;
 pub mod belief;
 pub mod charts;
@@ -128,6 +130,9 @@ pub fn App(
     provide_context(mode);
     // The in-browser mode's run lives as long as the page, not the tab.
     provide_context(crate::local::LocalState::new());
+    // The alerts of the runs this page follows (banner, title, favicon).
+    let alerts: crate::attention::Alerts = RwSignal::new(crate::alerts::AlertCenter::new());
+    provide_context(alerts);
     let go = move |m: Mode| {
         if m == Mode::Local {
             let _ = window().location().set_hash("local");
@@ -143,11 +148,13 @@ pub fn App(
             <nav class="tabs">
                 <button class:active=move || mode.get() == Mode::Live data-testid="tab-live" on:click=move |_| go(Mode::Live)>"Live runs"</button>
                 <button class:active=move || mode.get() == Mode::Local data-testid="tab-local" on:click=move |_| go(Mode::Local)>"In-browser simulation"</button>
+                <crate::attention::NotifyButton />
                 <button class="theme-toggle" data-testid="theme" data-theme=move || theme.get().name()
                     title="colours: as the system says (auto), dark or light"
                     on:click=move |_| theme.update(|t| *t = t.next())>{move || theme.get().label()}</button>
             </nav>
         </header>
+        <crate::attention::AlertBanner />
         {move || match mode.get() {
             Mode::Live => view! { <LiveMode base=base.clone() /> }.into_any(),
             Mode::Local => view! { <LocalMode /> }.into_any(),

@@ -296,6 +296,33 @@ pub fn format_lab_time(seconds: f64) -> String {
     }
 }
 
+/// Keep mode's state after the newest iteration, in plain words: the
+/// phase and the next planned check, e.g. `keep: checked · next check of
+/// t_sr, w at lab time 1 h 05 min`.
+pub fn keep_label(keep: &spintune::protocol::KeepReport) -> String {
+    use spintune::protocol::KeepPhase;
+    let mut s = match keep.phase {
+        KeepPhase::Tuning => "keep: tuning to the targets".to_string(),
+        KeepPhase::Check => "keep: checked, in band".to_string(),
+        KeepPhase::Retune => format!(
+            "keep: re-tuning (out of band for {})",
+            format_lab_time(keep.out_of_band_lab_seconds)
+        ),
+    };
+    if let Some(at) = keep.next_check_lab_seconds {
+        let what = if keep.next_check.is_empty() {
+            "the parameters".to_string()
+        } else {
+            keep.next_check.join(", ")
+        };
+        s.push_str(&format!(
+            " · next check of {what} at lab time {}",
+            format_lab_time(at)
+        ));
+    }
+    s
+}
+
 /// Finite min/max of some values, padded by `pad` of the span (and never empty).
 pub fn padded_range(values: impl IntoIterator<Item = f64>, pad: f64) -> (f64, f64) {
     let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
@@ -550,6 +577,31 @@ mod tests {
         assert_eq!(padded_range([f64::NAN], 0.1), (0.0, 1.0));
         assert_eq!(format_lab_time(90.0), "1.5 min");
         assert_eq!(format_lab_time(3600.0 + 180.0), "1 h 03 min");
+    }
+
+    #[test]
+    fn keep_label_says_the_phase_and_the_next_check() {
+        use spintune::protocol::{KeepPhase, KeepReport};
+        let check = KeepReport {
+            phase: KeepPhase::Check,
+            next_check_lab_seconds: Some(3900.0),
+            next_check: vec!["t_sr".into(), "w".into()],
+            out_of_band_lab_seconds: 0.0,
+        };
+        assert_eq!(
+            keep_label(&check),
+            "keep: checked, in band · next check of t_sr, w at lab time 1 h 05 min"
+        );
+        let retune = KeepReport {
+            phase: KeepPhase::Retune,
+            next_check_lab_seconds: None,
+            next_check: vec![],
+            out_of_band_lab_seconds: 90.0,
+        };
+        assert_eq!(
+            keep_label(&retune),
+            "keep: re-tuning (out of band for 1.5 min)"
+        );
     }
 
     fn every_status() -> Vec<RunStatus> {

@@ -360,6 +360,9 @@ pub fn Stats(
                         };
                         view! { <span class=if ok { "badge ok" } else { "badge" } data-testid="tuned">{text}</span> }
                     }}
+                    {r.keep.as_ref().map(|k| view! {
+                        <span class="stat keep" data-testid="keep" data-phase=format!("{:?}", k.phase).to_lowercase()>{crate::model::keep_label(k)}</span>
+                    })}
                 }.into_any(),
             }}
         </div>

@@ -18,6 +18,7 @@
 //! `t_sr` in ns, `w` in µV, gradients in parameter unit per mV.
 #![warn(missing_docs)]
 
+pub mod alert;
 pub mod benchmark;
 pub mod config_error;
 pub mod config_merge;

@@ -11,6 +11,10 @@ use serde::{Deserialize, Serialize};
 
 /// Version of the wire format; bumped on any incompatible change.
 ///
+/// Within version 3, alerts were added without a bump: a viewer that sends
+/// `subscribe` with `alerts: true` is also sent [`ServerMessage::Alert`]
+/// frames; a version-3 client that does not ask never sees one.
+///
 /// Version 2 added [`Request::ReadVoltages`], the typed [`RunStatus::Faulted`]
 /// and [`RunStatus::Stepping`] states and typed [`TunerEvent`]s. Version 3
 /// added the fault policy: [`FaultKind::Disconnected`] and
@@ -1070,6 +1074,75 @@ impl ControlCommand {
     }
 }
 
+/// Why a run needs a person's attention ([`Alert::kind`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AlertKind {
+    /// The run was paused by a fault ([`RunStatus::Faulted`]).
+    Faulted,
+    /// The run finished ([`RunStatus::Finished`]).
+    Finished,
+    /// The run cannot continue ([`RunStatus::Failed`]).
+    Failed,
+    /// Keep mode has not got back into band within its configured lab time
+    /// ([`EventKind::NotBackInBand`]).
+    NotBackInBand,
+}
+
+impl AlertKind {
+    /// Short name, as in JSON (`"not_back_in_band"`).
+    pub fn name(self) -> &'static str {
+        match self {
+            AlertKind::Faulted => "faulted",
+            AlertKind::Finished => "finished",
+            AlertKind::Failed => "failed",
+            AlertKind::NotBackInBand => "not_back_in_band",
+        }
+    }
+
+    /// In plain words, for a person (`"not back in band"`).
+    pub fn label(self) -> &'static str {
+        match self {
+            AlertKind::Faulted => "fault",
+            AlertKind::Finished => "finished",
+            AlertKind::Failed => "failed",
+            AlertKind::NotBackInBand => "not back in band",
+        }
+    }
+}
+
+/// A run needs a person: it faulted, finished, failed, or keep mode has not
+/// got back into band in time. Raised by [`crate::alert`] (the one place
+/// that decides), sent to viewers ([`ServerMessage::Alert`]) and to the
+/// server's webhook.
+///
+/// ```
+/// use spintune::protocol::{Alert, AlertKind};
+/// let a = Alert { run: 3, name: "night".into(), kind: AlertKind::NotBackInBand,
+///     message: "qubit: not back in band".into(), lab_seconds: 1234.5, iteration: Some(41) };
+/// let json = serde_json::to_string(&a).unwrap();
+/// assert!(json.contains(r#""kind":"not_back_in_band""#));
+/// assert_eq!(serde_json::from_str::<Alert>(&json).unwrap(), a);
+/// ```
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Alert {
+    /// The run's id.
+    pub run: u64,
+    /// The run's name.
+    pub name: String,
+    /// Why.
+    pub kind: AlertKind,
+    /// What happened, in plain words with units.
+    pub message: String,
+    /// The run's cumulative lab time when it happened, s.
+    pub lab_seconds: f64,
+    /// The iteration it happened at (the record that carried the event, or
+    /// the run's last committed iteration); `None` before the first.
+    #[serde(default)]
+    pub iteration: Option<u64>,
+}
+
 /// Records in a [`ServerMessage::History`] page when the client names no
 /// `limit` (and the page the server sends unasked after `Hello`). At about
 /// 2 kB per summary record this keeps a page near 400 kB.
@@ -1094,7 +1167,9 @@ pub const MAX_HISTORY_PAGE: u32 = 2000;
 /// let m: ClientMessage = serde_json::from_str(r#"{"type":"scans","iteration":7}"#).unwrap();
 /// assert_eq!(m, ClientMessage::Scans { iteration: 7 });
 /// let m: ClientMessage = serde_json::from_str(r#"{"type":"subscribe","scans":true}"#).unwrap();
-/// assert_eq!(m, ClientMessage::Subscribe { scans: true });
+/// assert_eq!(m, ClientMessage::Subscribe { scans: true, alerts: false });
+/// let m: ClientMessage = serde_json::from_str(r#"{"type":"subscribe","scans":true,"alerts":true}"#).unwrap();
+/// assert_eq!(m, ClientMessage::Subscribe { scans: true, alerts: true });
 /// ```
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
@@ -1129,10 +1204,16 @@ pub enum ClientMessage {
     },
     /// Choose what live `Iteration` frames carry on this socket: with
     /// `scans: true` each carries its scans (the full record), otherwise a
-    /// summary (the default). No token needed.
+    /// summary (the default); with `alerts: true` the socket is also sent
+    /// the run's [`ServerMessage::Alert`]s (a client that does not ask
+    /// never gets one). No token needed.
     Subscribe {
         /// Include raw scans and fits in live frames.
         scans: bool,
+        /// Send the run's alerts on this socket (default `false`; added
+        /// within protocol version 3, see [`PROTOCOL_VERSION`]).
+        #[serde(default)]
+        alerts: bool,
     },
 }
 
@@ -1182,6 +1263,15 @@ pub enum ServerMessage {
     Lagged {
         /// Number of live messages dropped for this viewer.
         skipped: u64,
+    },
+    /// The run raised an alert ([`crate::alert`] decides when): sent live,
+    /// only to sockets that subscribed with `alerts: true`; never replayed.
+    Alert {
+        /// What happened.
+        alert: Alert,
+        /// When the server raised it, RFC 3339 UTC (e.g.
+        /// `2026-11-24T09:10:11Z`): wall-clock time, unlike `lab_seconds`.
+        at: String,
     },
     /// Control token accepted on this socket.
     AuthOk,

@@ -1,23 +1,31 @@
 //! A run known to the manager ([`RunHandle`]): its config, its summary, the
 //! broadcast channel of its live updates, the ring of its newest summaries
 //! ([`RECENT_SUMMARIES`]), its open viewer sockets, the control channel of
-//! its task (if one drives it) and its lifecycle lock.
+//! its task (if one drives it) and its lifecycle lock. Every status change
+//! and every committed record passes through here to its viewers, so this
+//! is where the run's alerts are raised ([`spintune::alert`] decides;
+//! [`RunHandle::raise`] sends them to the viewers and the webhook).
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 
 use axum::extract::ws::Utf8Bytes;
-use spintune::protocol::{ControlCommand, RunSummary, ServerMessage};
+use spintune::protocol::{Alert, ControlCommand, RunStatus, RunSummary, ServerMessage};
 use tokio::sync::{broadcast, mpsc, oneshot};
 
 use super::error::RunError;
 use super::viewer_update::ViewerUpdate;
+use crate::alerts::{now_rfc3339, AlertSink};
 use crate::config::RunConfig;
 
 /// Summaries of the newest iterations each run keeps in memory (one default
 /// history page), so the page sent after `Hello`/`Lagged` needs no store read.
 pub const RECENT_SUMMARIES: usize = spintune::protocol::DEFAULT_HISTORY_PAGE as usize;
+
+/// Alert frames buffered per viewer socket that asked for alerts; a viewer
+/// further behind skips the older ones.
+pub const ALERTS_PER_VIEWER: usize = 16;
 
 /// One open viewer socket of a run (counted until dropped; holds the count,
 /// not the run, so deleting the run still closes its channel).
@@ -57,6 +65,8 @@ pub struct RunHandle {
     pub config: RunConfig,
     summary: Mutex<RunSummary>,
     tx: broadcast::Sender<ViewerUpdate>,
+    /// The run's alerts (`ServerMessage::Alert`), apart from the live frames.
+    alerts_tx: broadcast::Sender<ViewerUpdate>,
     control: Mutex<Option<mpsc::Sender<ControlMsg>>>,
     /// Why the stored run is unreadable (`Some`: quarantined; listed, never driven).
     quarantine: Option<String>,
@@ -67,6 +77,11 @@ pub struct RunHandle {
     recent: Mutex<VecDeque<(u64, Utf8Bytes)>>,
     /// Open viewer sockets ([`RunHandle::add_viewer`]).
     viewer_sockets: Arc<AtomicUsize>,
+    /// The status last broadcast (what a new one is compared with to
+    /// decide an alert).
+    last_status: Mutex<RunStatus>,
+    /// The webhook's queue, if `--alert-webhook` is set.
+    alerts: Option<AlertSink>,
 }
 
 impl RunHandle {
@@ -75,12 +90,16 @@ impl RunHandle {
         config: RunConfig,
         summary: RunSummary,
         viewer_buffer: usize,
+        alerts: Option<AlertSink>,
     ) -> Self {
         Self {
             id,
             config,
+            last_status: Mutex::new(summary.status.clone()),
+            alerts,
             summary: Mutex::new(summary),
             tx: broadcast::channel(viewer_buffer.max(1)).0,
+            alerts_tx: broadcast::channel(ALERTS_PER_VIEWER).0,
             control: Mutex::new(None),
             quarantine: None,
             lifecycle: tokio::sync::Mutex::new(()),
@@ -157,7 +176,7 @@ impl RunHandle {
     ) -> Self {
         Self {
             quarantine: Some(error),
-            ..Self::new(id, RunConfig::recommended(), summary, viewer_buffer)
+            ..Self::new(id, RunConfig::recommended(), summary, viewer_buffer, None)
         }
     }
 
@@ -185,6 +204,11 @@ impl RunHandle {
         self.tx.subscribe()
     }
 
+    /// Subscribe to the run's alerts (the viewers that asked for them).
+    pub fn subscribe_alerts(&self) -> broadcast::Receiver<ViewerUpdate> {
+        self.alerts_tx.subscribe()
+    }
+
     /// Number of connected viewers.
     pub fn viewers(&self) -> usize {
         self.tx.receiver_count()
@@ -201,8 +225,31 @@ impl RunHandle {
         s.clone()
     }
 
+    /// Broadcast the run's status; then raise the alert the change raises,
+    /// if any ([`spintune::alert::status_alert`], comparing with the status
+    /// broadcast before).
     pub(super) fn broadcast_status(&self, run: RunSummary) {
+        let previous = std::mem::replace(
+            &mut *self.last_status.lock().unwrap_or_else(|p| p.into_inner()),
+            run.status.clone(),
+        );
+        let alert = spintune::alert::status_alert(&previous, &run);
         self.broadcast(ViewerUpdate::message(&ServerMessage::Status { run }));
+        if let Some(alert) = alert {
+            self.raise(alert);
+        }
+    }
+
+    /// Send `alert` to the run's viewers (those that subscribed to alerts)
+    /// and queue it for the webhook; never waits.
+    pub(super) fn raise(&self, alert: Alert) {
+        let at = now_rfc3339();
+        if let Some(sink) = &self.alerts {
+            sink.offer(alert.clone(), at.clone());
+        }
+        let _ = self
+            .alerts_tx
+            .send(ViewerUpdate::message(&ServerMessage::Alert { alert, at }));
     }
 
     /// Send an update to the run's viewers (none listening is fine).

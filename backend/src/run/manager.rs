@@ -25,6 +25,7 @@ use super::persist::{self, blocking};
 use super::task::RunTask;
 use super::viewer_limits::ViewerLimits;
 use super::viewer_update::ViewerUpdate;
+use crate::alerts::AlertSink;
 use crate::config::{DriverKind, RunConfig};
 use crate::devices::bridge::{BridgeLink, Links};
 use crate::devices::{self, Device, SimulatorDevice};
@@ -45,6 +46,9 @@ pub struct ManagerOptions {
     pub recover: bool,
     /// Limits of viewer sockets (send timeout, pings, sockets per run).
     pub viewers: ViewerLimits,
+    /// The alert webhook's queue (`--alert-webhook`); `None`: alerts go to
+    /// viewers only.
+    pub alerts: Option<AlertSink>,
 }
 
 impl Default for ManagerOptions {
@@ -54,6 +58,7 @@ impl Default for ManagerOptions {
             viewer_buffer: 256,
             recover: true,
             viewers: ViewerLimits::default(),
+            alerts: None,
         }
     }
 }
@@ -131,6 +136,7 @@ impl Manager {
                     config,
                     stored.summary,
                     options.viewer_buffer,
+                    options.alerts.clone(),
                 )),
             );
         }
@@ -236,6 +242,7 @@ impl Manager {
             config,
             summary,
             self.options.viewer_buffer,
+            self.options.alerts.clone(),
         ));
         self.runs().insert(id, handle.clone());
         {

@@ -150,6 +150,7 @@ pub(super) async fn commit_and_broadcast(
     let summary_json = serde_json::to_string(&record.summary())
         .map_err(|e| RunError::Internal(format!("cannot serialize a summary: {e}")))?;
     let text = iteration_message_json(&summary_json);
+    let alerts = spintune::alert::record_alerts(handle.id, handle.config.name(), &record);
     blocking(move || {
         store.commit_iteration(
             id,
@@ -174,5 +175,8 @@ pub(super) async fn commit_and_broadcast(
         full: Some(Utf8Bytes::from(full)),
         event: RunEvent::Iteration(record),
     });
+    for alert in alerts {
+        handle.raise(alert);
+    }
     Ok(seq)
 }

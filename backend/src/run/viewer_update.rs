@@ -12,7 +12,7 @@
 use std::sync::Arc;
 
 use axum::extract::ws::Utf8Bytes;
-use spintune::protocol::{IterationRecord, RunSummary, ServerMessage};
+use spintune::protocol::{Alert, IterationRecord, RunSummary, ServerMessage};
 
 /// One update broadcast to a run's viewers: the JSON text for sockets (one
 /// WebSocket text frame), and the same content typed for in-process
@@ -38,6 +38,9 @@ pub enum RunEvent {
     Iteration(Arc<IterationRecord>),
     /// The run's status changed.
     Status(RunSummary),
+    /// The run raised an alert (on the run's alert channel, to viewers
+    /// that subscribed to alerts).
+    Alert(Alert),
     /// Anything else (errors, notices).
     Other,
 }
@@ -48,6 +51,7 @@ impl ViewerUpdate {
         let event = match msg {
             ServerMessage::Status { run } => RunEvent::Status(run.clone()),
             ServerMessage::Iteration { record } => RunEvent::Iteration(Arc::new(record.clone())),
+            ServerMessage::Alert { alert, .. } => RunEvent::Alert(alert.clone()),
             _ => RunEvent::Other,
         };
         Self {

@@ -38,7 +38,9 @@
 //! [`DEFAULT_HISTORY_PAGE`](spintune::protocol::DEFAULT_HISTORY_PAGE) iteration *summaries* — records with `scans`
 //! empty — not older than `from`, with `more_before`), then every new
 //! `Iteration` live (a summary; the full record after
-//! `{"type":"subscribe","scans":true}`) and a `Status` on every status change.
+//! `{"type":"subscribe","scans":true}`) and a `Status` on every status change;
+//! after `{"type":"subscribe","scans":…,"alerts":true}` also an `Alert` when
+//! the run raises one (docs/alerts.md; never to a socket that did not ask).
 //! The client pages back with `{"type":"history","before":K,"limit":L}` (L ≤
 //! [`MAX_HISTORY_PAGE`](spintune::protocol::MAX_HISTORY_PAGE), larger → `Error`) and asks for one iteration's scans
 //! with `{"type":"scans","iteration":K}` (→ `Scans`). A viewer whose buffer

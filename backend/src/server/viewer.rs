@@ -77,6 +77,8 @@ enum ViewerRequest {
 struct ViewerState {
     /// Live `Iteration` frames carry the full record.
     scans: bool,
+    /// The run's `Alert` frames are sent (`subscribe` with `alerts: true`).
+    alerts: bool,
     /// A request for the socket loop.
     request: Option<ViewerRequest>,
 }
@@ -246,6 +248,10 @@ async fn viewer_loop(state: &AppState, id: u64, from: u64, socket: &mut WebSocke
     }
     let mut authed = false;
     let mut view = ViewerState::default();
+    // The run's alerts, on their own channel (so that they take no room in
+    // the live frames' ring of viewers that did not ask for them); only
+    // after `subscribe` with `alerts: true`.
+    let mut alerts: Option<tokio::sync::broadcast::Receiver<ViewerUpdate>> = None;
     let mut last_heard = tokio::time::Instant::now();
     let mut ping = tokio::time::interval_at(
         tokio::time::Instant::now() + limits.ping_interval,
@@ -287,6 +293,12 @@ async fn viewer_loop(state: &AppState, id: u64, from: u64, socket: &mut WebSocke
                     Message::Close(_) => return ViewerEnd::Gone,
                     Message::Ping(_) | Message::Pong(_) => None,
                 };
+                if view.alerts != alerts.is_some() {
+                    alerts = match state.manager.get(id) {
+                        Ok(handle) if view.alerts => Some(handle.subscribe_alerts()),
+                        _ => None,
+                    };
+                }
                 let reply = match (reply, view.request.take()) {
                     (Some(reply), _) => Some(text_of(&reply)),
                     (None, Some(ViewerRequest::History { before, limit })) => {
@@ -305,6 +317,20 @@ async fn viewer_loop(state: &AppState, id: u64, from: u64, socket: &mut WebSocke
                     None => Ok(()),
                 }
             }
+            alert = async {
+                match alerts.as_mut() {
+                    Some(rx) => rx.recv().await,
+                    None => std::future::pending().await,
+                }
+            } => match alert {
+                Ok(update) => send_within(socket, Message::Text(update.text), timeout).await,
+                // More than `run::ALERTS_PER_VIEWER` alerts behind: the older are skipped.
+                Err(RecvError::Lagged(_)) => Ok(()),
+                Err(RecvError::Closed) => {
+                    alerts = None;
+                    Ok(())
+                }
+            },
             _ = ping.tick() => {
                 if last_heard.elapsed() >= limits.pong_timeout {
                     return ViewerEnd::Idle(limits.pong_timeout);
@@ -467,8 +493,9 @@ async fn client_message(
             view.request = Some(ViewerRequest::Scans { iteration });
             return None;
         }
-        ClientMessage::Subscribe { scans } => {
+        ClientMessage::Subscribe { scans, alerts } => {
             view.scans = scans;
+            view.alerts = alerts;
             return None;
         }
     })

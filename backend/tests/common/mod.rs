@@ -63,6 +63,7 @@ pub async fn server(dir: &TempDir, viewer_buffer: usize) -> Server {
         viewer_buffer,
         demo: DemoMode::Never,
         demo_config: None,
+        alert_webhook: None,
         limits: Default::default(),
         security: Default::default(),
     })

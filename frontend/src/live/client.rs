@@ -27,7 +27,8 @@
 //! iteration summaries unasked; the client subscribes to live frames with
 //! scans and asks for older pages with `history {before, limit}` (at most
 //! [`MAX_HISTORY_PAGE`]) until every gap of [`RunHistory::gaps`] is filled,
-//! and for one iteration's scans with `scans {iteration}`. After `lagged`
+//! and for one iteration's scans with `scans {iteration}`; its `subscribe`
+//! also asks for the run's `alert` frames, which become [`Action::Alert`]. After `lagged`
 //! the server sends the newest page again, unasked; the gap it leaves is
 //! paged back like any other. The server answers requests in order, so the
 //! client keeps a queue of requests whose answer (or `error`) is due
@@ -50,7 +51,7 @@
 use std::collections::VecDeque;
 
 use spintune::protocol::{
-    ClientMessage, ControlCommand, IterationRecord, RunStatus, RunSummary, ServerMessage,
+    Alert, ClientMessage, ControlCommand, IterationRecord, RunStatus, RunSummary, ServerMessage,
     DEFAULT_HISTORY_PAGE, MAX_HISTORY_PAGE, PROTOCOL_VERSION,
 };
 
@@ -282,6 +283,14 @@ pub enum Action {
     Summary(RunSummary),
     /// Show this notice.
     Notice(String),
+    /// The run raised an alert (the server's `alert` frame): list it and
+    /// ask for attention.
+    Alert {
+        /// What happened.
+        alert: Alert,
+        /// When the server raised it, RFC 3339 UTC.
+        at: String,
+    },
 }
 
 /// A request on the socket whose answer (or `error`) is still due; the
@@ -721,7 +730,10 @@ impl LiveClient {
                 self.hello_seen = true;
                 self.unasked_pages = 1;
                 // Live frames with scans: the latest iteration's scans are drawn.
-                if self.send(&ClientMessage::Subscribe { scans: true }) {
+                if self.send(&ClientMessage::Subscribe {
+                    scans: true,
+                    alerts: true,
+                }) {
                     self.pending.push_back(Pending::Subscribe);
                 }
             }
@@ -784,6 +796,9 @@ impl LiveClient {
                 self.notice(format!(
                     "this viewer fell behind ({skipped} live messages skipped); catching up from the store"
                 ));
+            }
+            ServerMessage::Alert { alert, at } => {
+                self.actions.push_back(Action::Alert { alert, at });
             }
             ServerMessage::AuthOk => {
                 self.answered(Pending::Auth);

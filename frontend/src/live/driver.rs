@@ -30,6 +30,8 @@ pub struct Signals {
     pub auth: RwSignal<AuthState>,
     /// A notice above the charts.
     pub notice: RwSignal<Option<String>>,
+    /// The page's alerts (the app's, from the context).
+    pub alerts: crate::attention::Alerts,
 }
 
 impl Signals {
@@ -42,6 +44,7 @@ impl Signals {
             conn: RwSignal::new(ConnState::Connecting { attempt: 0 }),
             auth: RwSignal::new(AuthState::None),
             notice: RwSignal::new(None),
+            alerts: crate::attention::use_alerts(),
         }
     }
 }
@@ -187,6 +190,7 @@ impl Driver {
             Action::Notice(notice) => {
                 let _ = sig.notice.try_set(Some(notice));
             }
+            Action::Alert { alert, at } => crate::attention::raise(sig.alerts, alert, Some(at)),
         }
     }
 

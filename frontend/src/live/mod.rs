@@ -34,6 +34,7 @@ pub fn LiveMode(base: ApiBase) -> impl IntoView {
     let error = RwSignal::new(None::<String>);
     let loaded = RwSignal::new(false);
     let selected = RwSignal::new(initial_run_from_hash());
+    let alerts = crate::attention::use_alerts();
     let refresh = {
         let base = base.clone();
         move || {
@@ -41,6 +42,7 @@ pub fn LiveMode(base: ApiBase) -> impl IntoView {
             leptos::task::spawn_local(async move {
                 match get_json::<Vec<RunSummary>>(&url).await {
                     Ok(list) => {
+                        list_alerts(alerts, runs, selected, &list);
                         let _ = runs.try_set(list);
                         let _ = error.try_set(None);
                     }
@@ -136,6 +138,32 @@ pub fn LiveMode(base: ApiBase) -> impl IntoView {
             </aside>
             <section class="main">{run_view}</section>
         </div>
+    }
+}
+
+/// Alerts of the runs the page does not follow over a socket, from the
+/// run list's statuses (the core decides: [`spintune::alert::status_alert`];
+/// the followed run's socket brings its own, with keep-mode alerts too).
+fn list_alerts(
+    alerts: crate::attention::Alerts,
+    runs: RwSignal<Vec<RunSummary>>,
+    selected: RwSignal<Option<u64>>,
+    list: &[RunSummary],
+) {
+    let watched = selected.try_get_untracked().flatten();
+    let Some(raised) = runs.try_with_untracked(|before| {
+        list.iter()
+            .filter(|r| Some(r.id) != watched)
+            .filter_map(|r| {
+                let previous = before.iter().find(|p| p.id == r.id)?;
+                spintune::alert::status_alert(&previous.status, r)
+            })
+            .collect::<Vec<_>>()
+    }) else {
+        return;
+    };
+    for alert in raised {
+        crate::attention::raise(alerts, alert, None);
     }
 }
 

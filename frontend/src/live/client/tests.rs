@@ -205,7 +205,13 @@ fn after_hello_an_error_is_a_notice_and_the_status_shows() {
         ),
     };
     let (socket, actions) = v.start_open(&faulted);
-    assert_eq!(sent(&actions), [ClientMessage::Subscribe { scans: true }]);
+    assert_eq!(
+        sent(&actions),
+        [ClientMessage::Subscribe {
+            scans: true,
+            alerts: true
+        }]
+    );
     assert_eq!(
         v.client.summary().map(|s| status_label(&s.status)),
         Some(
@@ -223,6 +229,30 @@ fn after_hello_an_error_is_a_notice_and_the_status_shows() {
     assert_eq!(notices(&actions), ["server: unknown parameter x"]);
     assert!(!actions.iter().any(|a| matches!(a, Action::Close { .. })));
     assert_eq!(v.client.conn(), &ConnState::Open);
+    // An alert frame (the socket asked for them) is handed to the page,
+    // and changes nothing else.
+    let alert = spintune::protocol::Alert {
+        run: 1,
+        name: "night".into(),
+        kind: spintune::protocol::AlertKind::Faulted,
+        message: "device fault: timeout".into(),
+        lab_seconds: 60.0,
+        iteration: None,
+    };
+    let actions = v.frame(
+        socket,
+        &ServerMessage::Alert {
+            alert: alert.clone(),
+            at: "2026-11-24T09:10:11Z".into(),
+        },
+    );
+    assert_eq!(
+        actions,
+        [Action::Alert {
+            alert,
+            at: "2026-11-24T09:10:11Z".into()
+        }]
+    );
 }
 
 #[cfg_attr(not(target_arch = "wasm32"), test)]

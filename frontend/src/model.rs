@@ -303,6 +303,11 @@ pub fn keep_label(keep: &spintune::protocol::KeepReport) -> String {
     use spintune::protocol::KeepPhase;
     let mut s = match keep.phase {
         KeepPhase::Tuning => "keep: tuning to the targets".to_string(),
+        // a check that found a parameter out of band (or about to leave)
+        // ends keeping: no next check is planned until the re-tune is done
+        KeepPhase::Check if keep.next_check_lab_seconds.is_none() => {
+            "keep: checked, re-tuning".to_string()
+        }
         KeepPhase::Check => "keep: checked, in band".to_string(),
         KeepPhase::Retune => format!(
             "keep: re-tuning (out of band for {})",
@@ -602,6 +607,13 @@ mod tests {
             keep_label(&retune),
             "keep: re-tuning (out of band for 1.5 min)"
         );
+        let failed_check = KeepReport {
+            phase: KeepPhase::Check,
+            next_check_lab_seconds: None,
+            next_check: vec![],
+            out_of_band_lab_seconds: 0.0,
+        };
+        assert_eq!(keep_label(&failed_check), "keep: checked, re-tuning");
     }
 
     fn every_status() -> Vec<RunStatus> {

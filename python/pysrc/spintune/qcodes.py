@@ -890,8 +890,11 @@ class QcodesTuner:
         if kind == "wait":
             # keep mode: lab time passes between checks (at most 600 s per request);
             # nothing touches the instrument
-            self._sleep(float(request["seconds"]))
-            return {"response": "waited", "lab_seconds": time.monotonic() - t0}
+            seconds = float(request["seconds"])
+            self._sleep(seconds)
+            # `sleep` returned: the requested lab time has passed (a test's
+            # or a scheduler's `sleep` may return at once and stand for it)
+            return {"response": "waited", "lab_seconds": max(seconds, time.monotonic() - t0)}
         return {"response": "error", "message": f"`{kind}` is not available on instruments"}
 
     # -- the QCoDeS dataset --------------------------------------------------

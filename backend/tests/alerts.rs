@@ -467,3 +467,49 @@ async fn bad_webhook_urls_are_refused_naming_the_flag() {
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("--alert-webhook"));
 }
+
+/// A keep run (issue 23) that cannot get back into band within its
+/// configured lab time raises `not_back_in_band` at the webhook, with the
+/// core's own words, and then still finishes (the alert never holds it up).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_keep_run_not_back_in_band_in_time_is_posted_to_the_webhook() {
+    let dir = TempDir::new("alert-keep");
+    let mut hook = Hook::start(vec![Answer::Status(204)]).await;
+    let served = served_with_hook(&dir, &hook.url);
+    // 60 lab seconds out of band is too long: some re-tune of a 12 h keep takes longer
+    let config = json!({
+        "name": "keep alert",
+        "seed": 3,
+        "iteration_delay_ms": 0,
+        "tuner": { "keep": { "duration_s": 43200.0, "alert_after_s": 60.0 } }
+    });
+    let run = create_run(served.addr, &config).await;
+    let done = wait_status(served.addr, run.id, is_finished).await;
+    let mut kinds = Vec::new();
+    loop {
+        let got = hook.next(STEP).await;
+        let kind = got.body["kind"].as_str().unwrap().to_string();
+        if kind == "not_back_in_band" {
+            check_body(&got.body, run.id, "keep alert", "not_back_in_band");
+            let message = got.body["message"].as_str().unwrap();
+            assert!(message.contains("not back in band"), "{message}");
+        }
+        kinds.push(kind);
+        if kinds.last().map(String::as_str) == Some("finished") {
+            break;
+        }
+    }
+    assert!(kinds.iter().any(|k| k == "not_back_in_band"), "{kinds:?}");
+    // every alert in the stored records reached the webhook, in order
+    let stored = records(served.addr, run.id)
+        .await
+        .iter()
+        .flat_map(|r| r["events"].as_array().cloned().unwrap_or_default())
+        .filter(|e| e["event"] == "not_back_in_band")
+        .count();
+    assert_eq!(
+        kinds.iter().filter(|k| *k == "not_back_in_band").count(),
+        stored
+    );
+    assert!(done.lab_seconds > 43200.0 * 0.5);
+}

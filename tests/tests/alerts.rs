@@ -143,3 +143,58 @@ async fn a_finished_run_raises_an_alert_in_the_title_favicon_and_banner_until_di
     let _ = c.close().await;
     let _ = std::fs::remove_dir_all(&tmp);
 }
+
+/// A keep run (issue 23) in the dashboard: the stats line says what keep
+/// mode is doing and when it checks next; checks and re-tunes show as its
+/// phase; a re-tune that takes longer than `alert_after_s` raises a
+/// `not_back_in_band` alert in the banner.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_keep_run_shows_its_phase_next_check_and_not_back_in_band_alert() {
+    let tmp = std::env::temp_dir().join(format!("spintune-e2e-keep-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&tmp);
+    std::fs::create_dir_all(&tmp).unwrap();
+    let port = free_port();
+    let _server = start_server(port, &tmp.join("runs.db"));
+    let (s, body) = http(
+        port,
+        "POST",
+        "/api/runs",
+        Some(TOKEN),
+        r#"{"name":"keep e2e","seed":3,"iteration_delay_ms":40,"tuner":{"keep":{"duration_s":43200,"alert_after_s":60}}}"#,
+    );
+    assert_eq!(s, 201, "{body}");
+    let json = &body[body.find('{').unwrap()..=body.rfind('}').unwrap()];
+    let id = serde_json::from_str::<serde_json::Value>(json).unwrap()["id"]
+        .as_u64()
+        .unwrap();
+    let driver_port = free_port();
+    let _driver = start_chromedriver(driver_port);
+    let c = browser(driver_port).await;
+    c.goto(&format!("http://127.0.0.1:{port}/#live/{id}"))
+        .await
+        .unwrap();
+    wait_text(&c, "[data-testid=connection]", "live", 60).await;
+    // keeping: the next planned check, in lab time
+    let keep = wait_text(&c, "[data-testid=keep]", "next check of", 90).await;
+    assert!(keep.contains("lab time"), "{keep}");
+    let mut phases = std::collections::BTreeSet::new();
+    let item = wait("a not_back_in_band alert", 120, async || {
+        if let Some(p) = attr(&c, "[data-testid=keep]", "data-phase").await {
+            phases.insert(p);
+        }
+        let el = c
+            .find(fantoccini::Locator::Css(
+                "[data-testid=alert-item][data-kind=not_back_in_band]",
+            ))
+            .await
+            .ok()?;
+        el.text().await.ok()
+    })
+    .await;
+    assert!(item.contains("not back in band"), "{item}");
+    assert!(item.contains("keep e2e"), "{item}");
+    assert!(phases.contains("check") || phases.contains("retune"), "{phases:?}");
+    screenshot(&c, "keep-alert").await;
+    let _ = c.close().await;
+    let _ = std::fs::remove_dir_all(&tmp);
+}

@@ -285,6 +285,7 @@ fn draw_day(
             .map_err(|e| err(&e))?;
         chart
             .configure_mesh()
+            .light_line_style(TRANSPARENT)
             .x_desc("lab time since first tuned (h)")
             .y_desc(format!("true {name} ({unit})"))
             .draw()
@@ -329,6 +330,7 @@ fn draw_day(
         }
         chart
             .configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
             .background_style(WHITE.mix(0.8))
             .border_style(BLACK)
             .draw()

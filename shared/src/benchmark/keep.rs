@@ -330,7 +330,8 @@ impl World {
         if self.trace {
             let now = h.device.lab_seconds();
             self.samples.push(KeepSample {
-                hours: (now - self.window.unwrap_or(now)) / 3600.0,
+                // before the window opens (the initial tuning): -1
+                hours: self.window.map_or(-1.0, |w| (now - w) / 3600.0),
                 t_sr_ns: truth.t_sr_ns,
                 w_uv: truth.w_uv,
                 mark: std::mem::take(&mut self.mark),

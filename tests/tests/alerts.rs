@@ -193,7 +193,10 @@ async fn a_keep_run_shows_its_phase_next_check_and_not_back_in_band_alert() {
     .await;
     assert!(item.contains("not back in band"), "{item}");
     assert!(item.contains("keep e2e"), "{item}");
-    assert!(phases.contains("check") || phases.contains("retune"), "{phases:?}");
+    assert!(
+        phases.contains("check") || phases.contains("retune"),
+        "{phases:?}"
+    );
     screenshot(&c, "keep-alert").await;
     let _ = c.close().await;
     let _ = std::fs::remove_dir_all(&tmp);

@@ -362,11 +362,17 @@ impl Tuner {
         ops
     }
 
-    /// Keep mode: after a top-level step, the filter's prediction of every
-    /// parameter (estimator space: `y + g·Δv`, variance `Δv C Δvᵀ + δy²`),
-    /// `None` per parameter without a sample; `None` if there was no step.
+    /// Keep mode: [`Tuner::prediction_after_step`] of the top level.
     pub(super) fn top_prediction_after_step(&self) -> Option<Vec<Option<Sample>>> {
-        let (cfg, state) = self.newton(0);
+        self.prediction_after_step(0)
+    }
+
+    /// After a level's step, the filter's prediction of every parameter
+    /// (estimator space: `y + g·Δv`, variance `Δv C Δvᵀ + δy²`), `None` per
+    /// parameter without a sample or with a non-finite prediction; `None`
+    /// if there was no step.
+    fn prediction_after_step(&self, level: usize) -> Option<Vec<Option<Sample>>> {
+        let (cfg, state) = self.newton(level);
         let snapshot = state.snapshot.as_ref()?;
         let es = state.estimators.as_ref()?;
         if snapshot.tuned || snapshot.step_mv.iter().all(|d| *d == 0.0) {
@@ -867,24 +873,14 @@ impl Tuner {
     /// from either edge (estimator space: prediction `y + g·Δv`, variance
     /// `Δv C Δvᵀ + δy²`); `None` to measure again.
     fn confidently_in_band(&self, level: usize) -> Option<Vec<EventKind>> {
-        let (cfg, state) = self.newton(level);
+        let (cfg, _) = self.newton(level);
         let k = cfg.skip_confirmation_sigma?;
-        let snapshot = state.snapshot.as_ref()?;
-        let es = state.estimators.as_ref()?;
-        if snapshot.tuned || snapshot.step_mv.iter().all(|d| *d == 0.0) {
-            return None;
-        }
-        let dv = DVector::from_column_slice(&snapshot.step_mv);
+        let predictions = self.prediction_after_step(level)?;
         let mut events = Vec::new();
         for (i, p) in cfg.parameters.iter().enumerate() {
             let Some(target) = p.target else { continue };
-            let (y, var_y) = snapshot.samples.get(i).copied().flatten()?;
-            let e = es.get(i)?;
-            let predicted = y + e.gradient().dot(&dv);
-            let var_g = e
-                .covariance()
-                .map_or(0.0, |c| (dv.transpose() * c * &dv)[(0, 0)]);
-            let std = (var_g + var_y).sqrt();
+            let (predicted, var) = predictions.get(i).copied().flatten()?;
+            let std = var.sqrt();
             let h = p.tolerance.half_width(target);
             let lo = p.transform.forward_value(target - h)?;
             let hi = p.transform.forward_value(target + h)?;

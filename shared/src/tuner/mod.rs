@@ -688,6 +688,7 @@ impl Tuner {
                 to_mv: (present + sd.half_width_mv).min(hi),
                 points: sd.points,
             }),
+            cell: None,
         })
     }
 

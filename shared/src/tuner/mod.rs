@@ -29,6 +29,7 @@
 //! assert_eq!(first.gates, ["N", "SA", "SB", "T"]);
 //! ```
 
+pub mod array;
 mod config;
 pub mod finite_difference;
 mod keep;

@@ -8,6 +8,7 @@
 // `tests` crate name; everything else is `pub(crate)`, so that rustc and
 // clippy report what nothing uses.
 pub mod bench;
+pub mod bench_array;
 pub mod bench_keep;
 pub mod bench_server;
 pub mod cli;

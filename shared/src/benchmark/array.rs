@@ -164,26 +164,57 @@ impl ArrayProtocol {
             "set_points",
             format!("{} set points (1..=16)", self.set_points.len()),
         )?;
-        for (i, &(t, w)) in self.set_points.iter().chain([&self.single_cell_target]).enumerate() {
+        for (i, &(t, w)) in self
+            .set_points
+            .iter()
+            .chain([&self.single_cell_target])
+            .enumerate()
+        {
             check(
-                t.is_finite() && (1.0..=1000.0).contains(&t) && w.is_finite() && (10.0..=2000.0).contains(&w),
+                t.is_finite()
+                    && (1.0..=1000.0).contains(&t)
+                    && w.is_finite()
+                    && (10.0..=2000.0).contains(&w),
                 &format!("set_points[{i}]"),
                 format!("({t} ns, {w} µV) (t_sr 1..=1000 ns, w 10..=2000 µV)"),
             )?;
         }
         let b = self.relative_tolerance;
-        check(b.is_finite() && b > 0.0 && b <= 0.5, "relative_tolerance", b.to_string())?;
+        check(
+            b.is_finite() && b > 0.0 && b <= 0.5,
+            "relative_tolerance",
+            b.to_string(),
+        )?;
         for (field, v) in [
             ("iterations_per_change", self.iterations_per_change),
-            ("serial_iterations_per_cell", self.serial_iterations_per_cell),
+            (
+                "serial_iterations_per_cell",
+                self.serial_iterations_per_cell,
+            ),
         ] {
             check((1..=MAX_ROUNDS).contains(&v), field, v.to_string())?;
         }
-        check((1..=10).contains(&self.serial_passes), "serial_passes", self.serial_passes.to_string())?;
-        check(self.single_cell_changes <= 16, "single_cell_changes", self.single_cell_changes.to_string())?;
-        check(self.line_rounds <= 5, "line_rounds", self.line_rounds.to_string())?;
+        check(
+            (1..=10).contains(&self.serial_passes),
+            "serial_passes",
+            self.serial_passes.to_string(),
+        )?;
+        check(
+            self.single_cell_changes <= 16,
+            "single_cell_changes",
+            self.single_cell_changes.to_string(),
+        )?;
+        check(
+            self.line_rounds <= 5,
+            "line_rounds",
+            self.line_rounds.to_string(),
+        )?;
         let l = self.line_tolerance_mv;
-        check(l.is_finite() && l > 0.0 && l <= 1.0, "line_tolerance_mv", l.to_string())?;
+        check(
+            l.is_finite() && l > 0.0 && l <= 1.0,
+            "line_tolerance_mv",
+            l.to_string(),
+        )?;
         self.joint.validate()
     }
 }
@@ -463,7 +494,7 @@ fn parallel_until_in_band(
         if runs.iter().all(|r| r.in_band) {
             return Ok(Some(lab.minutes() - t0));
         }
-        if runs.iter().all(|r| r.in_band || r.records >= cap) {
+        if runs.iter().all(|r| r.in_band || r.done || r.records >= cap) {
             return Ok(None);
         }
         round(lab, runs, &all)?;
@@ -482,6 +513,7 @@ fn serial_until_in_band(
         for i in 0..runs.len() {
             let start = runs[i].records;
             while !runs[i].in_band
+                && !runs[i].done
                 && runs[i].records - start < protocol.serial_iterations_per_cell
             {
                 round(lab, runs, &[i])?;
@@ -490,7 +522,7 @@ fn serial_until_in_band(
         // the check pass: a fresh record of every cell
         for i in 0..runs.len() {
             let before = runs[i].records;
-            while runs[i].records == before {
+            while runs[i].records == before && !runs[i].done {
                 round(lab, runs, &[i])?;
             }
         }
@@ -504,9 +536,15 @@ fn serial_until_in_band(
 /// Cells of the single-cell changes: K/2, 0, K−1, K/4, … (distinct, at most `n`).
 pub fn single_change_cells(cells: u32, n: u32) -> Vec<u32> {
     let mut out = Vec::new();
-    for c in [cells / 2, 0, cells.saturating_sub(1), cells / 4, 3 * cells / 4]
-        .into_iter()
-        .chain(0..cells)
+    for c in [
+        cells / 2,
+        0,
+        cells.saturating_sub(1),
+        cells / 4,
+        3 * cells / 4,
+    ]
+    .into_iter()
+    .chain(0..cells)
     {
         if out.len() as u32 >= n {
             break;
@@ -519,9 +557,9 @@ pub fn single_change_cells(cells: u32, n: u32) -> Vec<u32> {
 }
 
 fn truly_in_band(lab: &Lab, cell: u32, (t_sr, w): (f64, f64), band: f64) -> bool {
-    lab.device.truth(cell).is_some_and(|t| {
-        (t.t_sr_ns - t_sr).abs() <= band * t_sr && (t.w_uv - w).abs() <= band * w
-    })
+    lab.device
+        .truth(cell)
+        .is_some_and(|t| (t.t_sr_ns - t_sr).abs() <= band * t_sr && (t.w_uv - w).abs() <= band * w)
 }
 
 /// The world: an array of `cells` on population `device_seed`, noise `seed`.
@@ -578,29 +616,40 @@ pub fn run_strategy(
                     parallel_until_in_band(lab, runs, cap, t0)
                 }
             };
-            result.cold_start_lab_minutes = go(&mut lab, &mut runs, 2 * protocol.iterations_per_change)?;
+            result.cold_start_lab_minutes =
+                go(&mut lab, &mut runs, 2 * protocol.iterations_per_change)?;
             for &sp in &protocol.set_points[1..] {
                 for r in runs.iter_mut() {
                     r.set_targets(sp, band)?;
                 }
                 targets.iter_mut().for_each(|t| *t = sp);
-                result.changes.push(go(&mut lab, &mut runs, protocol.iterations_per_change)?);
+                result
+                    .changes
+                    .push(go(&mut lab, &mut runs, protocol.iterations_per_change)?);
             }
             for &c in &single {
                 let t = protocol.single_cell_target;
                 runs[c as usize].set_targets(t, band)?;
                 targets[c as usize] = t;
                 // the others stay on target; their latest in-band state holds
-                result
-                    .single_cell_changes
-                    .push(go(&mut lab, &mut runs, protocol.iterations_per_change)?);
+                result.single_cell_changes.push(go(
+                    &mut lab,
+                    &mut runs,
+                    protocol.iterations_per_change,
+                )?);
                 result.neighbours_left_out_of_band += neighbours_out(&lab, c, &targets, band);
             }
         }
         ArrayStrategy::Joint | ArrayStrategy::Oracle => {
             let mut joint = JointRun::start(&mut lab, &mut runs, protocol)?;
-            result.cold_start_lab_minutes = joint
-                .until_in_band(&mut lab, &targets, strategy, protocol, 2 * protocol.iterations_per_change, 0.0)?;
+            result.cold_start_lab_minutes = joint.until_in_band(
+                &mut lab,
+                &targets,
+                strategy,
+                protocol,
+                2 * protocol.iterations_per_change,
+                0.0,
+            )?;
             for &sp in &protocol.set_points[1..] {
                 targets.iter_mut().for_each(|t| *t = sp);
                 let t0 = lab.minutes();
@@ -671,7 +720,11 @@ struct JointRun {
 impl JointRun {
     /// The cold start's initial measurements: every cell's session with
     /// `max_iterations = 0`, in parallel; then the lab's knowledge of every cell.
-    fn start(lab: &mut Lab, runs: &mut [CellRun], protocol: &ArrayProtocol) -> Result<Self, ArrayFailure> {
+    fn start(
+        lab: &mut Lab,
+        runs: &mut [CellRun],
+        protocol: &ArrayProtocol,
+    ) -> Result<Self, ArrayFailure> {
         for (c, run) in runs.iter_mut().enumerate() {
             let mut t = cell_tuner(c as u32, protocol);
             t.max_iterations = Some(0);
@@ -687,7 +740,10 @@ impl JointRun {
             let cfg = run.session.tuner().config_with_learned_gradients();
             let top = cfg.top();
             let (gradient, covariance) = match &top.initial_gradient {
-                InitialGradient::Given { gradient, covariance } => (gradient.clone(), covariance.clone()),
+                InitialGradient::Given {
+                    gradient,
+                    covariance,
+                } => (gradient.clone(), covariance.clone()),
                 _ => return Err(run.halted("no initial gradient was measured".into())),
             };
             cells.push(CellKnowledge {
@@ -695,9 +751,16 @@ impl JointRun {
                 parameters: top.parameters.iter().map(|p| p.name.clone()).collect(),
                 gradient,
                 covariance,
-                process_noise_per_mv: top.parameters.iter().map(|p| p.process_noise_per_mv).collect(),
+                process_noise_per_mv: top
+                    .parameters
+                    .iter()
+                    .map(|p| p.process_noise_per_mv)
+                    .collect(),
                 max_step_mv: top.solver.max_step_mv,
-                compensation: top.compensation.as_ref().map(|c| (c.gates.clone(), c.matrix.clone())),
+                compensation: top
+                    .compensation
+                    .as_ref()
+                    .map(|c| (c.gates.clone(), c.matrix.clone())),
             });
             let mut l = CellLower {
                 sd_gate: String::new(),
@@ -814,7 +877,16 @@ impl JointRun {
                 .map(|voltages_mv| Request::SetVoltages { voltages_mv })
                 .collect();
             lab.batch(&sets);
-            self.lower_levels(lab, &cells, protocol);
+            // the moved cells and their neighbours (crosstalk moved their
+            // lines and sensors too)
+            let mut affected: Vec<u32> = cells
+                .iter()
+                .flat_map(|&c| [c.saturating_sub(1), c, c + 1])
+                .filter(|&c| (c as usize) < k)
+                .collect();
+            affected.sort_unstable();
+            affected.dedup();
+            self.lower_levels(lab, &affected, protocol);
         }
         Ok(None)
     }
@@ -831,7 +903,9 @@ impl JointRun {
             Some(Response::TrueJacobian { values, jacobian }) => {
                 let rows = jacobian.len();
                 let cols = self.tuner.gates().len();
-                Some(nalgebra::DMatrix::from_fn(rows, cols, |i, j| jacobian[i][j] / values[i]))
+                Some(nalgebra::DMatrix::from_fn(rows, cols, |i, j| {
+                    jacobian[i][j] / values[i]
+                }))
             }
             _ => None,
         }
@@ -922,7 +996,10 @@ impl JointRun {
                 if !(det.is_finite() && det.abs() > 1e-12) || l.line_gates.len() != 2 {
                     continue;
                 }
-                let mut dp = [-(d * mu[0] - b * mu[1]) / det, -(-cc * mu[0] + a * mu[1]) / det];
+                let mut dp = [
+                    -(d * mu[0] - b * mu[1]) / det,
+                    -(-cc * mu[0] + a * mu[1]) / det,
+                ];
                 let norm = dp[0].hypot(dp[1]);
                 if norm > l.line_max_step_mv {
                     dp.iter_mut().for_each(|x| *x *= l.line_max_step_mv / norm);
@@ -1025,13 +1102,22 @@ fn all_changes(r: &ArrayRunResult) -> Vec<Option<f64>> {
 }
 
 /// Aggregate results per strategy (in `strategies` order).
-pub fn summarize_array(results: &[ArrayRunResult], strategies: &[ArrayStrategy]) -> Vec<ArraySummary> {
+pub fn summarize_array(
+    results: &[ArrayRunResult],
+    strategies: &[ArrayStrategy],
+) -> Vec<ArraySummary> {
     strategies
         .iter()
         .map(|&s| {
             let mine: Vec<&ArrayRunResult> = results.iter().filter(|r| r.strategy == s).collect();
-            let cold: Vec<f64> = mine.iter().filter_map(|r| r.cold_start_lab_minutes).collect();
-            let changes: Vec<f64> = mine.iter().flat_map(|r| r.changes.iter().flatten().copied()).collect();
+            let cold: Vec<f64> = mine
+                .iter()
+                .filter_map(|r| r.cold_start_lab_minutes)
+                .collect();
+            let changes: Vec<f64> = mine
+                .iter()
+                .flat_map(|r| r.changes.iter().flatten().copied())
+                .collect();
             let single: Vec<f64> = mine
                 .iter()
                 .flat_map(|r| r.single_cell_changes.iter().flatten().copied())
@@ -1045,7 +1131,9 @@ pub fn summarize_array(results: &[ArrayRunResult], strategies: &[ArrayStrategy])
                 mine.iter()
                     .map(|r| {
                         let Some(o) = results.iter().find(|o| {
-                            o.strategy == ArrayStrategy::Oracle && o.seed == r.seed && o.device == r.device
+                            o.strategy == ArrayStrategy::Oracle
+                                && o.seed == r.seed
+                                && o.device == r.device
                         }) else {
                             return 0;
                         };
@@ -1064,7 +1152,10 @@ pub fn summarize_array(results: &[ArrayRunResult], strategies: &[ArrayStrategy])
                 lab_minutes_per_single_cell_change: quantiles(&single),
                 not_converged,
                 not_converged_where_oracle_converged: where_oracle,
-                neighbours_left_out_of_band: mine.iter().map(|r| r.neighbours_left_out_of_band).sum(),
+                neighbours_left_out_of_band: mine
+                    .iter()
+                    .map(|r| r.neighbours_left_out_of_band)
+                    .sum(),
                 limit_violations: mine.iter().map(|r| r.limit_violations).sum(),
                 truth_queries: mine.iter().map(|r| r.truth_queries).sum(),
                 failed_fits: mine.iter().map(|r| r.failed_fits).sum(),
@@ -1077,7 +1168,13 @@ pub fn summarize_array(results: &[ArrayRunResult], strategies: &[ArrayStrategy])
 
 /// The summaries as a markdown table.
 pub fn markdown(summaries: &[ArraySummary]) -> String {
-    let f = |x: f64| if x.is_finite() { format!("{x:.1}") } else { "–".into() };
+    let f = |x: f64| {
+        if x.is_finite() {
+            format!("{x:.1}")
+        } else {
+            "–".into()
+        }
+    };
     let mut s = String::from(
         "| strategy | cold start lab min median | p90 | change (all cells) lab min median | p90 | single-cell change lab min median | p90 | not converged | not converged where the oracle converged | neighbours left out of band | limit violations | truth queries | failed fits | measurements | runs |\n\
          |---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",

@@ -449,6 +449,7 @@ impl ArrayDevice {
                 (None, Request::Wait { .. }) => busy.iter_mut().for_each(|b| *b += seconds),
                 (None, _) => {}
             }
+            out.push(response);
         }
         let batch = group_seconds.iter().copied().fold(0.0, f64::max);
         for (dev, b) in self.cells.iter_mut().zip(busy) {

@@ -166,7 +166,9 @@ impl JointArrayTuner {
                             let own = c
                                 .gates
                                 .iter()
-                                .position(|o| crate::sim::array::split_gate(o).map(|(_, l)| l) == local)
+                                .position(|o| {
+                                    crate::sim::array::split_gate(o).map(|(_, l)| l) == local
+                                })
                                 .map_or(scale, |k| g_own[k].abs());
                             g0.push(0.0);
                             var.push((f * own).powi(2) + (0.1 * f * scale).powi(2));
@@ -178,8 +180,11 @@ impl JointArrayTuner {
                 let cov = &c.covariance[pi];
                 for r in 0..c.gates.len() {
                     for s in 0..c.gates.len() {
-                        c0[(own_at + r, own_at + s)] =
-                            cov.get(r).and_then(|row| row.get(s)).copied().unwrap_or(0.0);
+                        c0[(own_at + r, own_at + s)] = cov
+                            .get(r)
+                            .and_then(|row| row.get(s))
+                            .copied()
+                            .unwrap_or(0.0);
                     }
                 }
                 let q = ProcessNoise::isotropic(n, c.process_noise_per_mv[pi]);
@@ -299,7 +304,9 @@ impl JointArrayTuner {
         if picked.is_empty() || picked.iter().all(|(_, d)| *d == 0.0) {
             return out;
         }
-        let j = DMatrix::from_fn(picked.len(), self.gates.len(), |r, c| jacobian[(picked[r].0, c)]);
+        let j = DMatrix::from_fn(picked.len(), self.gates.len(), |r, c| {
+            jacobian[(picked[r].0, c)]
+        });
         let delta = DVector::from_iterator(picked.len(), picked.iter().map(|(_, d)| *d));
         let cfg = SolverConfig {
             max_step_mv: 1e6,

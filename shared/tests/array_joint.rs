@@ -23,7 +23,12 @@ fn short_protocol() -> ArrayProtocol {
 
 #[test]
 fn joint_converges_on_three_cells_within_every_step_limit() {
-    let array = world(&DeviceConfig::default(), ArrayConfig::chain(3, 5, 11), |_| true).unwrap();
+    let array = world(
+        &DeviceConfig::default(),
+        ArrayConfig::chain(3, 5, 11),
+        |_| true,
+    )
+    .unwrap();
     let r = run_strategy(ArrayStrategy::Joint, array, &short_protocol()).unwrap();
     let cold = r.cold_start_lab_minutes.expect("cold start converged");
     assert!(cold > 0.0);
@@ -43,7 +48,14 @@ fn only_the_oracle_reads_the_truth() {
         single_cell_changes: 0,
         ..ArrayProtocol::default()
     };
-    let array = || world(&DeviceConfig::default(), ArrayConfig::chain(2, 5, 3), |_| true).unwrap();
+    let array = || {
+        world(
+            &DeviceConfig::default(),
+            ArrayConfig::chain(2, 5, 3),
+            |_| true,
+        )
+        .unwrap()
+    };
     let oracle = run_strategy(ArrayStrategy::Oracle, array(), &protocol).unwrap();
     assert!(oracle.truth_queries > 0);
     let independent = run_strategy(ArrayStrategy::Independent, array(), &protocol).unwrap();

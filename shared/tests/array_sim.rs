@@ -38,10 +38,18 @@ fn crosstalk_decays_with_distance_and_vanishes_beyond_the_next_cell() {
     let shift = |c: u32| dev.effective_voltages_mv(c).unwrap()["SB"] - start[c as usize];
     assert!((shift(3) - 5.0).abs() < 1e-12);
     for c in [2, 4] {
-        assert!((shift(c) - 0.3 * 5.0).abs() < 1e-12, "cell {c}: {}", shift(c));
+        assert!(
+            (shift(c) - 0.3 * 5.0).abs() < 1e-12,
+            "cell {c}: {}",
+            shift(c)
+        );
     }
     for c in [1, 5] {
-        assert!((shift(c) - 0.05 * 5.0).abs() < 1e-12, "cell {c}: {}", shift(c));
+        assert!(
+            (shift(c) - 0.05 * 5.0).abs() < 1e-12,
+            "cell {c}: {}",
+            shift(c)
+        );
     }
     for c in [0, 6] {
         assert_eq!(shift(c), 0.0);

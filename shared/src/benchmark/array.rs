@@ -128,6 +128,9 @@ pub struct ArrayProtocol {
     pub joint: JointConfig,
     /// Line re-centring rounds after a joint move, 0..=5.
     pub line_rounds: u32,
+    /// Limited joint moves per measurement (the later ones while a cell's
+    /// predicted residual is still beyond half its band), 1..=4.
+    pub moves_per_iteration: u32,
     /// Band of the lines, mV (0 < b ≤ 1).
     pub line_tolerance_mv: f64,
 }
@@ -143,7 +146,8 @@ impl Default for ArrayProtocol {
             single_cell_changes: 2,
             single_cell_target: (70.0, 180.0),
             joint: JointConfig::default(),
-            line_rounds: 2,
+            line_rounds: 1,
+            moves_per_iteration: 2,
             line_tolerance_mv: 0.1,
         }
     }
@@ -208,6 +212,11 @@ impl ArrayProtocol {
             self.line_rounds <= 5,
             "line_rounds",
             self.line_rounds.to_string(),
+        )?;
+        check(
+            (1..=4).contains(&self.moves_per_iteration),
+            "moves_per_iteration",
+            self.moves_per_iteration.to_string(),
         )?;
         let l = self.line_tolerance_mv;
         check(
@@ -714,6 +723,8 @@ struct CellLower {
 struct JointRun {
     tuner: JointArrayTuner,
     lower: Vec<CellLower>,
+    /// Per cell: its gates' voltages at its last evaluation that worked, mV.
+    last_good: Vec<BTreeMap<String, f64>>,
     failed_fits: u64,
 }
 
@@ -805,9 +816,19 @@ impl JointRun {
                 .collect();
             tuner.observe(c, &values, &v);
         }
+        let last_good = (0..runs.len())
+            .map(|c| {
+                let prefix = format!("c{c}.");
+                v.iter()
+                    .filter(|(g, _)| g.starts_with(&prefix))
+                    .map(|(g, mv)| (g.clone(), *mv))
+                    .collect()
+            })
+            .collect();
         Ok(Self {
             tuner,
             lower,
+            last_good,
             failed_fits: 0,
         })
     }
@@ -823,12 +844,36 @@ impl JointRun {
     ) -> Result<Option<f64>, ArrayFailure> {
         let k = targets.len();
         for _ in 0..cap {
-            let values = self.measure(lab);
+            let band = protocol.relative_tolerance;
+            let raw = self.measure(lab);
             let v = lab.device.voltages_mv();
+            // values with error bars wider than the band are not acted on
+            let values: Vec<Vec<Option<Measured>>> = raw
+                .iter()
+                .map(|m| {
+                    m.iter()
+                        .map(|x| x.filter(|(p, var)| *p > 0.0 && var.sqrt() <= band * p))
+                        .collect()
+                })
+                .collect();
+            // a failed evaluation: retreat half-way to where it last worked;
+            // failed or too uncertain: re-tune the cell's sensor and lines
+            let failed: Vec<bool> = raw.iter().map(|m| m.iter().any(Option::is_none)).collect();
+            let unsure: Vec<bool> = values
+                .iter()
+                .map(|m| m.iter().any(Option::is_none))
+                .collect();
             for (c, vals) in values.iter().enumerate() {
                 self.tuner.observe(c, vals, &v);
+                if vals.iter().all(Option::is_some) {
+                    let prefix = format!("c{c}.");
+                    self.last_good[c] = v
+                        .iter()
+                        .filter(|(g, _)| g.starts_with(&prefix))
+                        .map(|(g, mv)| (g.clone(), *mv))
+                        .collect();
+                }
             }
-            let band = protocol.relative_tolerance;
             let mut residual = vec![vec![None; 2]; k];
             let mut all_in = true;
             for c in 0..k {
@@ -860,28 +905,79 @@ impl JointRun {
             } else {
                 self.tuner.jacobian()
             };
-            let moves = self.tuner.plan_move(&residual, &jacobian, &v, lab.limits());
-            if moves.is_empty() {
-                continue;
-            }
-            // one set per cell, batched
-            let mut per_cell: BTreeMap<u32, BTreeMap<String, f64>> = BTreeMap::new();
-            for (g, mv) in moves {
-                if let Some((c, _)) = crate::sim::array::split_gate(&g) {
-                    per_cell.entry(c).or_default().insert(g, mv);
+            // up to `moves_per_iteration` limited moves, each planned from
+            // the residual the Jacobian predicts after the previous one
+            let mut moved_cells: Vec<u32> = Vec::new();
+            let mut residual = residual;
+            for m in 0..protocol.moves_per_iteration {
+                let now = lab.device.voltages_mv();
+                let mut moves = self
+                    .tuner
+                    .plan_move(&residual, &jacobian, &now, lab.limits());
+                if m == 0 {
+                    for (c, good) in self.last_good.iter().enumerate() {
+                        if !failed[c] {
+                            continue;
+                        }
+                        let prefix = format!("c{c}.");
+                        moves.retain(|g, _| !g.starts_with(&prefix));
+                        for (g, &to) in good {
+                            let at = now.get(g).copied().unwrap_or(to);
+                            let back = lab.limits().clip(g, at, at + 0.5 * (to - at));
+                            if (back - at).abs() > 1e-3 {
+                                moves.insert(g.clone(), back);
+                            }
+                        }
+                    }
+                }
+                if moves.is_empty() {
+                    break;
+                }
+                // one set per cell, batched
+                let mut per_cell: BTreeMap<u32, BTreeMap<String, f64>> = BTreeMap::new();
+                for (g, mv) in moves {
+                    if let Some((c, _)) = crate::sim::array::split_gate(&g) {
+                        per_cell.entry(c).or_default().insert(g, mv);
+                    }
+                }
+                moved_cells.extend(per_cell.keys().copied());
+                let sets: Vec<Request> = per_cell
+                    .into_values()
+                    .map(|voltages_mv| Request::SetVoltages { voltages_mv })
+                    .collect();
+                lab.batch(&sets);
+                if m + 1 == protocol.moves_per_iteration {
+                    break;
+                }
+                let after = lab.device.voltages_mv();
+                let dv = nalgebra::DVector::from_iterator(
+                    self.tuner.gates().len(),
+                    self.tuner.gates().iter().map(|g| {
+                        after.get(g).copied().unwrap_or(0.0) - now.get(g).copied().unwrap_or(0.0)
+                    }),
+                );
+                let predicted = &jacobian * dv;
+                let mut far = false;
+                for (c, row) in residual.iter_mut().enumerate() {
+                    for (p, r) in row.iter_mut().enumerate() {
+                        if let Some(r) = r {
+                            let was_held = *r == 0.0;
+                            *r += predicted[c * 2 + p];
+                            far |= !was_held && r.abs() > 0.5 * band;
+                        }
+                    }
+                }
+                if !far {
+                    break;
                 }
             }
-            let cells: Vec<u32> = per_cell.keys().copied().collect();
-            let sets: Vec<Request> = per_cell
-                .into_values()
-                .map(|voltages_mv| Request::SetVoltages { voltages_mv })
-                .collect();
-            lab.batch(&sets);
             // the moved cells and their neighbours (crosstalk moved their
-            // lines and sensors too)
-            let mut affected: Vec<u32> = cells
+            // lines and sensors too), and every cell whose evaluation failed
+            // (e.g. a charge jump moved its sensor)
+            let mut affected: Vec<u32> = moved_cells
                 .iter()
                 .flat_map(|&c| [c.saturating_sub(1), c, c + 1])
+                .chain((0..k as u32).filter(|&c| unsure[c as usize]))
                 .filter(|&c| (c as usize) < k)
                 .collect();
             affected.sort_unstable();

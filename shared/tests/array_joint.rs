@@ -77,7 +77,15 @@ fn rows_span_the_neighbourhood_with_a_zero_mean_neighbour_prior() {
         max_step_mv: 10.0,
         compensation: None,
     };
-    let t = JointArrayTuner::new((0..4).map(cell).collect(), &JointConfig::default()).unwrap();
+    let t = JointArrayTuner::new(
+        (0..4).map(cell).collect(),
+        &JointConfig {
+            calibrated_prior_mean: false,
+            ..JointConfig::default()
+        },
+        [0.3, 0.05],
+    )
+    .unwrap();
     // an end cell sees itself and one neighbour, an inner cell both
     assert_eq!(t.row_gradient(0, 0).len(), 8);
     assert_eq!(t.row_gradient(1, 0).len(), 12);
@@ -96,7 +104,9 @@ fn rows_span_the_neighbourhood_with_a_zero_mean_neighbour_prior() {
         ..JointConfig::default()
     };
     assert_eq!(
-        JointArrayTuner::new(vec![cell(0)], &bad).unwrap_err().field,
+        JointArrayTuner::new(vec![cell(0)], &bad, [0.0; 2])
+            .unwrap_err()
+            .field,
         "joint.radius"
     );
 }

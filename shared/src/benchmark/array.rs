@@ -128,6 +128,9 @@ pub struct ArrayProtocol {
     pub joint: JointConfig,
     /// Line re-centring rounds after a joint move, 0..=5.
     pub line_rounds: u32,
+    /// Relative error of the lab's cross-cell virtual-gate calibration
+    /// ([`lab_cross_calibration`]), 0..=1. Default 0.2.
+    pub cross_compensation_error: f64,
     /// Limited joint moves per measurement (the later ones while a cell's
     /// predicted residual is still beyond half its band), 1..=4.
     pub moves_per_iteration: u32,
@@ -147,7 +150,8 @@ impl Default for ArrayProtocol {
             single_cell_target: (70.0, 180.0),
             joint: JointConfig::default(),
             line_rounds: 1,
-            moves_per_iteration: 2,
+            moves_per_iteration: 1,
+            cross_compensation_error: 0.2,
             line_tolerance_mv: 0.1,
         }
     }
@@ -217,6 +221,12 @@ impl ArrayProtocol {
             (1..=4).contains(&self.moves_per_iteration),
             "moves_per_iteration",
             self.moves_per_iteration.to_string(),
+        )?;
+        let e = self.cross_compensation_error;
+        check(
+            e.is_finite() && (0.0..=1.0).contains(&e),
+            "cross_compensation_error",
+            e.to_string(),
         )?;
         let l = self.line_tolerance_mv;
         check(
@@ -650,7 +660,8 @@ pub fn run_strategy(
             }
         }
         ArrayStrategy::Joint | ArrayStrategy::Oracle => {
-            let mut joint = JointRun::start(&mut lab, &mut runs, protocol)?;
+            let lab_lambda = lab_cross_calibration(lab.device.config(), protocol, seed);
+            let mut joint = JointRun::start(&mut lab, &mut runs, protocol, lab_lambda)?;
             result.cold_start_lab_minutes = joint.until_in_band(
                 &mut lab,
                 &targets,
@@ -698,6 +709,21 @@ pub fn run_strategy(
     Ok(result)
 }
 
+/// The lab's cross-cell virtual-gate calibration for one seed: the world's
+/// `λ(1)`, `λ(2)` each times `1 + u`, `u` uniform in
+/// `[−e, +e]` with `e` = [`ArrayProtocol::cross_compensation_error`], drawn
+/// per seed (the array analogue of the single-cell benchmark's perturbed
+/// virtual-gate matrix: configuration a lab calibrates, never exact).
+pub fn lab_cross_calibration(array: &ArrayConfig, protocol: &ArrayProtocol, seed: u64) -> [f64; 2] {
+    use rand::{Rng, SeedableRng};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x6372_6f73_7363_616c); // "crosscal"
+    let e = protocol.cross_compensation_error;
+    let x = &array.crosstalk;
+    [x.nearest, x.next].map(|l| {
+        (l * (1.0 + e * rng.gen_range(-1.0..=1.0))).clamp(0.0, crate::sim::array::MAX_CROSSTALK)
+    })
+}
+
 fn neighbours_out(lab: &Lab, c: u32, targets: &[(f64, f64)], band: f64) -> u64 {
     [c.checked_sub(1), Some(c + 1)]
         .into_iter()
@@ -735,6 +761,7 @@ impl JointRun {
         lab: &mut Lab,
         runs: &mut [CellRun],
         protocol: &ArrayProtocol,
+        lab_lambda: [f64; 2],
     ) -> Result<Self, ArrayFailure> {
         for (c, run) in runs.iter_mut().enumerate() {
             let mut t = cell_tuner(c as u32, protocol);
@@ -805,7 +832,7 @@ impl JointRun {
             }
             lower.push(l);
         }
-        let mut tuner = JointArrayTuner::new(cells, &protocol.joint)?;
+        let mut tuner = JointArrayTuner::new(cells, &protocol.joint, lab_lambda)?;
         // the initial measurement's last values start the filters' differences
         let v = lab.device.voltages_mv();
         for (c, run) in runs.iter().enumerate() {
@@ -894,6 +921,28 @@ impl JointRun {
                     });
                 }
             }
+            eprintln!(
+                "DBG truth1 {:?}",
+                lab.device.truth(1).map(|t| (
+                    t.mu_a_mv,
+                    t.mu_b_mv,
+                    t.sd_contrast,
+                    t.t_sr_ns,
+                    t.w_uv
+                ))
+            );
+            eprintln!(
+                "DBG t={:.1} vals={:?} in={}",
+                lab.minutes(),
+                values
+                    .iter()
+                    .map(|v| v
+                        .iter()
+                        .map(|m| m.map(|x| (x.0 * 10.0).round() / 10.0))
+                        .collect::<Vec<_>>())
+                    .collect::<Vec<_>>(),
+                all_in
+            );
             if all_in {
                 return Ok(Some(lab.minutes() - t0));
             }

@@ -13,10 +13,11 @@
 //!   each of its [`CrosstalkConfig::gates`] `g` at
 //!   `v_j,g + Σ_{k≠j} λ(|j−k|)·(v_k,g − v⁰_k,g)` mV, where `v⁰` is the start
 //!   voltage and `λ(1) = nearest`, `λ(2) = next`, `λ(d ≥ 3) = 0`. So moving a
-//!   tuning gate or plunger of cell k shifts the neighbours' tunnel coupling,
-//!   lead rate (hence w and t_sr) and transition lines by that fraction of
-//!   the own-cell effect (including the own model's curvature). Sensing-dot
-//!   and RF gates do not couple (not in the default list). Deterministic.
+//!   tuning gate of cell k shifts the neighbours' tunnel coupling, lead rate
+//!   (hence w and t_sr), transition lines and sensing dot by that fraction
+//!   of the own-cell effect (including the own model's curvature).
+//!   Plungers, sensing-dot and RF gates do not couple by default (the list
+//!   is configurable). Deterministic.
 //! * **Readout groups.** Each cell belongs to exactly one group (default:
 //!   one sensor per cell, so every cell is its own group).
 //!   [`ArrayDevice::execute_batch`] runs a batch of requests "at the same
@@ -62,7 +63,9 @@ pub struct CrosstalkConfig {
     /// Default 0.05. Cells further apart do not couple.
     pub next: f64,
     /// The (unprefixed) gates that couple to neighbours. Default: the tuning
-    /// gates and plungers `N, T, SA, SB, PA, PB`.
+    /// gates `N, T, SA, SB` (through the own model they shift the
+    /// neighbour's t_c, Γ, both transition lines and its sensing dot).
+    /// Plungers and sensing-dot gates are per-cell (not in the default).
     pub gates: Vec<String>,
 }
 
@@ -71,7 +74,7 @@ impl Default for CrosstalkConfig {
         Self {
             nearest: 0.3,
             next: 0.05,
-            gates: ["N", "T", "SA", "SB", "PA", "PB"]
+            gates: ["N", "T", "SA", "SB"]
                 .iter()
                 .map(|s| s.to_string())
                 .collect(),

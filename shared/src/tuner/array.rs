@@ -9,9 +9,12 @@
 //!   Parameters are tuned in log space (`y = ln p`), as the recommended
 //!   single-cell tuner does.
 //! * **Prior.** The own-cell block is the cell's initial measurement (its
-//!   learned gradient and covariance). A neighbour's block is zero-mean with
-//!   a diagonal variance from the locality model: `(f·|g_own(gate)|)² +
-//!   (f/10·max|g_own|)²` for the same gate name of the own block, `f` =
+//!   learned gradient and covariance). A neighbour's block has the mean
+//!   `λ̂(d)·g_own(gate)` (the lab's cross-cell virtual-gate calibration
+//!   `λ̂`, the same that feeds the compensation; zero with
+//!   [`JointConfig::calibrated_prior_mean`] off) and a diagonal variance from
+//!   the locality model: `(f·|g_own(gate)|)² + (f/10·max|g_own|)²` for the
+//!   same gate name of the own block, `f` =
 //!   [`JointConfig::neighbour_prior_fraction`] (an assumption of the lab,
 //!   not the simulator's crosstalk).
 //! * **Step.** Residuals `y − ln target` of the cells out of band, 0 for the
@@ -21,7 +24,9 @@
 //!   cell: scaled to the cell's step limit (mV, Euclidean over its tuning
 //!   gates) and clipped per gate to `max_step_mv` and the limits
 //!   ([`SafetyLimits::clip`]). Compensation gates follow with the cell's
-//!   virtual-gate matrix, clipped the same way.
+//!   virtual-gate matrix applied to its own move plus the lab's cross-cell
+//!   calibration `λ̂` times its neighbours' moves
+//!   ([`JointArrayTuner::set_neighbour_compensation`]), clipped the same way.
 
 use std::collections::BTreeMap;
 
@@ -46,6 +51,16 @@ pub struct JointConfig {
     pub outlier_sigma: f64,
     /// Smallest step the filter learns from, mV (0..=1). Default 0.01.
     pub min_step_mv: f64,
+    /// Prior mean of a neighbour's gradient: `true` (default) the lab's
+    /// cross-cell calibration `λ̂(d)` times the own gradient of the same
+    /// gate; `false` zero (crosstalk learned from nothing; measured worse on
+    /// random arrays, docs/array.md).
+    #[serde(default = "yes")]
+    pub calibrated_prior_mean: bool,
+}
+
+fn yes() -> bool {
+    true
 }
 
 impl Default for JointConfig {
@@ -55,6 +70,7 @@ impl Default for JointConfig {
             neighbour_prior_fraction: 0.5,
             outlier_sigma: 5.0,
             min_step_mv: 0.01,
+            calibrated_prior_mean: true,
         }
     }
 }
@@ -121,6 +137,24 @@ pub struct JointArrayTuner {
     rows: Vec<Row>,
     /// Kalman updates that were rejected (outlier gate, invalid input).
     pub rejected_updates: u64,
+    /// The lab's cross-cell virtual-gate calibration: the fraction of a
+    /// nearest / next-nearest cell's tuning move its compensation gates see
+    /// (dimensionless; default 0 = none).
+    neighbour_compensation: [f64; 2],
+}
+
+/// `Err` naming the field unless each of the lab's cross-cell calibration
+/// fractions `λ̂` (nearest, next) is in [0, [`crate::sim::array::MAX_CROSSTALK`]].
+fn check_cross_calibration(lambda: [f64; 2]) -> Result<(), ConfigError> {
+    for (i, l) in lambda.iter().enumerate() {
+        if !(l.is_finite() && (0.0..=crate::sim::array::MAX_CROSSTALK).contains(l)) {
+            return Err(ConfigError::new(
+                format!("cross_calibration[{i}]"),
+                format!("{l} outside [0, {}]", crate::sim::array::MAX_CROSSTALK),
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// A measured value (parameter unit) and its variance (unit²).
@@ -128,8 +162,13 @@ pub type Measured = (f64, f64);
 
 impl JointArrayTuner {
     /// Rows and priors from each cell's knowledge (module docs).
-    pub fn new(cells: Vec<CellKnowledge>, config: &JointConfig) -> Result<Self, ConfigError> {
+    pub fn new(
+        cells: Vec<CellKnowledge>,
+        config: &JointConfig,
+        cross_calibration: [f64; 2],
+    ) -> Result<Self, ConfigError> {
         config.validate()?;
+        check_cross_calibration(cross_calibration)?;
         let mut gates = Vec::new();
         let mut offsets = Vec::new();
         for c in &cells {
@@ -170,7 +209,21 @@ impl JointArrayTuner {
                                     crate::sim::array::split_gate(o).map(|(_, l)| l) == local
                                 })
                                 .map_or(scale, |k| g_own[k].abs());
-                            g0.push(0.0);
+                            let d = ci.abs_diff(nj);
+                            let mean = if config.calibrated_prior_mean {
+                                let lambda = [1.0, cross_calibration[0], cross_calibration[1]];
+                                let signed = c
+                                    .gates
+                                    .iter()
+                                    .position(|o| {
+                                        crate::sim::array::split_gate(o).map(|(_, l)| l) == local
+                                    })
+                                    .map_or(0.0, |k| g_own[k]);
+                                lambda.get(d).copied().unwrap_or(0.0) * signed
+                            } else {
+                                0.0
+                            };
+                            g0.push(mean);
                             var.push((f * own).powi(2) + (0.1 * f * scale).powi(2));
                         }
                     }
@@ -206,6 +259,7 @@ impl JointArrayTuner {
             gates,
             rows,
             rejected_updates: 0,
+            neighbour_compensation: cross_calibration,
         })
     }
 
@@ -315,6 +369,7 @@ impl JointArrayTuner {
         };
         let step = newton_step(&j, &delta, &cfg).dv_mv;
         let mut offset = 0;
+        let mut moved: Vec<Vec<f64>> = Vec::with_capacity(self.cells.len());
         for cell in &self.cells {
             let n = cell.gates.len();
             let block = step.rows(offset, n);
@@ -324,30 +379,49 @@ impl JointArrayTuner {
             } else {
                 1.0
             };
-            let mut moved = Vec::with_capacity(n);
+            let mut own = Vec::with_capacity(n);
             for (k, g) in cell.gates.iter().enumerate() {
                 let Some(&now) = voltages_mv.get(g) else {
-                    moved.push(0.0);
+                    own.push(0.0);
                     continue;
                 };
                 let target = limits.clip(g, now, now + block[k] * scale);
-                moved.push(target - now);
+                own.push(target - now);
                 if (target - now).abs() > 1e-3 {
                     out.insert(g.clone(), target);
                 }
             }
-            if let Some((comp_gates, matrix)) = &cell.compensation {
-                for (g, row) in comp_gates.iter().zip(matrix) {
-                    let d: f64 = row.iter().zip(&moved).map(|(m, dv)| m * dv).sum();
-                    if let Some(&now) = voltages_mv.get(g) {
-                        let target = limits.clip(g, now, now + d);
-                        if (target - now).abs() > 1e-3 {
-                            out.insert(g.clone(), target);
-                        }
+            moved.push(own);
+            offset += n;
+        }
+        // virtual gates: the own move, and the neighbours' moves weighted by
+        // the lab's cross-cell calibration
+        for (j, cell) in self.cells.iter().enumerate() {
+            let Some((comp_gates, matrix)) = &cell.compensation else {
+                continue;
+            };
+            let mut seen = vec![0.0; cell.gates.len()];
+            // (cells whose gate lists differ in length see no neighbour term)
+            for (k, dv) in moved.iter().enumerate() {
+                let w = match j.abs_diff(k) {
+                    0 => 1.0,
+                    1 => self.neighbour_compensation[0],
+                    2 => self.neighbour_compensation[1],
+                    _ => 0.0,
+                };
+                if w != 0.0 && dv.len() == seen.len() {
+                    seen.iter_mut().zip(dv).for_each(|(s, d)| *s += w * d);
+                }
+            }
+            for (g, row) in comp_gates.iter().zip(matrix) {
+                let d: f64 = row.iter().zip(&seen).map(|(m, dv)| m * dv).sum();
+                if let Some(&now) = voltages_mv.get(g) {
+                    let target = limits.clip(g, now, now + d);
+                    if (target - now).abs() > 1e-3 {
+                        out.insert(g.clone(), target);
                     }
                 }
             }
-            offset += n;
         }
         out
     }

@@ -921,28 +921,6 @@ impl JointRun {
                     });
                 }
             }
-            eprintln!(
-                "DBG truth1 {:?}",
-                lab.device.truth(1).map(|t| (
-                    t.mu_a_mv,
-                    t.mu_b_mv,
-                    t.sd_contrast,
-                    t.t_sr_ns,
-                    t.w_uv
-                ))
-            );
-            eprintln!(
-                "DBG t={:.1} vals={:?} in={}",
-                lab.minutes(),
-                values
-                    .iter()
-                    .map(|v| v
-                        .iter()
-                        .map(|m| m.map(|x| (x.0 * 10.0).round() / 10.0))
-                        .collect::<Vec<_>>())
-                    .collect::<Vec<_>>(),
-                all_in
-            );
             if all_in {
                 return Ok(Some(lab.minutes() - t0));
             }

@@ -10,13 +10,17 @@ use spintune::protocol::{Request, Response, ScanKind, ScanRequest};
 use spintune::sim::array::{gate_name, parameter_name, ArrayConfig, ArrayDevice};
 use spintune::sim::DeviceConfig;
 
-/// `cells` identical default devices (so every cell's own model is the same).
+/// `cells` identical default devices (so every cell's own model is the
+/// same) without the slow drift of t_c and Γ (so the truth changes only
+/// with the voltages).
 fn identical(cells: u32) -> ArrayDevice {
-    ArrayDevice::new(
-        ArrayConfig::chain(cells, 0, 7),
-        vec![DeviceConfig::default(); cells as usize],
-    )
-    .unwrap()
+    let mut d = DeviceConfig::default();
+    let slow = &mut d.noise.slow;
+    slow.tunnel_coupling_rel = 0.0;
+    slow.lead_rate_rel = 0.0;
+    slow.jump_rate_per_s = 0.0;
+    slow.lead_rate_trend_per_hour = 0.0;
+    ArrayDevice::new(ArrayConfig::chain(cells, 0, 7), vec![d; cells as usize]).unwrap()
 }
 
 fn set(dev: &mut ArrayDevice, gate: &str, mv: f64) {

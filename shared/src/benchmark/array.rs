@@ -935,7 +935,6 @@ impl JointRun {
             // up to `moves_per_iteration` limited moves, each planned from
             // the residual the Jacobian predicts after the previous one
             let mut moved_cells: Vec<u32> = Vec::new();
-            let mut residual = residual;
             for m in 0..protocol.moves_per_iteration {
                 let now = lab.device.voltages_mv();
                 let mut moves = self

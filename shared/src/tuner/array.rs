@@ -57,6 +57,12 @@ pub struct JointConfig {
     /// random arrays, docs/array.md).
     #[serde(default = "yes")]
     pub calibrated_prior_mean: bool,
+    /// Whether the plungers also follow `λ̂` times the neighbours' tuning
+    /// moves (cross-cell virtual gates). Default `false`: with the default
+    /// crosstalk, plungers couple like the tuning gates, so each cell's own
+    /// compensation already cancels most of its neighbours' line shift.
+    #[serde(default)]
+    pub cross_compensation: bool,
 }
 
 fn yes() -> bool {
@@ -71,6 +77,7 @@ impl Default for JointConfig {
             outlier_sigma: 5.0,
             min_step_mv: 0.01,
             calibrated_prior_mean: true,
+            cross_compensation: false,
         }
     }
 }
@@ -259,7 +266,11 @@ impl JointArrayTuner {
             gates,
             rows,
             rejected_updates: 0,
-            neighbour_compensation: cross_calibration,
+            neighbour_compensation: if config.cross_compensation {
+                cross_calibration
+            } else {
+                [0.0; 2]
+            },
         })
     }
 

@@ -9,6 +9,7 @@
 // clippy report what nothing uses.
 pub mod alerts;
 pub mod bench;
+pub mod bench_array;
 pub mod bench_keep;
 pub mod bench_server;
 pub mod cli;

@@ -33,6 +33,9 @@ enum Command {
     Bench(spintune_server::bench::BenchArgs),
     /// Keep a tuned qubit in tune for hours of drift, every keep strategy side by side.
     BenchKeep(spintune_server::bench_keep::BenchKeepArgs),
+    /// Tune an array of double-dot cells (crosstalk, readout groups), every
+    /// array strategy side by side.
+    BenchArray(spintune_server::bench_array::BenchArrayArgs),
     /// Load bench of the server: N WebSocket viewers on one run at a fixed rate.
     BenchServer(spintune_server::bench_server::BenchServerArgs),
 }
@@ -48,6 +51,7 @@ fn main() {
         Command::Bench(args) => spintune_server::bench::run(args),
         Command::DriftDay(args) => spintune_server::drift_day::run(args),
         Command::BenchKeep(args) => spintune_server::bench_keep::run(args),
+        Command::BenchArray(args) => spintune_server::bench_array::run(args),
         Command::BenchServer(args) => spintune_server::bench_server::main(args),
     };
     if let Err(e) = result {

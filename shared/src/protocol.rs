@@ -122,6 +122,12 @@ pub struct ScanRequest {
     /// For [`ScanKind::SensingDot`]: the sweep. Other kinds use the device's own settings.
     #[serde(default)]
     pub sweep: Option<Sweep>,
+    /// Which cell of an array the scan belongs to (`sim::array`; 0-based,
+    /// below `sim::array::MAX_CELLS`). `None` for a single double dot: then
+    /// the field is left out of the JSON, so every single-cell message is
+    /// byte-identical to protocol 3 without it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cell: Option<u32>,
 }
 
 /// One trace of raw data: `y` against `x`.

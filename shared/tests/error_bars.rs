@@ -31,7 +31,11 @@ fn set(dev: &mut SimulatedDevice, gate: &str, mv: f64) {
 
 fn measure(dev: &mut SimulatedDevice, kind: ScanKind) -> RawScan {
     match dev.execute(&Request::Measure {
-        scan: ScanRequest { kind, sweep: None },
+        scan: ScanRequest {
+            kind,
+            sweep: None,
+            cell: None,
+        },
     }) {
         Response::Scanned {
             outcome: ScanOutcome::Raw { scan },

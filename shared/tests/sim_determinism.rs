@@ -27,7 +27,11 @@ fn script() -> Vec<Request> {
         });
         for kind in ScanKind::ALL {
             out.push(Request::Measure {
-                scan: ScanRequest { kind, sweep: None },
+                scan: ScanRequest {
+                    kind,
+                    sweep: None,
+                    cell: None,
+                },
             });
         }
     }

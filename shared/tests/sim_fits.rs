@@ -8,7 +8,11 @@ use spintune::sim::{calibrate_reference, default_gates, DeviceConfig, SimulatedD
 
 fn measure(dev: &mut SimulatedDevice, kind: ScanKind) -> RawScan {
     match dev.execute(&Request::Measure {
-        scan: ScanRequest { kind, sweep: None },
+        scan: ScanRequest {
+            kind,
+            sweep: None,
+            cell: None,
+        },
     }) {
         Response::Scanned {
             outcome: ScanOutcome::Raw { scan },

@@ -218,6 +218,7 @@ fn sensing_dot_loses_contrast_until_retuned() {
         scan: ScanRequest {
             kind: ScanKind::SensingDot,
             sweep: None,
+            cell: None,
         },
     })
     else {
@@ -246,7 +247,11 @@ fn lab_clock_charges_each_operation() {
         (ScanKind::ReloadTime, 5.0),
     ] {
         let r = dev.execute(&Request::Measure {
-            scan: ScanRequest { kind, sweep: None },
+            scan: ScanRequest {
+                kind,
+                sweep: None,
+                cell: None,
+            },
         });
         assert!(matches!(r, Response::Scanned { lab_seconds, .. } if lab_seconds == s));
         expected += s;
@@ -283,6 +288,7 @@ fn bad_requests_are_refused() {
             to_mv: if points == 100 { -400.0 } else { -590.0 },
             points,
         }),
+        cell: None,
     };
     for s in [sweep("Q", 100), sweep("SD1", 1), sweep("SD1", 100)] {
         let r = dev.execute(&Request::Measure { scan: s });

@@ -22,6 +22,7 @@
 //! counts every such request (0 for every non-oracle strategy; the test
 //! `non_oracle_strategies_never_query_the_truth` holds it).
 
+pub mod array;
 pub mod keep;
 
 use std::collections::BTreeMap;

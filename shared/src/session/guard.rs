@@ -541,6 +541,7 @@ mod tests {
                     to_mv,
                     points,
                 }),
+                cell: None,
             },
         }
     }

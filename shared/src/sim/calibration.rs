@@ -89,7 +89,11 @@ pub fn calibrate_reference(
     for _ in 0..scans {
         for kind in [ScanKind::TransitionWidth, ScanKind::ReloadTime] {
             let request = Request::Measure {
-                scan: ScanRequest { kind, sweep: None },
+                scan: ScanRequest {
+                    kind,
+                    sweep: None,
+                    cell: None,
+                },
             };
             let scan = match device.execute(&request) {
                 Response::Scanned {

@@ -19,6 +19,7 @@
 //!   sensing-dot potential and signal offset, and charge jumps (Poisson)
 //!   that shift the sensing dot persistently, also in the middle of a scan.
 
+pub mod array;
 pub mod calibration;
 pub mod clock;
 pub mod config;

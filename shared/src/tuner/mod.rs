@@ -29,6 +29,7 @@
 //! assert_eq!(first.gates, ["N", "SA", "SB", "T"]);
 //! ```
 
+pub mod array;
 mod config;
 pub mod finite_difference;
 mod keep;
@@ -688,6 +689,7 @@ impl Tuner {
                 to_mv: (present + sd.half_width_mv).min(hi),
                 points: sd.points,
             }),
+            cell: None,
         })
     }
 

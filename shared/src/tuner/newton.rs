@@ -268,7 +268,13 @@ fn scan_ops(cfg: &NewtonConfig) -> Vec<Op> {
     }
     kinds
         .into_iter()
-        .map(|kind| Op::Measure(ScanRequest { kind, sweep: None }))
+        .map(|kind| {
+            Op::Measure(ScanRequest {
+                kind,
+                sweep: None,
+                cell: None,
+            })
+        })
         .collect()
 }
 

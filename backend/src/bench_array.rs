@@ -1,0 +1,188 @@
+//! `spintune bench-array`: an array of K double-dot cells tuned by every
+//! array strategy side by side (protocol, strategies and statistics in
+//! `spintune::benchmark::array`; this module only runs arrays × seeds in
+//! parallel and writes the reports).
+
+use std::path::PathBuf;
+
+use clap::Args;
+use serde::Serialize;
+use spintune::benchmark::array::{
+    markdown, run_strategy, summarize_array, world, ArrayProtocol, ArrayRunResult, ArrayStrategy,
+    ArraySummary,
+};
+use spintune::benchmark::BenchmarkProtocol;
+use spintune::driver::SimulationConfig;
+use spintune::sim::array::{ArrayConfig, MAX_CELLS};
+use spintune::sim::default_gates;
+use spintune::sim::random::targets_reachable;
+
+use crate::bench::{parallel_map, select_devices, RandomDevices};
+use crate::cli::CliError;
+
+/// Most seeds per array.
+pub const MAX_SEEDS: u64 = 1_000;
+
+/// Arguments of `spintune bench-array`.
+#[derive(Debug, Args)]
+pub struct BenchArrayArgs {
+    /// Cells in the chain (1..=16).
+    #[arg(long, default_value_t = 9)]
+    pub cells: u32,
+    /// Number of noise seeds (seeds 1..=N, at most 1,000).
+    #[arg(long, default_value_t = 3)]
+    pub seeds: u64,
+    /// Comma-separated strategies (default: all): serial, independent, joint, oracle.
+    #[arg(long, value_delimiter = ',')]
+    pub strategies: Vec<String>,
+    /// N arrays whose cell 0 is a random device (instead of the default
+    /// device); every array's other cells are drawn around its cell 0.
+    #[arg(long)]
+    pub random_devices: Option<usize>,
+    /// Device seed of the first random device (then +1, +2, …).
+    #[arg(long, default_value_t = 1)]
+    pub device_seed: u64,
+    /// Nearest-neighbour crosstalk fraction (0..=0.9).
+    #[arg(long, default_value_t = 0.3)]
+    pub nearest: f64,
+    /// Next-nearest crosstalk fraction (0..=nearest).
+    #[arg(long, default_value_t = 0.05)]
+    pub next: f64,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Write machine-readable results here.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+/// The JSON report.
+#[derive(Debug, Serialize)]
+pub struct BenchArrayReport {
+    /// Cells per array.
+    pub cells: u32,
+    /// Seeds per array.
+    pub seeds: u64,
+    /// The protocol.
+    pub protocol: ArrayProtocol,
+    /// One object per strategy.
+    pub strategies: Vec<ArraySummary>,
+    /// Every run.
+    pub runs: Vec<ArrayRunResult>,
+    /// With `--random-devices`: the devices of cell 0.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub random_devices: Option<RandomDevices>,
+}
+
+/// Run `spintune bench-array`.
+pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
+    if !(1..=MAX_CELLS).contains(&args.cells) {
+        return Err(CliError::input(format!(
+            "--cells must be between 1 and {MAX_CELLS}"
+        )));
+    }
+    if !(1..=MAX_SEEDS).contains(&args.seeds) {
+        return Err(CliError::input(format!(
+            "--seeds must be between 1 and {MAX_SEEDS}"
+        )));
+    }
+    let strategies = parse_strategies(&args.strategies)?;
+    let protocol = ArrayProtocol::default();
+    protocol
+        .validate()
+        .map_err(|e| CliError::input(e.to_string()))?;
+    let base = SimulationConfig::paper_default();
+    let bench_protocol = BenchmarkProtocol::default();
+    let (devices, random_devices) = select_devices(
+        &base,
+        &bench_protocol,
+        args.random_devices,
+        args.device_seed,
+    )?;
+    let mut probe = ArrayConfig::chain(args.cells, 0, 0);
+    probe.crosstalk.nearest = args.nearest;
+    probe.crosstalk.next = args.next;
+    probe
+        .validate()
+        .map_err(|e| CliError::input(format!("--nearest/--next: {e}")))?;
+    let threads = args
+        .threads
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
+        .max(1);
+    let mut set_points = protocol.set_points.clone();
+    set_points.push(protocol.single_cell_target);
+    let reachable = |d: &spintune::sim::DeviceConfig| {
+        targets_reachable(
+            d,
+            &default_gates(),
+            &["N", "SA", "SB", "T"],
+            &["PA", "PB"],
+            &set_points,
+        )
+    };
+    let work: Vec<(usize, u64, ArrayStrategy)> = (0..devices.len())
+        .flat_map(|d| (1..=args.seeds).flat_map(move |s| ArrayStrategy::ALL.map(|k| (d, s, k))))
+        .filter(|(_, _, k)| strategies.contains(k))
+        .collect();
+    let (mut results, failures) = parallel_map(&work, threads, |&(d, seed, strategy)| {
+        let (device, cfg) = &devices[d];
+        let config = ArrayConfig {
+            seed,
+            device_seed: *device,
+            ..probe.clone()
+        };
+        let array =
+            world(&cfg.device, config, reachable).map_err(|e| format!("device {device}: {e}"))?;
+        run_strategy(strategy, array, &protocol)
+            .map_err(|e| format!("device {device}, seed {seed}, {}: {e}", strategy.name()))
+    });
+    results.sort_by_key(|r| (r.device, r.seed, r.strategy));
+    for f in &failures {
+        eprintln!("warning: {f}");
+    }
+    let summary = summarize_array(&results, &strategies);
+    println!(
+        "Arrays: {} × {} seeds, {} cells, crosstalk nearest {} / next {}, one sensor per cell.\n",
+        devices.len(),
+        args.seeds,
+        args.cells,
+        args.nearest,
+        args.next
+    );
+    println!("{}", markdown(&summary));
+    if let Some(path) = &args.json {
+        let report = BenchArrayReport {
+            cells: args.cells,
+            seeds: args.seeds,
+            protocol,
+            strategies: summary,
+            runs: results,
+            random_devices,
+        };
+        let text = serde_json::to_string_pretty(&report).expect("serializable report");
+        std::fs::write(path, text)
+            .map_err(|e| CliError::runtime(format!("cannot write {}: {e}", path.display())))?;
+    }
+    if !failures.is_empty() {
+        return Err(CliError::runtime(format!("{} runs failed", failures.len())));
+    }
+    Ok(())
+}
+
+fn parse_strategies(names: &[String]) -> Result<Vec<ArrayStrategy>, CliError> {
+    if names.is_empty() {
+        return Ok(ArrayStrategy::ALL.to_vec());
+    }
+    names
+        .iter()
+        .map(|n| {
+            ArrayStrategy::from_name(n.trim()).ok_or_else(|| {
+                let all: Vec<&str> = ArrayStrategy::ALL.iter().map(|s| s.name()).collect();
+                CliError::input(format!(
+                    "unknown array strategy {n:?}; choose from {}",
+                    all.join(", ")
+                ))
+            })
+        })
+        .collect()
+}

@@ -1,0 +1,1326 @@
+//! The array benchmark (issue 24, first slice): K double-dot cells
+//! ([`crate::sim::array`]) tuned by four strategies from the same world.
+//!
+//! # Protocol
+//! 1. **Cold start**: every cell from its start to the first set point,
+//!    initial measurements included; minutes from lab time 0 until every
+//!    cell measured in band.
+//! 2. **Set-point cycle**: the paper's set points after the first
+//!    ([`crate::benchmark::BenchmarkProtocol::default`]`.set_points[1..]`)
+//!    applied to all cells at once; minutes per change until every cell
+//!    measured in band.
+//! 3. **Single-cell changes**: one cell's targets change
+//!    ([`ArrayProtocol::single_cell_target`]; cells K/2, then 0, …); the
+//!    change is done when every cell is measured in band; then the world
+//!    counts the changed cell's neighbours whose *true* values are out of
+//!    band ([`ArrayRunResult::neighbours_left_out_of_band`]).
+//!
+//! "In band" is the lab's measurement: both `t_sr` and `w` within
+//! [`ArrayProtocol::relative_tolerance`] of their targets in the latest
+//! evaluation after the change.
+//!
+//! # Strategies
+//! * `serial`: the recommended single-cell [`Tuner`] per cell (gates renamed
+//!   `c{k}.…`) in its own [`RunSession`] (so through its guard), one cell at
+//!   a time until it is in band, then a check pass (one iteration per cell,
+//!   serial); passes repeat over the cells found out of band.
+//! * `independent`: the same per-cell sessions all at once; every round
+//!   batches one request per cell ([`ArrayDevice::execute_batch`]), so
+//!   different readout groups run in parallel. Crosstalk is ignored.
+//! * `joint`: the per-cell sessions' initial measurements in parallel (as
+//!   `independent`), then [`JointArrayTuner`]: one Kalman row per
+//!   parameter over the neighbourhood's tuning gates, a joint step with
+//!   per-cell step limits, the lower levels (sensing dot re-park, lines
+//!   re-centred with the cell's learned line Jacobian) per cell, everything
+//!   batched across readout groups.
+//! * `oracle`: `joint` with the true full Jacobian each iteration
+//!   (the only strategy whose array is not sealed).
+//!
+//! # World and lab (invariant 7)
+//! [`Lab`] is the world: the array and the checks of every move against
+//! the gate limits and each gate's `max_step_mv` from the present
+//! (commanded) voltage, counted in `limit_violations` and refused. The
+//! strategies see only responses.
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+
+use super::{quantiles, Quantiles, PAPER_SET_POINTS};
+use crate::config_error::ConfigError;
+use crate::driver::SimulationConfig;
+use crate::fit::{evaluate_with, uncertainty::References};
+use crate::parameter::Tolerance;
+use crate::protocol::{
+    ControlCommand, IterationRecord, Request, Response, ScanKind, ScanOutcome, ScanRequest, Sweep,
+};
+use crate::safety::SafetyLimits;
+use crate::session::{Output, RunSession, SessionConfig};
+use crate::sim::array::{gate_name, parameter_name, ArrayConfig, ArrayDevice};
+use crate::sim::DeviceConfig;
+use crate::tuner::array::{CellKnowledge, JointArrayTuner, JointConfig, Measured};
+use crate::tuner::{InitialGradient, LevelKind, Tuner, TunerConfig};
+
+/// A strategy of the array benchmark (module docs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ArrayStrategy {
+    /// Cell by cell, then passes over disturbed cells.
+    Serial,
+    /// All cells at once, each its own tuner, crosstalk ignored.
+    Independent,
+    /// The joint array tuner (the product default).
+    Joint,
+    /// The joint loop with the true Jacobian.
+    Oracle,
+}
+
+impl ArrayStrategy {
+    /// All strategies in report order.
+    pub const ALL: [ArrayStrategy; 4] = [
+        ArrayStrategy::Serial,
+        ArrayStrategy::Independent,
+        ArrayStrategy::Joint,
+        ArrayStrategy::Oracle,
+    ];
+
+    /// Command-line name.
+    pub fn name(self) -> &'static str {
+        match self {
+            ArrayStrategy::Serial => "serial",
+            ArrayStrategy::Independent => "independent",
+            ArrayStrategy::Joint => "joint",
+            ArrayStrategy::Oracle => "oracle",
+        }
+    }
+
+    /// Parse a command-line name.
+    pub fn from_name(s: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|k| k.name() == s)
+    }
+}
+
+/// Bounds of the protocol's counts (invariant 8).
+pub const MAX_ROUNDS: u32 = 200;
+
+/// Protocol settings (bounded; [`ArrayProtocol::validate`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ArrayProtocol {
+    /// Set points `(t_sr ns, w µV)`: the first is the cold start's, the
+    /// rest the cycle applied to all cells.
+    pub set_points: Vec<(f64, f64)>,
+    /// Relative band of `t_sr` and `w` (0 < b ≤ 0.5). Default 0.1.
+    pub relative_tolerance: f64,
+    /// Iterations per cell and change before a change counts as not
+    /// converged (`independent`, `joint`, `oracle`; cold start twice this), 1..=[`MAX_ROUNDS`].
+    pub iterations_per_change: u32,
+    /// `serial`: iterations per cell and pass, 1..=[`MAX_ROUNDS`].
+    pub serial_iterations_per_cell: u32,
+    /// `serial`: passes per change, 1..=10.
+    pub serial_passes: u32,
+    /// Number of single-cell changes, 0..=16.
+    pub single_cell_changes: u32,
+    /// Target `(t_sr ns, w µV)` of a single-cell change.
+    pub single_cell_target: (f64, f64),
+    /// The joint tuner's settings.
+    #[serde(default)]
+    pub joint: JointConfig,
+    /// Line re-centring rounds after a joint move, 0..=5.
+    pub line_rounds: u32,
+    /// Relative error of the lab's cross-cell virtual-gate calibration
+    /// ([`lab_cross_calibration`]), 0..=1. Default 0.2.
+    pub cross_compensation_error: f64,
+    /// Limited joint moves per measurement (the later ones while a cell's
+    /// predicted residual is still beyond half its band), 1..=4.
+    pub moves_per_iteration: u32,
+    /// Band of the lines, mV (0 < b ≤ 1).
+    pub line_tolerance_mv: f64,
+}
+
+impl Default for ArrayProtocol {
+    fn default() -> Self {
+        Self {
+            set_points: PAPER_SET_POINTS.to_vec(),
+            relative_tolerance: 0.1,
+            iterations_per_change: 30,
+            serial_iterations_per_cell: 21,
+            serial_passes: 4,
+            single_cell_changes: 2,
+            single_cell_target: (70.0, 180.0),
+            joint: JointConfig::default(),
+            line_rounds: 1,
+            moves_per_iteration: 1,
+            cross_compensation_error: 0.2,
+            line_tolerance_mv: 0.1,
+        }
+    }
+}
+
+impl ArrayProtocol {
+    /// `Err` naming the field.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let check = |ok: bool, field: &str, v: String| {
+            if ok {
+                Ok(())
+            } else {
+                Err(ConfigError::new(field, format!("{v} out of bounds")))
+            }
+        };
+        check(
+            !self.set_points.is_empty() && self.set_points.len() <= 16,
+            "set_points",
+            format!("{} set points (1..=16)", self.set_points.len()),
+        )?;
+        for (i, &(t, w)) in self
+            .set_points
+            .iter()
+            .chain([&self.single_cell_target])
+            .enumerate()
+        {
+            check(
+                t.is_finite()
+                    && (1.0..=1000.0).contains(&t)
+                    && w.is_finite()
+                    && (10.0..=2000.0).contains(&w),
+                &format!("set_points[{i}]"),
+                format!("({t} ns, {w} µV) (t_sr 1..=1000 ns, w 10..=2000 µV)"),
+            )?;
+        }
+        let b = self.relative_tolerance;
+        check(
+            b.is_finite() && b > 0.0 && b <= 0.5,
+            "relative_tolerance",
+            b.to_string(),
+        )?;
+        for (field, v) in [
+            ("iterations_per_change", self.iterations_per_change),
+            (
+                "serial_iterations_per_cell",
+                self.serial_iterations_per_cell,
+            ),
+        ] {
+            check((1..=MAX_ROUNDS).contains(&v), field, v.to_string())?;
+        }
+        check(
+            (1..=10).contains(&self.serial_passes),
+            "serial_passes",
+            self.serial_passes.to_string(),
+        )?;
+        check(
+            self.single_cell_changes <= 16,
+            "single_cell_changes",
+            self.single_cell_changes.to_string(),
+        )?;
+        check(
+            self.line_rounds <= 5,
+            "line_rounds",
+            self.line_rounds.to_string(),
+        )?;
+        check(
+            (1..=4).contains(&self.moves_per_iteration),
+            "moves_per_iteration",
+            self.moves_per_iteration.to_string(),
+        )?;
+        let e = self.cross_compensation_error;
+        check(
+            e.is_finite() && (0.0..=1.0).contains(&e),
+            "cross_compensation_error",
+            e.to_string(),
+        )?;
+        let l = self.line_tolerance_mv;
+        check(
+            l.is_finite() && l > 0.0 && l <= 1.0,
+            "line_tolerance_mv",
+            l.to_string(),
+        )?;
+        self.joint.validate()
+    }
+}
+
+/// One strategy on one array and seed.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ArrayRunResult {
+    /// Strategy.
+    pub strategy: ArrayStrategy,
+    /// Noise seed.
+    pub seed: u64,
+    /// Device population (0: cells 1.. drawn with `device_seed` 0 too; see `sim::array`).
+    pub device: u64,
+    /// Lab minutes from 0 until every cell measured in band at the first set point.
+    pub cold_start_lab_minutes: Option<f64>,
+    /// Lab minutes per set-point change of all cells (`None`: not converged).
+    pub changes: Vec<Option<f64>>,
+    /// Lab minutes per single-cell change (`None`: not converged).
+    pub single_cell_changes: Vec<Option<f64>>,
+    /// Neighbours of a changed cell truly out of band after its change (world side).
+    pub neighbours_left_out_of_band: u64,
+    /// Moves refused by the world (limits or a step above `max_step_mv`).
+    pub limit_violations: u64,
+    /// Requests for the truth.
+    pub truth_queries: u64,
+    /// Failed or rejected evaluations.
+    pub failed_fits: u64,
+    /// Scans run.
+    pub measurements: u64,
+}
+
+/// Why a run ended early.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ArrayFailure {
+    /// A configuration the core refused.
+    #[error("invalid configuration: {0}")]
+    Config(#[from] ConfigError),
+    /// A cell's session faulted or waits (a refused request, a device error).
+    #[error("cell {cell}: session halted: {message}")]
+    Halted {
+        /// The cell.
+        cell: u32,
+        /// What happened.
+        message: String,
+    },
+}
+
+/// The world's side of the lab: the array and the world-side move checks.
+pub struct Lab {
+    /// The simulated array.
+    pub device: ArrayDevice,
+    limits: SafetyLimits,
+    /// Moves refused (limits, step).
+    pub violations: u64,
+    /// Scans run.
+    pub measurements: u64,
+}
+
+impl Lab {
+    /// A lab around `device`.
+    pub fn new(device: ArrayDevice) -> Self {
+        Self {
+            limits: SafetyLimits::new(&device.gates()),
+            device,
+            violations: 0,
+            measurements: 0,
+        }
+    }
+
+    /// The gate limits (also the lab's configuration).
+    pub fn limits(&self) -> &SafetyLimits {
+        &self.limits
+    }
+
+    /// Lab clock, minutes.
+    pub fn minutes(&self) -> f64 {
+        self.device.lab_seconds() / 60.0
+    }
+
+    /// One batch: every set is checked against the limits and each gate's
+    /// step from the commanded voltage (refused and counted if it fails).
+    pub fn batch(&mut self, requests: &[Request]) -> Vec<Response> {
+        let now = self.device.voltages_mv();
+        let mut allowed = Vec::with_capacity(requests.len());
+        let mut refused = Vec::with_capacity(requests.len());
+        for r in requests {
+            match r {
+                Request::SetVoltages { voltages_mv } => {
+                    if let Err(e) = self.limits.check(&now, voltages_mv) {
+                        self.violations += 1;
+                        refused.push(Some(Response::error(e.to_string())));
+                        continue;
+                    }
+                }
+                Request::Measure { .. } => self.measurements += 1,
+                _ => {}
+            }
+            refused.push(None);
+            allowed.push(r.clone());
+        }
+        let mut answers = self.device.execute_batch(&allowed).into_iter();
+        refused
+            .into_iter()
+            .map(|r| r.unwrap_or_else(|| answers.next().unwrap_or_else(|| Response::error("lost"))))
+            .collect()
+    }
+}
+
+/// The recommended single-cell tuner for cell `cell`: every gate renamed
+/// `c{cell}.…`, targets the first set point, the protocol's band.
+pub fn cell_tuner(cell: u32, protocol: &ArrayProtocol) -> TunerConfig {
+    let mut t = SimulationConfig::recommended().tuner;
+    let rn = |g: &mut String| *g = gate_name(cell, g);
+    t.gates.iter_mut().for_each(|g| rn(&mut g.name));
+    for level in &mut t.levels {
+        match &mut level.kind {
+            LevelKind::Newton(n) => {
+                n.gates.iter_mut().for_each(rn);
+                if let Some(c) = &mut n.compensation {
+                    c.gates.iter_mut().for_each(rn);
+                }
+            }
+            LevelKind::SensingDot(sd) => {
+                rn(&mut sd.gate);
+                if let Some(f) = &mut sd.fallback {
+                    rn(&mut f.gate);
+                }
+            }
+        }
+    }
+    t.max_iterations = None;
+    t.stop_when_tuned = false;
+    t.schedule.clear();
+    let (t_sr, w) = protocol.set_points[0];
+    for p in &mut t.top_mut().parameters {
+        p.tolerance = Tolerance::Relative(protocol.relative_tolerance);
+        p.target = match p.name.as_str() {
+            "t_sr" => Some(t_sr),
+            "w" => Some(w),
+            _ => p.target,
+        };
+    }
+    t
+}
+
+/// One cell's session and what the driver knows of it.
+struct CellRun {
+    cell: u32,
+    session: RunSession,
+    pending: Option<Request>,
+    targets: (f64, f64),
+    /// The latest record after the last change was in band.
+    in_band: bool,
+    /// Records since the last change.
+    records: u32,
+    done: bool,
+}
+
+impl CellRun {
+    fn new(cell: u32, tuner: TunerConfig) -> Result<Self, ArrayFailure> {
+        let targets = (
+            tuner.top().parameters[0].target.unwrap_or(f64::NAN),
+            tuner.top().parameters[1].target.unwrap_or(f64::NAN),
+        );
+        let tuner = Tuner::new(tuner)?;
+        Ok(Self {
+            cell,
+            session: RunSession::from_tuner(tuner, SessionConfig::default()),
+            pending: None,
+            targets,
+            in_band: false,
+            records: 0,
+            done: false,
+        })
+    }
+
+    fn set_targets(&mut self, (t_sr, w): (f64, f64), band: f64) -> Result<(), ArrayFailure> {
+        for (parameter, target) in [("t_sr", t_sr), ("w", w)] {
+            self.session
+                .control(&ControlCommand::SetTarget {
+                    parameter: parameter.into(),
+                    target: Some(target),
+                    tolerance: Some(Tolerance::Relative(band)),
+                })
+                .map_err(|e| self.halted(e.to_string()))?;
+        }
+        self.targets = (t_sr, w);
+        self.in_band = false;
+        self.records = 0;
+        Ok(())
+    }
+
+    fn halted(&self, message: String) -> ArrayFailure {
+        ArrayFailure::Halted {
+            cell: self.cell,
+            message,
+        }
+    }
+
+    /// A record counts as in band when it is tuned against the present targets.
+    fn note(&mut self, rec: &IterationRecord) {
+        let on_targets = rec.parameters.iter().all(|p| match p.name.as_str() {
+            "t_sr" => p.target == Some(self.targets.0),
+            "w" => p.target == Some(self.targets.1),
+            _ => true,
+        });
+        self.in_band = rec.tuned && on_targets;
+        if on_targets {
+            self.records += 1;
+        }
+    }
+
+    /// Poll until the session asks the device something; returns new records.
+    fn next_request(&mut self) -> Result<u32, ArrayFailure> {
+        let mut new = 0;
+        while self.pending.is_none() && !self.done {
+            match self.session.poll() {
+                Output::Execute(mut request) => {
+                    if let Request::Measure { scan } = &mut request {
+                        scan.cell = Some(self.cell);
+                    }
+                    self.pending = Some(request);
+                }
+                Output::Commit(rec) => {
+                    self.note(&rec);
+                    new += 1;
+                }
+                Output::Save | Output::Publish(_) | Output::Sleep { .. } => {}
+                Output::Wait => {
+                    return Err(self.halted(format!("{:?}", self.session.status())));
+                }
+                Output::Done(_) => self.done = true,
+            }
+        }
+        Ok(new)
+    }
+}
+
+/// One round: every active run's next request in one batch. Returns the
+/// number of records committed before the batch.
+fn round(lab: &mut Lab, runs: &mut [CellRun], active: &[usize]) -> Result<u32, ArrayFailure> {
+    let mut records = 0;
+    for &i in active {
+        records += runs[i].next_request()?;
+    }
+    let live: Vec<usize> = active
+        .iter()
+        .copied()
+        .filter(|&i| runs[i].pending.is_some())
+        .collect();
+    let requests: Vec<Request> = live
+        .iter()
+        .filter_map(|&i| runs[i].pending.clone())
+        .collect();
+    let answers = lab.batch(&requests);
+    for (i, answer) in live.into_iter().zip(answers) {
+        runs[i].pending = None;
+        let run = &mut runs[i];
+        run.session
+            .feed(answer)
+            .map_err(|e| run.halted(e.to_string()))?;
+    }
+    Ok(records)
+}
+
+/// Run `active` cells in parallel until each is in band (records after the
+/// change) or has `cap` records since; `Some(minutes)` when all cells of
+/// `all` are in band at once.
+fn parallel_until_in_band(
+    lab: &mut Lab,
+    runs: &mut [CellRun],
+    cap: u32,
+    t0: f64,
+) -> Result<Option<f64>, ArrayFailure> {
+    let all: Vec<usize> = (0..runs.len()).collect();
+    loop {
+        if runs.iter().all(|r| r.in_band) {
+            return Ok(Some(lab.minutes() - t0));
+        }
+        if runs.iter().all(|r| r.in_band || r.done || r.records >= cap) {
+            return Ok(None);
+        }
+        round(lab, runs, &all)?;
+    }
+}
+
+/// Serial: tune each cell out of band alone, then check every cell (one
+/// record each); repeat over the cells found out of band.
+fn serial_until_in_band(
+    lab: &mut Lab,
+    runs: &mut [CellRun],
+    protocol: &ArrayProtocol,
+    t0: f64,
+) -> Result<Option<f64>, ArrayFailure> {
+    for _pass in 0..protocol.serial_passes {
+        for i in 0..runs.len() {
+            let start = runs[i].records;
+            while !runs[i].in_band
+                && !runs[i].done
+                && runs[i].records - start < protocol.serial_iterations_per_cell
+            {
+                round(lab, runs, &[i])?;
+            }
+        }
+        // the check pass: a fresh record of every cell
+        for i in 0..runs.len() {
+            let before = runs[i].records;
+            while runs[i].records == before && !runs[i].done {
+                round(lab, runs, &[i])?;
+            }
+        }
+        if runs.iter().all(|r| r.in_band) {
+            return Ok(Some(lab.minutes() - t0));
+        }
+    }
+    Ok(None)
+}
+
+/// Cells of the single-cell changes: K/2, 0, K−1, K/4, … (distinct, at most `n`).
+pub fn single_change_cells(cells: u32, n: u32) -> Vec<u32> {
+    let mut out = Vec::new();
+    for c in [
+        cells / 2,
+        0,
+        cells.saturating_sub(1),
+        cells / 4,
+        3 * cells / 4,
+    ]
+    .into_iter()
+    .chain(0..cells)
+    {
+        if out.len() as u32 >= n {
+            break;
+        }
+        if !out.contains(&c) {
+            out.push(c);
+        }
+    }
+    out
+}
+
+fn truly_in_band(lab: &Lab, cell: u32, (t_sr, w): (f64, f64), band: f64) -> bool {
+    lab.device
+        .truth(cell)
+        .is_some_and(|t| (t.t_sr_ns - t_sr).abs() <= band * t_sr && (t.w_uv - w).abs() <= band * w)
+}
+
+/// The world: an array of `cells` on population `device_seed`, noise `seed`.
+pub fn world(
+    base: &DeviceConfig,
+    config: ArrayConfig,
+    accept: impl Fn(&DeviceConfig) -> bool,
+) -> Result<ArrayDevice, ConfigError> {
+    let devices = crate::sim::array::cell_devices(base, config.cells, config.device_seed, accept);
+    ArrayDevice::new(config, devices)
+}
+
+/// Run one strategy on `array` (a fresh world; sealed here unless the oracle).
+pub fn run_strategy(
+    strategy: ArrayStrategy,
+    mut array: ArrayDevice,
+    protocol: &ArrayProtocol,
+) -> Result<ArrayRunResult, ArrayFailure> {
+    protocol.validate()?;
+    if strategy != ArrayStrategy::Oracle {
+        array.seal_truth();
+    }
+    let seed = array.config().seed;
+    let device = array.config().device_seed;
+    let k = array.cells();
+    let mut lab = Lab::new(array);
+    let band = protocol.relative_tolerance;
+    let mut runs = (0..k)
+        .map(|c| CellRun::new(c, cell_tuner(c, protocol)))
+        .collect::<Result<Vec<_>, _>>()?;
+    let mut result = ArrayRunResult {
+        strategy,
+        seed,
+        device,
+        cold_start_lab_minutes: None,
+        changes: Vec::new(),
+        single_cell_changes: Vec::new(),
+        neighbours_left_out_of_band: 0,
+        limit_violations: 0,
+        truth_queries: 0,
+        failed_fits: 0,
+        measurements: 0,
+    };
+    let mut targets = vec![protocol.set_points[0]; k as usize];
+    let single: Vec<u32> = single_change_cells(k, protocol.single_cell_changes);
+    let mut joint_failed = 0;
+    match strategy {
+        ArrayStrategy::Serial | ArrayStrategy::Independent => {
+            let go = |lab: &mut Lab, runs: &mut [CellRun], cap: u32| {
+                let t0 = lab.minutes();
+                if strategy == ArrayStrategy::Serial {
+                    serial_until_in_band(lab, runs, protocol, t0)
+                } else {
+                    parallel_until_in_band(lab, runs, cap, t0)
+                }
+            };
+            result.cold_start_lab_minutes =
+                go(&mut lab, &mut runs, 2 * protocol.iterations_per_change)?;
+            for &sp in &protocol.set_points[1..] {
+                for r in runs.iter_mut() {
+                    r.set_targets(sp, band)?;
+                }
+                targets.iter_mut().for_each(|t| *t = sp);
+                result
+                    .changes
+                    .push(go(&mut lab, &mut runs, protocol.iterations_per_change)?);
+            }
+            for &c in &single {
+                let t = protocol.single_cell_target;
+                runs[c as usize].set_targets(t, band)?;
+                targets[c as usize] = t;
+                // the others stay on target; their latest in-band state holds
+                result.single_cell_changes.push(go(
+                    &mut lab,
+                    &mut runs,
+                    protocol.iterations_per_change,
+                )?);
+                result.neighbours_left_out_of_band += neighbours_out(&lab, c, &targets, band);
+            }
+        }
+        ArrayStrategy::Joint | ArrayStrategy::Oracle => {
+            let lab_lambda = lab_cross_calibration(lab.device.config(), protocol, seed);
+            let mut joint = JointRun::start(&mut lab, &mut runs, protocol, lab_lambda)?;
+            result.cold_start_lab_minutes = joint.until_in_band(
+                &mut lab,
+                &targets,
+                strategy,
+                protocol,
+                2 * protocol.iterations_per_change,
+                0.0,
+            )?;
+            for &sp in &protocol.set_points[1..] {
+                targets.iter_mut().for_each(|t| *t = sp);
+                let t0 = lab.minutes();
+                result.changes.push(joint.until_in_band(
+                    &mut lab,
+                    &targets,
+                    strategy,
+                    protocol,
+                    protocol.iterations_per_change,
+                    t0,
+                )?);
+            }
+            for &c in &single {
+                targets[c as usize] = protocol.single_cell_target;
+                let t0 = lab.minutes();
+                result.single_cell_changes.push(joint.until_in_band(
+                    &mut lab,
+                    &targets,
+                    strategy,
+                    protocol,
+                    protocol.iterations_per_change,
+                    t0,
+                )?);
+                result.neighbours_left_out_of_band += neighbours_out(&lab, c, &targets, band);
+            }
+            joint_failed = joint.failed_fits + joint.tuner.rejected_updates;
+        }
+    }
+    result.failed_fits = joint_failed
+        + runs
+            .iter()
+            .map(|r| r.session.tuner().failed_evaluations())
+            .sum::<u64>();
+    result.limit_violations = lab.violations;
+    result.truth_queries = lab.device.truth_queries();
+    result.measurements = lab.measurements;
+    Ok(result)
+}
+
+/// The lab's cross-cell virtual-gate calibration for one seed: the world's
+/// `λ(1)`, `λ(2)` each times `1 + u`, `u` uniform in
+/// `[−e, +e]` with `e` = [`ArrayProtocol::cross_compensation_error`], drawn
+/// per seed (the array analogue of the single-cell benchmark's perturbed
+/// virtual-gate matrix: configuration a lab calibrates, never exact).
+pub fn lab_cross_calibration(array: &ArrayConfig, protocol: &ArrayProtocol, seed: u64) -> [f64; 2] {
+    use rand::{Rng, SeedableRng};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x6372_6f73_7363_616c); // "crosscal"
+    let e = protocol.cross_compensation_error;
+    let x = &array.crosstalk;
+    [x.nearest, x.next].map(|l| {
+        (l * (1.0 + e * rng.gen_range(-1.0..=1.0))).clamp(0.0, crate::sim::array::MAX_CROSSTALK)
+    })
+}
+
+fn neighbours_out(lab: &Lab, c: u32, targets: &[(f64, f64)], band: f64) -> u64 {
+    [c.checked_sub(1), Some(c + 1)]
+        .into_iter()
+        .flatten()
+        .filter(|&n| n < lab.device.cells())
+        .filter(|&n| !truly_in_band(lab, n, targets[n as usize], band))
+        .count() as u64
+}
+
+/// The joint loop's per-cell lab knowledge beyond the top level.
+struct CellLower {
+    sd_gate: String,
+    sd_half_width_mv: f64,
+    sd_points: usize,
+    line_gates: Vec<String>,
+    /// Learned ∂(mu_a, mu_b)/∂(line gates), mV/mV.
+    line_jacobian: [[f64; 2]; 2],
+    line_max_step_mv: f64,
+    references: References,
+}
+
+/// The joint (and oracle) loop: see the module docs.
+struct JointRun {
+    tuner: JointArrayTuner,
+    lower: Vec<CellLower>,
+    /// Per cell: its gates' voltages at its last evaluation that worked, mV.
+    last_good: Vec<BTreeMap<String, f64>>,
+    failed_fits: u64,
+}
+
+impl JointRun {
+    /// The cold start's initial measurements: every cell's session with
+    /// `max_iterations = 0`, in parallel; then the lab's knowledge of every cell.
+    fn start(
+        lab: &mut Lab,
+        runs: &mut [CellRun],
+        protocol: &ArrayProtocol,
+        lab_lambda: [f64; 2],
+    ) -> Result<Self, ArrayFailure> {
+        for (c, run) in runs.iter_mut().enumerate() {
+            let mut t = cell_tuner(c as u32, protocol);
+            t.max_iterations = Some(0);
+            *run = CellRun::new(c as u32, t)?;
+        }
+        let all: Vec<usize> = (0..runs.len()).collect();
+        while !runs.iter().all(|r| r.done) {
+            round(lab, runs, &all)?;
+        }
+        let mut cells = Vec::new();
+        let mut lower = Vec::new();
+        for run in runs.iter() {
+            let cfg = run.session.tuner().config_with_learned_gradients();
+            let top = cfg.top();
+            let (gradient, covariance) = match &top.initial_gradient {
+                InitialGradient::Given {
+                    gradient,
+                    covariance,
+                } => (gradient.clone(), covariance.clone()),
+                _ => return Err(run.halted("no initial gradient was measured".into())),
+            };
+            cells.push(CellKnowledge {
+                gates: top.gates.clone(),
+                parameters: top.parameters.iter().map(|p| p.name.clone()).collect(),
+                gradient,
+                covariance,
+                process_noise_per_mv: top
+                    .parameters
+                    .iter()
+                    .map(|p| p.process_noise_per_mv)
+                    .collect(),
+                max_step_mv: top.solver.max_step_mv,
+                compensation: top
+                    .compensation
+                    .as_ref()
+                    .map(|c| (c.gates.clone(), c.matrix.clone())),
+            });
+            let mut l = CellLower {
+                sd_gate: String::new(),
+                sd_half_width_mv: 0.0,
+                sd_points: 0,
+                line_gates: Vec::new(),
+                line_jacobian: [[0.0; 2]; 2],
+                line_max_step_mv: 0.0,
+                references: cfg.fit_references,
+            };
+            for level in cfg.levels.iter().skip(1) {
+                match &level.kind {
+                    LevelKind::SensingDot(sd) => {
+                        l.sd_gate = sd.gate.clone();
+                        l.sd_half_width_mv = sd.half_width_mv;
+                        l.sd_points = sd.points;
+                    }
+                    LevelKind::Newton(n) if n.gates.len() == 2 => {
+                        if let InitialGradient::Given { gradient, .. } = &n.initial_gradient {
+                            for (r, row) in gradient.iter().take(2).enumerate() {
+                                for (s, &g) in row.iter().take(2).enumerate() {
+                                    l.line_jacobian[r][s] = g;
+                                }
+                            }
+                        }
+                        l.line_gates = n.gates.clone();
+                        l.line_max_step_mv = n.solver.max_step_mv;
+                    }
+                    LevelKind::Newton(_) => {}
+                }
+            }
+            lower.push(l);
+        }
+        let mut tuner = JointArrayTuner::new(cells, &protocol.joint, lab_lambda)?;
+        // the initial measurement's last values start the filters' differences
+        let v = lab.device.voltages_mv();
+        for (c, run) in runs.iter().enumerate() {
+            let last = run.session.tuner().last_measured(0).unwrap_or_default();
+            let values: Vec<Option<Measured>> = last
+                .iter()
+                .map(|p| p.as_ref().map(|p| (p.value, p.variance)))
+                .collect();
+            tuner.observe(c, &values, &v);
+        }
+        let last_good = (0..runs.len())
+            .map(|c| {
+                let prefix = format!("c{c}.");
+                v.iter()
+                    .filter(|(g, _)| g.starts_with(&prefix))
+                    .map(|(g, mv)| (g.clone(), *mv))
+                    .collect()
+            })
+            .collect();
+        Ok(Self {
+            tuner,
+            lower,
+            last_good,
+            failed_fits: 0,
+        })
+    }
+
+    fn until_in_band(
+        &mut self,
+        lab: &mut Lab,
+        targets: &[(f64, f64)],
+        strategy: ArrayStrategy,
+        protocol: &ArrayProtocol,
+        cap: u32,
+        t0: f64,
+    ) -> Result<Option<f64>, ArrayFailure> {
+        let k = targets.len();
+        for _ in 0..cap {
+            let band = protocol.relative_tolerance;
+            let raw = self.measure(lab);
+            let v = lab.device.voltages_mv();
+            // values with error bars wider than the band are not acted on
+            let values: Vec<Vec<Option<Measured>>> = raw
+                .iter()
+                .map(|m| {
+                    m.iter()
+                        .map(|x| x.filter(|(p, var)| *p > 0.0 && var.sqrt() <= band * p))
+                        .collect()
+                })
+                .collect();
+            // a failed evaluation: retreat half-way to where it last worked;
+            // failed or too uncertain: re-tune the cell's sensor and lines
+            let failed: Vec<bool> = raw.iter().map(|m| m.iter().any(Option::is_none)).collect();
+            let unsure: Vec<bool> = values
+                .iter()
+                .map(|m| m.iter().any(Option::is_none))
+                .collect();
+            for (c, vals) in values.iter().enumerate() {
+                self.tuner.observe(c, vals, &v);
+                if vals.iter().all(Option::is_some) {
+                    let prefix = format!("c{c}.");
+                    self.last_good[c] = v
+                        .iter()
+                        .filter(|(g, _)| g.starts_with(&prefix))
+                        .map(|(g, mv)| (g.clone(), *mv))
+                        .collect();
+                }
+            }
+            let mut residual = vec![vec![None; 2]; k];
+            let mut all_in = true;
+            for c in 0..k {
+                let (t_sr, w) = targets[c];
+                let tv = [t_sr, w];
+                let in_band = values[c]
+                    .iter()
+                    .zip(tv)
+                    .all(|(m, t)| m.is_some_and(|(p, _)| (p - t).abs() <= band * t));
+                all_in &= in_band;
+                for (p, m) in values[c].iter().enumerate() {
+                    residual[c][p] = m.filter(|(x, _)| *x > 0.0).map(|(x, _)| {
+                        if in_band {
+                            0.0
+                        } else {
+                            (x / tv[p]).ln()
+                        }
+                    });
+                }
+            }
+            if all_in {
+                return Ok(Some(lab.minutes() - t0));
+            }
+            let jacobian = if strategy == ArrayStrategy::Oracle {
+                match self.true_jacobian(lab) {
+                    Some(j) => j,
+                    None => self.tuner.jacobian(),
+                }
+            } else {
+                self.tuner.jacobian()
+            };
+            // up to `moves_per_iteration` limited moves, each planned from
+            // the residual the Jacobian predicts after the previous one
+            let mut moved_cells: Vec<u32> = Vec::new();
+            for m in 0..protocol.moves_per_iteration {
+                let now = lab.device.voltages_mv();
+                let mut moves = self
+                    .tuner
+                    .plan_move(&residual, &jacobian, &now, lab.limits());
+                if m == 0 {
+                    for (c, good) in self.last_good.iter().enumerate() {
+                        if !failed[c] {
+                            continue;
+                        }
+                        let prefix = format!("c{c}.");
+                        moves.retain(|g, _| !g.starts_with(&prefix));
+                        for (g, &to) in good {
+                            let at = now.get(g).copied().unwrap_or(to);
+                            let back = lab.limits().clip(g, at, at + 0.5 * (to - at));
+                            if (back - at).abs() > 1e-3 {
+                                moves.insert(g.clone(), back);
+                            }
+                        }
+                    }
+                }
+                if moves.is_empty() {
+                    break;
+                }
+                // one set per cell, batched
+                let mut per_cell: BTreeMap<u32, BTreeMap<String, f64>> = BTreeMap::new();
+                for (g, mv) in moves {
+                    if let Some((c, _)) = crate::sim::array::split_gate(&g) {
+                        per_cell.entry(c).or_default().insert(g, mv);
+                    }
+                }
+                moved_cells.extend(per_cell.keys().copied());
+                let sets: Vec<Request> = per_cell
+                    .into_values()
+                    .map(|voltages_mv| Request::SetVoltages { voltages_mv })
+                    .collect();
+                lab.batch(&sets);
+                if m + 1 == protocol.moves_per_iteration {
+                    break;
+                }
+                let after = lab.device.voltages_mv();
+                let dv = nalgebra::DVector::from_iterator(
+                    self.tuner.gates().len(),
+                    self.tuner.gates().iter().map(|g| {
+                        after.get(g).copied().unwrap_or(0.0) - now.get(g).copied().unwrap_or(0.0)
+                    }),
+                );
+                let predicted = &jacobian * dv;
+                let mut far = false;
+                for (c, row) in residual.iter_mut().enumerate() {
+                    for (p, r) in row.iter_mut().enumerate() {
+                        if let Some(r) = r {
+                            let was_held = *r == 0.0;
+                            *r += predicted[c * 2 + p];
+                            far |= !was_held && r.abs() > 0.5 * band;
+                        }
+                    }
+                }
+                if !far {
+                    break;
+                }
+            }
+            // the moved cells and their neighbours (crosstalk moved their
+            // lines and sensors too), and every cell whose evaluation failed
+            // (e.g. a charge jump moved its sensor)
+            let mut affected: Vec<u32> = moved_cells
+                .iter()
+                .flat_map(|&c| [c.saturating_sub(1), c, c + 1])
+                .chain((0..k as u32).filter(|&c| unsure[c as usize]))
+                .filter(|&c| (c as usize) < k)
+                .collect();
+            affected.sort_unstable();
+            affected.dedup();
+            self.lower_levels(lab, &affected, protocol);
+        }
+        Ok(None)
+    }
+
+    fn true_jacobian(&self, lab: &mut Lab) -> Option<nalgebra::DMatrix<f64>> {
+        let parameters: Vec<String> = (0..self.tuner.cells().len() as u32)
+            .flat_map(|c| ["t_sr", "w"].map(|p| parameter_name(c, p)))
+            .collect();
+        let r = lab.batch(&[Request::TrueJacobian {
+            gates: self.tuner.gates().to_vec(),
+            parameters,
+        }]);
+        match r.into_iter().next() {
+            Some(Response::TrueJacobian { values, jacobian }) => {
+                let rows = jacobian.len();
+                let cols = self.tuner.gates().len();
+                Some(nalgebra::DMatrix::from_fn(rows, cols, |i, j| {
+                    jacobian[i][j] / values[i]
+                }))
+            }
+            _ => None,
+        }
+    }
+
+    /// `t_sr` and `w` of every cell (two scans per cell, one batch).
+    fn measure(&mut self, lab: &mut Lab) -> Vec<Vec<Option<Measured>>> {
+        let k = self.lower.len() as u32;
+        let kinds = [ScanKind::ReloadTime, ScanKind::TransitionWidth];
+        let requests: Vec<Request> = (0..k)
+            .flat_map(|c| {
+                kinds.map(|kind| Request::Measure {
+                    scan: ScanRequest {
+                        kind,
+                        sweep: None,
+                        cell: Some(c),
+                    },
+                })
+            })
+            .collect();
+        let answers = lab.batch(&requests);
+        let mut out = vec![vec![None; 2]; k as usize];
+        for (i, a) in answers.iter().enumerate() {
+            let (c, p) = (i / 2, i % 2);
+            let name = ["t_sr", "w"][p];
+            match self.evaluate(c, a, name) {
+                Some(v) => out[c][p] = Some(v),
+                None => self.failed_fits += 1,
+            }
+        }
+        out
+    }
+
+    fn evaluate(&self, cell: usize, answer: &Response, name: &str) -> Option<Measured> {
+        let Response::Scanned {
+            outcome: ScanOutcome::Raw { scan },
+            ..
+        } = answer
+        else {
+            return None;
+        };
+        let e = evaluate_with(scan, &self.lower[cell].references).ok()?;
+        e.values
+            .iter()
+            .find(|v| v.name == name)
+            .filter(|v| v.validate().is_ok())
+            .map(|v| (v.value, v.variance))
+    }
+
+    /// After a move: re-park each moved cell's sensing dot, re-centre its
+    /// lines (up to `line_rounds`, re-parking after each line move).
+    fn lower_levels(&mut self, lab: &mut Lab, cells: &[u32], protocol: &ArrayProtocol) {
+        self.park_sensors(lab, cells);
+        let mut todo: Vec<u32> = cells.to_vec();
+        for _ in 0..protocol.line_rounds {
+            if todo.is_empty() {
+                break;
+            }
+            let requests: Vec<Request> = todo
+                .iter()
+                .map(|&c| Request::Measure {
+                    scan: ScanRequest {
+                        kind: ScanKind::ChemicalPotential,
+                        sweep: None,
+                        cell: Some(c),
+                    },
+                })
+                .collect();
+            let answers = lab.batch(&requests);
+            let v = lab.device.voltages_mv();
+            let mut sets = Vec::new();
+            let mut moved = Vec::new();
+            for (&c, a) in todo.iter().zip(&answers) {
+                let l = &self.lower[c as usize];
+                let (Some(a_mv), Some(b_mv)) = (
+                    self.evaluate(c as usize, a, "mu_a_mv"),
+                    self.evaluate(c as usize, a, "mu_b_mv"),
+                ) else {
+                    self.failed_fits += 1;
+                    continue;
+                };
+                let mu = [a_mv.0, b_mv.0];
+                if mu.iter().all(|m| m.abs() <= protocol.line_tolerance_mv) {
+                    continue;
+                }
+                let [[a, b], [cc, d]] = l.line_jacobian;
+                let det = a * d - b * cc;
+                if !(det.is_finite() && det.abs() > 1e-12) || l.line_gates.len() != 2 {
+                    continue;
+                }
+                let mut dp = [
+                    -(d * mu[0] - b * mu[1]) / det,
+                    -(-cc * mu[0] + a * mu[1]) / det,
+                ];
+                let norm = dp[0].hypot(dp[1]);
+                if norm > l.line_max_step_mv {
+                    dp.iter_mut().for_each(|x| *x *= l.line_max_step_mv / norm);
+                }
+                let mut set = BTreeMap::new();
+                for (g, d) in l.line_gates.iter().zip(dp) {
+                    if let Some(&now) = v.get(g) {
+                        set.insert(g.clone(), lab.limits().clip(g, now, now + d));
+                    }
+                }
+                sets.push(Request::SetVoltages { voltages_mv: set });
+                moved.push(c);
+            }
+            lab.batch(&sets);
+            self.park_sensors(lab, &moved);
+            todo = moved;
+        }
+    }
+
+    /// Sweep each cell's sensing gate around its present voltage and park it
+    /// on the fitted flank (a failed fit leaves it).
+    fn park_sensors(&mut self, lab: &mut Lab, cells: &[u32]) {
+        if cells.is_empty() {
+            return;
+        }
+        let v = lab.device.voltages_mv();
+        let requests: Vec<Request> = cells
+            .iter()
+            .map(|&c| {
+                let l = &self.lower[c as usize];
+                let now = v.get(&l.sd_gate).copied().unwrap_or(0.0);
+                let spec = lab.limits().gate(&l.sd_gate);
+                Request::Measure {
+                    scan: ScanRequest {
+                        kind: ScanKind::SensingDot,
+                        sweep: Some(Sweep {
+                            gate: l.sd_gate.clone(),
+                            from_mv: spec.map_or(now, |s| (now - l.sd_half_width_mv).max(s.min_mv)),
+                            to_mv: spec.map_or(now, |s| (now + l.sd_half_width_mv).min(s.max_mv)),
+                            points: l.sd_points,
+                        }),
+                        cell: Some(c),
+                    },
+                }
+            })
+            .collect();
+        let answers = lab.batch(&requests);
+        let mut sets = Vec::new();
+        for (&c, a) in cells.iter().zip(&answers) {
+            let l = &self.lower[c as usize];
+            match self.evaluate(c as usize, a, "sd_flank_mv") {
+                Some((flank, _)) => {
+                    let now = v.get(&l.sd_gate).copied().unwrap_or(flank);
+                    let to = lab.limits().clip(&l.sd_gate, now, flank);
+                    sets.push(Request::SetVoltages {
+                        voltages_mv: [(l.sd_gate.clone(), to)].into(),
+                    });
+                }
+                None => self.failed_fits += 1,
+            }
+        }
+        lab.batch(&sets);
+    }
+}
+
+/// Summary of one strategy over runs (keys as in the JSON report).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ArraySummary {
+    /// Strategy name.
+    pub name: String,
+    /// Cold start, lab minutes: median, p90, max over converged runs.
+    pub cold_start_lab_minutes: Quantiles,
+    /// Set-point changes of all cells, lab minutes until all in band.
+    pub lab_minutes_per_change: Quantiles,
+    /// Single-cell changes, lab minutes until all in band.
+    pub lab_minutes_per_single_cell_change: Quantiles,
+    /// Changes (cold starts included) not converged.
+    pub not_converged: u64,
+    /// Of those, where the oracle on the same array and seed converged (`None` without oracle).
+    pub not_converged_where_oracle_converged: Option<u64>,
+    /// Neighbours of a changed cell truly out of band after its change.
+    pub neighbours_left_out_of_band: u64,
+    /// Moves the world refused.
+    pub limit_violations: u64,
+    /// Truth requests.
+    pub truth_queries: u64,
+    /// Failed fits.
+    pub failed_fits: u64,
+    /// Scans, all runs.
+    pub measurements: u64,
+    /// Runs (array × seed).
+    pub runs: u64,
+}
+
+fn all_changes(r: &ArrayRunResult) -> Vec<Option<f64>> {
+    std::iter::once(r.cold_start_lab_minutes)
+        .chain(r.changes.iter().copied())
+        .chain(r.single_cell_changes.iter().copied())
+        .collect()
+}
+
+/// Aggregate results per strategy (in `strategies` order).
+pub fn summarize_array(
+    results: &[ArrayRunResult],
+    strategies: &[ArrayStrategy],
+) -> Vec<ArraySummary> {
+    strategies
+        .iter()
+        .map(|&s| {
+            let mine: Vec<&ArrayRunResult> = results.iter().filter(|r| r.strategy == s).collect();
+            let cold: Vec<f64> = mine
+                .iter()
+                .filter_map(|r| r.cold_start_lab_minutes)
+                .collect();
+            let changes: Vec<f64> = mine
+                .iter()
+                .flat_map(|r| r.changes.iter().flatten().copied())
+                .collect();
+            let single: Vec<f64> = mine
+                .iter()
+                .flat_map(|r| r.single_cell_changes.iter().flatten().copied())
+                .collect();
+            let not_converged = mine
+                .iter()
+                .map(|r| all_changes(r).iter().filter(|c| c.is_none()).count() as u64)
+                .sum();
+            let has_oracle = results.iter().any(|r| r.strategy == ArrayStrategy::Oracle);
+            let where_oracle = has_oracle.then(|| {
+                mine.iter()
+                    .map(|r| {
+                        let Some(o) = results.iter().find(|o| {
+                            o.strategy == ArrayStrategy::Oracle
+                                && o.seed == r.seed
+                                && o.device == r.device
+                        }) else {
+                            return 0;
+                        };
+                        all_changes(r)
+                            .iter()
+                            .zip(all_changes(o))
+                            .filter(|(a, b)| a.is_none() && b.is_some())
+                            .count() as u64
+                    })
+                    .sum()
+            });
+            ArraySummary {
+                name: s.name().into(),
+                cold_start_lab_minutes: quantiles(&cold),
+                lab_minutes_per_change: quantiles(&changes),
+                lab_minutes_per_single_cell_change: quantiles(&single),
+                not_converged,
+                not_converged_where_oracle_converged: where_oracle,
+                neighbours_left_out_of_band: mine
+                    .iter()
+                    .map(|r| r.neighbours_left_out_of_band)
+                    .sum(),
+                limit_violations: mine.iter().map(|r| r.limit_violations).sum(),
+                truth_queries: mine.iter().map(|r| r.truth_queries).sum(),
+                failed_fits: mine.iter().map(|r| r.failed_fits).sum(),
+                measurements: mine.iter().map(|r| r.measurements).sum(),
+                runs: mine.len() as u64,
+            }
+        })
+        .collect()
+}
+
+/// The summaries as a markdown table.
+pub fn markdown(summaries: &[ArraySummary]) -> String {
+    let f = |x: f64| {
+        if x.is_finite() {
+            format!("{x:.1}")
+        } else {
+            "–".into()
+        }
+    };
+    let mut s = String::from(
+        "| strategy | cold start lab min median | p90 | change (all cells) lab min median | p90 | single-cell change lab min median | p90 | not converged | not converged where the oracle converged | neighbours left out of band | limit violations | truth queries | failed fits | measurements | runs |\n\
+         |---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+    );
+    for x in summaries {
+        s.push_str(&format!(
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
+            x.name,
+            f(x.cold_start_lab_minutes.median),
+            f(x.cold_start_lab_minutes.p90),
+            f(x.lab_minutes_per_change.median),
+            f(x.lab_minutes_per_change.p90),
+            f(x.lab_minutes_per_single_cell_change.median),
+            f(x.lab_minutes_per_single_cell_change.p90),
+            x.not_converged,
+            x.not_converged_where_oracle_converged
+                .map_or("–".into(), |n| n.to_string()),
+            x.neighbours_left_out_of_band,
+            x.limit_violations,
+            x.truth_queries,
+            x.failed_fits,
+            x.measurements,
+            x.runs,
+        ));
+    }
+    s
+}

@@ -1,0 +1,439 @@
+//! [`JointArrayTuner`]: the joint estimate and step of an array's qubit
+//! parameters (issue 24, first slice). Plain data, no IO: the caller
+//! measures, feeds values and applies the moves it returns (invariant 2's
+//! spirit: this never calls a device).
+//!
+//! * **Rows.** One Kalman row ([`KalmanGradient`]) per parameter and cell,
+//!   over the tuning gates of its *neighbourhood*: the cells within
+//!   `radius` of its own (own cell + nearest neighbours for radius 1).
+//!   Parameters are tuned in log space (`y = ln p`), as the recommended
+//!   single-cell tuner does.
+//! * **Prior.** The own-cell block is the cell's initial measurement (its
+//!   learned gradient and covariance). A neighbour's block has the mean
+//!   `λ̂(d)·g_own(gate)` (the lab's cross-cell virtual-gate calibration
+//!   `λ̂`, the same that feeds the compensation; zero with
+//!   [`JointConfig::calibrated_prior_mean`] off) and a diagonal variance from
+//!   the locality model: `(f·|g_own(gate)|)² + (f/10·max|g_own|)²` for the
+//!   same gate name of the own block, `f` =
+//!   [`JointConfig::neighbour_prior_fraction`] (an assumption of the lab,
+//!   not the simulator's crosstalk).
+//! * **Step.** Residuals `y − ln target` of the cells out of band, 0 for the
+//!   cells in band (held where they are, so the step compensates the
+//!   crosstalk the filter predicts onto them), one minimum-norm Newton step
+//!   `−J⁺Δ` over every tuning gate of the array ([`newton_step`]), then per
+//!   cell: scaled to the cell's step limit (mV, Euclidean over its tuning
+//!   gates) and clipped per gate to `max_step_mv` and the limits
+//!   ([`SafetyLimits::clip`]). Compensation gates follow with the cell's
+//!   virtual-gate matrix applied to its own move plus the lab's cross-cell
+//!   calibration `λ̂` times its neighbours' moves
+//!   ([`JointArrayTuner::set_neighbour_compensation`]), clipped the same way.
+
+use std::collections::BTreeMap;
+
+use nalgebra::{DMatrix, DVector};
+use serde::{Deserialize, Serialize};
+
+use crate::config_error::ConfigError;
+use crate::kalman::{FilterError, KalmanGradient, ProcessNoise};
+use crate::safety::SafetyLimits;
+use crate::solver::{newton_step, SolverConfig, StepRule};
+
+/// Settings of the joint array tuner.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct JointConfig {
+    /// Neighbourhood radius in cells, 0..=2 (1: own cell + nearest neighbours).
+    pub radius: u32,
+    /// Prior standard deviation of a neighbour's gradient as a fraction of
+    /// the own gradient of the same gate, 0 < f ≤ 2. Default 0.5.
+    pub neighbour_prior_fraction: f64,
+    /// Kalman outlier gate, σ (1..=100). Default 5.
+    pub outlier_sigma: f64,
+    /// Smallest step the filter learns from, mV (0..=1). Default 0.01.
+    pub min_step_mv: f64,
+    /// Prior mean of a neighbour's gradient: `true` (default) the lab's
+    /// cross-cell calibration `λ̂(d)` times the own gradient of the same
+    /// gate; `false` zero (crosstalk learned from nothing; measured worse on
+    /// random arrays, docs/array.md).
+    #[serde(default = "yes")]
+    pub calibrated_prior_mean: bool,
+    /// Whether the plungers also follow `λ̂` times the neighbours' tuning
+    /// moves (cross-cell virtual gates). Default `false`: with the default
+    /// crosstalk, plungers couple like the tuning gates, so each cell's own
+    /// compensation already cancels most of its neighbours' line shift.
+    #[serde(default)]
+    pub cross_compensation: bool,
+}
+
+fn yes() -> bool {
+    true
+}
+
+impl Default for JointConfig {
+    fn default() -> Self {
+        Self {
+            radius: 1,
+            neighbour_prior_fraction: 0.5,
+            outlier_sigma: 5.0,
+            min_step_mv: 0.01,
+            calibrated_prior_mean: true,
+            cross_compensation: false,
+        }
+    }
+}
+
+impl JointConfig {
+    /// `Err` naming the field.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let bad = |field: &str, v: f64, range: &str| {
+            Err(ConfigError::new(field, format!("{v} outside {range}")))
+        };
+        if self.radius > 2 {
+            return bad("joint.radius", f64::from(self.radius), "0..=2");
+        }
+        let f = self.neighbour_prior_fraction;
+        if !(f.is_finite() && f > 0.0 && f <= 2.0) {
+            return bad("joint.neighbour_prior_fraction", f, "(0, 2]");
+        }
+        if !(self.outlier_sigma.is_finite() && (1.0..=100.0).contains(&self.outlier_sigma)) {
+            return bad("joint.outlier_sigma", self.outlier_sigma, "[1, 100]");
+        }
+        if !(self.min_step_mv.is_finite() && (0.0..=1.0).contains(&self.min_step_mv)) {
+            return bad("joint.min_step_mv", self.min_step_mv, "[0, 1]");
+        }
+        Ok(())
+    }
+}
+
+/// What a lab knows about one cell after its initial measurement.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CellKnowledge {
+    /// The cell's tuning gates (array names), in gradient order.
+    pub gates: Vec<String>,
+    /// Parameter names (unprefixed, e.g. `t_sr`, `w`).
+    pub parameters: Vec<String>,
+    /// Learned log-space gradient per parameter over `gates`, 1/mV.
+    pub gradient: Vec<Vec<f64>>,
+    /// Its covariance per parameter, (1/mV)².
+    pub covariance: Vec<Vec<Vec<f64>>>,
+    /// Process noise σ per parameter, (1/mV) per mV of step.
+    pub process_noise_per_mv: Vec<f64>,
+    /// Step limit of the cell's tuning gates (Euclidean), mV.
+    pub max_step_mv: f64,
+    /// Virtual-gate compensation: (gates, matrix rows × `gates`), mV/mV.
+    pub compensation: Option<(Vec<String>, Vec<Vec<f64>>)>,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+struct Row {
+    cell: usize,
+    parameter: usize,
+    /// Indices into the array's gate list.
+    columns: Vec<usize>,
+    filter: KalmanGradient,
+    /// Last accepted (y, var y, voltages of `columns`).
+    last: Option<(f64, f64, Vec<f64>)>,
+}
+
+/// The joint tuner (module docs).
+#[derive(Debug, Clone, PartialEq)]
+pub struct JointArrayTuner {
+    cells: Vec<CellKnowledge>,
+    /// Every tuning gate, cell by cell.
+    gates: Vec<String>,
+    rows: Vec<Row>,
+    /// Kalman updates that were rejected (outlier gate, invalid input).
+    pub rejected_updates: u64,
+    /// The lab's cross-cell virtual-gate calibration: the fraction of a
+    /// nearest / next-nearest cell's tuning move its compensation gates see
+    /// (dimensionless; default 0 = none).
+    neighbour_compensation: [f64; 2],
+}
+
+/// `Err` naming the field unless each of the lab's cross-cell calibration
+/// fractions `λ̂` (nearest, next) is in [0, [`crate::sim::array::MAX_CROSSTALK`]].
+fn check_cross_calibration(lambda: [f64; 2]) -> Result<(), ConfigError> {
+    for (i, l) in lambda.iter().enumerate() {
+        if !(l.is_finite() && (0.0..=crate::sim::array::MAX_CROSSTALK).contains(l)) {
+            return Err(ConfigError::new(
+                format!("cross_calibration[{i}]"),
+                format!("{l} outside [0, {}]", crate::sim::array::MAX_CROSSTALK),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// A measured value (parameter unit) and its variance (unit²).
+pub type Measured = (f64, f64);
+
+impl JointArrayTuner {
+    /// Rows and priors from each cell's knowledge (module docs).
+    pub fn new(
+        cells: Vec<CellKnowledge>,
+        config: &JointConfig,
+        cross_calibration: [f64; 2],
+    ) -> Result<Self, ConfigError> {
+        config.validate()?;
+        check_cross_calibration(cross_calibration)?;
+        let mut gates = Vec::new();
+        let mut offsets = Vec::new();
+        for c in &cells {
+            offsets.push(gates.len());
+            gates.extend(c.gates.iter().cloned());
+        }
+        let mut rows = Vec::new();
+        let f = config.neighbour_prior_fraction;
+        for (ci, c) in cells.iter().enumerate() {
+            let lo = ci.saturating_sub(config.radius as usize);
+            let hi = (ci + config.radius as usize).min(cells.len() - 1);
+            for (pi, g_own) in c.gradient.iter().enumerate() {
+                let field = format!("cells[{ci}].gradient[{pi}]");
+                if g_own.len() != c.gates.len() || g_own.iter().any(|x| !x.is_finite()) {
+                    return Err(ConfigError::new(field, "one finite value per gate"));
+                }
+                let scale = g_own.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+                let mut columns = Vec::new();
+                let mut g0 = Vec::new();
+                let mut var = Vec::new();
+                let mut own_at = 0;
+                for (nj, nc) in cells.iter().enumerate().take(hi + 1).skip(lo) {
+                    if nj == ci {
+                        own_at = columns.len();
+                    }
+                    for (gi, gname) in nc.gates.iter().enumerate() {
+                        columns.push(offsets[nj] + gi);
+                        if nj == ci {
+                            g0.push(g_own[gi]);
+                            var.push(0.0);
+                        } else {
+                            // same gate type in the own block (prefix stripped)
+                            let local = crate::sim::array::split_gate(gname).map(|(_, l)| l);
+                            let own = c
+                                .gates
+                                .iter()
+                                .position(|o| {
+                                    crate::sim::array::split_gate(o).map(|(_, l)| l) == local
+                                })
+                                .map_or(scale, |k| g_own[k].abs());
+                            let d = ci.abs_diff(nj);
+                            let mean = if config.calibrated_prior_mean {
+                                let lambda = [1.0, cross_calibration[0], cross_calibration[1]];
+                                let signed = c
+                                    .gates
+                                    .iter()
+                                    .position(|o| {
+                                        crate::sim::array::split_gate(o).map(|(_, l)| l) == local
+                                    })
+                                    .map_or(0.0, |k| g_own[k]);
+                                lambda.get(d).copied().unwrap_or(0.0) * signed
+                            } else {
+                                0.0
+                            };
+                            g0.push(mean);
+                            var.push((f * own).powi(2) + (0.1 * f * scale).powi(2));
+                        }
+                    }
+                }
+                let n = columns.len();
+                let mut c0 = DMatrix::from_diagonal(&DVector::from_vec(var));
+                let cov = &c.covariance[pi];
+                for r in 0..c.gates.len() {
+                    for s in 0..c.gates.len() {
+                        c0[(own_at + r, own_at + s)] = cov
+                            .get(r)
+                            .and_then(|row| row.get(s))
+                            .copied()
+                            .unwrap_or(0.0);
+                    }
+                }
+                let q = ProcessNoise::isotropic(n, c.process_noise_per_mv[pi]);
+                let filter = KalmanGradient::new(DVector::from_vec(g0), c0, q)
+                    .and_then(|k| k.with_outlier_sigma(Some(config.outlier_sigma)))
+                    .and_then(|k| k.with_min_step_mv(config.min_step_mv))
+                    .map_err(|e: FilterError| ConfigError::new(field, e.to_string()))?;
+                rows.push(Row {
+                    cell: ci,
+                    parameter: pi,
+                    columns,
+                    filter,
+                    last: None,
+                });
+            }
+        }
+        Ok(Self {
+            cells,
+            gates,
+            rows,
+            rejected_updates: 0,
+            neighbour_compensation: if config.cross_compensation {
+                cross_calibration
+            } else {
+                [0.0; 2]
+            },
+        })
+    }
+
+    /// Every tuning gate of the array, cell by cell (array names).
+    pub fn gates(&self) -> &[String] {
+        &self.gates
+    }
+
+    /// The cells' knowledge.
+    pub fn cells(&self) -> &[CellKnowledge] {
+        &self.cells
+    }
+
+    /// The gradient of `cell`'s parameter `parameter` over its neighbourhood:
+    /// (array gate name, log-space gradient 1/mV).
+    pub fn row_gradient(&self, cell: usize, parameter: usize) -> Vec<(String, f64)> {
+        self.rows
+            .iter()
+            .find(|r| r.cell == cell && r.parameter == parameter)
+            .map(|r| {
+                r.columns
+                    .iter()
+                    .zip(r.filter.gradient().iter())
+                    .map(|(&c, &g)| (self.gates[c].clone(), g))
+                    .collect()
+            })
+            .unwrap_or_default()
+    }
+
+    /// A cell measured `values` (per parameter, unit and unit²; `None` where
+    /// the fit failed) at `voltages_mv` (array names): each row learns from the
+    /// change since its last value. Values ≤ 0 or non-finite are skipped.
+    pub fn observe(
+        &mut self,
+        cell: usize,
+        values: &[Option<Measured>],
+        voltages_mv: &BTreeMap<String, f64>,
+    ) {
+        for row in self.rows.iter_mut().filter(|r| r.cell == cell) {
+            let Some(Some((p, var))) = values.get(row.parameter).copied() else {
+                continue;
+            };
+            if !(p.is_finite() && p > 0.0 && var.is_finite() && var >= 0.0) {
+                continue;
+            }
+            let y = p.ln();
+            let vy = var / (p * p);
+            let v: Vec<f64> = row
+                .columns
+                .iter()
+                .map(|&c| voltages_mv.get(&self.gates[c]).copied().unwrap_or(f64::NAN))
+                .collect();
+            if let Some((y0, vy0, v0)) = &row.last {
+                let dv = DVector::from_iterator(v.len(), v.iter().zip(v0).map(|(a, b)| a - b));
+                if row.filter.update(&dv, y - y0, vy + vy0).is_err() {
+                    self.rejected_updates += 1;
+                }
+            }
+            row.last = Some((y, vy, v));
+        }
+    }
+
+    /// The log-space Jacobian of every (cell, parameter) row over every
+    /// tuning gate (zeros outside the neighbourhoods), rows cell by cell.
+    pub fn jacobian(&self) -> DMatrix<f64> {
+        let mut j = DMatrix::zeros(self.rows.len(), self.gates.len());
+        for (i, r) in self.rows.iter().enumerate() {
+            for (&c, &g) in r.columns.iter().zip(r.filter.gradient().iter()) {
+                j[(i, c)] = g;
+            }
+        }
+        j
+    }
+
+    /// The next move (array gate → absolute mV) from the present values.
+    /// `residual[cell][parameter]` is `ln(value/target)` of a cell out of
+    /// band, `Some(0)` for a cell in band (held), `None` where unknown (the
+    /// row is left out). `jacobian`: the log-space Jacobian to use (the
+    /// filter's [`JointArrayTuner::jacobian`], or the oracle's). Gates that
+    /// do not move are left out; steps below 1 µV dropped.
+    pub fn plan_move(
+        &self,
+        residual: &[Vec<Option<f64>>],
+        jacobian: &DMatrix<f64>,
+        voltages_mv: &BTreeMap<String, f64>,
+        limits: &SafetyLimits,
+    ) -> BTreeMap<String, f64> {
+        let picked: Vec<(usize, f64)> = self
+            .rows
+            .iter()
+            .enumerate()
+            .filter_map(|(i, r)| Some((i, residual.get(r.cell)?.get(r.parameter).copied()??)))
+            .filter(|(_, d)| d.is_finite())
+            .collect();
+        let mut out = BTreeMap::new();
+        if picked.is_empty() || picked.iter().all(|(_, d)| *d == 0.0) {
+            return out;
+        }
+        let j = DMatrix::from_fn(picked.len(), self.gates.len(), |r, c| {
+            jacobian[(picked[r].0, c)]
+        });
+        let delta = DVector::from_iterator(picked.len(), picked.iter().map(|(_, d)| *d));
+        let cfg = SolverConfig {
+            max_step_mv: 1e6,
+            rule: StepRule::PseudoInverse,
+            ..SolverConfig::default()
+        };
+        let step = newton_step(&j, &delta, &cfg).dv_mv;
+        let mut offset = 0;
+        let mut moved: Vec<Vec<f64>> = Vec::with_capacity(self.cells.len());
+        for cell in &self.cells {
+            let n = cell.gates.len();
+            let block = step.rows(offset, n);
+            let norm = block.norm();
+            let scale = if norm > cell.max_step_mv && norm > 0.0 {
+                cell.max_step_mv / norm
+            } else {
+                1.0
+            };
+            let mut own = Vec::with_capacity(n);
+            for (k, g) in cell.gates.iter().enumerate() {
+                let Some(&now) = voltages_mv.get(g) else {
+                    own.push(0.0);
+                    continue;
+                };
+                let target = limits.clip(g, now, now + block[k] * scale);
+                own.push(target - now);
+                if (target - now).abs() > 1e-3 {
+                    out.insert(g.clone(), target);
+                }
+            }
+            moved.push(own);
+            offset += n;
+        }
+        // virtual gates: the own move, and the neighbours' moves weighted by
+        // the lab's cross-cell calibration
+        for (j, cell) in self.cells.iter().enumerate() {
+            let Some((comp_gates, matrix)) = &cell.compensation else {
+                continue;
+            };
+            let mut seen = vec![0.0; cell.gates.len()];
+            // (cells whose gate lists differ in length see no neighbour term)
+            for (k, dv) in moved.iter().enumerate() {
+                let w = match j.abs_diff(k) {
+                    0 => 1.0,
+                    1 => self.neighbour_compensation[0],
+                    2 => self.neighbour_compensation[1],
+                    _ => 0.0,
+                };
+                if w != 0.0 && dv.len() == seen.len() {
+                    seen.iter_mut().zip(dv).for_each(|(s, d)| *s += w * d);
+                }
+            }
+            for (g, row) in comp_gates.iter().zip(matrix) {
+                let d: f64 = row.iter().zip(&seen).map(|(m, dv)| m * dv).sum();
+                if let Some(&now) = voltages_mv.get(g) {
+                    let target = limits.clip(g, now, now + d);
+                    if (target - now).abs() > 1e-3 {
+                        out.insert(g.clone(), target);
+                    }
+                }
+            }
+        }
+        out
+    }
+}

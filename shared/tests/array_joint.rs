@@ -1,0 +1,119 @@
+//! The joint array tuner on a short protocol: 3 cells (cell 0 the default
+//! device, cells 1 and 2 drawn from the population), a cold start and one
+//! change of every cell's targets, then one single-cell change. It must
+//! converge, never have a move refused by the world (limits and every
+//! gate's `max_step_mv`, checked against the commanded voltages) and never
+//! ask for the truth.
+
+use spintune::benchmark::array::{
+    run_strategy, single_change_cells, world, ArrayProtocol, ArrayStrategy,
+};
+use spintune::benchmark::PAPER_SET_POINTS;
+use spintune::sim::array::ArrayConfig;
+use spintune::sim::DeviceConfig;
+use spintune::tuner::array::{CellKnowledge, JointArrayTuner, JointConfig};
+
+fn short_protocol() -> ArrayProtocol {
+    ArrayProtocol {
+        set_points: PAPER_SET_POINTS[..2].to_vec(),
+        single_cell_changes: 1,
+        ..ArrayProtocol::default()
+    }
+}
+
+#[test]
+fn joint_converges_on_three_cells_within_every_step_limit() {
+    let array = world(
+        &DeviceConfig::default(),
+        ArrayConfig::chain(3, 5, 11),
+        |_| true,
+    )
+    .unwrap();
+    let r = run_strategy(ArrayStrategy::Joint, array, &short_protocol()).unwrap();
+    let cold = r.cold_start_lab_minutes.expect("cold start converged");
+    assert!(cold > 0.0);
+    assert_eq!(r.changes.len(), 1);
+    assert!(r.changes[0].is_some(), "{r:?}");
+    assert_eq!(r.single_cell_changes.len(), 1);
+    assert!(r.single_cell_changes[0].is_some(), "{r:?}");
+    assert_eq!(r.limit_violations, 0);
+    assert_eq!(r.truth_queries, 0);
+    assert!(r.measurements > 0);
+}
+
+#[test]
+fn only_the_oracle_reads_the_truth() {
+    let protocol = ArrayProtocol {
+        set_points: PAPER_SET_POINTS[..1].to_vec(),
+        single_cell_changes: 0,
+        ..ArrayProtocol::default()
+    };
+    let array = || {
+        world(
+            &DeviceConfig::default(),
+            ArrayConfig::chain(2, 5, 3),
+            |_| true,
+        )
+        .unwrap()
+    };
+    let oracle = run_strategy(ArrayStrategy::Oracle, array(), &protocol).unwrap();
+    assert!(oracle.truth_queries > 0);
+    let independent = run_strategy(ArrayStrategy::Independent, array(), &protocol).unwrap();
+    assert_eq!(independent.truth_queries, 0);
+    assert_eq!(independent.limit_violations, 0);
+}
+
+#[test]
+fn rows_span_the_neighbourhood_with_a_zero_mean_neighbour_prior() {
+    let cell = |c: u32| CellKnowledge {
+        gates: ["N", "SA", "SB", "T"]
+            .iter()
+            .map(|g| spintune::sim::array::gate_name(c, g))
+            .collect(),
+        parameters: vec!["t_sr".into(), "w".into()],
+        gradient: vec![vec![0.01, 0.02, -0.03, 0.0]; 2],
+        covariance: vec![vec![vec![0.0; 4]; 4]; 2],
+        process_noise_per_mv: vec![0.003; 2],
+        max_step_mv: 10.0,
+        compensation: None,
+    };
+    let t = JointArrayTuner::new(
+        (0..4).map(cell).collect(),
+        &JointConfig {
+            calibrated_prior_mean: false,
+            ..JointConfig::default()
+        },
+        [0.3, 0.05],
+    )
+    .unwrap();
+    // an end cell sees itself and one neighbour, an inner cell both
+    assert_eq!(t.row_gradient(0, 0).len(), 8);
+    assert_eq!(t.row_gradient(1, 0).len(), 12);
+    assert_eq!(t.row_gradient(3, 1).len(), 8);
+    let row = t.row_gradient(1, 0);
+    for (gate, g) in &row {
+        let own = gate.starts_with("c1.");
+        assert_eq!(*g == 0.0, !own || gate.ends_with(".T"), "{gate}: {g}");
+    }
+    // beyond the neighbourhood the joint Jacobian is exactly zero
+    let j = t.jacobian();
+    assert_eq!(j.ncols(), 16);
+    assert!((12..16).all(|c| j[(0, c)] == 0.0));
+    let bad = JointConfig {
+        radius: 3,
+        ..JointConfig::default()
+    };
+    assert_eq!(
+        JointArrayTuner::new(vec![cell(0)], &bad, [0.0; 2])
+            .unwrap_err()
+            .field,
+        "joint.radius"
+    );
+}
+
+#[test]
+fn single_cell_changes_pick_distinct_cells() {
+    assert_eq!(single_change_cells(9, 3), vec![4, 0, 8]);
+    assert_eq!(single_change_cells(1, 3), vec![0]);
+    assert_eq!(single_change_cells(2, 2), vec![1, 0]);
+}

@@ -362,7 +362,13 @@ impl Tuner {
         }
         let mut ops: Vec<Op> = kinds
             .into_iter()
-            .map(|kind| Op::Measure(ScanRequest { kind, sweep: None }))
+            .map(|kind| {
+                Op::Measure(ScanRequest {
+                    kind,
+                    sweep: None,
+                    cell: None,
+                })
+            })
             .collect();
         ops.push(Op::Decide(Decision::Evaluate));
         ops

@@ -56,6 +56,11 @@ pub struct BenchKeepArgs {
     /// Write machine-readable results here.
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Write every run's result, with its day sampled every lab minute
+    /// (true t_sr and w, checks, re-tunes), to this JSON file (for analysis;
+    /// about 1,500 samples per run and 24 lab hours).
+    #[arg(long)]
+    pub runs_json: Option<PathBuf>,
     /// Draw one seed's day (true t_sr and w, band, checks, re-tunes) to this PNG.
     #[arg(long)]
     pub plot: Option<PathBuf>,
@@ -122,7 +127,8 @@ pub fn run(args: BenchKeepArgs) -> Result<(), CliError> {
         .collect();
     let (mut results, failures) = parallel_map(&work, threads, |&(d, seed, strategy)| {
         let (device, cfg) = &devices[d];
-        run_keep_seed(cfg, &product, strategy, &protocol, args.hours, seed, false)
+        let trace = args.runs_json.is_some();
+        run_keep_seed(cfg, &product, strategy, &protocol, args.hours, seed, trace)
             .map(|mut r| {
                 r.device = *device;
                 r
@@ -132,6 +138,12 @@ pub fn run(args: BenchKeepArgs) -> Result<(), CliError> {
     results.sort_by_key(|r| (r.device, r.seed, r.strategy as u8));
     for f in &failures {
         eprintln!("warning: {f}");
+    }
+    if let Some(path) = &args.runs_json {
+        let text = serde_json::to_string(&results).expect("serializable results");
+        std::fs::write(path, text)
+            .map_err(|e| CliError::runtime(format!("cannot write {}: {e}", path.display())))?;
+        eprintln!("wrote {}", path.display());
     }
     let summary = summarize_keep(&results, &strategies, args.hours);
     println!(
@@ -227,6 +239,37 @@ pub fn markdown_table(summary: &[KeepSummary], runs: u64, args: &BenchKeepArgs) 
             r.limit_violations,
             r.truth_queries,
         ));
+    }
+    s.push_str(&time_by_kind_table(summary));
+    s
+}
+
+/// Where each strategy's measurement time goes: lab min per lab hour by
+/// keep phase and request kind (mean over runs).
+fn time_by_kind_table(summary: &[KeepSummary]) -> String {
+    let kinds: std::collections::BTreeSet<&String> = summary
+        .iter()
+        .flat_map(|r| r.minutes_per_hour_by_kind.keys())
+        .collect();
+    if kinds.is_empty() {
+        return String::new();
+    }
+    let mut s = String::from(
+        "\nWhere the measurement time goes (lab min per lab hour, phase/kind):\n\n| strategy |",
+    );
+    for k in &kinds {
+        s.push_str(&format!(" {k} |"));
+    }
+    s.push_str("\n|---|");
+    s.push_str(&"---:|".repeat(kinds.len()));
+    s.push('\n');
+    for r in summary {
+        s.push_str(&format!("| {} |", r.name));
+        for k in &kinds {
+            let v = r.minutes_per_hour_by_kind.get(*k).copied().unwrap_or(0.0);
+            s.push_str(&format!(" {v:.2} |"));
+        }
+        s.push('\n');
     }
     s
 }

@@ -70,6 +70,25 @@ impl Transform {
         }
     }
 
+    /// Back from estimator space: a value and its variance in the
+    /// parameter's unit (first order: `δp = p·δ(ln p)` under `Log`).
+    ///
+    /// ```
+    /// use spintune::parameter::Transform;
+    /// let (p, var) = Transform::Log.inverse(20f64.ln(), 0.01);
+    /// assert!((p - 20.0).abs() < 1e-12 && (var - 4.0).abs() < 1e-12);
+    /// assert_eq!(Transform::Linear.inverse(1.5, 0.2), (1.5, 0.2));
+    /// ```
+    pub fn inverse(self, y: f64, variance: f64) -> (f64, f64) {
+        match self {
+            Transform::Linear => (y, variance),
+            Transform::Log => {
+                let p = y.exp();
+                (p, p * p * variance)
+            }
+        }
+    }
+
     /// Map a value alone into estimator space (targets).
     pub fn forward_value(self, value: f64) -> Option<f64> {
         self.forward(value, 0.0).map(|x| x.0)

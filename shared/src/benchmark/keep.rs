@@ -9,12 +9,15 @@
 //! band (±`relative_tolerance`), divided by the keep window (from the
 //! first tuned record to `hours` later).
 
+use std::collections::BTreeMap;
+
 use serde::{Deserialize, Serialize};
 
 use super::{
     quantiles, world_config, BenchmarkError, BenchmarkProtocol, Harness, Quantiles, SeedFailure,
 };
 use crate::driver::SimulationConfig;
+use crate::parameter::ScanKind;
 use crate::protocol::{EventKind, KeepPhase, Request, Response};
 use crate::session::{Output, RunSession, SessionConfig};
 use crate::tuner::{KeepConfig, KeepSchedule, TunerConfig};
@@ -123,6 +126,12 @@ pub struct KeepSeedResult {
     pub limit_violations: u64,
     /// Queries of the simulator's truth by the tuner (must be 0).
     pub truth_queries: u64,
+    /// Where the measurement time went: lab minutes per lab hour of the
+    /// window, keyed `phase/kind` (phase of the record the request belongs
+    /// to: `tuning`, `check`, `retune`; kind: a scan kind, `set_voltages`,
+    /// `read_voltages`).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub minutes_per_hour_by_kind: BTreeMap<String, f64>,
     /// The day, sampled (with `trace`): for the figure.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub trace: Vec<KeepSample>,
@@ -204,8 +213,11 @@ pub fn run_keep_seed(
         records: 0,
         limit_violations: 0,
         truth_queries: 0,
+        minutes_per_hour_by_kind: BTreeMap::new(),
         trace: Vec::new(),
     };
+    // lab seconds of the iteration in progress, by request kind
+    let mut pending: BTreeMap<&'static str, f64> = BTreeMap::new();
     let mut w = World {
         targets,
         trace,
@@ -243,6 +255,7 @@ pub fn run_keep_seed(
                     let response = h.execute(&request);
                     let dt = h.device.lab_seconds() - t0;
                     w.account(&h, dt);
+                    *pending.entry(request_kind(&request)).or_default() += dt;
                     response
                 };
                 h.session.feed(response).map_err(|e| err(e.into()))?;
@@ -254,6 +267,16 @@ pub fn run_keep_seed(
                     r.initial_tune_lab_minutes = Some(now / 60.0);
                 }
                 if w.window.is_some() {
+                    let phase = match record.keep.as_ref().map(|k| k.phase) {
+                        Some(KeepPhase::Check) => "check",
+                        Some(KeepPhase::Retune) => "retune",
+                        Some(KeepPhase::Tuning) | None => "tuning",
+                    };
+                    for (kind, dt) in std::mem::take(&mut pending) {
+                        *r.minutes_per_hour_by_kind
+                            .entry(format!("{phase}/{kind}"))
+                            .or_default() += dt;
+                    }
                     r.records += 1;
                     if record.keep.as_ref().map(|k| k.phase) == Some(KeepPhase::Check) {
                         r.checks += 1;
@@ -285,11 +308,31 @@ pub fn run_keep_seed(
         r.fraction_in_band = w.in_band_s / w.window_s;
         r.measurement_minutes_per_hour = (w.window_s - w.waited_s) / 60.0 / (w.window_s / 3600.0);
         r.longest_out_of_band_minutes = w.longest_out_s / 60.0;
+        let hours = w.window_s / 3600.0;
+        for v in r.minutes_per_hour_by_kind.values_mut() {
+            *v /= 60.0 * hours;
+        }
     }
     r.limit_violations = h.violations;
     r.truth_queries = h.device.truth_queries();
     r.trace = w.samples;
     Ok(r)
+}
+
+/// A request's kind in [`KeepSeedResult::minutes_per_hour_by_kind`].
+fn request_kind(request: &Request) -> &'static str {
+    match request {
+        Request::SetVoltages { .. } => "set_voltages",
+        Request::ReadVoltages { .. } => "read_voltages",
+        Request::Measure { scan } => match scan.kind {
+            ScanKind::SensingDot => "sensing_dot",
+            ScanKind::ChemicalPotential => "chemical_potential",
+            ScanKind::TransitionWidth => "transition_width",
+            ScanKind::ReloadTime => "reload_time",
+        },
+        Request::TrueJacobian { .. } => "true_jacobian",
+        Request::Wait { .. } => "wait",
+    }
 }
 
 /// The world's bookkeeping of one run (what no strategy sees).
@@ -368,6 +411,9 @@ pub struct KeepSummary {
     pub limit_violations: u64,
     /// Must be 0.
     pub truth_queries: u64,
+    /// Measurement minutes per lab hour by `phase/kind`: mean over runs.
+    #[serde(default)]
+    pub minutes_per_hour_by_kind: BTreeMap<String, f64>,
 }
 
 /// Summaries per strategy, in `strategies`' order.
@@ -414,6 +460,15 @@ pub fn summarize_keep(
                 alerts: mine.iter().map(|r| r.alerts).sum(),
                 limit_violations: mine.iter().map(|r| r.limit_violations).sum(),
                 truth_queries: mine.iter().map(|r| r.truth_queries).sum(),
+                minutes_per_hour_by_kind: {
+                    let mut by: BTreeMap<String, f64> = BTreeMap::new();
+                    for r in &tuned {
+                        for (k, v) in &r.minutes_per_hour_by_kind {
+                            *by.entry(k.clone()).or_default() += v / n;
+                        }
+                    }
+                    by
+                },
             }
         })
         .collect()

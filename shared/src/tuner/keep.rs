@@ -40,7 +40,9 @@ use super::finite_difference::Sample;
 use super::{Decision, Op, Tuner};
 use crate::config_error::ConfigError;
 use crate::parameter::ParameterSpec;
-use crate::protocol::{EventKind, KeepPhase, KeepReport, Request, TunerEvent, MAX_WAIT_SECONDS};
+use crate::protocol::{
+    EventKind, KeepPhase, KeepReport, ParameterValue, Request, TunerEvent, MAX_WAIT_SECONDS,
+};
 
 /// Shortest allowed [`KeepConfig::min_check_interval_s`], s.
 pub const MIN_CHECK_INTERVAL_S: f64 = 10.0;
@@ -99,7 +101,7 @@ fn default_alert_after_s() -> f64 {
     1800.0
 }
 fn default_prior_drift() -> f64 {
-    0.5
+    0.75
 }
 fn default_batch_window_s() -> f64 {
     300.0
@@ -143,7 +145,7 @@ pub struct KeepConfig {
     #[serde(default)]
     pub duration_s: Option<f64>,
     /// Prior drift of every parameter, in band half-widths per √hour
-    /// (default 0.5): the first checks' schedule before any drift is seen.
+    /// (default 0.75): the first checks' schedule before any drift is seen.
     #[serde(default = "default_prior_drift")]
     pub prior_drift_band_per_sqrt_hour: f64,
     /// A check also measures every parameter due within this much lab time, s (default 300).
@@ -602,6 +604,13 @@ impl Tuner {
         }
         let mut reasons = Vec::new();
         let mut events = Vec::new();
+        // Where each checked parameter is believed to be (predictive schedule):
+        // the drift model's posterior (the prediction since the last check,
+        // corrected by this check's value with its error bar), in parameter
+        // units; a single noisy value moves it only as far as its error bar
+        // allows. A fixed schedule believes the measured value.
+        let mut posterior: Vec<ParameterValue> = Vec::new();
+        let model_based = matches!(k.schedule, KeepSchedule::Predictive { .. });
         let s = self.keep.as_mut()?;
         for &i in &checking {
             let p = &top.parameters[i];
@@ -620,7 +629,26 @@ impl Tuner {
                 p.target
                     .is_some_and(|t| v.variance.sqrt() <= p.tolerance.half_width(t))
             });
-            let in_band = value.as_ref().is_some_and(|v| p.in_band(v.value));
+            let sample = samples
+                .get(i)
+                .copied()
+                .flatten()
+                .filter(|_| value.is_some());
+            let model = s.models.get_mut(i).and_then(Option::as_mut);
+            let believed = match (sample, model) {
+                (Some((y, r)), Some(m)) => {
+                    m.update(y, r, now);
+                    // a fixed schedule is the lab's plain rule: the measured value decides
+                    Some(if model_based {
+                        (m.mean, m.variance)
+                    } else {
+                        (y, r)
+                    })
+                }
+                (Some(sample), None) => Some(sample),
+                (None, _) => None,
+            };
+            let in_band = believed.is_some_and(|(m, _)| (lo..=hi).contains(&m));
             events.push(EventKind::KeepCheck {
                 parameter: p.name.clone(),
                 value: value.as_ref().map(|v| v.value),
@@ -628,47 +656,48 @@ impl Tuner {
                 predicted_out_of_band: predicted,
                 unit: p.unit.clone(),
             });
-            let sample = samples
-                .get(i)
-                .copied()
-                .flatten()
-                .filter(|_| value.is_some());
-            match (sample, value) {
-                (Some((y, r)), Some(v)) => {
-                    if let Some(m) = s.models.get_mut(i).and_then(Option::as_mut) {
-                        m.update(y, r, now);
-                    }
-                    if !in_band {
-                        reasons.push(format!(
-                            "{} = {:.3} {} is outside its band",
-                            p.name, v.value, p.unit
-                        ));
-                    } else if let KeepSchedule::Predictive {
-                        out_of_band_probability,
-                    } = k.schedule
-                    {
-                        // Re-tune early only where a re-tune would move: the
-                        // estimate is outside the settle band and the model
-                        // expects the band edge before the next check could come.
-                        let soon = now + k.min_check_interval_s;
-                        let model = s.models.get(i).and_then(Option::as_ref);
-                        let p_out = model.map_or(0.0, |m| m.out_of_band_probability(soon, lo, hi));
-                        let centre = 0.5 * (lo + hi);
-                        let settle = k.settle_band_fraction * 0.5 * (hi - lo);
-                        let unsettled = model.is_some_and(|m| (m.mean - centre).abs() > settle);
-                        if unsettled && p_out >= out_of_band_probability {
-                            reasons.push(format!(
-                                "{} = {:.3} {} is predicted to leave its band within {:.0} min (P = {:.0} %)",
-                                p.name,
-                                v.value,
-                                p.unit,
-                                k.min_check_interval_s / 60.0,
-                                100.0 * p_out
-                            ));
-                        }
-                    }
+            let Some((m, var)) = believed else {
+                reasons.push(format!("{}: the check gave no value", p.name));
+                continue;
+            };
+            let (estimate, estimate_var) = p.transform.inverse(m, var);
+            posterior.push(ParameterValue {
+                name: p.name.clone(),
+                value: estimate,
+                variance: estimate_var,
+            });
+            if !in_band {
+                reasons.push(format!(
+                    "{} is outside its band: measured {:.3} {}, believed {:.3} ± {:.3} {}",
+                    p.name,
+                    value.as_ref().map_or(f64::NAN, |v| v.value),
+                    p.unit,
+                    estimate,
+                    estimate_var.sqrt(),
+                    p.unit
+                ));
+            } else if let KeepSchedule::Predictive {
+                out_of_band_probability,
+            } = k.schedule
+            {
+                // Re-tune early only where a re-tune would move: the
+                // estimate is outside the settle band and the model
+                // expects the band edge before the next check could come.
+                let soon = now + k.min_check_interval_s;
+                let model = s.models.get(i).and_then(Option::as_ref);
+                let p_out = model.map_or(0.0, |m| m.out_of_band_probability(soon, lo, hi));
+                let centre = 0.5 * (lo + hi);
+                let settle = k.settle_band_fraction * 0.5 * (hi - lo);
+                if (m - centre).abs() > settle && p_out >= out_of_band_probability {
+                    reasons.push(format!(
+                        "{} = {:.3} {} is predicted to leave its band within {:.0} min (P = {:.0} %)",
+                        p.name,
+                        estimate,
+                        p.unit,
+                        k.min_check_interval_s / 60.0,
+                        100.0 * p_out
+                    ));
                 }
-                _ => reasons.push(format!("{}: the check gave no value", p.name)),
             }
         }
         let retune = !reasons.is_empty();
@@ -685,15 +714,11 @@ impl Tuner {
         }
         if retune {
             self.forget_top_references();
-            // The re-tune's first round starts from the check's trusted values
-            // (a fresh measurement would only repeat them, with new noise).
-            let values: Vec<_> = checking
-                .iter()
-                .filter(|&&i| trusted(i))
-                .filter_map(|&i| raw.get(i).cloned().flatten())
-                .collect();
-            if !values.is_empty() {
-                self.restore_top_measurements(values);
+            // The re-tune's first round starts from where the checked
+            // parameters are believed to be (a fresh measurement would only
+            // repeat the check, with new noise).
+            if !posterior.is_empty() {
+                self.restore_top_measurements(posterior);
                 if let Some(s) = self.keep.as_mut() {
                     s.from_check = true;
                 }
@@ -743,10 +768,8 @@ impl Tuner {
         if let Some(pred) = &skipped {
             for (p, v) in top.parameters.iter().zip(pred) {
                 let Some((m, var)) = *v else { continue };
-                let (value, std) = match p.transform {
-                    crate::parameter::Transform::Linear => (m, var.sqrt()),
-                    crate::parameter::Transform::Log => (m.exp(), m.exp() * var.sqrt()),
-                };
+                let (value, var) = p.transform.inverse(m, var);
+                let std = var.sqrt();
                 record.events.push(TunerEvent {
                     level: level.clone(),
                     kind: EventKind::ConfirmationSkipped {
@@ -859,6 +882,30 @@ mod tests {
             (t_centre - t_expected).abs() < 1e-3 * t_expected,
             "{t_centre} vs {t_expected}"
         );
+    }
+
+    #[test]
+    fn a_noisy_check_moves_the_belief_by_the_kalman_gain_only() {
+        // Last check 0.0 ± 0.02 (estimator units), prior diffusion 1e-7 /s;
+        // 1000 s later a value of 0.12 ± 0.06, beyond a band edge at 0.1.
+        // The innovation first teaches the diffusion:
+        //   q = (q₀·T₀ + ν² − P − R) / (T₀ + Δt)
+        //     = (1e-7·7200 + 0.0144 − 4e-4 − 3.6e-3) / 8200,
+        // then the belief moves by K = P⁻/(P⁻ + R) of the innovation, with
+        // P⁻ = P + q·Δt: to about 0.043, inside the band.
+        let mut m = DriftModel::new(0.0, 4e-4, 0.0, 1e-7);
+        m.update(0.12, 3.6e-3, 1000.0);
+        let q = (1e-7 * PRIOR_WEIGHT_S + 0.0144 - 4e-4 - 3.6e-3) / (PRIOR_WEIGHT_S + 1000.0);
+        let p_pred = 4e-4 + q * 1000.0;
+        let k = p_pred / (p_pred + 3.6e-3);
+        assert!(
+            (m.mean - k * 0.12).abs() < 1e-9,
+            "{} vs {}",
+            m.mean,
+            k * 0.12
+        );
+        assert!((m.variance - (1.0 - k) * p_pred).abs() < 1e-12);
+        assert!(m.mean > 0.0 && m.mean < 0.05);
     }
 
     #[test]

@@ -903,10 +903,8 @@ impl Tuner {
                 return None;
             }
             // back in parameter units for the record (linear or log space)
-            let (value, value_std) = match p.transform {
-                crate::parameter::Transform::Linear => (predicted, std),
-                crate::parameter::Transform::Log => (predicted.exp(), predicted.exp() * std),
-            };
+            let (value, value_var) = p.transform.inverse(predicted, var);
+            let value_std = value_var.sqrt();
             events.push(EventKind::ConfirmationSkipped {
                 parameter: p.name.clone(),
                 predicted: value,

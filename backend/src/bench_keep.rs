@@ -31,7 +31,9 @@ pub struct BenchKeepArgs {
     #[arg(long, default_value_t = 20)]
     pub seeds: u64,
     /// Comma-separated strategies (default: all): predictive, fixed-10min,
-    /// fixed-30min, fixed-60min, never.
+    /// fixed-30min, fixed-60min, never; and `predictive@P%`, the predictive
+    /// schedule at out-of-band probability P (e.g. `predictive@2%`), for the
+    /// frontier of lab time against time in band.
     #[arg(long, value_delimiter = ',')]
     pub strategies: Vec<String>,
     /// Device description (TOML or JSON) overriding the simulator's defaults.
@@ -122,8 +124,10 @@ pub fn run(args: BenchKeepArgs) -> Result<(), CliError> {
     let (devices, random_devices) =
         select_devices(&base, &protocol, args.random_devices, args.device_seed)?;
     let work: Vec<(usize, u64, KeepStrategy)> = (0..devices.len())
-        .flat_map(|d| (1..=args.seeds).flat_map(move |s| KeepStrategy::ALL.map(|k| (d, s, k))))
-        .filter(|(_, _, k)| strategies.contains(k))
+        .flat_map(|d| {
+            let strategies = &strategies;
+            (1..=args.seeds).flat_map(move |s| strategies.iter().map(move |&k| (d, s, k)))
+        })
         .collect();
     let (mut results, failures) = parallel_map(&work, threads, |&(d, seed, strategy)| {
         let (device, cfg) = &devices[d];
@@ -135,7 +139,8 @@ pub fn run(args: BenchKeepArgs) -> Result<(), CliError> {
             })
             .map_err(|e| format!("device {device}, {}: {e}", strategy.name()))
     });
-    results.sort_by_key(|r| (r.device, r.seed, r.strategy as u8));
+    let order = |k: KeepStrategy| strategies.iter().position(|&s| s == k);
+    results.sort_by_key(|r| (r.device, r.seed, order(r.strategy)));
     for f in &failures {
         eprintln!("warning: {f}");
     }
@@ -201,9 +206,9 @@ fn parse_strategies(names: &[String]) -> Result<Vec<KeepStrategy>, CliError> {
         .iter()
         .map(|n| {
             KeepStrategy::parse(n.trim()).ok_or_else(|| {
-                let all: Vec<&str> = KeepStrategy::ALL.iter().map(|s| s.name()).collect();
+                let all: Vec<String> = KeepStrategy::ALL.iter().map(|s| s.name()).collect();
                 CliError::input(format!(
-                    "unknown keep strategy {n:?}; choose from {}",
+                    "unknown keep strategy {n:?}; choose from {}, or predictive@P% (0.01 % ≤ P ≤ 50 %)",
                     all.join(", ")
                 ))
             })
@@ -244,29 +249,59 @@ pub fn markdown_table(summary: &[KeepSummary], runs: u64, args: &BenchKeepArgs) 
     s
 }
 
-/// Where each strategy's measurement time goes: lab min per lab hour by
-/// keep phase and request kind (mean over runs).
+/// Where each strategy's measurement time goes: lab min per lab hour,
+/// grouped from the JSON's `phase/kind` keys (mean over runs).
 fn time_by_kind_table(summary: &[KeepSummary]) -> String {
-    let kinds: std::collections::BTreeSet<&String> = summary
+    const GROUPS: [(&str, &[&str]); 7] = [
+        ("check: t_sr scans", &["check/reload_time"]),
+        ("check: w scans", &["check/transition_width"]),
+        (
+            "check: lower levels, read-backs",
+            &[
+                "check/sensing_dot",
+                "check/chemical_potential",
+                "check/set_voltages",
+                "check/read_voltages",
+            ],
+        ),
+        (
+            "re-tune: t_sr + w scans",
+            &["retune/reload_time", "retune/transition_width"],
+        ),
+        (
+            "re-tune: lower levels",
+            &["retune/sensing_dot", "retune/chemical_potential"],
+        ),
+        (
+            "re-tune: moves, read-backs",
+            &["retune/set_voltages", "retune/read_voltages"],
+        ),
+        ("settling after the first tuned point", &["tuning/"]),
+    ];
+    if summary
         .iter()
-        .flat_map(|r| r.minutes_per_hour_by_kind.keys())
-        .collect();
-    if kinds.is_empty() {
+        .all(|r| r.minutes_per_hour_by_kind.is_empty())
+    {
         return String::new();
     }
-    let mut s = String::from(
-        "\nWhere the measurement time goes (lab min per lab hour, phase/kind):\n\n| strategy |",
-    );
-    for k in &kinds {
-        s.push_str(&format!(" {k} |"));
+    let mut s =
+        String::from("\nWhere the measurement time goes (lab min per lab hour):\n\n| strategy |");
+    for (name, _) in GROUPS {
+        s.push_str(&format!(" {name} |"));
     }
     s.push_str("\n|---|");
-    s.push_str(&"---:|".repeat(kinds.len()));
+    s.push_str(&"---:|".repeat(GROUPS.len()));
     s.push('\n');
     for r in summary {
         s.push_str(&format!("| {} |", r.name));
-        for k in &kinds {
-            let v = r.minutes_per_hour_by_kind.get(*k).copied().unwrap_or(0.0);
+        for (_, keys) in GROUPS {
+            let v: f64 = r
+                .minutes_per_hour_by_kind
+                .iter()
+                .filter(|(k, _)| keys.iter().any(|p| k.starts_with(p)))
+                .map(|(_, v)| v)
+                .sum::<f64>()
+                + 0.0; // an empty sum is −0.0
             s.push_str(&format!(" {v:.2} |"));
         }
         s.push('\n');

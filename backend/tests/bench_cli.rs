@@ -185,3 +185,106 @@ fn bench_server_rejects_bad_numbers_naming_the_flag() {
         assert!(err.contains(flag), "{flag}: {err}");
     }
 }
+
+#[test]
+fn bench_keep_runs_a_frontier_point_and_reports_where_the_time_goes() {
+    let dir = std::env::temp_dir().join(format!("spintune-bench-keep-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let json = dir.join("keep.json");
+    let runs = dir.join("runs.json");
+    let out = bin()
+        .args([
+            "bench-keep",
+            "--hours",
+            "2",
+            "--seeds",
+            "1",
+            "--threads",
+            "1",
+            "--strategies",
+            "predictive@5%,fixed-30min",
+            "--json",
+        ])
+        .arg(&json)
+        .arg("--runs-json")
+        .arg(&runs)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("| predictive@5% |"), "{stdout}");
+    assert!(
+        stdout.contains("Where the measurement time goes"),
+        "{stdout}"
+    );
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let strategies = report["strategies"].as_array().unwrap();
+    let names: Vec<&str> = strategies
+        .iter()
+        .map(|s| s["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, ["predictive@5%", "fixed-30min"]);
+    for s in strategies {
+        // the parts add up to the measurement time
+        let by_kind = s["minutes_per_hour_by_kind"].as_object().unwrap();
+        let sum: f64 = by_kind.values().map(|v| v.as_f64().unwrap()).sum();
+        let total = s["measurement_minutes_per_hour"].as_f64().unwrap();
+        assert!(
+            total > 0.0 && (sum - total).abs() < 1e-6 * total.max(1.0),
+            "{sum} vs {total}"
+        );
+        assert!(by_kind.keys().all(|k| k.starts_with("check/")
+            || k.starts_with("retune/")
+            || k.starts_with("tuning/")));
+    }
+    // every run, with its day sampled at least every lab minute
+    let runs: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&runs).unwrap()).unwrap();
+    let runs = runs.as_array().unwrap();
+    assert_eq!(runs.len(), 2);
+    for r in runs {
+        let trace = r["trace"].as_array().unwrap();
+        let hours: Vec<f64> = trace
+            .iter()
+            .map(|s| s["hours"].as_f64().unwrap())
+            .filter(|&h| h >= 0.0)
+            .collect();
+        assert!(hours.windows(2).all(|w| w[1] - w[0] <= 1.0 / 60.0 + 1e-9));
+        assert!(*hours.last().unwrap() > 1.9);
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn bench_keep_rejects_a_bad_strategy_naming_the_choices() {
+    for bad in [
+        "predictive@0%",
+        "predictive@70%",
+        "predictive@2",
+        "sometimes",
+    ] {
+        let out = bin()
+            .args([
+                "bench-keep",
+                "--hours",
+                "1",
+                "--seeds",
+                "1",
+                "--strategies",
+                bad,
+            ])
+            .output()
+            .unwrap();
+        assert_eq!(out.status.code(), Some(2), "{bad}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            err.contains("unknown keep strategy") && err.contains("predictive@P%"),
+            "{err}"
+        );
+    }
+}

@@ -45,7 +45,18 @@ pub enum KeepStrategy {
     Fixed60,
     /// Tune once, then leave it.
     Never,
+    /// The predictive schedule at another out-of-band probability (in
+    /// basis points, 1 bp = 0.01 %): `predictive@2%` on the command line.
+    /// For the cost/in-band frontier; not in [`KeepStrategy::ALL`].
+    PredictiveAt {
+        /// Out-of-band probability at which a check is due, 0.01 % units
+        /// (1 ..= [`MAX_PREDICTIVE_AT_BP`]).
+        basis_points: u32,
+    },
 }
+
+/// Highest out-of-band probability of a `predictive@P%` strategy, bp (50 %).
+pub const MAX_PREDICTIVE_AT_BP: u32 = 5_000;
 
 impl KeepStrategy {
     /// Every strategy, in report order.
@@ -58,18 +69,41 @@ impl KeepStrategy {
     ];
 
     /// Name on the command line and in reports.
-    pub fn name(self) -> &'static str {
+    ///
+    /// ```
+    /// use spintune::benchmark::keep::KeepStrategy;
+    /// let s = KeepStrategy::parse("predictive@2.5%").unwrap();
+    /// assert_eq!(s, KeepStrategy::PredictiveAt { basis_points: 250 });
+    /// assert_eq!(s.name(), "predictive@2.5%");
+    /// assert_eq!(KeepStrategy::parse("fixed-30min").unwrap().name(), "fixed-30min");
+    /// assert!(KeepStrategy::parse("predictive@0%").is_none());
+    /// assert!(KeepStrategy::parse("predictive@60%").is_none());
+    /// ```
+    pub fn name(self) -> String {
         match self {
-            KeepStrategy::Predictive => "predictive",
-            KeepStrategy::Fixed10 => "fixed-10min",
-            KeepStrategy::Fixed30 => "fixed-30min",
-            KeepStrategy::Fixed60 => "fixed-60min",
-            KeepStrategy::Never => "never",
+            KeepStrategy::Predictive => "predictive".into(),
+            KeepStrategy::Fixed10 => "fixed-10min".into(),
+            KeepStrategy::Fixed30 => "fixed-30min".into(),
+            KeepStrategy::Fixed60 => "fixed-60min".into(),
+            KeepStrategy::Never => "never".into(),
+            KeepStrategy::PredictiveAt { basis_points } => {
+                format!("predictive@{}%", f64::from(basis_points) / 100.0)
+            }
         }
     }
 
-    /// Parse a name of [`KeepStrategy::name`].
+    /// Parse a name of [`KeepStrategy::name`]; `predictive@P%` takes any P
+    /// in (0, 50] % with at most two decimals.
     pub fn parse(name: &str) -> Option<Self> {
+        if let Some(p) = name.strip_prefix("predictive@") {
+            let percent: f64 = p.strip_suffix('%')?.trim().parse().ok()?;
+            let bp = (percent * 100.0).round();
+            return ((1.0..=f64::from(MAX_PREDICTIVE_AT_BP)).contains(&bp)
+                && (bp - percent * 100.0).abs() < 1e-6)
+                .then_some(KeepStrategy::PredictiveAt {
+                    basis_points: bp as u32,
+                });
+        }
         Self::ALL.into_iter().find(|s| s.name() == name)
     }
 
@@ -82,6 +116,9 @@ impl KeepStrategy {
             KeepStrategy::Fixed30 => KeepSchedule::Fixed { interval_s: 1800.0 },
             KeepStrategy::Fixed60 => KeepSchedule::Fixed { interval_s: 3600.0 },
             KeepStrategy::Never => KeepSchedule::Never,
+            KeepStrategy::PredictiveAt { basis_points } => KeepSchedule::Predictive {
+                out_of_band_probability: f64::from(basis_points) / 10_000.0,
+            },
         };
         let schedule = match (self, schedule) {
             // the product's own schedule may be fixed: predictive is predictive
@@ -262,21 +299,25 @@ pub fn run_keep_seed(
             }
             Output::Commit(record) => {
                 let now = h.device.lab_seconds();
-                if w.window.is_none() && record.tuned {
-                    w.window = Some(now);
-                    r.initial_tune_lab_minutes = Some(now / 60.0);
-                }
+                // this record's requests ran inside the window only if it was open before
+                let iteration = std::mem::take(&mut pending);
                 if w.window.is_some() {
                     let phase = match record.keep.as_ref().map(|k| k.phase) {
                         Some(KeepPhase::Check) => "check",
                         Some(KeepPhase::Retune) => "retune",
                         Some(KeepPhase::Tuning) | None => "tuning",
                     };
-                    for (kind, dt) in std::mem::take(&mut pending) {
+                    for (kind, dt) in iteration {
                         *r.minutes_per_hour_by_kind
                             .entry(format!("{phase}/{kind}"))
                             .or_default() += dt;
                     }
+                }
+                if w.window.is_none() && record.tuned {
+                    w.window = Some(now);
+                    r.initial_tune_lab_minutes = Some(now / 60.0);
+                }
+                if w.window.is_some() {
                     r.records += 1;
                     if record.keep.as_ref().map(|k| k.phase) == Some(KeepPhase::Check) {
                         r.checks += 1;
@@ -435,7 +476,7 @@ pub fn summarize_keep(
                 |f: &dyn Fn(&KeepSeedResult) -> f64| tuned.iter().map(|r| f(r)).sum::<f64>() / n;
             let days = hours / 24.0;
             KeepSummary {
-                name: s.name().into(),
+                name: s.name(),
                 runs: mine.len() as u64,
                 not_tuned: (mine.len() - tuned.len()) as u64,
                 fraction_in_band: mean(&|r| r.fraction_in_band),

@@ -7,27 +7,33 @@ fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_spintune"))
 }
 
+/// Run `cmd` and require success (its stderr in the failure message).
+fn run_ok(cmd: &mut Command) -> std::process::Output {
+    let out = cmd.output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
 #[test]
 fn bench_writes_json_with_the_documented_keys() {
     let dir = std::env::temp_dir().join(format!("spintune-bench-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let json = dir.join("bench.json");
-    let out = bin()
-        .args([
-            "bench",
-            "--seeds",
-            "1",
-            "--strategies",
-            "kalman,oracle,oracle-log",
-            "--json",
-        ])
-        .arg(&json)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let out = run_ok(
+        bin()
+            .args([
+                "bench",
+                "--seeds",
+                "1",
+                "--strategies",
+                "kalman,oracle,oracle-log",
+                "--json",
+            ])
+            .arg(&json),
     );
     let table = String::from_utf8_lossy(&out.stdout);
     assert!(
@@ -192,28 +198,23 @@ fn bench_keep_runs_a_frontier_point_and_reports_where_the_time_goes() {
     std::fs::create_dir_all(&dir).unwrap();
     let json = dir.join("keep.json");
     let runs = dir.join("runs.json");
-    let out = bin()
-        .args([
-            "bench-keep",
-            "--hours",
-            "2",
-            "--seeds",
-            "1",
-            "--threads",
-            "1",
-            "--strategies",
-            "predictive@5%,fixed-30min",
-            "--json",
-        ])
-        .arg(&json)
-        .arg("--runs-json")
-        .arg(&runs)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let out = run_ok(
+        bin()
+            .args([
+                "bench-keep",
+                "--hours",
+                "2",
+                "--seeds",
+                "1",
+                "--threads",
+                "1",
+                "--strategies",
+                "predictive@5%,fixed-30min",
+                "--json",
+            ])
+            .arg(&json)
+            .arg("--runs-json")
+            .arg(&runs),
     );
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(stdout.contains("| predictive@5% |"), "{stdout}");

@@ -662,36 +662,34 @@ pub fn run_strategy(
         ArrayStrategy::Joint | ArrayStrategy::Oracle => {
             let lab_lambda = lab_cross_calibration(lab.device.config(), protocol, seed);
             let mut joint = JointRun::start(&mut lab, &mut runs, protocol, lab_lambda)?;
-            result.cold_start_lab_minutes = joint.until_in_band(
+            // until every cell is in band, lab minutes since `t0` (None: not within `cap`)
+            let mut go = |lab: &mut Lab, targets: &[_], cap: u32, t0: Option<f64>| {
+                let t0 = t0.unwrap_or_else(|| lab.minutes());
+                joint.until_in_band(lab, targets, strategy, protocol, cap, t0)
+            };
+            // the cold start counts from the run's start (initial measurements included)
+            result.cold_start_lab_minutes = go(
                 &mut lab,
                 &targets,
-                strategy,
-                protocol,
                 2 * protocol.iterations_per_change,
-                0.0,
+                Some(0.0),
             )?;
             for &sp in &protocol.set_points[1..] {
                 targets.iter_mut().for_each(|t| *t = sp);
-                let t0 = lab.minutes();
-                result.changes.push(joint.until_in_band(
+                result.changes.push(go(
                     &mut lab,
                     &targets,
-                    strategy,
-                    protocol,
                     protocol.iterations_per_change,
-                    t0,
+                    None,
                 )?);
             }
             for &c in &single {
                 targets[c as usize] = protocol.single_cell_target;
-                let t0 = lab.minutes();
-                result.single_cell_changes.push(joint.until_in_band(
+                result.single_cell_changes.push(go(
                     &mut lab,
                     &targets,
-                    strategy,
-                    protocol,
                     protocol.iterations_per_change,
-                    t0,
+                    None,
                 )?);
                 result.neighbours_left_out_of_band += neighbours_out(&lab, c, &targets, band);
             }

@@ -26,6 +26,28 @@ async fn title_and_icon(c: &Client) -> (String, String) {
     )
 }
 
+/// POST a run config; its id.
+fn create_run(port: u16, config: &str) -> u64 {
+    let (s, body) = http(port, "POST", "/api/runs", Some(TOKEN), config);
+    assert_eq!(s, 201, "{body}");
+    let json = &body[body.find('{').unwrap()..=body.rfind('}').unwrap()];
+    serde_json::from_str::<serde_json::Value>(json).unwrap()["id"]
+        .as_u64()
+        .unwrap()
+}
+
+/// A control action on run `id`, required to succeed.
+fn control(port: u16, id: u64, action: &str) {
+    let (s, body) = http(
+        port,
+        "POST",
+        &format!("/api/runs/{id}/control"),
+        Some(TOKEN),
+        &format!(r#"{{"action":"{action}"}}"#),
+    );
+    assert_eq!(s, 200, "{action}: {body}");
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_finished_run_raises_an_alert_in_the_title_favicon_and_banner_until_dismissed() {
     let tmp = std::env::temp_dir().join(format!("spintune-e2e-alerts-{}", std::process::id()));
@@ -35,29 +57,11 @@ async fn a_finished_run_raises_an_alert_in_the_title_favicon_and_banner_until_di
     let _server = start_server(port, &tmp.join("runs.db"));
     // A short run, paused at once so that the page follows it before it
     // finishes (it paces 300 ms per iteration: the pause lands first).
-    let (s, body) = http(
+    let id = create_run(
         port,
-        "POST",
-        "/api/runs",
-        Some(TOKEN),
         r#"{"name":"alert e2e","seed":7,"iteration_delay_ms":300,"tuner":{"max_iterations":3}}"#,
     );
-    assert_eq!(s, 201, "{body}");
-    let json = &body[body.find('{').unwrap()..=body.rfind('}').unwrap()];
-    let id = serde_json::from_str::<serde_json::Value>(json).unwrap()["id"]
-        .as_u64()
-        .unwrap();
-    let control = |id: u64, action: &str| {
-        http(
-            port,
-            "POST",
-            &format!("/api/runs/{id}/control"),
-            Some(TOKEN),
-            &format!(r#"{{"action":"{action}"}}"#),
-        )
-    };
-    let (s, body) = control(id, "pause");
-    assert_eq!(s, 200, "pause: {body}");
+    control(port, id, "pause");
 
     let driver_port = free_port();
     let _driver = start_chromedriver(driver_port);
@@ -83,8 +87,7 @@ async fn a_finished_run_raises_an_alert_in_the_title_favicon_and_banner_until_di
     );
 
     // The run goes on and finishes: the alert arrives over the run's socket.
-    let (s, body) = control(id, "resume");
-    assert_eq!(s, 200, "resume: {body}");
+    control(port, id, "resume");
     let item = wait_text(&c, "[data-testid=alert-item]", "finished", 60).await;
     assert!(item.contains(&format!("Run #{id}")), "{item}");
     assert!(item.contains("alert e2e"), "{item}");
@@ -116,27 +119,17 @@ async fn a_finished_run_raises_an_alert_in_the_title_favicon_and_banner_until_di
     assert_eq!(title_and_icon(&c).await, (title.clone(), icon));
 
     // Another run, only listed: its alert comes from the run list's statuses.
-    let (s, body) = http(
+    let other = create_run(
         port,
-        "POST",
-        "/api/runs",
-        Some(TOKEN),
         r#"{"name":"listed only","seed":8,"iteration_delay_ms":300,"tuner":{"max_iterations":2}}"#,
     );
-    assert_eq!(s, 201, "{body}");
-    let json = &body[body.find('{').unwrap()..=body.rfind('}').unwrap()];
-    let other = serde_json::from_str::<serde_json::Value>(json).unwrap()["id"]
-        .as_u64()
-        .unwrap();
-    let (s, body) = control(other, "pause");
-    assert_eq!(s, 200, "pause: {body}");
+    control(port, other, "pause");
     let listed = format!("button.run[data-run='{other}'] [data-state=paused]");
     wait("the paused run in the list", 30, async || {
         c.find(fantoccini::Locator::Css(&listed)).await.ok()
     })
     .await;
-    let (s, body) = control(other, "resume");
-    assert_eq!(s, 200, "resume: {body}");
+    control(port, other, "resume");
     let item = wait_text(&c, "[data-testid=alert-item]", "listed only", 30).await;
     assert!(item.contains("finished after 2 iterations"), "{item}");
     assert_eq!(title_and_icon(&c).await.0, format!("(1) ⚠ {title}"));
@@ -155,18 +148,13 @@ async fn a_keep_run_shows_its_phase_next_check_and_not_back_in_band_alert() {
     std::fs::create_dir_all(&tmp).unwrap();
     let port = free_port();
     let _server = start_server(port, &tmp.join("runs.db"));
-    let (s, body) = http(
+    // Paused at once: an alert reaches the pages that are open when it is
+    // raised, and this run's first comes within its first 20 records.
+    let id = create_run(
         port,
-        "POST",
-        "/api/runs",
-        Some(TOKEN),
         r#"{"name":"keep e2e","seed":2,"iteration_delay_ms":40,"tuner":{"keep":{"duration_s":43200,"alert_after_s":60}}}"#,
     );
-    assert_eq!(s, 201, "{body}");
-    let json = &body[body.find('{').unwrap()..=body.rfind('}').unwrap()];
-    let id = serde_json::from_str::<serde_json::Value>(json).unwrap()["id"]
-        .as_u64()
-        .unwrap();
+    control(port, id, "pause");
     let driver_port = free_port();
     let _driver = start_chromedriver(driver_port);
     let c = browser(driver_port).await;
@@ -174,6 +162,13 @@ async fn a_keep_run_shows_its_phase_next_check_and_not_back_in_band_alert() {
         .await
         .unwrap();
     wait_text(&c, "[data-testid=connection]", "live", 60).await;
+    wait("the paused run", 30, async || {
+        attr(&c, "[data-testid=run-status]", "data-state")
+            .await
+            .filter(|s| s == "paused")
+    })
+    .await;
+    control(port, id, "resume");
     // keeping: the next planned check, in lab time
     let keep = wait_text(&c, "[data-testid=keep]", "next check of", 90).await;
     assert!(keep.contains("lab time"), "{keep}");

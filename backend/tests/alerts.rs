@@ -220,6 +220,59 @@ async fn a_finished_run_is_posted_to_the_webhook_once() {
     );
 }
 
+/// A dashboard opened after a run needed a person still says so: a viewer
+/// that asks for alerts gets the run's recent ones first (the same frame
+/// the webhook's alert was stamped with), one that does not ask gets none.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_viewer_that_asks_later_gets_the_runs_recent_alerts() {
+    let dir = TempDir::new("alert-late");
+    let mut hook = Hook::start(vec![Answer::Status(204)]).await;
+    let served = served_with_hook(&dir, &hook.url);
+    let run = create_run(served.addr, &small_config("seen later", 3, 0)).await;
+    wait_status(served.addr, run.id, is_finished).await;
+    let posted = hook.next(STEP).await;
+    check_body(&posted.body, run.id, "seen later", "finished");
+
+    let mut late = connect(served.addr, run.id, None).await;
+    send(
+        &mut late,
+        r#"{"type":"subscribe","scans":false,"alerts":true}"#,
+    )
+    .await;
+    let (alert, at) = loop {
+        match next_msg(&mut late).await {
+            ServerMessage::Alert { alert, at } => break (alert, at),
+            ServerMessage::Hello { .. }
+            | ServerMessage::Status { .. }
+            | ServerMessage::History { .. }
+            | ServerMessage::Iteration { .. } => {}
+            other => panic!("unexpected {other:?}"),
+        }
+    };
+    assert_eq!((alert.run, alert.kind), (run.id, AlertKind::Finished));
+    assert_eq!(alert.message, posted.body["message"].as_str().unwrap());
+    assert_eq!(at, posted.body["at"].as_str().unwrap());
+
+    // A viewer that does not ask gets no alert: its history answer comes
+    // and nothing else.
+    let mut plain = connect(served.addr, run.id, None).await;
+    send(&mut plain, r#"{"type":"history","limit":1}"#).await;
+    let mut histories = 0;
+    while histories < 2 {
+        match next_msg(&mut plain).await {
+            ServerMessage::History { .. } => histories += 1,
+            ServerMessage::Alert { alert, .. } => panic!("not asked: {alert:?}"),
+            _ => {}
+        }
+    }
+    assert!(
+        tokio::time::timeout(Duration::from_millis(500), next_msg(&mut plain))
+            .await
+            .map_or(true, |m| !matches!(m, ServerMessage::Alert { .. })),
+        "an alert to a viewer that did not ask"
+    );
+}
+
 fn bridge_config(name: &str) -> Value {
     json!({
         "name": name,

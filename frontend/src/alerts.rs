@@ -12,6 +12,15 @@ use crate::model::format_lab_time;
 /// Alerts listed at most; an older one makes room for a newer one.
 pub const MAX_SHOWN_ALERTS: usize = 20;
 
+/// Dismissed alerts remembered at most (so that the server's replay of a
+/// run's recent alerts on a reconnect does not bring them back).
+pub const MAX_DISMISSED: usize = 64;
+
+/// Whether two alerts report the same thing (run, kind, message).
+fn same(a: &Alert, b: &Alert) -> bool {
+    a.run == b.run && a.kind == b.kind && a.message == b.message
+}
+
 /// One listed alert.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ShownAlert {
@@ -49,6 +58,8 @@ pub struct AlertCenter {
     items: Vec<ShownAlert>,
     unseen: usize,
     next_key: u64,
+    /// Dismissed on this page, newest last (at most [`MAX_DISMISSED`]).
+    dismissed: Vec<Alert>,
 }
 
 impl AlertCenter {
@@ -59,13 +70,12 @@ impl AlertCenter {
 
     /// List `alert` (unseen); `false` if the same alert (run, kind,
     /// message) is listed already — a run's socket and the run list may
-    /// both report one status change.
+    /// both report one status change, and a socket gets a run's recent
+    /// alerts again when it reconnects — or was dismissed on this page.
     pub fn push(&mut self, alert: Alert, at: Option<String>) -> bool {
-        if self.items.iter().any(|s| {
-            s.alert.run == alert.run
-                && s.alert.kind == alert.kind
-                && s.alert.message == alert.message
-        }) {
+        if self.items.iter().any(|s| same(&s.alert, &alert))
+            || self.dismissed.iter().any(|d| same(d, &alert))
+        {
             return false;
         }
         if self.items.len() == MAX_SHOWN_ALERTS {
@@ -89,14 +99,26 @@ impl AlertCenter {
 
     /// Remove one alert (its dismiss button); the person has seen the rest.
     pub fn dismiss(&mut self, key: u64) {
-        self.items.retain(|s| s.key != key);
+        if let Some(i) = self.items.iter().position(|s| s.key == key) {
+            let gone = self.items.remove(i);
+            self.remember_dismissed(gone.alert);
+        }
         self.unseen = 0;
     }
 
     /// Remove every alert.
     pub fn dismiss_all(&mut self) {
-        self.items.clear();
+        for gone in std::mem::take(&mut self.items) {
+            self.remember_dismissed(gone.alert);
+        }
         self.unseen = 0;
+    }
+
+    fn remember_dismissed(&mut self, alert: Alert) {
+        if self.dismissed.len() == MAX_DISMISSED {
+            self.dismissed.remove(0);
+        }
+        self.dismissed.push(alert);
     }
 
     /// Listed alerts, oldest first.
@@ -173,6 +195,15 @@ mod tests {
         assert_eq!((c.unseen(), c.items().len()), (0, 2));
         c.dismiss_all();
         assert!(c.items().is_empty());
+        // A reconnected socket replays the run's recent alerts: what was
+        // dismissed here stays dismissed; a new alert of the run shows.
+        assert!(!c.push(alert(5, AlertKind::Failed, "failed: disk full"), None));
+        assert!(!c.push(
+            alert(3, AlertKind::Finished, "finished after 12 iterations"),
+            None
+        ));
+        assert!(c.push(alert(5, AlertKind::Failed, "failed: store gone"), None));
+        assert_eq!(c.unseen(), 1);
     }
 
     #[test]

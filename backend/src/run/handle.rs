@@ -27,6 +27,11 @@ pub const RECENT_SUMMARIES: usize = spintune::protocol::DEFAULT_HISTORY_PAGE as 
 /// further behind skips the older ones.
 pub const ALERTS_PER_VIEWER: usize = 16;
 
+/// The newest alerts each run keeps in memory (since the server started):
+/// a viewer that asks for alerts gets them first, so a dashboard opened
+/// after a run needed a person still says so.
+pub const RECENT_ALERTS: usize = 8;
+
 /// One open viewer socket of a run (counted until dropped; holds the count,
 /// not the run, so deleting the run still closes its channel).
 pub struct ViewerSlot(Arc<AtomicUsize>);
@@ -67,6 +72,8 @@ pub struct RunHandle {
     tx: broadcast::Sender<ViewerUpdate>,
     /// The run's alerts (`ServerMessage::Alert`), apart from the live frames.
     alerts_tx: broadcast::Sender<ViewerUpdate>,
+    /// The newest alert frames, at most [`RECENT_ALERTS`].
+    recent_alerts: Mutex<VecDeque<Utf8Bytes>>,
     control: Mutex<Option<mpsc::Sender<ControlMsg>>>,
     /// Why the stored run is unreadable (`Some`: quarantined; listed, never driven).
     quarantine: Option<String>,
@@ -100,6 +107,7 @@ impl RunHandle {
             summary: Mutex::new(summary),
             tx: broadcast::channel(viewer_buffer.max(1)).0,
             alerts_tx: broadcast::channel(ALERTS_PER_VIEWER).0,
+            recent_alerts: Mutex::new(VecDeque::with_capacity(RECENT_ALERTS)),
             control: Mutex::new(None),
             quarantine: None,
             lifecycle: tokio::sync::Mutex::new(()),
@@ -204,9 +212,20 @@ impl RunHandle {
         self.tx.subscribe()
     }
 
-    /// Subscribe to the run's alerts (the viewers that asked for them).
-    pub fn subscribe_alerts(&self) -> broadcast::Receiver<ViewerUpdate> {
-        self.alerts_tx.subscribe()
+    /// Subscribe to the run's alerts (the viewers that asked for them):
+    /// the receiver, and the newest alert frames raised before (oldest
+    /// first, at most [`RECENT_ALERTS`]). An alert raised while this runs
+    /// may come both ways; the dashboard lists an alert once.
+    pub fn subscribe_alerts(&self) -> (broadcast::Receiver<ViewerUpdate>, Vec<Utf8Bytes>) {
+        let rx = self.alerts_tx.subscribe();
+        let recent = self
+            .recent_alerts
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .iter()
+            .cloned()
+            .collect();
+        (rx, recent)
     }
 
     /// Number of connected viewers.
@@ -247,9 +266,15 @@ impl RunHandle {
         if let Some(sink) = &self.alerts {
             sink.offer(alert.clone(), at.clone());
         }
-        let _ = self
-            .alerts_tx
-            .send(ViewerUpdate::message(&ServerMessage::Alert { alert, at }));
+        let update = ViewerUpdate::message(&ServerMessage::Alert { alert, at });
+        {
+            let mut recent = self.recent_alerts.lock().unwrap_or_else(|p| p.into_inner());
+            if recent.len() == RECENT_ALERTS {
+                recent.pop_front();
+            }
+            recent.push_back(update.text.clone());
+        }
+        let _ = self.alerts_tx.send(update);
     }
 
     /// Send an update to the run's viewers (none listening is fine).

@@ -54,4 +54,7 @@ pub use viewer_limits::ViewerLimits;
 pub use viewer_update::{history_message_json, RunEvent, ViewerUpdate};
 // Named by ARCHITECTURE.md (invariant 8, the bounds) as `run::…`.
 #[allow(unused_imports)]
-pub use {handle::ALERTS_PER_VIEWER, handle::RECENT_SUMMARIES, manager::CONTROL_QUEUE};
+pub use {
+    handle::ALERTS_PER_VIEWER, handle::RECENT_ALERTS, handle::RECENT_SUMMARIES,
+    manager::CONTROL_QUEUE,
+};

@@ -39,7 +39,8 @@
 //! empty — not older than `from`, with `more_before`), then every new
 //! `Iteration` live (a summary; the full record after
 //! `{"type":"subscribe","scans":true}`) and a `Status` on every status change;
-//! after `{"type":"subscribe","scans":…,"alerts":true}` also an `Alert` when
+//! after `{"type":"subscribe","scans":…,"alerts":true}` the run's recent
+//! alerts (at most [`crate::run::RECENT_ALERTS`]) and then an `Alert` when
 //! the run raises one (docs/alerts.md; never to a socket that did not ask).
 //! The client pages back with `{"type":"history","before":K,"limit":L}` (L ≤
 //! [`MAX_HISTORY_PAGE`](spintune::protocol::MAX_HISTORY_PAGE), larger → `Error`) and asks for one iteration's scans

@@ -293,9 +293,15 @@ async fn viewer_loop(state: &AppState, id: u64, from: u64, socket: &mut WebSocke
                     Message::Close(_) => return ViewerEnd::Gone,
                     Message::Ping(_) | Message::Pong(_) => None,
                 };
+                // alerts raised before this viewer asked: sent after the reply
+                let mut earlier = Vec::new();
                 if view.alerts != alerts.is_some() {
                     alerts = match state.manager.get(id) {
-                        Ok(handle) if view.alerts => Some(handle.subscribe_alerts()),
+                        Ok(handle) if view.alerts => {
+                            let (rx, recent) = handle.subscribe_alerts();
+                            earlier = recent;
+                            Some(rx)
+                        }
                         _ => None,
                     };
                 }
@@ -312,10 +318,17 @@ async fn viewer_loop(state: &AppState, id: u64, from: u64, socket: &mut WebSocke
                     }
                     (None, None) => None,
                 };
-                match reply {
+                let mut sent = match reply {
                     Some(reply) => send_within(socket, reply, timeout).await,
                     None => Ok(()),
+                };
+                for text in earlier {
+                    if sent.is_err() {
+                        break;
+                    }
+                    sent = send_within(socket, Message::Text(text), timeout).await;
                 }
+                sent
             }
             alert = async {
                 match alerts.as_mut() {

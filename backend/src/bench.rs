@@ -287,17 +287,38 @@ pub(crate) fn parallel_map<W: Sync, T: Send>(
 }
 
 fn parse_strategies(names: &[String]) -> Result<Vec<Strategy>, CliError> {
+    parse_names(
+        names,
+        &Strategy::ALL,
+        Strategy::from_name,
+        |s| s.name().into(),
+        "strategy",
+        "",
+    )
+}
+
+/// The strategies a comma-separated `--strategies` names (`all` when it is
+/// empty), or an input error naming the unknown one and the choices (the
+/// names of `all`, then `more`, e.g. a pattern the parser also takes).
+pub(crate) fn parse_names<T: Copy>(
+    names: &[String],
+    all: &[T],
+    parse: impl Fn(&str) -> Option<T>,
+    name: impl Fn(&T) -> String,
+    what: &str,
+    more: &str,
+) -> Result<Vec<T>, CliError> {
     if names.is_empty() {
-        return Ok(Strategy::ALL.to_vec());
+        return Ok(all.to_vec());
     }
     names
         .iter()
         .map(|n| {
-            Strategy::from_name(n.trim()).ok_or_else(|| {
-                let all: Vec<&str> = Strategy::ALL.iter().map(|s| s.name()).collect();
+            parse(n.trim()).ok_or_else(|| {
+                let choices: Vec<String> = all.iter().map(&name).collect();
                 CliError::input(format!(
-                    "unknown strategy {n:?}; choose from {}",
-                    all.join(", ")
+                    "unknown {what} {n:?}; choose from {}{more}",
+                    choices.join(", ")
                 ))
             })
         })

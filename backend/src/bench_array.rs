@@ -170,19 +170,12 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
 }
 
 fn parse_strategies(names: &[String]) -> Result<Vec<ArrayStrategy>, CliError> {
-    if names.is_empty() {
-        return Ok(ArrayStrategy::ALL.to_vec());
-    }
-    names
-        .iter()
-        .map(|n| {
-            ArrayStrategy::from_name(n.trim()).ok_or_else(|| {
-                let all: Vec<&str> = ArrayStrategy::ALL.iter().map(|s| s.name()).collect();
-                CliError::input(format!(
-                    "unknown array strategy {n:?}; choose from {}",
-                    all.join(", ")
-                ))
-            })
-        })
-        .collect()
+    crate::bench::parse_names(
+        names,
+        &ArrayStrategy::ALL,
+        ArrayStrategy::from_name,
+        |s| s.name().into(),
+        "array strategy",
+        "",
+    )
 }

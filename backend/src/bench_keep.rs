@@ -199,21 +199,14 @@ pub fn run(args: BenchKeepArgs) -> Result<(), CliError> {
 }
 
 fn parse_strategies(names: &[String]) -> Result<Vec<KeepStrategy>, CliError> {
-    if names.is_empty() {
-        return Ok(KeepStrategy::ALL.to_vec());
-    }
-    names
-        .iter()
-        .map(|n| {
-            KeepStrategy::parse(n.trim()).ok_or_else(|| {
-                let all: Vec<String> = KeepStrategy::ALL.iter().map(|s| s.name()).collect();
-                CliError::input(format!(
-                    "unknown keep strategy {n:?}; choose from {}, or predictive@P% (0.01 % ≤ P ≤ 50 %)",
-                    all.join(", ")
-                ))
-            })
-        })
-        .collect()
+    crate::bench::parse_names(
+        names,
+        &KeepStrategy::ALL,
+        KeepStrategy::parse,
+        |s| s.name(),
+        "keep strategy",
+        ", or predictive@P% (0.01 % ≤ P ≤ 50 %)",
+    )
 }
 
 /// The markdown table printed at the end.

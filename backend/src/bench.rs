@@ -387,6 +387,7 @@ pub fn markdown_table(
             r.truth_queries,
         ));
     }
+    s.push_str(&time_by_kind_table(summary));
     let kalman: Vec<&StrategySummary> =
         summary.iter().filter(|r| r.consistency.is_some()).collect();
     if !kalman.is_empty() {
@@ -404,6 +405,36 @@ pub fn markdown_table(
                 ));
             }
         }
+    }
+    s
+}
+
+/// Where a change's lab time goes: mean lab s per converged change by scan kind.
+fn time_by_kind_table(summary: &[StrategySummary]) -> String {
+    const COLUMNS: [(&str, &str); 6] = [
+        ("sensing_dot", "sensing-dot sweeps"),
+        ("chemical_potential", "chemical-potential scans"),
+        ("transition_width", "w scans"),
+        ("reload_time", "t_sr scans"),
+        ("set_voltages", "moves"),
+        ("read_voltages", "read-backs"),
+    ];
+    let mut s = String::from(
+        "\nWhere a change's lab time goes (mean lab s per converged change):\n\n| strategy |",
+    );
+    for (_, title) in COLUMNS {
+        s.push_str(&format!(" {title} |"));
+    }
+    s.push_str(" total, min |\n|---|");
+    s.push_str(&"---:|".repeat(COLUMNS.len() + 1));
+    s.push('\n');
+    for r in summary {
+        let by = &r.lab_seconds_per_change_by_kind;
+        s.push_str(&format!("| {} |", r.name));
+        for (kind, _) in COLUMNS {
+            s.push_str(&format!(" {:.0} |", by.get(kind).copied().unwrap_or(0.0)));
+        }
+        s.push_str(&format!(" {:.2} |\n", by.values().sum::<f64>() / 60.0));
     }
     s
 }

@@ -38,8 +38,8 @@ use crate::parameter::{ParameterSpec, ScanKind, Tolerance, Transform};
 use crate::safety::GateSpec;
 use crate::solver::{SolverConfig, StepRule};
 use crate::tuner::{
-    Compensation, InitialGradient, LevelConfig, LevelKind, NewtonConfig, SensingDotConfig,
-    SensingDotFallback, TunerConfig,
+    Compensation, FlankPrediction, InitialGradient, LevelConfig, LevelKind, NewtonConfig,
+    SensingDotConfig, SensingDotFallback, TunerConfig,
 };
 
 /// Process noise of the recommended qubit level's log-space parameters:
@@ -158,6 +158,13 @@ pub struct SensingDotDescription {
     /// A second gate rastered when the sweep finds no flank (the paper's 2-D scan).
     #[serde(default)]
     pub fallback: Option<SensingDotFallback>,
+    /// Sweep at every call, as the paper does (default false: park on the
+    /// flank the level predicts when it is confident, see `prediction`).
+    #[serde(default)]
+    pub always_sweep: bool,
+    /// How the flank is predicted (every field has a default).
+    #[serde(default)]
+    pub prediction: FlankPrediction,
 }
 
 fn default_qubit_parameters() -> Vec<String> {
@@ -332,6 +339,7 @@ impl DeviceDescription {
                     half_width_mv: sd.half_width_mv,
                     points: sd.points,
                     fallback: sd.fallback.clone(),
+                    prediction: (!sd.always_sweep).then(|| sd.prediction.clone()),
                 }),
                 after_move: Vec::new(),
             });
@@ -427,6 +435,8 @@ impl DeviceDescription {
                     gate: "SP".into(),
                     offsets_mv: vec![-15.0, -9.0, -3.0, 3.0, 9.0, 15.0],
                 }),
+                always_sweep: false,
+                prediction: FlankPrediction::default(),
             }),
             fit_references: crate::fit::uncertainty::SIMULATED_DEVICE_REFERENCES,
         }
@@ -495,6 +505,8 @@ mod tests {
             half_width_mv: 6.0,
             points: 201,
             fallback: None,
+            always_sweep: false,
+            prediction: FlankPrediction::default(),
         });
         assert_eq!(d.tuner().unwrap_err().field, "sensing_dot.gate");
     }

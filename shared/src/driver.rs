@@ -147,6 +147,7 @@ impl SimulationConfig {
                 gate: "SP".into(),
                 offsets_mv: vec![-15.0, -9.0, -3.0, 3.0, 9.0, 15.0],
             }),
+            prediction: None,
         };
         let tuner = TunerConfig {
             gates,

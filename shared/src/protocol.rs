@@ -603,6 +603,16 @@ pub enum EventKind {
         /// Unit of the parameter.
         unit: String,
     },
+    /// The sensing-dot level parked its gate on the flank its learned model
+    /// predicted, without a sweep (`SensingDotConfig::prediction`).
+    SweepSkipped {
+        /// The swept gate.
+        gate: String,
+        /// Predicted flank, mV of that gate.
+        predicted_mv: f64,
+        /// Its predicted standard deviation, mV.
+        std_mv: f64,
+    },
     /// The instrument's read-back differed from where the run expected the
     /// gate; the tuner continues from the read-back.
     InstrumentMoved {
@@ -659,6 +669,14 @@ impl std::fmt::Display for EventKind {
             } => write!(
                 f,
                 "{parameter}: confirming scan skipped, predicted {predicted:.3} ± {std:.3} {unit} (inside its band)"
+            ),
+            EventKind::SweepSkipped {
+                gate,
+                predicted_mv,
+                std_mv,
+            } => write!(
+                f,
+                "sensing dot: sweep skipped, {gate} parked on the predicted flank {predicted_mv:.2} ± {std_mv:.2} mV"
             ),
             EventKind::NotRepresentable {
                 parameter,

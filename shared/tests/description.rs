@@ -8,12 +8,13 @@ use spintune::description::{
 use spintune::driver::SimulationConfig;
 use spintune::parameter::Transform;
 use spintune::solver::StepRule;
-use spintune::tuner::{InitialGradient, LevelKind};
+use spintune::tuner::{FlankPrediction, InitialGradient, LevelKind};
 
 /// The paper's device described in a few lines derives exactly the
 /// paper's hierarchy with the recommended qubit strategy: every level
 /// field that `paper_default` states by hand comes out the same but the
-/// strategy's (and the line level's skipped confirmation).
+/// strategy's (and the line level's skipped confirmation, the sensing dot's
+/// predicted flank).
 #[test]
 fn paper_device_derives_the_paper_hierarchy_with_the_recommended_strategy() {
     let derived = DeviceDescription::paper_device().tuner().unwrap();
@@ -38,6 +39,9 @@ fn paper_device_derives_the_paper_hierarchy_with_the_recommended_strategy() {
     }
     if let LevelKind::Newton(lines) = &mut paper.levels[1].kind {
         lines.skip_confirmation_sigma = Some(2.0);
+    }
+    if let LevelKind::SensingDot(sd) = &mut paper.levels[2].kind {
+        sd.prediction = Some(FlankPrediction::default());
     }
     assert_eq!(derived, paper);
 }

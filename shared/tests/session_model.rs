@@ -41,7 +41,7 @@ use spintune::protocol::{
 };
 use spintune::safety::GateSpec;
 use spintune::session::{Output, RunSession, SessionConfig};
-use spintune::tuner::{InitialGradient, LevelKind, SensingDotConfig, TunerConfig};
+use spintune::tuner::{FlankPrediction, InitialGradient, LevelKind, SensingDotConfig, TunerConfig};
 
 /// Steps executed by all cases of this binary.
 static STEPS: AtomicU64 = AtomicU64::new(0);
@@ -109,6 +109,8 @@ fn tuner_config() -> TunerConfig {
         half_width_mv: 5.0,
         points: 11,
         fallback: None,
+        // the product default: parks on a predicted flank when confident
+        prediction: Some(FlankPrediction::default()),
     });
     t.levels = vec![qubit, sd];
     t.max_iterations = Some(200);

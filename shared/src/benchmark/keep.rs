@@ -14,10 +14,10 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 
 use super::{
-    quantiles, world_config, BenchmarkError, BenchmarkProtocol, Harness, Quantiles, SeedFailure,
+    quantiles, request_kind, world_config, BenchmarkError, BenchmarkProtocol, Harness, Quantiles,
+    SeedFailure,
 };
 use crate::driver::SimulationConfig;
-use crate::parameter::ScanKind;
 use crate::protocol::{EventKind, KeepPhase, Request, Response};
 use crate::session::{Output, RunSession, SessionConfig};
 use crate::tuner::{KeepConfig, KeepSchedule, TunerConfig};
@@ -235,6 +235,7 @@ pub fn run_keep_seed(
         device,
         moves: 0,
         violations: 0,
+        lab_by_kind: BTreeMap::new(),
     };
     let mut r = KeepSeedResult {
         strategy,
@@ -358,22 +359,6 @@ pub fn run_keep_seed(
     r.truth_queries = h.device.truth_queries();
     r.trace = w.samples;
     Ok(r)
-}
-
-/// A request's kind in [`KeepSeedResult::minutes_per_hour_by_kind`].
-fn request_kind(request: &Request) -> &'static str {
-    match request {
-        Request::SetVoltages { .. } => "set_voltages",
-        Request::ReadVoltages { .. } => "read_voltages",
-        Request::Measure { scan } => match scan.kind {
-            ScanKind::SensingDot => "sensing_dot",
-            ScanKind::ChemicalPotential => "chemical_potential",
-            ScanKind::TransitionWidth => "transition_width",
-            ScanKind::ReloadTime => "reload_time",
-        },
-        Request::TrueJacobian { .. } => "true_jacobian",
-        Request::Wait { .. } => "wait",
-    }
 }
 
 /// The world's bookkeeping of one run (what no strategy sees).

@@ -33,7 +33,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::driver::{SimulationConfig, SimulationRun};
 use crate::estimator::EstimatorKind;
-use crate::parameter::{Tolerance, Transform};
+use crate::parameter::{ScanKind, Tolerance, Transform};
 use crate::protocol::{
     ControlCommand, FaultKind, IterationRecord, ParameterValue, Request, Response, RunStatus,
 };
@@ -324,6 +324,11 @@ pub struct ChangeResult {
     pub moves: Option<u32>,
     /// Lab time from the change until then, minutes (`None` if not converged).
     pub lab_minutes: Option<f64>,
+    /// The same lab time by request kind ([`request_kind`]), s of the
+    /// device's clock (empty if not converged; the session's read-backs are
+    /// under `read_voltages`).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub lab_seconds_by_kind: BTreeMap<String, f64>,
 }
 
 /// One strategy on one seed.
@@ -666,6 +671,7 @@ fn run_protocol(
         device,
         moves: 0,
         violations: 0,
+        lab_by_kind: BTreeMap::new(),
     };
     let mut changes = Vec::new();
     let mut records = Vec::new();
@@ -682,6 +688,7 @@ fn run_protocol(
             })?;
         }
         let moves_at_change = run.moves;
+        let by_kind_at_change = run.lab_by_kind.clone();
         let mut converged: Option<ChangeResult> = None;
         let mut last_lab = lab_at_change;
         for k in 0..protocol.iterations_per_set_point {
@@ -701,6 +708,15 @@ fn run_protocol(
                     iterations: Some(k),
                     moves: Some((run.moves - moves_at_change) as u32),
                     lab_minutes: Some((rec.lab_seconds - lab_at_change) / 60.0),
+                    lab_seconds_by_kind: run
+                        .lab_by_kind
+                        .iter()
+                        .map(|(k, v)| {
+                            let before = by_kind_at_change.get(k).copied().unwrap_or(0.0);
+                            (k.to_string(), v - before)
+                        })
+                        .filter(|(_, v)| *v > 0.0)
+                        .collect(),
                 });
             }
             last_lab = rec.lab_seconds;
@@ -713,6 +729,7 @@ fn run_protocol(
             iterations: None,
             moves: None,
             lab_minutes: None,
+            lab_seconds_by_kind: BTreeMap::new(),
         }));
     }
     let tuner = run.session.tuner();
@@ -760,6 +777,8 @@ struct Harness {
     max_step_mv: f64,
     moves: u64,
     violations: u64,
+    /// Lab time of the device's clock per request kind, s.
+    lab_by_kind: BTreeMap<&'static str, f64>,
 }
 
 impl Harness {
@@ -781,7 +800,11 @@ impl Harness {
                 self.violations += 1;
             }
         }
-        self.device.execute(request)
+        let t0 = self.device.lab_seconds();
+        let response = self.device.execute(request);
+        *self.lab_by_kind.entry(request_kind(request)).or_default() +=
+            self.device.lab_seconds() - t0;
+        response
     }
 
     fn next(&mut self) -> Result<IterationRecord, SeedFailure> {
@@ -807,6 +830,30 @@ impl Harness {
                 Output::Done(_) => return Err(SeedFailure::Finished),
             }
         }
+    }
+}
+
+/// A request's kind, as the benchmarks break lab time down
+/// ([`ChangeResult::lab_seconds_by_kind`], the keep benchmark's
+/// `minutes_per_hour_by_kind`).
+///
+/// ```
+/// use spintune::benchmark::request_kind;
+/// use spintune::protocol::Request;
+/// assert_eq!(request_kind(&Request::Wait { seconds: 60.0 }), "wait");
+/// ```
+pub fn request_kind(request: &Request) -> &'static str {
+    match request {
+        Request::SetVoltages { .. } => "set_voltages",
+        Request::ReadVoltages { .. } => "read_voltages",
+        Request::Measure { scan } => match scan.kind {
+            ScanKind::SensingDot => "sensing_dot",
+            ScanKind::ChemicalPotential => "chemical_potential",
+            ScanKind::TransitionWidth => "transition_width",
+            ScanKind::ReloadTime => "reload_time",
+        },
+        Request::TrueJacobian { .. } => "true_jacobian",
+        Request::Wait { .. } => "wait",
     }
 }
 
@@ -856,6 +903,12 @@ pub struct StrategySummary {
     /// Filter consistency per parameter (Kalman strategies only).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub consistency: Option<BTreeMap<String, ConsistencySummary>>,
+    /// Where a change's lab time goes: mean lab seconds per converged change
+    /// by request kind ([`request_kind`]); the kinds add up to the mean of
+    /// [`StrategySummary::lab_minutes_per_change`] × 60 (up to the tuner's
+    /// own bookkeeping of read-backs).
+    #[serde(default)]
+    pub lab_seconds_per_change_by_kind: BTreeMap<String, f64>,
 }
 
 /// Filter consistency of one parameter over all seeds: normalised innovation
@@ -969,6 +1022,7 @@ pub fn summarize(
                 changes: changes.len() as u64,
                 truth_queries: mine.iter().map(|r| r.truth_queries).sum(),
                 consistency: s.is_kalman().then(|| consistency_summary(&mine)),
+                lab_seconds_per_change_by_kind: mean_by_kind(&changes),
             }
         })
         .collect();
@@ -994,6 +1048,19 @@ pub fn summarize(
         let m = s.iterations_per_change.median;
         s.ratio_to_oracle = lin.map(|o| ratio(m, o));
         s.ratio_to_oracle_log = log.map(|o| ratio(m, o));
+    }
+    out
+}
+
+/// Mean lab seconds per converged change by request kind.
+fn mean_by_kind(changes: &[&ChangeResult]) -> BTreeMap<String, f64> {
+    let converged: Vec<&&ChangeResult> =
+        changes.iter().filter(|c| c.lab_minutes.is_some()).collect();
+    let mut out = BTreeMap::new();
+    for c in &converged {
+        for (k, v) in &c.lab_seconds_by_kind {
+            *out.entry(k.clone()).or_default() += v / converged.len() as f64;
+        }
     }
     out
 }
@@ -1116,6 +1183,15 @@ mod tests {
                     iterations: i,
                     moves: i.map(|x| 2 * x),
                     lab_minutes: i.map(|x| x as f64 * 2.0),
+                    // 2 lab min per iteration: 90 s of w scans, 30 s of moves
+                    lab_seconds_by_kind: i
+                        .map(|x| {
+                            BTreeMap::from([
+                                ("transition_width".to_string(), 90.0 * x as f64),
+                                ("set_voltages".to_string(), 30.0 * x as f64),
+                            ])
+                        })
+                        .unwrap_or_default(),
                 })
                 .collect(),
             cold_start_lab_minutes: None,
@@ -1140,5 +1216,9 @@ mod tests {
         // moves over the converged changes only: 4, 8
         assert_eq!(s[0].moves_per_change.median, 6.0);
         assert_eq!(s[0].moves_per_change.max, 8.0);
+        // the breakdown is a mean over the converged changes (2 and 4 iterations)
+        let by = &s[0].lab_seconds_per_change_by_kind;
+        assert_eq!(by["transition_width"], 270.0);
+        assert_eq!(by["set_voltages"], 90.0);
     }
 }

@@ -223,6 +223,98 @@ pub struct SensingDotConfig {
     /// carry on, as before).
     #[serde(default)]
     pub fallback: Option<SensingDotFallback>,
+    /// Skip the sweep when the flank's position can be predicted (`None`:
+    /// sweep every time, the paper's rule).
+    #[serde(default)]
+    pub prediction: Option<FlankPrediction>,
+}
+
+/// Predict the sensing dot's flank instead of sweeping for it.
+///
+/// The flank (mV of the swept gate) moves with every other gate: the level
+/// learns those levers online (a Kalman row, zero-mean prior) from the
+/// sweeps it does take. When it is next called it predicts the flank from
+/// the gates' moves since its last sweep; if the prediction's standard
+/// deviation is at most `skip_std_mv` it parks the gate there without a
+/// sweep (event `sweep_skipped`). It sweeps anyway after `max_skips`
+/// skips in a row, when any scan failed to evaluate since its last sweep,
+/// and whenever it has no sweep to start from. Every parked voltage goes
+/// through the guard like a sweep's.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FlankPrediction {
+    /// Largest predicted standard deviation of the flank at which the sweep
+    /// is skipped, mV (0 < value ≤ 10).
+    #[serde(default = "default_skip_std_mv")]
+    pub skip_std_mv: f64,
+    /// Prior standard deviation of each gate's lever on the flank, mV per
+    /// mV (0 < value ≤ 10).
+    #[serde(default = "default_prior_lever")]
+    pub prior_lever_per_mv: f64,
+    /// Scatter of the flank between sweeps that no gate explains (fit
+    /// noise, drift, charge jumps), mV (0 ≤ value ≤ 10).
+    #[serde(default = "default_flank_noise_mv")]
+    pub noise_mv: f64,
+    /// Skips in a row after which the level sweeps anyway (0..=100).
+    #[serde(default = "default_max_skips")]
+    pub max_skips: u32,
+}
+
+/// Upper bound on [`FlankPrediction::max_skips`].
+pub const MAX_FLANK_SKIPS: u32 = 100;
+
+/// Chosen on random devices 101–130 (`docs/benchmarks.md`): lab time per
+/// change falls from 0.1 to 0.3 mV and is flat beyond.
+fn default_skip_std_mv() -> f64 {
+    0.3
+}
+fn default_prior_lever() -> f64 {
+    0.1
+}
+fn default_flank_noise_mv() -> f64 {
+    0.05
+}
+fn default_max_skips() -> u32 {
+    3
+}
+
+impl Default for FlankPrediction {
+    fn default() -> Self {
+        Self {
+            skip_std_mv: default_skip_std_mv(),
+            prior_lever_per_mv: default_prior_lever(),
+            noise_mv: default_flank_noise_mv(),
+            max_skips: default_max_skips(),
+        }
+    }
+}
+
+impl FlankPrediction {
+    /// Check the bounds; the error names the field (relative to the level).
+    pub fn validate(&self) -> Result<(), (&'static str, String)> {
+        let within = |x: f64, lo_open: bool, hi: f64| {
+            x.is_finite() && (if lo_open { x > 0.0 } else { x >= 0.0 }) && x <= hi
+        };
+        if !within(self.skip_std_mv, true, 10.0) {
+            return Err(("prediction.skip_std_mv", "must be > 0 and ≤ 10 mV".into()));
+        }
+        if !within(self.prior_lever_per_mv, true, 10.0) {
+            return Err((
+                "prediction.prior_lever_per_mv",
+                "must be > 0 and ≤ 10 mV/mV".into(),
+            ));
+        }
+        if !within(self.noise_mv, false, 10.0) {
+            return Err(("prediction.noise_mv", "must be ≥ 0 and ≤ 10 mV".into()));
+        }
+        if self.max_skips > MAX_FLANK_SKIPS {
+            return Err((
+                "prediction.max_skips",
+                format!("must be at most {MAX_FLANK_SKIPS}"),
+            ));
+        }
+        Ok(())
+    }
 }
 
 /// Upper bound on [`SensingDotFallback::offsets_mv`] (bounded by construction).
@@ -510,6 +602,9 @@ impl TunerConfig {
                                 ),
                             ));
                         }
+                    }
+                    if let Some(p) = &sd.prediction {
+                        p.validate().map_err(|(f, m)| ConfigError::new(lf(f), m))?;
                     }
                     if let Some(fb) = &sd.fallback {
                         if !has_gate(&fb.gate) || fb.gate == sd.gate {

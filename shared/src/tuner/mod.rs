@@ -32,6 +32,7 @@
 pub mod array;
 mod config;
 pub mod finite_difference;
+mod flank;
 mod keep;
 mod keep_tally;
 mod newton;
@@ -43,10 +44,11 @@ use serde::{Deserialize, Serialize};
 
 pub use config::{check_magnitudes, MAX_GATE_MV, MAX_INTEGER, MAX_MAGNITUDE};
 pub use config::{
-    Compensation, ConfigError, InitialGradient, LevelConfig, LevelKind, NewtonConfig,
-    ScheduledTargets, SensingDotConfig, SensingDotFallback, TunerConfig, MAX_FALLBACK_SWEEPS,
-    MAX_SWEEP_POINTS,
+    Compensation, ConfigError, FlankPrediction, InitialGradient, LevelConfig, LevelKind,
+    NewtonConfig, ScheduledTargets, SensingDotConfig, SensingDotFallback, TunerConfig,
+    MAX_FALLBACK_SWEEPS, MAX_FLANK_SKIPS, MAX_SWEEP_POINTS,
 };
+use flank::{FlankForecast, FlankModel};
 pub use keep::{DriftModel, KeepConfig, KeepSchedule, MAX_KEEP_SECONDS, MIN_CHECK_INTERVAL_S};
 use keep::{KeepNext, KeepState};
 pub use keep_tally::KeepTally;
@@ -183,7 +185,12 @@ impl Pending {
 #[allow(clippy::large_enum_variant)]
 enum LevelState {
     Newton(NewtonState),
-    SensingDot { last: Option<ParameterValue> },
+    SensingDot {
+        last: Option<ParameterValue>,
+        /// The flank's learned model (`Some` iff the level has `prediction`).
+        #[serde(default)]
+        flank: Option<FlankModel>,
+    },
 }
 
 /// The tuner: configuration, learned gradients, position in the hierarchy.
@@ -223,7 +230,13 @@ impl Tuner {
                 LevelKind::Newton(n) => LevelState::Newton(
                     NewtonState::new(n).map_err(|e| e.within(&format!("levels[{i}]")))?,
                 ),
-                LevelKind::SensingDot(_) => LevelState::SensingDot { last: None },
+                LevelKind::SensingDot(sd) => LevelState::SensingDot {
+                    last: None,
+                    flank: sd.prediction.as_ref().map(|p| {
+                        let others = config.gates.iter().map(|g| g.name.clone());
+                        FlankModel::new(others.filter(|g| *g != sd.gate).collect(), p)
+                    }),
+                },
             });
         }
         Ok(Self {
@@ -595,7 +608,7 @@ impl Tuner {
                 }
                 match &mut self.levels[level] {
                     LevelState::Newton(n) => n.absorb(values.unwrap_or_default(), report),
-                    LevelState::SensingDot { last } => {
+                    LevelState::SensingDot { last, .. } => {
                         *last = values
                             .ok()
                             .and_then(|v| v.into_iter().find(|p| p.name == "sd_flank_mv"));
@@ -693,11 +706,63 @@ impl Tuner {
         })
     }
 
+    /// The flank predicted confidently enough to skip the sweep
+    /// ([`SensingDotConfig::prediction`]); counts the skip.
+    fn flank_forecast(&mut self, level: usize, sd: &SensingDotConfig) -> Option<FlankForecast> {
+        let p = sd.prediction.as_ref()?;
+        let failed = self.failed_evaluations;
+        let spec = self.safety.gate(&sd.gate)?;
+        let (lo, hi) = (spec.min_mv, spec.max_mv);
+        let LevelState::SensingDot {
+            flank: Some(model), ..
+        } = &mut self.levels[level]
+        else {
+            return None;
+        };
+        if model.skips >= p.max_skips || model.failed_at_sweep != failed {
+            return None;
+        }
+        let f = model.predict(&self.voltages_mv, p.noise_mv)?;
+        let parked = self.voltages_mv.get(&sd.gate).copied()?;
+        // within the limits and within the sweep's reach: else the sweep looks
+        let ok = f.std_mv <= p.skip_std_mv
+            && (lo..=hi).contains(&f.flank_mv)
+            && (f.flank_mv - parked).abs() <= sd.half_width_mv;
+        ok.then(|| {
+            model.skips += 1;
+            f
+        })
+    }
+
+    /// A sweep found the flank: the flank model learns from it.
+    fn observe_flank(&mut self, level: usize, sd: &SensingDotConfig, flank: &ParameterValue) {
+        let failed = self.failed_evaluations;
+        let noise = sd.prediction.as_ref().map_or(0.0, |p| p.noise_mv);
+        if let LevelState::SensingDot {
+            flank: Some(model), ..
+        } = &mut self.levels[level]
+        {
+            model.observe(&self.voltages_mv, flank.value, flank.variance, noise);
+            model.failed_at_sweep = failed;
+        }
+    }
+
     fn push_level(&mut self, level: usize) {
-        let ops = match &self.config.levels[level].kind {
-            LevelKind::SensingDot(sd) => {
-                VecDeque::from([self.sd_sweep(sd), Op::Decide(Decision::SdPark)])
-            }
+        let ops = match &self.config.levels[level].kind.clone() {
+            LevelKind::SensingDot(sd) => match self.flank_forecast(level, sd) {
+                Some(f) => {
+                    self.note(
+                        level,
+                        EventKind::SweepSkipped {
+                            gate: sd.gate.clone(),
+                            predicted_mv: f.flank_mv,
+                            std_mv: f.std_mv,
+                        },
+                    );
+                    VecDeque::from([Op::SetGate(sd.gate.clone(), f.flank_mv)])
+                }
+                None => VecDeque::from([self.sd_sweep(sd), Op::Decide(Decision::SdPark)]),
+            },
             LevelKind::Newton(_) => {
                 let mut ops = self.init_ops(level);
                 if let LevelState::Newton(n) = &mut self.levels[level] {
@@ -798,9 +863,13 @@ impl Tuner {
             };
             let sd = sd.clone();
             let flank = match &self.levels[level] {
-                LevelState::SensingDot { last: Some(p) } => Some(p.value),
+                LevelState::SensingDot { last: Some(p), .. } => Some(p.clone()),
                 _ => None,
             };
+            if let (Decision::SdPark | Decision::SdFallbackPoint { .. }, Some(p)) = (d, &flank) {
+                self.observe_flank(level, &sd, p);
+            }
+            let flank = flank.map(|p| p.value);
             match (d, flank) {
                 (Decision::SdPark, Some(v)) => self.push_ops([Op::SetGate(sd.gate, v)]),
                 (Decision::SdPark, None) => {

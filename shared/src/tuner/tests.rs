@@ -255,6 +255,7 @@ fn hierarchical() -> TunerConfig {
                     half_width_mv: 10.0,
                     points: 50,
                     fallback: None,
+                    prediction: None,
                 }),
                 after_move: vec![],
             },

@@ -1,0 +1,181 @@
+//! The sensing dot's flank as a learned function of the other gates
+//! ([`super::FlankPrediction`]): what lets the sensing-dot level skip a sweep.
+//!
+//! Model: the flank (mV of the swept gate) is `f_ref + g·(v − v_ref)`, where
+//! `v` are the other gates' voltages (mV), `(v_ref, f_ref)` the last sweep's
+//! and `g` (mV per mV) a [`KalmanGradient`] row learned from consecutive
+//! sweeps with a zero-mean prior. The prediction's variance is
+//! `Δvᵀ C Δv + var(f_ref) + noise²`.
+
+use std::collections::BTreeMap;
+
+use nalgebra::{DMatrix, DVector};
+use serde::{Deserialize, Serialize};
+
+use super::config::FlankPrediction;
+use crate::kalman::{KalmanGradient, ProcessNoise};
+
+/// The last sweep the model starts from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct SweepReference {
+    /// The other gates' voltages at the sweep, mV (order of `FlankModel::gates`).
+    voltages_mv: Vec<f64>,
+    /// The flank found, mV of the swept gate.
+    flank_mv: f64,
+    /// Its variance from the fit, mV².
+    variance: f64,
+}
+
+/// Online model of the flank's position; plain data (part of the tuner's state).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub(super) struct FlankModel {
+    /// Input gates: every configured gate but the swept one, sorted.
+    gates: Vec<String>,
+    filter: KalmanGradient,
+    reference: Option<SweepReference>,
+    /// Sweeps skipped since the last one taken.
+    pub(super) skips: u32,
+    /// The tuner's failed evaluations when the last sweep was taken.
+    pub(super) failed_at_sweep: u64,
+}
+
+/// A predicted flank, mV of the swept gate.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(super) struct FlankForecast {
+    pub(super) flank_mv: f64,
+    pub(super) std_mv: f64,
+}
+
+impl FlankModel {
+    /// A model over `gates` (the swept gate excluded by the caller) with an
+    /// isotropic prior of `prior_lever_per_mv` per gate.
+    pub(super) fn new(gates: Vec<String>, p: &FlankPrediction) -> Self {
+        let n = gates.len();
+        let filter = KalmanGradient::new(
+            DVector::zeros(n),
+            DMatrix::identity(n, n) * p.prior_lever_per_mv.powi(2),
+            ProcessNoise::isotropic(n, 0.0),
+        )
+        .expect("a finite zero prior with a positive variance is a valid filter");
+        Self {
+            gates,
+            filter,
+            reference: None,
+            skips: 0,
+            failed_at_sweep: 0,
+        }
+    }
+
+    fn inputs(&self, voltages_mv: &BTreeMap<String, f64>) -> Vec<f64> {
+        self.gates
+            .iter()
+            .map(|g| voltages_mv.get(g).copied().unwrap_or(0.0))
+            .collect()
+    }
+
+    /// A sweep found the flank at `flank_mv` ± `variance.sqrt()` with the
+    /// other gates at `voltages_mv`: learn the levers from the change since
+    /// the last sweep, then start from this one. `noise_mv` is the scatter
+    /// between sweeps no gate explains. Non-finite values are ignored.
+    pub(super) fn observe(
+        &mut self,
+        voltages_mv: &BTreeMap<String, f64>,
+        flank_mv: f64,
+        variance: f64,
+        noise_mv: f64,
+    ) {
+        if !(flank_mv.is_finite() && variance.is_finite() && variance >= 0.0) {
+            return;
+        }
+        let v = self.inputs(voltages_mv);
+        if let Some(r) = &self.reference {
+            let dv =
+                DVector::from_iterator(v.len(), v.iter().zip(&r.voltages_mv).map(|(a, b)| a - b));
+            // a failed update leaves the filter as it was: the model only
+            // predicts less well, it never predicts something invalid
+            let _ = self.filter.update(
+                &dv,
+                flank_mv - r.flank_mv,
+                variance + r.variance + noise_mv * noise_mv,
+            );
+        }
+        self.reference = Some(SweepReference {
+            voltages_mv: v,
+            flank_mv,
+            variance,
+        });
+        self.skips = 0;
+    }
+
+    /// The flank predicted at `voltages_mv` (`None` before the first sweep).
+    pub(super) fn predict(
+        &self,
+        voltages_mv: &BTreeMap<String, f64>,
+        noise_mv: f64,
+    ) -> Option<FlankForecast> {
+        let r = self.reference.as_ref()?;
+        let v = self.inputs(voltages_mv);
+        let dv = DVector::from_iterator(v.len(), v.iter().zip(&r.voltages_mv).map(|(a, b)| a - b));
+        let mean = r.flank_mv + dv.dot(self.filter.gradient());
+        let var = (self.filter.covariance() * &dv).dot(&dv) + r.variance + noise_mv * noise_mv;
+        (mean.is_finite() && var.is_finite()).then(|| FlankForecast {
+            flank_mv: mean,
+            std_mv: var.max(0.0).sqrt(),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn at(pairs: &[(&str, f64)]) -> BTreeMap<String, f64> {
+        pairs.iter().map(|(g, v)| (g.to_string(), *v)).collect()
+    }
+
+    #[test]
+    fn no_prediction_before_the_first_sweep() {
+        let m = FlankModel::new(vec!["A".into()], &FlankPrediction::default());
+        assert!(m.predict(&at(&[("A", 0.0)]), 0.05).is_none());
+    }
+
+    #[test]
+    fn without_moves_the_prediction_is_the_last_sweep_with_its_noise() {
+        let mut m = FlankModel::new(vec!["A".into(), "B".into()], &FlankPrediction::default());
+        m.observe(
+            &at(&[("A", 1.0), ("B", 2.0)]),
+            -600.0,
+            0.03f64.powi(2),
+            0.04,
+        );
+        let f = m.predict(&at(&[("A", 1.0), ("B", 2.0)]), 0.04).unwrap();
+        assert_eq!(f.flank_mv, -600.0);
+        // independent: √(0.03² + 0.04²) = 0.05
+        assert!((f.std_mv - 0.05).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_move_before_learning_costs_the_prior_lever_times_the_step() {
+        let p = FlankPrediction::default(); // prior 0.1 mV/mV
+        let mut m = FlankModel::new(vec!["A".into(), "B".into()], &p);
+        m.observe(&at(&[("A", 0.0), ("B", 0.0)]), 0.0, 0.0, 0.0);
+        // 3 mV on A and 4 mV on B: σ = 0.1 · 5 = 0.5 mV
+        let f = m.predict(&at(&[("A", 3.0), ("B", 4.0)]), 0.0).unwrap();
+        assert_eq!(f.flank_mv, 0.0);
+        assert!((f.std_mv - 0.5).abs() < 1e-12);
+    }
+
+    #[test]
+    fn learned_levers_predict_the_next_sweep() {
+        // true levers 0.05 and −0.08 mV/mV; noise-free sweeps after moves
+        // along both gates determine them exactly
+        let lever = |a: f64, b: f64| 0.05 * a - 0.08 * b;
+        let mut m = FlankModel::new(vec!["A".into(), "B".into()], &FlankPrediction::default());
+        for (a, b) in [(0.0, 0.0), (10.0, 0.0), (10.0, 10.0)] {
+            m.observe(&at(&[("A", a), ("B", b)]), lever(a, b), 1e-12, 0.0);
+        }
+        let f = m.predict(&at(&[("A", -5.0), ("B", 20.0)]), 0.0).unwrap();
+        assert!((f.flank_mv - lever(-5.0, 20.0)).abs() < 1e-4, "{f:?}");
+        assert!(f.std_mv < 1e-3, "{f:?}");
+    }
+}

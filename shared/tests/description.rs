@@ -45,3 +45,43 @@ fn paper_device_derives_the_paper_hierarchy_with_the_recommended_strategy() {
     }
     assert_eq!(derived, paper);
 }
+
+/// A lab's sensing dot: a few lines derive a level that predicts its flank;
+/// `always_sweep` gives the paper's rule; a bad prediction field is named.
+#[test]
+fn a_described_sensing_dot_predicts_its_flank_unless_told_to_always_sweep() {
+    let text = |sd: &str| {
+        format!(
+            r#"{{
+              "gates": [
+                {{"name": "B1", "min_mv": -500, "max_mv": 0, "initial_mv": -250}},
+                {{"name": "B2", "min_mv": -500, "max_mv": 0, "initial_mv": -250}},
+                {{"name": "SD", "min_mv": -900, "max_mv": -300, "initial_mv": -600, "max_step_mv": 30}}
+              ],
+              "qubit": {{"gates": ["B1", "B2"]}},
+              "sensing_dot": {sd}
+            }}"#
+        )
+    };
+    let sd_level = |sd: &str| {
+        let d: DeviceDescription = serde_json::from_str(&text(sd)).unwrap();
+        d.tuner().map(|t| match &t.levels[1].kind {
+            LevelKind::SensingDot(s) => s.prediction.clone(),
+            LevelKind::Newton(_) => panic!("level 1 is the sensing dot"),
+        })
+    };
+    assert_eq!(
+        sd_level(r#"{"gate": "SD"}"#).unwrap(),
+        Some(FlankPrediction::default())
+    );
+    assert_eq!(
+        sd_level(r#"{"gate": "SD", "always_sweep": true}"#).unwrap(),
+        None
+    );
+    let tight = sd_level(r#"{"gate": "SD", "prediction": {"skip_std_mv": 0.1}}"#).unwrap();
+    assert_eq!(tight.unwrap().skip_std_mv, 0.1);
+    let err = sd_level(r#"{"gate": "SD", "prediction": {"skip_std_mv": -1}}"#).unwrap_err();
+    assert_eq!(err.field, "sensing_dot.prediction.skip_std_mv");
+    let err = sd_level(r#"{"gate": "SD", "prediction": {"max_skips": 1000}}"#).unwrap_err();
+    assert_eq!(err.field, "sensing_dot.prediction.max_skips");
+}

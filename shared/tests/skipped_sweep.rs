@@ -6,7 +6,7 @@
 //! against the same run that always sweeps.
 
 use spintune::driver::SimulationConfig;
-use spintune::protocol::{Request, ScanKind};
+use spintune::protocol::{Request, Response, ScanKind, ScanOutcome};
 use spintune::session::{Output, RunSession, SessionConfig};
 use spintune::tuner::{LevelKind, Tuner};
 
@@ -119,4 +119,65 @@ fn predicting_the_flank_saves_sweeps() {
         with * 2 <= without,
         "sweeps with prediction {with}, without {without}"
     );
+}
+
+/// After a scan fails to evaluate, the sensing dot's next call sweeps (the
+/// sensor may be what failed): on several seeds, the w scan after the first
+/// skipped sweep fails (`ScanOutcome::Failed`), and the next request of
+/// the sensing-dot level (a sweep or a park without one) is a sweep.
+#[test]
+fn a_failed_scan_makes_the_next_sensing_dot_call_sweep() {
+    for seed in 1..=4 {
+        let cfg = {
+            let mut c = SimulationConfig::recommended();
+            c.seed = seed;
+            c.tuner.max_iterations = Some(25);
+            c
+        };
+        let mut device = cfg.simulated_device().unwrap();
+        device.seal_truth();
+        let mut session =
+            RunSession::from_tuner(Tuner::new(cfg.tuner).unwrap(), SessionConfig::default());
+        // 0: until a park without a sweep; 1: fail the next w scan; 2: watch
+        let (mut phase, mut last_was_sweep) = (0, false);
+        let verdict = loop {
+            match session.poll() {
+                Output::Execute(request) => {
+                    let park = matches!(&request, Request::SetVoltages { voltages_mv }
+                        if voltages_mv.len() == 1 && voltages_mv.contains_key("SD1"));
+                    let kind = match &request {
+                        Request::Measure { scan } => Some(scan.kind),
+                        _ => None,
+                    };
+                    let sweep = kind == Some(ScanKind::SensingDot);
+                    if phase == 2 && (sweep || (park && !last_was_sweep)) {
+                        break sweep;
+                    }
+                    let mut response = device.execute(&request);
+                    if phase == 0 && park && !last_was_sweep {
+                        phase = 1;
+                    } else if phase == 1 && kind == Some(ScanKind::TransitionWidth) {
+                        response = Response::Scanned {
+                            outcome: ScanOutcome::Failed {
+                                reason: "scripted: no signal".into(),
+                            },
+                            lab_seconds: 28.0,
+                        };
+                        phase = 2;
+                    }
+                    if !matches!(request, Request::ReadVoltages { .. }) {
+                        last_was_sweep = sweep;
+                    }
+                    session.feed(response).unwrap();
+                }
+                Output::Done(_) => panic!("seed {seed}: the run ended before the check"),
+                Output::Wait => panic!("seed {seed}: run stopped: {:?}", session.status()),
+                Output::Commit(_) | Output::Save | Output::Publish(_) | Output::Sleep { .. } => {}
+            }
+        };
+        assert!(
+            verdict,
+            "seed {seed}: parked without a sweep after a failed scan"
+        );
+    }
 }

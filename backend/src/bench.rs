@@ -53,6 +53,10 @@ pub struct BenchArgs {
     /// Seed and strategy drawn by `--plot`.
     #[arg(long, default_value_t = 1)]
     pub plot_seed: u64,
+    /// Draw where each strategy's lab time per change goes (stacked bars by
+    /// scan kind) to this PNG.
+    #[arg(long)]
+    pub plot_time: Option<PathBuf>,
     /// Benchmark N plausible devices drawn around the (default or `--device`)
     /// device instead of that device alone, each with every seed
     /// (distribution: `spintune::sim::random`; devices whose targets lie
@@ -176,6 +180,10 @@ pub fn run(args: BenchArgs) -> Result<(), CliError> {
             &protocol
         )
     );
+    if let Some(path) = &args.plot_time {
+        crate::bench_time_plot::draw_time_by_kind(path, &summary)?;
+        eprintln!("wrote {}", path.display());
+    }
     if let Some(path) = &args.json {
         let report = BenchReport {
             seeds: args.seeds,
@@ -411,14 +419,7 @@ pub fn markdown_table(
 
 /// Where a change's lab time goes: mean lab s per converged change by scan kind.
 fn time_by_kind_table(summary: &[StrategySummary]) -> String {
-    const COLUMNS: [(&str, &str); 6] = [
-        ("sensing_dot", "sensing-dot sweeps"),
-        ("chemical_potential", "chemical-potential scans"),
-        ("transition_width", "w scans"),
-        ("reload_time", "t_sr scans"),
-        ("set_voltages", "moves"),
-        ("read_voltages", "read-backs"),
-    ];
+    const COLUMNS: [(&str, &str); 6] = crate::bench_time_plot::KINDS;
     let mut s = String::from(
         "\nWhere a change's lab time goes (mean lab s per converged change):\n\n| strategy |",
     );

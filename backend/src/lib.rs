@@ -12,6 +12,7 @@ pub mod bench;
 pub mod bench_array;
 pub mod bench_keep;
 pub mod bench_server;
+pub mod bench_time_plot;
 pub mod cli;
 pub mod config;
 pub(crate) mod devices;

@@ -289,3 +289,42 @@ fn bench_keep_rejects_a_bad_strategy_naming_the_choices() {
         );
     }
 }
+
+/// `--plot-time` draws a PNG, and the JSON's lab time by kind is whole
+/// scans: each kind's mean seconds × the converged changes is a multiple of
+/// that scan's lab time on the default device (17, 38, 28, 5 s).
+#[test]
+fn bench_breaks_a_changes_lab_time_down_by_scan_kind() {
+    let dir = std::env::temp_dir().join(format!("spintune-bench-kind-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let (json, png) = (dir.join("bench.json"), dir.join("time.png"));
+    let out = run_ok(
+        bin()
+            .args(["bench", "--seeds", "2", "--strategies", "default", "--json"])
+            .arg(&json)
+            .arg("--plot-time")
+            .arg(&png),
+    );
+    let table = String::from_utf8_lossy(&out.stdout);
+    assert!(table.contains("Where a change's lab time goes"), "{table}");
+    assert!(std::fs::read(&png).unwrap().starts_with(b"\x89PNG"));
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let s = &v["strategies"][0];
+    let converged = (s["changes"].as_u64().unwrap() - s["not_converged"].as_u64().unwrap()) as f64;
+    let by = &s["lab_seconds_per_change_by_kind"];
+    for (kind, scan_s) in [
+        ("sensing_dot", 17.0),
+        ("chemical_potential", 38.0),
+        ("transition_width", 28.0),
+        ("reload_time", 5.0),
+    ] {
+        let scans = by[kind].as_f64().unwrap_or(0.0) * converged / scan_s;
+        assert!(scans > 0.5, "{kind}: {by}");
+        assert!(
+            (scans - scans.round()).abs() < 1e-6,
+            "{kind}: {scans} scans? {by}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -181,6 +181,7 @@ pub fn run(args: BenchArgs) -> Result<(), CliError> {
         )
     );
     if let Some(path) = &args.plot_time {
+        register_font()?;
         crate::bench_time_plot::draw_time_by_kind(path, &summary)?;
         eprintln!("wrote {}", path.display());
     }

@@ -6,7 +6,6 @@ use std::path::Path;
 
 use spintune::benchmark::StrategySummary;
 
-use crate::bench::register_font;
 use crate::cli::CliError;
 
 /// The kinds drawn, in stacking order, with their legend labels.
@@ -20,9 +19,9 @@ pub(crate) const KINDS: [(&str, &str); 6] = [
 ];
 
 /// Draw the bars of `summary` (in its order, top to bottom) to `path` (PNG).
+/// The caller registers the font first (`bench::register_font`).
 pub fn draw_time_by_kind(path: &Path, summary: &[StrategySummary]) -> Result<(), CliError> {
     use plotters::prelude::*;
-    register_font()?;
     let err = |e: &dyn std::fmt::Display| CliError::runtime(format!("plot: {e}"));
     let n = summary.len().max(1);
     let height = 160 + 44 * n as u32;

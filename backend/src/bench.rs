@@ -460,12 +460,7 @@ fn draw_figure(
         )
         .map_err(|e| err(&e))?;
     let panels = root.split_evenly((4, 1));
-    let colors = [
-        RGBColor(31, 119, 180),
-        RGBColor(255, 127, 14),
-        RGBColor(44, 160, 44),
-        RGBColor(214, 39, 40),
-    ];
+    let colors = &crate::plot_palette::TAB10[..4];
     let n = records.len() as f64;
     for (pi, (name, unit)) in [("t_sr", "ns"), ("w", "µV")].into_iter().enumerate() {
         // parameter panel

@@ -59,14 +59,8 @@ pub fn draw_time_by_kind(path: &Path, summary: &[StrategySummary]) -> Result<(),
         })
         .draw()
         .map_err(|e| err(&e))?;
-    let colors = [
-        RGBColor(148, 103, 189),
-        RGBColor(31, 119, 180),
-        RGBColor(255, 127, 14),
-        RGBColor(44, 160, 44),
-        RGBColor(127, 127, 127),
-        RGBColor(214, 39, 40),
-    ];
+    // per kind: sweeps purple, lines blue, w orange, t_sr green, moves grey, read-backs red
+    let colors = [4, 0, 1, 2, 5, 3].map(|i| crate::plot_palette::TAB10[i]);
     for (k, ((kind, label), color)) in KINDS.iter().zip(colors).enumerate() {
         let seconds = |s: &StrategySummary, kind: &str| {
             s.lab_seconds_per_change_by_kind

@@ -94,13 +94,7 @@ fn draw(path: &std::path::Path, traces: &[(u64, Trace)], hours: f64) -> Result<(
         )
         .map_err(|e| err(&e))?;
     let panels = root.split_evenly((2, 1));
-    let colors = [
-        RGBColor(31, 119, 180),
-        RGBColor(255, 127, 14),
-        RGBColor(44, 160, 44),
-        RGBColor(214, 39, 40),
-        RGBColor(148, 103, 189),
-    ];
+    let colors = &crate::plot_palette::TAB10[..5];
     for (pi, name) in ["t_sr / t_sr(0)", "w / w(0)"].into_iter().enumerate() {
         let value = |p: &(f64, f64, f64)| if pi == 0 { p.1 } else { p.2 };
         let (lo, hi) = traces

@@ -18,6 +18,7 @@ pub mod config;
 pub(crate) mod devices;
 pub mod drift_day;
 pub(crate) mod export;
+pub mod plot_palette;
 pub mod replay;
 pub(crate) mod run;
 pub mod server;

@@ -747,22 +747,30 @@ impl Tuner {
         }
     }
 
+    /// A sensing-dot call: park on the predicted flank, or sweep and park.
+    fn sensing_dot_ops(&mut self, level: usize, sd: &SensingDotConfig) -> VecDeque<Op> {
+        match self.flank_forecast(level, sd) {
+            Some(f) => {
+                self.note(
+                    level,
+                    EventKind::SweepSkipped {
+                        gate: sd.gate.clone(),
+                        predicted_mv: f.flank_mv,
+                        std_mv: f.std_mv,
+                    },
+                );
+                VecDeque::from([Op::SetGate(sd.gate.clone(), f.flank_mv)])
+            }
+            None => VecDeque::from([self.sd_sweep(sd), Op::Decide(Decision::SdPark)]),
+        }
+    }
+
     fn push_level(&mut self, level: usize) {
-        let ops = match &self.config.levels[level].kind.clone() {
-            LevelKind::SensingDot(sd) => match self.flank_forecast(level, sd) {
-                Some(f) => {
-                    self.note(
-                        level,
-                        EventKind::SweepSkipped {
-                            gate: sd.gate.clone(),
-                            predicted_mv: f.flank_mv,
-                            std_mv: f.std_mv,
-                        },
-                    );
-                    VecDeque::from([Op::SetGate(sd.gate.clone(), f.flank_mv)])
-                }
-                None => VecDeque::from([self.sd_sweep(sd), Op::Decide(Decision::SdPark)]),
-            },
+        let ops = match &self.config.levels[level].kind {
+            LevelKind::SensingDot(sd) => {
+                let sd = sd.clone();
+                self.sensing_dot_ops(level, &sd)
+            }
             LevelKind::Newton(_) => {
                 let mut ops = self.init_ops(level);
                 if let LevelState::Newton(n) = &mut self.levels[level] {

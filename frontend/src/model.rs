@@ -262,6 +262,7 @@ pub fn event_name(e: &EventKind) -> &'static str {
         EventKind::InstrumentMoved { .. } => "instrument_moved",
         EventKind::ConfirmationSkipped { .. } => "confirmation_skipped",
         EventKind::SweepSkipped { .. } => "sweep_skipped",
+        EventKind::MeasurementSkipped { .. } => "measurement_skipped",
         EventKind::KeepCheck { .. } => "keep_check",
         EventKind::RetuneStarted { .. } => "retune_started",
         EventKind::BackInBand { .. } => "back_in_band",

@@ -39,7 +39,7 @@ use crate::safety::GateSpec;
 use crate::solver::{SolverConfig, StepRule};
 use crate::tuner::{
     Compensation, FlankPrediction, InitialGradient, LevelConfig, LevelKind, NewtonConfig,
-    SensingDotConfig, SensingDotFallback, TunerConfig,
+    ParameterForecast, SensingDotConfig, SensingDotFallback, TunerConfig,
 };
 
 /// Process noise of the recommended qubit level's log-space parameters:
@@ -140,6 +140,14 @@ pub struct LinesDescription {
     /// (docs/benchmarks.md, "Skipping the confirming line scan").
     #[serde(default = "default_line_skip_sigma")]
     pub skip_confirmation_sigma: Option<f64>,
+    /// Scan the lines at every call, as the paper does (default false:
+    /// correct them from the learned forecast when it is confident, see
+    /// `forecast`).
+    #[serde(default)]
+    pub always_scan: bool,
+    /// How the lines are forecast (every field has a default; mV).
+    #[serde(default)]
+    pub forecast: ParameterForecast,
 }
 
 /// The sensing-dot level.
@@ -285,6 +293,7 @@ impl DeviceDescription {
                 hold_initial_values: false,
                 compensation,
                 skip_confirmation_sigma: None,
+                forecast: None,
             }),
             after_move: after_qubit,
         });
@@ -323,6 +332,7 @@ impl DeviceDescription {
                     hold_initial_values: false,
                     compensation: None,
                     skip_confirmation_sigma: l.skip_confirmation_sigma,
+                    forecast: (!l.always_scan).then(|| l.forecast.clone()),
                 }),
                 after_move: if self.sensing_dot.is_some() {
                     vec!["sensing_dot".into()]
@@ -389,6 +399,7 @@ impl DeviceDescription {
                 format!("levels[{line_level}].parameters[0].tolerance"),
                 "lines.tolerance_mv",
             ),
+            (format!("levels[{line_level}].forecast"), "lines.forecast"),
             (format!("levels[{sd_level}]"), "sensing_dot"),
         ] {
             if let Some(rest) = field.strip_prefix(prefix.as_str()) {
@@ -426,6 +437,8 @@ impl DeviceDescription {
                 tolerance_mv: default_line_tolerance_mv(),
                 step_limit_mv: default_line_step_mv(),
                 skip_confirmation_sigma: default_line_skip_sigma(),
+                always_scan: false,
+                forecast: ParameterForecast::default(),
             }),
             sensing_dot: Some(SensingDotDescription {
                 gate: sd.gate,

@@ -104,6 +104,7 @@ impl SimulationConfig {
             hold_initial_values: false,
             compensation: Some(compensation),
             skip_confirmation_sigma: None,
+            forecast: None,
         };
         let chemical = NewtonConfig {
             gates: plungers.iter().map(|s| s.to_string()).collect(),
@@ -137,6 +138,7 @@ impl SimulationConfig {
             hold_initial_values: false,
             compensation: None,
             skip_confirmation_sigma: None,
+            forecast: None,
         };
         let sensing = SensingDotConfig {
             gate: device.sensing_dot.gate.clone(),

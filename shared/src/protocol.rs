@@ -603,6 +603,18 @@ pub enum EventKind {
         /// Unit of the parameter.
         unit: String,
     },
+    /// A child level corrected from its learned forecast of a parameter
+    /// instead of scanning it (`NewtonConfig::forecast`).
+    MeasurementSkipped {
+        /// Parameter name.
+        parameter: String,
+        /// Forecast value before the correction (`unit`).
+        predicted: f64,
+        /// Its predicted standard deviation (`unit`).
+        std: f64,
+        /// Unit of the parameter.
+        unit: String,
+    },
     /// The sensing-dot level parked its gate on the flank its learned model
     /// predicted, without a sweep (`SensingDotConfig::prediction`).
     SweepSkipped {
@@ -669,6 +681,15 @@ impl std::fmt::Display for EventKind {
             } => write!(
                 f,
                 "{parameter}: confirming scan skipped, predicted {predicted:.3} ± {std:.3} {unit} (inside its band)"
+            ),
+            EventKind::MeasurementSkipped {
+                parameter,
+                predicted,
+                std,
+                unit,
+            } => write!(
+                f,
+                "{parameter}: scan skipped, forecast {predicted:.3} ± {std:.3} {unit} (corrected without measuring)"
             ),
             EventKind::SweepSkipped {
                 gate,

@@ -8,7 +8,7 @@ use spintune::description::{
 use spintune::driver::SimulationConfig;
 use spintune::parameter::Transform;
 use spintune::solver::StepRule;
-use spintune::tuner::{FlankPrediction, InitialGradient, LevelKind};
+use spintune::tuner::{FlankPrediction, InitialGradient, LevelKind, ParameterForecast};
 
 /// The paper's device described in a few lines derives exactly the
 /// paper's hierarchy with the recommended qubit strategy: every level
@@ -39,6 +39,7 @@ fn paper_device_derives_the_paper_hierarchy_with_the_recommended_strategy() {
     }
     if let LevelKind::Newton(lines) = &mut paper.levels[1].kind {
         lines.skip_confirmation_sigma = Some(2.0);
+        lines.forecast = Some(ParameterForecast::default());
     }
     if let LevelKind::SensingDot(sd) = &mut paper.levels[2].kind {
         sd.prediction = Some(FlankPrediction::default());
@@ -48,6 +49,50 @@ fn paper_device_derives_the_paper_hierarchy_with_the_recommended_strategy() {
 
 /// A lab's sensing dot: a few lines derive a level that predicts its flank;
 /// `always_sweep` gives the paper's rule; a bad prediction field is named.
+#[test]
+fn described_lines_are_forecast_unless_told_to_always_scan() {
+    let text = |lines: &str| {
+        format!(
+            r#"{{
+              "gates": [
+                {{"name": "B1", "min_mv": -500, "max_mv": 0, "initial_mv": -250}},
+                {{"name": "B2", "min_mv": -500, "max_mv": 0, "initial_mv": -250}},
+                {{"name": "P1", "min_mv": -500, "max_mv": 0, "initial_mv": -250}},
+                {{"name": "P2", "min_mv": -500, "max_mv": 0, "initial_mv": -250}}
+              ],
+              "qubit": {{"gates": ["B1", "B2"]}},
+              "lines": {lines}
+            }}"#
+        )
+    };
+    let line_level = |lines: &str| {
+        let d: DeviceDescription = serde_json::from_str(&text(lines)).unwrap();
+        d.tuner().map(|t| match &t.levels[1].kind {
+            LevelKind::Newton(n) => n.forecast.clone(),
+            LevelKind::SensingDot(_) => panic!("level 1 is the lines"),
+        })
+    };
+    let plain = r#"{"gates": ["P1", "P2"]"#;
+    assert_eq!(
+        line_level(&format!("{plain}}}")).unwrap(),
+        Some(ParameterForecast::default())
+    );
+    assert_eq!(
+        line_level(&format!(r#"{plain}, "always_scan": true}}"#)).unwrap(),
+        None
+    );
+    let tight = line_level(&format!(r#"{plain}, "forecast": {{"skip_std": 0.05}}}}"#)).unwrap();
+    assert_eq!(tight.unwrap().skip_std, 0.05);
+    let err = line_level(&format!(r#"{plain}, "forecast": {{"skip_std": 0}}}}"#)).unwrap_err();
+    assert_eq!(err.field, "lines.forecast.skip_std");
+    let err = line_level(&format!(r#"{plain}, "forecast": {{"max_skips": 1000}}}}"#)).unwrap_err();
+    assert_eq!(err.field, "lines.forecast.max_skips");
+    // the top level always measures
+    let mut t = DeviceDescription::paper_device().tuner().unwrap();
+    t.top_mut().forecast = Some(ParameterForecast::default());
+    assert_eq!(t.validate().unwrap_err().field, "levels[0].forecast");
+}
+
 #[test]
 fn a_described_sensing_dot_predicts_its_flank_unless_told_to_always_sweep() {
     let text = |sd: &str| {

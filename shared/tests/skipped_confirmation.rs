@@ -29,6 +29,9 @@ fn drive(seed: u64, skip: Option<f64>, iterations: u64) -> Outcome {
     let tolerance_mv = match &mut cfg.tuner.levels[idx].kind {
         LevelKind::Newton(n) => {
             n.skip_confirmation_sigma = skip;
+            // every call scans first (no forecast, `tests/line_forecast.rs`):
+            // a correction without a line scan after it is a skipped confirmation
+            n.forecast = None;
             n.parameters[0].tolerance.half_width(0.0)
         }
         LevelKind::SensingDot(_) => unreachable!(),

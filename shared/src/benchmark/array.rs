@@ -357,6 +357,9 @@ pub fn cell_tuner(cell: u32, protocol: &ArrayProtocol) -> TunerConfig {
                 if let Some(c) = &mut n.compensation {
                     c.gates.iter_mut().for_each(rn);
                 }
+                // As the flank below: a cell's line forecast cannot see the
+                // neighbours' gates, whose moves shift its lines too.
+                n.forecast = None;
             }
             LevelKind::SensingDot(sd) => {
                 rn(&mut sd.gate);

@@ -121,6 +121,117 @@ pub struct NewtonConfig {
     /// anyway. `None` (default): always confirm. Ignored for the top level.
     #[serde(default)]
     pub skip_confirmation_sigma: Option<f64>,
+    /// For levels run as children: correct from a learned forecast instead
+    /// of scanning when the forecast is confident (`None`, the paper's rule:
+    /// scan at every call). Refused on the top level.
+    #[serde(default)]
+    pub forecast: Option<ParameterForecast>,
+}
+
+/// Correct a child level from a forecast of its parameters instead of
+/// scanning them (e.g. the transition lines after the qubit level's move).
+///
+/// Every parameter is predicted from the level's last scan, its own
+/// Jacobian for its own gates' moves, and a learned row (Kalman, zero-mean
+/// prior) for every other gate's move since — what the parents' virtual-gate
+/// compensation did not cancel. When the level is next called and every
+/// targeted parameter's predicted standard deviation is at most `skip_std`,
+/// it takes one Newton step on the forecast (or none, if the forecast is
+/// inside the band) without a scan (event `measurement_skipped`). It scans
+/// anyway after `max_skips` such calls in a row, when any scan failed to
+/// evaluate since its last scan, when its last scan is more than
+/// `max_age_s` of lab time old, and whenever it has no scan to start from.
+/// Units are the parameters' estimator units (mV for the chemical
+/// potentials). Every move goes through the guard like any other.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ParameterForecast {
+    /// Largest predicted standard deviation at which the scan is skipped,
+    /// estimator units (0 < value ≤ 1000).
+    #[serde(default = "default_forecast_skip_std")]
+    pub skip_std: f64,
+    /// Prior standard deviation of each other gate's lever on a parameter,
+    /// estimator units per mV (0 < value ≤ 10).
+    #[serde(default = "default_prior_lever")]
+    pub prior_lever_per_mv: f64,
+    /// Scatter between scans that no gate explains (fit noise, drift,
+    /// charge jumps), estimator units (0 ≤ value ≤ 1000).
+    #[serde(default = "default_forecast_noise")]
+    pub noise: f64,
+    /// Forecast calls in a row after which the level scans anyway
+    /// (0..=[`MAX_FLANK_SKIPS`]).
+    #[serde(default = "default_max_skips")]
+    pub max_skips: u32,
+    /// Lab time after the level's last scan beyond which it scans anyway,
+    /// s (0 < value ≤ 86400): the model knows the gates' moves, not the
+    /// drift and charge jumps that accumulate while nothing moves (e.g.
+    /// between keep mode's checks).
+    #[serde(default = "default_forecast_max_age_s")]
+    pub max_age_s: f64,
+}
+
+/// Chosen on random devices 101–130 (`docs/benchmarks.md`, "Choosing the
+/// line forecast"): 0.2 mV has the median and p90 of 0.3 mV without its
+/// unconverged change, and keeps more changes truly in band than 0.5 mV.
+fn default_forecast_skip_std() -> f64 {
+    0.2
+}
+fn default_forecast_noise() -> f64 {
+    0.05
+}
+/// A tuning change takes a few lab minutes; keep mode's checks are tens of
+/// minutes to hours apart. Set once, not tuned.
+fn default_forecast_max_age_s() -> f64 {
+    900.0
+}
+
+impl Default for ParameterForecast {
+    fn default() -> Self {
+        Self {
+            skip_std: default_forecast_skip_std(),
+            prior_lever_per_mv: default_prior_lever(),
+            noise: default_forecast_noise(),
+            max_skips: default_max_skips(),
+            max_age_s: default_forecast_max_age_s(),
+        }
+    }
+}
+
+impl ParameterForecast {
+    /// Check the bounds; the error names the field (relative to the level).
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let within = |x: f64, lo_open: bool, hi: f64| {
+            x.is_finite() && (if lo_open { x > 0.0 } else { x >= 0.0 }) && x <= hi
+        };
+        if !within(self.skip_std, true, 1000.0) {
+            return Err(ConfigError::new(
+                "forecast.skip_std",
+                "must be > 0 and ≤ 1000",
+            ));
+        }
+        if !within(self.prior_lever_per_mv, true, 10.0) {
+            return Err(ConfigError::new(
+                "forecast.prior_lever_per_mv",
+                "must be > 0 and ≤ 10 per mV",
+            ));
+        }
+        if !within(self.noise, false, 1000.0) {
+            return Err(ConfigError::new("forecast.noise", "must be ≥ 0 and ≤ 1000"));
+        }
+        if self.max_skips > MAX_FLANK_SKIPS {
+            return Err(ConfigError::new(
+                "forecast.max_skips",
+                format!("must be at most {MAX_FLANK_SKIPS}"),
+            ));
+        }
+        if !within(self.max_age_s, true, 86400.0) {
+            return Err(ConfigError::new(
+                "forecast.max_age_s",
+                "must be > 0 and ≤ 86400 s",
+            ));
+        }
+        Ok(())
+    }
 }
 
 fn default_min_step_mv() -> f64 {
@@ -516,6 +627,12 @@ impl TunerConfig {
                 "the top level must be `newton`",
             ));
         }
+        if matches!(&self.levels[0].kind, LevelKind::Newton(n) if n.forecast.is_some()) {
+            return Err(ConfigError::new(
+                "levels[0].forecast",
+                "the top level always measures: a forecast is for levels run as children",
+            ));
+        }
         for (parameter, r) in [
             ("w", &self.fit_references.w),
             ("t_sr", &self.fit_references.t_sr),
@@ -676,6 +793,9 @@ fn validate_newton(n: &NewtonConfig, has_gate: &dyn Fn(&str) -> bool) -> Result<
                 format!("duplicate gate {g:?}"),
             ));
         }
+    }
+    if let Some(f) = &n.forecast {
+        f.validate()?;
     }
     if n.parameters.is_empty() {
         return Err(ConfigError::new(

@@ -3,22 +3,21 @@
 //!
 //! Model: the flank (mV of the swept gate) is `f_ref + g·(v − v_ref)`, where
 //! `v` are the other gates' voltages (mV), `(v_ref, f_ref)` the last sweep's
-//! and `g` (mV per mV) a [`KalmanGradient`] row learned from consecutive
-//! sweeps with a zero-mean prior. The prediction's variance is
+//! and `g` (mV per mV) a [`GateRow`] learned from consecutive sweeps with a
+//! zero-mean prior. The prediction's variance is
 //! `Δvᵀ C Δv + var(f_ref) + noise²`.
 
 use std::collections::BTreeMap;
 
-use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
 use super::config::FlankPrediction;
-use crate::kalman::{KalmanGradient, ProcessNoise};
+use super::gate_row::GateRow;
 
 /// The last sweep the model starts from.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 struct SweepReference {
-    /// The other gates' voltages at the sweep, mV (order of `FlankModel::gates`).
+    /// The other gates' voltages at the sweep, mV (the row's column order).
     voltages_mv: Vec<f64>,
     /// The flank found, mV of the swept gate.
     flank_mv: f64,
@@ -29,9 +28,8 @@ struct SweepReference {
 /// Online model of the flank's position; plain data (part of the tuner's state).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub(super) struct FlankModel {
-    /// Input gates: every configured gate but the swept one, sorted.
-    gates: Vec<String>,
-    filter: KalmanGradient,
+    /// Levers of every configured gate but the swept one.
+    row: GateRow,
     reference: Option<SweepReference>,
     /// Sweeps skipped since the last one taken.
     pub(super) skips: u32,
@@ -50,27 +48,12 @@ impl FlankModel {
     /// A model over `gates` (the swept gate excluded by the caller) with an
     /// isotropic prior of `prior_lever_per_mv` per gate.
     pub(super) fn new(gates: Vec<String>, p: &FlankPrediction) -> Self {
-        let n = gates.len();
-        let filter = KalmanGradient::new(
-            DVector::zeros(n),
-            DMatrix::identity(n, n) * p.prior_lever_per_mv.powi(2),
-            ProcessNoise::isotropic(n, 0.0),
-        )
-        .expect("a finite zero prior with a positive variance is a valid filter");
         Self {
-            gates,
-            filter,
+            row: GateRow::new(gates, p.prior_lever_per_mv),
             reference: None,
             skips: 0,
             failed_at_sweep: 0,
         }
-    }
-
-    fn inputs(&self, voltages_mv: &BTreeMap<String, f64>) -> Vec<f64> {
-        self.gates
-            .iter()
-            .map(|g| voltages_mv.get(g).copied().unwrap_or(0.0))
-            .collect()
     }
 
     /// A sweep found the flank at `flank_mv` ± `variance.sqrt()` with the
@@ -87,20 +70,16 @@ impl FlankModel {
         if !(flank_mv.is_finite() && variance.is_finite() && variance >= 0.0) {
             return;
         }
-        let v = self.inputs(voltages_mv);
         if let Some(r) = &self.reference {
-            let dv =
-                DVector::from_iterator(v.len(), v.iter().zip(&r.voltages_mv).map(|(a, b)| a - b));
-            // a failed update leaves the filter as it was: the model only
-            // predicts less well, it never predicts something invalid
-            let _ = self.filter.update(
+            let dv = self.row.delta(&r.voltages_mv, voltages_mv);
+            self.row.learn(
                 &dv,
                 flank_mv - r.flank_mv,
                 variance + r.variance + noise_mv * noise_mv,
             );
         }
         self.reference = Some(SweepReference {
-            voltages_mv: v,
+            voltages_mv: self.row.inputs(voltages_mv),
             flank_mv,
             variance,
         });
@@ -114,10 +93,11 @@ impl FlankModel {
         noise_mv: f64,
     ) -> Option<FlankForecast> {
         let r = self.reference.as_ref()?;
-        let v = self.inputs(voltages_mv);
-        let dv = DVector::from_iterator(v.len(), v.iter().zip(&r.voltages_mv).map(|(a, b)| a - b));
-        let mean = r.flank_mv + dv.dot(self.filter.gradient());
-        let var = (self.filter.covariance() * &dv).dot(&dv) + r.variance + noise_mv * noise_mv;
+        let (dz, var_g) = self
+            .row
+            .predict(&self.row.delta(&r.voltages_mv, voltages_mv));
+        let mean = r.flank_mv + dz;
+        let var = var_g + r.variance + noise_mv * noise_mv;
         (mean.is_finite() && var.is_finite()).then(|| FlankForecast {
             flank_mv: mean,
             std_mv: var.max(0.0).sqrt(),

@@ -33,8 +33,10 @@ pub mod array;
 mod config;
 pub mod finite_difference;
 mod flank;
+mod gate_row;
 mod keep;
 mod keep_tally;
+mod level_forecast;
 mod newton;
 
 use std::collections::{BTreeMap, VecDeque};
@@ -45,13 +47,14 @@ use serde::{Deserialize, Serialize};
 pub use config::{check_magnitudes, MAX_GATE_MV, MAX_INTEGER, MAX_MAGNITUDE};
 pub use config::{
     Compensation, ConfigError, FlankPrediction, InitialGradient, LevelConfig, LevelKind,
-    NewtonConfig, ScheduledTargets, SensingDotConfig, SensingDotFallback, TunerConfig,
-    MAX_FALLBACK_SWEEPS, MAX_FLANK_SKIPS, MAX_SWEEP_POINTS,
+    NewtonConfig, ParameterForecast, ScheduledTargets, SensingDotConfig, SensingDotFallback,
+    TunerConfig, MAX_FALLBACK_SWEEPS, MAX_FLANK_SKIPS, MAX_SWEEP_POINTS,
 };
 use flank::{FlankForecast, FlankModel};
 pub use keep::{DriftModel, KeepConfig, KeepSchedule, MAX_KEEP_SECONDS, MIN_CHECK_INTERVAL_S};
 use keep::{KeepNext, KeepState};
 pub use keep_tally::KeepTally;
+use level_forecast::LevelForecast;
 pub use newton::Consistency;
 use newton::NewtonState;
 
@@ -148,6 +151,8 @@ enum Decision {
     SdFallbackFinish { base_mv: f64 },
     /// Keep mode: a check's scans are in.
     KeepCheck,
+    /// A child level corrects from its forecast instead of scanning.
+    Forecast,
 }
 
 /// A level that is running: its queue of micro-operations (one entry of
@@ -227,9 +232,19 @@ impl Tuner {
         let mut levels = Vec::new();
         for (i, l) in config.levels.iter().enumerate() {
             levels.push(match &l.kind {
-                LevelKind::Newton(n) => LevelState::Newton(
-                    NewtonState::new(n).map_err(|e| e.within(&format!("levels[{i}]")))?,
-                ),
+                LevelKind::Newton(n) => {
+                    let mut state =
+                        NewtonState::new(n).map_err(|e| e.within(&format!("levels[{i}]")))?;
+                    state.forecast = n.forecast.as_ref().map(|f| {
+                        let others = config.gates.iter().map(|g| g.name.clone());
+                        LevelForecast::new(
+                            others.filter(|g| !n.gates.contains(g)).collect(),
+                            n.parameters.len(),
+                            f.prior_lever_per_mv,
+                        )
+                    });
+                    LevelState::Newton(state)
+                }
                 LevelKind::SensingDot(sd) => LevelState::SensingDot {
                     last: None,
                     flank: sd.prediction.as_ref().map(|p| {
@@ -782,7 +797,11 @@ impl Tuner {
                         n.forget_references();
                     }
                 }
-                ops.extend(self.round_ops(level));
+                if ops.is_empty() && self.confident_forecast(level).is_some() {
+                    ops.push_back(Op::Decide(Decision::Forecast));
+                } else {
+                    ops.extend(self.round_ops(level));
+                }
                 ops
             }
         };

@@ -7,6 +7,7 @@ use serde::{Deserialize, Serialize};
 
 use super::config::{ConfigError, InitialGradient, LevelKind, NewtonConfig};
 use super::finite_difference::{FiniteDifference, Sample};
+use super::level_forecast::LevelForecast;
 use super::{Decision, LevelState, Op, Tuner};
 use crate::estimator::{EstimatorKind, GradientEstimator};
 use crate::kalman::{ProcessNoise, UpdateOutcome};
@@ -41,6 +42,10 @@ struct Snapshot {
     raw: Vec<Option<ParameterValue>>,
     tuned: bool,
     step_mv: Vec<f64>,
+    /// The samples are a forecast ([`super::ParameterForecast`]), not a scan:
+    /// the call ends after the correction without a confirming scan.
+    #[serde(default)]
+    from_forecast: bool,
 }
 
 /// Mutable state of one Newton level.
@@ -68,6 +73,10 @@ pub(super) struct NewtonState {
     /// targeted parameter: where a failed evaluation retreats toward.
     #[serde(default)]
     last_good_mv: Option<Vec<f64>>,
+    /// The learned forecast of a child level's parameters (`Some` iff the
+    /// level has `forecast`; set by the tuner, which knows every gate).
+    #[serde(default)]
+    pub(super) forecast: Option<LevelForecast>,
 }
 
 /// Running statistics of a filter's normalised innovations squared (NIS),
@@ -166,6 +175,7 @@ impl NewtonState {
             last_raw: vec![None; m],
             consistency: vec![Consistency::default(); m],
             last_good_mv: None,
+            forecast: None,
         })
     }
 
@@ -177,6 +187,28 @@ impl NewtonState {
     /// Filter consistency per parameter (parameter order).
     pub(super) fn consistency(&self) -> &[Consistency] {
         &self.consistency
+    }
+
+    /// The level's round is a forecast instead of a scan (`samples`:
+    /// estimator space, parameter order; `tuned`: every target inside its
+    /// band), taken at `voltages_mv` with the level's gates at `level_mv`.
+    pub(super) fn set_forecast_snapshot(
+        &mut self,
+        voltages_mv: BTreeMap<String, f64>,
+        level_mv: Vec<f64>,
+        samples: Vec<Option<Sample>>,
+        tuned: bool,
+    ) {
+        let n = level_mv.len();
+        self.snapshot = Some(Snapshot {
+            voltages_mv,
+            level_voltages_mv: level_mv,
+            raw: vec![None; samples.len()],
+            samples,
+            tuned,
+            step_mv: vec![0.0; n],
+            from_forecast: true,
+        });
     }
 
     /// Drop every reference point: the next measurement is a new baseline.
@@ -328,6 +360,7 @@ impl Tuner {
             samples,
             raw,
             tuned,
+            from_forecast: false,
         });
     }
 
@@ -512,6 +545,10 @@ impl Tuner {
                 None
             }
             Decision::EndIteration => self.end_iteration(level),
+            Decision::Forecast => {
+                self.correct_from_forecast(level);
+                None
+            }
             Decision::SdPark
             | Decision::SdFallbackPoint { .. }
             | Decision::SdFallbackFinish { .. }
@@ -564,8 +601,17 @@ impl Tuner {
         let cfg = self.newton(level).0.clone();
         let v_now = self.level_voltages(level);
         let all_v = self.voltages_mv.clone();
+        let (failed, now_s) = (self.failed_evaluations, self.lab_seconds);
         let (cfg_mut, state) = self.newton_mut(level);
         let (samples, raw) = state.take_samples(&cfg);
+        // A scan: the forecast learns what the own Jacobian did not explain.
+        if let (Some(f), Some(own_rows)) = (&cfg.forecast, state.gradients()) {
+            if let Some(model) = &mut state.forecast {
+                model.observe(&v_now, &all_v, &samples, &own_rows, f.noise);
+                model.failed_at_scan = failed;
+                model.scanned_at_s = now_s;
+            }
+        }
         // Targets held at their first measured values.
         if cfg.hold_initial_values && !state.targets_held && raw.iter().all(Option::is_some) {
             for (p, v) in cfg_mut.parameters.iter_mut().zip(&raw) {
@@ -697,6 +743,7 @@ impl Tuner {
             raw,
             tuned,
             step_mv: vec![0.0; v_now.len()],
+            from_forecast: false,
         });
         if !missing_targeted {
             state.last_good_mv = Some(v_now.clone());
@@ -768,7 +815,7 @@ impl Tuner {
         }
     }
 
-    fn step(&mut self, level: usize) {
+    pub(super) fn step(&mut self, level: usize) {
         let cfg = self.newton(level).0.clone();
         let (_, state) = self.newton_mut(level);
         let Some(snapshot) = state.snapshot.clone() else {
@@ -917,6 +964,12 @@ impl Tuner {
 
     pub(super) fn end_iteration(&mut self, level: usize) -> Option<IterationRecord> {
         if level != 0 {
+            let (_, state) = self.newton_mut(level);
+            if state.snapshot.as_ref().is_some_and(|s| s.from_forecast) {
+                // corrected from a forecast: no confirming scan in this call
+                state.iterations_this_call += 1;
+                return None;
+            }
             let max = self.newton(level).0.max_iterations_per_call;
             let skip = self.confidently_in_band(level);
             let (_, state) = self.newton_mut(level);

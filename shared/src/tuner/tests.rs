@@ -181,6 +181,7 @@ fn qubit(estimator: EstimatorKind) -> NewtonConfig {
         hold_initial_values: false,
         compensation: None,
         skip_confirmation_sigma: None,
+        forecast: None,
     }
 }
 
@@ -234,6 +235,7 @@ fn hierarchical() -> TunerConfig {
         hold_initial_values: false,
         compensation: None,
         skip_confirmation_sigma: None,
+        forecast: None,
     };
     TunerConfig {
         gates: gates(),

@@ -137,10 +137,15 @@ fn not_back_in_band_is_raised_once_per_retune_after_the_configured_lab_time() {
     assert!(alerts <= retunes);
 }
 
+/// A re-tune skips its confirming round when the filter predicts both
+/// parameters inside their bands with 2σ of margin: checked against the
+/// world's truth, the skips are in band at least as often as that margin
+/// promises (a consistent filter misses one side of a 2σ margin 2.3 % of
+/// the time), over enough skips to tell.
 #[test]
 fn a_retune_that_skips_its_confirmation_is_truly_in_band() {
-    let mut skipped = 0;
-    for seed in 1..=4 {
+    let (mut skipped, mut out) = (0, Vec::new());
+    for seed in 1..=8 {
         let mut run = keep_run(
             seed,
             KeepConfig {
@@ -157,13 +162,19 @@ fn a_retune_that_skips_its_confirmation_is_truly_in_band() {
                 // world side: where the device truly is now (no move follows)
                 let t = run.device().truth();
                 let ok = (t.t_sr_ns - 20.0).abs() <= 2.0 && (t.w_uv - 270.0).abs() <= 27.0;
-                assert!(
-                    ok,
-                    "seed {seed}: skipped at t_sr {} ns, w {} µV",
-                    t.t_sr_ns, t.w_uv
-                );
+                if !ok {
+                    out.push((seed, t.t_sr_ns, t.w_uv));
+                }
             }
         }
     }
-    assert!(skipped > 0, "no re-tune skipped its confirmation");
+    assert!(
+        skipped >= 100,
+        "re-tunes that skipped their confirmation: {skipped}"
+    );
+    assert!(
+        out.len() * 40 <= skipped,
+        "{} of {skipped} skips truly out of band (seed, t_sr ns, w µV): {out:?}",
+        out.len()
+    );
 }

@@ -16,6 +16,8 @@ struct Outcome {
     offsets_mv: Vec<f64>,
     line_scans: u64,
     forecast_calls: u64,
+    /// Forecasts checked by the next real scan: count, NIS sum, beyond 2σ.
+    checked: (u64, f64, u64),
 }
 
 fn config(seed: u64, forecast: bool, iterations: u64) -> SimulationConfig {
@@ -68,6 +70,13 @@ fn drive(seed: u64, forecast: bool, iterations: u64) -> Outcome {
                     .count() as u64;
                 done += 1;
                 if done >= iterations {
+                    let tuner = session.tuner();
+                    let level = tuner.config().level_index("chemical_potential").unwrap();
+                    for c in tuner.forecast_consistency(level).unwrap_or_default() {
+                        out.checked.0 += c.count;
+                        out.checked.1 += c.nis_sum;
+                        out.checked.2 += c.beyond_2sigma;
+                    }
                     return out;
                 }
                 if done % 8 == 0 {
@@ -104,6 +113,9 @@ fn the_lines_stay_near_their_targets_and_fewer_scans_are_taken() {
             acc.offsets_mv.extend(o.offsets_mv);
             acc.line_scans += o.line_scans;
             acc.forecast_calls += o.forecast_calls;
+            acc.checked.0 += o.checked.0;
+            acc.checked.1 += o.checked.1;
+            acc.checked.2 += o.checked.2;
         }
     }
     let (m_with, m_without) = (mean(&with.offsets_mv), mean(&without.offsets_mv));
@@ -118,6 +130,15 @@ fn the_lines_stay_near_their_targets_and_fewer_scans_are_taken() {
         with.forecast_calls, with.line_scans, without.line_scans
     );
     assert_eq!(without.forecast_calls, 0);
+    assert_eq!(without.checked.0, 0);
+    // Every forecast acted on, against the next real scan of the lines: the
+    // forecast's σ is honest (NIS mean near 1, few beyond 2σ).
+    let (n, nis, beyond) = with.checked;
+    let nis_mean = nis / n as f64;
+    eprintln!("{n} forecasts checked by the next scan: NIS mean {nis_mean:.2}, {beyond} beyond 2σ");
+    assert!(n >= 20, "forecasts checked: {n}");
+    assert!((0.2..=2.0).contains(&nis_mean), "NIS mean {nis_mean}");
+    assert!(beyond * 5 <= n, "{beyond} of {n} beyond 2σ");
     assert!(
         with.forecast_calls >= 20,
         "forecasts happen: {}",

@@ -28,13 +28,34 @@ impl GateRow {
     /// (`prior_per_mv` > 0, finite: validated by the configs).
     pub(super) fn new(gates: Vec<String>, prior_per_mv: f64) -> Self {
         let n = gates.len();
+        Self::centred(gates, DVector::zeros(n), prior_per_mv)
+    }
+
+    /// A row over `gates` with prior `g ~ N(mean, prior_per_mv² · I)`
+    /// (`mean`: one value per gate; non-finite entries count as 0).
+    pub(super) fn centred(gates: Vec<String>, mean: DVector<f64>, prior_per_mv: f64) -> Self {
+        let n = gates.len();
+        let mean = DVector::from_iterator(
+            n,
+            (0..n).map(|i| {
+                mean.get(i)
+                    .copied()
+                    .filter(|x| x.is_finite())
+                    .unwrap_or(0.0)
+            }),
+        );
         let filter = KalmanGradient::new(
-            DVector::zeros(n),
+            mean,
             DMatrix::identity(n, n) * prior_per_mv.powi(2),
             ProcessNoise::isotropic(n, 0.0),
         )
-        .expect("a finite zero prior with a positive variance is a valid filter");
+        .expect("a finite prior with a positive variance is a valid filter");
         Self { gates, filter }
+    }
+
+    /// The input gates, in column order.
+    pub(super) fn gates(&self) -> &[String] {
+        &self.gates
     }
 
     /// The input gates' voltages (mV, column order); a gate missing from

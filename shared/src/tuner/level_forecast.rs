@@ -6,9 +6,12 @@
 //! `y = y_ref + g_own·(v_own − v_own,ref) + g_other·(v_other − v_other,ref)`.
 //! `g_own` is the level's own Jacobian (its estimator, which the level keeps
 //! learning from its own steps); `g_other` is a [`GateRow`] over every gate
-//! outside the level (the parents' gates, after their virtual-gate
-//! compensation, and the sensor's), learned from consecutive scans with a
-//! zero-mean prior. `(v_ref, y_ref)` is the level's last scan. The
+//! outside the level (the parents' gates and the sensor's), learned from
+//! consecutive scans. Its prior is centred where a parent's virtual-gate
+//! compensation says it is: the compensation moves this level's gates by
+//! `M·Δv_parent` so that the parameters stay put, i.e. `g_other ≈ −g_own·M`
+//! on the parent's gates (0 elsewhere), with `prior_lever_per_mv` of spread
+//! for what the matrix gets wrong. `(v_ref, y_ref)` is the level's last scan. The
 //! prediction's variance is
 //! `var(y_ref) + Δv_ownᵀ C_own Δv_own + Δv_otherᵀ C_other Δv_other + noise²`.
 
@@ -20,7 +23,7 @@ use serde::{Deserialize, Serialize};
 use super::config::LevelKind;
 use super::finite_difference::Sample;
 use super::gate_row::GateRow;
-use super::{GradientRow, LevelState, Tuner};
+use super::{Consistency, GradientRow, LevelState, Tuner};
 use crate::protocol::EventKind;
 
 /// The last scan the model starts from.
@@ -46,6 +49,19 @@ pub(super) struct LevelForecast {
     pub(super) failed_at_scan: u64,
     /// The tuner's lab time at the level's last scan, s.
     pub(super) scanned_at_s: f64,
+    /// Every scan that followed forecast calls, against what the model
+    /// predicted for it (per parameter, config order): the forecasts the
+    /// level acted on, checked by the next real scan.
+    #[serde(default)]
+    consistency: Vec<Consistency>,
+    /// Per parent gate compensated onto this level's gates: that gate and
+    /// this level's gate moves per mV of it (own-gate order).
+    compensation: Vec<(String, Vec<f64>)>,
+    /// Prior spread of the rows, per mV (kept to centre them).
+    prior_per_mv: f64,
+    /// Whether the rows' priors were centred on the compensation (done at
+    /// the first scan with a known own Jacobian).
+    centred: bool,
 }
 
 /// `(g·Δv, Δvᵀ C Δv)` of one own-gate row (no covariance: exact).
@@ -57,9 +73,18 @@ fn own_shift(row: &GradientRow, dv: &DVector<f64>) -> (f64, f64) {
 
 impl LevelForecast {
     /// A model of `parameters` parameters over `other_gates` with a prior
-    /// lever of `prior_per_mv` (estimator units per mV) per gate.
-    pub(super) fn new(other_gates: Vec<String>, parameters: usize, prior_per_mv: f64) -> Self {
+    /// lever of `prior_per_mv` (estimator units per mV) per gate, centred on
+    /// `compensation` (see the module docs).
+    pub(super) fn new(
+        other_gates: Vec<String>,
+        parameters: usize,
+        prior_per_mv: f64,
+        compensation: Vec<(String, Vec<f64>)>,
+    ) -> Self {
         Self {
+            compensation,
+            prior_per_mv,
+            centred: false,
             rows: (0..parameters)
                 .map(|_| GateRow::new(other_gates.clone(), prior_per_mv))
                 .collect(),
@@ -67,6 +92,7 @@ impl LevelForecast {
             skips: 0,
             failed_at_scan: 0,
             scanned_at_s: 0.0,
+            consistency: vec![Consistency::default(); parameters],
         }
     }
 
@@ -89,6 +115,18 @@ impl LevelForecast {
         own_rows: &[GradientRow],
         noise: f64,
     ) {
+        if !self.centred && self.reference.is_none() && own_rows.len() == self.rows.len() {
+            self.centre(own_rows);
+        }
+        if self.skips > 0 {
+            if let Some(predicted) = self.predict(own_mv, voltages_mv, own_rows, noise) {
+                for ((c, p), s) in self.consistency.iter_mut().zip(&predicted).zip(samples) {
+                    if let (Some((mean, var)), Some((y, var_y))) = (p, s) {
+                        c.add(y - mean, (var + var_y).sqrt());
+                    }
+                }
+            }
+        }
         if let Some(r) = &self.reference {
             let d_own = DVector::from_iterator(
                 own_mv.len(),
@@ -113,6 +151,32 @@ impl LevelForecast {
             samples: samples.to_vec(),
         });
         self.skips = 0;
+    }
+
+    /// Centre every row's prior on `−g_own·M` (before any learning).
+    fn centre(&mut self, own_rows: &[GradientRow]) {
+        for (row, own) in self.rows.iter_mut().zip(own_rows) {
+            let gates = row.gates().to_vec();
+            let mean = DVector::from_iterator(
+                gates.len(),
+                gates.iter().map(|g| {
+                    self.compensation
+                        .iter()
+                        .find(|(c, _)| c == g)
+                        .map_or(0.0, |(_, m)| {
+                            -own.0.iter().zip(m).map(|(a, b)| a * b).sum::<f64>()
+                        })
+                }),
+            );
+            *row = GateRow::centred(gates, mean, self.prior_per_mv);
+        }
+        self.centred = true;
+    }
+
+    /// Forecasts acted on, checked by the scan that followed them
+    /// (normalised innovations per parameter, config order).
+    pub(super) fn consistency(&self) -> &[Consistency] {
+        &self.consistency
     }
 
     /// Every parameter predicted at `own_mv` / `voltages_mv` (estimator
@@ -244,13 +308,13 @@ mod tests {
 
     #[test]
     fn no_forecast_before_the_first_scan() {
-        let m = LevelForecast::new(vec!["Q".into()], 1, 0.1);
+        let m = LevelForecast::new(vec!["Q".into()], 1, 0.1, Vec::new());
         assert!(m.predict(&[0.0], &at(&[("Q", 0.0)]), &own(), 0.0).is_none());
     }
 
     #[test]
     fn own_moves_follow_the_level_jacobian_and_other_moves_the_prior() {
-        let mut m = LevelForecast::new(vec!["Q".into()], 1, 0.1);
+        let mut m = LevelForecast::new(vec!["Q".into()], 1, 0.1, Vec::new());
         m.observe(&[0.0], &at(&[("Q", 0.0)]), &[Some((1.0, 0.0))], &own(), 0.0);
         // own gate +2 mV: 1 + 0.9·2 = 2.8, exactly; other gate +5 mV: ±0.1·5
         let f = m.predict(&[2.0], &at(&[("Q", 5.0)]), &own(), 0.0).unwrap();
@@ -263,7 +327,7 @@ mod tests {
     fn the_other_gates_lever_is_learned_from_what_the_own_jacobian_leaves() {
         // truth: y = 0.9·P + 0.2·Q; scans after moving both
         let truth = |p: f64, q: f64| 0.9 * p + 0.2 * q;
-        let mut m = LevelForecast::new(vec!["Q".into()], 1, 0.1);
+        let mut m = LevelForecast::new(vec!["Q".into()], 1, 0.1, Vec::new());
         for (p, q) in [(0.0, 0.0), (1.0, 10.0), (-2.0, 20.0)] {
             let y = truth(p, q);
             m.observe(&[p], &at(&[("Q", q)]), &[Some((y, 1e-12))], &own(), 0.0);

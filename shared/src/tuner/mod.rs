@@ -241,6 +241,7 @@ impl Tuner {
                             others.filter(|g| !n.gates.contains(g)).collect(),
                             n.parameters.len(),
                             f.prior_lever_per_mv,
+                            compensation_onto(&config, &n.gates),
                         )
                     });
                     LevelState::Newton(state)
@@ -334,6 +335,16 @@ impl Tuner {
     pub fn last_measured(&self, level: usize) -> Option<&[Option<ParameterValue>]> {
         match self.levels.get(level)? {
             LevelState::Newton(n) => Some(n.last_measured()),
+            LevelState::SensingDot { .. } => None,
+        }
+    }
+
+    /// How well a child level's forecasts ([`ParameterForecast`]) predicted
+    /// the scan that followed them: normalised innovations per parameter
+    /// (config order); `None` for levels without a forecast.
+    pub fn forecast_consistency(&self, level: usize) -> Option<&[Consistency]> {
+        match self.levels.get(level)? {
+            LevelState::Newton(n) => n.forecast.as_ref().map(|f| f.consistency()),
             LevelState::SensingDot { .. } => None,
         }
     }
@@ -793,8 +804,11 @@ impl Tuner {
                     if level != 0 {
                         // The parent moved other gates since this level's last call: its
                         // observation model (only its own gates move) no longer links the
-                        // old reference to the new measurement. Start a fresh baseline.
-                        n.forget_references();
+                        // old reference to the new measurement. Start a fresh baseline,
+                        // and forget where its scans last worked: its own gates there
+                        // go with the parent's old gates (a retreat toward them after a
+                        // failed scan would undo the parent's compensation).
+                        n.parent_moved();
                     }
                 }
                 if ops.is_empty() && self.confident_forecast(level).is_some() {
@@ -931,6 +945,35 @@ impl Tuner {
         }
         self.decide_newton(level, d)
     }
+}
+
+/// Every gate whose moves some level compensates onto `gates` (a parent's
+/// virtual-gate matrix): that gate and the moves of `gates` (mV, in their
+/// order) per mV of it.
+fn compensation_onto(config: &TunerConfig, gates: &[String]) -> Vec<(String, Vec<f64>)> {
+    let mut out = Vec::new();
+    for l in &config.levels {
+        let LevelKind::Newton(n) = &l.kind else {
+            continue;
+        };
+        let Some(c) = &n.compensation else { continue };
+        for (j, parent_gate) in n.gates.iter().enumerate() {
+            let column: Vec<f64> = gates
+                .iter()
+                .map(|g| {
+                    c.gates
+                        .iter()
+                        .position(|cg| cg == g)
+                        .and_then(|r| c.matrix.get(r)?.get(j).copied())
+                        .unwrap_or(0.0)
+                })
+                .collect();
+            if column.iter().any(|x| *x != 0.0) {
+                out.push((parent_gate.clone(), column));
+            }
+        }
+    }
+    out
 }
 
 /// Turn a device's scan outcome into validated parameter values and a display

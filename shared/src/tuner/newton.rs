@@ -211,6 +211,13 @@ impl NewtonState {
         });
     }
 
+    /// A child level's parent moved since its last call: a fresh baseline
+    /// ([`NewtonState::forget_references`]) and no point to retreat toward.
+    pub(super) fn parent_moved(&mut self) {
+        self.forget_references();
+        self.last_good_mv = None;
+    }
+
     /// Drop every reference point: the next measurement is a new baseline.
     pub(super) fn forget_references(&mut self) {
         self.references.iter_mut().for_each(|r| *r = None);

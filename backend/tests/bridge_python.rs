@@ -71,9 +71,10 @@ async fn python_bridge_client_serves_a_run_and_reconnects() {
 
     let dir = TempDir::new("pybridge");
     let srv = server(&dir, 256).await;
-    // enough iterations that 180 answers end mid-run with the recommended
-    // tuner's cheaper cold start
+    // enough iterations that `ANSWERS` answers end mid-run with the
+    // recommended tuner's cheaper cold start and skipped scans
     let n = 40;
+    const ANSWERS: usize = 90;
     let run = create_run(
         srv.addr,
         &json!({
@@ -88,12 +89,13 @@ async fn python_bridge_client_serves_a_run_and_reconnects() {
     .await;
     let url = format!("ws://{}/api/runs/{}/bridge", srv.addr, run.id);
 
-    // The lab script answers 180 requests (more than one iteration), then
+    // The lab script answers ANSWERS requests (more than one iteration), then
     // goes away with the next one outstanding: the run pauses, saying why.
     // The toy instrument keeps its outputs across the restart, as a DAC does.
     let state = dir.0.join("toy-instrument.json");
     let state = state.to_str().unwrap();
-    let mut first = Client::start(&url, &python, &["--exit-after", "180", "--state", state]);
+    let answers = ANSWERS.to_string();
+    let mut first = Client::start(&url, &python, &["--exit-after", &answers, "--state", state]);
     let paused = wait_status(srv.addr, run.id, |r| {
         // (Before the script connects the run waits, paused for lack of a bridge.)
         matches!(&r.status, RunStatus::Faulted { fault } if fault.message.contains("disconnected"))
@@ -102,9 +104,10 @@ async fn python_bridge_client_serves_a_run_and_reconnects() {
     .await;
     match &paused.status {
         RunStatus::Faulted { fault } => assert!(
-            fault
-                .message
-                .contains("lab bridge disconnected while request 181"),
+            fault.message.contains(&format!(
+                "lab bridge disconnected while request {}",
+                ANSWERS + 1
+            )),
             "{fault}"
         ),
         other => panic!("expected a pause, got {other:?} ({paused:?})"),

@@ -13,6 +13,7 @@ use serde::{Deserialize, Serialize};
 
 use super::config::FlankPrediction;
 use super::gate_row::GateRow;
+use super::Consistency;
 
 /// The last sweep the model starts from.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -35,6 +36,11 @@ pub(super) struct FlankModel {
     pub(super) skips: u32,
     /// The tuner's failed evaluations when the last sweep was taken.
     pub(super) failed_at_sweep: u64,
+    /// Every sweep that followed skipped ones, against the flank the model
+    /// predicted for it: the parks the level acted on, checked by the next
+    /// real sweep.
+    #[serde(default)]
+    consistency: Consistency,
 }
 
 /// A predicted flank, mV of the swept gate.
@@ -53,6 +59,7 @@ impl FlankModel {
             reference: None,
             skips: 0,
             failed_at_sweep: 0,
+            consistency: Consistency::default(),
         }
     }
 
@@ -70,6 +77,12 @@ impl FlankModel {
         if !(flank_mv.is_finite() && variance.is_finite() && variance >= 0.0) {
             return;
         }
+        if self.skips > 0 {
+            if let Some(f) = self.predict(voltages_mv, noise_mv) {
+                let sigma = (f.std_mv * f.std_mv + variance).sqrt();
+                self.consistency.add(flank_mv - f.flank_mv, sigma);
+            }
+        }
         if let Some(r) = &self.reference {
             let dv = self.row.delta(&r.voltages_mv, voltages_mv);
             self.row.learn(
@@ -84,6 +97,11 @@ impl FlankModel {
             variance,
         });
         self.skips = 0;
+    }
+
+    /// Skipped sweeps, checked by the sweep that followed them.
+    pub(super) fn consistency(&self) -> Consistency {
+        self.consistency
     }
 
     /// The flank predicted at `voltages_mv` (`None` before the first sweep).

@@ -339,6 +339,18 @@ impl Tuner {
         }
     }
 
+    /// How well a sensing-dot level's predicted flanks
+    /// ([`FlankPrediction`]) matched the sweep that followed them:
+    /// normalised innovations (mV); `None` for levels without a prediction.
+    pub fn flank_consistency(&self, level: usize) -> Option<Consistency> {
+        match self.levels.get(level)? {
+            LevelState::SensingDot {
+                flank: Some(model), ..
+            } => Some(model.consistency()),
+            _ => None,
+        }
+    }
+
     /// How well a child level's forecasts ([`ParameterForecast`]) predicted
     /// the scan that followed them: normalised innovations per parameter
     /// (config order); `None` for levels without a forecast.

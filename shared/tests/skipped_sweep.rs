@@ -135,7 +135,10 @@ fn predicted_flanks_are_checked_by_the_next_sweep() {
         "{n} predicted flanks checked by the next sweep: NIS mean {mean:.2}, {beyond} beyond 2σ"
     );
     assert!(n >= 20, "checked: {n}");
-    assert!(beyond * 5 <= n, "{beyond} of {n} beyond 2σ (NIS mean {mean})");
+    assert!(
+        beyond * 5 <= n,
+        "{beyond} of {n} beyond 2σ (NIS mean {mean})"
+    );
 }
 
 #[test]

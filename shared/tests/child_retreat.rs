@@ -5,27 +5,21 @@
 //! compensation put them. The level re-tunes its own lower levels (the
 //! sensing dot) and scans again instead.
 
-use spintune::driver::SimulationConfig;
-use spintune::protocol::{ControlCommand, Request, Response, ScanKind, ScanOutcome};
-use spintune::session::{Output, RunSession, SessionConfig};
-use spintune::tuner::Tuner;
+mod support;
+
+use spintune::protocol::{Request, Response, ScanKind, ScanOutcome};
+use support::{Lab, Next};
 
 /// On `seed`, fail the line scan of the line level's `nth` call after the
 /// first top-level iteration; return the requests between that failure and
 /// the next line scan.
 fn after_a_failed_line_scan(seed: u64, nth: usize) -> Vec<Request> {
-    let mut cfg = SimulationConfig::recommended();
-    cfg.seed = seed;
-    cfg.tuner.max_iterations = Some(80);
-    let mut device = cfg.simulated_device().unwrap();
-    device.seal_truth();
-    let mut session =
-        RunSession::from_tuner(Tuner::new(cfg.tuner).unwrap(), SessionConfig::default());
+    let mut lab = Lab::recommended(seed, 80, |_| {});
     let (mut iterations, mut line_scans, mut failed) = (0, 0, false);
     let mut between = Vec::new();
     loop {
-        match session.poll() {
-            Output::Execute(request) => {
+        match lab.next() {
+            Next::Request(request) => {
                 let line = matches!(&request, Request::Measure { scan }
                     if scan.kind == ScanKind::ChemicalPotential);
                 if failed && line {
@@ -34,7 +28,7 @@ fn after_a_failed_line_scan(seed: u64, nth: usize) -> Vec<Request> {
                 if failed {
                     between.push(request.clone());
                 }
-                let mut response = device.execute(&request);
+                let mut response = lab.execute(&request);
                 if line && iterations >= 1 {
                     line_scans += 1;
                     if line_scans == nth {
@@ -47,27 +41,19 @@ fn after_a_failed_line_scan(seed: u64, nth: usize) -> Vec<Request> {
                         failed = true;
                     }
                 }
-                session.feed(response).unwrap();
+                lab.feed(response);
             }
-            Output::Commit(_) => {
+            Next::Record(_) => {
                 iterations += 1;
                 // a new set point every 4 iterations keeps the levels moving
                 if iterations % 4 == 0 {
                     let (t_sr, w) = [(30.0, 220.0), (20.0, 270.0)][iterations / 4 % 2];
-                    for (p, t) in [("t_sr", t_sr), ("w", w)] {
-                        session
-                            .control(&ControlCommand::SetTarget {
-                                parameter: p.into(),
-                                target: Some(t),
-                                tolerance: None,
-                            })
-                            .unwrap();
-                    }
+                    lab.set_targets(t_sr, w);
                 }
             }
-            Output::Done(_) => panic!("seed {seed}: the run ended before the check ({iterations} iterations, {line_scans} line scans, failed {failed}, {} requests since)", between.len()),
-            Output::Wait => panic!("seed {seed}: run stopped: {:?}", session.status()),
-            Output::Save | Output::Publish(_) | Output::Sleep { .. } => {}
+            Next::Done => panic!(
+                "seed {seed}: the run ended before the check ({iterations} iterations, {line_scans} line scans)"
+            ),
         }
     }
 }

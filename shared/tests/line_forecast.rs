@@ -5,10 +5,12 @@
 //! sit about as close to their targets as with a scan at every call; the
 //! forecast saves line scans; a failed scan makes the next call scan.
 
+mod support;
+
 use spintune::driver::SimulationConfig;
 use spintune::protocol::{EventKind, Request, Response, ScanKind, ScanOutcome};
-use spintune::session::{Output, RunSession, SessionConfig};
-use spintune::tuner::{LevelKind, Tuner};
+use spintune::tuner::LevelKind;
+use support::{mean, Lab, Next};
 
 #[derive(Default)]
 struct Outcome {
@@ -20,49 +22,44 @@ struct Outcome {
     checked: (u64, f64, u64),
 }
 
-fn config(seed: u64, forecast: bool, iterations: u64) -> SimulationConfig {
-    let mut cfg = SimulationConfig::recommended();
-    cfg.seed = seed;
-    cfg.tuner.max_iterations = Some(iterations);
-    let idx = cfg.tuner.level_index("chemical_potential").unwrap();
-    let LevelKind::Newton(n) = &mut cfg.tuner.levels[idx].kind else {
-        unreachable!("the recommended config's line level")
-    };
-    assert!(n.forecast.is_some(), "the recommended config forecasts");
-    if !forecast {
-        n.forecast = None;
-    }
-    cfg
+/// The recommended config, with the line level's forecast on or off.
+fn lab(seed: u64, forecast: bool, iterations: u64) -> Lab {
+    Lab::recommended(seed, iterations, |cfg: &mut SimulationConfig| {
+        let idx = cfg.tuner.level_index("chemical_potential").unwrap();
+        let LevelKind::Newton(n) = &mut cfg.tuner.levels[idx].kind else {
+            unreachable!("the recommended config's line level")
+        };
+        assert!(n.forecast.is_some(), "the recommended config forecasts");
+        if !forecast {
+            n.forecast = None;
+        }
+    })
 }
 
 /// Drive the recommended config on `seed` for `iterations` top-level
-/// iterations, through the paper's set points (a new one every 8).
+/// iterations, with new targets every 8.
 fn drive(seed: u64, forecast: bool, iterations: u64) -> Outcome {
-    let cfg = config(seed, forecast, iterations);
-    let mut device = cfg.simulated_device().unwrap();
-    device.seal_truth();
-    let mut session =
-        RunSession::from_tuner(Tuner::new(cfg.tuner).unwrap(), SessionConfig::default());
+    let mut lab = lab(seed, forecast, iterations);
     let mut out = Outcome::default();
     let mut done = 0;
     loop {
-        match session.poll() {
-            Output::Execute(request) => {
+        match lab.next() {
+            Next::Request(request) => {
                 let kind = match &request {
                     Request::Measure { scan } => Some(scan.kind),
                     _ => None,
                 };
                 if kind == Some(ScanKind::TransitionWidth) {
                     // where the lines truly are, with the drift the scans see
-                    let (t, d) = (device.truth(), device.drift());
+                    let (t, d) = (lab.device.truth(), lab.device.drift());
                     let (a, b) = (t.mu_a_mv + d.mu_a_mv, t.mu_b_mv + d.mu_b_mv);
                     out.offsets_mv.push(a.abs().max(b.abs()));
                 }
                 out.line_scans += u64::from(kind == Some(ScanKind::ChemicalPotential));
-                let response = device.execute(&request);
-                session.feed(response).unwrap();
+                let response = lab.execute(&request);
+                lab.feed(response);
             }
-            Output::Commit(record) => {
+            Next::Record(record) => {
                 out.forecast_calls += record
                     .events
                     .iter()
@@ -70,7 +67,7 @@ fn drive(seed: u64, forecast: bool, iterations: u64) -> Outcome {
                     .count() as u64;
                 done += 1;
                 if done >= iterations {
-                    let tuner = session.tuner();
+                    let tuner = lab.session.tuner();
                     let level = tuner.config().level_index("chemical_potential").unwrap();
                     for c in tuner.forecast_consistency(level).unwrap_or_default() {
                         out.checked.0 += c.count;
@@ -82,26 +79,12 @@ fn drive(seed: u64, forecast: bool, iterations: u64) -> Outcome {
                 if done % 8 == 0 {
                     let (t_sr, w) =
                         [(14.0, 300.0), (20.0, 350.0), (30.0, 270.0)][(done / 8 - 1) as usize % 3];
-                    for (p, t) in [("t_sr", t_sr), ("w", w)] {
-                        session
-                            .control(&spintune::protocol::ControlCommand::SetTarget {
-                                parameter: p.into(),
-                                target: Some(t),
-                                tolerance: None,
-                            })
-                            .unwrap();
-                    }
+                    lab.set_targets(t_sr, w);
                 }
             }
-            Output::Done(_) => return out,
-            Output::Wait => panic!("seed {seed}: run stopped: {:?}", session.status()),
-            Output::Save | Output::Publish(_) | Output::Sleep { .. } => {}
+            Next::Done => return out,
         }
     }
-}
-
-fn mean(v: &[f64]) -> f64 {
-    v.iter().sum::<f64>() / v.len() as f64
 }
 
 #[test]
@@ -164,23 +147,19 @@ fn the_lines_stay_near_their_targets_and_fewer_scans_are_taken() {
 #[test]
 fn a_failed_scan_makes_the_next_line_call_scan() {
     for seed in 1..=4 {
-        let cfg = config(seed, true, 40);
-        let mut device = cfg.simulated_device().unwrap();
-        device.seal_truth();
-        let mut session =
-            RunSession::from_tuner(Tuner::new(cfg.tuner).unwrap(), SessionConfig::default());
+        let mut lab = lab(seed, true, 40);
         // 0: until an iteration forecast; 1: fail the next w scan; 2: until that
         // iteration ends; 3: watch the next one
         let mut phase = 0;
         let mut forecast_in_iteration = false;
         let verdict = loop {
-            match session.poll() {
-                Output::Execute(request) => {
+            match lab.next() {
+                Next::Request(request) => {
                     let kind = match &request {
                         Request::Measure { scan } => Some(scan.kind),
                         _ => None,
                     };
-                    let mut response = device.execute(&request);
+                    let mut response = lab.execute(&request);
                     if phase == 1 && kind == Some(ScanKind::TransitionWidth) {
                         response = Response::Scanned {
                             outcome: ScanOutcome::Failed {
@@ -193,9 +172,9 @@ fn a_failed_scan_makes_the_next_line_call_scan() {
                     if phase == 3 && kind == Some(ScanKind::ChemicalPotential) {
                         forecast_in_iteration = false;
                     }
-                    session.feed(response).unwrap();
+                    lab.feed(response);
                 }
-                Output::Commit(record) => {
+                Next::Record(record) => {
                     let forecast = record
                         .events
                         .iter()
@@ -210,9 +189,7 @@ fn a_failed_scan_makes_the_next_line_call_scan() {
                         _ => {}
                     }
                 }
-                Output::Done(_) => panic!("seed {seed}: the run ended before the check"),
-                Output::Wait => panic!("seed {seed}: run stopped: {:?}", session.status()),
-                Output::Save | Output::Publish(_) | Output::Sleep { .. } => {}
+                Next::Done => panic!("seed {seed}: the run ended before the check"),
             }
         };
         assert!(

@@ -5,10 +5,12 @@
 //! as well as where a sweep put it; skipping happens, and saves sweeps
 //! against the same run that always sweeps.
 
+mod support;
+
 use spintune::driver::SimulationConfig;
 use spintune::protocol::{Request, Response, ScanKind, ScanOutcome};
-use spintune::session::{Output, RunSession, SessionConfig};
-use spintune::tuner::{LevelKind, Tuner};
+use spintune::tuner::LevelKind;
+use support::{mean, Lab, Next};
 
 #[derive(Default)]
 struct Outcome {
@@ -21,39 +23,39 @@ struct Outcome {
     sweeps: u64,
 }
 
+/// The recommended config on `seed`, with the flank prediction on or off.
+fn lab(seed: u64, predict: bool, iterations: u64) -> Lab {
+    Lab::recommended(seed, iterations, |cfg: &mut SimulationConfig| {
+        let idx = cfg.tuner.level_index("sensing_dot").unwrap();
+        let LevelKind::SensingDot(sd) = &mut cfg.tuner.levels[idx].kind else {
+            unreachable!("the recommended config's sensing-dot level")
+        };
+        assert!(sd.prediction.is_some(), "the recommended config predicts");
+        assert_eq!(sd.gate, "SD1");
+        if !predict {
+            sd.prediction = None;
+        }
+    })
+}
+
 /// Drive the recommended config on `seed` for `iterations` top-level
 /// iterations. A park is a set of the sensing gate alone; it follows a
 /// sweep (the level found the flank) or not (the level predicted it).
 fn drive(seed: u64, predict: bool, iterations: u64) -> Outcome {
-    let mut cfg = SimulationConfig::recommended();
-    cfg.seed = seed;
-    cfg.tuner.max_iterations = Some(iterations);
-    let idx = cfg.tuner.level_index("sensing_dot").unwrap();
-    let LevelKind::SensingDot(sd) = &mut cfg.tuner.levels[idx].kind else {
-        unreachable!("the recommended config's sensing-dot level")
-    };
-    assert!(sd.prediction.is_some(), "the recommended config predicts");
-    if !predict {
-        sd.prediction = None;
-    }
-    let gate = sd.gate.clone();
-    let mut device = cfg.simulated_device().unwrap();
-    device.seal_truth();
-    let mut session =
-        RunSession::from_tuner(Tuner::new(cfg.tuner).unwrap(), SessionConfig::default());
+    let mut lab = lab(seed, predict, iterations);
     let mut out = Outcome::default();
     let mut last_was_sweep = false;
     let mut done = 0;
     loop {
-        match session.poll() {
-            Output::Execute(request) => {
+        match lab.next() {
+            Next::Request(request) => {
                 let park = matches!(&request, Request::SetVoltages { voltages_mv }
-                    if voltages_mv.len() == 1 && voltages_mv.contains_key(&gate));
+                    if voltages_mv.len() == 1 && voltages_mv.contains_key("SD1"));
                 let sweep = matches!(&request, Request::Measure { scan }
                     if scan.kind == ScanKind::SensingDot);
-                let response = device.execute(&request);
+                let response = lab.execute(&request);
                 if park {
-                    let contrast = device.truth().sd_contrast;
+                    let contrast = lab.device.truth().sd_contrast;
                     if last_was_sweep {
                         out.swept.push(contrast);
                     } else {
@@ -65,12 +67,12 @@ fn drive(seed: u64, predict: bool, iterations: u64) -> Outcome {
                 if !matches!(request, Request::ReadVoltages { .. }) {
                     last_was_sweep = sweep;
                 }
-                session.feed(response).unwrap();
+                lab.feed(response);
             }
-            Output::Commit(_) => {
+            Next::Record(_) => {
                 done += 1;
                 if done >= iterations {
-                    let tuner = session.tuner();
+                    let tuner = lab.session.tuner();
                     let level = tuner.config().level_index("sensing_dot").unwrap();
                     if let Some(c) = tuner.flank_consistency(level) {
                         out.checked = (c.count, c.nis_sum, c.beyond_2sigma);
@@ -78,15 +80,9 @@ fn drive(seed: u64, predict: bool, iterations: u64) -> Outcome {
                     return out;
                 }
             }
-            Output::Done(_) => return out,
-            Output::Wait => panic!("seed {seed}: run stopped: {:?}", session.status()),
-            Output::Save | Output::Publish(_) | Output::Sleep { .. } => {}
+            Next::Done => return out,
         }
     }
-}
-
-fn mean(v: &[f64]) -> f64 {
-    v.iter().sum::<f64>() / v.len() as f64
 }
 
 #[test]
@@ -161,21 +157,12 @@ fn predicting_the_flank_saves_sweeps() {
 #[test]
 fn a_failed_scan_makes_the_next_sensing_dot_call_sweep() {
     for seed in 1..=4 {
-        let cfg = {
-            let mut c = SimulationConfig::recommended();
-            c.seed = seed;
-            c.tuner.max_iterations = Some(25);
-            c
-        };
-        let mut device = cfg.simulated_device().unwrap();
-        device.seal_truth();
-        let mut session =
-            RunSession::from_tuner(Tuner::new(cfg.tuner).unwrap(), SessionConfig::default());
+        let mut lab = lab(seed, true, 25);
         // 0: until a park without a sweep; 1: fail the next w scan; 2: watch
         let (mut phase, mut last_was_sweep) = (0, false);
         let verdict = loop {
-            match session.poll() {
-                Output::Execute(request) => {
+            match lab.next() {
+                Next::Request(request) => {
                     let park = matches!(&request, Request::SetVoltages { voltages_mv }
                         if voltages_mv.len() == 1 && voltages_mv.contains_key("SD1"));
                     let kind = match &request {
@@ -186,7 +173,7 @@ fn a_failed_scan_makes_the_next_sensing_dot_call_sweep() {
                     if phase == 2 && (sweep || (park && !last_was_sweep)) {
                         break sweep;
                     }
-                    let mut response = device.execute(&request);
+                    let mut response = lab.execute(&request);
                     if phase == 0 && park && !last_was_sweep {
                         phase = 1;
                     } else if phase == 1 && kind == Some(ScanKind::TransitionWidth) {
@@ -201,11 +188,10 @@ fn a_failed_scan_makes_the_next_sensing_dot_call_sweep() {
                     if !matches!(request, Request::ReadVoltages { .. }) {
                         last_was_sweep = sweep;
                     }
-                    session.feed(response).unwrap();
+                    lab.feed(response);
                 }
-                Output::Done(_) => panic!("seed {seed}: the run ended before the check"),
-                Output::Wait => panic!("seed {seed}: run stopped: {:?}", session.status()),
-                Output::Commit(_) | Output::Save | Output::Publish(_) | Output::Sleep { .. } => {}
+                Next::Done => panic!("seed {seed}: the run ended before the check"),
+                Next::Record(_) => {}
             }
         };
         assert!(

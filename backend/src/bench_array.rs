@@ -51,6 +51,11 @@ pub struct BenchArrayArgs {
     /// Worker threads (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
+    /// `joint`/`oracle`: correct a cell's plungers from its lines'
+    /// forecast before the line scan when the forecast puts a line beyond
+    /// this many mV (0 < MV ≤ 4; 0 turns it off) [default: the protocol's, 1].
+    #[arg(long)]
+    pub precorrect_lines_mv: Option<f64>,
     /// Write machine-readable results here.
     #[arg(long)]
     pub json: Option<PathBuf>,
@@ -87,10 +92,13 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
         )));
     }
     let strategies = parse_strategies(&args.strategies)?;
-    let protocol = ArrayProtocol::default();
+    let mut protocol = ArrayProtocol::default();
+    if let Some(mv) = args.precorrect_lines_mv {
+        protocol.precorrect_lines_mv = (mv != 0.0).then_some(mv);
+    }
     protocol
         .validate()
-        .map_err(|e| CliError::input(e.to_string()))?;
+        .map_err(|e| CliError::input(format!("--precorrect-lines-mv: {e}")))?;
     let base = SimulationConfig::paper_default();
     let bench_protocol = BenchmarkProtocol::default();
     let (devices, random_devices) = select_devices(

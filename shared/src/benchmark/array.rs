@@ -59,7 +59,8 @@ use crate::session::{Output, RunSession, SessionConfig};
 use crate::sim::array::{gate_name, parameter_name, ArrayConfig, ArrayDevice};
 use crate::sim::DeviceConfig;
 use crate::tuner::array::{CellKnowledge, JointArrayTuner, JointConfig, Measured};
-use crate::tuner::{InitialGradient, LevelKind, Tuner, TunerConfig};
+use crate::tuner::level_forecast::{compensation_columns, LevelForecast};
+use crate::tuner::{InitialGradient, LevelKind, ParameterForecast, Tuner, TunerConfig};
 
 /// A strategy of the array benchmark (module docs).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
@@ -136,6 +137,13 @@ pub struct ArrayProtocol {
     pub moves_per_iteration: u32,
     /// Band of the lines, mV (0 < b ≤ 1).
     pub line_tolerance_mv: f64,
+    /// `joint`/`oracle`: before a cell's line scan, correct its plungers
+    /// from the lines' forecast when it puts a line beyond this, mV
+    /// (0 < value ≤ 4, the scan's half-window; `None`: never). Default 1:
+    /// chosen on random arrays (docs/array.md, "Lines corrected before
+    /// their scan").
+    #[serde(default)]
+    pub precorrect_lines_mv: Option<f64>,
 }
 
 impl Default for ArrayProtocol {
@@ -153,6 +161,7 @@ impl Default for ArrayProtocol {
             moves_per_iteration: 1,
             cross_compensation_error: 0.2,
             line_tolerance_mv: 0.1,
+            precorrect_lines_mv: Some(1.0),
         }
     }
 }
@@ -228,6 +237,13 @@ impl ArrayProtocol {
             "cross_compensation_error",
             e.to_string(),
         )?;
+        if let Some(p) = self.precorrect_lines_mv {
+            check(
+                p.is_finite() && p > 0.0 && p <= 4.0,
+                "precorrect_lines_mv",
+                p.to_string(),
+            )?;
+        }
         let l = self.line_tolerance_mv;
         check(
             l.is_finite() && l > 0.0 && l <= 1.0,
@@ -752,6 +768,10 @@ struct CellLower {
     line_jacobian: [[f64; 2]; 2],
     line_max_step_mv: f64,
     references: References,
+    /// The lines as a learned function of the neighbourhood's gates
+    /// ([`LevelForecast`], centred on the cell's virtual-gate matrix): where
+    /// a move took them, so that a far shift is corrected before the scan.
+    lines: LevelForecast,
 }
 
 /// The joint (and oracle) loop: see the module docs.
@@ -817,6 +837,7 @@ impl JointRun {
                 line_jacobian: [[0.0; 2]; 2],
                 line_max_step_mv: 0.0,
                 references: cfg.fit_references,
+                lines: LevelForecast::new(Vec::new(), 2, 0.1, Vec::new()),
             };
             for level in cfg.levels.iter().skip(1) {
                 match &level.kind {
@@ -839,6 +860,31 @@ impl JointRun {
                     LevelKind::Newton(_) => {}
                 }
             }
+            // the lines' model sees the own and the nearest cells' gates
+            let c = run.cell;
+            let near: Vec<String> = lab
+                .device
+                .voltages_mv()
+                .keys()
+                .filter(|g| {
+                    crate::sim::array::split_gate(g).is_some_and(|(k, _)| k.abs_diff(c) <= 1)
+                        && !l.line_gates.contains(g)
+                })
+                .cloned()
+                .collect();
+            let own = cells.last().expect("pushed above");
+            let centre = own
+                .compensation
+                .as_ref()
+                .map_or_else(Vec::new, |(rows, m)| {
+                    compensation_columns(&own.gates, rows, m, &l.line_gates)
+                });
+            l.lines = LevelForecast::new(
+                near,
+                2,
+                ParameterForecast::default().prior_lever_per_mv,
+                centre,
+            );
             lower.push(l);
         }
         let mut tuner = JointArrayTuner::new(cells, &protocol.joint, lab_lambda)?;
@@ -1087,10 +1133,26 @@ impl JointRun {
     }
 
     /// After a move: re-park each moved cell's sensing dot, re-centre its
-    /// lines (up to `line_rounds`, re-parking after each line move).
+    /// lines (up to `line_rounds`, re-parking after each line move). Before
+    /// the first scan, a cell whose lines the forecast puts beyond
+    /// [`ArrayProtocol::precorrect_lines_mv`] is corrected from the forecast
+    /// first, so that the scan still sees them (its window is ±4 mV).
     fn lower_levels(&mut self, lab: &mut Lab, cells: &[u32], protocol: &ArrayProtocol) {
         self.park_sensors(lab, cells);
         let mut todo: Vec<u32> = cells.to_vec();
+        if let Some(limit) = protocol.precorrect_lines_mv {
+            let v = lab.device.voltages_mv();
+            let sets: Vec<Request> = todo
+                .iter()
+                .filter_map(|&c| {
+                    let mu = self.line_forecast(c as usize, &v)?;
+                    (mu.iter().any(|m| m.abs() > limit))
+                        .then(|| self.line_step(lab, c as usize, mu, &v))
+                        .flatten()
+                })
+                .collect();
+            lab.batch(&sets);
+        }
         for _ in 0..protocol.line_rounds {
             if todo.is_empty() {
                 break;
@@ -1110,7 +1172,6 @@ impl JointRun {
             let mut sets = Vec::new();
             let mut moved = Vec::new();
             for (&c, a) in todo.iter().zip(&answers) {
-                let l = &self.lower[c as usize];
                 let (Some(a_mv), Some(b_mv)) = (
                     self.evaluate(c as usize, a, "mu_a_mv"),
                     self.evaluate(c as usize, a, "mu_b_mv"),
@@ -1118,36 +1179,92 @@ impl JointRun {
                     self.failed_fits += 1;
                     continue;
                 };
+                self.observe_lines(c as usize, [a_mv, b_mv], &v);
                 let mu = [a_mv.0, b_mv.0];
                 if mu.iter().all(|m| m.abs() <= protocol.line_tolerance_mv) {
                     continue;
                 }
-                let [[a, b], [cc, d]] = l.line_jacobian;
-                let det = a * d - b * cc;
-                if !(det.is_finite() && det.abs() > 1e-12) || l.line_gates.len() != 2 {
-                    continue;
+                if let Some(set) = self.line_step(lab, c as usize, mu, &v) {
+                    sets.push(set);
+                    moved.push(c);
                 }
-                let mut dp = [
-                    -(d * mu[0] - b * mu[1]) / det,
-                    -(-cc * mu[0] + a * mu[1]) / det,
-                ];
-                let norm = dp[0].hypot(dp[1]);
-                if norm > l.line_max_step_mv {
-                    dp.iter_mut().for_each(|x| *x *= l.line_max_step_mv / norm);
-                }
-                let mut set = BTreeMap::new();
-                for (g, d) in l.line_gates.iter().zip(dp) {
-                    if let Some(&now) = v.get(g) {
-                        set.insert(g.clone(), lab.limits().clip(g, now, now + d));
-                    }
-                }
-                sets.push(Request::SetVoltages { voltages_mv: set });
-                moved.push(c);
             }
             lab.batch(&sets);
             self.park_sensors(lab, &moved);
             todo = moved;
         }
+    }
+
+    /// The cell's lines `[mu_a, mu_b]` (mV) forecast at `v` (`None` before
+    /// its first line scan).
+    fn line_forecast(&self, cell: usize, v: &BTreeMap<String, f64>) -> Option<[f64; 2]> {
+        let l = &self.lower[cell];
+        let own: Vec<f64> = l
+            .line_gates
+            .iter()
+            .map(|g| v.get(g).copied().unwrap_or(0.0))
+            .collect();
+        let noise = ParameterForecast::default().noise;
+        let p = l.lines.predict(&own, v, &self.line_rows(cell), noise)?;
+        Some([
+            p.first().copied().flatten()?.0,
+            p.get(1).copied().flatten()?.0,
+        ])
+    }
+
+    /// The cell's line Jacobian as the forecast's own-gate rows.
+    fn line_rows(&self, cell: usize) -> Vec<crate::tuner::GradientRow> {
+        self.lower[cell]
+            .line_jacobian
+            .iter()
+            .map(|r| (nalgebra::DVector::from_row_slice(r), None))
+            .collect()
+    }
+
+    /// A line scan of `cell` at `v`: the forecast learns from it.
+    fn observe_lines(&mut self, cell: usize, mu: [Measured; 2], v: &BTreeMap<String, f64>) {
+        let rows = self.line_rows(cell);
+        let l = &mut self.lower[cell];
+        let own: Vec<f64> = l
+            .line_gates
+            .iter()
+            .map(|g| v.get(g).copied().unwrap_or(0.0))
+            .collect();
+        let noise = ParameterForecast::default().noise;
+        l.lines
+            .observe(&own, v, &[Some(mu[0]), Some(mu[1])], &rows, noise);
+    }
+
+    /// The limited plunger correction that cancels `mu` (mV) with the
+    /// cell's line Jacobian, as a set request (`None` if singular).
+    fn line_step(
+        &self,
+        lab: &Lab,
+        cell: usize,
+        mu: [f64; 2],
+        v: &BTreeMap<String, f64>,
+    ) -> Option<Request> {
+        let l = &self.lower[cell];
+        let [[a, b], [cc, d]] = l.line_jacobian;
+        let det = a * d - b * cc;
+        if !(det.is_finite() && det.abs() > 1e-12) || l.line_gates.len() != 2 {
+            return None;
+        }
+        let mut dp = [
+            -(d * mu[0] - b * mu[1]) / det,
+            -(-cc * mu[0] + a * mu[1]) / det,
+        ];
+        let norm = dp[0].hypot(dp[1]);
+        if norm > l.line_max_step_mv {
+            dp.iter_mut().for_each(|x| *x *= l.line_max_step_mv / norm);
+        }
+        let mut set = BTreeMap::new();
+        for (g, d) in l.line_gates.iter().zip(dp) {
+            if let Some(&now) = v.get(g) {
+                set.insert(g.clone(), lab.limits().clip(g, now, now + d));
+            }
+        }
+        Some(Request::SetVoltages { voltages_mv: set })
     }
 
     /// Sweep each cell's sensing gate around its present voltage and park it

@@ -39,7 +39,7 @@ struct ScanReference {
 
 /// Online model of a child level's parameters; plain data (tuner state).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub(super) struct LevelForecast {
+pub(crate) struct LevelForecast {
     /// One row per parameter (config order) over the gates outside the level.
     rows: Vec<GateRow>,
     reference: Option<ScanReference>,
@@ -64,6 +64,38 @@ pub(super) struct LevelForecast {
     centred: bool,
 }
 
+/// The columns of a virtual-gate matrix that move `onto` (a lower level's
+/// gates): per compensated gate (`gates[j]`, e.g. a qubit gate), that gate
+/// and the moves of `onto` (mV, in their order) per mV of it; `rows` are
+/// the matrix's gates (e.g. the plungers), `matrix[r][j]` mV per mV. Gates
+/// whose column leaves `onto` alone are left out.
+pub(crate) fn compensation_columns(
+    gates: &[String],
+    rows: &[String],
+    matrix: &[Vec<f64>],
+    onto: &[String],
+) -> Vec<(String, Vec<f64>)> {
+    gates
+        .iter()
+        .enumerate()
+        .filter_map(|(j, gate)| {
+            let column: Vec<f64> = onto
+                .iter()
+                .map(|g| {
+                    rows.iter()
+                        .position(|r| r == g)
+                        .and_then(|r| matrix.get(r)?.get(j).copied())
+                        .unwrap_or(0.0)
+                })
+                .collect();
+            column
+                .iter()
+                .any(|x| *x != 0.0)
+                .then(|| (gate.clone(), column))
+        })
+        .collect()
+}
+
 /// `(g·Δv, Δvᵀ C Δv)` of one own-gate row (no covariance: exact).
 fn own_shift(row: &GradientRow, dv: &DVector<f64>) -> (f64, f64) {
     let mean = row.0.dot(dv);
@@ -75,7 +107,7 @@ impl LevelForecast {
     /// A model of `parameters` parameters over `other_gates` with a prior
     /// lever of `prior_per_mv` (estimator units per mV) per gate, centred on
     /// `compensation` (see the module docs).
-    pub(super) fn new(
+    pub(crate) fn new(
         other_gates: Vec<String>,
         parameters: usize,
         prior_per_mv: f64,
@@ -107,7 +139,7 @@ impl LevelForecast {
     /// other gates' levers from what the own Jacobian `own_rows` does not
     /// explain since the last scan, then start from this one. `noise` is the
     /// scatter between scans no gate explains (estimator units).
-    pub(super) fn observe(
+    pub(crate) fn observe(
         &mut self,
         own_mv: &[f64],
         voltages_mv: &BTreeMap<String, f64>,
@@ -182,7 +214,7 @@ impl LevelForecast {
     /// Every parameter predicted at `own_mv` / `voltages_mv` (estimator
     /// space, value and variance); `None` per parameter the last scan did
     /// not measure, and `None` before the first scan.
-    pub(super) fn predict(
+    pub(crate) fn predict(
         &self,
         own_mv: &[f64],
         voltages_mv: &BTreeMap<String, f64>,

@@ -36,7 +36,7 @@ mod flank;
 mod gate_row;
 mod keep;
 mod keep_tally;
-mod level_forecast;
+pub(crate) mod level_forecast;
 mod newton;
 
 use std::collections::{BTreeMap, VecDeque};
@@ -963,29 +963,17 @@ impl Tuner {
 /// virtual-gate matrix): that gate and the moves of `gates` (mV, in their
 /// order) per mV of it.
 fn compensation_onto(config: &TunerConfig, gates: &[String]) -> Vec<(String, Vec<f64>)> {
-    let mut out = Vec::new();
-    for l in &config.levels {
-        let LevelKind::Newton(n) = &l.kind else {
-            continue;
-        };
-        let Some(c) = &n.compensation else { continue };
-        for (j, parent_gate) in n.gates.iter().enumerate() {
-            let column: Vec<f64> = gates
-                .iter()
-                .map(|g| {
-                    c.gates
-                        .iter()
-                        .position(|cg| cg == g)
-                        .and_then(|r| c.matrix.get(r)?.get(j).copied())
-                        .unwrap_or(0.0)
-                })
-                .collect();
-            if column.iter().any(|x| *x != 0.0) {
-                out.push((parent_gate.clone(), column));
-            }
-        }
-    }
-    out
+    config
+        .levels
+        .iter()
+        .filter_map(|l| match &l.kind {
+            LevelKind::Newton(n) => n.compensation.as_ref().map(|c| (n, c)),
+            LevelKind::SensingDot(_) => None,
+        })
+        .flat_map(|(n, c)| {
+            level_forecast::compensation_columns(&n.gates, &c.gates, &c.matrix, gates)
+        })
+        .collect()
 }
 
 /// Turn a device's scan outcome into validated parameter values and a display

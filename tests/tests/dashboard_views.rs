@@ -126,9 +126,17 @@ async fn y_range_of_a_parameter_chart(c: &Client) {
         (num(c, TSR, "data-y0").await == lo && num(c, TSR, "data-y1").await == hi).then_some(())
     })
     .await;
+    // one read of both: the run is live, and a frame drawn between two
+    // reads would pair one render's count with the next one's
+    let v = js(
+        c,
+        "const ch = document.querySelector('canvas[data-chart=parameter-t_sr]');
+         return [Number(ch.getAttribute('data-pinned')), Number(ch.getAttribute('data-points'))];",
+    )
+    .await;
     let (pinned, points) = (
-        num(c, TSR, "data-pinned").await,
-        num(c, TSR, "data-points").await,
+        v[0].as_f64().unwrap_or(f64::NAN),
+        v[1].as_f64().unwrap_or(f64::NAN),
     );
     assert!(
         points >= 1.0 && pinned == points,

@@ -774,6 +774,16 @@ struct CellLower {
     lines: LevelForecast,
 }
 
+impl CellLower {
+    /// The cell's line gates at `v`, mV (their order; a missing gate as 0).
+    fn line_mv(&self, v: &BTreeMap<String, f64>) -> Vec<f64> {
+        self.line_gates
+            .iter()
+            .map(|g| v.get(g).copied().unwrap_or(0.0))
+            .collect()
+    }
+}
+
 /// The joint (and oracle) loop: see the module docs.
 struct JointRun {
     tuner: JointArrayTuner,
@@ -1199,11 +1209,7 @@ impl JointRun {
     /// its first line scan).
     fn line_forecast(&self, cell: usize, v: &BTreeMap<String, f64>) -> Option<[f64; 2]> {
         let l = &self.lower[cell];
-        let own: Vec<f64> = l
-            .line_gates
-            .iter()
-            .map(|g| v.get(g).copied().unwrap_or(0.0))
-            .collect();
+        let own = l.line_mv(v);
         let noise = ParameterForecast::default().noise;
         let p = l.lines.predict(&own, v, &self.line_rows(cell), noise)?;
         Some([
@@ -1225,11 +1231,7 @@ impl JointRun {
     fn observe_lines(&mut self, cell: usize, mu: [Measured; 2], v: &BTreeMap<String, f64>) {
         let rows = self.line_rows(cell);
         let l = &mut self.lower[cell];
-        let own: Vec<f64> = l
-            .line_gates
-            .iter()
-            .map(|g| v.get(g).copied().unwrap_or(0.0))
-            .collect();
+        let own = l.line_mv(v);
         let noise = ParameterForecast::default().noise;
         l.lines
             .observe(&own, v, &[Some(mu[0]), Some(mu[1])], &rows, noise);

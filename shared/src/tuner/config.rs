@@ -200,9 +200,6 @@ impl Default for ParameterForecast {
 impl ParameterForecast {
     /// Check the bounds; the error names the field (relative to the level).
     pub fn validate(&self) -> Result<(), ConfigError> {
-        let within = |x: f64, lo_open: bool, hi: f64| {
-            x.is_finite() && (if lo_open { x > 0.0 } else { x >= 0.0 }) && x <= hi
-        };
         if !within(self.skip_std, true, 1000.0) {
             return Err(ConfigError::new(
                 "forecast.skip_std",
@@ -371,6 +368,12 @@ pub struct FlankPrediction {
     pub max_skips: u32,
 }
 
+/// Whether `x` is finite, above 0 (`lo_open`) or at least 0, and at most `hi`:
+/// the bounds of the prediction settings.
+fn within(x: f64, lo_open: bool, hi: f64) -> bool {
+    x.is_finite() && (if lo_open { x > 0.0 } else { x >= 0.0 }) && x <= hi
+}
+
 /// Upper bound on [`FlankPrediction::max_skips`].
 pub const MAX_FLANK_SKIPS: u32 = 100;
 
@@ -403,9 +406,6 @@ impl Default for FlankPrediction {
 impl FlankPrediction {
     /// Check the bounds; the error names the field (relative to the level).
     pub fn validate(&self) -> Result<(), (&'static str, String)> {
-        let within = |x: f64, lo_open: bool, hi: f64| {
-            x.is_finite() && (if lo_open { x > 0.0 } else { x >= 0.0 }) && x <= hi
-        };
         if !within(self.skip_std_mv, true, 10.0) {
             return Err(("prediction.skip_std_mv", "must be > 0 and ≤ 10 mV".into()));
         }

@@ -42,25 +42,20 @@
 //! (commanded) voltage, counted in `limit_violations` and refused. The
 //! strategies see only responses.
 
-use std::collections::BTreeMap;
-
 use serde::{Deserialize, Serialize};
 
 use super::{quantiles, Quantiles, PAPER_SET_POINTS};
 use crate::config_error::ConfigError;
 use crate::driver::SimulationConfig;
-use crate::fit::{evaluate_with, uncertainty::References};
 use crate::parameter::Tolerance;
-use crate::protocol::{
-    ControlCommand, IterationRecord, Request, Response, ScanKind, ScanOutcome, ScanRequest, Sweep,
-};
+use crate::protocol::{ControlCommand, IterationRecord, Request, Response};
 use crate::safety::SafetyLimits;
 use crate::session::{Output, RunSession, SessionConfig};
-use crate::sim::array::{gate_name, parameter_name, ArrayConfig, ArrayDevice};
+use crate::sim::array::{gate_name, ArrayConfig, ArrayDevice};
 use crate::sim::DeviceConfig;
-use crate::tuner::array::{CellKnowledge, JointArrayTuner, JointConfig, Measured};
-use crate::tuner::level_forecast::{compensation_columns, LevelForecast};
-use crate::tuner::{InitialGradient, LevelKind, ParameterForecast, Tuner, TunerConfig};
+use crate::tuner::array::JointConfig;
+use crate::tuner::array_run::{ArrayAction, ArrayRun, ArrayRunError, ArrayRunSettings};
+use crate::tuner::{LevelKind, Tuner, TunerConfig};
 
 /// A strategy of the array benchmark (module docs).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
@@ -196,12 +191,6 @@ impl ArrayProtocol {
                 format!("({t} ns, {w} µV) (t_sr 1..=1000 ns, w 10..=2000 µV)"),
             )?;
         }
-        let b = self.relative_tolerance;
-        check(
-            b.is_finite() && b > 0.0 && b <= 0.5,
-            "relative_tolerance",
-            b.to_string(),
-        )?;
         for (field, v) in [
             ("iterations_per_change", self.iterations_per_change),
             (
@@ -221,36 +210,25 @@ impl ArrayProtocol {
             "single_cell_changes",
             self.single_cell_changes.to_string(),
         )?;
-        check(
-            self.line_rounds <= 5,
-            "line_rounds",
-            self.line_rounds.to_string(),
-        )?;
-        check(
-            (1..=4).contains(&self.moves_per_iteration),
-            "moves_per_iteration",
-            self.moves_per_iteration.to_string(),
-        )?;
         let e = self.cross_compensation_error;
         check(
             e.is_finite() && (0.0..=1.0).contains(&e),
             "cross_compensation_error",
             e.to_string(),
         )?;
-        if let Some(p) = self.precorrect_lines_mv {
-            check(
-                p.is_finite() && p > 0.0 && p <= 4.0,
-                "precorrect_lines_mv",
-                p.to_string(),
-            )?;
+        self.run_settings().validate()
+    }
+
+    /// The joint loop's settings ([`ArrayRun`]) of this protocol.
+    pub fn run_settings(&self) -> ArrayRunSettings {
+        ArrayRunSettings {
+            relative_tolerance: self.relative_tolerance,
+            joint: self.joint.clone(),
+            line_rounds: self.line_rounds,
+            moves_per_iteration: self.moves_per_iteration,
+            line_tolerance_mv: self.line_tolerance_mv,
+            precorrect_lines_mv: self.precorrect_lines_mv,
         }
-        let l = self.line_tolerance_mv;
-        check(
-            l.is_finite() && l > 0.0 && l <= 1.0,
-            "line_tolerance_mv",
-            l.to_string(),
-        )?;
-        self.joint.validate()
     }
 }
 
@@ -287,6 +265,9 @@ pub enum ArrayFailure {
     /// A configuration the core refused.
     #[error("invalid configuration: {0}")]
     Config(#[from] ConfigError),
+    /// The joint loop stopped.
+    #[error(transparent)]
+    Run(#[from] ArrayRunError),
     /// A cell's session faulted or waits (a refused request, a device error).
     #[error("cell {cell}: session halted: {message}")]
     Halted {
@@ -688,39 +669,44 @@ pub fn run_strategy(
         }
         ArrayStrategy::Joint | ArrayStrategy::Oracle => {
             let lab_lambda = lab_cross_calibration(lab.device.config(), protocol, seed);
-            let mut joint = JointRun::start(&mut lab, &mut runs, protocol, lab_lambda)?;
-            // until every cell is in band, lab minutes since `t0` (None: not within `cap`)
-            let mut go = |lab: &mut Lab, targets: &[_], cap: u32, t0: Option<f64>| {
-                let t0 = t0.unwrap_or_else(|| lab.minutes());
-                joint.until_in_band(lab, targets, strategy, protocol, cap, t0)
-            };
-            // the cold start counts from the run's start (initial measurements included)
-            result.cold_start_lab_minutes = go(
-                &mut lab,
-                &targets,
-                2 * protocol.iterations_per_change,
-                Some(0.0),
+            let cells = (0..k).map(|c| cell_tuner(c, protocol)).collect();
+            let gates = lab.device.gates();
+            let mut run = ArrayRun::new(
+                cells,
+                &gates,
+                protocol.run_settings(),
+                lab_lambda,
+                strategy == ArrayStrategy::Oracle,
             )?;
+            // the cold start counts from the run's start (initial measurements included)
+            result.cold_start_lab_minutes =
+                joint_until_in_band(&mut lab, &mut run, 2 * protocol.iterations_per_change, 0.0)?;
             for &sp in &protocol.set_points[1..] {
                 targets.iter_mut().for_each(|t| *t = sp);
-                result.changes.push(go(
+                for c in 0..k as usize {
+                    run.set_targets(c, sp)?;
+                }
+                let t0 = lab.minutes();
+                result.changes.push(joint_until_in_band(
                     &mut lab,
-                    &targets,
+                    &mut run,
                     protocol.iterations_per_change,
-                    None,
+                    t0,
                 )?);
             }
             for &c in &single {
                 targets[c as usize] = protocol.single_cell_target;
-                result.single_cell_changes.push(go(
+                run.set_targets(c as usize, protocol.single_cell_target)?;
+                let t0 = lab.minutes();
+                result.single_cell_changes.push(joint_until_in_band(
                     &mut lab,
-                    &targets,
+                    &mut run,
                     protocol.iterations_per_change,
-                    None,
+                    t0,
                 )?);
                 result.neighbours_left_out_of_band += neighbours_out(&lab, c, &targets, band);
             }
-            joint_failed = joint.failed_fits + joint.tuner.rejected_updates;
+            joint_failed = run.failed_evaluations();
         }
     }
     result.failed_fits = joint_failed
@@ -732,6 +718,36 @@ pub fn run_strategy(
     result.truth_queries = lab.device.truth_queries();
     result.measurements = lab.measurements;
     Ok(result)
+}
+
+/// Drive `run` until every cell is measured in band (`Some(lab minutes
+/// since t0)`) or `cap` iterations end without it (`None`).
+fn joint_until_in_band(
+    lab: &mut Lab,
+    run: &mut ArrayRun,
+    cap: u32,
+    t0: f64,
+) -> Result<Option<f64>, ArrayFailure> {
+    let mut iterations = 0;
+    loop {
+        match run.poll()? {
+            ArrayAction::Execute(batch) => {
+                let before = lab.device.lab_seconds();
+                let answers = lab.batch(&batch);
+                run.feed(answers, lab.device.lab_seconds() - before)?;
+            }
+            ArrayAction::Iteration(record) => {
+                if record.tuned {
+                    return Ok(Some(lab.minutes() - t0));
+                }
+                iterations += 1;
+                if iterations >= cap {
+                    return Ok(None);
+                }
+            }
+            ArrayAction::Idle => return Ok(Some(lab.minutes() - t0)),
+        }
+    }
 }
 
 /// The lab's cross-cell virtual-gate calibration for one seed: the world's
@@ -756,563 +772,6 @@ fn neighbours_out(lab: &Lab, c: u32, targets: &[(f64, f64)], band: f64) -> u64 {
         .filter(|&n| n < lab.device.cells())
         .filter(|&n| !truly_in_band(lab, n, targets[n as usize], band))
         .count() as u64
-}
-
-/// The joint loop's per-cell lab knowledge beyond the top level.
-struct CellLower {
-    sd_gate: String,
-    sd_half_width_mv: f64,
-    sd_points: usize,
-    line_gates: Vec<String>,
-    /// Learned ∂(mu_a, mu_b)/∂(line gates), mV/mV.
-    line_jacobian: [[f64; 2]; 2],
-    line_max_step_mv: f64,
-    references: References,
-    /// The lines as a learned function of the neighbourhood's gates
-    /// ([`LevelForecast`], centred on the cell's virtual-gate matrix): where
-    /// a move took them, so that a far shift is corrected before the scan.
-    lines: LevelForecast,
-}
-
-impl CellLower {
-    /// The cell's line gates at `v`, mV (their order; a missing gate as 0).
-    fn line_mv(&self, v: &BTreeMap<String, f64>) -> Vec<f64> {
-        self.line_gates
-            .iter()
-            .map(|g| v.get(g).copied().unwrap_or(0.0))
-            .collect()
-    }
-}
-
-/// The joint (and oracle) loop: see the module docs.
-struct JointRun {
-    tuner: JointArrayTuner,
-    lower: Vec<CellLower>,
-    /// Per cell: its gates' voltages at its last evaluation that worked, mV.
-    last_good: Vec<BTreeMap<String, f64>>,
-    failed_fits: u64,
-}
-
-impl JointRun {
-    /// The cold start's initial measurements: every cell's session with
-    /// `max_iterations = 0`, in parallel; then the lab's knowledge of every cell.
-    fn start(
-        lab: &mut Lab,
-        runs: &mut [CellRun],
-        protocol: &ArrayProtocol,
-        lab_lambda: [f64; 2],
-    ) -> Result<Self, ArrayFailure> {
-        for (c, run) in runs.iter_mut().enumerate() {
-            let mut t = cell_tuner(c as u32, protocol);
-            t.max_iterations = Some(0);
-            *run = CellRun::new(c as u32, t)?;
-        }
-        let all: Vec<usize> = (0..runs.len()).collect();
-        while !runs.iter().all(|r| r.done) {
-            round(lab, runs, &all)?;
-        }
-        let mut cells = Vec::new();
-        let mut lower = Vec::new();
-        for run in runs.iter() {
-            let cfg = run.session.tuner().config_with_learned_gradients();
-            let top = cfg.top();
-            let (gradient, covariance) = match &top.initial_gradient {
-                InitialGradient::Given {
-                    gradient,
-                    covariance,
-                } => (gradient.clone(), covariance.clone()),
-                _ => return Err(run.halted("no initial gradient was measured".into())),
-            };
-            cells.push(CellKnowledge {
-                gates: top.gates.clone(),
-                parameters: top.parameters.iter().map(|p| p.name.clone()).collect(),
-                gradient,
-                covariance,
-                process_noise_per_mv: top
-                    .parameters
-                    .iter()
-                    .map(|p| p.process_noise_per_mv)
-                    .collect(),
-                max_step_mv: top.solver.max_step_mv,
-                compensation: top
-                    .compensation
-                    .as_ref()
-                    .map(|c| (c.gates.clone(), c.matrix.clone())),
-            });
-            let mut l = CellLower {
-                sd_gate: String::new(),
-                sd_half_width_mv: 0.0,
-                sd_points: 0,
-                line_gates: Vec::new(),
-                line_jacobian: [[0.0; 2]; 2],
-                line_max_step_mv: 0.0,
-                references: cfg.fit_references,
-                lines: LevelForecast::new(Vec::new(), 2, 0.1, Vec::new()),
-            };
-            for level in cfg.levels.iter().skip(1) {
-                match &level.kind {
-                    LevelKind::SensingDot(sd) => {
-                        l.sd_gate = sd.gate.clone();
-                        l.sd_half_width_mv = sd.half_width_mv;
-                        l.sd_points = sd.points;
-                    }
-                    LevelKind::Newton(n) if n.gates.len() == 2 => {
-                        if let InitialGradient::Given { gradient, .. } = &n.initial_gradient {
-                            for (r, row) in gradient.iter().take(2).enumerate() {
-                                for (s, &g) in row.iter().take(2).enumerate() {
-                                    l.line_jacobian[r][s] = g;
-                                }
-                            }
-                        }
-                        l.line_gates = n.gates.clone();
-                        l.line_max_step_mv = n.solver.max_step_mv;
-                    }
-                    LevelKind::Newton(_) => {}
-                }
-            }
-            // the lines' model sees the own and the nearest cells' gates
-            let c = run.cell;
-            let near: Vec<String> = lab
-                .device
-                .voltages_mv()
-                .keys()
-                .filter(|g| {
-                    crate::sim::array::split_gate(g).is_some_and(|(k, _)| k.abs_diff(c) <= 1)
-                        && !l.line_gates.contains(g)
-                })
-                .cloned()
-                .collect();
-            let own = cells.last().expect("pushed above");
-            let centre = own
-                .compensation
-                .as_ref()
-                .map_or_else(Vec::new, |(rows, m)| {
-                    compensation_columns(&own.gates, rows, m, &l.line_gates)
-                });
-            l.lines = LevelForecast::new(
-                near,
-                2,
-                ParameterForecast::default().prior_lever_per_mv,
-                centre,
-            );
-            lower.push(l);
-        }
-        let mut tuner = JointArrayTuner::new(cells, &protocol.joint, lab_lambda)?;
-        // the initial measurement's last values start the filters' differences
-        let v = lab.device.voltages_mv();
-        for (c, run) in runs.iter().enumerate() {
-            let last = run.session.tuner().last_measured(0).unwrap_or_default();
-            let values: Vec<Option<Measured>> = last
-                .iter()
-                .map(|p| p.as_ref().map(|p| (p.value, p.variance)))
-                .collect();
-            tuner.observe(c, &values, &v);
-        }
-        let last_good = (0..runs.len())
-            .map(|c| {
-                let prefix = format!("c{c}.");
-                v.iter()
-                    .filter(|(g, _)| g.starts_with(&prefix))
-                    .map(|(g, mv)| (g.clone(), *mv))
-                    .collect()
-            })
-            .collect();
-        Ok(Self {
-            tuner,
-            lower,
-            last_good,
-            failed_fits: 0,
-        })
-    }
-
-    fn until_in_band(
-        &mut self,
-        lab: &mut Lab,
-        targets: &[(f64, f64)],
-        strategy: ArrayStrategy,
-        protocol: &ArrayProtocol,
-        cap: u32,
-        t0: f64,
-    ) -> Result<Option<f64>, ArrayFailure> {
-        let k = targets.len();
-        for _ in 0..cap {
-            let band = protocol.relative_tolerance;
-            let raw = self.measure(lab);
-            let v = lab.device.voltages_mv();
-            // values with error bars wider than the band are not acted on
-            let values: Vec<Vec<Option<Measured>>> = raw
-                .iter()
-                .map(|m| {
-                    m.iter()
-                        .map(|x| x.filter(|(p, var)| *p > 0.0 && var.sqrt() <= band * p))
-                        .collect()
-                })
-                .collect();
-            // a failed evaluation: retreat half-way to where it last worked;
-            // failed or too uncertain: re-tune the cell's sensor and lines
-            let failed: Vec<bool> = raw.iter().map(|m| m.iter().any(Option::is_none)).collect();
-            let unsure: Vec<bool> = values
-                .iter()
-                .map(|m| m.iter().any(Option::is_none))
-                .collect();
-            for (c, vals) in values.iter().enumerate() {
-                self.tuner.observe(c, vals, &v);
-                if vals.iter().all(Option::is_some) {
-                    let prefix = format!("c{c}.");
-                    self.last_good[c] = v
-                        .iter()
-                        .filter(|(g, _)| g.starts_with(&prefix))
-                        .map(|(g, mv)| (g.clone(), *mv))
-                        .collect();
-                }
-            }
-            let mut residual = vec![vec![None; 2]; k];
-            let mut all_in = true;
-            for c in 0..k {
-                let (t_sr, w) = targets[c];
-                let tv = [t_sr, w];
-                let in_band = values[c]
-                    .iter()
-                    .zip(tv)
-                    .all(|(m, t)| m.is_some_and(|(p, _)| (p - t).abs() <= band * t));
-                all_in &= in_band;
-                for (p, m) in values[c].iter().enumerate() {
-                    residual[c][p] = m.filter(|(x, _)| *x > 0.0).map(|(x, _)| {
-                        if in_band {
-                            0.0
-                        } else {
-                            (x / tv[p]).ln()
-                        }
-                    });
-                }
-            }
-            if all_in {
-                return Ok(Some(lab.minutes() - t0));
-            }
-            let jacobian = if strategy == ArrayStrategy::Oracle {
-                match self.true_jacobian(lab) {
-                    Some(j) => j,
-                    None => self.tuner.jacobian(),
-                }
-            } else {
-                self.tuner.jacobian()
-            };
-            // up to `moves_per_iteration` limited moves, each planned from
-            // the residual the Jacobian predicts after the previous one
-            let mut moved_cells: Vec<u32> = Vec::new();
-            for m in 0..protocol.moves_per_iteration {
-                let now = lab.device.voltages_mv();
-                let mut moves = self
-                    .tuner
-                    .plan_move(&residual, &jacobian, &now, lab.limits());
-                if m == 0 {
-                    for (c, good) in self.last_good.iter().enumerate() {
-                        if !failed[c] {
-                            continue;
-                        }
-                        let prefix = format!("c{c}.");
-                        moves.retain(|g, _| !g.starts_with(&prefix));
-                        for (g, &to) in good {
-                            let at = now.get(g).copied().unwrap_or(to);
-                            let back = lab.limits().clip(g, at, at + 0.5 * (to - at));
-                            if (back - at).abs() > 1e-3 {
-                                moves.insert(g.clone(), back);
-                            }
-                        }
-                    }
-                }
-                if moves.is_empty() {
-                    break;
-                }
-                // one set per cell, batched
-                let mut per_cell: BTreeMap<u32, BTreeMap<String, f64>> = BTreeMap::new();
-                for (g, mv) in moves {
-                    if let Some((c, _)) = crate::sim::array::split_gate(&g) {
-                        per_cell.entry(c).or_default().insert(g, mv);
-                    }
-                }
-                moved_cells.extend(per_cell.keys().copied());
-                let sets: Vec<Request> = per_cell
-                    .into_values()
-                    .map(|voltages_mv| Request::SetVoltages { voltages_mv })
-                    .collect();
-                lab.batch(&sets);
-                if m + 1 == protocol.moves_per_iteration {
-                    break;
-                }
-                let after = lab.device.voltages_mv();
-                let dv = nalgebra::DVector::from_iterator(
-                    self.tuner.gates().len(),
-                    self.tuner.gates().iter().map(|g| {
-                        after.get(g).copied().unwrap_or(0.0) - now.get(g).copied().unwrap_or(0.0)
-                    }),
-                );
-                let predicted = &jacobian * dv;
-                let mut far = false;
-                for (c, row) in residual.iter_mut().enumerate() {
-                    for (p, r) in row.iter_mut().enumerate() {
-                        if let Some(r) = r {
-                            let was_held = *r == 0.0;
-                            *r += predicted[c * 2 + p];
-                            far |= !was_held && r.abs() > 0.5 * band;
-                        }
-                    }
-                }
-                if !far {
-                    break;
-                }
-            }
-            // the moved cells and their neighbours (crosstalk moved their
-            // lines and sensors too), and every cell whose evaluation failed
-            // (e.g. a charge jump moved its sensor)
-            let mut affected: Vec<u32> = moved_cells
-                .iter()
-                .flat_map(|&c| [c.saturating_sub(1), c, c + 1])
-                .chain((0..k as u32).filter(|&c| unsure[c as usize]))
-                .filter(|&c| (c as usize) < k)
-                .collect();
-            affected.sort_unstable();
-            affected.dedup();
-            self.lower_levels(lab, &affected, protocol);
-        }
-        Ok(None)
-    }
-
-    fn true_jacobian(&self, lab: &mut Lab) -> Option<nalgebra::DMatrix<f64>> {
-        let parameters: Vec<String> = (0..self.tuner.cells().len() as u32)
-            .flat_map(|c| ["t_sr", "w"].map(|p| parameter_name(c, p)))
-            .collect();
-        let r = lab.batch(&[Request::TrueJacobian {
-            gates: self.tuner.gates().to_vec(),
-            parameters,
-        }]);
-        match r.into_iter().next() {
-            Some(Response::TrueJacobian { values, jacobian }) => {
-                let rows = jacobian.len();
-                let cols = self.tuner.gates().len();
-                Some(nalgebra::DMatrix::from_fn(rows, cols, |i, j| {
-                    jacobian[i][j] / values[i]
-                }))
-            }
-            _ => None,
-        }
-    }
-
-    /// `t_sr` and `w` of every cell (two scans per cell, one batch).
-    fn measure(&mut self, lab: &mut Lab) -> Vec<Vec<Option<Measured>>> {
-        let k = self.lower.len() as u32;
-        let kinds = [ScanKind::ReloadTime, ScanKind::TransitionWidth];
-        let requests: Vec<Request> = (0..k)
-            .flat_map(|c| {
-                kinds.map(|kind| Request::Measure {
-                    scan: ScanRequest {
-                        kind,
-                        sweep: None,
-                        cell: Some(c),
-                    },
-                })
-            })
-            .collect();
-        let answers = lab.batch(&requests);
-        let mut out = vec![vec![None; 2]; k as usize];
-        for (i, a) in answers.iter().enumerate() {
-            let (c, p) = (i / 2, i % 2);
-            let name = ["t_sr", "w"][p];
-            match self.evaluate(c, a, name) {
-                Some(v) => out[c][p] = Some(v),
-                None => self.failed_fits += 1,
-            }
-        }
-        out
-    }
-
-    fn evaluate(&self, cell: usize, answer: &Response, name: &str) -> Option<Measured> {
-        let Response::Scanned {
-            outcome: ScanOutcome::Raw { scan },
-            ..
-        } = answer
-        else {
-            return None;
-        };
-        let e = evaluate_with(scan, &self.lower[cell].references).ok()?;
-        e.values
-            .iter()
-            .find(|v| v.name == name)
-            .filter(|v| v.validate().is_ok())
-            .map(|v| (v.value, v.variance))
-    }
-
-    /// After a move: re-park each moved cell's sensing dot, re-centre its
-    /// lines (up to `line_rounds`, re-parking after each line move). Before
-    /// the first scan, a cell whose lines the forecast puts beyond
-    /// [`ArrayProtocol::precorrect_lines_mv`] is corrected from the forecast
-    /// first, so that the scan still sees them (its window is ±4 mV).
-    fn lower_levels(&mut self, lab: &mut Lab, cells: &[u32], protocol: &ArrayProtocol) {
-        self.park_sensors(lab, cells);
-        let mut todo: Vec<u32> = cells.to_vec();
-        if let Some(limit) = protocol.precorrect_lines_mv {
-            let v = lab.device.voltages_mv();
-            let sets: Vec<Request> = todo
-                .iter()
-                .filter_map(|&c| {
-                    let mu = self.line_forecast(c as usize, &v)?;
-                    (mu.iter().any(|m| m.abs() > limit))
-                        .then(|| self.line_step(lab, c as usize, mu, &v))
-                        .flatten()
-                })
-                .collect();
-            lab.batch(&sets);
-        }
-        for _ in 0..protocol.line_rounds {
-            if todo.is_empty() {
-                break;
-            }
-            let requests: Vec<Request> = todo
-                .iter()
-                .map(|&c| Request::Measure {
-                    scan: ScanRequest {
-                        kind: ScanKind::ChemicalPotential,
-                        sweep: None,
-                        cell: Some(c),
-                    },
-                })
-                .collect();
-            let answers = lab.batch(&requests);
-            let v = lab.device.voltages_mv();
-            let mut sets = Vec::new();
-            let mut moved = Vec::new();
-            for (&c, a) in todo.iter().zip(&answers) {
-                let (Some(a_mv), Some(b_mv)) = (
-                    self.evaluate(c as usize, a, "mu_a_mv"),
-                    self.evaluate(c as usize, a, "mu_b_mv"),
-                ) else {
-                    self.failed_fits += 1;
-                    continue;
-                };
-                self.observe_lines(c as usize, [a_mv, b_mv], &v);
-                let mu = [a_mv.0, b_mv.0];
-                if mu.iter().all(|m| m.abs() <= protocol.line_tolerance_mv) {
-                    continue;
-                }
-                if let Some(set) = self.line_step(lab, c as usize, mu, &v) {
-                    sets.push(set);
-                    moved.push(c);
-                }
-            }
-            lab.batch(&sets);
-            self.park_sensors(lab, &moved);
-            todo = moved;
-        }
-    }
-
-    /// The cell's lines `[mu_a, mu_b]` (mV) forecast at `v` (`None` before
-    /// its first line scan).
-    fn line_forecast(&self, cell: usize, v: &BTreeMap<String, f64>) -> Option<[f64; 2]> {
-        let l = &self.lower[cell];
-        let own = l.line_mv(v);
-        let noise = ParameterForecast::default().noise;
-        let p = l.lines.predict(&own, v, &self.line_rows(cell), noise)?;
-        Some([
-            p.first().copied().flatten()?.0,
-            p.get(1).copied().flatten()?.0,
-        ])
-    }
-
-    /// The cell's line Jacobian as the forecast's own-gate rows.
-    fn line_rows(&self, cell: usize) -> Vec<crate::tuner::GradientRow> {
-        self.lower[cell]
-            .line_jacobian
-            .iter()
-            .map(|r| (nalgebra::DVector::from_row_slice(r), None))
-            .collect()
-    }
-
-    /// A line scan of `cell` at `v`: the forecast learns from it.
-    fn observe_lines(&mut self, cell: usize, mu: [Measured; 2], v: &BTreeMap<String, f64>) {
-        let rows = self.line_rows(cell);
-        let l = &mut self.lower[cell];
-        let own = l.line_mv(v);
-        let noise = ParameterForecast::default().noise;
-        l.lines
-            .observe(&own, v, &[Some(mu[0]), Some(mu[1])], &rows, noise);
-    }
-
-    /// The limited plunger correction that cancels `mu` (mV) with the
-    /// cell's line Jacobian, as a set request (`None` if singular).
-    fn line_step(
-        &self,
-        lab: &Lab,
-        cell: usize,
-        mu: [f64; 2],
-        v: &BTreeMap<String, f64>,
-    ) -> Option<Request> {
-        let l = &self.lower[cell];
-        let [[a, b], [cc, d]] = l.line_jacobian;
-        let det = a * d - b * cc;
-        if !(det.is_finite() && det.abs() > 1e-12) || l.line_gates.len() != 2 {
-            return None;
-        }
-        let mut dp = [
-            -(d * mu[0] - b * mu[1]) / det,
-            -(-cc * mu[0] + a * mu[1]) / det,
-        ];
-        let norm = dp[0].hypot(dp[1]);
-        if norm > l.line_max_step_mv {
-            dp.iter_mut().for_each(|x| *x *= l.line_max_step_mv / norm);
-        }
-        let mut set = BTreeMap::new();
-        for (g, d) in l.line_gates.iter().zip(dp) {
-            if let Some(&now) = v.get(g) {
-                set.insert(g.clone(), lab.limits().clip(g, now, now + d));
-            }
-        }
-        Some(Request::SetVoltages { voltages_mv: set })
-    }
-
-    /// Sweep each cell's sensing gate around its present voltage and park it
-    /// on the fitted flank (a failed fit leaves it).
-    fn park_sensors(&mut self, lab: &mut Lab, cells: &[u32]) {
-        if cells.is_empty() {
-            return;
-        }
-        let v = lab.device.voltages_mv();
-        let requests: Vec<Request> = cells
-            .iter()
-            .map(|&c| {
-                let l = &self.lower[c as usize];
-                let now = v.get(&l.sd_gate).copied().unwrap_or(0.0);
-                let spec = lab.limits().gate(&l.sd_gate);
-                Request::Measure {
-                    scan: ScanRequest {
-                        kind: ScanKind::SensingDot,
-                        sweep: Some(Sweep {
-                            gate: l.sd_gate.clone(),
-                            from_mv: spec.map_or(now, |s| (now - l.sd_half_width_mv).max(s.min_mv)),
-                            to_mv: spec.map_or(now, |s| (now + l.sd_half_width_mv).min(s.max_mv)),
-                            points: l.sd_points,
-                        }),
-                        cell: Some(c),
-                    },
-                }
-            })
-            .collect();
-        let answers = lab.batch(&requests);
-        let mut sets = Vec::new();
-        for (&c, a) in cells.iter().zip(&answers) {
-            let l = &self.lower[c as usize];
-            match self.evaluate(c as usize, a, "sd_flank_mv") {
-                Some((flank, _)) => {
-                    let now = v.get(&l.sd_gate).copied().unwrap_or(flank);
-                    let to = lab.limits().clip(&l.sd_gate, now, flank);
-                    sets.push(Request::SetVoltages {
-                        voltages_mv: [(l.sd_gate.clone(), to)].into(),
-                    });
-                }
-                None => self.failed_fits += 1,
-            }
-        }
-        lab.batch(&sets);
-    }
 }
 
 /// Summary of one strategy over runs (keys as in the JSON report).

@@ -106,7 +106,7 @@ impl JointConfig {
 }
 
 /// What a lab knows about one cell after its initial measurement.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CellKnowledge {
     /// The cell's tuning gates (array names), in gradient order.
     pub gates: Vec<String>,
@@ -124,7 +124,7 @@ pub struct CellKnowledge {
     pub compensation: Option<(Vec<String>, Vec<Vec<f64>>)>,
 }
 
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 struct Row {
     cell: usize,
     parameter: usize,
@@ -136,7 +136,7 @@ struct Row {
 }
 
 /// The joint tuner (module docs).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct JointArrayTuner {
     cells: Vec<CellKnowledge>,
     /// Every tuning gate, cell by cell.

@@ -30,6 +30,7 @@
 //! ```
 
 pub mod array;
+pub mod array_run;
 mod config;
 pub mod finite_difference;
 mod flank;

@@ -1,0 +1,1182 @@
+//! [`ArrayRun`]: the joint array loop as a sans-IO state machine
+//! (invariant 2). It never calls a device: [`ArrayRun::poll`] hands out a
+//! **batch** of requests (run "at the same time": scans of cells in
+//! different readout groups in parallel, the lab clock charging the
+//! longest group) and [`ArrayRun::feed`] takes the batch's answers, in
+//! order. Between batches it says when an iteration ended
+//! ([`ArrayAction::Iteration`]) and when every cell was measured in band
+//! ([`ArrayAction::Idle`], until a target changes).
+//!
+//! # The loop
+//! 1. **Initial measurements**: one single-cell [`RunSession`] per cell
+//!    (gates renamed `c{k}.…`, `max_iterations = 0`), stepped in parallel,
+//!    one request per cell and batch, each through its own session's guard.
+//!    Then every gate is read once and the lab's knowledge of each cell
+//!    (learned gradient and covariance, virtual-gate matrix, line Jacobian,
+//!    sensing-dot sweep) starts the [`JointArrayTuner`].
+//! 2. **Iteration**: `t_sr` and `w` of every cell (one batch); values with
+//!    an error bar wider than the band are not acted on; the filter rows
+//!    learn; if every cell is in band the iteration ends there and the run
+//!    idles. Otherwise one joint limited move per cell (cells in band held;
+//!    a cell whose evaluation failed retreats half-way to the voltages of
+//!    its last good evaluation), then the lower levels of the moved cells,
+//!    their neighbours and every uncertain cell: sensing dots swept and
+//!    parked on the fitted flank, lines corrected from their forecast when
+//!    it puts them beyond [`ArrayRunSettings::precorrect_lines_mv`], then
+//!    up to [`ArrayRunSettings::line_rounds`] line scans with a limited
+//!    plunger correction each (and a re-park of the cells moved).
+//!
+//! The run's voltages are what the instrument answered: every gate is read
+//! after the initial measurements, and each accepted set's read-back
+//! replaces the set gates (a scan leaves its gates where they were). Moves
+//! are clipped to each gate's limits and `max_step_mv` from those voltages
+//! ([`SafetyLimits::clip`]); the caller's guard checks them again against
+//! the instrument.
+
+use std::collections::BTreeMap;
+
+use nalgebra::{DMatrix, DVector};
+use serde::{Deserialize, Serialize};
+
+use crate::config_error::ConfigError;
+use crate::fit::{evaluate_with, uncertainty::References};
+use crate::protocol::{
+    IterationRecord, ParameterReport, Request, Response, ScanKind, ScanOutcome, ScanRequest, Sweep,
+};
+use crate::safety::{GateSpec, SafetyLimits};
+use crate::session::{Output, RunSession, SessionConfig};
+use crate::sim::array::{parameter_name, split_gate};
+use crate::tuner::array::{CellKnowledge, JointArrayTuner, JointConfig, Measured};
+use crate::tuner::level_forecast::{compensation_columns, LevelForecast};
+use crate::tuner::{GradientRow, InitialGradient, LevelKind, ParameterForecast, TunerConfig};
+
+/// The array's parameters per cell, in order.
+pub const CELL_PARAMETERS: [&str; 2] = ["t_sr", "w"];
+
+/// Settings of the joint loop (bounded; [`ArrayRunSettings::validate`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ArrayRunSettings {
+    /// Relative band of `t_sr` and `w` (0 < b ≤ 0.5). Default 0.1.
+    pub relative_tolerance: f64,
+    /// The joint tuner's settings.
+    #[serde(default)]
+    pub joint: JointConfig,
+    /// Line re-centring rounds after a joint move, 0..=5. Default 1.
+    pub line_rounds: u32,
+    /// Limited joint moves per measurement (the later ones while a cell's
+    /// predicted residual is still beyond half its band), 1..=4. Default 1.
+    pub moves_per_iteration: u32,
+    /// Band of the lines, mV (0 < b ≤ 1). Default 0.1.
+    pub line_tolerance_mv: f64,
+    /// Before a cell's line scan, correct its plungers from the lines'
+    /// forecast when it puts a line beyond this, mV (0 < value ≤ 4, the
+    /// scan's half-window; `None`: never). Default 1: chosen on random
+    /// arrays (docs/array.md, "Lines corrected before their scan").
+    #[serde(default)]
+    pub precorrect_lines_mv: Option<f64>,
+}
+
+impl Default for ArrayRunSettings {
+    fn default() -> Self {
+        Self {
+            relative_tolerance: 0.1,
+            joint: JointConfig::default(),
+            line_rounds: 1,
+            moves_per_iteration: 1,
+            line_tolerance_mv: 0.1,
+            precorrect_lines_mv: Some(1.0),
+        }
+    }
+}
+
+impl ArrayRunSettings {
+    /// `Err` naming the field.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let check = |ok: bool, field: &str, v: String| {
+            if ok {
+                Ok(())
+            } else {
+                Err(ConfigError::new(field, format!("{v} out of bounds")))
+            }
+        };
+        let b = self.relative_tolerance;
+        check(
+            b.is_finite() && b > 0.0 && b <= 0.5,
+            "relative_tolerance",
+            b.to_string(),
+        )?;
+        check(
+            self.line_rounds <= 5,
+            "line_rounds",
+            self.line_rounds.to_string(),
+        )?;
+        check(
+            (1..=4).contains(&self.moves_per_iteration),
+            "moves_per_iteration",
+            self.moves_per_iteration.to_string(),
+        )?;
+        if let Some(p) = self.precorrect_lines_mv {
+            check(
+                p.is_finite() && p > 0.0 && p <= 4.0,
+                "precorrect_lines_mv",
+                p.to_string(),
+            )?;
+        }
+        let l = self.line_tolerance_mv;
+        check(
+            l.is_finite() && l > 0.0 && l <= 1.0,
+            "line_tolerance_mv",
+            l.to_string(),
+        )?;
+        self.joint.validate()
+    }
+}
+
+/// What the driver does next.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ArrayAction {
+    /// Run these requests as one batch and [`ArrayRun::feed`] the answers in
+    /// order. Polling again without feeding returns the same batch.
+    Execute(Vec<Request>),
+    /// An iteration ended (the record of its measurement and move).
+    Iteration(Box<IterationRecord>),
+    /// Every cell was measured in band: nothing to do until a target changes.
+    Idle,
+}
+
+/// Why the run cannot go on.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ArrayRunError {
+    /// A configuration the core refused.
+    #[error("invalid configuration: {0}")]
+    Config(#[from] ConfigError),
+    /// A cell's initial measurement halted (its session faulted or waits).
+    #[error("cell {cell}: initial measurement halted: {message}")]
+    Halted {
+        /// The cell.
+        cell: u32,
+        /// What happened.
+        message: String,
+    },
+    /// `feed` without an outstanding batch, or with the wrong number of answers.
+    #[error("{0}")]
+    Protocol(String),
+}
+
+/// The joint loop's per-cell lab knowledge beyond the top level.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct CellLower {
+    sd_gate: String,
+    sd_half_width_mv: f64,
+    sd_points: usize,
+    line_gates: Vec<String>,
+    /// Learned ∂(mu_a, mu_b)/∂(line gates), mV/mV.
+    line_jacobian: [[f64; 2]; 2],
+    line_max_step_mv: f64,
+    references: References,
+    /// The lines as a learned function of the neighbourhood's gates
+    /// ([`LevelForecast`], centred on the cell's virtual-gate matrix): where
+    /// a move took them, so that a far shift is corrected before the scan.
+    lines: LevelForecast,
+}
+
+impl CellLower {
+    /// The cell's line gates at `v`, mV (their order; a missing gate as 0).
+    fn line_mv(&self, v: &BTreeMap<String, f64>) -> Vec<f64> {
+        self.line_gates
+            .iter()
+            .map(|g| v.get(g).copied().unwrap_or(0.0))
+            .collect()
+    }
+}
+
+/// After a batch of sensor sets: what comes next.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+enum AfterPark {
+    /// The line pre-correction, then the first line round, of these cells.
+    Lines(Vec<u32>),
+    /// Line round `round` (0-based) of these cells.
+    LineRound(Vec<u32>, u32),
+}
+
+/// Where the loop is; what the outstanding batch (if any) is for.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+enum Step {
+    /// The cells' initial measurements (their sessions).
+    Initial,
+    /// Every gate read once after them.
+    ReadAll,
+    /// `t_sr` and `w` of every cell.
+    Measure,
+    /// The oracle's true Jacobian.
+    Oracle,
+    /// Joint move `m` (0-based).
+    Move(u32),
+    /// Sensor sweeps of these cells, then `next`.
+    ParkSweep(Vec<u32>, AfterPark),
+    /// Sensor sets (computed from the sweeps), then `next`.
+    ParkSet(Vec<Request>, AfterPark),
+    /// Line corrections from the forecast, then the first line round.
+    Precorrect(Vec<u32>),
+    /// Line scans of these cells, round `round`.
+    LineScan(Vec<u32>, u32),
+    /// Line corrections of the cells that moved in round `round`.
+    LineSet(Vec<Request>, Vec<u32>, u32),
+    /// The iteration is over: hand out its record.
+    Boundary,
+    /// Every cell in band: nothing to do until a target changes.
+    Idle,
+}
+
+/// This iteration's measurement and what follows from it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+struct Scratch {
+    /// Per cell: ln(value/target) of a cell out of band, 0 in band, `None` unknown.
+    residual: Vec<Vec<Option<f64>>>,
+    failed: Vec<bool>,
+    unsure: Vec<bool>,
+    /// The Jacobian used for this iteration's moves (log space, rows cell by cell).
+    jacobian: Option<DMatrix<f64>>,
+    moved_cells: Vec<u32>,
+    /// Voltages before the present move, mV.
+    before_move: BTreeMap<String, f64>,
+    record: Option<Box<IterationRecord>>,
+}
+
+/// The joint state after the initial measurements.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct Joint {
+    tuner: JointArrayTuner,
+    lower: Vec<CellLower>,
+    /// Per cell: its gates' voltages at its last evaluation that worked, mV.
+    last_good: Vec<BTreeMap<String, f64>>,
+}
+
+/// The joint array loop (module docs). Serializable as a whole.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ArrayRun {
+    settings: ArrayRunSettings,
+    cross_calibration: [f64; 2],
+    oracle: bool,
+    limits: SafetyLimits,
+    gate_names: Vec<String>,
+    /// Per cell: the initial measurement's session (`None` once done).
+    sessions: Vec<Option<RunSession>>,
+    /// Per cell: the request its session handed out (initial phase).
+    session_pending: Vec<Option<Request>>,
+    /// Failed evaluations of the initial sessions, per cell, when they ended.
+    initial_failed: Vec<u64>,
+    targets: Vec<(f64, f64)>,
+    joint: Option<Joint>,
+    /// The instrument's voltages as answered, mV.
+    voltages_mv: BTreeMap<String, f64>,
+    step: Step,
+    scratch: Scratch,
+    outstanding: Option<Vec<Request>>,
+    iteration: u64,
+    lab_seconds: f64,
+    failed_fits: u64,
+    measurements: u64,
+}
+
+impl ArrayRun {
+    /// A run over `gates` (every gate of the array, with limits) whose cell
+    /// `k` starts with `cells[k]` (the recommended single-cell tuner with the
+    /// cell's gate names; its top level's targets are the cell's first
+    /// targets). `cross_calibration`: the lab's cross-cell virtual-gate
+    /// calibration `λ̂` (nearest, next). `oracle`: ask the true Jacobian each
+    /// iteration (simulator only).
+    pub fn new(
+        cells: Vec<TunerConfig>,
+        gates: &[GateSpec],
+        settings: ArrayRunSettings,
+        cross_calibration: [f64; 2],
+        oracle: bool,
+    ) -> Result<Self, ArrayRunError> {
+        settings.validate()?;
+        if cells.is_empty() || cells.len() > crate::sim::array::MAX_CELLS as usize {
+            return Err(ConfigError::new(
+                "cells",
+                format!(
+                    "{} cells (1..={})",
+                    cells.len(),
+                    crate::sim::array::MAX_CELLS
+                ),
+            )
+            .into());
+        }
+        let mut sessions = Vec::with_capacity(cells.len());
+        let mut targets = Vec::with_capacity(cells.len());
+        for (k, mut t) in cells.into_iter().enumerate() {
+            let top = &t.top().parameters;
+            let target = |name: &str| {
+                top.iter()
+                    .find(|p| p.name == name)
+                    .and_then(|p| p.target)
+                    .unwrap_or(f64::NAN)
+            };
+            targets.push((target("t_sr"), target("w")));
+            t.max_iterations = Some(0);
+            let session = RunSession::new(t, SessionConfig::default())
+                .map_err(|e| e.within(&format!("cells[{k}]")))?;
+            sessions.push(Some(session));
+        }
+        let n = sessions.len();
+        Ok(Self {
+            settings,
+            cross_calibration,
+            oracle,
+            limits: SafetyLimits::new(gates),
+            gate_names: gates.iter().map(|g| g.name.clone()).collect(),
+            sessions,
+            session_pending: vec![None; n],
+            initial_failed: vec![0; n],
+            targets,
+            joint: None,
+            voltages_mv: BTreeMap::new(),
+            step: Step::Initial,
+            scratch: Scratch::default(),
+            outstanding: None,
+            iteration: 0,
+            lab_seconds: 0.0,
+            failed_fits: 0,
+            measurements: 0,
+        })
+    }
+
+    /// Set cell `cell`'s targets `(t_sr ns, w µV)`; an idle run starts again.
+    /// Applied at the next measurement's evaluation.
+    pub fn set_targets(&mut self, cell: usize, targets: (f64, f64)) -> Result<(), ArrayRunError> {
+        let (t, w) = targets;
+        if !(t.is_finite() && t > 0.0 && w.is_finite() && w > 0.0) {
+            return Err(ConfigError::new(
+                format!("targets[{cell}]"),
+                format!("({t} ns, {w} µV): both must be finite and positive"),
+            )
+            .into());
+        }
+        let slot = self.targets.get_mut(cell).ok_or_else(|| {
+            ArrayRunError::from(ConfigError::new(
+                "cell",
+                format!("{cell} outside 0..{}", self.sessions.len()),
+            ))
+        })?;
+        *slot = targets;
+        if self.step == Step::Idle {
+            self.step = Step::Measure;
+        }
+        Ok(())
+    }
+
+    /// Every cell's targets `(t_sr ns, w µV)`.
+    pub fn targets(&self) -> &[(f64, f64)] {
+        &self.targets
+    }
+
+    /// Lab time since the start as the batches' answers reported it, s.
+    pub fn lab_seconds(&self) -> f64 {
+        self.lab_seconds
+    }
+
+    /// Failed or rejected evaluations: the initial measurements', the
+    /// loop's failed fits and the filter's rejected updates.
+    pub fn failed_evaluations(&self) -> u64 {
+        let initial: u64 = self
+            .sessions
+            .iter()
+            .zip(&self.initial_failed)
+            .map(|(s, f)| s.as_ref().map_or(*f, |s| s.tuner().failed_evaluations()))
+            .sum();
+        initial + self.failed_fits + self.joint.as_ref().map_or(0, |j| j.tuner.rejected_updates)
+    }
+
+    /// The joint tuner, once the initial measurements are done.
+    pub fn tuner(&self) -> Option<&JointArrayTuner> {
+        self.joint.as_ref().map(|j| &j.tuner)
+    }
+
+    /// The next thing to do.
+    pub fn poll(&mut self) -> Result<ArrayAction, ArrayRunError> {
+        loop {
+            if let Some(b) = &self.outstanding {
+                return Ok(ArrayAction::Execute(b.clone()));
+            }
+            if let Some(batch) = self.next_batch()? {
+                if batch.is_empty() {
+                    continue;
+                }
+                self.outstanding = Some(batch.clone());
+                return Ok(ArrayAction::Execute(batch));
+            }
+            match self.step {
+                Step::Boundary => {
+                    let idle = self.scratch.record.as_ref().is_some_and(|r| r.tuned);
+                    self.step = if idle { Step::Idle } else { Step::Measure };
+                    let record = self.scratch.record.take().ok_or_else(|| {
+                        ArrayRunError::Protocol("an iteration ended without its record".into())
+                    })?;
+                    self.iteration += 1;
+                    return Ok(ArrayAction::Iteration(record));
+                }
+                Step::Idle => return Ok(ArrayAction::Idle),
+                _ => {}
+            }
+        }
+    }
+
+    /// The batch of the present step (`Some(empty)`: nothing to send, step
+    /// on; `None`: the step hands out no batch).
+    fn next_batch(&mut self) -> Result<Option<Vec<Request>>, ArrayRunError> {
+        Ok(Some(match self.step.clone() {
+            Step::Initial => {
+                let mut batch = Vec::new();
+                for k in 0..self.sessions.len() {
+                    self.step_session(k)?;
+                    if let Some(r) = &self.session_pending[k] {
+                        batch.push(r.clone());
+                    }
+                }
+                if batch.is_empty() {
+                    self.step = Step::ReadAll;
+                    vec![Request::ReadVoltages {
+                        gates: self.gate_names.clone(),
+                    }]
+                } else {
+                    batch
+                }
+            }
+            Step::ReadAll => vec![Request::ReadVoltages {
+                gates: self.gate_names.clone(),
+            }],
+            Step::Measure => (0..self.sessions.len() as u32)
+                .flat_map(|c| {
+                    [ScanKind::ReloadTime, ScanKind::TransitionWidth].map(|kind| Request::Measure {
+                        scan: ScanRequest {
+                            kind,
+                            sweep: None,
+                            cell: Some(c),
+                        },
+                    })
+                })
+                .collect(),
+            Step::Oracle => {
+                let joint = self.joint()?;
+                let parameters = (0..joint.tuner.cells().len() as u32)
+                    .flat_map(|c| CELL_PARAMETERS.map(|p| parameter_name(c, p)))
+                    .collect();
+                vec![Request::TrueJacobian {
+                    gates: joint.tuner.gates().to_vec(),
+                    parameters,
+                }]
+            }
+            Step::Move(m) => {
+                let batch = self.plan_moves(m)?;
+                if batch.is_empty() {
+                    self.after_moves()?;
+                }
+                batch
+            }
+            Step::ParkSweep(cells, next) => {
+                if cells.is_empty() {
+                    self.step = Self::after_park(next);
+                    Vec::new()
+                } else {
+                    self.sensor_sweeps(&cells)?
+                }
+            }
+            Step::ParkSet(sets, next) => {
+                if sets.is_empty() {
+                    self.step = Self::after_park(next);
+                }
+                sets
+            }
+            Step::Precorrect(cells) => {
+                let sets = self.precorrections(&cells)?;
+                if sets.is_empty() {
+                    self.step = Step::LineScan(cells, 0);
+                }
+                sets
+            }
+            Step::LineScan(cells, round) => {
+                if cells.is_empty() || round >= self.settings.line_rounds {
+                    self.step = Step::Boundary;
+                    Vec::new()
+                } else {
+                    cells
+                        .iter()
+                        .map(|&c| Request::Measure {
+                            scan: ScanRequest {
+                                kind: ScanKind::ChemicalPotential,
+                                sweep: None,
+                                cell: Some(c),
+                            },
+                        })
+                        .collect()
+                }
+            }
+            Step::LineSet(sets, moved, round) => {
+                if sets.is_empty() {
+                    self.step =
+                        Step::ParkSweep(moved.clone(), AfterPark::LineRound(moved, round + 1));
+                }
+                sets
+            }
+            Step::Boundary | Step::Idle => return Ok(None),
+        }))
+    }
+
+    fn after_park(next: AfterPark) -> Step {
+        match next {
+            AfterPark::Lines(cells) => Step::Precorrect(cells),
+            AfterPark::LineRound(cells, round) => Step::LineScan(cells, round),
+        }
+    }
+
+    /// Answer the outstanding batch, in order.
+    pub fn feed(&mut self, answers: Vec<Response>, lab_seconds: f64) -> Result<(), ArrayRunError> {
+        let batch = self
+            .outstanding
+            .take()
+            .ok_or_else(|| ArrayRunError::Protocol("no batch is outstanding".into()))?;
+        if answers.len() != batch.len() {
+            let message = format!("{} answers to a batch of {}", answers.len(), batch.len());
+            self.outstanding = Some(batch);
+            return Err(ArrayRunError::Protocol(message));
+        }
+        if lab_seconds.is_finite() && lab_seconds > 0.0 {
+            self.lab_seconds += lab_seconds;
+        }
+        self.measurements += batch
+            .iter()
+            .filter(|r| matches!(r, Request::Measure { .. }))
+            .count() as u64;
+        // every accepted set's read-back is where the gates are now
+        for (r, a) in batch.iter().zip(&answers) {
+            if let (Request::SetVoltages { .. }, Response::VoltagesSet { voltages_mv, .. }) = (r, a)
+            {
+                self.voltages_mv
+                    .extend(voltages_mv.iter().map(|(g, v)| (g.clone(), *v)));
+            }
+        }
+        match self.step.clone() {
+            Step::Initial => self.feed_sessions(&batch, answers)?,
+            Step::ReadAll => {
+                if let Some(Response::VoltagesRead { voltages_mv, .. }) = answers.first() {
+                    self.voltages_mv = voltages_mv.clone();
+                    self.start_joint()?;
+                    self.step = Step::Measure;
+                } else {
+                    return Err(ArrayRunError::Protocol(format!(
+                        "reading every gate was answered by {:?}",
+                        answers.first()
+                    )));
+                }
+            }
+            Step::Measure => self.evaluate_measurement(&answers)?,
+            Step::Oracle => {
+                let joint = self.joint()?;
+                let cols = joint.tuner.gates().len();
+                self.scratch.jacobian = match answers.first() {
+                    Some(Response::TrueJacobian { values, jacobian }) => {
+                        let rows = jacobian.len();
+                        Some(DMatrix::from_fn(rows, cols, |i, j| {
+                            jacobian[i][j] / values[i]
+                        }))
+                    }
+                    _ => Some(joint.tuner.jacobian()),
+                };
+                self.step = Step::Move(0);
+            }
+            Step::Move(m) => self.moved(m)?,
+            Step::ParkSweep(cells, next) => {
+                let sets = self.sensor_sets(&cells, &answers)?;
+                self.step = Step::ParkSet(sets, next);
+            }
+            Step::ParkSet(_, next) => self.step = Self::after_park(next),
+            Step::Precorrect(cells) => self.step = Step::LineScan(cells, 0),
+            Step::LineScan(cells, round) => {
+                let (sets, moved) = self.line_corrections(&cells, &answers)?;
+                self.step = Step::LineSet(sets, moved, round);
+            }
+            Step::LineSet(_, moved, round) => {
+                self.step = Step::ParkSweep(moved.clone(), AfterPark::LineRound(moved, round + 1));
+            }
+            Step::Boundary | Step::Idle => {
+                return Err(ArrayRunError::Protocol("no batch is outstanding".into()))
+            }
+        }
+        Ok(())
+    }
+
+    fn joint(&self) -> Result<&Joint, ArrayRunError> {
+        self.joint
+            .as_ref()
+            .ok_or_else(|| ArrayRunError::Protocol("the initial measurements are not done".into()))
+    }
+
+    // ----- initial measurements -----
+
+    /// Poll cell `k`'s session until it hands out a request or ends.
+    fn step_session(&mut self, k: usize) -> Result<(), ArrayRunError> {
+        let halted = |message: String| ArrayRunError::Halted {
+            cell: k as u32,
+            message,
+        };
+        while self.session_pending[k].is_none() {
+            let Some(session) = self.sessions[k].as_mut() else {
+                return Ok(());
+            };
+            match session.poll() {
+                Output::Execute(mut request) => {
+                    if let Request::Measure { scan } = &mut request {
+                        scan.cell = Some(k as u32);
+                    }
+                    self.session_pending[k] = Some(request);
+                }
+                Output::Commit(_) | Output::Save | Output::Publish(_) | Output::Sleep { .. } => {}
+                Output::Wait => return Err(halted(format!("{:?}", session.status()))),
+                Output::Done(_) => {
+                    self.initial_failed[k] = session.tuner().failed_evaluations();
+                    // kept: its learned gradients start the joint tuner
+                    return Ok(());
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn feed_sessions(
+        &mut self,
+        batch: &[Request],
+        answers: Vec<Response>,
+    ) -> Result<(), ArrayRunError> {
+        let mut answers = answers.into_iter();
+        let mut sent = batch.iter();
+        for k in 0..self.sessions.len() {
+            if self.session_pending[k].is_none() {
+                continue;
+            }
+            let (Some(_), Some(answer)) = (sent.next(), answers.next()) else {
+                return Err(ArrayRunError::Protocol("an answer is missing".into()));
+            };
+            self.session_pending[k] = None;
+            if let Some(s) = self.sessions[k].as_mut() {
+                s.feed(answer).map_err(|e| ArrayRunError::Halted {
+                    cell: k as u32,
+                    message: e.to_string(),
+                })?;
+            }
+        }
+        Ok(())
+    }
+
+    /// The lab's knowledge of every cell after its initial measurement.
+    fn start_joint(&mut self) -> Result<(), ArrayRunError> {
+        let mut cells = Vec::new();
+        let mut lower = Vec::new();
+        for (k, session) in self.sessions.iter().enumerate() {
+            let halted = |message: &str| ArrayRunError::Halted {
+                cell: k as u32,
+                message: message.into(),
+            };
+            let session = session.as_ref().ok_or_else(|| halted("no session"))?;
+            let cfg = session.tuner().config_with_learned_gradients();
+            let top = cfg.top();
+            let (gradient, covariance) = match &top.initial_gradient {
+                InitialGradient::Given {
+                    gradient,
+                    covariance,
+                } => (gradient.clone(), covariance.clone()),
+                _ => return Err(halted("no initial gradient was measured")),
+            };
+            cells.push(CellKnowledge {
+                gates: top.gates.clone(),
+                parameters: top.parameters.iter().map(|p| p.name.clone()).collect(),
+                gradient,
+                covariance,
+                process_noise_per_mv: top
+                    .parameters
+                    .iter()
+                    .map(|p| p.process_noise_per_mv)
+                    .collect(),
+                max_step_mv: top.solver.max_step_mv,
+                compensation: top
+                    .compensation
+                    .as_ref()
+                    .map(|c| (c.gates.clone(), c.matrix.clone())),
+            });
+            let mut l = CellLower {
+                sd_gate: String::new(),
+                sd_half_width_mv: 0.0,
+                sd_points: 0,
+                line_gates: Vec::new(),
+                line_jacobian: [[0.0; 2]; 2],
+                line_max_step_mv: 0.0,
+                references: cfg.fit_references,
+                lines: LevelForecast::new(Vec::new(), 2, 0.1, Vec::new()),
+            };
+            for level in cfg.levels.iter().skip(1) {
+                match &level.kind {
+                    LevelKind::SensingDot(sd) => {
+                        l.sd_gate = sd.gate.clone();
+                        l.sd_half_width_mv = sd.half_width_mv;
+                        l.sd_points = sd.points;
+                    }
+                    LevelKind::Newton(n) if n.gates.len() == 2 => {
+                        if let InitialGradient::Given { gradient, .. } = &n.initial_gradient {
+                            for (r, row) in gradient.iter().take(2).enumerate() {
+                                for (s, &g) in row.iter().take(2).enumerate() {
+                                    l.line_jacobian[r][s] = g;
+                                }
+                            }
+                        }
+                        l.line_gates = n.gates.clone();
+                        l.line_max_step_mv = n.solver.max_step_mv;
+                    }
+                    LevelKind::Newton(_) => {}
+                }
+            }
+            // the lines' model sees the own and the nearest cells' gates
+            let c = k as u32;
+            let near: Vec<String> = self
+                .voltages_mv
+                .keys()
+                .filter(|g| {
+                    split_gate(g).is_some_and(|(k, _)| k.abs_diff(c) <= 1)
+                        && !l.line_gates.contains(g)
+                })
+                .cloned()
+                .collect();
+            let own = cells.last().expect("pushed above");
+            let centre = own
+                .compensation
+                .as_ref()
+                .map_or_else(Vec::new, |(rows, m)| {
+                    compensation_columns(&own.gates, rows, m, &l.line_gates)
+                });
+            l.lines = LevelForecast::new(
+                near,
+                2,
+                ParameterForecast::default().prior_lever_per_mv,
+                centre,
+            );
+            lower.push(l);
+        }
+        let mut tuner = JointArrayTuner::new(cells, &self.settings.joint, self.cross_calibration)?;
+        // the initial measurement's last values start the filters' differences
+        for (c, session) in self.sessions.iter().enumerate() {
+            let last = session
+                .as_ref()
+                .and_then(|s| s.tuner().last_measured(0))
+                .unwrap_or_default();
+            let values: Vec<Option<Measured>> = last
+                .iter()
+                .map(|p| p.as_ref().map(|p| (p.value, p.variance)))
+                .collect();
+            tuner.observe(c, &values, &self.voltages_mv);
+        }
+        let last_good = (0..self.sessions.len())
+            .map(|c| self.cell_voltages(c))
+            .collect();
+        self.joint = Some(Joint {
+            tuner,
+            lower,
+            last_good,
+        });
+        Ok(())
+    }
+
+    /// Cell `c`'s gates at the present voltages, mV.
+    fn cell_voltages(&self, c: usize) -> BTreeMap<String, f64> {
+        let prefix = format!("c{c}.");
+        self.voltages_mv
+            .iter()
+            .filter(|(g, _)| g.starts_with(&prefix))
+            .map(|(g, mv)| (g.clone(), *mv))
+            .collect()
+    }
+
+    // ----- one iteration -----
+
+    fn evaluate(&self, cell: usize, answer: &Response, name: &str) -> Option<Measured> {
+        let Response::Scanned {
+            outcome: ScanOutcome::Raw { scan },
+            ..
+        } = answer
+        else {
+            return None;
+        };
+        let references = &self.joint.as_ref()?.lower.get(cell)?.references;
+        let e = evaluate_with(scan, references).ok()?;
+        e.values
+            .iter()
+            .find(|v| v.name == name)
+            .filter(|v| v.validate().is_ok())
+            .map(|v| (v.value, v.variance))
+    }
+
+    fn evaluate_measurement(&mut self, answers: &[Response]) -> Result<(), ArrayRunError> {
+        let k = self.sessions.len();
+        let band = self.settings.relative_tolerance;
+        let mut raw = vec![vec![None; 2]; k];
+        for (i, a) in answers.iter().enumerate() {
+            let (c, p) = (i / 2, i % 2);
+            match self.evaluate(c, a, CELL_PARAMETERS[p]) {
+                Some(v) => raw[c][p] = Some(v),
+                None => self.failed_fits += 1,
+            }
+        }
+        // values with error bars wider than the band are not acted on
+        let values: Vec<Vec<Option<Measured>>> = raw
+            .iter()
+            .map(|m| {
+                m.iter()
+                    .map(|x| x.filter(|(p, var)| *p > 0.0 && var.sqrt() <= band * p))
+                    .collect()
+            })
+            .collect();
+        let failed: Vec<bool> = raw.iter().map(|m| m.iter().any(Option::is_none)).collect();
+        let unsure: Vec<bool> = values
+            .iter()
+            .map(|m| m.iter().any(Option::is_none))
+            .collect();
+        let v = self.voltages_mv.clone();
+        for (c, vals) in values.iter().enumerate() {
+            if vals.iter().all(Option::is_some) {
+                let good = self.cell_voltages(c);
+                if let Some(j) = self.joint.as_mut() {
+                    j.last_good[c] = good;
+                }
+            }
+            if let Some(j) = self.joint.as_mut() {
+                j.tuner.observe(c, vals, &v);
+            }
+        }
+        let mut residual = vec![vec![None; 2]; k];
+        let mut all_in = true;
+        let mut reports = Vec::with_capacity(2 * k);
+        for c in 0..k {
+            let (t_sr, w) = self.targets[c];
+            let tv = [t_sr, w];
+            let in_band = values[c]
+                .iter()
+                .zip(tv)
+                .all(|(m, t)| m.is_some_and(|(p, _)| (p - t).abs() <= band * t));
+            all_in &= in_band;
+            for (p, m) in values[c].iter().enumerate() {
+                residual[c][p] =
+                    m.filter(|(x, _)| *x > 0.0)
+                        .map(|(x, _)| if in_band { 0.0 } else { (x / tv[p]).ln() });
+            }
+            for (p, name) in CELL_PARAMETERS.iter().enumerate() {
+                reports.push(ParameterReport {
+                    name: parameter_name(c as u32, name),
+                    unit: ["ns", "µV"][p].into(),
+                    value: raw[c][p].map(|m| m.0),
+                    std: raw[c][p].map(|m| m.1.sqrt()),
+                    target: Some(tv[p]),
+                    tolerance: Some(band * tv[p]),
+                });
+            }
+        }
+        let joint = self.joint()?;
+        let record = IterationRecord {
+            iteration: self.iteration,
+            voltages_mv: v,
+            gates: joint.tuner.gates().to_vec(),
+            parameters: reports,
+            gradients: Vec::new(),
+            step_mv: vec![0.0; joint.tuner.gates().len()],
+            tuned: all_in,
+            lab_seconds: self.lab_seconds,
+            scan_counts: BTreeMap::new(),
+            failed_evaluations: self.failed_evaluations(),
+            scans: Vec::new(),
+            events: Vec::new(),
+            keep: None,
+        };
+        self.scratch = Scratch {
+            residual,
+            failed,
+            unsure,
+            jacobian: None,
+            moved_cells: Vec::new(),
+            before_move: BTreeMap::new(),
+            record: Some(Box::new(record)),
+        };
+        self.step = if all_in {
+            Step::Boundary
+        } else if self.oracle {
+            Step::Oracle
+        } else {
+            self.scratch.jacobian = Some(self.joint()?.tuner.jacobian());
+            Step::Move(0)
+        };
+        Ok(())
+    }
+
+    /// Joint move `m`: one set per cell (the first move also retreats the
+    /// cells whose evaluation failed).
+    fn plan_moves(&mut self, m: u32) -> Result<Vec<Request>, ArrayRunError> {
+        let joint = self.joint()?;
+        let now = self.voltages_mv.clone();
+        let jacobian = self
+            .scratch
+            .jacobian
+            .clone()
+            .unwrap_or_else(|| joint.tuner.jacobian());
+        let mut moves =
+            joint
+                .tuner
+                .plan_move(&self.scratch.residual, &jacobian, &now, &self.limits);
+        if m == 0 {
+            for (c, good) in joint.last_good.iter().enumerate() {
+                if !self.scratch.failed.get(c).copied().unwrap_or(false) {
+                    continue;
+                }
+                let prefix = format!("c{c}.");
+                moves.retain(|g, _| !g.starts_with(&prefix));
+                for (g, &to) in good {
+                    let at = now.get(g).copied().unwrap_or(to);
+                    let back = self.limits.clip(g, at, at + 0.5 * (to - at));
+                    if (back - at).abs() > 1e-3 {
+                        moves.insert(g.clone(), back);
+                    }
+                }
+            }
+        }
+        let mut per_cell: BTreeMap<u32, BTreeMap<String, f64>> = BTreeMap::new();
+        for (g, mv) in moves {
+            if let Some((c, _)) = split_gate(&g) {
+                per_cell.entry(c).or_default().insert(g, mv);
+            }
+        }
+        self.scratch.moved_cells.extend(per_cell.keys().copied());
+        self.scratch.before_move = now;
+        Ok(per_cell
+            .into_values()
+            .map(|voltages_mv| Request::SetVoltages { voltages_mv })
+            .collect())
+    }
+
+    /// After joint move `m` was answered: another move while a cell's
+    /// predicted residual is still far, else the lower levels.
+    fn moved(&mut self, m: u32) -> Result<(), ArrayRunError> {
+        if m + 1 >= self.settings.moves_per_iteration {
+            return self.after_moves();
+        }
+        let joint = self.joint()?;
+        let band = self.settings.relative_tolerance;
+        let now = &self.scratch.before_move;
+        let after = &self.voltages_mv;
+        let dv =
+            DVector::from_iterator(
+                joint.tuner.gates().len(),
+                joint.tuner.gates().iter().map(|g| {
+                    after.get(g).copied().unwrap_or(0.0) - now.get(g).copied().unwrap_or(0.0)
+                }),
+            );
+        let jacobian = self
+            .scratch
+            .jacobian
+            .clone()
+            .unwrap_or_else(|| joint.tuner.jacobian());
+        let predicted = &jacobian * dv;
+        let mut far = false;
+        for (c, row) in self.scratch.residual.iter_mut().enumerate() {
+            for (p, r) in row.iter_mut().enumerate() {
+                if let Some(r) = r {
+                    let was_held = *r == 0.0;
+                    *r += predicted[c * 2 + p];
+                    far |= !was_held && r.abs() > 0.5 * band;
+                }
+            }
+        }
+        if far {
+            self.step = Step::Move(m + 1);
+            Ok(())
+        } else {
+            self.after_moves()
+        }
+    }
+
+    /// The moved cells and their neighbours (crosstalk moved their lines
+    /// and sensors too), and every cell whose evaluation failed or was too
+    /// uncertain (e.g. a charge jump moved its sensor): their lower levels.
+    fn after_moves(&mut self) -> Result<(), ArrayRunError> {
+        let k = self.sessions.len();
+        let mut affected: Vec<u32> = self
+            .scratch
+            .moved_cells
+            .iter()
+            .flat_map(|&c| [c.saturating_sub(1), c, c + 1])
+            .chain((0..k as u32).filter(|&c| self.scratch.unsure[c as usize]))
+            .filter(|&c| (c as usize) < k)
+            .collect();
+        affected.sort_unstable();
+        affected.dedup();
+        self.step = Step::ParkSweep(affected.clone(), AfterPark::Lines(affected));
+        Ok(())
+    }
+
+    /// Sweep each cell's sensing gate around its present voltage.
+    fn sensor_sweeps(&self, cells: &[u32]) -> Result<Vec<Request>, ArrayRunError> {
+        let joint = self.joint()?;
+        Ok(cells
+            .iter()
+            .map(|&c| {
+                let l = &joint.lower[c as usize];
+                let now = self.voltages_mv.get(&l.sd_gate).copied().unwrap_or(0.0);
+                let spec = self.limits.gate(&l.sd_gate);
+                Request::Measure {
+                    scan: ScanRequest {
+                        kind: ScanKind::SensingDot,
+                        sweep: Some(Sweep {
+                            gate: l.sd_gate.clone(),
+                            from_mv: spec.map_or(now, |s| (now - l.sd_half_width_mv).max(s.min_mv)),
+                            to_mv: spec.map_or(now, |s| (now + l.sd_half_width_mv).min(s.max_mv)),
+                            points: l.sd_points,
+                        }),
+                        cell: Some(c),
+                    },
+                }
+            })
+            .collect())
+    }
+
+    /// Park each swept sensor on its fitted flank (a failed fit leaves it).
+    fn sensor_sets(
+        &mut self,
+        cells: &[u32],
+        answers: &[Response],
+    ) -> Result<Vec<Request>, ArrayRunError> {
+        let mut sets = Vec::new();
+        for (&c, a) in cells.iter().zip(answers) {
+            match self.evaluate(c as usize, a, "sd_flank_mv") {
+                Some((flank, _)) => {
+                    let gate = self.joint()?.lower[c as usize].sd_gate.clone();
+                    let now = self.voltages_mv.get(&gate).copied().unwrap_or(flank);
+                    let to = self.limits.clip(&gate, now, flank);
+                    sets.push(Request::SetVoltages {
+                        voltages_mv: [(gate, to)].into(),
+                    });
+                }
+                None => self.failed_fits += 1,
+            }
+        }
+        Ok(sets)
+    }
+
+    /// Before the first line scan: the cells whose forecast puts a line
+    /// beyond [`ArrayRunSettings::precorrect_lines_mv`], corrected from it.
+    fn precorrections(&self, cells: &[u32]) -> Result<Vec<Request>, ArrayRunError> {
+        let Some(limit) = self.settings.precorrect_lines_mv else {
+            return Ok(Vec::new());
+        };
+        let joint = self.joint()?;
+        let v = &self.voltages_mv;
+        Ok(cells
+            .iter()
+            .filter_map(|&c| {
+                let mu = line_forecast(joint, c as usize, v)?;
+                (mu.iter().any(|m| m.abs() > limit))
+                    .then(|| self.line_step(joint, c as usize, mu))
+                    .flatten()
+            })
+            .collect())
+    }
+
+    /// A line round's answers: every cell's lines learned; the cells whose
+    /// lines are outside their band get a limited plunger correction.
+    fn line_corrections(
+        &mut self,
+        cells: &[u32],
+        answers: &[Response],
+    ) -> Result<(Vec<Request>, Vec<u32>), ArrayRunError> {
+        let mut sets = Vec::new();
+        let mut moved = Vec::new();
+        let v = self.voltages_mv.clone();
+        for (&c, a) in cells.iter().zip(answers) {
+            let (Some(a_mv), Some(b_mv)) = (
+                self.evaluate(c as usize, a, "mu_a_mv"),
+                self.evaluate(c as usize, a, "mu_b_mv"),
+            ) else {
+                self.failed_fits += 1;
+                continue;
+            };
+            if let Some(joint) = self.joint.as_mut() {
+                observe_lines(joint, c as usize, [a_mv, b_mv], &v);
+            }
+            let mu = [a_mv.0, b_mv.0];
+            if mu
+                .iter()
+                .all(|m| m.abs() <= self.settings.line_tolerance_mv)
+            {
+                continue;
+            }
+            if let Some(set) = self.line_step(self.joint()?, c as usize, mu) {
+                sets.push(set);
+                moved.push(c);
+            }
+        }
+        Ok((sets, moved))
+    }
+
+    /// The limited plunger correction that cancels `mu` (mV) with the
+    /// cell's line Jacobian, as a set request (`None` if singular).
+    fn line_step(&self, joint: &Joint, cell: usize, mu: [f64; 2]) -> Option<Request> {
+        let l = &joint.lower[cell];
+        let [[a, b], [cc, d]] = l.line_jacobian;
+        let det = a * d - b * cc;
+        if !(det.is_finite() && det.abs() > 1e-12) || l.line_gates.len() != 2 {
+            return None;
+        }
+        let mut dp = [
+            -(d * mu[0] - b * mu[1]) / det,
+            -(-cc * mu[0] + a * mu[1]) / det,
+        ];
+        let norm = dp[0].hypot(dp[1]);
+        if norm > l.line_max_step_mv {
+            dp.iter_mut().for_each(|x| *x *= l.line_max_step_mv / norm);
+        }
+        let mut set = BTreeMap::new();
+        for (g, d) in l.line_gates.iter().zip(dp) {
+            if let Some(&now) = self.voltages_mv.get(g) {
+                set.insert(g.clone(), self.limits.clip(g, now, now + d));
+            }
+        }
+        Some(Request::SetVoltages { voltages_mv: set })
+    }
+}
+
+/// The cell's lines `[mu_a, mu_b]` (mV) forecast at `v` (`None` before
+/// its first line scan).
+fn line_forecast(joint: &Joint, cell: usize, v: &BTreeMap<String, f64>) -> Option<[f64; 2]> {
+    let l = &joint.lower[cell];
+    let own = l.line_mv(v);
+    let noise = ParameterForecast::default().noise;
+    let p = l.lines.predict(&own, v, &line_rows(l), noise)?;
+    Some([
+        p.first().copied().flatten()?.0,
+        p.get(1).copied().flatten()?.0,
+    ])
+}
+
+/// The cell's line Jacobian as the forecast's own-gate rows.
+fn line_rows(l: &CellLower) -> Vec<GradientRow> {
+    l.line_jacobian
+        .iter()
+        .map(|r| (DVector::from_row_slice(r), None))
+        .collect()
+}
+
+/// A line scan of `cell` at `v`: the forecast learns from it.
+fn observe_lines(joint: &mut Joint, cell: usize, mu: [Measured; 2], v: &BTreeMap<String, f64>) {
+    let l = &mut joint.lower[cell];
+    let rows = line_rows(l);
+    let own = l.line_mv(v);
+    let noise = ParameterForecast::default().noise;
+    l.lines
+        .observe(&own, v, &[Some(mu[0]), Some(mu[1])], &rows, noise);
+}

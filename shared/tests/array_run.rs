@@ -1,0 +1,183 @@
+//! The joint array loop as a sans-IO state machine ([`ArrayRun`]): it only
+//! hands out batches and takes answers; it survives a checkpoint (serde
+//! round trip) mid-run bit-identically; a driver that breaks the protocol
+//! gets an error and loses nothing; bad targets name the field.
+
+use spintune::benchmark::array::{cell_tuner, world, ArrayProtocol};
+use spintune::protocol::{IterationRecord, Request, Response};
+use spintune::sim::array::{ArrayConfig, ArrayDevice};
+use spintune::sim::DeviceConfig;
+use spintune::tuner::array_run::{ArrayAction, ArrayRun, ArrayRunError};
+
+const CELLS: u32 = 2;
+
+fn array() -> ArrayDevice {
+    let mut a = world(
+        &DeviceConfig::default(),
+        ArrayConfig::chain(CELLS, 5, 3),
+        |_| true,
+    )
+    .unwrap();
+    a.seal_truth();
+    a
+}
+
+fn new_run(device: &ArrayDevice) -> ArrayRun {
+    let protocol = ArrayProtocol::default();
+    let cells = (0..CELLS).map(|c| cell_tuner(c, &protocol)).collect();
+    ArrayRun::new(
+        cells,
+        &device.gates(),
+        protocol.run_settings(),
+        [0.3, 0.05],
+        false,
+    )
+    .unwrap()
+}
+
+/// Drive until `records` iterations ended (or the run idles); round-trip
+/// the run through JSON before batch number `checkpoint_at`.
+fn drive(
+    device: &mut ArrayDevice,
+    run: &mut ArrayRun,
+    records: usize,
+    checkpoint_at: Option<usize>,
+) -> (Vec<IterationRecord>, usize) {
+    let mut out = Vec::new();
+    let mut batches = 0;
+    while out.len() < records {
+        if Some(batches) == checkpoint_at {
+            let json = serde_json::to_string(&*run).unwrap();
+            *run = serde_json::from_str(&json).unwrap();
+        }
+        match run.poll().unwrap() {
+            ArrayAction::Execute(batch) => {
+                batches += 1;
+                let before = device.lab_seconds();
+                let answers = device.execute_batch(&batch);
+                run.feed(answers, device.lab_seconds() - before).unwrap();
+            }
+            ArrayAction::Iteration(r) => out.push(*r),
+            ArrayAction::Idle => break,
+        }
+    }
+    (out, batches)
+}
+
+#[test]
+fn a_checkpoint_mid_run_resumes_bit_identically() {
+    let mut a = array();
+    let mut run_a = new_run(&a);
+    let (straight, batches) = drive(&mut a, &mut run_a, 4, None);
+    assert_eq!(straight.len(), 4, "four iterations of two cells");
+    assert!(
+        batches > 20,
+        "initial measurements and iterations: {batches} batches"
+    );
+    // restore in the initial measurements, and after the joint tuner started
+    for at in [3, batches - 5] {
+        let mut b = array();
+        let mut run_b = new_run(&b);
+        let (resumed, _) = drive(&mut b, &mut run_b, 4, Some(at));
+        assert_eq!(
+            serde_json::to_string(&resumed).unwrap(),
+            serde_json::to_string(&straight).unwrap(),
+            "restored before batch {at}"
+        );
+        // the whole state too, as a checkpoint holds it (the cells' initial
+        // sessions deliberately forget their read-backs)
+        assert!(
+            serde_json::to_string(&run_b).unwrap() == serde_json::to_string(&run_a).unwrap(),
+            "state differs after a restore before batch {at}"
+        );
+    }
+}
+
+#[test]
+fn records_name_every_cell_and_count_iterations() {
+    let mut a = array();
+    let mut run = new_run(&a);
+    let (records, _) = drive(&mut a, &mut run, 3, None);
+    for (i, r) in records.iter().enumerate() {
+        assert_eq!(r.iteration, i as u64);
+        let names: Vec<&str> = r.parameters.iter().map(|p| p.name.as_str()).collect();
+        assert_eq!(names, ["c0.t_sr", "c0.w", "c1.t_sr", "c1.w"]);
+        assert_eq!(r.gates.len(), 8, "four tuning gates per cell");
+        assert!(r.lab_seconds > 0.0);
+        // every record's lab time is the array clock, which the driver measured
+        assert!(r.lab_seconds <= a.lab_seconds());
+    }
+    assert!(records
+        .windows(2)
+        .all(|w| w[0].lab_seconds < w[1].lab_seconds));
+}
+
+#[test]
+fn only_batches_reach_the_device_and_reads_cost_nothing() {
+    let mut a = array();
+    let mut run = new_run(&a);
+    let mut kinds = std::collections::BTreeSet::new();
+    for _ in 0..200 {
+        match run.poll().unwrap() {
+            ArrayAction::Execute(batch) => {
+                assert!(!batch.is_empty(), "an empty batch is never handed out");
+                for r in &batch {
+                    kinds.insert(match r {
+                        Request::SetVoltages { .. } => "set",
+                        Request::Measure { scan } => {
+                            assert!(scan.cell.is_some_and(|c| c < CELLS), "{scan:?}");
+                            "measure"
+                        }
+                        Request::ReadVoltages { .. } => "read",
+                        Request::TrueJacobian { .. } => "truth",
+                        Request::Wait { .. } => "wait",
+                    });
+                }
+                let answers = a.execute_batch(&batch);
+                run.feed(answers, 0.0).unwrap();
+            }
+            ArrayAction::Iteration(_) | ArrayAction::Idle => {}
+        }
+    }
+    assert!(kinds.contains("set") && kinds.contains("measure") && kinds.contains("read"));
+    assert!(!kinds.contains("truth"), "not the oracle");
+    assert_eq!(a.truth_queries(), 0);
+}
+
+#[test]
+fn a_driver_that_breaks_the_protocol_gets_an_error_and_loses_nothing() {
+    let a = array();
+    let mut run = new_run(&a);
+    assert!(matches!(
+        run.feed(Vec::new(), 0.0),
+        Err(ArrayRunError::Protocol(_))
+    ));
+    let ArrayAction::Execute(batch) = run.poll().unwrap() else {
+        panic!("the run starts with a batch")
+    };
+    // too few answers: refused, and the batch is still outstanding
+    let e = run.feed(Vec::new(), 0.0).unwrap_err();
+    assert!(e
+        .to_string()
+        .contains(&format!("0 answers to a batch of {}", batch.len())));
+    assert_eq!(run.poll().unwrap(), ArrayAction::Execute(batch.clone()));
+    // answers that are errors halt the cell's initial session with its fault
+    let answers = vec![Response::error("instrument on fire"); batch.len()];
+    run.feed(answers, 0.0).unwrap();
+    let e = run.poll().unwrap_err();
+    assert!(matches!(e, ArrayRunError::Halted { cell: 0, .. }), "{e}");
+    assert!(e.to_string().contains("instrument on fire"), "{e}");
+}
+
+#[test]
+fn bad_targets_name_the_field() {
+    let a = array();
+    let mut run = new_run(&a);
+    let e = run.set_targets(1, (f64::NAN, 200.0)).unwrap_err();
+    assert!(e.to_string().contains("targets[1]"), "{e}");
+    let e = run.set_targets(5, (20.0, 200.0)).unwrap_err();
+    assert!(e.to_string().contains("cell"), "{e}");
+    assert_eq!(run.targets()[1], (20.0, 270.0));
+    run.set_targets(1, (30.0, 250.0)).unwrap();
+    assert_eq!(run.targets()[1], (30.0, 250.0));
+}

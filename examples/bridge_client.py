@@ -17,9 +17,9 @@ Usage (one dependency: ``pip install websockets``)::
 
 Protocol (JSON text frames, see docs/instruments.md):
 
-    (the script adds ?protocol=3 to the URL: the server refuses clients
+    (the script adds ?protocol=4 to the URL: the server refuses clients
     that do not state the protocol version they speak)
-    server: {"type":"hello","version":2,"run":{...}}
+    server: {"type":"hello","version":4,"run":{...}}
     client: {"type":"auth","token":"SECRET"}
     server: {"type":"auth_ok"}
     server: {"type":"request","id":6,"timeout_s":300.0,
@@ -53,7 +53,7 @@ import sys
 import websockets
 
 # The wire protocol this script speaks (spintune::protocol::PROTOCOL_VERSION).
-PROTOCOL_VERSION = 3
+PROTOCOL_VERSION = 4
 
 # --- toy device -------------------------------------------------------------
 # A linear model around a working point: parameter = p0 + sum_g J[g] * (V_g - V0_g).
@@ -168,6 +168,13 @@ def answer(request):
         if what == "measure":
             outcome, seconds = measure(request["scan"])
             return {"response": "scanned", "outcome": outcome, "lab_seconds": seconds}
+        if what == "batch":
+            # An array run asks several cells at once: answer each request in
+            # order. Run them in parallel where the readout allows; the lab
+            # time is what the whole batch took (here: one after another).
+            answers = [answer(r) for r in request["requests"]]
+            seconds = sum(a.get("lab_seconds", 0.0) for a in answers)
+            return {"response": "batch", "responses": answers, "lab_seconds": seconds}
         return {"response": "error", "message": f"this bridge does not support {what!r}"}
     except Exception as e:  # an instrument error pauses the run with this message
         return {"response": "error", "message": f"{type(e).__name__}: {e}"}

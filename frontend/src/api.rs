@@ -176,9 +176,9 @@ mod tests {
         assert_eq!(b.url("/api/runs"), "http://127.0.0.1:8080/api/runs");
         assert_eq!(
             b.run_ws_url(3, 17),
-            "ws://127.0.0.1:8080/api/runs/3/ws?protocol=3&from=17"
+            "ws://127.0.0.1:8080/api/runs/3/ws?protocol=4&from=17"
         );
-        assert_eq!(PROTOCOL_VERSION, 3);
+        assert_eq!(PROTOCOL_VERSION, 4);
         assert_eq!(
             ApiBase::new("https://lab.example").ws_url("/x"),
             "wss://lab.example/x"

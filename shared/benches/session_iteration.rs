@@ -97,7 +97,9 @@ mod native {
                         lab_seconds: 0.0,
                     }
                 }
-                Request::TrueJacobian { .. } => Response::error("no oracle"),
+                Request::TrueJacobian { .. } | Request::Batch { .. } => {
+                    Response::error("no oracle, no batch")
+                }
                 Request::Wait { seconds } => Response::Waited {
                     lab_seconds: *seconds,
                 },

@@ -11,6 +11,13 @@ use serde::{Deserialize, Serialize};
 
 /// Version of the wire format; bumped on any incompatible change.
 ///
+/// Version 4 added arrays of double-dot cells: [`Request::Batch`] and
+/// [`Response::Batch`] (requests run at the same time), scans that name
+/// their cell ([`ScanRequest::cell`]) and records whose parameters and
+/// gates carry the cell prefix `c{k}.` (e.g. `c3.t_sr`, `c3.SB`). A
+/// version-3 lab script would receive a batch it cannot answer, so it is
+/// refused when it connects, like every other version.
+///
 /// Within version 3, alerts were added without a bump: a viewer that sends
 /// `subscribe` with `alerts: true` is also sent [`ServerMessage::Alert`]
 /// frames; a version-3 client that does not ask never sees one.
@@ -22,7 +29,7 @@ use serde::{Deserialize, Serialize};
 /// [`ControlCommand::AcceptPositions`] and [`Response::Error`]'s `cause`. A
 /// client states the version it speaks when it connects (the server refuses
 /// any other with an error naming both versions).
-pub const PROTOCOL_VERSION: u32 = 3;
+pub const PROTOCOL_VERSION: u32 = 4;
 
 /// Why a message that crossed a boundary (a WebSocket frame, an HTTP body, a
 /// lab bridge's answer, a device's evaluated scan) was refused. The text
@@ -258,7 +265,20 @@ pub enum Request {
         /// Lab time to let pass, s (0 < seconds ≤ [`MAX_WAIT_SECONDS`]).
         seconds: f64,
     },
+    /// Run these requests "at the same time" (an array of cells: scans of
+    /// cells in different readout groups run in parallel, the lab clock
+    /// charges the longest group); answered by [`Response::Batch`] with one
+    /// answer per request, in order. At most [`MAX_BATCH_REQUESTS`]
+    /// requests, none of them a batch. Protocol version 4.
+    Batch {
+        /// The requests, in order.
+        requests: Vec<Request>,
+    },
 }
+
+/// The most requests in one [`Request::Batch`] (16 cells × a few requests
+/// each fit many times over); a longer batch is refused.
+pub const MAX_BATCH_REQUESTS: usize = 1024;
 
 /// The longest single [`Request::Wait`], s (10 min): a keep run's idle
 /// time is cut into waits no longer than this, so a record of progress
@@ -302,6 +322,13 @@ pub enum Response {
     /// Answer to [`Request::Wait`]: the lab time that passed, s.
     Waited {
         /// Lab time that passed, s.
+        lab_seconds: f64,
+    },
+    /// Answer to [`Request::Batch`]: one answer per request, in order.
+    Batch {
+        /// The answers.
+        responses: Vec<Response>,
+        /// Lab time the whole batch took, s (the longest readout group's).
         lab_seconds: f64,
     },
     /// The device could not execute the request.

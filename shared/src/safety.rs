@@ -40,6 +40,10 @@ pub enum SafetyError {
     /// `(0, protocol::MAX_WAIT_SECONDS]`.
     #[error("a wait of {0} s (allowed: more than 0, at most 600 s)")]
     InvalidWait(f64),
+    /// A batch that is too long, nested, or touches a gate twice (its
+    /// requests run at the same time, so each gate may be moved by one only).
+    #[error("batch refused: {0}")]
+    Batch(String),
     /// NaN or infinite voltage.
     #[error("gate {gate}: voltage {value_mv} mV is not a finite number")]
     NotFinite {

@@ -131,6 +131,7 @@ fn only_batches_reach_the_device_and_reads_cost_nothing() {
                         Request::ReadVoltages { .. } => "read",
                         Request::TrueJacobian { .. } => "truth",
                         Request::Wait { .. } => "wait",
+                        Request::Batch { .. } => panic!("a batch inside a batch"),
                     });
                 }
                 let answers = a.execute_batch(&batch);

@@ -267,6 +267,11 @@ impl Instrument {
                 }
             }
             Request::ReadVoltages { .. } | Request::TrueJacobian { .. } | Request::Wait { .. } => {}
+            Request::Batch { requests } => {
+                for r in requests {
+                    self.check_request(r)?;
+                }
+            }
         }
         Ok(())
     }
@@ -438,6 +443,25 @@ impl Instrument {
             Request::Wait { seconds } => Response::Waited {
                 lab_seconds: *seconds,
             },
+            // the scripted answer goes to one request of the batch (its
+            // first of the same kind as the scripted fault needs), the
+            // others are answered honestly
+            Request::Batch { requests } => {
+                if matches!(how, Answer::WrongKind) {
+                    return Response::Waited { lab_seconds: 0.0 };
+                }
+                let target = self.jitter().abs() * requests.len() as f64 * 2.0;
+                let pick = (target as usize).min(requests.len().saturating_sub(1));
+                let responses = requests
+                    .iter()
+                    .enumerate()
+                    .map(|(i, r)| self.execute(r, if i == pick { how } else { Answer::Honest }))
+                    .collect();
+                Response::Batch {
+                    responses,
+                    lab_seconds: 1.0,
+                }
+            }
         }
     }
 }

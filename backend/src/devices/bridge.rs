@@ -283,6 +283,7 @@ fn describe(request: &Request) -> String {
         Request::ReadVoltages { gates } => format!("read_voltages {}", gates.join(",")),
         Request::TrueJacobian { .. } => "true_jacobian".into(),
         Request::Wait { seconds } => format!("wait {seconds} s"),
+        Request::Batch { requests } => format!("batch of {}", requests.len()),
     }
 }
 

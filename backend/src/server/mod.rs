@@ -8,7 +8,7 @@
 //!
 //! | method | path | body → answer |
 //! |---|---|---|
-//! | GET | `/api/version` | → `{"protocol_version": 3}` |
+//! | GET | `/api/version` | → `{"protocol_version": 4}` |
 //! | GET | `/api/runs` | → `[RunSummary]` |
 //! | POST 🔒 | `/api/runs` | run config (JSON form of the TOML file, see [`crate::config`]; `{}` = paper default) → 201 `RunSummary` |
 //! | GET | `/api/runs/{id}` | → `RunSummary` |
@@ -17,8 +17,8 @@
 //! | GET | `/api/runs/{id}/export?format=csv\|json` | → the export table (see [`crate::export`]) |
 //! | POST 🔒 | `/api/runs/{id}/control` | `ControlCommand` → `RunSummary` (400 invalid, 409 not applicable) |
 //! | DELETE 🔒 | `/api/runs/{id}` | → 204 |
-//! | GET | `/api/runs/{id}/ws?protocol=3&from=N` | WebSocket, see below |
-//! | GET | `/api/runs/{id}/bridge?protocol=3` | WebSocket of the lab bridge (runs with `driver = "bridge"` or `scpi.measure = "bridge"`), see [`crate::devices::bridge`] |
+//! | GET | `/api/runs/{id}/ws?protocol=4&from=N` | WebSocket, see below |
+//! | GET | `/api/runs/{id}/bridge?protocol=4` | WebSocket of the lab bridge (runs with `driver = "bridge"` or `scpi.measure = "bridge"`), see [`crate::devices::bridge`] |
 //! | GET | `/*` | the dashboard (Trunk's `dist/`), or a note on how to build it; a symbolic link inside `dist/` (or a path leaving it) → 404 |
 //!
 //! The JSON bodies must come as `Content-Type: application/json` (optional
@@ -29,7 +29,7 @@
 //! [`listener::MAX_BODY_BYTES`], in full within
 //! [`listener::BODY_READ_TIMEOUT`] of the headers (413 / 408).
 //!
-//! Both WebSockets require `protocol=3` ([`PROTOCOL_VERSION`](spintune::protocol::PROTOCOL_VERSION)) in the query;
+//! Both WebSockets require `protocol=4` ([`PROTOCOL_VERSION`](spintune::protocol::PROTOCOL_VERSION)) in the query;
 //! a client that omits it (every version-1 client) or states another version
 //! gets one `Error` frame naming both versions, and the socket closes.
 //!

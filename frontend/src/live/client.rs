@@ -23,7 +23,7 @@
 //! [`RunHistory::version`].
 //!
 //! **The protocol** (v[`PROTOCOL_VERSION`], stated in the socket URL as
-//! `?protocol=3`): the server sends `hello`, then the newest page of
+//! `?protocol=4`): the server sends `hello`, then the newest page of
 //! iteration summaries unasked; the client subscribes to live frames with
 //! scans and asks for older pages with `history {before, limit}` (at most
 //! [`MAX_HISTORY_PAGE`]) until every gap of [`RunHistory::gaps`] is filled,
@@ -225,7 +225,7 @@ pub enum Event {
 #[derive(Debug, Clone, PartialEq)]
 pub enum Action {
     /// Open a socket on the run's stream resuming at iteration `from`
-    /// (`ApiBase::run_ws_url(run, from)`: the URL states `?protocol=3`).
+    /// (`ApiBase::run_ws_url(run, from)`: the URL states `?protocol=4`).
     Open {
         /// Its name for later events.
         socket: SocketId,

@@ -4,7 +4,7 @@
 //! back-off, resuming at the next missing iteration, and — after the
 //! control token is accepted — control it.
 //!
-//! * [`client`]: every decision (protocol v3, paging, answer correlation,
+//! * [`client`]: every decision (protocol v4, paging, answer correlation,
 //!   HTTP fallback, back-off, handshake refusals, unknown runs) as a sans-IO
 //!   state machine, tested natively;
 //! * `driver`: the IO around it (WebSocket callbacks, HTTP, the timer) and

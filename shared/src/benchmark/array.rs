@@ -46,16 +46,15 @@ use serde::{Deserialize, Serialize};
 
 use super::{quantiles, Quantiles, PAPER_SET_POINTS};
 use crate::config_error::ConfigError;
-use crate::driver::SimulationConfig;
 use crate::parameter::Tolerance;
 use crate::protocol::{ControlCommand, IterationRecord, Request, Response};
 use crate::safety::SafetyLimits;
 use crate::session::{Output, RunSession, SessionConfig};
-use crate::sim::array::{gate_name, ArrayConfig, ArrayDevice};
+use crate::sim::array::{ArrayConfig, ArrayDevice};
 use crate::sim::DeviceConfig;
 use crate::tuner::array::JointConfig;
 use crate::tuner::array_run::{ArrayAction, ArrayRun, ArrayRunError, ArrayRunSettings};
-use crate::tuner::{LevelKind, Tuner, TunerConfig};
+use crate::tuner::{Tuner, TunerConfig};
 
 /// A strategy of the array benchmark (module docs).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
@@ -339,52 +338,10 @@ impl Lab {
     }
 }
 
-/// The recommended single-cell tuner for cell `cell`: every gate renamed
-/// `c{cell}.…`, targets the first set point, the protocol's band; the
-/// sensing dot sweeps at every call (its flank model would not see the
-/// neighbours' gates).
+/// The recommended single-cell tuner for cell `cell` at the protocol's
+/// first set point and band ([`crate::driver::array::cell_tuner`]).
 pub fn cell_tuner(cell: u32, protocol: &ArrayProtocol) -> TunerConfig {
-    let mut t = SimulationConfig::recommended().tuner;
-    let rn = |g: &mut String| *g = gate_name(cell, g);
-    t.gates.iter_mut().for_each(|g| rn(&mut g.name));
-    for level in &mut t.levels {
-        match &mut level.kind {
-            LevelKind::Newton(n) => {
-                n.gates.iter_mut().for_each(rn);
-                if let Some(c) = &mut n.compensation {
-                    c.gates.iter_mut().for_each(rn);
-                }
-                // As the flank below: a cell's line forecast cannot see the
-                // neighbours' gates, whose moves shift its lines too.
-                n.forecast = None;
-            }
-            LevelKind::SensingDot(sd) => {
-                rn(&mut sd.gate);
-                if let Some(f) = &mut sd.fallback {
-                    rn(&mut f.gate);
-                }
-                // A cell's flank model sees only its own gates, and in an
-                // array the neighbours' moves shift its flank too: the
-                // cells sweep at every call (measured: with the single-cell
-                // prediction, 9-cell `joint` left 6 changes unconverged
-                // where the oracle converged, against 1).
-                sd.prediction = None;
-            }
-        }
-    }
-    t.max_iterations = None;
-    t.stop_when_tuned = false;
-    t.schedule.clear();
-    let (t_sr, w) = protocol.set_points[0];
-    for p in &mut t.top_mut().parameters {
-        p.tolerance = Tolerance::Relative(protocol.relative_tolerance);
-        p.target = match p.name.as_str() {
-            "t_sr" => Some(t_sr),
-            "w" => Some(w),
-            _ => p.target,
-        };
-    }
-    t
+    crate::driver::array::cell_tuner(cell, protocol.set_points[0], protocol.relative_tolerance)
 }
 
 /// One cell's session and what the driver knows of it.

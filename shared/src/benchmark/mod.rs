@@ -854,6 +854,7 @@ pub fn request_kind(request: &Request) -> &'static str {
         },
         Request::TrueJacobian { .. } => "true_jacobian",
         Request::Wait { .. } => "wait",
+        Request::Batch { .. } => "batch",
     }
 }
 

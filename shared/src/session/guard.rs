@@ -30,7 +30,7 @@ use std::collections::{BTreeMap, BTreeSet};
 
 use serde::{Deserialize, Serialize};
 
-use crate::protocol::{MovedGate, Request, Sweep};
+use crate::protocol::{MovedGate, Request, Sweep, MAX_BATCH_REQUESTS};
 use crate::safety::{SafetyError, SafetyLimits};
 use crate::tuner::MAX_SWEEP_POINTS;
 
@@ -228,6 +228,11 @@ impl Guard {
                 }
             }
             Request::ReadVoltages { .. } | Request::TrueJacobian { .. } | Request::Wait { .. } => {}
+            Request::Batch { requests } => {
+                for r in requests {
+                    self.may_have_visited(r);
+                }
+            }
         }
     }
 
@@ -276,6 +281,7 @@ impl Guard {
                 Ok(())
             }
             Request::TrueJacobian { .. } => Ok(()),
+            Request::Batch { requests } => self.check_batch(requests),
             Request::Wait { seconds } => {
                 if seconds.is_finite()
                     && *seconds > 0.0
@@ -287,6 +293,33 @@ impl Guard {
                 }
             }
         }
+    }
+
+    /// A batch: at most [`MAX_BATCH_REQUESTS`], none nested, no gate moved
+    /// or swept by two of its requests (they run at the same time), and
+    /// every request passes on its own.
+    fn check_batch(&self, requests: &[Request]) -> Result<(), SafetyError> {
+        if requests.len() > MAX_BATCH_REQUESTS {
+            return Err(SafetyError::Batch(format!(
+                "{} requests (at most {MAX_BATCH_REQUESTS})",
+                requests.len()
+            )));
+        }
+        let mut touched = BTreeSet::new();
+        for (i, r) in requests.iter().enumerate() {
+            if matches!(r, Request::Batch { .. }) {
+                return Err(SafetyError::Batch(format!("request {i} is itself a batch")));
+            }
+            for g in touched_gates(r) {
+                if !touched.insert(g.clone()) {
+                    return Err(SafetyError::Batch(format!(
+                        "gate {g} is moved by more than one request (request {i})"
+                    )));
+                }
+            }
+            self.check(r)?;
+        }
+        Ok(())
     }
 
     fn require_known(&self, gate: &str) -> Result<(), SafetyError> {
@@ -456,10 +489,14 @@ impl Guard {
     /// position is unknown until read again (the instrument may have left it
     /// at any point of the sweep).
     pub fn after_request(&mut self, request: &Request) {
-        if let Request::Measure { scan } = request {
-            if let Some(s) = &scan.sweep {
-                self.readback_mv.remove(&s.gate);
+        match request {
+            Request::Measure { scan } => {
+                if let Some(s) = &scan.sweep {
+                    self.readback_mv.remove(&s.gate);
+                }
             }
+            Request::Batch { requests } => requests.iter().for_each(|r| self.after_request(r)),
+            _ => {}
         }
     }
 }
@@ -497,6 +534,7 @@ pub fn touched_gates(request: &Request) -> Vec<String> {
         Request::ReadVoltages { .. } | Request::TrueJacobian { .. } | Request::Wait { .. } => {
             Vec::new()
         }
+        Request::Batch { requests } => requests.iter().flat_map(touched_gates).collect(),
     }
 }
 
@@ -544,6 +582,56 @@ mod tests {
                 cell: None,
             },
         }
+    }
+
+    #[test]
+    fn a_batch_is_checked_request_by_request_and_moves_each_gate_once() {
+        let mut g = guard();
+        g.accept_read(&["A".into(), "B".into()], &set(&[("A", 0.0), ("B", 0.0)]))
+            .unwrap();
+        let a = |mv| Request::SetVoltages {
+            voltages_mv: set(&[("A", mv)]),
+        };
+        let b = |mv| Request::SetVoltages {
+            voltages_mv: set(&[("B", mv)]),
+        };
+        let batch = |requests| Request::Batch { requests };
+        assert_eq!(g.check(&batch(vec![a(5.0), b(-5.0)])), Ok(()));
+        assert_eq!(g.check(&batch(Vec::new())), Ok(()));
+        // one request over its step: the whole batch is refused
+        assert!(matches!(
+            g.check(&batch(vec![a(5.0), b(-15.0)])),
+            Err(SafetyError::StepTooLarge { .. })
+        ));
+        // a gate set twice, or set and swept, in one batch
+        for twice in [vec![a(5.0), a(6.0)], vec![sweep(0.0, 9.0, 10), a(1.0)]] {
+            let e = g.check(&batch(twice)).unwrap_err();
+            assert!(
+                e.to_string()
+                    .contains("gate A is moved by more than one request"),
+                "{e}"
+            );
+        }
+        let e = g.check(&batch(vec![batch(vec![a(1.0)])])).unwrap_err();
+        assert!(e.to_string().contains("itself a batch"), "{e}");
+        let long = vec![Request::Wait { seconds: 1.0 }; MAX_BATCH_REQUESTS + 1];
+        let e = g.check(&batch(long)).unwrap_err();
+        assert!(e.to_string().contains("at most 1024"), "{e}");
+        // gates touched, and a swept gate forgotten after the batch
+        let sw = batch(vec![sweep(0.0, 9.0, 10), b(2.0)]);
+        assert_eq!(touched_gates(&sw), ["A".to_string(), "B".to_string()]);
+        g.after_request(&sw);
+        assert!(!g.readback_mv().contains_key("A"));
+        assert!(g.readback_mv().contains_key("B"));
+        // a batch's path widens where the run may have left its gates
+        g.may_have_visited(&batch(vec![b(7.0)]));
+        assert_eq!(
+            g.left_mv()["B"],
+            Span {
+                lo_mv: 0.0,
+                hi_mv: 7.0
+            }
+        );
     }
 
     #[test]

@@ -66,7 +66,10 @@
 //! ```
 
 pub mod guard;
+mod plan;
 pub mod ramp;
+
+pub use plan::Plan;
 
 use serde::{Deserialize, Serialize};
 
@@ -259,8 +262,8 @@ struct TargetChange {
 /// any in-flight request are deliberately not, so a restored session reads
 /// every gate before it moves anything.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct RunSession {
-    tuner: Tuner,
+pub struct RunSession<P = Tuner> {
+    tuner: P,
     guard: Guard,
     config: SessionConfig,
     mode: Mode,
@@ -282,12 +285,15 @@ impl RunSession {
         let tuner = Tuner::new(tuner)?;
         Ok(Self::from_tuner(tuner, config))
     }
+}
 
-    /// A running session around an existing tuner (e.g. one restored from an
-    /// older checkpoint). `config` must be valid.
-    pub fn from_tuner(tuner: Tuner, config: SessionConfig) -> Self {
+impl<P: Plan> RunSession<P> {
+    /// A running session around an existing plan (a tuner, e.g. one
+    /// restored from an older checkpoint, or an array's run). `config` must
+    /// be valid.
+    pub fn from_tuner(tuner: P, config: SessionConfig) -> Self {
         let guard = Guard::new(
-            SafetyLimits::new(&tuner.config().gates),
+            SafetyLimits::new(tuner.gate_specs()),
             config.readback_tolerance_mv,
             config.moved_tolerance_mv,
         );
@@ -306,7 +312,7 @@ impl RunSession {
     }
 
     /// The tuner (read-only: changes go through [`RunSession::control`]).
-    pub fn tuner(&self) -> &Tuner {
+    pub fn tuner(&self) -> &P {
         &self.tuner
     }
 
@@ -392,7 +398,14 @@ impl RunSession {
                 };
             }
         }
-        match self.tuner.poll() {
+        let action = match self.tuner.next_action() {
+            Ok(action) => action,
+            Err(message) => {
+                self.set_fault(Fault::new(FaultKind::Response, message));
+                return self.poll();
+            }
+        };
+        match action {
             Action::Request(request) => {
                 self.at_boundary = false;
                 let unknown = self.guard.unknown_gates(&request);
@@ -402,8 +415,7 @@ impl RunSession {
                     // a sweep, the swept gate.
                     let gates: Vec<String> = if self.guard.readback_mv().is_empty() {
                         self.tuner
-                            .config()
-                            .gates
+                            .gate_specs()
                             .iter()
                             .map(|g| g.name.clone())
                             .collect()
@@ -432,7 +444,7 @@ impl RunSession {
                     // but it must not be silent either
                     if let Err(e) =
                         self.tuner
-                            .set_target(&change.parameter, change.target, change.tolerance)
+                            .change_target(&change.parameter, change.target, change.tolerance)
                     {
                         debug_assert!(false, "deferred target became invalid: {e}");
                     }
@@ -483,7 +495,7 @@ impl RunSession {
                     voltages_mv,
                     lab_seconds,
                 } => {
-                    self.tuner.charge_lab_time(lab_seconds);
+                    self.tuner.charge_time(lab_seconds);
                     let first_positions = self.guard.left_mv().is_empty();
                     match self.guard.accept_read(&gates, &voltages_mv) {
                         Ok(()) => {
@@ -492,7 +504,7 @@ impl RunSession {
                             // still compares the instrument with it on restore.
                             self.save_due |= first_positions;
                             self.tuner
-                                .adopt_readback(&voltages_mv, self.config.readback_tolerance_mv);
+                                .adopt_voltages(&voltages_mv, self.config.readback_tolerance_mv);
                         }
                         Err(guard::ReadbackError::Moved { moved, .. }) => {
                             let message = format!(
@@ -518,33 +530,14 @@ impl RunSession {
             },
             InFlight::Tuner(request) => {
                 self.guard.after_request(&request);
-                let fits = matches!(
-                    (&request, &response),
-                    (Request::SetVoltages { .. }, Response::VoltagesSet { .. })
-                        | (Request::Measure { .. }, Response::Scanned { .. })
-                        | (Request::TrueJacobian { .. }, Response::TrueJacobian { .. })
-                        | (Request::Wait { .. }, Response::Waited { .. })
-                );
-                if !fits {
-                    self.wrong_answer(request_name(&request), &response);
+                if let Err(fault) = self.take_answer(&request, &response) {
+                    if !matches!(fault.kind, FaultKind::Readback | FaultKind::Moved) {
+                        self.guard.forget_all();
+                    }
+                    self.set_fault(fault);
                     return Ok(());
                 }
-                if let (
-                    Request::SetVoltages {
-                        voltages_mv: requested,
-                    },
-                    Response::VoltagesSet { voltages_mv, .. },
-                ) = (&request, &response)
-                {
-                    if let Err(e) = self.guard.accept_set(requested, voltages_mv) {
-                        self.set_fault(Fault::new(
-                            FaultKind::Readback,
-                            format!("set_voltages: {e}"),
-                        ));
-                        return Ok(());
-                    }
-                }
-                if let Err(e) = self.tuner.feed(response) {
+                if let Err(e) = self.tuner.take_response(response) {
                     self.set_fault(Fault::new(FaultKind::Response, e.to_string()));
                 }
             }
@@ -553,6 +546,81 @@ impl RunSession {
             self.mode = Mode::Stopped;
         }
         Ok(())
+    }
+
+    /// Whether `response` answers `request` (a batch: one fitting answer
+    /// per request, in order); every set's read-back goes to the guard. A
+    /// batch's answer that is an error faults like the device's error.
+    fn take_answer(&mut self, request: &Request, response: &Response) -> Result<(), Fault> {
+        let wrong = || {
+            Fault::new(
+                FaultKind::Response,
+                format!(
+                    "answered `{}` to a `{}` request",
+                    response_name(response),
+                    request_name(request)
+                ),
+            )
+        };
+        match (request, response) {
+            (
+                Request::SetVoltages {
+                    voltages_mv: requested,
+                },
+                Response::VoltagesSet { voltages_mv, .. },
+            ) => self
+                .guard
+                .accept_set(requested, voltages_mv)
+                .map_err(|e| Fault::new(FaultKind::Readback, format!("set_voltages: {e}"))),
+            // a read inside a batch (an array cell's own session reading its
+            // gates): held to the same plausibility as the session's reads
+            (Request::ReadVoltages { gates }, Response::VoltagesRead { voltages_mv, .. }) => {
+                self.guard.accept_read(gates, voltages_mv).map_err(|e| {
+                    let moved = match &e {
+                        guard::ReadbackError::Moved { moved, .. } => moved.clone(),
+                        _ => Vec::new(),
+                    };
+                    let kind = if moved.is_empty() {
+                        FaultKind::Readback
+                    } else {
+                        FaultKind::Moved
+                    };
+                    let mut fault = Fault::new(kind, format!("read_voltages: {e}"));
+                    fault.moved = moved;
+                    fault
+                })
+            }
+            (Request::Measure { .. }, Response::Scanned { .. })
+            | (Request::TrueJacobian { .. }, Response::TrueJacobian { .. })
+            | (Request::Wait { .. }, Response::Waited { .. }) => Ok(()),
+            (Request::Batch { requests }, Response::Batch { responses, .. }) => {
+                if requests.len() != responses.len() {
+                    return Err(Fault::new(
+                        FaultKind::Response,
+                        format!(
+                            "a batch of {} requests was answered with {} responses",
+                            requests.len(),
+                            responses.len()
+                        ),
+                    ));
+                }
+                for (i, (q, a)) in requests.iter().zip(responses).enumerate() {
+                    if let Response::Error { message, cause } = a {
+                        let kind = match cause {
+                            ErrorCause::Disconnected => FaultKind::Disconnected,
+                            ErrorCause::Instrument => FaultKind::Device,
+                        };
+                        return Err(Fault::new(kind, format!("batch request {i}: {message}")));
+                    }
+                    self.take_answer(q, a).map_err(|mut f| {
+                        f.message = format!("batch request {i}: {}", f.message);
+                        f
+                    })?;
+                }
+                Ok(())
+            }
+            _ => Err(wrong()),
+        }
     }
 
     fn wrong_answer(&mut self, expected: &str, got: &Response) {
@@ -657,7 +725,7 @@ impl RunSession {
                 target,
                 tolerance,
             } => {
-                self.tuner.validate_target(parameter, *target, *tolerance)?;
+                self.tuner.check_target(parameter, *target, *tolerance)?;
                 let change = TargetChange {
                     parameter: parameter.clone(),
                     target: *target,
@@ -665,8 +733,8 @@ impl RunSession {
                 };
                 if self.at_boundary {
                     self.tuner
-                        .set_target(&change.parameter, change.target, change.tolerance)?;
-                    if self.mode == Mode::Finished && !self.tuner.is_finished() {
+                        .change_target(&change.parameter, change.target, change.tolerance)?;
+                    if self.mode == Mode::Finished && !self.tuner.done() {
                         // a new target revives a run that stopped when tuned
                         self.mode = Mode::Paused;
                     }
@@ -690,6 +758,7 @@ fn request_name(r: &Request) -> &'static str {
         Request::Measure { .. } => "measure",
         Request::TrueJacobian { .. } => "true_jacobian",
         Request::Wait { .. } => "wait",
+        Request::Batch { .. } => "batch",
     }
 }
 
@@ -700,6 +769,7 @@ fn response_name(r: &Response) -> &'static str {
         Response::Scanned { .. } => "scanned",
         Response::TrueJacobian { .. } => "true_jacobian",
         Response::Waited { .. } => "waited",
+        Response::Batch { .. } => "batch",
         Response::Error { .. } => "error",
     }
 }

@@ -50,7 +50,7 @@ pub const MAX_CELLS: u32 = 16;
 /// Largest crosstalk fraction `λ` (of the own-cell effect).
 pub const MAX_CROSSTALK: f64 = 0.9;
 /// Largest number of requests in one [`ArrayDevice::execute_batch`].
-pub const MAX_BATCH: usize = 1024;
+pub const MAX_BATCH: usize = crate::protocol::MAX_BATCH_REQUESTS;
 
 /// Crosstalk between cells (see the module docs).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -416,12 +416,22 @@ impl ArrayDevice {
             Request::ReadVoltages { gates } => {
                 gates.first().and_then(|g| split_gate(g)).map(|(c, _)| c)
             }
-            Request::Wait { .. } | Request::TrueJacobian { .. } => None,
+            Request::Wait { .. } | Request::TrueJacobian { .. } | Request::Batch { .. } => None,
         }
     }
 
-    /// One request alone (a batch of one).
+    /// One request: a [`Request::Batch`] runs as [`ArrayDevice::execute_batch`]
+    /// and is answered by [`Response::Batch`] with the array clock's advance;
+    /// any other request alone (a batch of one).
     pub fn execute(&mut self, request: &Request) -> Response {
+        if let Request::Batch { requests } = request {
+            let before = self.lab_seconds;
+            let responses = self.execute_batch(requests);
+            return Response::Batch {
+                responses,
+                lab_seconds: self.lab_seconds - before,
+            };
+        }
         self.execute_batch(std::slice::from_ref(request))
             .pop()
             .unwrap_or_else(|| Response::error("empty batch"))
@@ -468,6 +478,7 @@ impl ArrayDevice {
 
     fn execute_one(&mut self, request: &Request) -> Response {
         match request {
+            Request::Batch { .. } => Response::error("a batch inside a batch"),
             Request::SetVoltages { voltages_mv } => self.set(voltages_mv),
             Request::ReadVoltages { gates } => {
                 let mut read = BTreeMap::new();

@@ -285,6 +285,23 @@ impl SimulatedDevice {
                     lab_seconds: 0.0,
                 }
             }
+            // One double dot has one readout: its requests run one after another.
+            Request::Batch { requests } => {
+                if requests.len() > crate::protocol::MAX_BATCH_REQUESTS
+                    || requests.iter().any(|r| matches!(r, Request::Batch { .. }))
+                {
+                    return Response::error(format!(
+                        "a batch of at most {} requests, none of them a batch",
+                        crate::protocol::MAX_BATCH_REQUESTS
+                    ));
+                }
+                let before = self.clock.seconds();
+                let responses = requests.iter().map(|r| self.execute(r)).collect();
+                Response::Batch {
+                    responses,
+                    lab_seconds: self.clock.seconds() - before,
+                }
+            }
             Request::Measure { scan } => match self.scan(scan) {
                 Ok((scan, lab_seconds)) => Response::Scanned {
                     outcome: ScanOutcome::Raw { scan },

@@ -260,6 +260,7 @@ pub struct ArrayRun {
     cross_calibration: [f64; 2],
     oracle: bool,
     limits: SafetyLimits,
+    gates: Vec<GateSpec>,
     gate_names: Vec<String>,
     /// Per cell: the initial measurement's session (`None` once done).
     sessions: Vec<Option<RunSession>>,
@@ -328,6 +329,7 @@ impl ArrayRun {
             cross_calibration,
             oracle,
             limits: SafetyLimits::new(gates),
+            gates: gates.to_vec(),
             gate_names: gates.iter().map(|g| g.name.clone()).collect(),
             sessions,
             session_pending: vec![None; n],
@@ -1179,4 +1181,112 @@ fn observe_lines(joint: &mut Joint, cell: usize, mu: [Measured; 2], v: &BTreeMap
     let noise = ParameterForecast::default().noise;
     l.lines
         .observe(&own, v, &[Some(mu[0]), Some(mu[1])], &rows, noise);
+}
+
+/// `c{k}.t_sr` → (k, `t_sr`) for the array's parameters.
+fn cell_parameter(parameter: &str) -> Option<(usize, usize)> {
+    let (cell, name) = crate::sim::array::split_gate(parameter)?;
+    let p = CELL_PARAMETERS.iter().position(|n| *n == name)?;
+    Some((cell as usize, p))
+}
+
+impl crate::session::Plan for ArrayRun {
+    fn next_action(&mut self) -> Result<crate::tuner::Action, String> {
+        use crate::tuner::Action;
+        match self.poll().map_err(|e| e.to_string())? {
+            ArrayAction::Execute(requests) => Ok(Action::Request(Request::Batch { requests })),
+            ArrayAction::Iteration(record) => Ok(Action::Iteration(*record)),
+            ArrayAction::Idle => Ok(Action::Finished),
+        }
+    }
+
+    fn take_response(&mut self, response: Response) -> Result<(), crate::tuner::TunerError> {
+        match response {
+            Response::Batch {
+                responses,
+                lab_seconds,
+            } => self
+                .feed(responses, lab_seconds)
+                .map_err(|e| crate::tuner::TunerError::Device(e.to_string())),
+            _ => Err(crate::tuner::TunerError::UnexpectedResponse { expected: "batch" }),
+        }
+    }
+
+    fn gate_specs(&self) -> &[GateSpec] {
+        &self.gates
+    }
+
+    fn charge_time(&mut self, seconds: f64) {
+        if seconds.is_finite() && seconds > 0.0 {
+            self.lab_seconds += seconds;
+        }
+    }
+
+    /// Plans from the read-back from now on (a gate the run does not know is ignored).
+    fn adopt_voltages(&mut self, readback: &BTreeMap<String, f64>, _tolerance_mv: f64) {
+        for (g, &v) in readback {
+            if v.is_finite() && self.limits.gate(g).is_some() {
+                self.voltages_mv.insert(g.clone(), v);
+            }
+        }
+    }
+
+    fn check_target(
+        &self,
+        parameter: &str,
+        target: Option<f64>,
+        tolerance: Option<crate::parameter::Tolerance>,
+    ) -> Result<(), crate::tuner::TunerError> {
+        use crate::tuner::TunerError;
+        let invalid = |message: String| TunerError::InvalidTarget {
+            parameter: parameter.into(),
+            message,
+        };
+        cell_parameter(parameter)
+            .filter(|(c, _)| *c < self.targets.len())
+            .ok_or_else(|| TunerError::UnknownParameter(parameter.into()))?;
+        match target {
+            Some(t) if t.is_finite() && t > 0.0 => {}
+            Some(t) => return Err(invalid(format!("{t} is not a finite positive value"))),
+            None => {
+                return Err(invalid(
+                    "an array cell's parameter always has a target".into(),
+                ))
+            }
+        }
+        if tolerance.is_some() {
+            return Err(invalid(format!(
+                "the band of an array run is ±{} of the target for every cell",
+                self.settings.relative_tolerance
+            )));
+        }
+        Ok(())
+    }
+
+    fn change_target(
+        &mut self,
+        parameter: &str,
+        target: Option<f64>,
+        tolerance: Option<crate::parameter::Tolerance>,
+    ) -> Result<(), crate::tuner::TunerError> {
+        self.check_target(parameter, target, tolerance)?;
+        let (Some((cell, p)), Some(value)) = (cell_parameter(parameter), target) else {
+            return Err(crate::tuner::TunerError::UnknownParameter(parameter.into()));
+        };
+        let (mut t, mut w) = self.targets[cell];
+        if p == 0 {
+            t = value;
+        } else {
+            w = value;
+        }
+        self.set_targets(cell, (t, w))
+            .map_err(|e| crate::tuner::TunerError::InvalidTarget {
+                parameter: parameter.into(),
+                message: e.to_string(),
+            })
+    }
+
+    fn done(&self) -> bool {
+        self.step == Step::Idle
+    }
 }

@@ -110,8 +110,10 @@ impl Toy {
                     lab_seconds: 10.0,
                 }
             }
-            Request::TrueJacobian { .. } | Request::ReadVoltages { .. } => {
-                Response::error("toy has no oracle and is not read back (the tuner never asks)")
+            Request::TrueJacobian { .. } | Request::ReadVoltages { .. } | Request::Batch { .. } => {
+                Response::error(
+                    "toy has no oracle, is not read back and runs no batch (the tuner never asks)",
+                )
             }
             Request::Wait { seconds } => Response::Waited {
                 lab_seconds: *seconds,

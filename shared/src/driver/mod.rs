@@ -4,13 +4,17 @@
 
 use serde::{Deserialize, Serialize};
 
+pub mod array;
+
 use crate::estimator::EstimatorKind;
 use crate::fit::uncertainty::SIMULATED_DEVICE_REFERENCES;
 use crate::parameter::{ParameterSpec, Tolerance, Transform};
 use crate::protocol::{ControlCommand, Fault, IterationRecord, RunStatus, ScanKind};
-use crate::session::{ControlError, Output, RunSession, SessionConfig, SessionError};
+use crate::session::{ControlError, Output, Plan, RunSession, SessionConfig, SessionError};
+use crate::sim::array::ArrayDevice;
 use crate::sim::{default_gates, DeviceConfig, SimulatedDevice};
 use crate::solver::SolverConfig;
+use crate::tuner::array_run::ArrayRun;
 use crate::tuner::{
     Compensation, ConfigError, InitialGradient, LevelConfig, LevelKind, NewtonConfig,
     SensingDotConfig, SensingDotFallback, Tuner, TunerConfig,
@@ -392,10 +396,33 @@ pub enum Halt {
 /// assert!(run.next_iteration().unwrap().is_none());
 /// ```
 #[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct SimulationRun {
-    session: RunSession,
-    device: SimulatedDevice,
+pub struct SimulationRun<P = Tuner, D = SimulatedDevice> {
+    session: RunSession<P>,
+    device: D,
 }
+
+/// A simulated device a [`SimulationRun`] can drive: one double dot
+/// ([`SimulatedDevice`]) or an array of them ([`ArrayDevice`]).
+pub trait Simulated {
+    /// Execute one request (a [`crate::protocol::Request::Batch`] too).
+    fn execute(&mut self, request: &crate::protocol::Request) -> crate::protocol::Response;
+}
+
+impl Simulated for SimulatedDevice {
+    fn execute(&mut self, request: &crate::protocol::Request) -> crate::protocol::Response {
+        SimulatedDevice::execute(self, request)
+    }
+}
+
+impl Simulated for ArrayDevice {
+    fn execute(&mut self, request: &crate::protocol::Request) -> crate::protocol::Response {
+        ArrayDevice::execute(self, request)
+    }
+}
+
+/// An array of double dots tuned jointly: [`ArrayRun`] in a run session
+/// (its guard checks every request of every batch) on a simulated array.
+pub type ArraySimulationRun = SimulationRun<ArrayRun, ArrayDevice>;
 
 impl SimulationRun {
     /// Validate the config and build session and device at the gates' initial voltages.
@@ -406,9 +433,11 @@ impl SimulationRun {
             RunSession::new(cfg.tuner, SessionConfig::default()).map_err(|e| e.within("tuner"))?;
         Ok(Self { session, device })
     }
+}
 
+impl<P: Plan, D: Simulated> SimulationRun<P, D> {
     /// Assemble from parts (e.g. a device state cloned from another run).
-    pub fn from_parts(session: RunSession, device: SimulatedDevice) -> Self {
+    pub fn from_parts(session: RunSession<P>, device: D) -> Self {
         Self { session, device }
     }
 
@@ -476,22 +505,22 @@ impl SimulationRun {
     }
 
     /// The run session.
-    pub fn session(&self) -> &RunSession {
+    pub fn session(&self) -> &RunSession<P> {
         &self.session
     }
 
     /// The tuner.
-    pub fn tuner(&self) -> &Tuner {
+    pub fn tuner(&self) -> &P {
         self.session.tuner()
     }
 
     /// The simulated device.
-    pub fn device(&self) -> &SimulatedDevice {
+    pub fn device(&self) -> &D {
         &self.device
     }
 
     /// The simulated device, mutably (e.g. to move a gate behind the run's back in a test).
-    pub fn device_mut(&mut self) -> &mut SimulatedDevice {
+    pub fn device_mut(&mut self) -> &mut D {
         &mut self.device
     }
 }

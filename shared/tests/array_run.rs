@@ -103,6 +103,12 @@ fn records_name_every_cell_and_count_iterations() {
         let names: Vec<&str> = r.parameters.iter().map(|p| p.name.as_str()).collect();
         assert_eq!(names, ["c0.t_sr", "c0.w", "c1.t_sr", "c1.w"]);
         assert_eq!(r.gates.len(), 8, "four tuning gates per cell");
+        // the learned rows over every tuning gate (the overview's heat map)
+        let rows: Vec<&str> = r.gradients.iter().map(|g| g.parameter.as_str()).collect();
+        assert_eq!(rows, names);
+        assert!(r.gradients.iter().all(|g| g.gradient.len() == 8 && g.unit == "1/mV"));
+        assert!(r.gradients[0].gradient[..4].iter().any(|x| *x != 0.0));
+        assert_eq!(r.step_mv.len(), 8);
         assert!(r.lab_seconds > 0.0);
         // every record's lab time is the array clock, which the driver measured
         assert!(r.lab_seconds <= a.lab_seconds());

@@ -41,7 +41,8 @@ use serde::{Deserialize, Serialize};
 use crate::config_error::ConfigError;
 use crate::fit::{evaluate_with, uncertainty::References};
 use crate::protocol::{
-    IterationRecord, ParameterReport, Request, Response, ScanKind, ScanOutcome, ScanRequest, Sweep,
+    GradientReport, IterationRecord, ParameterReport, Request, Response, ScanKind, ScanOutcome,
+    ScanRequest, Sweep,
 };
 use crate::safety::{GateSpec, SafetyLimits};
 use crate::session::{Output, RunSession, SessionConfig};
@@ -415,9 +416,10 @@ impl ArrayRun {
                 Step::Boundary => {
                     let idle = self.scratch.record.as_ref().is_some_and(|r| r.tuned);
                     self.step = if idle { Step::Idle } else { Step::Measure };
-                    let record = self.scratch.record.take().ok_or_else(|| {
+                    let mut record = self.scratch.record.take().ok_or_else(|| {
                         ArrayRunError::Protocol("an iteration ended without its record".into())
                     })?;
+                    self.complete(&mut record);
                     self.iteration += 1;
                     return Ok(ArrayAction::Iteration(record));
                 }
@@ -425,6 +427,34 @@ impl ArrayRun {
                 _ => {}
             }
         }
+    }
+
+    /// The record at the iteration's end: the filter rows after this
+    /// iteration's update (log space, 1/mV, over every tuning gate, zero
+    /// outside a row's neighbourhood) and the step its moves made, mV.
+    fn complete(&self, record: &mut IterationRecord) {
+        let Some(joint) = &self.joint else {
+            return;
+        };
+        let gates = joint.tuner.gates();
+        let j = joint.tuner.jacobian();
+        record.gradients = (0..j.nrows())
+            .map(|r| GradientReport {
+                parameter: parameter_name((r / 2) as u32, CELL_PARAMETERS[r % 2]),
+                unit: "1/mV".into(),
+                gradient: j.row(r).iter().copied().collect(),
+                covariance: None,
+            })
+            .collect();
+        record.step_mv = gates
+            .iter()
+            .map(|g| {
+                let now = self.voltages_mv.get(g).copied().unwrap_or(0.0);
+                now - record.voltages_mv.get(g).copied().unwrap_or(now)
+            })
+            .collect();
+        record.lab_seconds = self.lab_seconds;
+        record.failed_evaluations = self.failed_evaluations();
     }
 
     /// The batch of the present step (`Some(empty)`: nothing to send, step

@@ -31,6 +31,7 @@ use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 use serde_json::{Map, Value};
+use spintune::driver::array::ArraySimulationConfig;
 use spintune::driver::SimulationConfig;
 use spintune::parameter::Tolerance;
 use spintune::run_config::resolve_simulation;
@@ -100,6 +101,10 @@ pub struct RunConfig {
     pub simulation: SimulationConfig,
     /// Backend-only settings.
     pub backend: BackendSettings,
+    /// An array of double dots tuned jointly (the `array` table; simulator
+    /// only): when set, the run is this array, not `simulation`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub array: Option<ArraySimulationConfig>,
 }
 
 /// Why a config was rejected. The message names the field.
@@ -121,6 +126,7 @@ impl RunConfig {
         Self {
             simulation: SimulationConfig::recommended(),
             backend: BackendSettings::default(),
+            array: None,
         }
     }
 
@@ -169,12 +175,17 @@ impl RunConfig {
             }
             .validate()?;
         }
+        let array = user
+            .remove("array")
+            .map(|v| parse_array(v, &backend))
+            .transpose()?;
         // The core's one merge and validation of the simulation part.
         let simulation = resolve_simulation(user, &backend.targets, &backend.tolerances)?;
         validate_drivers(&simulation, &backend)?;
         Ok(Self {
             simulation,
             backend,
+            array,
         })
     }
 
@@ -201,6 +212,11 @@ impl RunConfig {
         {
             d.extend(b);
         }
+        if let (Value::Object(d), Some(Ok(a))) =
+            (&mut doc, self.array.as_ref().map(serde_json::to_value))
+        {
+            d.insert("array".into(), a);
+        }
         drop_nulls(&mut doc);
         doc
     }
@@ -213,7 +229,10 @@ impl RunConfig {
 
     /// Run name.
     pub fn name(&self) -> &str {
-        &self.simulation.name
+        match &self.array {
+            Some(a) => &a.name,
+            None => &self.simulation.name,
+        }
     }
 }
 
@@ -242,6 +261,34 @@ fn validate_delay(b: &BackendSettings) -> Result<(), ConfigParseError> {
             e.message
         ))
     })
+}
+
+/// The `array` table: an [`ArraySimulationConfig`] (errors name the field
+/// under `array.`), on the simulator only, with its own targets.
+fn parse_array(
+    value: Value,
+    b: &BackendSettings,
+) -> Result<ArraySimulationConfig, ConfigParseError> {
+    let array: ArraySimulationConfig = serde_path_to_error::deserialize(value).map_err(|e| {
+        ConfigParseError(format!(
+            "invalid config at `array.{}`: {}",
+            e.path(),
+            e.inner()
+        ))
+    })?;
+    if b.driver != DriverKind::Simulator {
+        return Err(ConfigParseError(
+            "invalid config at `driver`: an array run runs on the simulator only (driver = \"simulator\")".into(),
+        ));
+    }
+    if !b.targets.is_empty() || !b.tolerances.is_empty() {
+        return Err(ConfigParseError(
+            "invalid config at `targets`: an array run's targets are `array.targets` (one [t_sr ns, w µV] pair for every cell, or one per cell)".into(),
+        ));
+    }
+    // every bound, and that the world can be drawn
+    array.build().map_err(|e| e.within("array"))?;
+    Ok(array)
 }
 
 fn validate_drivers(sim: &SimulationConfig, b: &BackendSettings) -> Result<(), ConfigParseError> {

@@ -106,7 +106,10 @@ fn records_name_every_cell_and_count_iterations() {
         // the learned rows over every tuning gate (the overview's heat map)
         let rows: Vec<&str> = r.gradients.iter().map(|g| g.parameter.as_str()).collect();
         assert_eq!(rows, names);
-        assert!(r.gradients.iter().all(|g| g.gradient.len() == 8 && g.unit == "1/mV"));
+        assert!(r
+            .gradients
+            .iter()
+            .all(|g| g.gradient.len() == 8 && g.unit == "1/mV"));
         assert!(r.gradients[0].gradient[..4].iter().any(|x| *x != 0.0));
         assert_eq!(r.step_mv.len(), 8);
         assert!(r.lab_seconds > 0.0);

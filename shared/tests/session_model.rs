@@ -33,6 +33,7 @@ use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use proptest::prelude::*;
+use serde::Serialize;
 use spintune::driver::SimulationConfig;
 use spintune::parameter::Tolerance;
 use spintune::protocol::{
@@ -40,7 +41,8 @@ use spintune::protocol::{
     ScanOutcome,
 };
 use spintune::safety::GateSpec;
-use spintune::session::{Output, RunSession, SessionConfig};
+use spintune::session::{Output, Plan, RunSession, SessionConfig};
+use spintune::tuner::array_run::{ArrayRun, ArrayRunSettings};
 use spintune::tuner::{FlankPrediction, InitialGradient, LevelKind, SensingDotConfig, TunerConfig};
 
 /// Steps executed by all cases of this binary.
@@ -55,6 +57,8 @@ static ACCEPTED: AtomicU64 = AtomicU64::new(0);
 /// Keep mode: check records committed and waits executed.
 static KEEP_CHECKS: AtomicU64 = AtomicU64::new(0);
 static WAITS: AtomicU64 = AtomicU64::new(0);
+/// Array runs: batches executed.
+static BATCHES: AtomicU64 = AtomicU64::new(0);
 
 const CASES: u32 = 500;
 const MAX_SCRIPT: usize = 300;
@@ -203,15 +207,10 @@ struct Instrument {
 }
 
 impl Instrument {
-    fn new(cfg: &TunerConfig) -> Self {
+    fn new(gates: &[GateSpec]) -> Self {
         Self {
-            limits: cfg
-                .gates
-                .iter()
-                .map(|g| (g.name.clone(), g.clone()))
-                .collect(),
-            phys: cfg
-                .gates
+            limits: gates.iter().map(|g| (g.name.clone(), g.clone())).collect(),
+            phys: gates
                 .iter()
                 .map(|g| (g.name.clone(), g.initial_mv))
                 .collect(),
@@ -406,7 +405,9 @@ impl Instrument {
                     _ => {}
                 }
                 let phys = self.phys.clone();
-                let v = |g: &str| phys[g];
+                // an array's scan names its cell: that cell's gates
+                let prefix = scan.cell.map(|c| format!("c{c}.")).unwrap_or_default();
+                let v = |g: &str| phys[&format!("{prefix}{g}")];
                 let t_sr = 30.0 * (-(v("N") + 0.5 * v("SA")) / 80.0).exp() + 0.05 * v("SB");
                 let w = 250.0 + 1.2 * v("SA") - 0.9 * v("T") + 0.3 * v("N");
                 let values = match scan.kind {
@@ -469,8 +470,8 @@ impl Instrument {
 /// Drive `session` until it hands out a request, handling everything else
 /// like a server would (commit with checkpoint, save, publish). Returns the
 /// request, or `None` if the session waits or is done.
-fn next_request(
-    session: &mut RunSession,
+fn next_request<P: Plan + Serialize>(
+    session: &mut RunSession<P>,
     committed: &mut Vec<u64>,
     checkpoint: &mut String,
 ) -> Result<Option<Request>, String> {
@@ -516,21 +517,81 @@ fn next_request(
     Err("the session never settled".into())
 }
 
+fn session_config() -> SessionConfig {
+    SessionConfig {
+        readback_tolerance_mv: 0.05,
+        iteration_delay_ms: 0,
+        moved_tolerance_mv: 1.0,
+    }
+}
+
+/// The names a script's actions use on one toy: a single double dot, or
+/// an array of them (whose gates and parameters carry a cell prefix).
+struct Toy {
+    gates: Vec<GateSpec>,
+    /// Prefix of the gates a knob turn or a crash touches (`""`, `"c0."`).
+    knob_prefix: &'static str,
+    /// The parameter a target change names, and its tolerance.
+    target_parameter: &'static str,
+    target_tolerance: Option<Tolerance>,
+}
+
 fn run_script(script: &[Action]) -> Result<(), TestCaseError> {
     run_script_with(tuner_config(), script)
 }
 
 fn run_script_with(cfg: TunerConfig, script: &[Action]) -> Result<(), TestCaseError> {
-    let mut dev = Instrument::new(&cfg);
-    let mut session = RunSession::new(
-        cfg,
-        SessionConfig {
-            readback_tolerance_mv: 0.05,
-            iteration_delay_ms: 0,
-            moved_tolerance_mv: 1.0,
-        },
+    let toy = Toy {
+        gates: cfg.gates.clone(),
+        knob_prefix: "",
+        target_parameter: "w",
+        target_tolerance: Some(Tolerance::Relative(0.05)),
+    };
+    let session = RunSession::new(cfg, session_config()).unwrap();
+    run_script_on(session, &toy, script)
+}
+
+/// Two toy cells as an array (`c0.…`, `c1.…`), tuned jointly.
+fn run_array_script(script: &[Action]) -> Result<(), TestCaseError> {
+    let cells: Vec<TunerConfig> = (0..2).map(array_cell).collect();
+    let gates: Vec<GateSpec> = cells.iter().flat_map(|c| c.gates.clone()).collect();
+    let plan = ArrayRun::new(
+        cells,
+        &gates,
+        ArrayRunSettings::default(),
+        [0.3, 0.05],
+        false,
     )
     .unwrap();
+    let toy = Toy {
+        gates,
+        knob_prefix: "c0.",
+        target_parameter: "c1.w",
+        target_tolerance: None,
+    };
+    run_script_on(RunSession::from_tuner(plan, session_config()), &toy, script)
+}
+
+/// The toy tuner with every gate renamed `c{cell}.…`.
+fn array_cell(cell: u32) -> TunerConfig {
+    let mut t = tuner_config();
+    let rn = |g: &mut String| *g = format!("c{cell}.{g}");
+    t.gates.iter_mut().for_each(|g| rn(&mut g.name));
+    for level in &mut t.levels {
+        match &mut level.kind {
+            LevelKind::Newton(n) => n.gates.iter_mut().for_each(rn),
+            LevelKind::SensingDot(sd) => rn(&mut sd.gate),
+        }
+    }
+    t
+}
+
+fn run_script_on<P: Plan + Serialize + serde::de::DeserializeOwned>(
+    mut session: RunSession<P>,
+    toy: &Toy,
+    script: &[Action],
+) -> Result<(), TestCaseError> {
+    let mut dev = Instrument::new(&toy.gates);
     let mut committed = Vec::new();
     let mut checkpoint = serde_json::to_string(&session).unwrap();
     let mut stopped = false;
@@ -548,6 +609,9 @@ fn run_script_with(cfg: TunerConfig, script: &[Action]) -> Result<(), TestCaseEr
                 EXECUTED.fetch_add(1, Ordering::Relaxed);
                 if matches!(req, Request::Wait { .. }) {
                     WAITS.fetch_add(1, Ordering::Relaxed);
+                }
+                if matches!(req, Request::Batch { .. }) {
+                    BATCHES.fetch_add(1, Ordering::Relaxed);
                 }
                 let how = match (how, &req) {
                     (Answer::LyingRead(d), Request::ReadVoltages { gates }) => {
@@ -589,15 +653,15 @@ fn run_script_with(cfg: TunerConfig, script: &[Action]) -> Result<(), TestCaseEr
             }
             Action::SetTarget(w) => {
                 let r = session.control(&ControlCommand::SetTarget {
-                    parameter: "w".into(),
+                    parameter: toy.target_parameter.into(),
                     target: Some(*w),
-                    tolerance: Some(Tolerance::Relative(0.05)),
+                    tolerance: toy.target_tolerance,
                 });
                 prop_assert_eq!(r.is_ok(), !stopped);
             }
             Action::BadTarget => {
                 let r = session.control(&ControlCommand::SetTarget {
-                    parameter: "w".into(),
+                    parameter: toy.target_parameter.into(),
                     target: Some(f64::NAN),
                     tolerance: None,
                 });
@@ -606,10 +670,10 @@ fn run_script_with(cfg: TunerConfig, script: &[Action]) -> Result<(), TestCaseEr
             Action::KnobTurn(g, d) => {
                 let moving = matches!(session.status(), RunStatus::Running | RunStatus::Stepping);
                 if !moving {
-                    let name = ["N", "SA", "SB", "T", "SD1"][*g];
-                    let s = &dev.limits[name];
-                    let v = (dev.phys[name] + d).clamp(s.min_mv, s.max_mv);
-                    dev.phys.insert(name.to_string(), v);
+                    let name = format!("{}{}", toy.knob_prefix, ["N", "SA", "SB", "T", "SD1"][*g]);
+                    let s = &dev.limits[&name];
+                    let v = (dev.phys[&name] + d).clamp(s.min_mv, s.max_mv);
+                    dev.phys.insert(name, v);
                 }
             }
             Action::Reconnect => {
@@ -637,10 +701,10 @@ fn run_script_with(cfg: TunerConfig, script: &[Action]) -> Result<(), TestCaseEr
                 // Everything since the last commit is lost; the instrument
                 // stays where it is, and someone may have touched it.
                 session = serde_json::from_str(&checkpoint).unwrap();
-                let name = "T";
-                let s = &dev.limits[name];
-                let v = (dev.phys[name] + 17.0).clamp(s.min_mv, s.max_mv);
-                dev.phys.insert(name.to_string(), v);
+                let name = format!("{}T", toy.knob_prefix);
+                let s = &dev.limits[&name];
+                let v = (dev.phys[&name] + 17.0).clamp(s.min_mv, s.max_mv);
+                dev.phys.insert(name, v);
                 // a restored run that was stopped stays stopped
                 stopped = session.status() == RunStatus::Stopped;
             }
@@ -740,4 +804,45 @@ fn keep_mode_session_holds_the_same_invariants() {
     eprintln!("keep mode: {checks} checks committed, {waits} waits executed");
     assert!(checks >= u64::from(CASES / 5), "{checks} checks");
     assert!(waits >= u64::from(CASES / 5), "{waits} waits");
+}
+
+/// The same invariants on an array of two toy double dots tuned jointly:
+/// every request goes out in a batch, the scripted fault lands on one
+/// request of a batch (the others are answered honestly), and the
+/// instrument's checks look into every batch. The scripts must drive the
+/// joint tuner through iterations and provoke faults.
+#[test]
+fn array_session_holds_the_same_invariants() {
+    use proptest::test_runner::{RngAlgorithm, TestRng, TestRunner};
+    let before = (
+        COMMITS.load(Ordering::Relaxed),
+        FAULTS.load(Ordering::Relaxed),
+        BATCHES.load(Ordering::Relaxed),
+    );
+    let mut runner = TestRunner::new_with_rng(
+        ProptestConfig {
+            cases: CASES / 5,
+            ..ProptestConfig::default()
+        },
+        TestRng::deterministic_rng(RngAlgorithm::ChaCha),
+    );
+    let result = runner.run(
+        &prop::collection::vec(action(), MAX_SCRIPT / 2..=MAX_SCRIPT),
+        |script| run_array_script(&script),
+    );
+    if let Err(e) = result {
+        panic!("{e}");
+    }
+    let (commits, faults, batches) = (
+        COMMITS.load(Ordering::Relaxed) - before.0,
+        FAULTS.load(Ordering::Relaxed) - before.1,
+        BATCHES.load(Ordering::Relaxed) - before.2,
+    );
+    eprintln!("array: {batches} batches executed, {commits} iterations committed, {faults} faults");
+    assert!(batches >= u64::from(CASES / 5) * 10, "{batches} batches");
+    assert!(
+        commits >= u64::from(CASES / 5),
+        "{commits} iterations committed"
+    );
+    assert!(faults >= u64::from(CASES / 5), "{faults} faults");
 }

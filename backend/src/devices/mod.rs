@@ -269,6 +269,8 @@ pub struct DeviceSettings<'a> {
     pub bridge: &'a bridge::BridgeConfig,
     /// The gates with their limits.
     pub gates: &'a [GateSpec],
+    /// The simulator's state is an array's.
+    pub array: bool,
 }
 
 /// Open the device described by `settings` from its checkpoint `state` (the simulator's
@@ -292,7 +294,7 @@ pub fn open(
             })
     };
     let simulator = |state| {
-        SimulatorDevice::restore(state).map_err(|e| {
+        SimulatorDevice::restore(state, b.array).map_err(|e| {
             DeviceError::Open(format!(
                 "cannot restore the simulated device from its checkpoint: {e}"
             ))

@@ -5,8 +5,10 @@
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 use spintune::session::{RunSession, SessionConfig};
+use spintune::tuner::array_run::ArrayRun;
 use spintune::tuner::Tuner;
 
+use super::any_session::AnySession;
 use super::error::RunError;
 use crate::config::RunConfig;
 
@@ -27,6 +29,9 @@ pub struct Checkpoint {
     /// The session's complete state (tuner, mode, deferred targets).
     #[serde(default)]
     pub session: Option<RunSession>,
+    /// An array run's session (instead of `session`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub array_session: Option<RunSession<ArrayRun>>,
     /// A checkpoint written before run sessions existed holds the tuner only.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub tuner: Option<Tuner>,
@@ -36,10 +41,15 @@ pub struct Checkpoint {
 
 impl Checkpoint {
     /// A checkpoint of this release.
-    pub fn new(session: RunSession, device: Value) -> Self {
+    pub fn new(session: AnySession, device: Value) -> Self {
+        let (cell, array) = match session {
+            AnySession::Cell(s) => (Some(*s), None),
+            AnySession::Array(s) => (None, Some(*s)),
+        };
         Self {
             version: CHECKPOINT_VERSION,
-            session: Some(session),
+            session: cell,
+            array_session: array,
             tuner: None,
             device,
         }
@@ -71,25 +81,26 @@ impl Checkpoint {
         }
         let cp: Checkpoint = serde_path_to_error::deserialize(raw)
             .map_err(|e| unusable(format!("is malformed at `{}`: {}", e.path(), e.inner())))?;
+        if let Some(array) = &config.array {
+            let Some(session) = &cp.array_session else {
+                return Err(unusable("holds no array session for this array run".into()));
+            };
+            use spintune::session::Plan;
+            let want = array.gates();
+            check_gates(&want, session.tuner().gate_specs()).map_err(unusable)?;
+            return Ok(cp);
+        }
+        if cp.array_session.is_some() {
+            return Err(unusable(
+                "holds an array session, but the run is not an array".into(),
+            ));
+        }
         let tuner = match (&cp.session, &cp.tuner) {
             (Some(s), _) => s.tuner(),
             (None, Some(t)) => t,
             (None, None) => return Err(unusable("holds neither a session nor a tuner".into())),
         };
-        let want = &config.simulation.tuner.gates;
-        let have = &tuner.config().gates;
-        let same = want.len() == have.len()
-            && want.iter().zip(have).all(|(a, b)| {
-                a.name == b.name
-                    && a.min_mv == b.min_mv
-                    && a.max_mv == b.max_mv
-                    && a.max_step_mv == b.max_step_mv
-            });
-        if !same {
-            return Err(unusable(
-                "has other gates or gate limits than the run's config".into(),
-            ));
-        }
+        check_gates(&config.simulation.tuner.gates, &tuner.config().gates).map_err(unusable)?;
         if let Some((gate, v)) = tuner.voltages_mv().iter().find(|(_, v)| !v.is_finite()) {
             return Err(unusable(format!(
                 "holds a non-finite voltage {v} for {gate}"
@@ -100,15 +111,38 @@ impl Checkpoint {
 
     /// The session to continue from (an old tuner-only checkpoint gets a
     /// fresh session around its tuner).
-    pub fn into_session(self, config: SessionConfig) -> Result<(RunSession, Value), RunError> {
-        match (self.session, self.tuner) {
-            (Some(s), _) => Ok((s, self.device)),
-            (None, Some(t)) => Ok((RunSession::from_tuner(t, config), self.device)),
-            (None, None) => Err(RunError::Internal(
+    pub fn into_session(self, config: SessionConfig) -> Result<(AnySession, Value), RunError> {
+        match (self.session, self.array_session, self.tuner) {
+            (Some(s), _, _) => Ok((AnySession::Cell(Box::new(s)), self.device)),
+            (None, Some(s), _) => Ok((AnySession::Array(Box::new(s)), self.device)),
+            (None, None, Some(t)) => Ok((
+                AnySession::Cell(Box::new(RunSession::from_tuner(t, config))),
+                self.device,
+            )),
+            (None, None, None) => Err(RunError::Internal(
                 "checkpoint holds neither a session nor a tuner".into(),
             )),
         }
     }
+}
+
+/// `Err` unless the stored gates are the config's, with the same limits
+/// (invariant 5 rests on them).
+fn check_gates(
+    want: &[spintune::safety::GateSpec],
+    have: &[spintune::safety::GateSpec],
+) -> Result<(), String> {
+    let same = want.len() == have.len()
+        && want.iter().zip(have).all(|(a, b)| {
+            a.name == b.name
+                && a.min_mv == b.min_mv
+                && a.max_mv == b.max_mv
+                && a.max_step_mv == b.max_step_mv
+        });
+    if !same {
+        return Err("has other gates or gate limits than the run's config".into());
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -123,6 +157,9 @@ mod tests {
         let old = serde_json::json!({ "tuner": tuner, "device": null });
         let cp: Checkpoint = serde_json::from_value(old).unwrap();
         let (session, _) = cp.into_session(SessionConfig::default()).unwrap();
+        let AnySession::Cell(session) = session else {
+            panic!("a single-cell checkpoint")
+        };
         assert_eq!(session.tuner().iteration(), 0);
         assert_eq!(session.status(), RunStatus::Running);
     }

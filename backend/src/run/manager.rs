@@ -18,6 +18,7 @@ use spintune::protocol::{ControlCommand, IterationRecord, RunStatus, RunSummary,
 use spintune::session::{RunSession, SessionConfig};
 use tokio::sync::{mpsc, oneshot};
 
+use super::any_session::AnySession;
 use super::checkpoint::Checkpoint;
 use super::error::RunError;
 use super::handle::{ControlMsg, RunHandle};
@@ -192,23 +193,40 @@ impl Manager {
         config: RunConfig,
         start_paused: bool,
     ) -> Result<RunSummary, RunError> {
-        let sim = &config.simulation;
-        sim.validate()
-            .map_err(|e| RunError::Invalid(e.to_string()))?;
         let scfg = session_config(&config, self.options.iteration_delay);
-        let mut session = RunSession::new(sim.tuner.clone(), scfg)
-            .map_err(|e| RunError::Invalid(e.to_string()))?;
+        let (mut session, device) = match &config.array {
+            Some(array) => {
+                let (plan, device) = array
+                    .build_parts()
+                    .map_err(|e| RunError::Invalid(e.within("array").to_string()))?;
+                (
+                    AnySession::Array(Box::new(RunSession::from_tuner(plan, scfg))),
+                    SimulatorDevice::array(device),
+                )
+            }
+            None => {
+                let sim = &config.simulation;
+                sim.validate()
+                    .map_err(|e| RunError::Invalid(e.to_string()))?;
+                let session = RunSession::new(sim.tuner.clone(), scfg)
+                    .map_err(|e| RunError::Invalid(e.to_string()))?;
+                let device = sim
+                    .simulated_device()
+                    .map_err(|e| RunError::Invalid(e.to_string()))?;
+                (
+                    AnySession::Cell(Box::new(session)),
+                    SimulatorDevice::new(device),
+                )
+            }
+        };
         if start_paused {
             session
                 .control(&ControlCommand::Pause)
                 .map_err(|e| RunError::Internal(e.to_string()))?;
         }
-        let device = sim
-            .simulated_device()
-            .map_err(|e| RunError::Invalid(e.to_string()))?;
         let checkpoint = Checkpoint::new(
             session,
-            SimulatorDevice::new(device)
+            device
                 .checkpoint()
                 .map_err(|e| RunError::Internal(e.to_string()))?,
         );
@@ -332,8 +350,9 @@ impl Manager {
                     e => RunError::Invalid(e.to_string()),
                 })?;
                 // a new target revives a run that finished because it was tuned
-                let revived =
-                    status == RunStatus::Finished && session.status() == RunStatus::Paused;
+                // (the checkpoint was written with the tuned record, before
+                // the session saw that its plan had finished: the plan says)
+                let revived = status == RunStatus::Finished && !session.plan_done();
                 let json = serde_json::to_string(&Checkpoint::new(session, device))
                     .map_err(|e| RunError::Internal(e.to_string()))?;
                 let store = self.store.clone();
@@ -502,6 +521,7 @@ impl Manager {
             scpi: backend.scpi.as_ref(),
             bridge: &backend.bridge,
             gates: &handle.config.simulation.tuner.gates,
+            array: handle.config.array.is_some(),
         };
         let device: Box<dyn Device> = match devices::open(settings, device_state, bridge) {
             Ok(d) => d,

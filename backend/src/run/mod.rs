@@ -38,6 +38,7 @@
 //! Imports go one way: `manager` → `task` → `persist` → `handle` →
 //! `viewer_update`, `error`; nothing here imports `crate::server`.
 
+mod any_session;
 mod checkpoint;
 mod error;
 mod handle;

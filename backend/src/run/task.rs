@@ -13,9 +13,10 @@ use std::time::Duration;
 use serde::Serialize;
 use serde_json::Value;
 use spintune::protocol::{ControlCommand, Response, RunStatus};
-use spintune::session::{Output, RunSession};
+use spintune::session::Output;
 use tokio::sync::mpsc;
 
+use super::any_session::AnySession;
 use super::checkpoint::CHECKPOINT_VERSION;
 use super::error::RunError;
 use super::handle::{ControlMsg, RunHandle};
@@ -26,7 +27,7 @@ use crate::store::Store;
 pub(super) struct RunTask {
     pub store: Arc<Store>,
     pub handle: Arc<RunHandle>,
-    pub session: RunSession,
+    pub session: AnySession,
     pub device: Box<dyn Device>,
     pub control: mpsc::Receiver<ControlMsg>,
     pub generation: u64,
@@ -154,14 +155,23 @@ impl RunTask {
             .checkpoint()
             .map_err(|e| Exit::Failed(format!("cannot serialize device state: {e}")))?;
         #[derive(Serialize)]
-        struct CheckpointRef<'a> {
+        struct CheckpointRef<'a, S> {
             version: u32,
-            session: &'a RunSession,
+            #[serde(rename = "session")]
+            cell: Option<&'a S>,
+            #[serde(skip_serializing_if = "Option::is_none")]
+            array_session:
+                Option<&'a spintune::session::RunSession<spintune::tuner::array_run::ArrayRun>>,
             device: Value,
         }
+        let (cell, array_session) = match &self.session {
+            AnySession::Cell(s) => (Some(&**s), None),
+            AnySession::Array(s) => (None, Some(&**s)),
+        };
         serde_json::to_string(&CheckpointRef {
             version: CHECKPOINT_VERSION,
-            session: &self.session,
+            cell,
+            array_session,
             device,
         })
         .map_err(|e| Exit::Failed(format!("cannot serialize session state: {e}")))
@@ -179,7 +189,7 @@ fn exit(e: RunError) -> Exit {
 /// Apply one control command to the session and answer it at once with the
 /// new status (it is stored and broadcast by the next `Publish`). Returns
 /// whether the command was a stop.
-fn handle_control(session: &mut RunSession, handle: &RunHandle, msg: ControlMsg) -> bool {
+fn handle_control(session: &mut AnySession, handle: &RunHandle, msg: ControlMsg) -> bool {
     let ControlMsg { command, reply } = msg;
     let stop = command == ControlCommand::Stop;
     let result = session

@@ -88,8 +88,25 @@ impl ArraySimulationConfig {
         Ok(targets)
     }
 
+    /// Every gate of the array with its limits (prefixed `c{k}.`).
+    pub fn gates(&self) -> Vec<crate::safety::GateSpec> {
+        (0..self.array.cells)
+            .flat_map(crate::sim::array::cell_gates)
+            .collect()
+    }
+
     /// Validate and build the world and the run.
     pub fn build(&self) -> Result<ArraySimulationRun, ConfigError> {
+        let (run, device) = self.build_parts()?;
+        Ok(SimulationRun::from_parts(
+            RunSession::from_tuner(run, SessionConfig::default()),
+            device,
+        ))
+    }
+
+    /// Validate and build the plan and the (truth-sealed) world, for a
+    /// shell that wraps them in its own session (the server).
+    pub fn build_parts(&self) -> Result<(ArrayRun, ArrayDevice), ConfigError> {
         if !(1..=MAX_CELLS).contains(&self.array.cells) {
             return Err(ConfigError::new(
                 "array.cells",
@@ -129,10 +146,7 @@ impl ArraySimulationConfig {
             false,
         )
         .map_err(|e| ConfigError::new("array", e.to_string()))?;
-        Ok(SimulationRun::from_parts(
-            RunSession::from_tuner(run, SessionConfig::default()),
-            device,
-        ))
+        Ok((run, device))
     }
 }
 

@@ -216,14 +216,17 @@ enum Step {
     Move(u32),
     /// Sensor sweeps of these cells, then `next`.
     ParkSweep(Vec<u32>, AfterPark),
-    /// Sensor sets (computed from the sweeps), then `next`.
-    ParkSet(Vec<Request>, AfterPark),
+    /// Sensor sets to these flanks (gate, mV), from the voltages when the
+    /// batch is handed out, then `next`.
+    ParkSet(Vec<(String, f64)>, AfterPark),
     /// Line corrections from the forecast, then the first line round.
     Precorrect(Vec<u32>),
     /// Line scans of these cells, round `round`.
     LineScan(Vec<u32>, u32),
     /// Line corrections of the cells that moved in round `round`.
-    LineSet(Vec<Request>, Vec<u32>, u32),
+    /// (cell, lines mV) to correct, from the voltages when the batch is
+    /// handed out; the cells that move; the round.
+    LineSet(Vec<(u32, [f64; 2])>, Vec<u32>, u32),
     /// The iteration is over: hand out its record.
     Boundary,
     /// Every cell in band: nothing to do until a target changes.
@@ -510,18 +513,35 @@ impl ArrayRun {
                 batch
             }
             Step::ParkSweep(cells, next) => {
+                // (a cell without a sensing-dot level has nothing to park)
+                let joint = self.joint()?;
+                let cells: Vec<u32> = cells
+                    .into_iter()
+                    .filter(|&c| !joint.lower[c as usize].sd_gate.is_empty())
+                    .collect();
                 if cells.is_empty() {
                     self.step = Self::after_park(next);
                     Vec::new()
                 } else {
-                    self.sensor_sweeps(&cells)?
+                    let sweeps = self.sensor_sweeps(&cells)?;
+                    self.step = Step::ParkSweep(cells, next);
+                    sweeps
                 }
             }
-            Step::ParkSet(sets, next) => {
-                if sets.is_empty() {
+            Step::ParkSet(flanks, next) => {
+                if flanks.is_empty() {
                     self.step = Self::after_park(next);
                 }
-                sets
+                flanks
+                    .iter()
+                    .map(|(gate, flank)| {
+                        let now = self.voltages_mv.get(gate).copied().unwrap_or(*flank);
+                        let to = self.limits.clip(gate, now, *flank);
+                        Request::SetVoltages {
+                            voltages_mv: [(gate.clone(), to)].into(),
+                        }
+                    })
+                    .collect()
             }
             Step::Precorrect(cells) => {
                 let sets = self.precorrections(&cells)?;
@@ -531,6 +551,13 @@ impl ArrayRun {
                 sets
             }
             Step::LineScan(cells, round) => {
+                // (a cell without a line level has no lines to scan)
+                let joint = self.joint()?;
+                let cells: Vec<u32> = cells
+                    .into_iter()
+                    .filter(|&c| joint.lower[c as usize].line_gates.len() == 2)
+                    .collect();
+                self.step = Step::LineScan(cells.clone(), round);
                 if cells.is_empty() || round >= self.settings.line_rounds {
                     self.step = Step::Boundary;
                     Vec::new()
@@ -547,7 +574,12 @@ impl ArrayRun {
                         .collect()
                 }
             }
-            Step::LineSet(sets, moved, round) => {
+            Step::LineSet(lines, moved, round) => {
+                let joint = self.joint()?;
+                let sets: Vec<Request> = lines
+                    .iter()
+                    .filter_map(|&(c, mu)| self.line_step(joint, c as usize, mu))
+                    .collect();
                 if sets.is_empty() {
                     self.step =
                         Step::ParkSweep(moved.clone(), AfterPark::LineRound(moved, round + 1));
@@ -622,14 +654,14 @@ impl ArrayRun {
             }
             Step::Move(m) => self.moved(m)?,
             Step::ParkSweep(cells, next) => {
-                let sets = self.sensor_sets(&cells, &answers)?;
-                self.step = Step::ParkSet(sets, next);
+                let flanks = self.sensor_flanks(&cells, &answers)?;
+                self.step = Step::ParkSet(flanks, next);
             }
             Step::ParkSet(_, next) => self.step = Self::after_park(next),
             Step::Precorrect(cells) => self.step = Step::LineScan(cells, 0),
             Step::LineScan(cells, round) => {
-                let (sets, moved) = self.line_corrections(&cells, &answers)?;
-                self.step = Step::LineSet(sets, moved, round);
+                let (lines, moved) = self.line_corrections(&cells, &answers)?;
+                self.step = Step::LineSet(lines, moved, round);
             }
             Step::LineSet(_, moved, round) => {
                 self.step = Step::ParkSweep(moved.clone(), AfterPark::LineRound(moved, round + 1));
@@ -831,17 +863,23 @@ impl ArrayRun {
 
     // ----- one iteration -----
 
+    /// The value `name` of a scan's answer: fitted from raw traces with
+    /// the cell's references, or as a lab's own analysis evaluated it.
     fn evaluate(&self, cell: usize, answer: &Response, name: &str) -> Option<Measured> {
-        let Response::Scanned {
-            outcome: ScanOutcome::Raw { scan },
-            ..
-        } = answer
-        else {
+        let Response::Scanned { outcome, .. } = answer else {
             return None;
         };
-        let references = &self.joint.as_ref()?.lower.get(cell)?.references;
-        let e = evaluate_with(scan, references).ok()?;
-        e.values
+        let fitted;
+        let values = match outcome {
+            ScanOutcome::Raw { scan } => {
+                let references = &self.joint.as_ref()?.lower.get(cell)?.references;
+                fitted = evaluate_with(scan, references).ok()?.values;
+                &fitted
+            }
+            ScanOutcome::Evaluated { values } => values,
+            ScanOutcome::Failed { .. } => return None,
+        };
+        values
             .iter()
             .find(|v| v.name == name)
             .filter(|v| v.validate().is_ok())
@@ -1078,26 +1116,22 @@ impl ArrayRun {
     }
 
     /// Park each swept sensor on its fitted flank (a failed fit leaves it).
-    fn sensor_sets(
+    fn sensor_flanks(
         &mut self,
         cells: &[u32],
         answers: &[Response],
-    ) -> Result<Vec<Request>, ArrayRunError> {
-        let mut sets = Vec::new();
+    ) -> Result<Vec<(String, f64)>, ArrayRunError> {
+        let mut flanks = Vec::new();
         for (&c, a) in cells.iter().zip(answers) {
             match self.evaluate(c as usize, a, "sd_flank_mv") {
                 Some((flank, _)) => {
                     let gate = self.joint()?.lower[c as usize].sd_gate.clone();
-                    let now = self.voltages_mv.get(&gate).copied().unwrap_or(flank);
-                    let to = self.limits.clip(&gate, now, flank);
-                    sets.push(Request::SetVoltages {
-                        voltages_mv: [(gate, to)].into(),
-                    });
+                    flanks.push((gate, flank));
                 }
                 None => self.failed_fits += 1,
             }
         }
-        Ok(sets)
+        Ok(flanks)
     }
 
     /// Before the first line scan: the cells whose forecast puts a line
@@ -1125,8 +1159,8 @@ impl ArrayRun {
         &mut self,
         cells: &[u32],
         answers: &[Response],
-    ) -> Result<(Vec<Request>, Vec<u32>), ArrayRunError> {
-        let mut sets = Vec::new();
+    ) -> Result<(Vec<(u32, [f64; 2])>, Vec<u32>), ArrayRunError> {
+        let mut lines = Vec::new();
         let mut moved = Vec::new();
         let v = self.voltages_mv.clone();
         for (&c, a) in cells.iter().zip(answers) {
@@ -1147,12 +1181,12 @@ impl ArrayRun {
             {
                 continue;
             }
-            if let Some(set) = self.line_step(self.joint()?, c as usize, mu) {
-                sets.push(set);
+            if self.line_step(self.joint()?, c as usize, mu).is_some() {
+                lines.push((c, mu));
                 moved.push(c);
             }
         }
-        Ok((sets, moved))
+        Ok((lines, moved))
     }
 
     /// The limited plunger correction that cancels `mu` (mV) with the
@@ -1252,12 +1286,19 @@ impl crate::session::Plan for ArrayRun {
         }
     }
 
-    /// Plans from the read-back from now on (a gate the run does not know is ignored).
+    /// Plans from the read-back from now on (a gate the run does not know
+    /// is ignored). A batch handed out but not answered was planned from
+    /// other voltages: it is planned again (the initial measurements'
+    /// sessions keep theirs: each reads its own gates first).
     fn adopt_voltages(&mut self, readback: &BTreeMap<String, f64>, _tolerance_mv: f64) {
+        let mut changed = false;
         for (g, &v) in readback {
             if v.is_finite() && self.limits.gate(g).is_some() {
-                self.voltages_mv.insert(g.clone(), v);
+                changed |= self.voltages_mv.insert(g.clone(), v) != Some(v);
             }
+        }
+        if changed && self.step != Step::Initial && self.step != Step::ReadAll {
+            self.outstanding = None;
         }
     }
 

@@ -57,8 +57,10 @@ static ACCEPTED: AtomicU64 = AtomicU64::new(0);
 /// Keep mode: check records committed and waits executed.
 static KEEP_CHECKS: AtomicU64 = AtomicU64::new(0);
 static WAITS: AtomicU64 = AtomicU64::new(0);
-/// Array runs: batches executed.
+/// Array runs: batches executed, iterations committed, faults published.
 static BATCHES: AtomicU64 = AtomicU64::new(0);
+static ARRAY_COMMITS: AtomicU64 = AtomicU64::new(0);
+static ARRAY_FAULTS: AtomicU64 = AtomicU64::new(0);
 
 const CASES: u32 = 500;
 const MAX_SCRIPT: usize = 300;
@@ -474,6 +476,7 @@ fn next_request<P: Plan + Serialize>(
     session: &mut RunSession<P>,
     committed: &mut Vec<u64>,
     checkpoint: &mut String,
+    faults: &mut u64,
 ) -> Result<Option<Request>, String> {
     for _ in 0..10_000 {
         match session.poll() {
@@ -501,6 +504,7 @@ fn next_request<P: Plan + Serialize>(
             Output::Save => *checkpoint = serde_json::to_string(session).unwrap(),
             Output::Publish(RunStatus::Faulted { fault }) => {
                 FAULTS.fetch_add(1, Ordering::Relaxed);
+                *faults += 1;
                 if fault.kind == FaultKind::Moved {
                     MOVED.fetch_add(1, Ordering::Relaxed);
                 }
@@ -548,7 +552,7 @@ fn run_script_with(cfg: TunerConfig, script: &[Action]) -> Result<(), TestCaseEr
         target_tolerance: Some(Tolerance::Relative(0.05)),
     };
     let session = RunSession::new(cfg, session_config()).unwrap();
-    run_script_on(session, &toy, script)
+    run_script_on(session, &toy, script).map(|_| ())
 }
 
 /// Two toy cells as an array (`c0.…`, `c1.…`), tuned jointly.
@@ -569,7 +573,11 @@ fn run_array_script(script: &[Action]) -> Result<(), TestCaseError> {
         target_parameter: "c1.w",
         target_tolerance: None,
     };
-    run_script_on(RunSession::from_tuner(plan, session_config()), &toy, script)
+    let (commits, faults) =
+        run_script_on(RunSession::from_tuner(plan, session_config()), &toy, script)?;
+    ARRAY_COMMITS.fetch_add(commits, Ordering::Relaxed);
+    ARRAY_FAULTS.fetch_add(faults, Ordering::Relaxed);
+    Ok(())
 }
 
 /// The toy tuner with every gate renamed `c{cell}.…`.
@@ -590,8 +598,9 @@ fn run_script_on<P: Plan + Serialize + serde::de::DeserializeOwned>(
     mut session: RunSession<P>,
     toy: &Toy,
     script: &[Action],
-) -> Result<(), TestCaseError> {
+) -> Result<(u64, u64), TestCaseError> {
     let mut dev = Instrument::new(&toy.gates);
+    let mut faults = 0;
     let mut committed = Vec::new();
     let mut checkpoint = serde_json::to_string(&session).unwrap();
     let mut stopped = false;
@@ -599,7 +608,7 @@ fn run_script_on<P: Plan + Serialize + serde::de::DeserializeOwned>(
         STEPS.fetch_add(1, Ordering::Relaxed);
         match step {
             Action::Exec(how) => {
-                let req = next_request(&mut session, &mut committed, &mut checkpoint)
+                let req = next_request(&mut session, &mut committed, &mut checkpoint, &mut faults)
                     .map_err(TestCaseError::fail)?;
                 let Some(req) = req else { continue };
                 // invariant 3
@@ -710,7 +719,7 @@ fn run_script_on<P: Plan + Serialize + serde::de::DeserializeOwned>(
             }
         }
     }
-    Ok(())
+    Ok((committed.len() as u64, faults))
 }
 
 /// Runs [`CASES`] random scripts (proptest shrinks a failing one to a
@@ -815,8 +824,8 @@ fn keep_mode_session_holds_the_same_invariants() {
 fn array_session_holds_the_same_invariants() {
     use proptest::test_runner::{RngAlgorithm, TestRng, TestRunner};
     let before = (
-        COMMITS.load(Ordering::Relaxed),
-        FAULTS.load(Ordering::Relaxed),
+        ARRAY_COMMITS.load(Ordering::Relaxed),
+        ARRAY_FAULTS.load(Ordering::Relaxed),
         BATCHES.load(Ordering::Relaxed),
     );
     let mut runner = TestRunner::new_with_rng(
@@ -834,8 +843,8 @@ fn array_session_holds_the_same_invariants() {
         panic!("{e}");
     }
     let (commits, faults, batches) = (
-        COMMITS.load(Ordering::Relaxed) - before.0,
-        FAULTS.load(Ordering::Relaxed) - before.1,
+        ARRAY_COMMITS.load(Ordering::Relaxed) - before.0,
+        ARRAY_FAULTS.load(Ordering::Relaxed) - before.1,
         BATCHES.load(Ordering::Relaxed) - before.2,
     );
     eprintln!("array: {batches} batches executed, {commits} iterations committed, {faults} faults");

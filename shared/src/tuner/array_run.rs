@@ -248,6 +248,10 @@ struct Scratch {
     record: Option<Box<IterationRecord>>,
 }
 
+/// A line round's outcome: (cell, its lines in mV) to correct, and the
+/// cells that move.
+type LineCorrections = (Vec<(u32, [f64; 2])>, Vec<u32>);
+
 /// The joint state after the initial measurements.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 struct Joint {
@@ -1159,7 +1163,7 @@ impl ArrayRun {
         &mut self,
         cells: &[u32],
         answers: &[Response],
-    ) -> Result<(Vec<(u32, [f64; 2])>, Vec<u32>), ArrayRunError> {
+    ) -> Result<LineCorrections, ArrayRunError> {
         let mut lines = Vec::new();
         let mut moved = Vec::new();
         let v = self.voltages_mv.clone();

@@ -11,6 +11,7 @@ use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use serde_json::{Map, Value};
 use spintune::config_merge::merge;
+use spintune::driver::array::ArraySimulationConfig;
 use spintune::driver::SimulationConfig;
 use spintune::parameter::Tolerance;
 use spintune::run_config::resolve_simulation;
@@ -130,6 +131,27 @@ pub fn simulation_config(config: Option<&Bound<'_, PyAny>>) -> PyResult<Simulati
     // The core's one merge and validation (the server's too).
     let sim = resolve_simulation(user, &targets, &tolerances).map_err(config_error)?;
     Ok(sim)
+}
+
+/// A complete [`ArraySimulationConfig`] from a (partial) array config
+/// dict (`name`, `array`, `device`, `targets`, `tuning`,
+/// `cross_calibration`), merged into [`ArraySimulationConfig::default`] by
+/// the same rule (tables key by key, lists replace); an unknown key or a
+/// bad value is a `ValueError` naming the field. The core's
+/// [`ArraySimulationConfig::build`] checks the rest.
+pub fn array_simulation_config(
+    config: Option<&Bound<'_, PyAny>>,
+) -> PyResult<ArraySimulationConfig> {
+    let user = user_object(config, "")?;
+    let mut merged = to_value(&ArraySimulationConfig::default())?;
+    merge(&mut merged, Value::Object(user));
+    let cfg: ArraySimulationConfig = config_from_value(merged, "")?;
+    // checked here so that the error names `device.…` (the array builds
+    // every cell's device from it and would name the cell instead)
+    cfg.device
+        .validate()
+        .map_err(|e| config_error(e.within("device")))?;
+    Ok(cfg)
 }
 
 /// A complete, validated [`TunerConfig`] from a (partial) `tuner` dict,

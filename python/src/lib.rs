@@ -7,9 +7,11 @@
 
 use pyo3::prelude::*;
 
+mod array;
 mod columns;
 mod config;
 mod convert;
+mod driven;
 mod kalman;
 mod ramp;
 mod session;
@@ -27,6 +29,7 @@ fn core_module(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(session::resolve_tuner_config, m)?)?;
     m.add_class::<simulation::PySimulationRun>()?;
     m.add_class::<simulation::PySimulatedDevice>()?;
+    m.add_class::<array::PyArraySimulation>()?;
     m.add_function(wrap_pyfunction!(simulation::default_config, m)?)?;
     m.add_function(wrap_pyfunction!(simulation::paper_config, m)?)?;
     m.add_function(wrap_pyfunction!(simulation::resolve_config, m)?)?;

@@ -2,18 +2,17 @@
 //! `driver::SimulationRun` (run session + simulated double dot) and
 //! `sim::SimulatedDevice`, iterated from Python.
 
-use std::sync::Mutex;
-
-use pyo3::exceptions::{PyRuntimeError, PyStopIteration, PyValueError};
+use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
-use spintune::driver::{Halt, SimulationConfig, SimulationRun};
-use spintune::protocol::{ControlCommand, IterationRecord, Request};
+use spintune::driver::{SimulationConfig, SimulationRun};
+use spintune::protocol::Request;
 use spintune::sim::{SimulatedDevice, Truth};
+use spintune::tuner::Tuner;
 
 use crate::config::simulation_config;
 use crate::convert::{from_py, to_py};
-use crate::session::control_error;
+use crate::driven::{reduce, DrivenRun};
 
 /// A tuning run of the paper's default setup on the simulated double dot
 /// (the core's ``spintune::driver::SimulationRun``: the run session driving
@@ -45,59 +44,8 @@ use crate::session::control_error;
 /// iteration in progress).
 #[pyclass(name = "SimulationRun", module = "spintune", frozen)]
 pub struct PySimulationRun {
-    inner: Mutex<Inner>,
+    driven: DrivenRun<Tuner, SimulatedDevice>,
     config: SimulationConfig,
-}
-
-/// What ``SimulationRun.checkpoint()`` holds.
-#[derive(serde::Deserialize)]
-#[serde(deny_unknown_fields)]
-struct RunCheckpoint {
-    config: SimulationConfig,
-    run: SimulationRun,
-    records: Vec<IterationRecord>,
-}
-
-#[derive(serde::Serialize)]
-struct RunCheckpointRef<'a> {
-    config: &'a SimulationConfig,
-    run: &'a SimulationRun,
-    records: &'a [IterationRecord],
-}
-
-/// The run and its records, behind one lock.
-struct Inner {
-    run: SimulationRun,
-    records: Vec<IterationRecord>,
-}
-
-impl PySimulationRun {
-    /// Run with the lock, the GIL released (so other Python threads, and
-    /// readers of this run, go on; no lock is held while the GIL is taken).
-    fn with<T: Send>(&self, py: Python<'_>, f: impl FnOnce(&mut Inner) -> T + Send) -> T {
-        py.detach(|| {
-            let mut inner = self.inner.lock().unwrap_or_else(|p| p.into_inner());
-            f(&mut inner)
-        })
-    }
-
-    fn next_record(&self, py: Python<'_>) -> PyResult<Option<IterationRecord>> {
-        let result = self.with(py, |inner| {
-            let r = inner.run.next_iteration();
-            if let Ok(Some(record)) = &r {
-                inner.records.push(record.clone());
-            }
-            r
-        });
-        match result {
-            Ok(Some(record)) => Ok(Some(record)),
-            Ok(None) | Err(Halt::Paused) => Ok(None),
-            Err(Halt::Fault(f)) => Err(PyRuntimeError::new_err(format!(
-                "the simulated run faulted: {f} (resume with control({{\"action\": \"resume\"}}))"
-            ))),
-            Err(e @ Halt::Session(_)) => Err(PyRuntimeError::new_err(e.to_string())),
-        }
-    }
 }
 
 #[pymethods]
@@ -109,10 +57,7 @@ impl PySimulationRun {
         let run =
             SimulationRun::new(cfg.clone()).map_err(|e| PyValueError::new_err(e.to_string()))?;
         Ok(Self {
-            inner: Mutex::new(Inner {
-                run,
-                records: Vec::new(),
-            }),
+            driven: DrivenRun::new(run),
             config: cfg,
         })
     }
@@ -125,10 +70,7 @@ impl PySimulationRun {
     /// Raises ``StopIteration`` when the run is over (finished, stopped) or
     /// paused, ``RuntimeError`` if it faulted.
     fn __next__<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        match self.next_record(py)? {
-            Some(record) => to_py(py, &record),
-            None => Err(PyStopIteration::new_err(())),
-        }
+        self.driven.next_py(py)
     }
 
     /// Run to the end (or until paused or stopped, also from another thread)
@@ -140,26 +82,13 @@ impl PySimulationRun {
         py: Python<'py>,
         max_iterations: Option<u64>,
     ) -> PyResult<Bound<'py, PyList>> {
-        let mut done = 0u64;
-        while max_iterations.is_none_or(|m| done < m) {
-            if self.next_record(py)?.is_none() {
-                break;
-            }
-            done += 1;
-            py.check_signals()?;
-        }
-        self.records(py)
+        self.driven.run(py, max_iterations)
     }
 
     /// Every record produced so far, oldest first (list of dicts).
     #[getter]
     fn records<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyList>> {
-        let records = self.with(py, |inner| inner.records.clone());
-        let list = PyList::empty(py);
-        for r in &records {
-            list.append(to_py(py, r)?)?;
-        }
-        Ok(list)
+        self.driven.records(py)
     }
 
     /// The complete config of this run (dict: ``name``, ``seed``, ``device``,
@@ -172,8 +101,7 @@ impl PySimulationRun {
     /// Present status, e.g. ``{"state": "running"}``.
     #[getter]
     fn status<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        let status = self.with(py, |inner| inner.run.session().status());
-        to_py(py, &status)
+        self.driven.status(py)
     }
 
     /// Apply a control command (JSON of ``protocol::ControlCommand``, e.g.
@@ -186,11 +114,7 @@ impl PySimulationRun {
         py: Python<'py>,
         command: &Bound<'py, PyAny>,
     ) -> PyResult<Bound<'py, PyAny>> {
-        let command: ControlCommand = from_py(command, "control command")?;
-        let status = self
-            .with(py, |inner| inner.run.control(&command))
-            .map_err(control_error)?;
-        to_py(py, &status)
+        self.driven.control(py, command)
     }
 
     /// Noiseless ground truth of the simulated device at its present
@@ -198,14 +122,16 @@ impl PySimulationRun {
     /// ``gamma_per_ns`` (1/ns), ``mu_a_mv``, ``mu_b_mv``, ``sd_flank_mv`` (mV),
     /// ``sd_contrast`` (0..1).
     fn truth<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
-        let truth = self.with(py, |inner| inner.run.device().truth());
+        let truth = self.driven.with(py, |inner| inner.run.device().truth());
         truth_dict(py, &truth)
     }
 
     /// Present gate voltages of the simulated device, mV (dict gate → mV).
     #[getter]
     fn voltages_mv<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        let v = self.with(py, |inner| inner.run.device().voltages_mv().clone());
+        let v = self
+            .driven
+            .with(py, |inner| inner.run.device().voltages_mv().clone());
         to_py(py, &v)
     }
 
@@ -246,45 +172,23 @@ impl PySimulationRun {
     /// ``SimulationRun.restore(text)`` continues bit for bit where this one
     /// is; pickling goes through it.
     fn checkpoint(&self, py: Python<'_>) -> PyResult<String> {
-        let config = &self.config;
-        self.with(py, |inner| {
-            serde_json::to_string(&RunCheckpointRef {
-                config,
-                run: &inner.run,
-                records: &inner.records,
-            })
-        })
-        .map_err(|e| PyRuntimeError::new_err(format!("cannot serialize the run: {e}")))
+        self.driven.checkpoint(py, &self.config)
     }
 
     /// A run from ``checkpoint()``'s string.
     #[staticmethod]
     fn restore(py: Python<'_>, checkpoint: &str) -> PyResult<Self> {
-        let c: RunCheckpoint = py
-            .detach(|| {
-                let de = &mut serde_json::Deserializer::from_str(checkpoint);
-                serde_path_to_error::deserialize(de)
-            })
-            .map_err(|e| PyValueError::new_err(format!("invalid checkpoint: {e}")))?;
-        Ok(Self {
-            inner: Mutex::new(Inner {
-                run: c.run,
-                records: c.records,
-            }),
-            config: c.config,
-        })
+        let (config, driven) = DrivenRun::restore(py, checkpoint)?;
+        Ok(Self { driven, config })
     }
 
     /// Pickling: ``SimulationRun.restore(checkpoint())``.
     fn __reduce__<'py>(slf: &Bound<'py, Self>) -> PyResult<(Bound<'py, PyAny>, (String,))> {
-        let text = slf.get().checkpoint(slf.py())?;
-        Ok((slf.get_type().getattr("restore")?, (text,)))
+        reduce(slf.as_any(), slf.get().checkpoint(slf.py())?)
     }
 
     fn __repr__(&self, py: Python<'_>) -> String {
-        let (n, status) = self.with(py, |inner| {
-            (inner.records.len(), inner.run.session().status().name())
-        });
+        let (n, status) = self.driven.summary(py);
         format!(
             "SimulationRun(name={:?}, seed={}, iterations={n}, status={status:?})",
             self.config.name, self.config.seed,
@@ -292,7 +196,7 @@ impl PySimulationRun {
     }
 }
 
-fn truth_dict<'py>(py: Python<'py>, t: &Truth) -> PyResult<Bound<'py, PyDict>> {
+pub(crate) fn truth_dict<'py>(py: Python<'py>, t: &Truth) -> PyResult<Bound<'py, PyDict>> {
     let d = PyDict::new(py);
     for name in Truth::PARAMETERS {
         d.set_item(name, t.get(name))?;

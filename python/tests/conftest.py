@@ -8,6 +8,7 @@ import os
 import pathlib
 import subprocess
 
+import numpy as np
 import pytest
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
@@ -55,3 +56,18 @@ def run_cli(spintune_bin):
         return out.stdout
 
     return run
+
+
+def assert_units(ds):
+    """UDUNITS-clean: every numeric data variable has a unit, none is
+    spelt with a micro sign; the coordinates (iteration numbers, gate names)
+    and the bool ``tuned`` carry none (a plot would show ``iteration [1]``)."""
+    for name, var in ds.data_vars.items():
+        if var.dtype == bool:
+            assert "units" not in var.attrs, name
+        else:
+            assert "units" in var.attrs, name
+            assert "µ" not in var.attrs["units"] and "μ" not in var.attrs["units"], (name, var.attrs)
+    for name, var in ds.coords.items():
+        assert "units" not in var.attrs, name
+    assert ds["iteration"].dtype == np.int64

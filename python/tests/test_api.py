@@ -33,7 +33,7 @@ def test_stubs_cover_the_native_module():
 
 
 def test_public_names_and_docstrings_with_units():
-    for name in ["KalmanGradient", "newton_step", "SimulationRun", "RunSession", "SimulatedDevice",
+    for name in ["KalmanGradient", "newton_step", "SimulationRun", "ArraySimulation", "RunSession", "SimulatedDevice",
                  "open_store", "default_config", "paper_config", "resolve_config", "resolve_tuner_config"]:
         obj = getattr(spintune, name)
         assert obj.__doc__ and len(obj.__doc__) > 40, name
@@ -41,7 +41,9 @@ def test_public_names_and_docstrings_with_units():
     assert "mV" in spintune.KalmanGradient.__doc__ and "mV" in spintune.newton_step.__doc__
     assert "mV" in spintune.KalmanGradient.update.__doc__
     assert "µV" in spintune.SimulationRun.__doc__ and "ns" in spintune.SimulationRun.__doc__
-    assert spintune.PROTOCOL_VERSION == 3
+    assert "µV" in spintune.ArraySimulation.__doc__ and "ns" in spintune.ArraySimulation.__doc__
+    assert "µV" in spintune.ArraySimulation.truth.__doc__ and "truth" in spintune.ArraySimulation.truth.__doc__
+    assert spintune.PROTOCOL_VERSION == 4  # protocol v4: batches (array runs)
     import spintune.qcodes as sq
 
     assert "mV" in sq.__doc__ and "paused" in sq.__doc__

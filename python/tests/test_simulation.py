@@ -8,7 +8,7 @@ import pytest
 import xarray as xr
 
 import spintune
-from conftest import REPO, canonical_hash
+from conftest import REPO, assert_units, canonical_hash
 
 CONFIGS = [
     # (TOML for `spintune run`, the same config as a Python dict)
@@ -167,21 +167,6 @@ def test_a_device_description_derives_the_levels_and_tunes_the_simulator():
         spintune.resolve_tuner_config({"description": {**LAB_DESCRIPTION, "qubit": {"gates": ["N", "X"]}}})
     with pytest.raises(ValueError, match=r"tuner\.levels"):
         spintune.resolve_tuner_config({"description": LAB_DESCRIPTION, "levels": []})
-
-
-def assert_units(ds):
-    """UDUNITS-clean: every numeric data variable has a unit, none is
-    spelt with a micro sign; the coordinates (iteration numbers, gate names)
-    and the bool ``tuned`` carry none (a plot would show ``iteration [1]``)."""
-    for name, var in ds.data_vars.items():
-        if var.dtype == bool:
-            assert "units" not in var.attrs, name
-        else:
-            assert "units" in var.attrs, name
-            assert "µ" not in var.attrs["units"] and "μ" not in var.attrs["units"], (name, var.attrs)
-    for name, var in ds.coords.items():
-        assert "units" not in var.attrs, name
-    assert ds["iteration"].dtype == np.int64
 
 
 def test_to_xarray_round_trips_through_netcdf(tmp_path):

@@ -8,6 +8,7 @@ and its safety checks are the core's) and adds readers and adapters:
 
 * :class:`KalmanGradient`, :func:`newton_step` — the paper's filter and step.
 * :class:`SimulationRun` — a whole run on the simulated double dot.
+* :class:`ArraySimulation` — a simulated array of double dots tuned jointly.
 * :class:`RunSession` — the sans-IO run session, for driving real instruments.
 * :class:`Ramp` — bring gates to a working point within the limits (same guard).
 * :class:`SimulatedDevice` — the simulator alone (answers requests).
@@ -20,6 +21,7 @@ per mV, lab time in s. See ``docs/python.md``.
 
 from ._core import (
     PROTOCOL_VERSION,
+    ArraySimulation,
     KalmanGradient,
     Ramp,
     RunSession,
@@ -36,6 +38,7 @@ from .store import Store, StoredRun, open_store
 
 __all__ = [
     "PROTOCOL_VERSION",
+    "ArraySimulation",
     "KalmanGradient",
     "Ramp",
     "RunSession",

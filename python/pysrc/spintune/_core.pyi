@@ -169,6 +169,47 @@ class SimulationRun:
     def restore(checkpoint: str) -> "SimulationRun": ...
     def __reduce__(self) -> Tuple[Any, Tuple[str]]: ...
 
+class ArraySimulation:
+    """A simulated array of double-dot cells tuned jointly; iterating yields
+    one IterationRecord dict per iteration (parameters ``c{k}.t_sr`` in ns,
+    ``c{k}.w`` in µV; gates ``c{k}.N``, … in mV)."""
+
+    def __init__(self, config: Optional[Mapping[str, Any]] = None) -> None:
+        """config: partial array config (name, array, device, targets as
+        ``(t_sr ns, w µV)`` pairs, tuning, cross_calibration); ValueError names a bad field."""
+    def __iter__(self) -> Iterator[JsonDict]: ...
+    def __next__(self) -> JsonDict: ...
+    def run(self, max_iterations: int = 200) -> List[JsonDict]:
+        """At most max_iterations more (fewer once every cell is in band); all records so far."""
+    @property
+    def records(self) -> List[JsonDict]: ...
+    @property
+    def config(self) -> JsonDict: ...
+    @property
+    def cells(self) -> int: ...
+    @property
+    def targets(self) -> List[Tuple[float, float]]:
+        """Present targets per cell, (t_sr ns, w µV)."""
+    @property
+    def status(self) -> JsonDict: ...
+    def control(self, command: Mapping[str, Any]) -> JsonDict:
+        """pause / resume / stop, or set_target of ``c{k}.t_sr`` (ns) / ``c{k}.w`` (µV)."""
+    def truth(self) -> List[Dict[str, float]]:
+        """The simulator's noiseless truth per cell (world side, for teaching):
+        w (µV), t_sr (ns), t_c_uev (µeV), gamma_per_ns (1/ns), mu_a_mv, mu_b_mv,
+        sd_flank_mv (mV), sd_contrast."""
+    @property
+    def voltages_mv(self) -> Dict[str, float]: ...
+    def to_xarray(self) -> Any:
+        """``xarray.Dataset`` over ``iteration`` and ``cell``: t_sr (ns), w (uV),
+        their _std, _target, _tolerance; lab_seconds (s)."""
+    def to_netcdf(self, path: Union[str, "PathLike[str]"]) -> None: ...
+    def checkpoint(self) -> str:
+        """JSON of the whole array run (config, session, array, records)."""
+    @staticmethod
+    def restore(checkpoint: str) -> "ArraySimulation": ...
+    def __reduce__(self) -> Tuple[Any, Tuple[str]]: ...
+
 class RecordColumns:
     """Internal: iteration records → the columns of ``to_xarray()``'s Dataset."""
 

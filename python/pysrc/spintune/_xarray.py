@@ -1,5 +1,6 @@
-"""Iteration records → ``xarray.Dataset`` (used by ``SimulationRun.to_xarray``
-and ``StoredRun.to_xarray``). Pure bookkeeping: no tuner logic.
+"""Iteration records → ``xarray.Dataset`` (used by ``SimulationRun.to_xarray``,
+``StoredRun.to_xarray`` and, with a ``cell`` dimension,
+``ArraySimulation.to_xarray``). Pure bookkeeping: no tuner logic.
 
 Layout (dimension ``iteration``, coordinate = the records' iteration numbers):
 
@@ -28,6 +29,7 @@ raw scans are never turned into Python objects.
 from __future__ import annotations
 
 import math
+import re
 from typing import Any, Dict, Iterable, Mapping, Optional
 
 
@@ -113,3 +115,58 @@ def columns_to_dataset(columns: Any, attrs: Optional[Mapping[str, Any]] = None):
         ),
     }
     return xr.Dataset(data_vars=data, coords=coords, attrs=dict(attrs or {}))
+
+
+# an array's per-cell names: ``c3.t_sr``, ``c3.t_sr_std``, ``grad_c3.w``, …
+_CELL_NAME = re.compile(r"^(grad_)?c(\d+)\.(.+)$")
+
+
+def array_records_to_dataset(
+    records: Iterable[Mapping[str, Any]], cells: int, attrs: Optional[Mapping[str, Any]] = None
+):
+    """An array run's records (parameters ``c{k}.t_sr``, ``c{k}.w``) as an
+    ``xarray.Dataset``: the layout of :func:`records_to_dataset` with every
+    per-cell variable ``c{k}.p…`` stacked into ``p…`` over a ``cell``
+    dimension (int64 coordinate ``0 … cells-1``), e.g. ``t_sr`` over
+    ``(iteration, cell)`` and ``grad_w`` over ``(iteration, cell,
+    tuning_gate)`` (of ln w when its unit is 1/mV); NaN where a cell has
+    no value, and no per-cell variable without records. The other
+    variables (``voltage`` over ``gate``, ``step``, ``lab_seconds``,
+    ``tuned``, …) are as in :func:`records_to_dataset`."""
+    import numpy as np
+    import xarray as xr
+
+    flat = records_to_dataset(records, attrs)
+    stacked: Dict[str, Dict[int, str]] = {}
+    for name in flat.data_vars:
+        m = _CELL_NAME.match(str(name))
+        if m and int(m.group(2)) < cells:
+            stacked.setdefault((m.group(1) or "") + m.group(3), {})[int(m.group(2))] = str(name)
+    data: Dict[str, Any] = {}
+    for name, by_cell in stacked.items():
+        first = flat[next(iter(by_cell.values()))]
+        parts = [
+            flat[by_cell[k]].values if k in by_cell else np.full(first.shape, np.nan)
+            for k in range(cells)
+        ]
+        attrs_ = dict(first.attrs)
+        attrs_["long_name"] = re.sub(r"\bc\d+\.", "", attrs_.get("long_name", name))
+        log = attrs_.get("units") == "1/mV" and "log space" not in attrs_["long_name"]
+        if name.startswith("grad_") and log:
+            # a gradient of t_sr (ns) or w (uV) in 1/mV is the log-space one
+            attrs_["long_name"] = re.sub(
+                r"gradient of (\S+)", r"gradient of ln \1 (log space)", attrs_["long_name"]
+            )
+        dims = (first.dims[0], "cell") + tuple(first.dims[1:])
+        data[name] = (dims, np.stack(parts, axis=1), attrs_)
+    used = {n for by_cell in stacked.values() for n in by_cell.values()}
+    for name, var in flat.data_vars.items():
+        if name not in used:
+            data[str(name)] = var
+    coords = dict(flat.coords)
+    coords["cell"] = (
+        ("cell",),
+        np.arange(cells, dtype=np.int64),
+        {"long_name": "cell k of the array (gates and parameters c{k}.*)"},
+    )
+    return xr.Dataset(data_vars=data, coords=coords, attrs=flat.attrs)

@@ -20,7 +20,9 @@
 
 use std::collections::BTreeMap;
 
-use spintune::protocol::{EventKind, IterationRecord, ScanReport, TunerEvent};
+use spintune::protocol::{
+    EventKind, GradientReport, IterationRecord, ParameterReport, ScanReport, TunerEvent,
+};
 
 use crate::decimate::{Decimated, Pyramid};
 use crate::model::gradient_sigmas;
@@ -503,6 +505,87 @@ impl RunHistory {
     pub fn values(&self, k: u64) -> Option<Vec<f64>> {
         let i = self.rows.binary_search_by_key(&k, |r| r.iteration).ok()?;
         Some(self.columns.iter().map(|c| c[i]).collect())
+    }
+
+    /// Iteration `k` as a record again, without scans: the newest record
+    /// as received, any other rebuilt from the numbers held — values, σ,
+    /// targets and tolerances, gradients (their σ as a diagonal covariance
+    /// where known), the layout's gates' voltages and steps, tuned, lab
+    /// time and events (not kept for an older row: scan counts, failed
+    /// evaluations, keep mode, other gates' voltages). For views of a part
+    /// of a run ([`crate::cell_history`]).
+    pub fn record(&self, k: u64) -> Option<IterationRecord> {
+        if let Some(l) = self.latest.as_ref().filter(|l| l.iteration == k) {
+            let mut r = l.clone();
+            r.events = self.events(k).to_vec();
+            return Some(r);
+        }
+        let row = *self.row(k)?;
+        let d = self.values(k)?;
+        let l = &self.layout;
+        let opt = |v: f64| v.is_finite().then_some(v);
+        let parameters = l
+            .parameters
+            .iter()
+            .enumerate()
+            .map(|(i, (name, unit))| {
+                let o = l.param(i);
+                ParameterReport {
+                    name: name.clone(),
+                    unit: unit.clone(),
+                    value: opt(d[o]),
+                    std: opt(d[o + 1]),
+                    target: opt(d[o + 2]),
+                    tolerance: opt(d[o + 3]),
+                }
+            })
+            .collect();
+        let gradients = l
+            .gradients
+            .iter()
+            .enumerate()
+            .map(|(g, (parameter, unit))| {
+                let n = l.gates.len();
+                let sigma: Vec<f64> = (0..n).map(|gi| d[l.grad(g, gi) + 1]).collect();
+                let covariance = sigma.iter().any(|s| s.is_finite()).then(|| {
+                    (0..n)
+                        .map(|i| {
+                            (0..n)
+                                .map(|j| if i == j { sigma[i] * sigma[i] } else { 0.0 })
+                                .collect()
+                        })
+                        .collect()
+                });
+                GradientReport {
+                    parameter: parameter.clone(),
+                    unit: unit.clone(),
+                    gradient: (0..n).map(|gi| d[l.grad(g, gi)]).collect(),
+                    covariance,
+                }
+            })
+            .collect();
+        let voltages_mv = l
+            .gates
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| d[l.gate(*i)].is_finite())
+            .map(|(i, g)| (g.clone(), d[l.gate(i)]))
+            .collect();
+        Some(IterationRecord {
+            iteration: k,
+            voltages_mv,
+            gates: l.gates.clone(),
+            parameters,
+            gradients,
+            step_mv: (0..l.gates.len()).map(|i| d[l.gate(i) + 1]).collect(),
+            tuned: row.tuned,
+            lab_seconds: row.lab_seconds,
+            scan_counts: Default::default(),
+            failed_evaluations: 0,
+            scans: Vec::new(),
+            events: self.events(k).to_vec(),
+            keep: None,
+        })
     }
 
     /// The first iteration whose target of some parameter differs from the
@@ -1005,6 +1088,41 @@ mod tests {
         assert_eq!(h.nearest(5.4).unwrap().iteration, 5);
         assert_eq!(h.range(2.0, 4.5), 2..5);
         assert_eq!(h.at_lab_seconds(60.0 * 3.0 + 31.0), Some(3));
+    }
+
+    /// A held row comes back as a record: the newest as received, an older
+    /// one rebuilt from its numbers (σ of the gradients as a diagonal
+    /// covariance), events included, scans not.
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn a_held_row_comes_back_as_a_record() {
+        let recs = fake_records(8);
+        let mut h = RunHistory::new();
+        h.insert(recs.clone());
+        assert!(h.record(8).is_none());
+        let newest = h.record(7).unwrap();
+        assert_eq!(newest, recs[7].summary());
+        let r = h.record(5).unwrap();
+        let src = &recs[5];
+        assert_eq!(r.iteration, 5);
+        assert_eq!(r.parameters, src.parameters);
+        assert_eq!(r.gates, src.gates);
+        assert_eq!(r.voltages_mv, src.voltages_mv);
+        assert_eq!(r.step_mv, src.step_mv);
+        assert_eq!((r.tuned, r.lab_seconds), (src.tuned, src.lab_seconds));
+        assert_eq!(r.events, src.events);
+        assert!(r.scans.is_empty());
+        for (a, b) in r.gradients.iter().zip(&src.gradients) {
+            assert_eq!((&a.parameter, &a.unit, &a.gradient), (&b.parameter, &b.unit, &b.gradient));
+            let (ca, cb) = (a.covariance.as_ref().unwrap(), b.covariance.as_ref().unwrap());
+            for (ra, rb) in ca.iter().zip(cb) {
+                for (x, y) in ra.iter().zip(rb) {
+                    assert!((x - y).abs() <= 1e-12 * y.abs().max(1.0), "{x} vs {y}");
+                }
+            }
+        }
+        // A record that arrives again as rebuilt is a duplicate.
+        assert_eq!(h.insert([r]).duplicates, 1);
     }
 
     /// Issue 25: a value the tuner rejected keeps its number (hover,

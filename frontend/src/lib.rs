@@ -5,12 +5,16 @@
 
 pub mod alerts;
 pub mod api;
+pub mod array_panel;
+pub mod array_view;
 pub mod attention;
 pub mod axis;
 pub mod belief;
+pub mod cell_history;
 pub mod charts;
 pub mod decimate;
 pub mod export;
+pub mod heat_scale;
 pub mod history;
 pub mod landscape;
 pub mod live;

@@ -12,6 +12,7 @@ use spintune::protocol::{
 use super::client::{AuthState, ConnState, Event, PagingMode};
 use super::driver::{Driver, Signals};
 use crate::api::{get_json, ApiBase, ApiError};
+use crate::array_panel::ArrayOverview;
 use crate::history::RunHistory;
 use crate::model::{ControlsEnabled, Followed};
 use crate::ui::{Dashboard, DashboardHooks, StatusBadge, StatusNote};
@@ -102,6 +103,13 @@ pub fn RunView(
         status: Some(status),
     };
     let connected = Signal::derive(move || sig.conn.with(|c| *c == ConnState::Open));
+    // A run of an array of cells (its parameters are named per cell): the
+    // array overview instead of the single-cell charts.
+    let is_array = Memo::new(move |_| {
+        sig.history.with(|h| {
+            crate::array_view::cells(h.layout().parameters.iter().map(|p| p.0.as_str())).is_some()
+        })
+    });
     let paging_note = move || match sig.paging.get() {
         PagingMode::Socket => "history pages over the socket",
         PagingMode::Http => "history pages over HTTP (server without socket paging)",
@@ -168,7 +176,8 @@ pub fn RunView(
             </div>
             <div class="run-tools">
                 <span class="paging" data-testid="paging" data-mode=move || format!("{:?}", sig.paging.get()).to_lowercase()>{paging_note}</span>
-                <label>"compare with "
+                // (an array run's overview compares with nothing)
+                <label style:display=move || if is_array.get() { "none" } else { "" }>"compare with "
                     <select data-testid="overlay" on:change=move |ev| pick_overlay(event_target_value(&ev).parse().ok())>
                         <option value="">"no other run"</option>
                         {move || other_runs().into_iter().map(|(id, name)| view! { <option value=id.to_string()>{format!("#{id} {name}")}</option> }).collect_view()}
@@ -180,7 +189,11 @@ pub fn RunView(
                     <a data-testid="export-json" href=export_base.url(&format!("/api/runs/{run}/export?format=json")) download=format!("run-{run}.json")>"JSON"</a>
                 </span>
             </div>
-            <Dashboard history=sig.history overlay=overlay hooks=hooks />
+            {move || if is_array.get() {
+                view! { <ArrayOverview history=sig.history status=status /> }.into_any()
+            } else {
+                view! { <Dashboard history=sig.history overlay=overlay hooks=hooks /> }.into_any()
+            }}
         </div>
     }
 }

@@ -269,3 +269,22 @@ fn bad_configs_name_the_field() {
     c.tuning.line_rounds = 9;
     assert_eq!(c.build().err().unwrap().field, "tuning.line_rounds");
 }
+
+/// Bounded by construction (invariant 8): at the most cells an array may
+/// have (16), one record — every cell's parameters, every gate's voltage,
+/// the learned rows over every tuning gate — stays below 64 KiB of JSON
+/// (documented in docs/array.md). Array records carry no raw scans.
+#[test]
+fn a_record_of_sixteen_cells_stays_below_64_kib() {
+    let mut cfg = config(spintune::sim::array::MAX_CELLS);
+    cfg.array.device_seed = 0;
+    let mut run = cfg.build().unwrap();
+    let r = run.next_iteration().unwrap().expect("a record");
+    assert_eq!(r.parameters.len(), 32);
+    assert_eq!(r.gradients.len(), 32);
+    assert!(r.gradients.iter().all(|g| g.gradient.len() == 64));
+    assert!(r.scans.is_empty());
+    let bytes = serde_json::to_string(&r).unwrap().len();
+    eprintln!("a 16-cell record: {bytes} bytes of JSON");
+    assert!(bytes < 64 * 1024, "{bytes} bytes");
+}

@@ -94,7 +94,7 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
     let strategies = parse_strategies(&args.strategies)?;
     let mut protocol = ArrayProtocol::default();
     if let Some(mv) = args.precorrect_lines_mv {
-        protocol.precorrect_lines_mv = (mv != 0.0).then_some(mv);
+        protocol.tuning.precorrect_lines_mv = (mv != 0.0).then_some(mv);
     }
     protocol
         .validate()

@@ -120,7 +120,7 @@ fn single_cell_changes_pick_distinct_cells() {
 
 /// The joint loop corrects a cell's plungers from its lines' forecast
 /// before the line scan when the forecast puts a line far off
-/// (`ArrayProtocol::precorrect_lines_mv`): the scans keep seeing the lines
+/// (`ArrayRunSettings::precorrect_lines_mv`): the scans keep seeing the lines
 /// (±4 mV window), so fewer fits fail than without, on the same world.
 ///
 /// The world: 3 cells around random device 7003 (cells 1, 2 drawn around
@@ -142,11 +142,9 @@ fn lines_corrected_before_their_scan_keep_the_scans_evaluable() {
     };
     // the benchmark's protocol: every set point, two single-cell changes
     let with = ArrayProtocol::default();
-    assert_eq!(with.precorrect_lines_mv, Some(1.0), "the default");
-    let without = ArrayProtocol {
-        precorrect_lines_mv: None,
-        ..ArrayProtocol::default()
-    };
+    assert_eq!(with.tuning.precorrect_lines_mv, Some(1.0), "the default");
+    let mut without = ArrayProtocol::default();
+    without.tuning.precorrect_lines_mv = None;
     let a = run_strategy(ArrayStrategy::Joint, array(), &with).unwrap();
     let b = run_strategy(ArrayStrategy::Joint, array(), &without).unwrap();
     eprintln!(
@@ -162,9 +160,10 @@ fn lines_corrected_before_their_scan_keep_the_scans_evaluable() {
         b.failed_fits
     );
     // out of bounds: named
-    let bad = ArrayProtocol {
-        precorrect_lines_mv: Some(5.0),
-        ..short_protocol()
-    };
-    assert_eq!(bad.validate().unwrap_err().field, "precorrect_lines_mv");
+    let mut bad = short_protocol();
+    bad.tuning.precorrect_lines_mv = Some(5.0);
+    assert_eq!(
+        bad.validate().unwrap_err().field,
+        "tuning.precorrect_lines_mv"
+    );
 }

@@ -16,7 +16,7 @@
 //!    band ([`ArrayRunResult::neighbours_left_out_of_band`]).
 //!
 //! "In band" is the lab's measurement: both `t_sr` and `w` within
-//! [`ArrayProtocol::relative_tolerance`] of their targets in the latest
+//! [`ArrayRunSettings::relative_tolerance`] of their targets in the latest
 //! evaluation after the change.
 //!
 //! # Strategies
@@ -52,7 +52,6 @@ use crate::safety::SafetyLimits;
 use crate::session::{Output, RunSession, SessionConfig};
 use crate::sim::array::{ArrayConfig, ArrayDevice};
 use crate::sim::DeviceConfig;
-use crate::tuner::array::JointConfig;
 use crate::tuner::array_run::{ArrayAction, ArrayRun, ArrayRunError, ArrayRunSettings};
 use crate::tuner::{Tuner, TunerConfig};
 
@@ -105,8 +104,6 @@ pub struct ArrayProtocol {
     /// Set points `(t_sr ns, w µV)`: the first is the cold start's, the
     /// rest the cycle applied to all cells.
     pub set_points: Vec<(f64, f64)>,
-    /// Relative band of `t_sr` and `w` (0 < b ≤ 0.5). Default 0.1.
-    pub relative_tolerance: f64,
     /// Iterations per cell and change before a change counts as not
     /// converged (`independent`, `joint`, `oracle`; cold start twice this), 1..=[`MAX_ROUNDS`].
     pub iterations_per_change: u32,
@@ -118,44 +115,26 @@ pub struct ArrayProtocol {
     pub single_cell_changes: u32,
     /// Target `(t_sr ns, w µV)` of a single-cell change.
     pub single_cell_target: (f64, f64),
-    /// The joint tuner's settings.
-    #[serde(default)]
-    pub joint: JointConfig,
-    /// Line re-centring rounds after a joint move, 0..=5.
-    pub line_rounds: u32,
     /// Relative error of the lab's cross-cell virtual-gate calibration
     /// ([`lab_cross_calibration`]), 0..=1. Default 0.2.
     pub cross_compensation_error: f64,
-    /// Limited joint moves per measurement (the later ones while a cell's
-    /// predicted residual is still beyond half its band), 1..=4.
-    pub moves_per_iteration: u32,
-    /// Band of the lines, mV (0 < b ≤ 1).
-    pub line_tolerance_mv: f64,
-    /// `joint`/`oracle`: before a cell's line scan, correct its plungers
-    /// from the lines' forecast when it puts a line beyond this, mV
-    /// (0 < value ≤ 4, the scan's half-window; `None`: never). Default 1:
-    /// chosen on random arrays (docs/array.md, "Lines corrected before
-    /// their scan").
+    /// The joint loop's settings (`joint`, `oracle`; the band also for
+    /// `serial` and `independent`).
     #[serde(default)]
-    pub precorrect_lines_mv: Option<f64>,
+    pub tuning: ArrayRunSettings,
 }
 
 impl Default for ArrayProtocol {
     fn default() -> Self {
         Self {
             set_points: PAPER_SET_POINTS.to_vec(),
-            relative_tolerance: 0.1,
             iterations_per_change: 30,
             serial_iterations_per_cell: 21,
             serial_passes: 4,
             single_cell_changes: 2,
             single_cell_target: (70.0, 180.0),
-            joint: JointConfig::default(),
-            line_rounds: 1,
-            moves_per_iteration: 1,
             cross_compensation_error: 0.2,
-            line_tolerance_mv: 0.1,
-            precorrect_lines_mv: Some(1.0),
+            tuning: ArrayRunSettings::default(),
         }
     }
 }
@@ -215,19 +194,12 @@ impl ArrayProtocol {
             "cross_compensation_error",
             e.to_string(),
         )?;
-        self.run_settings().validate()
+        self.tuning.validate().map_err(|e| e.within("tuning"))
     }
 
     /// The joint loop's settings ([`ArrayRun`]) of this protocol.
     pub fn run_settings(&self) -> ArrayRunSettings {
-        ArrayRunSettings {
-            relative_tolerance: self.relative_tolerance,
-            joint: self.joint.clone(),
-            line_rounds: self.line_rounds,
-            moves_per_iteration: self.moves_per_iteration,
-            line_tolerance_mv: self.line_tolerance_mv,
-            precorrect_lines_mv: self.precorrect_lines_mv,
-        }
+        self.tuning.clone()
     }
 }
 
@@ -341,7 +313,11 @@ impl Lab {
 /// The recommended single-cell tuner for cell `cell` at the protocol's
 /// first set point and band ([`crate::driver::array::cell_tuner`]).
 pub fn cell_tuner(cell: u32, protocol: &ArrayProtocol) -> TunerConfig {
-    crate::driver::array::cell_tuner(cell, protocol.set_points[0], protocol.relative_tolerance)
+    crate::driver::array::cell_tuner(
+        cell,
+        protocol.set_points[0],
+        protocol.tuning.relative_tolerance,
+    )
 }
 
 /// One cell's session and what the driver knows of it.
@@ -570,7 +546,7 @@ pub fn run_strategy(
     let device = array.config().device_seed;
     let k = array.cells();
     let mut lab = Lab::new(array);
-    let band = protocol.relative_tolerance;
+    let band = protocol.tuning.relative_tolerance;
     let mut runs = (0..k)
         .map(|c| CellRun::new(c, cell_tuner(c, protocol)))
         .collect::<Result<Vec<_>, _>>()?;

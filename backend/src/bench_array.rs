@@ -16,6 +16,7 @@ use spintune::driver::SimulationConfig;
 use spintune::sim::array::{ArrayConfig, MAX_CELLS};
 use spintune::sim::default_gates;
 use spintune::sim::random::targets_reachable;
+use spintune::tuner::array_run::ArrayRunSettings;
 
 use crate::bench::{parallel_map, select_devices, RandomDevices};
 use crate::cli::CliError;
@@ -56,6 +57,11 @@ pub struct BenchArrayArgs {
     /// this many mV (0 < MV ≤ 4; 0 turns it off) [default: the protocol's, 1].
     #[arg(long)]
     pub precorrect_lines_mv: Option<f64>,
+    /// The joint loop's settings from this TOML file (an `ArrayRunSettings`
+    /// table: `relative_tolerance`, `line_rounds`, `[joint]`, …; every key
+    /// optional, errors name the field); `--precorrect-lines-mv` applies over it.
+    #[arg(long, value_name = "FILE")]
+    pub tuning: Option<PathBuf>,
     /// Write machine-readable results here.
     #[arg(long)]
     pub json: Option<PathBuf>,
@@ -93,12 +99,15 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
     }
     let strategies = parse_strategies(&args.strategies)?;
     let mut protocol = ArrayProtocol::default();
+    if let Some(path) = &args.tuning {
+        protocol.tuning = read_tuning(path)?;
+    }
     if let Some(mv) = args.precorrect_lines_mv {
         protocol.tuning.precorrect_lines_mv = (mv != 0.0).then_some(mv);
     }
     protocol
         .validate()
-        .map_err(|e| CliError::input(format!("--precorrect-lines-mv: {e}")))?;
+        .map_err(|e| CliError::input(format!("--tuning / --precorrect-lines-mv: {e}")))?;
     let base = SimulationConfig::paper_default();
     let bench_protocol = BenchmarkProtocol::default();
     let (devices, random_devices) = select_devices(
@@ -186,4 +195,18 @@ fn parse_strategies(names: &[String]) -> Result<Vec<ArrayStrategy>, CliError> {
         "array strategy",
         "",
     )
+}
+
+/// An `ArrayRunSettings` from a TOML file, merged key by key into the
+/// default (errors name the file and the field).
+fn read_tuning(path: &std::path::Path) -> Result<ArrayRunSettings, CliError> {
+    let bad = |m: String| CliError::input(format!("--tuning {}: {m}", path.display()));
+    let text = std::fs::read_to_string(path).map_err(|e| bad(e.to_string()))?;
+    let user: serde_json::Value = toml::from_str(&text)
+        .map_err(|e| bad(format!("invalid TOML: {}", e.to_string().trim())))?;
+    let mut merged =
+        serde_json::to_value(ArrayRunSettings::default()).map_err(|e| bad(e.to_string()))?;
+    spintune::config_merge::merge(&mut merged, user);
+    serde_path_to_error::deserialize(merged)
+        .map_err(|e| bad(format!("invalid at `{}`: {}", e.path(), e.inner())))
 }

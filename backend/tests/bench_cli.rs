@@ -328,3 +328,88 @@ fn bench_breaks_a_changes_lab_time_down_by_scan_kind() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `bench-array` end to end on the smallest array: the JSON has the
+/// documented keys per strategy, no move was refused and nothing but the
+/// oracle read the truth; `--tuning` takes the joint loop's settings from
+/// a file (a bad key is refused naming the file and the field).
+#[test]
+fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
+    let dir = std::env::temp_dir().join(format!("spintune-bench-array-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let json = dir.join("array.json");
+    let tuning = dir.join("tuning.toml");
+    std::fs::write(
+        &tuning,
+        "line_rounds = 2\n[joint]\nneighbour_prior_fraction = 0.4\n",
+    )
+    .unwrap();
+    let out = run_ok(
+        bin()
+            .args([
+                "bench-array",
+                "--cells",
+                "2",
+                "--seeds",
+                "1",
+                "--strategies",
+                "joint",
+                "--threads",
+                "1",
+                "--tuning",
+            ])
+            .arg(&tuning)
+            .arg("--json")
+            .arg(&json),
+    );
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("| joint |"), "{stdout}");
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    assert_eq!(report["protocol"]["tuning"]["line_rounds"], 2);
+    assert_eq!(
+        report["protocol"]["tuning"]["joint"]["neighbour_prior_fraction"],
+        0.4
+    );
+    let joint = &report["strategies"][0];
+    assert_eq!(joint["name"], "joint");
+    for key in [
+        "cold_start_lab_minutes",
+        "lab_minutes_per_change",
+        "not_converged",
+        "not_converged_where_oracle_converged",
+        "neighbours_left_out_of_band",
+        "limit_violations",
+        "truth_queries",
+        "failed_fits",
+        "measurements",
+    ] {
+        assert!(joint.get(key).is_some(), "{key} missing: {joint}");
+    }
+    assert_eq!(joint["limit_violations"], 0);
+    assert_eq!(joint["truth_queries"], 0);
+
+    std::fs::write(&tuning, "line_rounds = 9\n").unwrap();
+    let out = bin()
+        .args(["bench-array", "--cells", "2", "--seeds", "1", "--tuning"])
+        .arg(&tuning)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("--tuning") && err.contains("tuning.line_rounds"),
+        "{err}"
+    );
+    std::fs::write(&tuning, "colour = \"red\"\n").unwrap();
+    let out = bin()
+        .args(["bench-array", "--tuning"])
+        .arg(&tuning)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("tuning.toml") && err.contains("colour"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -36,13 +36,22 @@ pub fn ArrayOverview(
     let latest = Memo::new(move |_| history.with(|h| h.latest().cloned()));
     let tiles = Memo::new(move |_| latest.with(|r| r.as_ref().map(tiles).unwrap_or_default()));
     let heat = Memo::new(move |_| latest.with(|r| r.as_ref().and_then(heat_map)));
-    move || match selected.get() {
+    // Tiles keyed by cell: a tile's button stays while its numbers change
+    // (a click during a live run is not lost to a re-render).
+    let cells = Memo::new(move |_| tiles.with(|t| t.iter().map(|t| t.cell).collect::<Vec<_>>()));
+    move || {
+        match selected.get() {
         None => view! {
             <section class="array-overview" data-testid="array-overview"
-                data-cells=move || tiles.with(|t| t.len().to_string())>
+                data-cells=move || cells.with(|c| c.len().to_string())>
                 <h3>"Cells " <small>"(in band: t_sr and w both within target ± tolerance; click a cell for its charts)"</small></h3>
                 <div class="cell-tiles">
-                    {move || tiles.get().into_iter().map(|t| tile(t, selected)).collect_view()}
+                    <For each=move || cells.get() key=|c| *c
+                        children=move |cell| {
+                            let t = Memo::new(move |_| tiles.with(|ts| ts.iter().find(|t| t.cell == cell).cloned()));
+                            view! { <CellTile tile=t cell selected /> }
+                        }
+                    />
                 </div>
                 {move || heat.get().map(|h| view! { <JacobianHeatMap map=h /> })}
             </section>
@@ -53,34 +62,41 @@ pub fn ArrayOverview(
         }
         .into_any(),
     }
+    }
 }
 
 /// One cell's tile: a button that opens its charts.
-fn tile(t: Tile, selected: RwSignal<Option<u32>>) -> impl IntoView {
-    let cell = t.cell;
-    let mark = match t.band {
+#[component]
+fn CellTile(tile: Memo<Option<Tile>>, cell: u32, selected: RwSignal<Option<u32>>) -> impl IntoView {
+    let band = move || tile.with(|t| t.as_ref().map_or(Band::Unknown, |t| t.band));
+    let mark = move || match band() {
         Band::In => "✓",
         Band::Out => "✗",
         Band::Unknown => "?",
     };
     view! {
         <button
-            class=format!("cell-tile band-{}", t.band.name())
+            class=move || format!("cell-tile band-{}", band().name())
             data-testid="cell-tile"
             data-cell=cell
-            data-band=t.band.name()
+            data-band=move || band().name()
             title=format!("show cell {cell}'s charts")
             on:click=move |_| selected.set(Some(cell))
         >
             <span class="cell-name">{format!("cell {cell}")}</span>
-            <span class="cell-band" data-testid="cell-band">{format!("{mark} {}", t.band.label())}</span>
-            {t.parameters.iter().map(|p| view! {
-                <span class="cell-param" data-parameter=p.name.clone()
-                    data-in-band=p.in_band.map_or("unknown", |b| if b { "true" } else { "false" })>
-                    <i>{p.name.clone()}</i>" "{p.text()}
-                </span>
-            }).collect_view()}
-            <span class="cell-lab">{format!("lab time {:.1} min", t.lab_minutes)}</span>
+            <span class="cell-band" data-testid="cell-band">{move || format!("{} {}", mark(), band().label())}</span>
+            {move || tile.with(|t| t.as_ref().map(|t| {
+                let params = t.parameters.iter().map(|p| view! {
+                    <span class="cell-param" data-parameter=p.name.clone()
+                        data-in-band=p.in_band.map_or("unknown", |b| if b { "true" } else { "false" })>
+                        <i>{p.name.clone()}</i>" "{p.text()}
+                    </span>
+                }).collect_view();
+                view! {
+                    {params}
+                    <span class="cell-lab">{format!("lab time {:.1} min", t.lab_minutes)}</span>
+                }
+            }))}
         </button>
     }
 }
@@ -102,8 +118,8 @@ impl Geometry {
         Self {
             left: 78.0,
             top: 44.0,
-            cw: (720.0 / cols).clamp(14.0, 44.0),
-            ch: 26.0,
+            cw: (720.0 / cols).clamp(14.0, 52.0),
+            ch: 28.0,
         }
     }
 
@@ -224,9 +240,11 @@ fn JacobianHeatMap(map: HeatMap) -> impl IntoView {
             "–".to_string()
         }
     };
-    let share = (own_max.is_finite() && nb_max.is_finite() && own_max > 0.0)
-        .then(|| format!(" ({:.0} % of own)", 100.0 * nb_max / own_max))
-        .unwrap_or_default();
+    let share = if own_max.is_finite() && nb_max.is_finite() && own_max > 0.0 {
+        format!(" ({:.0} % of own)", 100.0 * nb_max / own_max)
+    } else {
+        String::new()
+    };
     let summary = format!(
         "Largest |∂ln p/∂V|: own cell {} · nearest neighbours {}{share} · beyond (the prior says 0) {}",
         fmt(own_max),
@@ -235,7 +253,7 @@ fn JacobianHeatMap(map: HeatMap) -> impl IntoView {
     );
     view! {
         <div class="heatmap-box">
-            <h3>{format!("Learned |Jacobian| |∂ln p/∂V| ({}) at iteration {}", map.unit, map.iteration)}</h3>
+            <h3>"Learned |Jacobian| " <small>{format!("|∂ln p/∂V| in {} at iteration {}", map.unit, map.iteration)}</small></h3>
             <p class="hint">"How much each parameter (row; its logarithm: 0.01 /mV is about 1 % per mV) moves with each gate's voltage (column, V in mV), as the filter has learned it. Outlined: where the prior expects it — a cell's own gates (solid) and its nearest neighbours' (dashed); beyond them the prior says zero."</p>
             <div class="heatmap-scroll">
             <svg class="heatmap" data-testid="jacobian-heatmap"
@@ -254,7 +272,8 @@ fn JacobianHeatMap(map: HeatMap) -> impl IntoView {
                     transform=format!("rotate(-90 12 {:.1})", g.top + h_map / 2.0)>"parameter p (ln p)"</text>
                 {bar}
                 {ticks}
-                <text class="hm-label small" x=bar_x y=g.top - 8.0>{format!("|∂ln p/∂V| ({}), log", unit)}</text>
+                <text class="hm-label small" x=bar_x y=14>"|∂ln p/∂V|"</text>
+                <text class="hm-label small" x=bar_x y=g.top - 8.0>{format!("{unit}, log")}</text>
             </svg>
             </div>
             <div class="legend">

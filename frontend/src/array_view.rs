@@ -118,9 +118,10 @@ impl CellParameter {
     pub fn text(&self) -> String {
         let n = |x: f64| crate::charts::num_label(&x);
         let u = &self.unit;
-        let value = self
-            .value
-            .map_or_else(|| "no valid measurement".to_string(), |v| format!("{} {u}", n(v)));
+        let value = self.value.map_or_else(
+            || "no valid measurement".to_string(),
+            |v| format!("{} {u}", n(v)),
+        );
         let target = match (self.target, self.tolerance) {
             (Some(t), Some(tol)) => format!("target {} ± {} {u}", n(t), n(tol)),
             (Some(t), None) => format!("target {} {u}", n(t)),
@@ -278,15 +279,13 @@ impl HeatMap {
 
     /// Largest finite |element| where the prior expects `prior` (NaN if none).
     pub fn max_where(&self, prior: Prior) -> f64 {
-        let mut m = f64::NAN;
-        for (r, row) in self.values.iter().enumerate() {
-            for (c, v) in row.iter().enumerate() {
-                if v.is_finite() && self.prior(r, c) == prior && !(*v <= m) {
-                    m = *v;
-                }
-            }
-        }
-        m
+        self.values
+            .iter()
+            .enumerate()
+            .flat_map(|(r, row)| row.iter().enumerate().map(move |(c, v)| (r, c, *v)))
+            .filter(|&(r, c, v)| v.is_finite() && self.prior(r, c) == prior)
+            .map(|(_, _, v)| v)
+            .fold(f64::NAN, f64::max)
     }
 
     /// Largest finite |element| (NaN if none).
@@ -490,11 +489,17 @@ mod tests {
         let c1 = &t[1];
         assert_eq!(c1.parameters.len(), 2);
         assert_eq!(
-            (c1.parameters[0].name.as_str(), c1.parameters[0].unit.as_str()),
+            (
+                c1.parameters[0].name.as_str(),
+                c1.parameters[0].unit.as_str()
+            ),
             ("t_sr", "ns")
         );
         assert_eq!(
-            (c1.parameters[1].name.as_str(), c1.parameters[1].unit.as_str()),
+            (
+                c1.parameters[1].name.as_str(),
+                c1.parameters[1].unit.as_str()
+            ),
             ("w", "µV")
         );
         assert_eq!(c1.parameters[1].in_band, Some(false));

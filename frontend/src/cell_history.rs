@@ -59,10 +59,11 @@ pub fn cell_record(r: &IterationRecord, cell: u32) -> IterationRecord {
             let mut g2 = g.clone();
             g2.parameter = local_name(&g.parameter, cell)?.to_string();
             g2.gradient = pick(&g.gradient);
-            g2.covariance = g
-                .covariance
-                .as_ref()
-                .map(|c| own.iter().filter_map(|&i| c.get(i).map(|row| pick(row))).collect());
+            g2.covariance = g.covariance.as_ref().map(|c| {
+                own.iter()
+                    .filter_map(|&i| c.get(i).map(|row| pick(row)))
+                    .collect()
+            });
             Some(g2)
         })
         .collect();
@@ -165,7 +166,10 @@ mod tests {
         let c = cell_record(&r, 1);
         assert_eq!(c.iteration, 2);
         assert_eq!(
-            c.parameters.iter().map(|p| p.name.as_str()).collect::<Vec<_>>(),
+            c.parameters
+                .iter()
+                .map(|p| p.name.as_str())
+                .collect::<Vec<_>>(),
             ["t_sr", "w"]
         );
         assert_eq!(c.parameters[1].value, r.parameters[3].value);
@@ -181,7 +185,9 @@ mod tests {
         assert!(cell_record(&r, 0).tuned);
         assert_eq!(c.lab_seconds, r.lab_seconds);
         assert_eq!(c.events.len(), 1);
-        assert!(matches!(&c.events[0].kind, EventKind::TooUncertain { parameter, .. } if parameter == "w"));
+        assert!(
+            matches!(&c.events[0].kind, EventKind::TooUncertain { parameter, .. } if parameter == "w")
+        );
         // a cell the record does not have: nothing of it
         let none = cell_record(&r, 7);
         assert!(none.parameters.is_empty() && none.gates.is_empty());

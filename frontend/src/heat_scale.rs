@@ -92,7 +92,11 @@ fn pow10(e: i32) -> f64 {
 
 /// The ramp's colour at `t` ∈ [0, 1] (linear between its stops).
 pub fn ramp(t: f64) -> (u8, u8, u8) {
-    let t = if t.is_finite() { t.clamp(0.0, 1.0) } else { 0.0 };
+    let t = if t.is_finite() {
+        t.clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
     let x = t * (RAMP.len() - 1) as f64;
     let i = (x.floor() as usize).min(RAMP.len() - 2);
     let f = x - i as f64;
@@ -134,7 +138,10 @@ mod tests {
         assert_eq!((s.lo, s.hi), (1e-4, 0.1));
         assert_eq!(s.ticks().len(), 4);
         assert_eq!(
-            s.ticks().iter().map(|t| power_label(*t)).collect::<Vec<_>>(),
+            s.ticks()
+                .iter()
+                .map(|t| power_label(*t))
+                .collect::<Vec<_>>(),
             ["10⁻⁴", "10⁻³", "10⁻²", "10⁻¹"]
         );
         let exact = LogScale::for_max(1.0);

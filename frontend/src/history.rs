@@ -1113,8 +1113,14 @@ mod tests {
         assert_eq!(r.events, src.events);
         assert!(r.scans.is_empty());
         for (a, b) in r.gradients.iter().zip(&src.gradients) {
-            assert_eq!((&a.parameter, &a.unit, &a.gradient), (&b.parameter, &b.unit, &b.gradient));
-            let (ca, cb) = (a.covariance.as_ref().unwrap(), b.covariance.as_ref().unwrap());
+            assert_eq!(
+                (&a.parameter, &a.unit, &a.gradient),
+                (&b.parameter, &b.unit, &b.gradient)
+            );
+            let (ca, cb) = (
+                a.covariance.as_ref().unwrap(),
+                b.covariance.as_ref().unwrap(),
+            );
             for (ra, rb) in ca.iter().zip(cb) {
                 for (x, y) in ra.iter().zip(rb) {
                     assert!((x - y).abs() <= 1e-12 * y.abs().max(1.0), "{x} vs {y}");

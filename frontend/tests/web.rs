@@ -1881,3 +1881,92 @@ async fn a_compared_run_is_drawn_on_every_time_series_and_aligns_on_a_set_point_
     })
     .await;
 }
+
+/// Issue 24: an array run's overview — a tile per cell (in band or not, in
+/// words and as `data-band`), the |Jacobian| heat map (2K × 4K elements,
+/// the prior's blocks outlined) — follows new records without replacing a
+/// tile's button; a click shows the cell's charts, "all cells" goes back.
+#[wasm_bindgen_test]
+async fn array_overview_tiles_heat_map_and_a_cell_s_charts() {
+    use spintune_web::array_panel::ArrayOverview;
+    use spintune_web::array_view::fake_array_records;
+    let el = host();
+    let history = RwSignal::new(RunHistory::new());
+    let recs = fake_array_records(8, 3);
+    history.update(|h| {
+        h.insert(recs[..3].to_vec());
+    });
+    let _h = leptos::mount::mount_to(
+        el.clone(),
+        move || view! { <ArrayOverview history=history /> },
+    );
+    let q = |css: &str| el.query_selector(css).unwrap();
+    let all = |css: &str| {
+        let l = el.query_selector_all(css).unwrap();
+        (0..l.length())
+            .map(|i| l.get(i).unwrap().unchecked_into::<web_sys::HtmlElement>())
+            .collect::<Vec<_>>()
+    };
+    wait_for("three tiles", Duration::from_secs(10), || {
+        all("[data-testid=cell-tile]").len() == 3
+    })
+    .await;
+    let bands = || {
+        all("[data-testid=cell-tile]")
+            .iter()
+            .map(|t| t.get_attribute("data-band").unwrap())
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(bands(), ["in", "out", "in"]);
+    let tile1 = q("[data-testid=cell-tile][data-cell='1']").unwrap();
+    let t1: web_sys::HtmlElement = tile1.clone().unchecked_into();
+    assert!(
+        t1.inner_text().contains("out of band"),
+        "{}",
+        t1.inner_text()
+    );
+    assert!(t1.inner_text().contains("µV"), "{}", t1.inner_text());
+    let hm = q("[data-testid=jacobian-heatmap]").expect("heat map");
+    assert_eq!(hm.get_attribute("data-rows").as_deref(), Some("6"));
+    assert_eq!(hm.get_attribute("data-cols").as_deref(), Some("12"));
+    assert_eq!(hm.get_attribute("data-iteration").as_deref(), Some("2"));
+    assert_eq!(all(".hm-cell").len(), 72);
+    assert_eq!(all(".hm-block[data-prior=own]").len(), 3);
+    assert_eq!(all(".hm-block[data-prior=neighbour]").len(), 4);
+    // New records: cell 1 comes into band; the same button shows it.
+    history.update(|h| {
+        h.insert(recs[3..].to_vec());
+    });
+    wait_for("cell 1 in band", Duration::from_secs(10), || {
+        bands() == ["in", "in", "in"]
+    })
+    .await;
+    let same = q("[data-testid=cell-tile][data-cell='1']").unwrap();
+    assert!(same.is_same_node(Some(&tile1)), "the tile was re-created");
+    assert!(t1.inner_text().contains("in band"));
+    assert_eq!(
+        q("[data-testid=jacobian-heatmap]")
+            .unwrap()
+            .get_attribute("data-iteration")
+            .as_deref(),
+        Some("7")
+    );
+    // Drill into cell 1 and back.
+    t1.click();
+    wait_for("cell 1's charts", Duration::from_secs(10), || {
+        q("[data-testid=cell-view][data-cell='1'] canvas[data-chart=parameter-w]")
+            .and_then(|c| c.get_attribute("data-iterations"))
+            .as_deref()
+            == Some("8")
+    })
+    .await;
+    assert!(q("[data-testid=array-overview]").is_none());
+    assert!(q("canvas[data-chart=gradient-t_sr]").is_some());
+    assert!(q("canvas[data-chart^='parameter-c']").is_none());
+    let back: web_sys::HtmlElement = q("[data-testid=cell-back]").unwrap().unchecked_into();
+    back.click();
+    wait_for("the overview again", Duration::from_secs(10), || {
+        all("[data-testid=cell-tile]").len() == 3
+    })
+    .await;
+}

@@ -387,6 +387,15 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
     }
     assert_eq!(joint["limit_violations"], 0);
     assert_eq!(joint["truth_queries"], 0);
+    let by_kind = joint["lab_minutes_by_kind"].as_object().unwrap();
+    assert!(
+        by_kind["transition_width"].as_f64().unwrap() > 0.0,
+        "{by_kind:?}"
+    );
+    assert!(
+        stdout.contains("| strategy | t_sr scans | w scans |"),
+        "{stdout}"
+    );
 
     std::fs::write(&tuning, "line_rounds = 9\n").unwrap();
     let out = bin()

@@ -167,3 +167,43 @@ fn lines_corrected_before_their_scan_keep_the_scans_evaluable() {
         "tuning.precorrect_lines_mv"
     );
 }
+
+/// The world's breakdown of lab time by request kind splits a batch's time
+/// (the longest readout group's) over its requests by their own lab time:
+/// a t_sr scan (5 s) and a w scan (28 s) of two cells in two groups take
+/// 28 s together, 28·5/33 s charged to t_sr and 28·28/33 s to w.
+#[test]
+fn a_batchs_lab_time_is_split_over_its_requests_by_their_own_time() {
+    use spintune::benchmark::array::Lab;
+    use spintune::protocol::{Request, ScanKind, ScanRequest};
+    let array = world(
+        &DeviceConfig::default(),
+        ArrayConfig::chain(2, 5, 1),
+        |_| true,
+    )
+    .unwrap();
+    let mut lab = Lab::new(array);
+    let scan = |kind, cell| Request::Measure {
+        scan: ScanRequest {
+            kind,
+            sweep: None,
+            cell: Some(cell),
+        },
+    };
+    let before = lab.device.lab_seconds();
+    lab.batch(&[
+        scan(ScanKind::ReloadTime, 0),
+        scan(ScanKind::TransitionWidth, 1),
+    ]);
+    let batch = lab.device.lab_seconds() - before;
+    assert!((batch - 28.0).abs() < 1e-9, "{batch}");
+    let by = &lab.seconds_by_kind;
+    assert!(
+        (by["reload_time"] - 28.0 * 5.0 / 33.0).abs() < 1e-9,
+        "{by:?}"
+    );
+    assert!(
+        (by["transition_width"] - 28.0 * 28.0 / 33.0).abs() < 1e-9,
+        "{by:?}"
+    );
+}

@@ -42,6 +42,8 @@
 //! (commanded) voltage, counted in `limit_violations` and refused. The
 //! strategies see only responses.
 
+use std::collections::BTreeMap;
+
 use serde::{Deserialize, Serialize};
 
 use super::{quantiles, Quantiles, PAPER_SET_POINTS};
@@ -228,6 +230,10 @@ pub struct ArrayRunResult {
     pub failed_fits: u64,
     /// Scans run.
     pub measurements: u64,
+    /// Lab minutes of the whole protocol by request kind (sensing_dot,
+    /// chemical_potential, transition_width, reload_time, set_voltages, …).
+    #[serde(default)]
+    pub lab_minutes_by_kind: BTreeMap<String, f64>,
 }
 
 /// Why a run ended early.
@@ -258,6 +264,9 @@ pub struct Lab {
     pub violations: u64,
     /// Scans run.
     pub measurements: u64,
+    /// Lab seconds by request kind ([`super::request_kind`]): a batch's
+    /// time split over its requests in proportion to each one's own lab time.
+    pub seconds_by_kind: BTreeMap<String, f64>,
 }
 
 impl Lab {
@@ -268,6 +277,7 @@ impl Lab {
             device,
             violations: 0,
             measurements: 0,
+            seconds_by_kind: BTreeMap::new(),
         }
     }
 
@@ -302,11 +312,40 @@ impl Lab {
             refused.push(None);
             allowed.push(r.clone());
         }
-        let mut answers = self.device.execute_batch(&allowed).into_iter();
+        let before = self.device.lab_seconds();
+        let answers = self.device.execute_batch(&allowed);
+        let batch = self.device.lab_seconds() - before;
+        let own: Vec<f64> = answers.iter().map(own_seconds).collect();
+        let total: f64 = own.iter().sum();
+        if total > 0.0 {
+            for (r, s) in allowed.iter().zip(&own) {
+                *self
+                    .seconds_by_kind
+                    .entry(super::request_kind(r).to_string())
+                    .or_default() += batch * s / total;
+            }
+        }
+        let mut answers = answers.into_iter();
         refused
             .into_iter()
             .map(|r| r.unwrap_or_else(|| answers.next().unwrap_or_else(|| Response::error("lost"))))
             .collect()
+    }
+}
+
+/// A request's own lab time from its answer, s (0 for an error).
+fn own_seconds(r: &Response) -> f64 {
+    let s = match r {
+        Response::VoltagesSet { lab_seconds, .. }
+        | Response::VoltagesRead { lab_seconds, .. }
+        | Response::Scanned { lab_seconds, .. }
+        | Response::Waited { lab_seconds } => *lab_seconds,
+        _ => 0.0,
+    };
+    if s.is_finite() && s > 0.0 {
+        s
+    } else {
+        0.0
     }
 }
 
@@ -562,6 +601,7 @@ pub fn run_strategy(
         truth_queries: 0,
         failed_fits: 0,
         measurements: 0,
+        lab_minutes_by_kind: BTreeMap::new(),
     };
     let mut targets = vec![protocol.set_points[0]; k as usize];
     let single: Vec<u32> = single_change_cells(k, protocol.single_cell_changes);
@@ -650,6 +690,11 @@ pub fn run_strategy(
     result.limit_violations = lab.violations;
     result.truth_queries = lab.device.truth_queries();
     result.measurements = lab.measurements;
+    result.lab_minutes_by_kind = lab
+        .seconds_by_kind
+        .iter()
+        .map(|(k, s)| (k.clone(), s / 60.0))
+        .collect();
     Ok(result)
 }
 
@@ -734,6 +779,8 @@ pub struct ArraySummary {
     pub measurements: u64,
     /// Runs (array × seed).
     pub runs: u64,
+    /// Lab minutes of the whole protocol by request kind, mean per run.
+    pub lab_minutes_by_kind: BTreeMap<String, f64>,
 }
 
 fn all_changes(r: &ArrayRunResult) -> Vec<Option<f64>> {
@@ -803,6 +850,15 @@ pub fn summarize_array(
                 failed_fits: mine.iter().map(|r| r.failed_fits).sum(),
                 measurements: mine.iter().map(|r| r.measurements).sum(),
                 runs: mine.len() as u64,
+                lab_minutes_by_kind: {
+                    let mut by: BTreeMap<String, f64> = BTreeMap::new();
+                    for r in &mine {
+                        for (k, m) in &r.lab_minutes_by_kind {
+                            *by.entry(k.clone()).or_default() += m / mine.len() as f64;
+                        }
+                    }
+                    by
+                },
             }
         })
         .collect()
@@ -840,6 +896,35 @@ pub fn markdown(summaries: &[ArraySummary]) -> String {
             x.failed_fits,
             x.measurements,
             x.runs,
+        ));
+    }
+    // where the lab time goes
+    let kinds = [
+        "reload_time",
+        "transition_width",
+        "sensing_dot",
+        "chemical_potential",
+        "set_voltages",
+    ];
+    s.push_str("\nLab minutes of the whole protocol by request kind, mean per run (a batch's time split over its requests by their own lab time):\n\n| strategy | t_sr scans | w scans | sensing-dot sweeps | line scans | sets | other |\n|---|---|---|---|---|---|---|\n");
+    for x in summaries {
+        let get = |k: &str| x.lab_minutes_by_kind.get(k).copied().unwrap_or(0.0);
+        let other: f64 = x
+            .lab_minutes_by_kind
+            .iter()
+            .filter(|(k, _)| !kinds.contains(&k.as_str()))
+            .map(|(_, m)| m)
+            .sum::<f64>()
+            + 0.0; // (an empty sum is −0)
+        s.push_str(&format!(
+            "| {} | {} | {} | {} | {} | {} | {} |\n",
+            x.name,
+            f(get(kinds[0])),
+            f(get(kinds[1])),
+            f(get(kinds[2])),
+            f(get(kinds[3])),
+            f(get(kinds[4])),
+            f(other)
         ));
     }
     s

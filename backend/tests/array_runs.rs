@@ -150,3 +150,32 @@ async fn bad_array_configs_are_refused_naming_the_field() {
         assert!(body.contains(needle), "{config}: {body}");
     }
 }
+
+/// The same revival for a single double dot: a run that finished because it
+/// was tuned (`stop_when_tuned`) takes a new target while no task runs, and
+/// is revived (paused) — the stored checkpoint predates the finish, so the
+/// manager asks the plan, not the checkpoint's mode.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_single_cell_run_finished_when_tuned_is_revived_by_a_new_target() {
+    let dir = TempDir::new("revive");
+    let server = server(&dir, 64).await;
+    let addr = server.addr;
+    let run = create_run(addr, &json!({"tuner": {"stop_when_tuned": true}})).await;
+    let done = wait_status(addr, run.id, is_finished).await;
+    assert!(done.tuned, "{done:?}");
+    let (s, body) = control(
+        addr,
+        run.id,
+        r#"{"action":"set_target","parameter":"t_sr","target":30.0}"#,
+    )
+    .await;
+    assert_eq!(s, 200, "{body}");
+    assert_eq!(get_run(addr, run.id).await.status, RunStatus::Paused);
+    let (s, body) = control(addr, run.id, r#"{"action":"resume"}"#).await;
+    assert_eq!(s, 200, "{body}");
+    let again = wait_status(addr, run.id, is_finished).await;
+    assert!(
+        again.tuned && again.iterations > done.iterations,
+        "{again:?}"
+    );
+}

@@ -1421,6 +1421,55 @@ mod tests {
     use super::*;
     use crate::parameter::Tolerance;
 
+    /// The batch on the bridge's wire as `docs/instruments.md` shows it:
+    /// the documented frames parse, and the request serializes to exactly
+    /// the documented text.
+    #[test]
+    fn the_documented_batch_frames_are_the_wire_format() {
+        let doc = include_str!("../../docs/instruments.md");
+        let frame = |start: &str| {
+            doc.lines()
+                .find(|l| l.starts_with(start))
+                .unwrap_or_else(|| panic!("no line starting {start} in docs/instruments.md"))
+        };
+        let request = frame(r#"{"type":"request","id":6,"#);
+        let response = frame(r#"{"type":"response","id":6,"#);
+        let BridgeServerMessage::Request {
+            id, request: req, ..
+        } = serde_json::from_str(request).unwrap()
+        else {
+            panic!("a request frame")
+        };
+        assert_eq!(id, 6);
+        let Request::Batch { requests } = &req else {
+            panic!("a batch")
+        };
+        let cells: Vec<Option<u32>> = requests
+            .iter()
+            .map(|r| match r {
+                Request::Measure { scan } => scan.cell,
+                _ => None,
+            })
+            .collect();
+        assert_eq!(cells, [Some(0), Some(1)]);
+        let sent = serde_json::to_string(&req).unwrap();
+        assert!(request.contains(&sent), "{sent}\n{request}");
+        let BridgeClientMessage::Response { response, .. } =
+            serde_json::from_str(response).unwrap()
+        else {
+            panic!("a response frame")
+        };
+        let Response::Batch {
+            responses,
+            lab_seconds,
+        } = response
+        else {
+            panic!("a batch answer")
+        };
+        assert_eq!(responses.len(), 2);
+        assert_eq!(lab_seconds, 5.0);
+    }
+
     #[test]
     fn run_summary_driver_round_trips_and_an_old_server_without_it_still_parses() {
         let s = RunSummary {

@@ -263,13 +263,18 @@ fn validate_delay(b: &BackendSettings) -> Result<(), ConfigParseError> {
     })
 }
 
-/// The `array` table: an [`ArraySimulationConfig`] (errors name the field
-/// under `array.`), on the simulator only, with its own targets.
+/// The `array` table: an [`ArraySimulationConfig`] merged key by key into
+/// its default (errors name the field under `array.`), on the simulator
+/// only, with its own targets.
 fn parse_array(
     value: Value,
     b: &BackendSettings,
 ) -> Result<ArraySimulationConfig, ConfigParseError> {
-    let array: ArraySimulationConfig = serde_path_to_error::deserialize(value).map_err(|e| {
+    // merged key by key into the default, like every table of a run config
+    let mut merged = serde_json::to_value(ArraySimulationConfig::default())
+        .map_err(|e| ConfigParseError(format!("internal: {e}")))?;
+    spintune::config_merge::merge(&mut merged, value);
+    let array: ArraySimulationConfig = serde_path_to_error::deserialize(merged).map_err(|e| {
         ConfigParseError(format!(
             "invalid config at `array.{}`: {}",
             e.path(),

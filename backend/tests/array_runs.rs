@@ -127,8 +127,12 @@ async fn bad_array_configs_are_refused_naming_the_field() {
             "array",
         ),
         (
-            json!({"array": {"array": {"cells": 3, "seed": 1}}}),
-            "device_seed",
+            json!({"array": {"array": {"cells": 3, "device_seed": "five"}}}),
+            "array.array.device_seed",
+        ),
+        (
+            json!({"array": {"tuning": {"line_rounds": 9}}}),
+            "array.tuning.line_rounds",
         ),
         (json!({"array": {"colour": "red"}}), "array.colour"),
         (

@@ -61,7 +61,11 @@ fn bases() -> Vec<Value> {
     simulator["driver"] = json!("simulator");
     simulator["targets"] = json!({ "t_sr": 20.0 });
     let mut out = vec![full, simulator];
-    for example in ["paper-first-target.toml", "paper-benchmark-demo.toml"] {
+    for example in [
+        "paper-first-target.toml",
+        "paper-benchmark-demo.toml",
+        "array-three-cells.toml",
+    ] {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
             .join("../examples")
             .join(example);

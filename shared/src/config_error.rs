@@ -37,6 +37,23 @@ impl ConfigError {
         }
     }
 
+    /// `Ok` if `ok`, else an error for `field` saying `value` is out of its
+    /// bounds (the bounds are stated where the field is documented).
+    ///
+    /// ```
+    /// use spintune::ConfigError;
+    /// assert!(ConfigError::check(true, "line_rounds", 1).is_ok());
+    /// let e = ConfigError::check(false, "line_rounds", 9).unwrap_err();
+    /// assert_eq!(e.to_string(), "invalid config at `line_rounds`: 9 out of bounds");
+    /// ```
+    pub fn check(ok: bool, field: &str, value: impl std::fmt::Display) -> Result<(), Self> {
+        if ok {
+            Ok(())
+        } else {
+            Err(Self::new(field, format!("{value} out of bounds")))
+        }
+    }
+
     /// Prefix the field path with `outer` (e.g. `tuner`). An empty field
     /// (the value as a whole) becomes `outer` itself.
     pub fn within(mut self, outer: &str) -> Self {

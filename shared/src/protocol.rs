@@ -344,6 +344,32 @@ pub enum Response {
 }
 
 impl Response {
+    /// The lab time this answer says its request took, s (0 for an answer
+    /// without one, such as an error, and for a non-finite or negative
+    /// report).
+    ///
+    /// ```
+    /// use spintune::protocol::Response;
+    /// assert_eq!(Response::Waited { lab_seconds: 60.0 }.lab_seconds(), 60.0);
+    /// assert_eq!(Response::error("no").lab_seconds(), 0.0);
+    /// assert_eq!(Response::Waited { lab_seconds: f64::NAN }.lab_seconds(), 0.0);
+    /// ```
+    pub fn lab_seconds(&self) -> f64 {
+        let s = match self {
+            Response::VoltagesSet { lab_seconds, .. }
+            | Response::VoltagesRead { lab_seconds, .. }
+            | Response::Scanned { lab_seconds, .. }
+            | Response::Waited { lab_seconds }
+            | Response::Batch { lab_seconds, .. } => *lab_seconds,
+            Response::TrueJacobian { .. } | Response::Error { .. } => 0.0,
+        };
+        if s.is_finite() && s > 0.0 {
+            s
+        } else {
+            0.0
+        }
+    }
+
     /// A [`Response::Error`] that needs a person ([`ErrorCause::Instrument`]).
     ///
     /// ```

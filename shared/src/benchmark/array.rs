@@ -144,13 +144,7 @@ impl Default for ArrayProtocol {
 impl ArrayProtocol {
     /// `Err` naming the field.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        let check = |ok: bool, field: &str, v: String| {
-            if ok {
-                Ok(())
-            } else {
-                Err(ConfigError::new(field, format!("{v} out of bounds")))
-            }
-        };
+        let check = ConfigError::check;
         check(
             !self.set_points.is_empty() && self.set_points.len() <= 16,
             "set_points",
@@ -315,7 +309,7 @@ impl Lab {
         let before = self.device.lab_seconds();
         let answers = self.device.execute_batch(&allowed);
         let batch = self.device.lab_seconds() - before;
-        let own: Vec<f64> = answers.iter().map(own_seconds).collect();
+        let own: Vec<f64> = answers.iter().map(Response::lab_seconds).collect();
         let total: f64 = own.iter().sum();
         if total > 0.0 {
             for (r, s) in allowed.iter().zip(&own) {
@@ -330,22 +324,6 @@ impl Lab {
             .into_iter()
             .map(|r| r.unwrap_or_else(|| answers.next().unwrap_or_else(|| Response::error("lost"))))
             .collect()
-    }
-}
-
-/// A request's own lab time from its answer, s (0 for an error).
-fn own_seconds(r: &Response) -> f64 {
-    let s = match r {
-        Response::VoltagesSet { lab_seconds, .. }
-        | Response::VoltagesRead { lab_seconds, .. }
-        | Response::Scanned { lab_seconds, .. }
-        | Response::Waited { lab_seconds } => *lab_seconds,
-        _ => 0.0,
-    };
-    if s.is_finite() && s > 0.0 {
-        s
-    } else {
-        0.0
     }
 }
 

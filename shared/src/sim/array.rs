@@ -456,7 +456,7 @@ impl ArrayDevice {
                 continue;
             }
             let response = self.execute_one(request);
-            let seconds = response_seconds(&response);
+            let seconds = response.lab_seconds();
             let cell = Self::cell_of(request).filter(|&c| c < self.cells());
             let slot = cell.map_or(groups, |c| self.group_of[c as usize]);
             group_seconds[slot] += seconds;
@@ -703,20 +703,5 @@ impl ArrayDevice {
             }
         }
         Ok(j)
-    }
-}
-
-fn response_seconds(r: &Response) -> f64 {
-    let s = match r {
-        Response::VoltagesSet { lab_seconds, .. }
-        | Response::VoltagesRead { lab_seconds, .. }
-        | Response::Scanned { lab_seconds, .. }
-        | Response::Waited { lab_seconds } => *lab_seconds,
-        _ => 0.0,
-    };
-    if s.is_finite() && s > 0.0 {
-        s
-    } else {
-        0.0
     }
 }

@@ -94,13 +94,7 @@ impl Default for ArrayRunSettings {
 impl ArrayRunSettings {
     /// `Err` naming the field.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        let check = |ok: bool, field: &str, v: String| {
-            if ok {
-                Ok(())
-            } else {
-                Err(ConfigError::new(field, format!("{v} out of bounds")))
-            }
-        };
+        let check = ConfigError::check;
         let b = self.relative_tolerance;
         check(
             b.is_finite() && b > 0.0 && b <= 0.5,

@@ -8,8 +8,8 @@ use std::path::PathBuf;
 use clap::Args;
 use serde::Serialize;
 use spintune::benchmark::array::{
-    markdown, run_strategy, summarize_array, world, ArrayProtocol, ArrayRunResult, ArrayStrategy,
-    ArraySummary,
+    markdown, run_strategy, single_change_cells, summarize_array, world, ArrayProtocol,
+    ArrayRunResult, ArrayStrategy, ArraySummary,
 };
 use spintune::benchmark::BenchmarkProtocol;
 use spintune::driver::SimulationConfig;
@@ -65,6 +65,13 @@ pub struct BenchArrayArgs {
     /// Write machine-readable results here.
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Draw one run of the joint loop (`joint`, else `oracle`) on the first
+    /// array as cells × lab time, in band or not, to this PNG.
+    #[arg(long, value_name = "FILE")]
+    pub plot: Option<PathBuf>,
+    /// Seed drawn by `--plot` (1..=--seeds).
+    #[arg(long, default_value_t = 1)]
+    pub plot_seed: u64,
 }
 
 /// The JSON report.
@@ -98,6 +105,22 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
         )));
     }
     let strategies = parse_strategies(&args.strategies)?;
+    let plotted = [ArrayStrategy::Joint, ArrayStrategy::Oracle]
+        .into_iter()
+        .find(|s| strategies.contains(s));
+    if args.plot.is_some() {
+        if plotted.is_none() {
+            return Err(CliError::input(
+                "--plot draws the joint loop: add joint or oracle to --strategies".to_string(),
+            ));
+        }
+        if !(1..=args.seeds).contains(&args.plot_seed) {
+            return Err(CliError::input(format!(
+                "--plot-seed must be between 1 and --seeds ({})",
+                args.seeds
+            )));
+        }
+    }
     let mut protocol = ArrayProtocol::default();
     if let Some(path) = &args.tuning {
         protocol.tuning = read_tuning(path)?;
@@ -167,6 +190,20 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
         args.next
     );
     println!("{}", markdown(&summary));
+    if let (Some(path), Some(strategy)) = (&args.plot, plotted) {
+        let first = devices.first().map(|d| d.0);
+        let run = results
+            .iter()
+            .find(|r| r.strategy == strategy && r.seed == args.plot_seed && Some(r.device) == first)
+            .ok_or_else(|| CliError::runtime("--plot: the drawn run failed".to_string()))?;
+        let single = single_change_cells(args.cells, protocol.single_cell_changes);
+        crate::bench_array_plot::draw_timeline(
+            path,
+            run,
+            protocol.set_points.len().saturating_sub(1) as u32,
+            &single,
+        )?;
+    }
     if let Some(path) = &args.json {
         let report = BenchArrayReport {
             cells: args.cells,

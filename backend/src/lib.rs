@@ -10,6 +10,7 @@
 pub mod alerts;
 pub mod bench;
 pub mod bench_array;
+pub mod bench_array_plot;
 pub mod bench_keep;
 pub mod bench_server;
 pub mod bench_time_plot;

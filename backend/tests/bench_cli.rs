@@ -339,6 +339,7 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
     std::fs::create_dir_all(&dir).unwrap();
     let json = dir.join("array.json");
     let tuning = dir.join("tuning.toml");
+    let plot = dir.join("timeline.png");
     std::fs::write(
         &tuning,
         "line_rounds = 2\n[joint]\nneighbour_prior_fraction = 0.4\n",
@@ -360,10 +361,14 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
             ])
             .arg(&tuning)
             .arg("--json")
-            .arg(&json),
+            .arg(&json)
+            .arg("--plot")
+            .arg(&plot),
     );
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(stdout.contains("| joint |"), "{stdout}");
+    let png = std::fs::read(&plot).unwrap();
+    assert!(png.starts_with(b"\x89PNG"), "--plot wrote no PNG");
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
     assert_eq!(report["protocol"]["tuning"]["line_rounds"], 2);
     assert_eq!(
@@ -396,6 +401,22 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
         stdout.contains("| strategy | t_sr scans | w scans |"),
         "{stdout}"
     );
+    // the timeline is the joint loop's: without it `--plot` is refused
+    // before anything runs, and so is a seed that is not run
+    for (extra, expected) in [
+        (["--strategies", "serial"], "--strategies"),
+        (["--plot-seed", "2"], "--plot-seed"),
+    ] {
+        let out = bin()
+            .args(["bench-array", "--cells", "2", "--seeds", "1", "--plot"])
+            .arg(&plot)
+            .args(extra)
+            .output()
+            .unwrap();
+        assert_eq!(out.status.code(), Some(2));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(expected), "{err}");
+    }
 
     std::fs::write(&tuning, "line_rounds = 9\n").unwrap();
     let out = bin()

@@ -6,8 +6,9 @@
 //! ask for the truth.
 
 use spintune::benchmark::array::{
-    run_strategy, single_change_cells, world, ArrayProtocol, ArrayStrategy,
+    run_strategy, single_change_cells, world, ArrayProtocol, ArrayRunResult, ArrayStrategy,
 };
+use spintune::benchmark::array_timeline::{CellBand, TimelinePoint};
 use spintune::benchmark::PAPER_SET_POINTS;
 use spintune::sim::array::ArrayConfig;
 use spintune::sim::DeviceConfig;
@@ -39,6 +40,53 @@ fn joint_converges_on_three_cells_within_every_step_limit() {
     assert_eq!(r.limit_violations, 0);
     assert_eq!(r.truth_queries, 0);
     assert!(r.measurements > 0);
+    timeline_agrees_with_the_result(&r);
+}
+
+/// The timeline (the figure of `bench-array --plot`) against the result's
+/// own bookkeeping: one point per iteration, phases in protocol order, and
+/// every converged phase ends on its first point with every cell measured
+/// in band, at the lab time the world's clock gave the phase.
+fn timeline_agrees_with_the_result(r: &ArrayRunResult) {
+    let t = &r.timeline;
+    assert!(!t.is_empty());
+    assert!(t
+        .iter()
+        .all(|p| p.measured.len() == 3 && p.truly_in_band.len() == 3));
+    assert!(t
+        .windows(2)
+        .all(|w| w[0].phase <= w[1].phase && w[0].lab_minutes <= w[1].lab_minutes));
+    let phases: Vec<Option<f64>> = std::iter::once(r.cold_start_lab_minutes)
+        .chain(r.changes.iter().copied())
+        .chain(r.single_cell_changes.iter().copied())
+        .collect();
+    assert_eq!(t.last().unwrap().phase as usize, phases.len() - 1);
+    let mut t0: f64 = 0.0;
+    for (phase, minutes) in phases.iter().enumerate() {
+        let points: Vec<&TimelinePoint> = t.iter().filter(|p| p.phase as usize == phase).collect();
+        let all_in = |p: &TimelinePoint| p.measured.iter().all(|&b| b == CellBand::InBand);
+        let (last, before) = points.split_last().expect("every phase has iterations");
+        assert!(
+            before.iter().all(|p| !all_in(p)),
+            "phase {phase} went on after all cells were in band"
+        );
+        if minutes.is_some() {
+            assert!(all_in(last), "phase {phase}: {last:?}");
+        }
+        if let Some(m) = minutes.filter(|_| t0.is_finite()) {
+            assert!(
+                (last.lab_minutes - t0 - m).abs() < 1e-6,
+                "phase {phase}: {} vs {t0} + {m}",
+                last.lab_minutes
+            );
+        }
+        // (after a phase that ran out of iterations its moves took more time)
+        t0 = if minutes.is_some() {
+            last.lab_minutes
+        } else {
+            f64::NAN
+        };
+    }
 }
 
 #[test]

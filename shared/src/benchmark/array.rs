@@ -46,6 +46,7 @@ use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
+use super::array_timeline::{TimelinePoint, MAX_TIMELINE_POINTS};
 use super::{quantiles, Quantiles, PAPER_SET_POINTS};
 use crate::config_error::ConfigError;
 use crate::parameter::Tolerance;
@@ -228,6 +229,10 @@ pub struct ArrayRunResult {
     /// chemical_potential, transition_width, reload_time, set_voltages, …).
     #[serde(default)]
     pub lab_minutes_by_kind: BTreeMap<String, f64>,
+    /// `joint` and `oracle`: every iteration, cells × lab time, in band or
+    /// not (at most [`MAX_TIMELINE_POINTS`]); empty for the per-cell strategies.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub timeline: Vec<TimelinePoint>,
 }
 
 /// Why a run ended early.
@@ -580,6 +585,7 @@ pub fn run_strategy(
         failed_fits: 0,
         measurements: 0,
         lab_minutes_by_kind: BTreeMap::new(),
+        timeline: Vec::new(),
     };
     let mut targets = vec![protocol.set_points[0]; k as usize];
     let single: Vec<u32> = single_change_cells(k, protocol.single_cell_changes);
@@ -630,30 +636,44 @@ pub fn run_strategy(
                 strategy == ArrayStrategy::Oracle,
             )?;
             // the cold start counts from the run's start (initial measurements included)
-            result.cold_start_lab_minutes =
-                joint_until_in_band(&mut lab, &mut run, 2 * protocol.iterations_per_change, 0.0)?;
+            let mut timeline = Timeline {
+                points: &mut result.timeline,
+                phase: 0,
+                band,
+            };
+            result.cold_start_lab_minutes = joint_until_in_band(
+                &mut lab,
+                &mut run,
+                2 * protocol.iterations_per_change,
+                0.0,
+                &mut timeline,
+            )?;
             for &sp in &protocol.set_points[1..] {
                 targets.iter_mut().for_each(|t| *t = sp);
                 for c in 0..k as usize {
                     run.set_targets(c, sp)?;
                 }
                 let t0 = lab.minutes();
+                timeline.phase += 1;
                 result.changes.push(joint_until_in_band(
                     &mut lab,
                     &mut run,
                     protocol.iterations_per_change,
                     t0,
+                    &mut timeline,
                 )?);
             }
             for &c in &single {
                 targets[c as usize] = protocol.single_cell_target;
                 run.set_targets(c as usize, protocol.single_cell_target)?;
                 let t0 = lab.minutes();
+                timeline.phase += 1;
                 result.single_cell_changes.push(joint_until_in_band(
                     &mut lab,
                     &mut run,
                     protocol.iterations_per_change,
                     t0,
+                    &mut timeline,
                 )?);
                 result.neighbours_left_out_of_band += neighbours_out(&lab, c, &targets, band);
             }
@@ -676,6 +696,41 @@ pub fn run_strategy(
     Ok(result)
 }
 
+/// Where [`joint_until_in_band`] notes its iterations.
+struct Timeline<'a> {
+    points: &'a mut Vec<TimelinePoint>,
+    /// The protocol phase now run.
+    phase: u32,
+    /// Relative band of the world's check.
+    band: f64,
+}
+
+impl Timeline<'_> {
+    fn note(&mut self, lab: &Lab, record: &IterationRecord) {
+        if self.points.len() >= MAX_TIMELINE_POINTS {
+            return;
+        }
+        let truth = record
+            .parameters
+            .chunks(2)
+            .enumerate()
+            .map(|(c, p)| {
+                let target = (
+                    p[0].target.unwrap_or(f64::NAN),
+                    p.get(1).and_then(|p| p.target).unwrap_or(f64::NAN),
+                );
+                truly_in_band(lab, c as u32, target, self.band)
+            })
+            .collect();
+        self.points.push(TimelinePoint::new(
+            record.lab_seconds,
+            &record.parameters,
+            self.phase,
+            truth,
+        ));
+    }
+}
+
 /// Drive `run` until every cell is measured in band (`Some(lab minutes
 /// since t0)`) or `cap` iterations end without it (`None`).
 fn joint_until_in_band(
@@ -683,6 +738,7 @@ fn joint_until_in_band(
     run: &mut ArrayRun,
     cap: u32,
     t0: f64,
+    timeline: &mut Timeline,
 ) -> Result<Option<f64>, ArrayFailure> {
     let mut iterations = 0;
     loop {
@@ -693,6 +749,7 @@ fn joint_until_in_band(
                 run.feed(answers, lab.device.lab_seconds() - before)?;
             }
             ArrayAction::Iteration(record) => {
+                timeline.note(lab, &record);
                 if record.tuned {
                     return Ok(Some(lab.minutes() - t0));
                 }

@@ -23,6 +23,7 @@
 //! `non_oracle_strategies_never_query_the_truth` holds it).
 
 pub mod array;
+pub mod array_timeline;
 pub mod keep;
 
 use std::collections::BTreeMap;

@@ -1,0 +1,93 @@
+//! The array benchmark's timeline: every iteration of the joint loop as
+//! cells × lab time, in band or not — as the run measured it and as the
+//! world knows it (the figure of `spintune bench-array --plot`).
+
+use serde::{Deserialize, Serialize};
+
+use crate::protocol::ParameterReport;
+
+/// Most points a run's timeline keeps (bounded by construction: the
+/// protocol's caps allow fewer iterations; later points are dropped).
+pub const MAX_TIMELINE_POINTS: usize = 4_096;
+
+/// One cell at one measurement, as the run measured it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CellBand {
+    /// Both parameters measured within target ± tolerance.
+    InBand,
+    /// Both measured, at least one outside its band.
+    OutOfBand,
+    /// A fit failed: no value to compare.
+    NotMeasured,
+}
+
+/// One iteration of the joint loop.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TimelinePoint {
+    /// Lab time of the iteration's measurement since the protocol's start, min.
+    pub lab_minutes: f64,
+    /// Protocol phase: 0 the cold start, then the set-point changes, then
+    /// the single-cell changes, in order.
+    pub phase: u32,
+    /// Per cell, what the measurement said.
+    pub measured: Vec<CellBand>,
+    /// Per cell, whether its true `t_sr` and `w` were within the band at
+    /// the iteration's end (after its moves; world side, never shown to
+    /// the strategy).
+    pub truly_in_band: Vec<bool>,
+}
+
+impl TimelinePoint {
+    /// The point of an array record's measurement at `lab_seconds` (s since
+    /// the protocol's start) with `parameters` (`c{k}.t_sr`, `c{k}.w` in
+    /// cell order, each with its target and tolerance) in `phase`, with the
+    /// world's `truly_in_band` per cell.
+    ///
+    /// ```
+    /// use spintune::benchmark::array_timeline::{CellBand, TimelinePoint};
+    /// use spintune::protocol::ParameterReport;
+    /// let p = |name: &str, value: Option<f64>, target: f64| ParameterReport {
+    ///     name: name.into(), unit: String::new(), value, std: None,
+    ///     target: Some(target), tolerance: Some(0.1 * target),
+    /// };
+    /// let parameters = [
+    ///     p("c0.t_sr", Some(21.0), 20.0), p("c0.w", Some(260.0), 270.0), // in band
+    ///     p("c1.t_sr", Some(25.0), 20.0), p("c1.w", Some(270.0), 270.0), // t_sr 25 % off
+    ///     p("c2.t_sr", None, 20.0), p("c2.w", Some(270.0), 270.0),       // a failed fit
+    /// ];
+    /// let point = TimelinePoint::new(90.0, &parameters, 2, vec![true, false, true]);
+    /// assert_eq!(point.lab_minutes, 1.5);
+    /// assert_eq!(point.measured, [CellBand::InBand, CellBand::OutOfBand, CellBand::NotMeasured]);
+    /// ```
+    pub fn new(
+        lab_seconds: f64,
+        parameters: &[ParameterReport],
+        phase: u32,
+        truly_in_band: Vec<bool>,
+    ) -> Self {
+        let measured = parameters
+            .chunks(2)
+            .map(|cell| {
+                let mut band = CellBand::InBand;
+                for p in cell {
+                    match (p.value, p.target, p.tolerance) {
+                        (Some(v), Some(t), Some(tol)) => {
+                            if (v - t).abs() > tol && band == CellBand::InBand {
+                                band = CellBand::OutOfBand;
+                            }
+                        }
+                        _ => return CellBand::NotMeasured,
+                    }
+                }
+                band
+            })
+            .collect();
+        Self {
+            lab_minutes: lab_seconds / 60.0,
+            phase,
+            measured,
+            truly_in_band,
+        }
+    }
+}

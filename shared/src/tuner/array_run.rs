@@ -825,6 +825,7 @@ impl ArrayRun {
             );
             lower.push(l);
         }
+        borrow_line_jacobians(&mut lower);
         let mut tuner = JointArrayTuner::new(cells, &self.settings.joint, self.cross_calibration)?;
         // the initial measurement's last values start the filters' differences
         for (c, session) in self.sessions.iter().enumerate() {
@@ -1214,6 +1215,46 @@ impl ArrayRun {
     }
 }
 
+/// Whether a line Jacobian (mV/mV) can be inverted.
+fn invertible(j: &[[f64; 2]; 2]) -> bool {
+    let det = j[0][0] * j[1][1] - j[0][1] * j[1][0];
+    det.is_finite() && det.abs() > 1e-12
+}
+
+/// A cell whose initial measurement never had to move its lines learned no
+/// line Jacobian (its line level measures one only when it first corrects),
+/// and without one its lines are never corrected again: it borrows the mean
+/// of the cells that learned one (cells of one design share their lever
+/// arms). Nothing changes when no cell learned one.
+fn borrow_line_jacobians(lower: &mut [CellLower]) {
+    let learned: Vec<[[f64; 2]; 2]> = lower
+        .iter()
+        .filter(|l| l.line_gates.len() == 2 && invertible(&l.line_jacobian))
+        .map(|l| l.line_jacobian)
+        .collect();
+    if learned.is_empty() {
+        return;
+    }
+    let n = learned.len() as f64;
+    let mut mean = [[0.0; 2]; 2];
+    for j in &learned {
+        for (r, row) in j.iter().enumerate() {
+            for (s, x) in row.iter().enumerate() {
+                mean[r][s] += x / n;
+            }
+        }
+    }
+    if !invertible(&mean) {
+        return;
+    }
+    for l in lower
+        .iter_mut()
+        .filter(|l| l.line_gates.len() == 2 && !invertible(&l.line_jacobian))
+    {
+        l.line_jacobian = mean;
+    }
+}
+
 /// The cell's lines `[mu_a, mu_b]` (mV) forecast at `v` (`None` before
 /// its first line scan).
 fn line_forecast(joint: &Joint, cell: usize, v: &BTreeMap<String, f64>) -> Option<[f64; 2]> {
@@ -1357,5 +1398,55 @@ impl crate::session::Plan for ArrayRun {
 
     fn done(&self) -> bool {
         self.step == Step::Idle
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn lower(line_gates: &[&str], line_jacobian: [[f64; 2]; 2]) -> CellLower {
+        CellLower {
+            sd_gate: String::new(),
+            sd_half_width_mv: 0.0,
+            sd_points: 0,
+            line_gates: line_gates.iter().map(|g| g.to_string()).collect(),
+            line_jacobian,
+            line_max_step_mv: 2.0,
+            references: References::default(),
+            lines: LevelForecast::new(Vec::new(), 2, 0.1, Vec::new()),
+        }
+    }
+
+    /// A cell without a learned line Jacobian borrows the mean of the cells
+    /// that learned one; a cell without lines and a learned one are left
+    /// alone; with nothing learned nothing changes.
+    #[test]
+    fn a_cell_without_a_line_jacobian_borrows_the_mean_of_the_learned_ones() {
+        let plungers = ["PA", "PB"];
+        let mut cells = vec![
+            lower(&plungers, [[1.0, 0.2], [0.1, 0.9]]),
+            lower(&plungers, [[0.0; 2]; 2]),
+            lower(&plungers, [[0.8, 0.1], [0.3, 1.1]]),
+            lower(&[], [[0.0; 2]; 2]),
+        ];
+        borrow_line_jacobians(&mut cells);
+        // by hand: ((1.0 + 0.8)/2, (0.2 + 0.1)/2; (0.1 + 0.3)/2, (0.9 + 1.1)/2)
+        let want = [[0.9, 0.15], [0.2, 1.0]];
+        for (r, row) in want.iter().enumerate() {
+            for (s, w) in row.iter().enumerate() {
+                assert!(
+                    (cells[1].line_jacobian[r][s] - w).abs() < 1e-12,
+                    "{:?}",
+                    cells[1].line_jacobian
+                );
+            }
+        }
+        assert_eq!(cells[0].line_jacobian, [[1.0, 0.2], [0.1, 0.9]]);
+        assert_eq!(cells[3].line_jacobian, [[0.0; 2]; 2]);
+
+        let mut none = vec![lower(&plungers, [[0.0; 2]; 2]); 2];
+        borrow_line_jacobians(&mut none);
+        assert!(none.iter().all(|l| l.line_jacobian == [[0.0; 2]; 2]));
     }
 }

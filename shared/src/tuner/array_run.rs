@@ -1192,11 +1192,11 @@ impl ArrayRun {
     /// cell's line Jacobian, as a set request (`None` if singular).
     fn line_step(&self, joint: &Joint, cell: usize, mu: [f64; 2]) -> Option<Request> {
         let l = &joint.lower[cell];
-        let [[a, b], [cc, d]] = l.line_jacobian;
-        let det = a * d - b * cc;
-        if !(det.is_finite() && det.abs() > 1e-12) || l.line_gates.len() != 2 {
+        if !invertible(&l.line_jacobian) || l.line_gates.len() != 2 {
             return None;
         }
+        let [[a, b], [cc, d]] = l.line_jacobian;
+        let det = a * d - b * cc;
         let mut dp = [
             -(d * mu[0] - b * mu[1]) / det,
             -(-cc * mu[0] + a * mu[1]) / det,

@@ -101,8 +101,9 @@ pub struct RunConfig {
     pub simulation: SimulationConfig,
     /// Backend-only settings.
     pub backend: BackendSettings,
-    /// An array of double dots tuned jointly (the `array` table; simulator
-    /// only): when set, the run is this array, not `simulation`.
+    /// An array of double dots tuned jointly (the `array` table: on the
+    /// simulator, or through the lab bridge with `array.description`): when
+    /// set, the run is this array, not `simulation`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub array: Option<ArraySimulationConfig>,
 }
@@ -227,6 +228,16 @@ impl RunConfig {
             .map_err(|e| ConfigParseError(format!("cannot write the config as TOML: {e}")))
     }
 
+    /// Every gate the run may touch, with its limits: the array's
+    /// (prefixed `c{k}.`) or the single double dot's. Valid by construction
+    /// (checked when the config was parsed).
+    pub fn gates(&self) -> Vec<spintune::safety::GateSpec> {
+        match &self.array {
+            Some(a) => a.gates().unwrap_or_default(),
+            None => self.simulation.tuner.gates.clone(),
+        }
+    }
+
     /// Run name.
     pub fn name(&self) -> &str {
         match &self.array {
@@ -265,7 +276,7 @@ fn validate_delay(b: &BackendSettings) -> Result<(), ConfigParseError> {
 
 /// The `array` table: an [`ArraySimulationConfig`] merged key by key into
 /// its default (errors name the field under `array.`), on the simulator
-/// only, with its own targets.
+/// or (with its `description`) through the lab bridge, with its own targets.
 fn parse_array(
     value: Value,
     b: &BackendSettings,
@@ -281,18 +292,30 @@ fn parse_array(
             e.inner()
         ))
     })?;
-    if b.driver != DriverKind::Simulator {
-        return Err(ConfigParseError(
-            "invalid config at `driver`: an array run runs on the simulator only (driver = \"simulator\")".into(),
-        ));
+    match b.driver {
+        DriverKind::Simulator => {}
+        DriverKind::Bridge if array.description.is_some() => {}
+        DriverKind::Bridge => {
+            return Err(ConfigParseError(
+                "invalid config at `array.description`: an array on the lab bridge needs its description (cells, their gates with limits, readout groups; docs/array.md)".into(),
+            ))
+        }
+        DriverKind::Scpi => {
+            return Err(ConfigParseError(
+                "invalid config at `driver`: an array runs on the simulator or through the lab bridge (driver = \"simulator\" or \"bridge\"), not on a SCPI source".into(),
+            ))
+        }
     }
     if !b.targets.is_empty() || !b.tolerances.is_empty() {
         return Err(ConfigParseError(
             "invalid config at `targets`: an array run's targets are `array.targets` (one [t_sr ns, w µV] pair for every cell, or one per cell)".into(),
         ));
     }
-    // every bound, and that the world can be drawn
-    array.build().map_err(|e| e.within("array"))?;
+    // every bound, and on the simulator that the world can be drawn
+    array.build_plan().map_err(|e| e.within("array"))?;
+    if b.driver == DriverKind::Simulator {
+        array.build_world().map_err(|e| e.within("array"))?;
+    }
     Ok(array)
 }
 

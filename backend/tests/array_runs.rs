@@ -139,7 +139,36 @@ async fn bad_array_configs_are_refused_naming_the_field() {
             json!({"array": {"targets": [[20.0, 270.0], [20.0, 270.0]]}}),
             "array.targets",
         ),
-        (json!({"array": {}, "driver": "bridge"}), "driver"),
+        (
+            json!({"array": {}, "driver": "bridge"}),
+            "array.description",
+        ),
+        (
+            json!({"array": {}, "driver": "scpi", "scpi": {"address": "127.0.0.1:5025", "channels": {"c0.N": 1}}}),
+            "driver",
+        ),
+        (
+            json!({"array": {"description": {"cells": 2, "cell": {
+                "gates": [{"name": "B1", "min_mv": -500, "max_mv": 0, "initial_mv": -250}],
+                "qubit": {"gates": ["B1"]}}}}}),
+            "array.description.cell.gates[0].name",
+        ),
+        (
+            json!({"array": {"description": {"cells": 2, "cell": {"gates": [], "qubit": {"gates": []}}}}, "driver": "bridge"}),
+            "array.description.cell",
+        ),
+        (
+            json!({"array": {"description": {"cells": 2, "readout_groups": [[0]], "cell": {
+                "gates": [{"name": "B1", "min_mv": -500, "max_mv": 0, "initial_mv": -250}],
+                "qubit": {"gates": ["B1"]}}}}, "driver": "bridge"}),
+            "array.description.readout_groups",
+        ),
+        (
+            json!({"array": {"description": {"cells": 2, "cell": {
+                "gates": [{"name": "B1", "min_mv": -500, "max_mv": 0, "initial_mv": -250}],
+                "qubit": {"gates": ["B1"]}}}, "targets": [[20.0, 270.0], [20.0, 270.0], [20.0, 270.0]]}, "driver": "bridge"}),
+            "array.targets",
+        ),
         (json!({"array": {}, "targets": {"w": 200.0}}), "targets"),
     ] {
         let (s, body) = http(

@@ -86,7 +86,9 @@ impl Checkpoint {
                 return Err(unusable("holds no array session for this array run".into()));
             };
             use spintune::session::Plan;
-            let want = array.gates();
+            let want = array.gates().map_err(|e| {
+                unusable(format!("belongs to a config whose array is invalid: {e}"))
+            })?;
             check_gates(&want, session.tuner().gate_specs()).map_err(unusable)?;
             return Ok(cp);
         }

@@ -196,12 +196,21 @@ impl Manager {
         let scfg = session_config(&config, self.options.iteration_delay);
         let (mut session, device) = match &config.array {
             Some(array) => {
-                let (plan, device) = array
-                    .build_parts()
-                    .map_err(|e| RunError::Invalid(e.within("array").to_string()))?;
+                let invalid = |e: spintune::config_error::ConfigError| {
+                    RunError::Invalid(e.within("array").to_string())
+                };
+                let plan = array.build_plan().map_err(invalid)?;
+                // On the lab bridge nothing is simulated: the checkpoint
+                // holds no device state (the bridge driver ignores it).
+                let device = match config.backend.driver {
+                    DriverKind::Simulator => Some(SimulatorDevice::array(
+                        array.build_world().map_err(invalid)?,
+                    )),
+                    _ => None,
+                };
                 (
                     AnySession::Array(Box::new(RunSession::from_tuner(plan, scfg))),
-                    SimulatorDevice::array(device),
+                    device,
                 )
             }
             None => {
@@ -215,7 +224,7 @@ impl Manager {
                     .map_err(|e| RunError::Invalid(e.to_string()))?;
                 (
                     AnySession::Cell(Box::new(session)),
-                    SimulatorDevice::new(device),
+                    Some(SimulatorDevice::new(device)),
                 )
             }
         };
@@ -224,12 +233,13 @@ impl Manager {
                 .control(&ControlCommand::Pause)
                 .map_err(|e| RunError::Internal(e.to_string()))?;
         }
-        let checkpoint = Checkpoint::new(
-            session,
-            device
+        let device_state = match &device {
+            Some(d) => d
                 .checkpoint()
                 .map_err(|e| RunError::Internal(e.to_string()))?,
-        );
+            None => serde_json::Value::Null,
+        };
+        let checkpoint = Checkpoint::new(session, device_state);
         let checkpoint_json =
             serde_json::to_string(&checkpoint).map_err(|e| RunError::Internal(e.to_string()))?;
         let config_json =
@@ -516,11 +526,12 @@ impl Manager {
             .uses_bridge()
             .then(|| self.bridges.get(handle.id));
         let backend = &handle.config.backend;
+        let gates = handle.config.gates();
         let settings = devices::DeviceSettings {
             driver: backend.driver,
             scpi: backend.scpi.as_ref(),
             bridge: &backend.bridge,
-            gates: &handle.config.simulation.tuner.gates,
+            gates: &gates,
             array: handle.config.array.is_some(),
         };
         let device: Box<dyn Device> = match devices::open(settings, device_state, bridge) {

@@ -7,13 +7,13 @@ use serde::{Deserialize, Serialize};
 
 use super::{ArraySimulationRun, SimulationConfig, SimulationRun};
 use crate::config_error::ConfigError;
-use crate::parameter::Tolerance;
+use crate::description::array::{array_cell_tuner, ArrayDescription};
 use crate::session::{RunSession, SessionConfig};
-use crate::sim::array::{cell_devices, gate_name, ArrayConfig, ArrayDevice, MAX_CELLS};
+use crate::sim::array::{cell_devices, ArrayConfig, ArrayDevice, MAX_CELLS};
 use crate::sim::random::targets_reachable;
 use crate::sim::{default_gates, DeviceConfig};
 use crate::tuner::array_run::{ArrayRun, ArrayRunSettings};
-use crate::tuner::{LevelKind, TunerConfig};
+use crate::tuner::TunerConfig;
 
 /// A simulated array run (every field optional in a config file).
 ///
@@ -44,6 +44,14 @@ pub struct ArraySimulationConfig {
     /// the fraction of a neighbour's gate effect its compensation assumes
     /// (configuration a lab calibrates; default 0.3, 0.05).
     pub cross_calibration: [f64; 2],
+    /// The array as the lab describes it (cells, their gates and limits,
+    /// readout groups; [`ArrayDescription`]). `None`: the simulated array's
+    /// own ([`ArrayDescription::simulated`], `array.cells` cells of the
+    /// simulated double dot). Given, it is the one source of the cells and
+    /// the readout groups: on the simulator the world takes them from it
+    /// (`array.cells` and `array.readout_groups` are then not used), and
+    /// every gate it names must be a gate of the simulated cell.
+    pub description: Option<ArrayDescription>,
 }
 
 impl Default for ArraySimulationConfig {
@@ -55,6 +63,7 @@ impl Default for ArraySimulationConfig {
             targets: vec![super::PAPER_FIRST_TARGET],
             tuning: ArrayRunSettings::default(),
             cross_calibration: [0.3, 0.05],
+            description: None,
         }
     }
 }
@@ -62,7 +71,7 @@ impl Default for ArraySimulationConfig {
 impl ArraySimulationConfig {
     /// Every cell's targets, `Err` naming the field.
     pub fn cell_targets(&self) -> Result<Vec<(f64, f64)>, ConfigError> {
-        let k = self.array.cells as usize;
+        let k = self.described().cells as usize;
         let targets = match self.targets.len() {
             1 => vec![self.targets[0]; k],
             n if n == k => self.targets.clone(),
@@ -88,11 +97,20 @@ impl ArraySimulationConfig {
         Ok(targets)
     }
 
-    /// Every gate of the array with its limits (prefixed `c{k}.`).
-    pub fn gates(&self) -> Vec<crate::safety::GateSpec> {
-        (0..self.array.cells)
-            .flat_map(crate::sim::array::cell_gates)
-            .collect()
+    /// The array as described: [`ArraySimulationConfig::description`], or
+    /// the simulated array's own.
+    pub fn described(&self) -> ArrayDescription {
+        self.description.clone().unwrap_or_else(|| {
+            ArrayDescription::simulated(self.array.cells, self.array.readout_groups.clone())
+        })
+    }
+
+    /// Every gate of the array with its limits (prefixed `c{k}.`), `Err`
+    /// naming the description's field.
+    pub fn gates(&self) -> Result<Vec<crate::safety::GateSpec>, ConfigError> {
+        self.described()
+            .gates()
+            .map_err(|e| e.within("description"))
     }
 
     /// Validate and build the world and the run.
@@ -104,16 +122,66 @@ impl ArraySimulationConfig {
         ))
     }
 
-    /// Validate and build the plan and the (truth-sealed) world, for a
-    /// shell that wraps them in its own session (the server).
+    /// Validate and build the plan and the (truth-sealed) simulated world,
+    /// for a shell that wraps them in its own session (the server).
     pub fn build_parts(&self) -> Result<(ArrayRun, ArrayDevice), ConfigError> {
-        if !(1..=MAX_CELLS).contains(&self.array.cells) {
+        let run = self.build_plan()?;
+        let device = self.build_world()?;
+        Ok((run, device))
+    }
+
+    /// Validate and build the plan alone, for an array on a lab's
+    /// instruments (the lab bridge): nothing simulated is built.
+    pub fn build_plan(&self) -> Result<ArrayRun, ConfigError> {
+        self.tuning.validate().map_err(|e| e.within("tuning"))?;
+        let described = self.described();
+        let gates = described.gates().map_err(|e| e.within("description"))?;
+        let targets = self.cell_targets()?;
+        let cells = described
+            .cell_tuners(&targets, self.tuning.relative_tolerance)
+            .map_err(|e| match e.field.as_str() {
+                "targets" => e,
+                _ => e.within("description"),
+            })?;
+        ArrayRun::new(
+            cells,
+            &gates,
+            self.tuning.clone(),
+            self.cross_calibration,
+            false,
+        )
+        .map_err(|e| match e {
+            crate::tuner::array_run::ArrayRunError::Config(c) => c,
+            other => ConfigError::new("", other.to_string()),
+        })
+    }
+
+    /// The simulated world (truth sealed): `array` with the described cells
+    /// and readout groups, each cell drawn with the targets reachable within
+    /// its gate limits. `Err` naming the field, also when the description
+    /// names a gate the simulated cell does not have.
+    pub fn build_world(&self) -> Result<ArrayDevice, ConfigError> {
+        let mut world = self.array.clone();
+        if let Some(d) = &self.description {
+            world.cells = d.cells;
+            world.readout_groups = d.readout_groups.clone();
+            let simulated = default_gates();
+            for (i, g) in d.cell.gates.iter().enumerate() {
+                if !simulated.iter().any(|s| s.name == g.name) {
+                    let names: Vec<&str> = simulated.iter().map(|s| s.name.as_str()).collect();
+                    return Err(ConfigError::new(
+                        format!("description.cell.gates[{i}].name"),
+                        format!("{:?} is not a gate of the simulated cell (driver = \"simulator\"; its gates: {names:?}); a lab's array runs with driver = \"bridge\"", g.name),
+                    ));
+                }
+            }
+        }
+        if !(1..=MAX_CELLS).contains(&world.cells) {
             return Err(ConfigError::new(
                 "array.cells",
-                format!("{} (1..={MAX_CELLS})", self.array.cells),
+                format!("{} (1..={MAX_CELLS})", world.cells),
             ));
         }
-        self.tuning.validate().map_err(|e| e.within("tuning"))?;
         let targets = self.cell_targets()?;
         let reachable = |d: &DeviceConfig| {
             targets_reachable(
@@ -124,76 +192,16 @@ impl ArraySimulationConfig {
                 &targets,
             )
         };
-        let devices = cell_devices(
-            &self.device,
-            self.array.cells,
-            self.array.device_seed,
-            reachable,
-        );
-        let mut device =
-            ArrayDevice::new(self.array.clone(), devices).map_err(|e| e.within("array"))?;
+        let devices = cell_devices(&self.device, world.cells, world.device_seed, reachable);
+        let mut device = ArrayDevice::new(world, devices).map_err(|e| e.within("array"))?;
         device.seal_truth();
-        let cells = targets
-            .iter()
-            .enumerate()
-            .map(|(c, &t)| cell_tuner(c as u32, t, self.tuning.relative_tolerance))
-            .collect();
-        let run = ArrayRun::new(
-            cells,
-            &device.gates(),
-            self.tuning.clone(),
-            self.cross_calibration,
-            false,
-        )
-        .map_err(|e| ConfigError::new("array", e.to_string()))?;
-        Ok((run, device))
+        Ok(device)
     }
 }
 
-/// The recommended single-cell tuner for cell `cell` of an array: every
-/// gate renamed `c{cell}.…`, the given targets `(t_sr ns, w µV)` within a
-/// relative `band`; the sensing dot sweeps at every call and the lines are
-/// scanned (a cell's flank and line models would not see the neighbours'
-/// gates).
-pub fn cell_tuner(cell: u32, (t_sr, w): (f64, f64), band: f64) -> TunerConfig {
-    let mut t = SimulationConfig::recommended().tuner;
-    let rn = |g: &mut String| *g = gate_name(cell, g);
-    t.gates.iter_mut().for_each(|g| rn(&mut g.name));
-    for level in &mut t.levels {
-        match &mut level.kind {
-            LevelKind::Newton(n) => {
-                n.gates.iter_mut().for_each(rn);
-                if let Some(c) = &mut n.compensation {
-                    c.gates.iter_mut().for_each(rn);
-                }
-                // As the flank below: a cell's line forecast cannot see the
-                // neighbours' gates, whose moves shift its lines too.
-                n.forecast = None;
-            }
-            LevelKind::SensingDot(sd) => {
-                rn(&mut sd.gate);
-                if let Some(f) = &mut sd.fallback {
-                    rn(&mut f.gate);
-                }
-                // A cell's flank model sees only its own gates, and in an
-                // array the neighbours' moves shift its flank too: the
-                // cells sweep at every call (measured: with the single-cell
-                // prediction, 9-cell `joint` left 6 changes unconverged
-                // where the oracle converged, against 1).
-                sd.prediction = None;
-            }
-        }
-    }
-    t.max_iterations = None;
-    t.stop_when_tuned = false;
-    t.schedule.clear();
-    for p in &mut t.top_mut().parameters {
-        p.tolerance = Tolerance::Relative(band);
-        p.target = match p.name.as_str() {
-            "t_sr" => Some(t_sr),
-            "w" => Some(w),
-            _ => p.target,
-        };
-    }
-    t
+/// The recommended single-cell tuner for cell `cell` of the simulated
+/// array ([`array_cell_tuner`] of [`SimulationConfig::recommended`]'s
+/// tuner), the given targets `(t_sr ns, w µV)` within a relative `band`.
+pub fn cell_tuner(cell: u32, targets: (f64, f64), band: f64) -> TunerConfig {
+    array_cell_tuner(SimulationConfig::recommended().tuner, cell, targets, band)
 }

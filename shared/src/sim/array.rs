@@ -172,27 +172,7 @@ impl ArrayConfig {
         }
         self.crosstalk.validate()?;
         if let Some(groups) = &self.readout_groups {
-            let mut seen = vec![false; self.cells as usize];
-            for (i, group) in groups.iter().enumerate() {
-                for (j, &c) in group.iter().enumerate() {
-                    let field = format!("readout_groups[{i}][{j}]");
-                    if c >= self.cells {
-                        return Err(ConfigError::new(
-                            field,
-                            format!("cell {c} outside 0..{}", self.cells),
-                        ));
-                    }
-                    if std::mem::replace(&mut seen[c as usize], true) {
-                        return Err(ConfigError::new(field, format!("cell {c} listed twice")));
-                    }
-                }
-            }
-            if let Some(c) = seen.iter().position(|s| !s) {
-                return Err(ConfigError::new(
-                    "readout_groups",
-                    format!("cell {c} is in no group"),
-                ));
-            }
+            check_readout_groups(self.cells, groups)?;
         }
         Ok(())
     }
@@ -214,6 +194,39 @@ impl ArrayConfig {
             }
         }
     }
+}
+
+/// `Err` naming the field (`readout_groups[i][j]`, `readout_groups`) unless
+/// every cell of `0..cells` is in exactly one of `groups`.
+///
+/// ```
+/// use spintune::sim::array::check_readout_groups;
+/// assert!(check_readout_groups(3, &[vec![0, 2], vec![1]]).is_ok());
+/// assert_eq!(check_readout_groups(3, &[vec![0, 2]]).unwrap_err().field, "readout_groups");
+/// ```
+pub fn check_readout_groups(cells: u32, groups: &[Vec<u32>]) -> Result<(), ConfigError> {
+    let mut seen = vec![false; cells as usize];
+    for (i, group) in groups.iter().enumerate() {
+        for (j, &c) in group.iter().enumerate() {
+            let field = format!("readout_groups[{i}][{j}]");
+            if c >= cells {
+                return Err(ConfigError::new(
+                    field,
+                    format!("cell {c} outside 0..{cells}"),
+                ));
+            }
+            if std::mem::replace(&mut seen[c as usize], true) {
+                return Err(ConfigError::new(field, format!("cell {c} listed twice")));
+            }
+        }
+    }
+    if let Some(c) = seen.iter().position(|s| !s) {
+        return Err(ConfigError::new(
+            "readout_groups",
+            format!("cell {c} is in no group"),
+        ));
+    }
+    Ok(())
 }
 
 /// The seed of cell `cell`'s device in the population `device_seed`

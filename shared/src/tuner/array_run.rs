@@ -298,6 +298,7 @@ impl ArrayRun {
         oracle: bool,
     ) -> Result<Self, ArrayRunError> {
         settings.validate()?;
+        super::array::check_cross_calibration(cross_calibration)?;
         if cells.is_empty() || cells.len() > crate::sim::array::MAX_CELLS as usize {
             return Err(ConfigError::new(
                 "cells",

@@ -29,6 +29,8 @@
 //! assert_eq!(tuner.top().parameters[0].name, "t_sr");
 //! ```
 
+pub mod array;
+
 use serde::{Deserialize, Serialize};
 
 use crate::config_error::ConfigError;

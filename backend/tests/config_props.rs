@@ -65,6 +65,7 @@ fn bases() -> Vec<Value> {
         "paper-first-target.toml",
         "paper-benchmark-demo.toml",
         "array-three-cells.toml",
+        "array-lab.toml",
     ] {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
             .join("../examples")
@@ -87,8 +88,9 @@ fn nodes(v: &Value) -> Vec<(String, String)> {
 }
 
 /// Arrays that may be empty in a valid config.
-const MAY_BE_EMPTY: [&str; 5] = [
+const MAY_BE_EMPTY: [&str; 6] = [
     "after_move",
+    "cell_gates",
     "schedule",
     "quadratic_per_mv2",
     "line_a_quadratic",

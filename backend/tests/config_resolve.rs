@@ -42,6 +42,7 @@ fn resolved_configs_read_back_unchanged() {
         "lab-device.toml",
         "paper-first-target.toml",
         "paper-benchmark-demo.toml",
+        "array-lab.toml",
     ] {
         let first = stdout_of(&spintune(&[
             "config",

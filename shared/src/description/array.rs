@@ -203,6 +203,12 @@ impl ArrayDescription {
                     format!("cell {} has two entries", entry.cell),
                 ));
             }
+            if entry.gates.is_empty() {
+                return Err(ConfigError::new(
+                    format!("{field}.gates"),
+                    "empty: an entry names the gates whose specs differ in its cell",
+                ));
+            }
             for (j, g) in entry.gates.iter().enumerate() {
                 let Some(slot) = d.gates.iter_mut().find(|s| s.name == g.name) else {
                     let known: Vec<&str> =
@@ -300,7 +306,17 @@ mod tests {
                 "cell_gates[0].cell",
             ),
             (
-                serde_json::json!({"cell_gates": [{"cell": 1, "gates": []}, {"cell": 1, "gates": []}]}),
+                serde_json::json!({"cell_gates": [{"cell": 1, "gates": []}]}),
+                "cell_gates[0].gates",
+            ),
+            (
+                serde_json::json!({"cell_gates": [{"cell": 9, "gates": []}]}),
+                "cell_gates[0].cell",
+            ),
+            (
+                serde_json::json!({"cell_gates": [
+                    {"cell": 1, "gates": [{"name": "N", "min_mv": -900, "max_mv": -500, "initial_mv": -700}]},
+                    {"cell": 1, "gates": []}]}),
                 "cell_gates[1].cell",
             ),
             (

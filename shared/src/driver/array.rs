@@ -110,7 +110,17 @@ impl ArraySimulationConfig {
     pub fn gates(&self) -> Result<Vec<crate::safety::GateSpec>, ConfigError> {
         self.described()
             .gates()
-            .map_err(|e| e.within("description"))
+            .map_err(|e| self.described_error(e))
+    }
+
+    /// An error of the described array, named where the user wrote it:
+    /// under `description`, or (for the simulated array's own description)
+    /// `array.cells` and `array.readout_groups`.
+    fn described_error(&self, e: ConfigError) -> ConfigError {
+        match self.description {
+            Some(_) => e.within("description"),
+            None => e.within("array"),
+        }
     }
 
     /// Validate and build the world and the run.
@@ -135,13 +145,13 @@ impl ArraySimulationConfig {
     pub fn build_plan(&self) -> Result<ArrayRun, ConfigError> {
         self.tuning.validate().map_err(|e| e.within("tuning"))?;
         let described = self.described();
-        let gates = described.gates().map_err(|e| e.within("description"))?;
+        let gates = described.gates().map_err(|e| self.described_error(e))?;
         let targets = self.cell_targets()?;
         let cells = described
             .cell_tuners(&targets, self.tuning.relative_tolerance)
             .map_err(|e| match e.field.as_str() {
                 "targets" => e,
-                _ => e.within("description"),
+                _ => self.described_error(e),
             })?;
         ArrayRun::new(
             cells,

@@ -3,7 +3,7 @@
 
 The server sends requests ("set these gates", "measure scan X"); this script
 executes them with the lab's own instruments and answers. Here the answers
-come from a toy linear model so that the script runs anywhere; the two
+come from a toy model so that the script runs anywhere; the two
 functions marked ``PLUG IN QCODES HERE`` are where a lab calls its
 instruments instead.
 
@@ -35,6 +35,11 @@ Protocol (JSON text frames, see docs/instruments.md):
     client: {"type":"response","id":8,"response":{"response":"scanned","lab_seconds":28.0,
              "outcome":{"kind":"evaluated","values":[{"name":"w","value":265.1,"variance":16.0}]}}}
 
+An array run (its cells described in the run config's `array.description`,
+docs/array.md) names each scan's cell (`"cell": 1`) and prefixes each cell's
+gates (`c1.N`), and asks several cells at once in a `batch`; this script
+answers both (see `answer`), with one toy model per cell.
+
 Units: voltages in mV; ``t_sr`` in ns; ``w`` in µV; line positions and the
 sensing-dot flank in mV; variances in the unit squared; lab time in s.
 
@@ -56,7 +61,8 @@ import websockets
 PROTOCOL_VERSION = 4
 
 # --- toy device -------------------------------------------------------------
-# A linear model around a working point: parameter = p0 + sum_g J[g] * (V_g - V0_g).
+# A model around a working point: with d = sum_g J[g] * (V_g - V0_g), a line
+# position is p0 + d and t_sr, w (positive) are p0 * exp(d / p0).
 # Replace it by real measurements (see the two functions below).
 
 WORKING_POINT_MV = {"N": -700.0, "T": -650.0, "SA": -820.0, "SB": -780.0,
@@ -78,6 +84,18 @@ SCAN_LAB_SECONDS = {"sensing_dot": 17.0, "chemical_potential": 38.0,
                     "transition_width": 28.0, "reload_time": 5.0}
 
 gates_mv = dict(WORKING_POINT_MV)   # what the toy "instrument" is set to, mV
+
+
+def local(gate):
+    """An array's gate `c1.N` -> `N` (cell 1's copy of gate N); others unchanged."""
+    head, dot, rest = gate.partition(".")
+    return rest if dot and head[:1] == "c" and head[1:].isdigit() else gate
+
+
+def voltage(gate):
+    """The toy's present output of `gate`, mV (an array cell's gates start at
+    the working point too)."""
+    return gates_mv.get(gate, WORKING_POINT_MV.get(local(gate), 0.0))
 rng = random.Random(1)
 # A real DAC keeps its outputs when this script restarts; the toy keeps them
 # in this file when --state is given. (Without it a restarted toy is back at
@@ -121,7 +139,7 @@ def read_gates(gates):
     Answer exactly the gates asked for: the server checks every step against
     these values, never against its own plan.
     """
-    return {g: gates_mv[g] for g in gates}, 0.0
+    return {g: voltage(g) for g in gates}, 0.0
 
 
 def measure(scan):
@@ -135,6 +153,9 @@ def measure(scan):
     """
     kind = scan["kind"]
     seconds = SCAN_LAB_SECONDS.get(kind, 1.0)
+    # An array's scan names its cell (`"cell": 1`): it measures that cell's
+    # gates `c1.N`, … (here: one toy model per cell, without crosstalk).
+    prefix = f"c{scan['cell']}." if scan.get("cell") is not None else ""
     if kind == "sensing_dot":
         # Park the sensing dot in the middle of the requested sweep.
         sweep = scan.get("sweep")
@@ -146,8 +167,11 @@ def measure(scan):
     values = []
     for name in SCAN_PARAMETERS.get(kind, []):
         p0, slopes, sigma = MODEL[name]
-        value = p0 + sum(s * (gates_mv.get(g, WORKING_POINT_MV.get(g, 0.0))
-                              - WORKING_POINT_MV.get(g, 0.0)) for g, s in slopes.items())
+        change = sum(s * (voltage(prefix + g) - WORKING_POINT_MV.get(g, 0.0))
+                     for g, s in slopes.items())
+        # t_sr and w are positive: exponential in the gates (the slopes at
+        # the working point as given); line positions are linear.
+        value = p0 * math.exp(change / p0) if name in ("t_sr", "w") else p0 + change
         value += rng.gauss(0.0, sigma)
         values.append({"name": name, "value": value, "variance": sigma * sigma})
     if not values:
@@ -171,9 +195,19 @@ def answer(request):
         if what == "batch":
             # An array run asks several cells at once: answer each request in
             # order. Run them in parallel where the readout allows; the lab
-            # time is what the whole batch took (here: one after another).
+            # time is what the whole batch took (here: one sensor per cell, so
+            # the cells' scans run in parallel and the busiest cell counts).
             answers = [answer(r) for r in request["requests"]]
-            seconds = sum(a.get("lab_seconds", 0.0) for a in answers)
+            per_cell = {}
+            for r, a in zip(request["requests"], answers):
+                cell = (r.get("scan") or {}).get("cell")
+                if cell is not None:
+                    cell = f"c{cell}"
+                else:  # a set or read names its cell in its gates (`c1.N`)
+                    names = list(r.get("voltages_mv") or r.get("gates") or [])
+                    cell = names[0].partition(".")[0] if names else None
+                per_cell[cell] = per_cell.get(cell, 0.0) + a.get("lab_seconds", 0.0)
+            seconds = max(per_cell.values(), default=0.0)
             return {"response": "batch", "responses": answers, "lab_seconds": seconds}
         return {"response": "error", "message": f"this bridge does not support {what!r}"}
     except Exception as e:  # an instrument error pauses the run with this message

@@ -252,6 +252,43 @@ fn a_checkpoint_mid_run_resumes_bit_identically() {
     let _ = SessionConfig::default();
 }
 
+/// A run that cannot tune gives up after `tuning.max_iterations` since the
+/// start (finished, not tuned) instead of measuring forever; a target
+/// change revives it for as many again.
+#[test]
+fn a_run_that_cannot_tune_gives_up_after_max_iterations_and_a_target_revives_it() {
+    let mut c = config(2);
+    c.tuning.relative_tolerance = 1e-4; // a band no measurement meets
+    c.tuning.max_iterations = Some(4);
+    let mut run = c.build().unwrap();
+    let mut records = Vec::new();
+    while let Some(r) = run.next_iteration().unwrap() {
+        records.push(r);
+        assert!(records.len() <= 4, "went on past max_iterations");
+    }
+    assert_eq!(records.len(), 4);
+    assert!(!records.last().unwrap().tuned);
+    assert_eq!(run.session().status(), RunStatus::Finished);
+    let status = run
+        .control(&ControlCommand::SetTarget {
+            parameter: "c0.w".into(),
+            target: Some(250.0),
+            tolerance: None,
+        })
+        .unwrap();
+    assert_eq!(status, RunStatus::Paused);
+    run.control(&ControlCommand::Resume).unwrap();
+    let mut again = 0;
+    while run.next_iteration().unwrap().is_some() {
+        again += 1;
+        assert!(again <= 4, "went on past max_iterations after the change");
+    }
+    assert_eq!(again, 4);
+    let mut bad = config(2);
+    bad.tuning.max_iterations = Some(0);
+    assert_eq!(bad.build().err().unwrap().field, "tuning.max_iterations");
+}
+
 #[test]
 fn bad_configs_name_the_field() {
     let e = serde_json::from_str::<ArraySimulationConfig>(r#"{"array": {"cells": 3, "seed": 1}}"#)

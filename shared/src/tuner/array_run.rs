@@ -4,7 +4,8 @@
 //! different readout groups in parallel, the lab clock charging the
 //! longest group) and [`ArrayRun::feed`] takes the batch's answers, in
 //! order. Between batches it says when an iteration ended
-//! ([`ArrayAction::Iteration`]) and when every cell was measured in band
+//! ([`ArrayAction::Iteration`]) and when every cell was measured in band,
+//! or it gave up after [`ArrayRunSettings::max_iterations`]
 //! ([`ArrayAction::Idle`], until a target changes).
 //!
 //! # The loop
@@ -76,6 +77,13 @@ pub struct ArrayRunSettings {
     /// arrays (docs/array.md, "Lines corrected before their scan").
     #[serde(default)]
     pub precorrect_lines_mv: Option<f64>,
+    /// Iterations after the start or the last target change without every
+    /// cell in band after which the run gives up: it finishes, not tuned,
+    /// until a target changes (1..=100,000; `None`: never). Default 200
+    /// (several lab hours: a run that cannot tune stops instead of measuring
+    /// forever).
+    #[serde(default = "default_max_iterations")]
+    pub max_iterations: Option<u32>,
 }
 
 impl Default for ArrayRunSettings {
@@ -87,8 +95,13 @@ impl Default for ArrayRunSettings {
             moves_per_iteration: 1,
             line_tolerance_mv: 0.1,
             precorrect_lines_mv: Some(1.0),
+            max_iterations: default_max_iterations(),
         }
     }
+}
+
+fn default_max_iterations() -> Option<u32> {
+    Some(200)
 }
 
 impl ArrayRunSettings {
@@ -118,6 +131,9 @@ impl ArrayRunSettings {
                 p.to_string(),
             )?;
         }
+        if let Some(m) = self.max_iterations {
+            check((1..=100_000).contains(&m), "max_iterations", m.to_string())?;
+        }
         let l = self.line_tolerance_mv;
         check(
             l.is_finite() && l > 0.0 && l <= 1.0,
@@ -136,7 +152,9 @@ pub enum ArrayAction {
     Execute(Vec<Request>),
     /// An iteration ended (the record of its measurement and move).
     Iteration(Box<IterationRecord>),
-    /// Every cell was measured in band: nothing to do until a target changes.
+    /// Every cell was measured in band, or the run gave up
+    /// ([`ArrayRunSettings::max_iterations`]): nothing to do until a target
+    /// changes.
     Idle,
 }
 
@@ -278,6 +296,9 @@ pub struct ArrayRun {
     scratch: Scratch,
     outstanding: Option<Vec<Request>>,
     iteration: u64,
+    /// Iterations since the start or the last target change.
+    #[serde(default)]
+    iterations_since_change: u64,
     lab_seconds: f64,
     failed_fits: u64,
     measurements: u64,
@@ -344,6 +365,7 @@ impl ArrayRun {
             scratch: Scratch::default(),
             outstanding: None,
             iteration: 0,
+            iterations_since_change: 0,
             lab_seconds: 0.0,
             failed_fits: 0,
             measurements: 0,
@@ -368,6 +390,7 @@ impl ArrayRun {
             ))
         })?;
         *slot = targets;
+        self.iterations_since_change = 0;
         if self.step == Step::Idle {
             self.step = Step::Measure;
         }
@@ -416,8 +439,17 @@ impl ArrayRun {
             }
             match self.step {
                 Step::Boundary => {
-                    let idle = self.scratch.record.as_ref().is_some_and(|r| r.tuned);
-                    self.step = if idle { Step::Idle } else { Step::Measure };
+                    let tuned = self.scratch.record.as_ref().is_some_and(|r| r.tuned);
+                    self.iterations_since_change += 1;
+                    let given_up = self
+                        .settings
+                        .max_iterations
+                        .is_some_and(|m| self.iterations_since_change >= u64::from(m));
+                    self.step = if tuned || given_up {
+                        Step::Idle
+                    } else {
+                        Step::Measure
+                    };
                     let mut record = self.scratch.record.take().ok_or_else(|| {
                         ArrayRunError::Protocol("an iteration ended without its record".into())
                     })?;

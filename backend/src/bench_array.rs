@@ -49,6 +49,11 @@ pub struct BenchArrayArgs {
     /// Next-nearest crosstalk fraction (0..=nearest).
     #[arg(long, default_value_t = 0.05)]
     pub next: f64,
+    /// The lab's cross-cell calibration `λ̂` NEAREST,NEXT taken as given,
+    /// whatever the world's crosstalk (to measure a calibration that is
+    /// wrong) [default: the world's, each off by up to ±20 % per seed].
+    #[arg(long, value_name = "NEAREST,NEXT", value_parser = parse_pair)]
+    pub cross_calibration: Option<[f64; 2]>,
     /// Worker threads (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
@@ -128,9 +133,14 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
     if let Some(mv) = args.precorrect_lines_mv {
         protocol.tuning.precorrect_lines_mv = (mv != 0.0).then_some(mv);
     }
-    protocol
-        .validate()
-        .map_err(|e| CliError::input(format!("--tuning / --precorrect-lines-mv: {e}")))?;
+    if let Some(l) = args.cross_calibration {
+        protocol.cross_calibration = Some(l);
+    }
+    protocol.validate().map_err(|e| {
+        CliError::input(format!(
+            "--tuning / --precorrect-lines-mv / --cross-calibration: {e}"
+        ))
+    })?;
     let base = SimulationConfig::paper_default();
     let bench_protocol = BenchmarkProtocol::default();
     let (devices, random_devices) = select_devices(
@@ -181,8 +191,12 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
         eprintln!("warning: {f}");
     }
     let summary = summarize_array(&results, &strategies);
+    let calibration = match args.cross_calibration {
+        Some([a, b]) => format!("the lab's calibration λ̂ taken as {a} / {b}"),
+        None => "the lab's calibration λ̂ the world's ± 20 %".to_string(),
+    };
     println!(
-        "Arrays: {} × {} seeds, {} cells, crosstalk nearest {} / next {}, one sensor per cell.\n",
+        "Arrays: {} × {} seeds, {} cells, crosstalk nearest {} / next {} ({calibration}), one sensor per cell.\n",
         devices.len(),
         args.seeds,
         args.cells,
@@ -246,4 +260,20 @@ fn read_tuning(path: &std::path::Path) -> Result<ArrayRunSettings, CliError> {
     spintune::config_merge::merge(&mut merged, user);
     serde_path_to_error::deserialize(merged)
         .map_err(|e| bad(format!("invalid at `{}`: {}", e.path(), e.inner())))
+}
+
+/// `A,B` → `[A, B]` (two finite numbers).
+fn parse_pair(text: &str) -> Result<[f64; 2], String> {
+    let parts: Vec<&str> = text.split(',').collect();
+    let [a, b] = parts[..] else {
+        return Err(format!("{text:?}: two numbers NEAREST,NEXT, e.g. 0.3,0.05"));
+    };
+    let num = |t: &str| {
+        t.trim()
+            .parse::<f64>()
+            .ok()
+            .filter(|v| v.is_finite())
+            .ok_or_else(|| format!("{t:?} is not a finite number"))
+    };
+    Ok([num(a)?, num(b)?])
 }

@@ -121,6 +121,12 @@ pub struct ArrayProtocol {
     /// Relative error of the lab's cross-cell virtual-gate calibration
     /// ([`lab_cross_calibration`]), 0..=1. Default 0.2.
     pub cross_compensation_error: f64,
+    /// The lab's cross-cell calibration `λ̂` (nearest, next) taken as given
+    /// whatever the world's crosstalk (a calibration that is wrong; each
+    /// 0..=[`crate::sim::array::MAX_CROSSTALK`]); `None`: the world's with
+    /// `cross_compensation_error` ([`lab_cross_calibration`]).
+    #[serde(default)]
+    pub cross_calibration: Option<[f64; 2]>,
     /// The joint loop's settings (`joint`, `oracle`; the band also for
     /// `serial` and `independent`).
     #[serde(default)]
@@ -137,6 +143,7 @@ impl Default for ArrayProtocol {
             single_cell_changes: 2,
             single_cell_target: (70.0, 180.0),
             cross_compensation_error: 0.2,
+            cross_calibration: None,
             tuning: ArrayRunSettings::default(),
         }
     }
@@ -191,6 +198,9 @@ impl ArrayProtocol {
             "cross_compensation_error",
             e.to_string(),
         )?;
+        if let Some(l) = self.cross_calibration {
+            crate::tuner::array::check_cross_calibration(l)?;
+        }
         self.tuning.validate().map_err(|e| e.within("tuning"))
     }
 
@@ -771,6 +781,9 @@ fn joint_until_in_band(
 pub fn lab_cross_calibration(array: &ArrayConfig, protocol: &ArrayProtocol, seed: u64) -> [f64; 2] {
     use rand::{Rng, SeedableRng};
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x6372_6f73_7363_616c); // "crosscal"
+    if let Some(given) = protocol.cross_calibration {
+        return given;
+    }
     let e = protocol.cross_compensation_error;
     let x = &array.crosstalk;
     [x.nearest, x.next].map(|l| {

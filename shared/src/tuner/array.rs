@@ -152,7 +152,7 @@ pub struct JointArrayTuner {
 
 /// `Err` naming the field unless each of the lab's cross-cell calibration
 /// fractions `λ̂` (nearest, next) is in [0, [`crate::sim::array::MAX_CROSSTALK`]].
-pub(crate) fn check_cross_calibration(lambda: [f64; 2]) -> Result<(), ConfigError> {
+pub fn check_cross_calibration(lambda: [f64; 2]) -> Result<(), ConfigError> {
     for (i, l) in lambda.iter().enumerate() {
         if !(l.is_finite() && (0.0..=crate::sim::array::MAX_CROSSTALK).contains(l)) {
             return Err(ConfigError::new(

@@ -441,5 +441,21 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
         err.contains("tuning.toml") && err.contains("colour"),
         "{err}"
     );
+    // the lab's calibration: two finite numbers, each within [0, 0.9]
+    for (value, expected) in [
+        ("0.3", "two numbers"),
+        ("0.3,x", "not a finite number"),
+        ("0.3,1.5", "cross_calibration[1]"),
+        ("-0.1,0", "cross_calibration[0]"),
+    ] {
+        let out = bin()
+            .args(["bench-array", "--cells", "2", "--seeds", "1"])
+            .arg(format!("--cross-calibration={value}"))
+            .output()
+            .unwrap();
+        assert_eq!(out.status.code(), Some(2), "{value}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(expected), "{value}: {err}");
+    }
     let _ = std::fs::remove_dir_all(&dir);
 }

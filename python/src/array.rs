@@ -90,7 +90,7 @@ impl PyArraySimulation {
     /// Number of cells.
     #[getter]
     fn cells(&self) -> u32 {
-        self.config.array.cells
+        self.config.described().cells
     }
 
     /// Present targets per cell (list of ``(t_sr ns, w µV)``).

@@ -155,3 +155,42 @@ def test_a_target_change_revives_a_finished_run():
         with pytest.raises(ValueError, match=needle):
             run.control({"action": "set_target", **command})
     assert run.targets[1] == (30.0, 270.0)
+
+
+def test_a_described_array_takes_its_cells_and_limits_from_the_description():
+    # The simulated cell's gates, described as a lab would (limits and start
+    # in mV), with cell 1's SB given limits of its own; two cells, not the
+    # `array.cells` of THREE: the description is the one source of the cells.
+    gates = [
+        {"name": "N", "min_mv": -900, "max_mv": -500, "initial_mv": -700},
+        {"name": "T", "min_mv": -850, "max_mv": -450, "initial_mv": -650},
+        {"name": "SA", "min_mv": -1020, "max_mv": -620, "initial_mv": -820},
+        {"name": "SB", "min_mv": -980, "max_mv": -580, "initial_mv": -780},
+        {"name": "PA", "min_mv": -550, "max_mv": -50, "initial_mv": -300, "max_step_mv": 30},
+        {"name": "PB", "min_mv": -570, "max_mv": -70, "initial_mv": -320, "max_step_mv": 30},
+        {"name": "SD1", "min_mv": -750, "max_mv": -450, "initial_mv": -600, "max_step_mv": 30},
+    ]
+    description = {
+        "cells": 2,
+        "readout_groups": [[0, 1]],
+        "cell": {
+            "gates": gates,
+            "qubit": {"gates": ["N", "SA", "SB", "T"]},
+            "sensing_dot": {"gate": "SD1"},
+            "lines": {"gates": ["PA", "PB"],
+                      "compensation": [[-0.36, -0.50, 0.0042, -0.039], [-0.12, 0.013, -0.50, -0.46]]},
+        },
+        "cell_gates": [{"cell": 1, "gates": [
+            {"name": "SB", "min_mv": -790, "max_mv": -770, "initial_mv": -780}]}],
+    }
+    run = spintune.ArraySimulation({**THREE, "description": description})
+    assert run.cells == 2
+    records = run.run(max_iterations=40)
+    assert records, "no iteration"
+    names = [p["name"] for p in records[-1]["parameters"]]
+    assert names == ["c0.t_sr", "c0.w", "c1.t_sr", "c1.w"]
+    # cell 1's SB never left its own 20 mV window (the guard checks the described limits)
+    assert all(-790 <= r["voltages_mv"]["c1.SB"] <= -770 for r in records)
+    with pytest.raises(ValueError, match=r"`description\.cell_gates\[0\]\.gates\[0\]\.name`"):
+        spintune.ArraySimulation({**THREE, "description": {
+            **description, "cell_gates": [{"cell": 1, "gates": [{**gates[0], "name": "X"}]}]}})

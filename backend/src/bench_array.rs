@@ -54,6 +54,10 @@ pub struct BenchArrayArgs {
     /// wrong) [default: the world's, each off by up to ±20 % per seed].
     #[arg(long, value_name = "NEAREST,NEXT", value_parser = parse_pair)]
     pub cross_calibration: Option<[f64; 2]>,
+    /// Cells sharing one sensor readout: readout groups of this many
+    /// neighbouring cells (their scans run one after the other), 1..=16.
+    #[arg(long, default_value_t = 1)]
+    pub cells_per_sensor: u32,
     /// Worker threads (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
@@ -155,6 +159,21 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
     probe
         .validate()
         .map_err(|e| CliError::input(format!("--nearest/--next: {e}")))?;
+    if !(1..=MAX_CELLS).contains(&args.cells_per_sensor) {
+        return Err(CliError::input(format!(
+            "--cells-per-sensor {} outside 1..={MAX_CELLS}",
+            args.cells_per_sensor
+        )));
+    }
+    if args.cells_per_sensor > 1 {
+        let cells: Vec<u32> = (0..args.cells).collect();
+        probe.readout_groups = Some(
+            cells
+                .chunks(args.cells_per_sensor as usize)
+                .map(<[u32]>::to_vec)
+                .collect(),
+        );
+    }
     let threads = args
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
@@ -191,12 +210,16 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
         eprintln!("warning: {f}");
     }
     let summary = summarize_array(&results, &strategies);
+    let readout = match args.cells_per_sensor {
+        1 => "one sensor per cell".to_string(),
+        n => format!("{n} neighbouring cells per sensor"),
+    };
     let calibration = match args.cross_calibration {
         Some([a, b]) => format!("the lab's calibration λ̂ taken as {a} / {b}"),
         None => "the lab's calibration λ̂ the world's ± 20 %".to_string(),
     };
     println!(
-        "Arrays: {} × {} seeds, {} cells, crosstalk nearest {} / next {} ({calibration}), one sensor per cell.\n",
+        "Arrays: {} × {} seeds, {} cells, crosstalk nearest {} / next {} ({calibration}), {readout}.\n",
         devices.len(),
         args.seeds,
         args.cells,

@@ -66,6 +66,11 @@ pub struct BenchArrayArgs {
     /// this many mV (0 < MV ≤ 4; 0 turns it off) [default: the protocol's, 1].
     #[arg(long)]
     pub precorrect_lines_mv: Option<f64>,
+    /// `joint`/`oracle`: skip the scans of a held cell that shares its
+    /// sensor when predicted in band with this many σ (0.5..=10; 0 turns it
+    /// off) [default: the protocol's, 2].
+    #[arg(long)]
+    pub skip_confident_sigma: Option<f64>,
     /// The joint loop's settings from this TOML file (an `ArrayRunSettings`
     /// table: `relative_tolerance`, `line_rounds`, `[joint]`, …; every key
     /// optional, errors name the field); `--precorrect-lines-mv` applies over it.
@@ -137,12 +142,15 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
     if let Some(mv) = args.precorrect_lines_mv {
         protocol.tuning.precorrect_lines_mv = (mv != 0.0).then_some(mv);
     }
+    if let Some(k) = args.skip_confident_sigma {
+        protocol.tuning.skip_confident_sigma = (k != 0.0).then_some(k);
+    }
     if let Some(l) = args.cross_calibration {
         protocol.cross_calibration = Some(l);
     }
     protocol.validate().map_err(|e| {
         CliError::input(format!(
-            "--tuning / --precorrect-lines-mv / --cross-calibration: {e}"
+            "--tuning / --precorrect-lines-mv / --skip-confident-sigma / --cross-calibration: {e}"
         ))
     })?;
     let base = SimulationConfig::paper_default();

@@ -455,6 +455,20 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
         .unwrap();
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("--cells-per-sensor"));
+    let out = bin()
+        .args([
+            "bench-array",
+            "--cells",
+            "2",
+            "--seeds",
+            "1",
+            "--skip-confident-sigma",
+            "0.1",
+        ])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("skip_confident_sigma"));
     // the lab's calibration: two finite numbers, each within [0, 0.9]
     for (value, expected) in [
         ("0.3", "two numbers"),

@@ -9,7 +9,7 @@ use std::collections::BTreeMap;
 
 use spintune::driver::array::ArraySimulationConfig;
 use spintune::driver::{ArraySimulationRun, Halt, Simulated, SimulationRun};
-use spintune::protocol::{ControlCommand, FaultKind, Request, Response, RunStatus};
+use spintune::protocol::{ControlCommand, EventKind, FaultKind, Request, Response, RunStatus};
 use spintune::session::{RunSession, SessionConfig};
 use spintune::sim::array::{ArrayConfig, ArrayDevice};
 
@@ -250,6 +250,53 @@ fn a_checkpoint_mid_run_resumes_bit_identically() {
         serde_json::to_string(&straight[1..]).unwrap()
     );
     let _ = SessionConfig::default();
+}
+
+/// Cells that share a sensor have their scans skipped when the filter
+/// predicts them in band with margin: such an iteration reports the
+/// prediction as an event and no value for the skipped cell, and asks the
+/// world for fewer scans; with one sensor per cell nothing is ever skipped
+/// (it would save no lab time). The run still ends with every cell in band.
+#[test]
+fn cells_sharing_a_sensor_skip_scans_predicted_in_band_and_nothing_else_does() {
+    let skipped_in = |groups: Option<Vec<Vec<u32>>>| {
+        let mut c = config(3);
+        c.array.readout_groups = groups;
+        let mut run = c.build().unwrap();
+        let mut skips = 0;
+        let mut last = None;
+        let mut changed = false;
+        for _ in 0..120 {
+            let Some(r) = run.next_iteration().unwrap() else {
+                if changed {
+                    break;
+                }
+                // tuned: one cell's new target, its neighbours held in band
+                run.control(&ControlCommand::SetTarget {
+                    parameter: "c1.t_sr".into(),
+                    target: Some(30.0),
+                    tolerance: None,
+                })
+                .unwrap();
+                run.control(&ControlCommand::Resume).unwrap();
+                changed = true;
+                continue;
+            };
+            for e in &r.events {
+                if let EventKind::ConfirmationSkipped { parameter, .. } = &e.kind {
+                    skips += 1;
+                    let p = r.parameters.iter().find(|p| &p.name == parameter).unwrap();
+                    assert_eq!(p.value, None, "a skipped scan has no value: {p:?}");
+                }
+            }
+            last = Some(r);
+        }
+        let last = last.unwrap();
+        assert!(changed && last.tuned, "{last:?}");
+        skips
+    };
+    assert_eq!(skipped_in(None), 0);
+    assert!(skipped_in(Some(vec![vec![0, 1, 2]])) > 0);
 }
 
 /// A run that cannot tune gives up after `tuning.max_iterations` since the

@@ -645,6 +645,7 @@ pub fn run_strategy(
                 lab_lambda,
                 strategy == ArrayStrategy::Oracle,
             )?;
+            run.set_readout_groups(lab.device.config().readout_groups.as_deref());
             // the cold start counts from the run's start (initial measurements included)
             let mut timeline = Timeline {
                 points: &mut result.timeline,

@@ -153,7 +153,7 @@ impl ArraySimulationConfig {
                 "targets" => e,
                 _ => self.described_error(e),
             })?;
-        ArrayRun::new(
+        let mut run = ArrayRun::new(
             cells,
             &gates,
             self.tuning.clone(),
@@ -163,7 +163,9 @@ impl ArraySimulationConfig {
         .map_err(|e| match e {
             crate::tuner::array_run::ArrayRunError::Config(c) => c,
             other => ConfigError::new("", other.to_string()),
-        })
+        })?;
+        run.set_readout_groups(described.readout_groups.as_deref());
+        Ok(run)
     }
 
     /// The simulated world (truth sealed): `array` with the described cells

@@ -300,6 +300,33 @@ impl JointArrayTuner {
             .unwrap_or_default()
     }
 
+    /// The filter's prediction of `cell`'s parameter `parameter` at
+    /// `voltages_mv` (array names) from its last accepted value: `(ln p,
+    /// variance of ln p)` — the last value's variance, the gradient's
+    /// uncertainty along the change and the process noise of that change.
+    /// `None` before a first value or without every gate's voltage.
+    pub fn predict(
+        &self,
+        cell: usize,
+        parameter: usize,
+        voltages_mv: &BTreeMap<String, f64>,
+    ) -> Option<(f64, f64)> {
+        let row = self
+            .rows
+            .iter()
+            .find(|r| r.cell == cell && r.parameter == parameter)?;
+        let (y0, vy0, v0) = row.last.as_ref()?;
+        let mut dv = DVector::zeros(row.columns.len());
+        for (k, &c) in row.columns.iter().enumerate() {
+            dv[k] = voltages_mv.get(&self.gates[c])? - v0[k];
+        }
+        let g = row.filter.gradient();
+        let p = row.filter.covariance() + row.filter.process_noise().for_step(&dv);
+        let var = vy0 + (dv.transpose() * p * &dv)[(0, 0)];
+        let y = y0 + g.dot(&dv);
+        (y.is_finite() && var.is_finite()).then_some((y, var))
+    }
+
     /// A cell measured `values` (per parameter, unit and unit²; `None` where
     /// the fit failed) at `voltages_mv` (array names): each row learns from the
     /// change since its last value. Values ≤ 0 or non-finite are skipped.

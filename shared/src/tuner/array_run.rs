@@ -42,8 +42,8 @@ use serde::{Deserialize, Serialize};
 use crate::config_error::ConfigError;
 use crate::fit::{evaluate_with, uncertainty::References};
 use crate::protocol::{
-    GradientReport, IterationRecord, ParameterReport, Request, Response, ScanKind, ScanOutcome,
-    ScanRequest, Sweep,
+    EventKind, GradientReport, IterationRecord, ParameterReport, Request, Response, ScanKind,
+    ScanOutcome, ScanRequest, Sweep, TunerEvent,
 };
 use crate::safety::{GateSpec, SafetyLimits};
 use crate::session::{Output, RunSession, SessionConfig};
@@ -84,6 +84,14 @@ pub struct ArrayRunSettings {
     /// forever).
     #[serde(default = "default_max_iterations")]
     pub max_iterations: Option<u32>,
+    /// Skip the t_sr and w scans of a cell that shares its sensor readout
+    /// with another cell (a skipped scan then saves lab time), was measured
+    /// in band and is predicted by the filter to stay in band with this many
+    /// σ of margin (0.5..=10; `None`: measure every cell every iteration).
+    /// At most [`MAX_SKIPS_IN_A_ROW`] iterations in a row. Default 2, the
+    /// single-cell level's confirming-scan rule (docs/array.md).
+    #[serde(default = "default_skip_sigma")]
+    pub skip_confident_sigma: Option<f64>,
 }
 
 impl Default for ArrayRunSettings {
@@ -96,6 +104,7 @@ impl Default for ArrayRunSettings {
             line_tolerance_mv: 0.1,
             precorrect_lines_mv: Some(1.0),
             max_iterations: default_max_iterations(),
+            skip_confident_sigma: default_skip_sigma(),
         }
     }
 }
@@ -103,6 +112,15 @@ impl Default for ArrayRunSettings {
 fn default_max_iterations() -> Option<u32> {
     Some(200)
 }
+
+fn default_skip_sigma() -> Option<f64> {
+    Some(2.0)
+}
+
+/// Most iterations in a row a cell's scans are skipped
+/// ([`ArrayRunSettings::skip_confident_sigma`]): it is measured at least
+/// every third iteration.
+pub const MAX_SKIPS_IN_A_ROW: u32 = 2;
 
 impl ArrayRunSettings {
     /// `Err` naming the field.
@@ -133,6 +151,13 @@ impl ArrayRunSettings {
         }
         if let Some(m) = self.max_iterations {
             check((1..=100_000).contains(&m), "max_iterations", m.to_string())?;
+        }
+        if let Some(k) = self.skip_confident_sigma {
+            check(
+                k.is_finite() && (0.5..=10.0).contains(&k),
+                "skip_confident_sigma",
+                k.to_string(),
+            )?;
         }
         let l = self.line_tolerance_mv;
         check(
@@ -271,6 +296,15 @@ struct Joint {
     lower: Vec<CellLower>,
     /// Per cell: its gates' voltages at its last evaluation that worked, mV.
     last_good: Vec<BTreeMap<String, f64>>,
+    /// Per cell: its last measurement was in band.
+    #[serde(default)]
+    in_band: Vec<bool>,
+    /// Per cell: the present measurement skips its scans.
+    #[serde(default)]
+    skip: Vec<bool>,
+    /// Per cell: measurements skipped in a row.
+    #[serde(default)]
+    skips_in_a_row: Vec<u32>,
 }
 
 /// The joint array loop (module docs). Serializable as a whole.
@@ -299,6 +333,9 @@ pub struct ArrayRun {
     /// Iterations since the start or the last target change.
     #[serde(default)]
     iterations_since_change: u64,
+    /// Per cell: its readout group (empty: one sensor per cell).
+    #[serde(default)]
+    readout_group: Vec<usize>,
     lab_seconds: f64,
     failed_fits: u64,
     measurements: u64,
@@ -366,6 +403,7 @@ impl ArrayRun {
             outstanding: None,
             iteration: 0,
             iterations_since_change: 0,
+            readout_group: Vec::new(),
             lab_seconds: 0.0,
             failed_fits: 0,
             measurements: 0,
@@ -391,10 +429,75 @@ impl ArrayRun {
         })?;
         *slot = targets;
         self.iterations_since_change = 0;
+        // measured in band against the old targets says nothing now
+        if let Some(b) = self.joint.as_mut().and_then(|j| j.in_band.get_mut(cell)) {
+            *b = false;
+        }
         if self.step == Step::Idle {
             self.step = Step::Measure;
         }
         Ok(())
+    }
+
+    /// The cells that share a sensor readout (every cell in one group,
+    /// checked by the caller's config; `None`: one sensor per cell). Only
+    /// cells that share their group have their scans skipped
+    /// ([`ArrayRunSettings::skip_confident_sigma`]).
+    pub fn set_readout_groups(&mut self, groups: Option<&[Vec<u32>]>) {
+        self.readout_group = vec![usize::MAX; self.sessions.len()];
+        match groups {
+            Some(groups) => {
+                for (i, g) in groups.iter().enumerate() {
+                    for &c in g {
+                        if let Some(slot) = self.readout_group.get_mut(c as usize) {
+                            *slot = i;
+                        }
+                    }
+                }
+            }
+            None => self.readout_group.clear(),
+        }
+    }
+
+    /// Whether cell `c` shares its readout group with another cell.
+    fn shares_readout(&self, c: usize) -> bool {
+        let Some(&g) = self.readout_group.get(c) else {
+            return false;
+        };
+        g != usize::MAX
+            && self
+                .readout_group
+                .iter()
+                .enumerate()
+                .any(|(o, &h)| o != c && h == g)
+    }
+
+    /// The cells whose scans this measurement skips: sharing their readout,
+    /// measured in band last, skipped fewer than [`MAX_SKIPS_IN_A_ROW`] times
+    /// in a row, and both parameters predicted in band with
+    /// `skip_confident_sigma` σ of margin at the present voltages.
+    fn plan_skips(&self) -> Vec<bool> {
+        let k = self.sessions.len();
+        let (Some(sigma), Some(joint)) = (self.settings.skip_confident_sigma, &self.joint) else {
+            return vec![false; k];
+        };
+        let room = (1.0 + self.settings.relative_tolerance).ln();
+        (0..k)
+            .map(|c| {
+                self.shares_readout(c)
+                    && joint.in_band.get(c).copied().unwrap_or(false)
+                    && joint.skips_in_a_row.get(c).copied().unwrap_or(0) < MAX_SKIPS_IN_A_ROW
+                    && (0..CELL_PARAMETERS.len()).all(|p| {
+                        let target = [self.targets[c].0, self.targets[c].1][p];
+                        joint
+                            .tuner
+                            .predict(c, p, &self.voltages_mv)
+                            .is_some_and(|(y, var)| {
+                                (y - target.ln()).abs() + sigma * var.sqrt() <= room
+                            })
+                    })
+            })
+            .collect()
     }
 
     /// Every cell's targets `(t_sr ns, w µV)`.
@@ -515,17 +618,26 @@ impl ArrayRun {
             Step::ReadAll => vec![Request::ReadVoltages {
                 gates: self.gate_names.clone(),
             }],
-            Step::Measure => (0..self.sessions.len() as u32)
-                .flat_map(|c| {
-                    [ScanKind::ReloadTime, ScanKind::TransitionWidth].map(|kind| Request::Measure {
-                        scan: ScanRequest {
-                            kind,
-                            sweep: None,
-                            cell: Some(c),
-                        },
+            Step::Measure => {
+                let skip = self.plan_skips();
+                if let Some(j) = self.joint.as_mut() {
+                    j.skip = skip.clone();
+                }
+                (0..self.sessions.len() as u32)
+                    .filter(|&c| !skip[c as usize])
+                    .flat_map(|c| {
+                        [ScanKind::ReloadTime, ScanKind::TransitionWidth].map(|kind| {
+                            Request::Measure {
+                                scan: ScanRequest {
+                                    kind,
+                                    sweep: None,
+                                    cell: Some(c),
+                                },
+                            }
+                        })
                     })
-                })
-                .collect(),
+                    .collect()
+            }
             Step::Oracle => {
                 let joint = self.joint()?;
                 let parameters = (0..joint.tuner.cells().len() as u32)
@@ -875,10 +987,14 @@ impl ArrayRun {
         let last_good = (0..self.sessions.len())
             .map(|c| self.cell_voltages(c))
             .collect();
+        let k = self.sessions.len();
         self.joint = Some(Joint {
             tuner,
             lower,
             last_good,
+            in_band: vec![false; k],
+            skip: vec![false; k],
+            skips_in_a_row: vec![0; k],
         });
         Ok(())
     }
@@ -921,12 +1037,44 @@ impl ArrayRun {
     fn evaluate_measurement(&mut self, answers: &[Response]) -> Result<(), ArrayRunError> {
         let k = self.sessions.len();
         let band = self.settings.relative_tolerance;
+        let skip = match &self.joint {
+            Some(j) if j.skip.len() == k => j.skip.clone(),
+            _ => vec![false; k],
+        };
+        let measured: Vec<usize> = (0..k).filter(|&c| !skip[c]).collect();
+        if answers.len() != 2 * measured.len() {
+            return Err(ArrayRunError::Protocol(format!(
+                "{} answers to the measurement of {} cells",
+                answers.len(),
+                measured.len()
+            )));
+        }
         let mut raw = vec![vec![None; 2]; k];
         for (i, a) in answers.iter().enumerate() {
-            let (c, p) = (i / 2, i % 2);
+            let (c, p) = (measured[i / 2], i % 2);
             match self.evaluate(c, a, CELL_PARAMETERS[p]) {
                 Some(v) => raw[c][p] = Some(v),
                 None => self.failed_fits += 1,
+            }
+        }
+        // a skipped cell: its prediction, reported as an event, not a value
+        let mut events = Vec::new();
+        if let Some(joint) = &self.joint {
+            for c in (0..k).filter(|&c| skip[c]) {
+                for (p, name) in CELL_PARAMETERS.iter().enumerate() {
+                    if let Some((y, var)) = joint.tuner.predict(c, p, &self.voltages_mv) {
+                        let value = y.exp();
+                        events.push(TunerEvent {
+                            level: "array".into(),
+                            kind: EventKind::ConfirmationSkipped {
+                                parameter: parameter_name(c as u32, name),
+                                predicted: value,
+                                std: value * var.sqrt(),
+                                unit: ["ns", "µV"][p].into(),
+                            },
+                        });
+                    }
+                }
             }
         }
         // values with error bars wider than the band are not acted on
@@ -938,10 +1086,15 @@ impl ArrayRun {
                     .collect()
             })
             .collect();
-        let failed: Vec<bool> = raw.iter().map(|m| m.iter().any(Option::is_none)).collect();
+        let failed: Vec<bool> = raw
+            .iter()
+            .zip(&skip)
+            .map(|(m, &s)| !s && m.iter().any(Option::is_none))
+            .collect();
         let unsure: Vec<bool> = values
             .iter()
-            .map(|m| m.iter().any(Option::is_none))
+            .zip(&skip)
+            .map(|(m, &s)| !s && m.iter().any(Option::is_none))
             .collect();
         let v = self.voltages_mv.clone();
         for (c, vals) in values.iter().enumerate() {
@@ -961,15 +1114,36 @@ impl ArrayRun {
         for c in 0..k {
             let (t_sr, w) = self.targets[c];
             let tv = [t_sr, w];
-            let in_band = values[c]
-                .iter()
-                .zip(tv)
-                .all(|(m, t)| m.is_some_and(|(p, _)| (p - t).abs() <= band * t));
-            all_in &= in_band;
-            for (p, m) in values[c].iter().enumerate() {
-                residual[c][p] =
-                    m.filter(|(x, _)| *x > 0.0)
-                        .map(|(x, _)| if in_band { 0.0 } else { (x / tv[p]).ln() });
+            if skip[c] {
+                // predicted in band with margin (plan_skips): held
+                residual[c] = vec![Some(0.0); 2];
+            } else {
+                let in_band = values[c]
+                    .iter()
+                    .zip(tv)
+                    .all(|(m, t)| m.is_some_and(|(p, _)| (p - t).abs() <= band * t));
+                all_in &= in_band;
+                if let Some(j) = self.joint.as_mut() {
+                    if j.in_band.len() != k {
+                        j.in_band = vec![false; k];
+                    }
+                    j.in_band[c] = in_band;
+                }
+                for (p, m) in values[c].iter().enumerate() {
+                    residual[c][p] = m.filter(|(x, _)| *x > 0.0).map(|(x, _)| {
+                        if in_band {
+                            0.0
+                        } else {
+                            (x / tv[p]).ln()
+                        }
+                    });
+                }
+            }
+            if let Some(j) = self.joint.as_mut() {
+                if j.skips_in_a_row.len() != k {
+                    j.skips_in_a_row = vec![0; k];
+                }
+                j.skips_in_a_row[c] = if skip[c] { j.skips_in_a_row[c] + 1 } else { 0 };
             }
             for (p, name) in CELL_PARAMETERS.iter().enumerate() {
                 reports.push(ParameterReport {
@@ -995,7 +1169,7 @@ impl ArrayRun {
             scan_counts: BTreeMap::new(),
             failed_evaluations: self.failed_evaluations(),
             scans: Vec::new(),
-            events: Vec::new(),
+            events,
             keep: None,
         };
         self.scratch = Scratch {

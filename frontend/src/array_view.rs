@@ -6,7 +6,7 @@
 //! neighbours'). Plain data from an [`IterationRecord`]; drawn by
 //! [`crate::array_panel`].
 
-use spintune::protocol::{IterationRecord, ParameterReport};
+use spintune::protocol::{EventKind, IterationRecord, ParameterReport, TunerEvent};
 use spintune::sim::array::split_gate;
 
 /// The cells of a run whose every parameter is named `c{k}.<name>`, in the
@@ -99,18 +99,39 @@ pub struct CellParameter {
     pub tolerance: Option<f64>,
     /// Within target ± tolerance ([`in_band`]).
     pub in_band: Option<bool>,
+    /// `value` is the filter's prediction: the cell's scan was skipped
+    /// (it shares a sensor and was predicted in band with margin).
+    pub predicted: bool,
 }
 
 impl CellParameter {
-    fn of(local: &str, p: &ParameterReport) -> Self {
+    /// The parameter as reported, or (not measured) as the record's
+    /// `confirmation_skipped` event for it predicts it.
+    fn of(local: &str, p: &ParameterReport, events: &[TunerEvent]) -> Self {
+        let skipped = p.value.is_none().then(|| {
+            events.iter().find_map(|e| match &e.kind {
+                EventKind::ConfirmationSkipped {
+                    parameter,
+                    predicted,
+                    std,
+                    ..
+                } if parameter == &p.name => Some((*predicted, *std)),
+                _ => None,
+            })
+        });
+        let (value, std, predicted) = match skipped.flatten() {
+            Some((v, s)) => (Some(v), Some(s), true),
+            None => (p.value, p.std, false),
+        };
         Self {
             name: local.to_string(),
             unit: p.unit.clone(),
-            value: p.value,
-            std: p.std,
+            value,
+            std,
             target: p.target,
             tolerance: p.tolerance,
-            in_band: in_band(p.value, p.target, p.tolerance),
+            in_band: in_band(value, p.target, p.tolerance),
+            predicted,
         }
     }
 
@@ -118,10 +139,11 @@ impl CellParameter {
     pub fn text(&self) -> String {
         let n = |x: f64| crate::charts::num_label(&x);
         let u = &self.unit;
-        let value = self.value.map_or_else(
-            || "no valid measurement".to_string(),
-            |v| format!("{} {u}", n(v)),
-        );
+        let value = match (self.value, self.predicted) {
+            (None, _) => "no valid measurement".to_string(),
+            (Some(v), false) => format!("{} {u}", n(v)),
+            (Some(v), true) => format!("predicted {} {u}, scan skipped", n(v)),
+        };
         let target = match (self.target, self.tolerance) {
             (Some(t), Some(tol)) => format!("target {} ± {} {u}", n(t), n(tol)),
             (Some(t), None) => format!("target {} {u}", n(t)),
@@ -157,7 +179,9 @@ pub fn tiles(record: &IterationRecord) -> Vec<Tile> {
                 .parameters
                 .iter()
                 .filter_map(|p| match split_gate(&p.name) {
-                    Some((c, local)) if c == cell => Some(CellParameter::of(local, p)),
+                    Some((c, local)) if c == cell => {
+                        Some(CellParameter::of(local, p, &record.events))
+                    }
                     _ => None,
                 })
                 .collect();
@@ -513,6 +537,26 @@ mod tests {
         assert!(tiles(&unmeasured)[1].parameters[0]
             .text()
             .starts_with("no valid measurement"));
+        // a skipped scan: the tile shows the prediction, in band by it
+        unmeasured.events.push(TunerEvent {
+            level: "array".into(),
+            kind: EventKind::ConfirmationSkipped {
+                parameter: unmeasured.parameters[2].name.clone(),
+                predicted: 20.5,
+                std: 0.4,
+                unit: "ns".into(),
+            },
+        });
+        let tile = &tiles(&unmeasured)[1];
+        assert_eq!(tile.band, Band::In, "{tile:?}");
+        assert!(tile.parameters[0].predicted);
+        assert!(
+            tile.parameters[0]
+                .text()
+                .starts_with("predicted 20.5 ns, scan skipped"),
+            "{}",
+            tile.parameters[0].text()
+        );
     }
 
     #[cfg_attr(not(target_arch = "wasm32"), test)]

@@ -131,25 +131,6 @@ async fn serve_until(
     found
 }
 
-/// No request reaches the bridge for `ms`.
-async fn silent_for(ws: &mut Ws, ms: u64) -> bool {
-    loop {
-        match tokio::time::timeout(Duration::from_millis(ms), next_bridge(ws)).await {
-            Err(_) => return true,
-            Ok(BridgeServerMessage::Request { .. }) => return false,
-            Ok(_) => continue,
-        }
-    }
-}
-
-async fn faulted(addr: std::net::SocketAddr, id: u64) -> spintune::protocol::Fault {
-    let r = wait_status(addr, id, |r| matches!(r.status, RunStatus::Faulted { .. })).await;
-    match r.status {
-        RunStatus::Faulted { fault } => fault,
-        _ => unreachable!(),
-    }
-}
-
 async fn act(addr: std::net::SocketAddr, id: u64, action: &str) -> Value {
     let (s, b) = control(addr, id, &format!(r#"{{"action":"{action}"}}"#)).await;
     assert_eq!(s, 200, "{action}: {b}");

@@ -441,44 +441,18 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
         err.contains("tuning.toml") && err.contains("colour"),
         "{err}"
     );
-    let out = bin()
-        .args([
-            "bench-array",
-            "--cells",
-            "2",
-            "--seeds",
-            "1",
-            "--cells-per-sensor",
-            "17",
-        ])
-        .output()
-        .unwrap();
-    assert_eq!(out.status.code(), Some(2));
-    assert!(String::from_utf8_lossy(&out.stderr).contains("--cells-per-sensor"));
-    let out = bin()
-        .args([
-            "bench-array",
-            "--cells",
-            "2",
-            "--seeds",
-            "1",
-            "--skip-confident-sigma",
-            "0.1",
-        ])
-        .output()
-        .unwrap();
-    assert_eq!(out.status.code(), Some(2));
-    assert!(String::from_utf8_lossy(&out.stderr).contains("skip_confident_sigma"));
-    // the lab's calibration: two finite numbers, each within [0, 0.9]
+    // every bound of the array flags, before anything runs; the lab's
+    // calibration is two finite numbers, each within [0, 0.9]
     for (value, expected) in [
-        ("0.3", "two numbers"),
-        ("0.3,x", "not a finite number"),
-        ("0.3,1.5", "cross_calibration[1]"),
-        ("-0.1,0", "cross_calibration[0]"),
+        ("--cells-per-sensor=17", "--cells-per-sensor"),
+        ("--skip-confident-sigma=0.1", "skip_confident_sigma"),
+        ("--cross-calibration=0.3", "two numbers"),
+        ("--cross-calibration=0.3,x", "not a finite number"),
+        ("--cross-calibration=0.3,1.5", "cross_calibration[1]"),
+        ("--cross-calibration=-0.1,0", "cross_calibration[0]"),
     ] {
         let out = bin()
-            .args(["bench-array", "--cells", "2", "--seeds", "1"])
-            .arg(format!("--cross-calibration={value}"))
+            .args(["bench-array", "--cells", "2", "--seeds", "1", value])
             .output()
             .unwrap();
         assert_eq!(out.status.code(), Some(2), "{value}");

@@ -45,14 +45,6 @@ fn lab_device(config: &Value) -> SimulatedDevice {
         .clone()
 }
 
-async fn faulted(addr: std::net::SocketAddr, id: u64) -> spintune::protocol::Fault {
-    let r = wait_status(addr, id, |r| matches!(r.status, RunStatus::Faulted { .. })).await;
-    match r.status {
-        RunStatus::Faulted { fault } => fault,
-        _ => unreachable!(),
-    }
-}
-
 /// Answer the read request `read` (id `id`) from `device`, but with `gate`
 /// reported at `lie_mv`.
 async fn answer_read_lying(
@@ -80,17 +72,6 @@ async fn answer_read_lying(
         },
     )
     .await;
-}
-
-/// No request reaches the bridge for `ms`.
-async fn silent_for(ws: &mut Ws, ms: u64) -> bool {
-    loop {
-        match tokio::time::timeout(Duration::from_millis(ms), next_bridge(ws)).await {
-            Err(_) => return true,
-            Ok(BridgeServerMessage::Request { .. }) => return false,
-            Ok(_) => continue,
-        }
-    }
 }
 
 /// Serve requests honestly from `device`, checking each against the

@@ -134,3 +134,26 @@ pub fn physical_violation(device: &SimulatedDevice, req: &Request) -> Option<Str
     }
     (!out.is_empty()).then(|| out.join("; "))
 }
+
+/// No request reaches the bridge for `ms`.
+pub async fn silent_for(ws: &mut Ws, ms: u64) -> bool {
+    loop {
+        match tokio::time::timeout(std::time::Duration::from_millis(ms), next_bridge(ws)).await {
+            Err(_) => return true,
+            Ok(BridgeServerMessage::Request { .. }) => return false,
+            Ok(_) => continue,
+        }
+    }
+}
+
+/// Wait until run `id` is faulted; its fault.
+pub async fn faulted(addr: std::net::SocketAddr, id: u64) -> spintune::protocol::Fault {
+    let r = super::wait_status(addr, id, |r| {
+        matches!(r.status, spintune::protocol::RunStatus::Faulted { .. })
+    })
+    .await;
+    match r.status {
+        spintune::protocol::RunStatus::Faulted { fault } => fault,
+        _ => unreachable!(),
+    }
+}

@@ -103,31 +103,11 @@ async fn serve_until(
     iterations: u64,
 ) -> Vec<String> {
     let mut found = Vec::new();
-    let mut tick = tokio::time::interval(Duration::from_millis(50));
-    let done = tokio::time::timeout(Duration::from_secs(120), async {
-        loop {
-            tokio::select! {
-                frame = next_bridge(ws) => {
-                    if let BridgeServerMessage::Request { id, request, .. } = frame {
-                        violations(&lab.0, &lab.1, &request, &mut found);
-                        let resp = lab.0.execute(&request);
-                        answer(ws, id, resp).await;
-                    }
-                }
-                _ = tick.tick() => {
-                    let r = get_run(addr, id).await;
-                    if r.iterations >= iterations || r.status.is_terminal() {
-                        return;
-                    }
-                }
-            }
-        }
+    serve_until_with(ws, addr, id, iterations, |request| {
+        violations(&lab.0, &lab.1, request, &mut found);
+        lab.0.execute(request)
     })
     .await;
-    assert!(
-        done.is_ok(),
-        "the run did not reach {iterations} iterations"
-    );
     found
 }
 

@@ -84,33 +84,11 @@ async fn serve_until(
     iterations: u64,
 ) -> Vec<String> {
     let mut violations = Vec::new();
-    let mut tick = tokio::time::interval(Duration::from_millis(50));
-    let done = tokio::time::timeout(Duration::from_secs(90), async {
-        loop {
-            tokio::select! {
-                frame = next_bridge(ws) => {
-                    if let BridgeServerMessage::Request { id, request, .. } = frame {
-                        if let Some(v) = physical_violation(device, &request) {
-                            violations.push(v);
-                        }
-                        let resp = device.execute(&request);
-                        answer(ws, id, resp).await;
-                    }
-                }
-                _ = tick.tick() => {
-                    let r = get_run(addr, id).await;
-                    if r.iterations >= iterations || r.status.is_terminal() {
-                        return;
-                    }
-                }
-            }
-        }
+    serve_until_with(ws, addr, id, iterations, |request| {
+        violations.extend(physical_violation(device, request));
+        device.execute(request)
     })
     .await;
-    assert!(
-        done.is_ok(),
-        "the run did not reach {iterations} iterations"
-    );
     violations
 }
 

@@ -157,3 +157,39 @@ pub async fn faulted(addr: std::net::SocketAddr, id: u64) -> spintune::protocol:
         _ => unreachable!(),
     }
 }
+
+/// Serve requests with `serve` (which answers one request and notes what
+/// it finds wrong with it) until run `id` has `iterations` committed or is
+/// over; panics after 120 s.
+pub async fn serve_until_with(
+    ws: &mut Ws,
+    addr: std::net::SocketAddr,
+    id: u64,
+    iterations: u64,
+    mut serve: impl FnMut(&Request) -> Response,
+) {
+    let mut tick = tokio::time::interval(std::time::Duration::from_millis(50));
+    let done = tokio::time::timeout(std::time::Duration::from_secs(120), async {
+        loop {
+            tokio::select! {
+                frame = next_bridge(ws) => {
+                    if let BridgeServerMessage::Request { id, request, .. } = frame {
+                        let resp = serve(&request);
+                        answer(ws, id, resp).await;
+                    }
+                }
+                _ = tick.tick() => {
+                    let r = super::get_run(addr, id).await;
+                    if r.iterations >= iterations || r.status.is_terminal() {
+                        return;
+                    }
+                }
+            }
+        }
+    })
+    .await;
+    assert!(
+        done.is_ok(),
+        "the run did not reach {iterations} iterations"
+    );
+}

@@ -619,7 +619,11 @@ impl ArrayRun {
                 gates: self.gate_names.clone(),
             }],
             Step::Measure => {
-                let skip = self.plan_skips();
+                let mut skip = self.plan_skips();
+                // (never an empty measurement: it would never be answered)
+                if skip.iter().all(|&s| s) {
+                    skip.iter_mut().for_each(|s| *s = false);
+                }
                 if let Some(j) = self.joint.as_mut() {
                     j.skip = skip.clone();
                 }

@@ -15,10 +15,12 @@
 //!    Then every gate is read once and the lab's knowledge of each cell
 //!    (learned gradient and covariance, virtual-gate matrix, line Jacobian,
 //!    sensing-dot sweep) starts the [`JointArrayTuner`].
-//! 2. **Iteration**: `t_sr` and `w` of every cell (one batch); values with
+//! 2. **Iteration**: `t_sr` and `w` of every cell (one batch; a held cell
+//!    that shares its sensor and is predicted in band with margin is
+//!    skipped, [`ArrayRunSettings::skip_confident_sigma`]); values with
 //!    an error bar wider than the band are not acted on; the filter rows
 //!    learn; if every cell is in band the iteration ends there and the run
-//!    idles. Otherwise one joint limited move per cell (cells in band held;
+//!    idles (as it does after [`ArrayRunSettings::max_iterations`]). Otherwise one joint limited move per cell (cells in band held;
 //!    a cell whose evaluation failed retreats half-way to the voltages of
 //!    its last good evaluation), then the lower levels of the moved cells,
 //!    their neighbours and every uncertain cell: sensing dots swept and

@@ -122,24 +122,7 @@ async fn act(addr: std::net::SocketAddr, id: u64, action: &str) -> Value {
 async fn answer_read_lying(ws: &mut Ws, device: &mut ArrayDevice, gate: &str, lie_mv: f64) {
     let (id, read) = next_any_request(ws).await;
     assert!(matches!(read, Request::ReadVoltages { .. }), "{read:?}");
-    let Response::VoltagesRead {
-        mut voltages_mv,
-        lab_seconds,
-    } = device.execute(&read)
-    else {
-        panic!("not a read: {read:?}")
-    };
-    assert!(voltages_mv.contains_key(gate), "{voltages_mv:?}");
-    voltages_mv.insert(gate.into(), lie_mv);
-    answer(
-        ws,
-        id,
-        Response::VoltagesRead {
-            voltages_mv,
-            lab_seconds,
-        },
-    )
-    .await;
+    answer_lying(ws, id, device.execute(&read), gate, lie_mv).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -55,23 +55,7 @@ async fn answer_read_lying(
     gate: &str,
     lie_mv: f64,
 ) {
-    let Response::VoltagesRead {
-        mut voltages_mv,
-        lab_seconds,
-    } = device.execute(read)
-    else {
-        panic!("not a read: {read:?}")
-    };
-    voltages_mv.insert(gate.into(), lie_mv);
-    answer(
-        ws,
-        id,
-        Response::VoltagesRead {
-            voltages_mv,
-            lab_seconds,
-        },
-    )
-    .await;
+    answer_lying(ws, id, device.execute(read), gate, lie_mv).await;
 }
 
 /// Serve requests honestly from `device`, checking each against the

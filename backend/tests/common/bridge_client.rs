@@ -193,3 +193,27 @@ pub async fn serve_until_with(
         "the run did not reach {iterations} iterations"
     );
 }
+
+/// Answer request `id` with `honest` (a read-back from the lab's device)
+/// but `gate` reported at `lie_mv`; panics unless `honest` is a read-back
+/// that holds `gate`.
+pub async fn answer_lying(ws: &mut Ws, id: u64, honest: Response, gate: &str, lie_mv: f64) {
+    let Response::VoltagesRead {
+        mut voltages_mv,
+        lab_seconds,
+    } = honest
+    else {
+        panic!("not a read-back: {honest:?}")
+    };
+    assert!(voltages_mv.contains_key(gate), "{voltages_mv:?}");
+    voltages_mv.insert(gate.into(), lie_mv);
+    answer(
+        ws,
+        id,
+        Response::VoltagesRead {
+            voltages_mv,
+            lab_seconds,
+        },
+    )
+    .await;
+}

@@ -267,6 +267,8 @@ pub fn event_name(e: &EventKind) -> &'static str {
         EventKind::RetuneStarted { .. } => "retune_started",
         EventKind::BackInBand { .. } => "back_in_band",
         EventKind::NotBackInBand { .. } => "not_back_in_band",
+        EventKind::SearchProbe { .. } => "search_probe",
+        EventKind::SearchEnded { .. } => "search_ended",
     }
 }
 
@@ -281,6 +283,7 @@ pub fn event_is_safety_relevant(e: &EventKind) -> bool {
             | EventKind::MoveRefused { .. }
             | EventKind::EvaluationFailed { .. }
             | EventKind::OutlierGated { .. }
+            | EventKind::SearchEnded { found: false, .. }
     )
 }
 

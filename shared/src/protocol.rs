@@ -721,6 +721,26 @@ pub enum EventKind {
         /// The configured limit, s.
         limit_lab_seconds: f64,
     },
+    /// A child level moved its gates to re-find parameters its scans lost
+    /// (`NewtonConfig::search`): probe `probe` shifts each searched
+    /// parameter by its offset from where the search started.
+    SearchProbe {
+        /// Probe number (1, 2, …).
+        probe: u32,
+        /// The parameters searched for.
+        parameters: Vec<String>,
+        /// Their intended shifts, in their estimator units (mV for lines).
+        offsets: Vec<f64>,
+    },
+    /// A search ended: `found` after `probes` probes (the level's next
+    /// step brings the parameters home), or given up (the gates went back
+    /// to where the search started; no new search until a scan works).
+    SearchEnded {
+        /// Probes made.
+        probes: u32,
+        /// Whether every targeted parameter was found.
+        found: bool,
+    },
 }
 
 impl std::fmt::Display for EventKind {
@@ -838,6 +858,27 @@ impl std::fmt::Display for EventKind {
                 out_of_band_lab_seconds / 60.0,
                 limit_lab_seconds / 60.0
             ),
+            EventKind::SearchProbe {
+                probe,
+                parameters,
+                offsets,
+            } => {
+                write!(f, "lost, search probe {probe}:")?;
+                for (p, o) in parameters.iter().zip(offsets) {
+                    write!(f, " {p} {o:+.2}")?;
+                }
+                Ok(())
+            }
+            EventKind::SearchEnded { probes, found } => {
+                if *found {
+                    write!(f, "found again after {probes} search probe(s)")
+                } else {
+                    write!(
+                        f,
+                        "not found after {probes} search probe(s): gates moved back"
+                    )
+                }
+            }
         }
     }
 }

@@ -201,3 +201,20 @@ fn off_centre_lines_degrade_the_width_scan() {
         }
     }
 }
+
+#[test]
+fn a_line_outside_the_window_leaves_the_other_line_s_value() {
+    let mut dev = SimulatedDevice::new(DeviceConfig::default(), &default_gates(), 9).unwrap();
+    // line A 7 mV up, beyond the ±4 mV line scan; line B where it was
+    dev.rearrange_charges([7.0, 0.0]);
+    let e = evaluate(&measure(&mut dev, ScanKind::ChemicalPotential)).unwrap();
+    assert_eq!(e.values.len(), 1);
+    let (mu_b, _) = value(&e, "mu_b_mv");
+    assert!(mu_b.abs() < 0.5, "mu_b {mu_b}");
+    assert_eq!(e.missing.len(), 1);
+    assert_eq!(e.missing[0].0, "mu_a_mv");
+    assert_eq!(e.fit.len(), 1);
+    // both lines out: the scan fails
+    dev.rearrange_charges([0.0, -7.0]);
+    assert!(evaluate(&measure(&mut dev, ScanKind::ChemicalPotential)).is_err());
+}

@@ -41,7 +41,7 @@ use crate::safety::GateSpec;
 use crate::solver::{SolverConfig, StepRule};
 use crate::tuner::{
     Compensation, FlankPrediction, InitialGradient, LevelConfig, LevelKind, NewtonConfig,
-    ParameterForecast, SensingDotConfig, SensingDotFallback, TunerConfig,
+    ParameterForecast, ParameterSearch, SensingDotConfig, SensingDotFallback, TunerConfig,
 };
 
 /// Process noise of the recommended qubit level's log-space parameters:
@@ -150,6 +150,32 @@ pub struct LinesDescription {
     /// How the lines are forecast (every field has a default; mV).
     #[serde(default)]
     pub forecast: ParameterForecast,
+    /// Search for lines that left the line scan's window (a charge
+    /// rearrangement, a neighbour's move) by probing the plungers (default
+    /// true; false: the paper's rule, retreat and re-scan only).
+    #[serde(default = "default_true")]
+    pub search_lost_lines: bool,
+    /// How lost lines are searched for (`step` in mV of line position:
+    /// about 1.5× the half-width of the lab's line scan; the simulator's
+    /// scan covers ±4 mV). Default: step 6 mV, 4 probes (±6, ±12 mV), after
+    /// 2 failed scans in a row.
+    #[serde(default = "default_line_search")]
+    pub search: ParameterSearch,
+}
+
+fn default_true() -> bool {
+    true
+}
+
+/// Step 1.5× the simulator's ±4 mV line window (consecutive windows overlap
+/// by 2 mV); 4 probes reach lines 16 mV off; 2 failures in a row so that a
+/// single failed fit (noise) never moves the plungers. Set once, not tuned.
+fn default_line_search() -> ParameterSearch {
+    ParameterSearch {
+        step: 6.0,
+        max_probes: 4,
+        after_failures: 2,
+    }
 }
 
 /// The sensing-dot level.
@@ -296,6 +322,7 @@ impl DeviceDescription {
                 compensation,
                 skip_confirmation_sigma: None,
                 forecast: None,
+                search: None,
             }),
             after_move: after_qubit,
         });
@@ -335,6 +362,7 @@ impl DeviceDescription {
                     compensation: None,
                     skip_confirmation_sigma: l.skip_confirmation_sigma,
                     forecast: (!l.always_scan).then(|| l.forecast.clone()),
+                    search: l.search_lost_lines.then(|| l.search.clone()),
                 }),
                 after_move: if self.sensing_dot.is_some() {
                     vec!["sensing_dot".into()]
@@ -402,6 +430,7 @@ impl DeviceDescription {
                 "lines.tolerance_mv",
             ),
             (format!("levels[{line_level}].forecast"), "lines.forecast"),
+            (format!("levels[{line_level}].search"), "lines.search"),
             (format!("levels[{sd_level}]"), "sensing_dot"),
         ] {
             if let Some(rest) = field.strip_prefix(prefix.as_str()) {
@@ -441,6 +470,8 @@ impl DeviceDescription {
                 skip_confirmation_sigma: default_line_skip_sigma(),
                 always_scan: false,
                 forecast: ParameterForecast::default(),
+                search_lost_lines: true,
+                search: default_line_search(),
             }),
             sensing_dot: Some(SensingDotDescription {
                 gate: sd.gate,

@@ -109,6 +109,7 @@ impl SimulationConfig {
             compensation: Some(compensation),
             skip_confirmation_sigma: None,
             forecast: None,
+            search: None,
         };
         let chemical = NewtonConfig {
             gates: plungers.iter().map(|s| s.to_string()).collect(),
@@ -143,6 +144,7 @@ impl SimulationConfig {
             compensation: None,
             skip_confirmation_sigma: None,
             forecast: None,
+            search: None,
         };
         let sensing = SensingDotConfig {
             gate: device.sensing_dot.gate.clone(),

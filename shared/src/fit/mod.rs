@@ -58,6 +58,12 @@ pub struct Evaluation {
     pub values: Vec<ParameterValue>,
     /// Fitted curves (label `"fit"` or `"fit <trace label>"`), on the data's x.
     pub fit: Vec<Trace>,
+    /// Parameters of this scan that could not be evaluated while others
+    /// could, with why: a line scan's two traces are fitted one by one, so
+    /// a line outside the window leaves the other's value (the tuner counts
+    /// the scan as failed and still uses what it gave). Empty for every
+    /// other kind (one failure fails the scan).
+    pub missing: Vec<(String, FitError)>,
 }
 
 /// Evaluates a raw scan: fits the model of its [`ScanKind`] and returns the
@@ -106,6 +112,7 @@ pub fn evaluate_with(scan: &RawScan, references: &References) -> Result<Evaluati
             Ok(Evaluation {
                 values: vec![value("w", 1000.0 * f.width, delta * delta)?],
                 fit: vec![curve("fit", &t.x, |x| f.value(x))],
+                missing: Vec::new(),
             })
         }
         ScanKind::ReloadTime => {
@@ -129,6 +136,7 @@ pub fn evaluate_with(scan: &RawScan, references: &References) -> Result<Evaluati
             Ok(Evaluation {
                 values: vec![value("t_sr", f.tau, delta * delta)?],
                 fit: vec![curve("fit", &t.x, |x| f.value(x))],
+                missing: Vec::new(),
             })
         }
         ScanKind::SensingDot => {
@@ -145,22 +153,39 @@ pub fn evaluate_with(scan: &RawScan, references: &References) -> Result<Evaluati
                     value("sd_contrast", contrast, contrast_var)?,
                 ],
                 fit: vec![curve("fit", &p.window_x, |x| p.value(x))],
+                missing: Vec::new(),
             })
         }
         ScanKind::ChemicalPotential => {
             let mut values = Vec::new();
             let mut fit = Vec::new();
+            let mut missing = Vec::new();
             for (name, prefix) in [("mu_a_mv", "RFA"), ("mu_b_mv", "RFB")] {
                 let t = scan
                     .traces
                     .iter()
                     .find(|t| t.label.starts_with(prefix))
                     .ok_or_else(|| FitError::BadData(format!("no trace labelled {prefix:?}…")))?;
-                let f = tanh::fit_tanh_step(&t.x, &t.y)?;
-                values.push(value(name, f.center, f.center_std * f.center_std)?);
-                fit.push(curve(&format!("fit {}", t.label), &t.x, |x| f.value(x)));
+                let line = tanh::fit_tanh_step(&t.x, &t.y)
+                    .and_then(|f| Ok((value(name, f.center, f.center_std * f.center_std)?, f)));
+                match line {
+                    Ok((v, f)) => {
+                        values.push(v);
+                        fit.push(curve(&format!("fit {}", t.label), &t.x, |x| f.value(x)));
+                    }
+                    Err(e) => missing.push((name.to_string(), e)),
+                }
             }
-            Ok(Evaluation { values, fit })
+            if values.is_empty() {
+                // neither line: the scan failed (the first line's reason)
+                let (_, e) = missing.swap_remove(0);
+                return Err(e);
+            }
+            Ok(Evaluation {
+                values,
+                fit,
+                missing,
+            })
         }
     }
 }

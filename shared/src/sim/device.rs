@@ -252,6 +252,26 @@ impl SimulatedDevice {
         self.clock.advance(seconds);
     }
 
+    /// A charge rearrangement near the dots, as a lab sees one now and
+    /// then: both transition lines jump by these amounts (mV on RFA / RFB)
+    /// and stay there; their slow drift goes on around the new place.
+    /// Nothing else changes and no gate moves: a tuner finds out by
+    /// scanning. Non-finite shifts are ignored.
+    ///
+    /// ```
+    /// use spintune::sim::{default_gates, DeviceConfig, SimulatedDevice};
+    /// let mut dev = SimulatedDevice::new(DeviceConfig::default(), &default_gates(), 3).unwrap();
+    /// dev.rearrange_charges([7.0, -1.0]);
+    /// assert_eq!(dev.drift().jump_mu_mv, [7.0, -1.0]);
+    /// ```
+    pub fn rearrange_charges(&mut self, shift_mv: [f64; 2]) {
+        for (j, s) in self.drift.jump_mu_mv.iter_mut().zip(shift_mv) {
+            if s.is_finite() {
+                *j += s;
+            }
+        }
+    }
+
     /// Present drift and charge-jump state (what [`SimulatedDevice::truth`] leaves out).
     pub fn drift(&self) -> &DriftState {
         &self.drift

@@ -38,6 +38,11 @@ pub struct DriftState {
     /// Accumulated jumps and trend of `ln Γ` (persistent, outside the OU part).
     #[serde(default)]
     pub jump_ln_lead_rate: f64,
+    /// Persistent shifts of transition lines A and B by charge
+    /// rearrangements ([`super::SimulatedDevice::rearrange_charges`]), mV on
+    /// RFA / RFB.
+    #[serde(default)]
+    pub jump_mu_mv: [f64; 2],
 }
 
 fn ou(x: f64, sigma: f64, decay: f64, rng: &mut ChaCha8Rng) -> f64 {

@@ -84,7 +84,11 @@ impl SimulatedDevice {
 
     /// Line positions now, relative to the calibrated operating point, with drift, mV.
     fn lines_now(&self, base: [f64; 2]) -> [f64; 2] {
-        [base[0] + self.drift.mu_a_mv, base[1] + self.drift.mu_b_mv]
+        let jump = self.drift.jump_mu_mv;
+        [
+            base[0] + self.drift.mu_a_mv + jump[0],
+            base[1] + self.drift.mu_b_mv + jump[1],
+        ]
     }
 
     /// Records `n` points: `y_i = G(u) + drift + G'(u)·signal(x_i, lines) + white`,

@@ -11,6 +11,8 @@ use crate::parameter::ParameterSpec;
 use crate::safety::GateSpec;
 use crate::solver::SolverConfig;
 
+use super::search::ParameterSearch;
+
 /// How a Newton level obtains its initial gradient `g(0)` and covariance `C(0)`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
@@ -126,6 +128,12 @@ pub struct NewtonConfig {
     /// scan at every call). Refused on the top level.
     #[serde(default)]
     pub forecast: Option<ParameterForecast>,
+    /// For levels run as children: search for parameters the scans lost
+    /// (a line that left the scan's window) by probing the level's gates
+    /// ([`super::search`]). `None` (default, the paper's rule): retreat and
+    /// re-scan only. Refused on the top level.
+    #[serde(default)]
+    pub search: Option<ParameterSearch>,
 }
 
 /// Correct a child level from a forecast of its parameters instead of
@@ -627,6 +635,12 @@ impl TunerConfig {
                 "the top level must be `newton`",
             ));
         }
+        if matches!(&self.levels[0].kind, LevelKind::Newton(n) if n.search.is_some()) {
+            return Err(ConfigError::new(
+                "levels[0].search",
+                "the top level moves the qubit gates: a search is for levels run as children",
+            ));
+        }
         if matches!(&self.levels[0].kind, LevelKind::Newton(n) if n.forecast.is_some()) {
             return Err(ConfigError::new(
                 "levels[0].forecast",
@@ -796,6 +810,9 @@ fn validate_newton(n: &NewtonConfig, has_gate: &dyn Fn(&str) -> bool) -> Result<
     }
     if let Some(f) = &n.forecast {
         f.validate()?;
+    }
+    if let Some(s) = &n.search {
+        s.validate()?;
     }
     if n.parameters.is_empty() {
         return Err(ConfigError::new(

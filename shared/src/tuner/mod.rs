@@ -39,6 +39,7 @@ mod keep;
 mod keep_tally;
 pub(crate) mod level_forecast;
 mod newton;
+mod search;
 
 use std::collections::{BTreeMap, VecDeque};
 
@@ -58,6 +59,7 @@ pub use keep_tally::KeepTally;
 use level_forecast::LevelForecast;
 pub use newton::Consistency;
 use newton::NewtonState;
+pub use search::{ParameterSearch, MAX_SEARCH_PROBES};
 
 use crate::parameter::Tolerance;
 use crate::protocol::{
@@ -634,23 +636,23 @@ impl Tuner {
                 };
                 *self.scan_counts.entry(kind).or_insert(0) += 1;
                 self.add_lab_time(lab_seconds);
-                let (values, report) = evaluate_outcome(outcome, &self.config.fit_references);
-                if let Err(e) = &values {
+                let (values, failure, report) =
+                    evaluate_outcome(outcome, &self.config.fit_references);
+                if let Some(e) = failure {
+                    // the scan (or a part of it: one line of two) gave no value
                     self.failed_evaluations += 1;
                     self.note(
                         level,
                         EventKind::EvaluationFailed {
                             scan: kind,
-                            reason: e.clone(),
+                            reason: e,
                         },
                     );
                 }
                 match &mut self.levels[level] {
-                    LevelState::Newton(n) => n.absorb(values.unwrap_or_default(), report),
+                    LevelState::Newton(n) => n.absorb(values, report),
                     LevelState::SensingDot { last, .. } => {
-                        *last = values
-                            .ok()
-                            .and_then(|v| v.into_iter().find(|p| p.name == "sd_flank_mv"));
+                        *last = values.into_iter().find(|p| p.name == "sd_flank_mv");
                     }
                 }
             }
@@ -977,18 +979,34 @@ fn compensation_onto(config: &TunerConfig, gates: &[String]) -> Vec<(String, Vec
         .collect()
 }
 
-/// Turn a device's scan outcome into validated parameter values and a display
-/// report; raw scans are fitted with the config's `fit_references`.
+/// Turn a device's scan outcome into validated parameter values, why the
+/// scan (or a part of it) gave no value, and a display report; raw scans
+/// are fitted with the config's `fit_references`. A line scan whose one
+/// line was found and the other not gives the found one's value *and* a
+/// failure naming the other.
 fn evaluate_outcome(
     outcome: ScanOutcome,
     references: &crate::fit::uncertainty::References,
-) -> (Result<Vec<ParameterValue>, String>, Option<ScanReport>) {
+) -> (Vec<ParameterValue>, Option<String>, Option<ScanReport>) {
+    let checked =
+        |values: Vec<ParameterValue>, failure: Option<String>| match validate_values(values) {
+            Ok(values) => (values, failure),
+            Err(e) => (Vec::new(), Some(e)),
+        };
     match outcome {
         ScanOutcome::Raw { scan } => match crate::fit::evaluate_with(&scan, references) {
             Ok(ev) => {
-                let values = validate_values(ev.values);
+                let failure = (!ev.missing.is_empty()).then(|| {
+                    ev.missing
+                        .iter()
+                        .map(|(name, e)| format!("{name}: {e}"))
+                        .collect::<Vec<_>>()
+                        .join("; ")
+                });
+                let (values, failure) = checked(ev.values, failure);
                 (
                     values,
+                    failure,
                     Some(ScanReport {
                         raw: scan,
                         fit: ev.fit,
@@ -996,15 +1014,19 @@ fn evaluate_outcome(
                 )
             }
             Err(e) => (
-                Err(e.to_string()),
+                Vec::new(),
+                Some(e.to_string()),
                 Some(ScanReport {
                     raw: scan,
                     fit: Vec::new(),
                 }),
             ),
         },
-        ScanOutcome::Evaluated { values } => (validate_values(values), None),
-        ScanOutcome::Failed { reason } => (Err(reason), None),
+        ScanOutcome::Evaluated { values } => {
+            let (values, failure) = checked(values, None);
+            (values, failure, None)
+        }
+        ScanOutcome::Failed { reason } => (Vec::new(), Some(reason), None),
     }
 }
 

@@ -8,6 +8,7 @@ use serde::{Deserialize, Serialize};
 use super::config::{ConfigError, InitialGradient, LevelKind, NewtonConfig};
 use super::finite_difference::{FiniteDifference, Sample};
 use super::level_forecast::LevelForecast;
+use super::search::{SearchMemory, SearchMove};
 use super::{Decision, LevelState, Op, Tuner};
 use crate::estimator::{EstimatorKind, GradientEstimator};
 use crate::kalman::{ProcessNoise, UpdateOutcome};
@@ -24,6 +25,10 @@ use crate::solver::{
 /// the newest measurement (the parameter really moved; stop comparing with
 /// the old point) without learning from it.
 const MAX_GATED_IN_A_ROW: u32 = 2;
+
+/// Moves of at most the step limit one search probe may take (a probe
+/// further than this many step limits goes only that far).
+const MAX_SEARCH_MOVES: u32 = 32;
 
 /// The last accepted measurement of one parameter: where and what.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -77,6 +82,10 @@ pub(super) struct NewtonState {
     /// level has `forecast`; set by the tuner, which knows every gate).
     #[serde(default)]
     pub(super) forecast: Option<LevelForecast>,
+    /// What the level remembers for re-finding lost parameters (used iff
+    /// the level has `search`).
+    #[serde(default)]
+    search: SearchMemory,
 }
 
 /// Running statistics of a filter's normalised innovations squared (NIS),
@@ -176,6 +185,7 @@ impl NewtonState {
             consistency: vec![Consistency::default(); m],
             last_good_mv: None,
             forecast: None,
+            search: SearchMemory::default(),
         })
     }
 
@@ -755,6 +765,18 @@ impl Tuner {
         if !missing_targeted {
             state.last_good_mv = Some(v_now.clone());
         }
+        if cfg.search.is_some() {
+            let seen: Vec<Option<f64>> = samples.iter().map(|s| s.map(|s| s.0)).collect();
+            state.search.seen(&seen);
+            if !missing_targeted {
+                if let Some(probes) = state.search.found() {
+                    state.events.push(EventKind::SearchEnded {
+                        probes,
+                        found: true,
+                    });
+                }
+            }
+        }
         let top = level == 0;
         if tuned {
             if top {
@@ -772,6 +794,30 @@ impl Tuner {
                 .last_good_mv
                 .clone()
                 .and_then(|good| retreat_target(&v_now, &good, cfg.solver.max_step_mv));
+            // A search under way goes on; with nothing to retreat to, the
+            // parameters moved by themselves: search for them if configured.
+            let searching = state.search.active.is_some();
+            if searching || retreat.is_none() {
+                let missing: Vec<bool> = cfg
+                    .parameters
+                    .iter()
+                    .zip(&trusted)
+                    .map(|(p, v)| p.target.is_some() && v.is_none())
+                    .collect();
+                if let Some(ops) = self.search_ops(level, &v_now, &missing) {
+                    self.push_ops(ops);
+                    return;
+                }
+                if searching {
+                    // the search could not go on (no usable Jacobian): as without one
+                    self.push_ops(
+                        self.after_move_ops(level)
+                            .into_iter()
+                            .chain([Op::Decide(Decision::EndIteration)]),
+                    );
+                    return;
+                }
+            }
             let mut ops = Vec::new();
             if let Some(mut target) = retreat {
                 for (j, g) in cfg.gates.iter().enumerate() {
@@ -820,6 +866,86 @@ impl Tuner {
             }
             _ => self.step(level),
         }
+    }
+
+    /// A failed evaluation with a search configured: the next probe (or the
+    /// way back after the last one) as moves of at most the step limit,
+    /// clipped to the gate limits, then the lower levels, then the probe's
+    /// scans and evaluation in the same round (the way back ends the round). `None`: no search this time (not configured, too few failures
+    /// in a row, given up, or no usable Jacobian).
+    fn search_ops(&mut self, level: usize, v_now: &[f64], missing: &[bool]) -> Option<Vec<Op>> {
+        let cfg = self.newton(level).0.clone();
+        let search = cfg.search.clone()?;
+        let (_, state) = self.newton_mut(level);
+        let es = state.estimators.as_ref()?;
+        let n = v_now.len();
+        let jacobian = DMatrix::from_fn(cfg.parameters.len(), n, |r, c| es[r].gradient()[c]);
+        let targets: Vec<Option<f64>> = cfg
+            .parameters
+            .iter()
+            .map(|p| p.target.and_then(|t| p.transform.forward_value(t)))
+            .collect();
+        let mv = state.search.lost(&search, missing, &targets, &jacobian)?;
+        let probing = matches!(mv, SearchMove::Probe { .. });
+        let (dv, event) = match mv {
+            SearchMove::Probe {
+                probe,
+                offsets,
+                dv_mv,
+            } => {
+                let (parameters, offsets) = cfg
+                    .parameters
+                    .iter()
+                    .zip(&offsets)
+                    .zip(missing)
+                    .filter(|(_, &m)| m)
+                    .map(|((p, o), _)| (p.name.clone(), *o))
+                    .unzip();
+                let event = EventKind::SearchProbe {
+                    probe,
+                    parameters,
+                    offsets,
+                };
+                (dv_mv, event)
+            }
+            SearchMove::GiveUp { probes, dv_mv } => (
+                dv_mv,
+                EventKind::SearchEnded {
+                    probes,
+                    found: false,
+                },
+            ),
+        };
+        state.events.push(event);
+        let norm = dv.iter().map(|d| d * d).sum::<f64>().sqrt();
+        let max_moves = ((norm / cfg.solver.max_step_mv).ceil() as u32).clamp(1, MAX_SEARCH_MOVES);
+        let mut ops: Vec<Op> = plan_moves(v_now, &dv, cfg.solver.max_step_mv, max_moves)
+            .into_iter()
+            .map(|mut t| {
+                for (j, g) in cfg.gates.iter().enumerate() {
+                    if let Some(spec) = self.safety.gate(g) {
+                        t[j] = t[j].clamp(spec.min_mv, spec.max_mv);
+                    }
+                }
+                Op::Move(t)
+            })
+            .collect();
+        if let Some(Op::Move(last)) = ops.last() {
+            let step: Vec<f64> = last.iter().zip(v_now).map(|(a, b)| a - b).collect();
+            let (_, state) = self.newton_mut(level);
+            if let Some(s) = &mut state.snapshot {
+                s.step_mv = step;
+            }
+        }
+        ops.extend(self.after_move_ops(level));
+        if probing {
+            // scan at the probe in the same round: the search is one
+            // procedure, whatever the level's iterations per call
+            ops.extend(self.round_ops(level));
+        } else {
+            ops.push(Op::Decide(Decision::EndIteration));
+        }
+        Some(ops)
     }
 
     pub(super) fn step(&mut self, level: usize) {

@@ -184,6 +184,7 @@ fn qubit(estimator: EstimatorKind) -> NewtonConfig {
         compensation: None,
         skip_confirmation_sigma: None,
         forecast: None,
+        search: None,
     }
 }
 
@@ -238,6 +239,7 @@ fn hierarchical() -> TunerConfig {
         compensation: None,
         skip_confirmation_sigma: None,
         forecast: None,
+        search: None,
     };
     TunerConfig {
         gates: gates(),

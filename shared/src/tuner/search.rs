@@ -1,0 +1,347 @@
+//! Re-finding parameters a child level lost (e.g. transition lines that left
+//! the line scan's window after a charge rearrangement or a neighbour's move).
+//!
+//! A scan whose window no longer holds the feature gives no value, and the
+//! level's usual answer, a retreat toward its last good gate voltages
+//! (qtune's rule), cannot help when the level's own gates never moved: the
+//! feature moved by itself. After [`ParameterSearch::after_failures`] such
+//! evaluations in a row the level **searches**: it moves its gates so that
+//! each lost parameter shifts by `±step`, `±2·step`, … (estimator units,
+//! through the level's learned Jacobian, the found parameters held), the
+//! first probe against the side the parameter was last seen on, and scans
+//! after each probe. The first scan that gives every targeted parameter
+//! ends the search (`search_ended`, found) and the level's normal Newton
+//! step brings the parameters home; after `max_probes` probes the gates go
+//! back by what the search added and the level does not search again until
+//! an evaluation works (`search_ended`, not found). Every probe is a move
+//! like any other: clipped to the gate limits, split into moves of at most
+//! the step limit, checked by the session's guard.
+
+use nalgebra::{DMatrix, DVector};
+use serde::{Deserialize, Serialize};
+
+use super::config::ConfigError;
+
+/// Upper bound on [`ParameterSearch::max_probes`].
+pub const MAX_SEARCH_PROBES: u32 = 16;
+
+/// How a child level searches for parameters its scans lost.
+///
+/// ```
+/// use spintune::tuner::ParameterSearch;
+/// let s = ParameterSearch { step: 6.0, max_probes: 4, after_failures: 2 };
+/// assert!(s.validate().is_ok());
+/// // the probes alternate sides, the first against where the parameter was last seen
+/// let offsets: Vec<f64> = (1..=4).map(|k| s.offset(k, -1.0)).collect();
+/// assert_eq!(offsets, [-6.0, 6.0, -12.0, 12.0]);
+/// ```
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ParameterSearch {
+    /// Shift of a lost parameter per probe, estimator units (mV for the
+    /// transition lines), 0 < step ≤ 1000. About 1.5× the half-width of the
+    /// scan's window keeps consecutive windows overlapping.
+    pub step: f64,
+    /// Probes before the search gives up (1..=[`MAX_SEARCH_PROBES`]).
+    pub max_probes: u32,
+    /// Failed evaluations in a row, with the level's gates where its last
+    /// good evaluation left them (nothing to retreat to), before a search
+    /// starts (1..=10): one failed fit is usually noise.
+    pub after_failures: u32,
+}
+
+impl ParameterSearch {
+    /// Check the bounds; the error names the field (relative to the level).
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        if !(self.step.is_finite() && self.step > 0.0 && self.step <= 1000.0) {
+            return Err(ConfigError::new("search.step", "must be > 0 and ≤ 1000"));
+        }
+        if !(1..=MAX_SEARCH_PROBES).contains(&self.max_probes) {
+            return Err(ConfigError::new(
+                "search.max_probes",
+                format!("must be 1..={MAX_SEARCH_PROBES}"),
+            ));
+        }
+        if !(1..=10).contains(&self.after_failures) {
+            return Err(ConfigError::new("search.after_failures", "must be 1..=10"));
+        }
+        Ok(())
+    }
+
+    /// Offset of probe `k` (1-based) from where the search started,
+    /// estimator units: `first_sign · step · ⌈k/2⌉`, the sign alternating
+    /// with every probe (`first_sign` is ±1).
+    pub fn offset(&self, k: u32, first_sign: f64) -> f64 {
+        let sign = if k % 2 == 1 { first_sign } else { -first_sign };
+        sign * self.step * f64::from(k.div_ceil(2))
+    }
+}
+
+/// A search under way.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub(super) struct ActiveSearch {
+    /// Probes made so far.
+    pub(super) probes: u32,
+    /// Per parameter: `Some(first_sign)` if it is searched for, `None` if held.
+    pub(super) signs: Vec<Option<f64>>,
+    /// What the probes added to the level's gates so far, mV.
+    pub(super) applied_mv: Vec<f64>,
+}
+
+/// What a level remembers for searching (part of its serializable state).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub(super) struct SearchMemory {
+    /// Failed evaluations in a row with nothing to retreat to.
+    pub(super) lost_in_a_row: u32,
+    /// A search gave up: none until an evaluation works again.
+    pub(super) exhausted: bool,
+    /// Per parameter, the last value a scan gave (estimator units).
+    pub(super) last_seen: Vec<Option<f64>>,
+    pub(super) active: Option<ActiveSearch>,
+}
+
+/// What the level does after a failed evaluation.
+#[derive(Debug, Clone, PartialEq)]
+pub(super) enum SearchMove {
+    /// Move the level's gates by this much (mV) and scan again.
+    Probe {
+        probe: u32,
+        offsets: Vec<f64>,
+        dv_mv: Vec<f64>,
+    },
+    /// Give up: move back by this much (mV).
+    GiveUp { probes: u32, dv_mv: Vec<f64> },
+}
+
+impl SearchMemory {
+    /// An evaluation gave every targeted parameter: the search (if any) is
+    /// over. Returns the number of probes it took, if one was under way.
+    pub(super) fn found(&mut self) -> Option<u32> {
+        self.lost_in_a_row = 0;
+        self.exhausted = false;
+        self.active.take().map(|a| a.probes)
+    }
+
+    /// Remember the values a scan gave (estimator units, parameter order).
+    pub(super) fn seen(&mut self, samples: &[Option<f64>]) {
+        self.last_seen.resize(samples.len(), None);
+        for (s, v) in self.last_seen.iter_mut().zip(samples) {
+            if let Some(v) = v.filter(|v| v.is_finite()) {
+                *s = Some(v);
+            }
+        }
+    }
+
+    /// A targeted parameter is missing and the level has nothing to retreat
+    /// to. `missing`: per parameter, whether it is targeted and missing;
+    /// `targets`: estimator-space targets; `jacobian`: the level's m×n
+    /// Jacobian (estimator units per mV). `None`: no search (yet): the
+    /// level goes on as without one.
+    pub(super) fn lost(
+        &mut self,
+        cfg: &ParameterSearch,
+        missing: &[bool],
+        targets: &[Option<f64>],
+        jacobian: &DMatrix<f64>,
+    ) -> Option<SearchMove> {
+        let n = jacobian.ncols();
+        if self.active.is_none() {
+            if self.exhausted {
+                return None;
+            }
+            self.lost_in_a_row += 1;
+            if self.lost_in_a_row < cfg.after_failures || !missing.iter().any(|&m| m) {
+                return None;
+            }
+            let signs = missing
+                .iter()
+                .enumerate()
+                .map(|(i, &m)| {
+                    m.then(|| {
+                        // last seen above its target: it has probably gone further up,
+                        // so the first probe shifts it down (and vice versa)
+                        let seen = self.last_seen.get(i).copied().flatten();
+                        let target = targets.get(i).copied().flatten();
+                        match (seen, target) {
+                            (Some(s), Some(t)) if s > t => -1.0,
+                            _ => 1.0,
+                        }
+                    })
+                })
+                .collect();
+            self.active = Some(ActiveSearch {
+                probes: 0,
+                signs,
+                applied_mv: vec![0.0; n],
+            });
+        }
+        let active = self.active.as_mut()?;
+        if active.probes >= cfg.max_probes || active.applied_mv.len() != n {
+            let back = active.applied_mv.iter().map(|d| -d).collect();
+            let probes = active.probes;
+            self.active = None;
+            self.exhausted = true;
+            self.lost_in_a_row = 0;
+            return Some(SearchMove::GiveUp {
+                probes,
+                dv_mv: back,
+            });
+        }
+        let k = active.probes + 1;
+        let offsets: Vec<f64> = active
+            .signs
+            .iter()
+            .map(|s| s.map_or(0.0, |sign| cfg.offset(k, sign)))
+            .collect();
+        let Some(total) = probe_voltages(jacobian, &offsets) else {
+            // no usable Jacobian: nothing to search with (the level goes on without)
+            if active.probes == 0 {
+                self.active = None;
+            }
+            return None;
+        };
+        let dv_mv: Vec<f64> = total
+            .iter()
+            .zip(&active.applied_mv)
+            .map(|(t, a)| t - a)
+            .collect();
+        active.probes = k;
+        active.applied_mv = total;
+        Some(SearchMove::Probe {
+            probe: k,
+            offsets,
+            dv_mv,
+        })
+    }
+}
+
+/// The minimum-norm gate offset (mV) that shifts the parameters by
+/// `offsets` (estimator units) through `jacobian` (m×n): `J⁺·offsets`.
+/// `None` if the Jacobian gives no finite, non-zero move.
+fn probe_voltages(jacobian: &DMatrix<f64>, offsets: &[f64]) -> Option<Vec<f64>> {
+    if jacobian.nrows() != offsets.len() {
+        return None;
+    }
+    let delta = -DVector::from_column_slice(offsets);
+    let step = crate::solver::newton_step(
+        jacobian,
+        &delta,
+        &crate::solver::SolverConfig {
+            max_step_mv: f64::INFINITY,
+            ..crate::solver::SolverConfig::default()
+        },
+    );
+    let dv: Vec<f64> = step.dv_mv.iter().copied().collect();
+    (step.rank > 0 && dv.iter().all(|x| x.is_finite()) && dv.iter().any(|x| *x != 0.0))
+        .then_some(dv)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cfg() -> ParameterSearch {
+        ParameterSearch {
+            step: 6.0,
+            max_probes: 4,
+            after_failures: 2,
+        }
+    }
+
+    #[test]
+    fn bounds_name_their_field() {
+        for (bad, field) in [
+            (ParameterSearch { step: 0.0, ..cfg() }, "search.step"),
+            (
+                ParameterSearch {
+                    step: f64::NAN,
+                    ..cfg()
+                },
+                "search.step",
+            ),
+            (
+                ParameterSearch {
+                    max_probes: 0,
+                    ..cfg()
+                },
+                "search.max_probes",
+            ),
+            (
+                ParameterSearch {
+                    max_probes: MAX_SEARCH_PROBES + 1,
+                    ..cfg()
+                },
+                "search.max_probes",
+            ),
+            (
+                ParameterSearch {
+                    after_failures: 11,
+                    ..cfg()
+                },
+                "search.after_failures",
+            ),
+        ] {
+            assert_eq!(bad.validate().unwrap_err().field, field);
+        }
+    }
+
+    /// Line A responds 0.5 mV per mV of PA plus 0.1 of PB, line B 0.1 of PA
+    /// and 0.4 of PB. Line A was last seen at +3 mV and is lost, line B is
+    /// found: the probes shift A by −6, +6, −12, +12 mV and hold B, which by
+    /// hand is ΔPA = −6·0.4/0.19, ΔPB = +6·0.1/0.19 for the first (the
+    /// inverse of [[0.5, 0.1], [0.1, 0.4]] is [[0.4, −0.1], [−0.1, 0.5]]/0.19).
+    #[test]
+    fn probes_shift_the_lost_parameter_alternately_and_hold_the_found_one() {
+        let j = DMatrix::from_row_slice(2, 2, &[0.5, 0.1, 0.1, 0.4]);
+        let mut m = SearchMemory::default();
+        m.seen(&[Some(3.0), Some(0.2)]);
+        let missing = [true, false];
+        let targets = [Some(0.0), Some(0.0)];
+        // the first failure is not enough
+        assert_eq!(m.lost(&cfg(), &missing, &targets, &j), None);
+        let mut position = [0.0, 0.0];
+        for (k, expected) in [(1, -6.0), (2, 6.0), (3, -12.0), (4, 12.0)] {
+            let Some(SearchMove::Probe {
+                probe,
+                offsets,
+                dv_mv,
+            }) = m.lost(&cfg(), &missing, &targets, &j)
+            else {
+                panic!("probe {k} expected");
+            };
+            assert_eq!((probe, offsets.clone()), (k, vec![expected, 0.0]));
+            position[0] += dv_mv[0];
+            position[1] += dv_mv[1];
+            let by_hand = [expected * 0.4 / 0.19, -expected * 0.1 / 0.19];
+            for (p, h) in position.iter().zip(by_hand) {
+                assert!((p - h).abs() < 1e-9, "{position:?} vs {by_hand:?}");
+            }
+        }
+        // the fifth call gives up and goes back where it started
+        let Some(SearchMove::GiveUp { probes, dv_mv }) = m.lost(&cfg(), &missing, &targets, &j)
+        else {
+            panic!("give up expected");
+        };
+        assert_eq!(probes, 4);
+        assert!((position[0] + dv_mv[0]).abs() < 1e-9 && (position[1] + dv_mv[1]).abs() < 1e-9);
+        // and does not search again until something is found
+        for _ in 0..5 {
+            assert_eq!(m.lost(&cfg(), &missing, &targets, &j), None);
+        }
+        assert_eq!(m.found(), None);
+        assert_eq!(m.lost(&cfg(), &missing, &targets, &j), None);
+        assert!(matches!(
+            m.lost(&cfg(), &missing, &targets, &j),
+            Some(SearchMove::Probe { probe: 1, .. })
+        ));
+        assert_eq!(m.found(), Some(1));
+    }
+
+    #[test]
+    fn no_search_without_a_usable_jacobian() {
+        let mut m = SearchMemory::default();
+        let zero = DMatrix::zeros(2, 2);
+        assert_eq!(m.lost(&cfg(), &[true, true], &[Some(0.0); 2], &zero), None);
+        assert_eq!(m.lost(&cfg(), &[true, true], &[Some(0.0); 2], &zero), None);
+    }
+}

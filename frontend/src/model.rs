@@ -274,8 +274,8 @@ pub fn event_name(e: &EventKind) -> &'static str {
 
 /// Whether an event matters for the device's safety or the trust in a
 /// measurement (highlighted in the event list): the instrument was not where
-/// the run expected it, a move was refused, a scan could not be evaluated, or
-/// a measurement was gated as an outlier.
+/// the run expected it, a move was refused, a scan could not be evaluated, a
+/// measurement was gated as an outlier, or a search for lost lines gave up.
 pub fn event_is_safety_relevant(e: &EventKind) -> bool {
     matches!(
         e,
@@ -900,9 +900,29 @@ mod tests {
                 scan: spintune::protocol::ScanKind::ReloadTime,
                 reason: "fit diverged".into(),
             },
+            EventKind::SearchEnded {
+                probes: 4,
+                found: false,
+            },
         ] {
             assert!(event_is_safety_relevant(&kind), "{kind:?}");
             // the name is the JSON tag
+            let json = serde_json::to_value(&kind).unwrap();
+            assert_eq!(json["event"], event_name(&kind));
+        }
+        // a search under way, or one that found its lines, is routine
+        for kind in [
+            EventKind::SearchProbe {
+                probe: 1,
+                parameters: vec!["mu_a_mv".into()],
+                offsets: vec![4.0],
+            },
+            EventKind::SearchEnded {
+                probes: 2,
+                found: true,
+            },
+        ] {
+            assert!(!event_is_safety_relevant(&kind), "{kind:?}");
             let json = serde_json::to_value(&kind).unwrap();
             assert_eq!(json["event"], event_name(&kind));
         }

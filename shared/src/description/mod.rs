@@ -155,10 +155,11 @@ pub struct LinesDescription {
     /// true; false: the paper's rule, retreat and re-scan only).
     #[serde(default = "default_true")]
     pub search_lost_lines: bool,
-    /// How lost lines are searched for (`step` in mV of line position:
-    /// about 1.5× the half-width of the lab's line scan; the simulator's
-    /// scan covers ±4 mV). Default: step 6 mV, 4 probes (±6, ±12 mV), after
-    /// 2 failed scans in a row.
+    /// How lost lines are searched for (`step` in mV of line position: at
+    /// most the half-width of the lab's line scan, the simulator's covers
+    /// ±4 mV). Default: step 4 mV, 4 probes (±4, ±8 mV), after 2 failed
+    /// scans in a row, the plungers at most 40 mV from where the search
+    /// started.
     #[serde(default = "default_line_search")]
     pub search: ParameterSearch,
 }
@@ -167,14 +168,18 @@ fn default_true() -> bool {
     true
 }
 
-/// Step 1.5× the simulator's ±4 mV line window (consecutive windows overlap
-/// by 2 mV); 4 probes reach lines 16 mV off; 2 failures in a row so that a
-/// single failed fit (noise) never moves the plungers. Set once, not tuned.
+/// Step = the simulator's ±4 mV line window's half-width (consecutive
+/// windows touch, and overlap when the plunger lever is underestimated,
+/// as a lever borrowed from the other line is); 4 probes reach lines 12 mV
+/// off; 2 failures in a row so that a single failed fit (noise) never moves
+/// the plungers; 40 mV of plunger covers 12 mV of line at a lever of 0.3.
+/// Set once from the window, not tuned.
 fn default_line_search() -> ParameterSearch {
     ParameterSearch {
-        step: 6.0,
+        step: 4.0,
         max_probes: 4,
         after_failures: 2,
+        max_excursion_mv: 40.0,
     }
 }
 

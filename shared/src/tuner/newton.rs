@@ -469,13 +469,20 @@ impl Tuner {
 
     /// Operations that measure the initial gradient, if the level still needs one.
     pub(super) fn init_ops(&mut self, level: usize) -> std::collections::VecDeque<Op> {
-        let mut ops = std::collections::VecDeque::new();
         let LevelState::Newton(state) = &self.levels[level] else {
-            return ops;
+            return Default::default();
         };
         if state.is_initialised() || state.fd.is_some() {
-            return ops;
+            return Default::default();
         }
+        self.fd_ops(level).unwrap_or_default()
+    }
+
+    /// Operations that measure the level's gradient by finite differences
+    /// (its `initial_gradient`), from where its gates are now; `None` if the
+    /// level's initial gradient is not measured.
+    fn fd_ops(&mut self, level: usize) -> Option<std::collections::VecDeque<Op>> {
+        let mut ops = std::collections::VecDeque::new();
         let (cfg, _) = self.newton(level);
         let InitialGradient::FiniteDifference {
             step_mv,
@@ -483,7 +490,7 @@ impl Tuner {
             recentre_between_offsets,
         } = cfg.initial_gradient
         else {
-            return ops;
+            return None;
         };
         let base = self.level_voltages(level);
         let children = self.after_move_ops(level);
@@ -516,7 +523,7 @@ impl Tuner {
         let m = cfg.parameters.len();
         let (_, state) = self.newton_mut(level);
         state.fd = Some(FiniteDifference::new(m, base, step_mv, reps));
-        ops
+        Some(ops)
     }
 
     /// Measure every parameter, then evaluate.
@@ -765,17 +772,40 @@ impl Tuner {
         if !missing_targeted {
             state.last_good_mv = Some(v_now.clone());
         }
+        let mut remeasure = false;
         if cfg.search.is_some() {
             let seen: Vec<Option<f64>> = samples.iter().map(|s| s.map(|s| s.0)).collect();
             state.search.seen(&seen);
             if !missing_targeted {
+                let unknown_rows = state.search.active.as_ref().is_some_and(|a| {
+                    let es = state.estimators.as_ref();
+                    a.signs.iter().enumerate().any(|(i, s)| {
+                        s.is_some()
+                            && es
+                                .and_then(|es| es.get(i))
+                                .is_some_and(|e| e.gradient().iter().all(|g| *g == 0.0))
+                    })
+                });
                 if let Some(probes) = state.search.found() {
                     state.events.push(EventKind::SearchEnded {
                         probes,
                         found: true,
                     });
+                    remeasure = unknown_rows
+                        && matches!(
+                            cfg.initial_gradient,
+                            InitialGradient::FiniteDifference { .. }
+                        );
                 }
             }
+        }
+        if remeasure {
+            // a line lost from the start has no gradient: measure the level's
+            // gradient now that its scans work, then a new round
+            let mut ops = self.fd_ops(level).unwrap_or_default();
+            ops.extend(self.round_ops(level));
+            self.push_ops(ops);
+            return;
         }
         let top = level == 0;
         if tuned {

@@ -29,18 +29,19 @@ pub const MAX_SEARCH_PROBES: u32 = 16;
 ///
 /// ```
 /// use spintune::tuner::ParameterSearch;
-/// let s = ParameterSearch { step: 6.0, max_probes: 4, after_failures: 2 };
+/// let s = ParameterSearch { step: 4.0, max_probes: 4, after_failures: 2, max_excursion_mv: 40.0 };
 /// assert!(s.validate().is_ok());
 /// // the probes alternate sides, the first against where the parameter was last seen
 /// let offsets: Vec<f64> = (1..=4).map(|k| s.offset(k, -1.0)).collect();
-/// assert_eq!(offsets, [-6.0, 6.0, -12.0, 12.0]);
+/// assert_eq!(offsets, [-4.0, 4.0, -8.0, 8.0]);
 /// ```
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ParameterSearch {
     /// Shift of a lost parameter per probe, estimator units (mV for the
-    /// transition lines), 0 < step ≤ 1000. About 1.5× the half-width of the
-    /// scan's window keeps consecutive windows overlapping.
+    /// transition lines), 0 < step ≤ 1000. At most the half-width of the
+    /// scan's window: consecutive windows then overlap even when the
+    /// Jacobian's lever is off by half.
     pub step: f64,
     /// Probes before the search gives up (1..=[`MAX_SEARCH_PROBES`]).
     pub max_probes: u32,
@@ -48,6 +49,10 @@ pub struct ParameterSearch {
     /// good evaluation left them (nothing to retreat to), before a search
     /// starts (1..=10): one failed fit is usually noise.
     pub after_failures: u32,
+    /// Farthest a probe may take the level's gates from where the search
+    /// started (norm over the gates, mV; 0 < value ≤ 1000). A probe beyond
+    /// it (a Jacobian that says the parameter hardly moves) ends the search.
+    pub max_excursion_mv: f64,
 }
 
 impl ParameterSearch {
@@ -60,6 +65,15 @@ impl ParameterSearch {
             return Err(ConfigError::new(
                 "search.max_probes",
                 format!("must be 1..={MAX_SEARCH_PROBES}"),
+            ));
+        }
+        if !(self.max_excursion_mv.is_finite()
+            && self.max_excursion_mv > 0.0
+            && self.max_excursion_mv <= 1000.0)
+        {
+            return Err(ConfigError::new(
+                "search.max_excursion_mv",
+                "must be > 0 and ≤ 1000 mV",
             ));
         }
         if !(1..=10).contains(&self.after_failures) {
@@ -177,15 +191,7 @@ impl SearchMemory {
         }
         let active = self.active.as_mut()?;
         if active.probes >= cfg.max_probes || active.applied_mv.len() != n {
-            let back = active.applied_mv.iter().map(|d| -d).collect();
-            let probes = active.probes;
-            self.active = None;
-            self.exhausted = true;
-            self.lost_in_a_row = 0;
-            return Some(SearchMove::GiveUp {
-                probes,
-                dv_mv: back,
-            });
+            return Some(self.give_up());
         }
         let k = active.probes + 1;
         let offsets: Vec<f64> = active
@@ -193,13 +199,22 @@ impl SearchMemory {
             .iter()
             .map(|s| s.map_or(0.0, |sign| cfg.offset(k, sign)))
             .collect();
-        let Some(total) = probe_voltages(jacobian, &offsets) else {
+        let assumed = with_assumed_rows(jacobian, &active.signs);
+        let Some(total) = probe_voltages(&assumed, &offsets) else {
             // no usable Jacobian: nothing to search with (the level goes on without)
             if active.probes == 0 {
                 self.active = None;
             }
             return None;
         };
+        if total.iter().map(|x| x * x).sum::<f64>().sqrt() > cfg.max_excursion_mv {
+            if active.probes == 0 {
+                // the Jacobian puts even the first probe out of reach: no search
+                self.active = None;
+                return None;
+            }
+            return Some(self.give_up());
+        }
         let dv_mv: Vec<f64> = total
             .iter()
             .zip(&active.applied_mv)
@@ -213,6 +228,42 @@ impl SearchMemory {
             dv_mv,
         })
     }
+}
+
+impl SearchMemory {
+    /// End the active search: back by what its probes added; no new search
+    /// until an evaluation works.
+    fn give_up(&mut self) -> SearchMove {
+        let active = self.active.take();
+        self.exhausted = true;
+        self.lost_in_a_row = 0;
+        SearchMove::GiveUp {
+            probes: active.as_ref().map_or(0, |a| a.probes),
+            dv_mv: active.map_or_else(Vec::new, |a| a.applied_mv.iter().map(|d| -d).collect()),
+        }
+    }
+}
+
+/// `jacobian` with every searched parameter's unknown row (all zeros: its
+/// scans failed from the start, so its gradient was never measured)
+/// assumed: parameter `i` responds to the level's gate `i` alone, with the
+/// largest lever any known row has (the lines' convention: `lines.gates`
+/// lists the plungers in the lines' order). Rows beyond the gates, or with
+/// no known row to borrow from, stay zero.
+fn with_assumed_rows(jacobian: &DMatrix<f64>, searched: &[Option<f64>]) -> DMatrix<f64> {
+    let mut j = jacobian.clone();
+    let known = |r: usize| jacobian.row(r).iter().any(|x| *x != 0.0);
+    let lever = (0..jacobian.nrows())
+        .filter(|&r| known(r))
+        .flat_map(|r| jacobian.row(r).iter().map(|x| x.abs()).collect::<Vec<_>>())
+        .filter(|x| x.is_finite())
+        .fold(0.0, f64::max);
+    for (i, s) in searched.iter().enumerate() {
+        if s.is_some() && i < j.nrows() && i < j.ncols() && !known(i) && lever > 0.0 {
+            j[(i, i)] = lever;
+        }
+    }
+    j
 }
 
 /// The minimum-norm gate offset (mV) that shifts the parameters by
@@ -232,8 +283,14 @@ fn probe_voltages(jacobian: &DMatrix<f64>, offsets: &[f64]) -> Option<Vec<f64>> 
         },
     );
     let dv: Vec<f64> = step.dv_mv.iter().copied().collect();
-    (step.rank > 0 && dv.iter().all(|x| x.is_finite()) && dv.iter().any(|x| *x != 0.0))
-        .then_some(dv)
+    // the move must give the intended shifts (a rank-deficient Jacobian may
+    // not reach a searched parameter at all)
+    let achieved = jacobian * &step.dv_mv;
+    let reaches = achieved
+        .iter()
+        .zip(offsets)
+        .all(|(a, o)| (a - o).abs() <= 1e-6 * (1.0 + o.abs()));
+    (step.rank > 0 && reaches && dv.iter().all(|x| x.is_finite())).then_some(dv)
 }
 
 #[cfg(test)]
@@ -245,6 +302,7 @@ mod tests {
             step: 6.0,
             max_probes: 4,
             after_failures: 2,
+            max_excursion_mv: 100.0,
         }
     }
 
@@ -279,6 +337,13 @@ mod tests {
                     ..cfg()
                 },
                 "search.after_failures",
+            ),
+            (
+                ParameterSearch {
+                    max_excursion_mv: 0.0,
+                    ..cfg()
+                },
+                "search.max_excursion_mv",
             ),
         ] {
             assert_eq!(bad.validate().unwrap_err().field, field);
@@ -335,6 +400,66 @@ mod tests {
             Some(SearchMove::Probe { probe: 1, .. })
         ));
         assert_eq!(m.found(), Some(1));
+    }
+
+    /// Line A's row was never measured (its scans failed from the start);
+    /// line B's is [0.18, 0.67]: line A is assumed to move 0.67 mV per mV
+    /// of PA alone, so a +6 mV probe moves PA by 6/0.67 mV and PB not at all
+    /// (line B held: 0.18·ΔPA + 0.67·ΔPB = 0 → ΔPB = −0.18/0.67·ΔPA; by hand
+    /// with the assumed row [0.67, 0]: ΔPA = 6/0.67 · 1, ΔPB = −0.18·ΔPA/0.67).
+    #[test]
+    fn an_unmeasured_row_is_assumed_on_its_own_gate() {
+        let j = DMatrix::from_row_slice(2, 2, &[0.0, 0.0, 0.18, 0.67]);
+        let mut m = SearchMemory::default();
+        m.seen(&[None, Some(0.0)]);
+        let search = ParameterSearch {
+            after_failures: 1,
+            ..cfg()
+        };
+        let Some(SearchMove::Probe { dv_mv, .. }) =
+            m.lost(&search, &[true, false], &[Some(0.0); 2], &j)
+        else {
+            panic!("a probe expected");
+        };
+        let pa = 6.0 / 0.67;
+        let pb = -0.18 * pa / 0.67;
+        assert!(
+            (dv_mv[0] - pa).abs() < 1e-9 && (dv_mv[1] - pb).abs() < 1e-9,
+            "{dv_mv:?}"
+        );
+    }
+
+    /// A lever of 0.01 mV/mV would take the plungers 600 mV for the first
+    /// probe: no search. With 0.5 the third probe (12 mV → 24 mV of gate)
+    /// is beyond an excursion of 20 mV: the search gives up after two.
+    #[test]
+    fn probes_never_go_beyond_the_excursion_limit() {
+        let search = ParameterSearch {
+            after_failures: 1,
+            max_excursion_mv: 20.0,
+            ..cfg()
+        };
+        let weak = DMatrix::from_row_slice(1, 1, &[0.01]);
+        let mut m = SearchMemory::default();
+        assert_eq!(m.lost(&search, &[true], &[Some(0.0)], &weak), None);
+        assert!(m.active.is_none());
+        let j = DMatrix::from_row_slice(1, 1, &[0.5]);
+        let mut m = SearchMemory::default();
+        let mut at = 0.0;
+        for _ in 0..2 {
+            let Some(SearchMove::Probe { dv_mv, .. }) = m.lost(&search, &[true], &[Some(0.0)], &j)
+            else {
+                panic!("probe expected");
+            };
+            at += dv_mv[0];
+            assert!(at.abs() <= 20.0);
+        }
+        let Some(SearchMove::GiveUp { probes, dv_mv }) = m.lost(&search, &[true], &[Some(0.0)], &j)
+        else {
+            panic!("give up expected");
+        };
+        assert_eq!(probes, 2);
+        assert!((at + dv_mv[0]).abs() < 1e-9);
     }
 
     #[test]

@@ -8,7 +8,9 @@ use spintune::description::{
 use spintune::driver::SimulationConfig;
 use spintune::parameter::Transform;
 use spintune::solver::StepRule;
-use spintune::tuner::{FlankPrediction, InitialGradient, LevelKind, ParameterForecast};
+use spintune::tuner::{
+    FlankPrediction, InitialGradient, LevelKind, ParameterForecast, ParameterSearch,
+};
 
 /// The paper's device described in a few lines derives exactly the
 /// paper's hierarchy with the recommended qubit strategy: every level
@@ -40,6 +42,13 @@ fn paper_device_derives_the_paper_hierarchy_with_the_recommended_strategy() {
     if let LevelKind::Newton(lines) = &mut paper.levels[1].kind {
         lines.skip_confirmation_sigma = Some(2.0);
         lines.forecast = Some(ParameterForecast::default());
+        // lost lines are searched for: probes of the ±4 mV window's half-width
+        lines.search = Some(ParameterSearch {
+            step: 4.0,
+            max_probes: 4,
+            after_failures: 2,
+            max_excursion_mv: 40.0,
+        });
     }
     if let LevelKind::SensingDot(sd) = &mut paper.levels[2].kind {
         sd.prediction = Some(FlankPrediction::default());
@@ -87,6 +96,44 @@ fn described_lines_are_forecast_unless_told_to_always_scan() {
     assert_eq!(err.field, "lines.forecast.skip_std");
     let err = line_level(&format!(r#"{plain}, "forecast": {{"max_skips": 1000}}}}"#)).unwrap_err();
     assert_eq!(err.field, "lines.forecast.max_skips");
+    // lost lines: searched for by default, with the fields a lab sets named
+    let search = |lines: &str| {
+        let d: DeviceDescription = serde_json::from_str(&text(lines)).unwrap();
+        d.tuner().map(|t| match &t.levels[1].kind {
+            LevelKind::Newton(n) => n.search.clone(),
+            LevelKind::SensingDot(_) => panic!("level 1 is the lines"),
+        })
+    };
+    assert_eq!(
+        search(&format!("{plain}}}")).unwrap(),
+        Some(ParameterSearch::default())
+    );
+    assert_eq!(
+        search(&format!(r#"{plain}, "search_lost_lines": false}}"#)).unwrap(),
+        None
+    );
+    let wide = search(&format!(
+        r#"{plain}, "search": {{"step": 3, "max_probes": 8}}}}"#
+    ))
+    .unwrap()
+    .unwrap();
+    assert_eq!(
+        (wide.step, wide.max_probes, wide.after_failures),
+        (3.0, 8, 2)
+    );
+    for (field, bad) in [
+        ("step", "0"),
+        ("max_probes", "17"),
+        ("after_failures", "0"),
+        ("max_excursion_mv", "1e9"),
+    ] {
+        let err = search(&format!(r#"{plain}, "search": {{"{field}": {bad}}}}}"#)).unwrap_err();
+        assert_eq!(err.field, format!("lines.search.{field}"));
+    }
+    // the top level moves the qubit gates: it never searches
+    let mut t = DeviceDescription::paper_device().tuner().unwrap();
+    t.top_mut().search = Some(ParameterSearch::default());
+    assert_eq!(t.validate().unwrap_err().field, "levels[0].search");
     // the top level always measures
     let mut t = DeviceDescription::paper_device().tuner().unwrap();
     t.top_mut().forecast = Some(ParameterForecast::default());

@@ -160,27 +160,12 @@ pub struct LinesDescription {
     /// ±4 mV). Default: step 4 mV, 4 probes (±4, ±8 mV), after 2 failed
     /// scans in a row, the plungers at most 40 mV from where the search
     /// started.
-    #[serde(default = "default_line_search")]
+    #[serde(default)]
     pub search: ParameterSearch,
 }
 
 fn default_true() -> bool {
     true
-}
-
-/// Step = the simulator's ±4 mV line window's half-width (consecutive
-/// windows touch, and overlap when the plunger lever is underestimated,
-/// as a lever borrowed from the other line is); 4 probes reach lines 12 mV
-/// off; 2 failures in a row so that a single failed fit (noise) never moves
-/// the plungers; 40 mV of plunger covers 12 mV of line at a lever of 0.3.
-/// Set once from the window, not tuned.
-fn default_line_search() -> ParameterSearch {
-    ParameterSearch {
-        step: 4.0,
-        max_probes: 4,
-        after_failures: 2,
-        max_excursion_mv: 40.0,
-    }
 }
 
 /// The sensing-dot level.
@@ -476,7 +461,7 @@ impl DeviceDescription {
                 always_scan: false,
                 forecast: ParameterForecast::default(),
                 search_lost_lines: true,
-                search: default_line_search(),
+                search: ParameterSearch::default(),
             }),
             sensing_dot: Some(SensingDotDescription {
                 gate: sd.gate,

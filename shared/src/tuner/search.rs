@@ -36,7 +36,7 @@ pub const MAX_SEARCH_PROBES: u32 = 16;
 /// assert_eq!(offsets, [-4.0, 4.0, -8.0, 8.0]);
 /// ```
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(default, deny_unknown_fields)]
 pub struct ParameterSearch {
     /// Shift of a lost parameter per probe, estimator units (mV for the
     /// transition lines), 0 < step ≤ 1000. At most the half-width of the
@@ -53,6 +53,24 @@ pub struct ParameterSearch {
     /// started (norm over the gates, mV; 0 < value ≤ 1000). A probe beyond
     /// it (a Jacobian that says the parameter hardly moves) ends the search.
     pub max_excursion_mv: f64,
+}
+
+/// The defaults suit transition lines (mV): step = the half-width of the
+/// simulator's ±4 mV line window (consecutive windows touch, and overlap
+/// when the plunger lever is underestimated, as a lever borrowed from the
+/// other line is); 4 probes reach lines 12 mV off; 2 failures in a row so
+/// that a single failed fit (noise) never moves the plungers; 40 mV of
+/// plunger covers 12 mV of line down to a lever of 0.3. Set once from the
+/// window, not tuned.
+impl Default for ParameterSearch {
+    fn default() -> Self {
+        Self {
+            step: 4.0,
+            max_probes: 4,
+            after_failures: 2,
+            max_excursion_mv: 40.0,
+        }
+    }
 }
 
 impl ParameterSearch {

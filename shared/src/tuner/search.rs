@@ -20,7 +20,7 @@
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
-use super::config::ConfigError;
+use crate::config_error::ConfigError;
 
 /// Upper bound on [`ParameterSearch::max_probes`].
 pub const MAX_SEARCH_PROBES: u32 = 16;

@@ -10,6 +10,7 @@ use serde::Serialize;
 use spintune::benchmark::keep::{
     run_keep_seed, summarize_keep, KeepSample, KeepSeedResult, KeepStrategy, KeepSummary,
 };
+use spintune::benchmark::keep_goals::KeepGoals;
 use spintune::benchmark::BenchmarkProtocol;
 use spintune::driver::SimulationConfig;
 
@@ -32,8 +33,10 @@ pub struct BenchKeepArgs {
     pub seeds: u64,
     /// Comma-separated strategies (default: all): predictive, fixed-10min,
     /// fixed-30min, fixed-60min, never; and `predictive@P%`, the predictive
-    /// schedule at out-of-band probability P (e.g. `predictive@2%`), for the
-    /// frontier of lab time against time in band.
+    /// schedule at out-of-band probability P (e.g. `predictive@2%`), and
+    /// `fixed-Nmin` / `fixed-Ns`, any whole interval from 10 s to a day
+    /// (e.g. `fixed-2min`, `fixed-90s`), for the frontier of lab time
+    /// against time in band.
     #[arg(long, value_delimiter = ',')]
     pub strategies: Vec<String>,
     /// Device description (TOML or JSON) overriding the simulator's defaults.
@@ -82,6 +85,8 @@ pub struct BenchKeepReport {
     pub relative_tolerance: f64,
     /// One object per strategy.
     pub strategies: Vec<KeepSummary>,
+    /// Issue 23's goals judged on these strategies.
+    pub goals: KeepGoals,
     /// With `--random-devices`: the devices.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub random_devices: Option<RandomDevices>,
@@ -160,6 +165,7 @@ pub fn run(args: BenchKeepArgs) -> Result<(), CliError> {
             hours: args.hours,
             seeds: args.seeds,
             relative_tolerance: args.tolerance,
+            goals: KeepGoals::judge(&summary),
             strategies: summary,
             random_devices,
         };
@@ -205,7 +211,7 @@ fn parse_strategies(names: &[String]) -> Result<Vec<KeepStrategy>, CliError> {
         KeepStrategy::parse,
         |s| s.name(),
         "keep strategy",
-        ", or predictive@P% (0.01 % ≤ P ≤ 50 %)",
+        ", or predictive@P% (0.01 % ≤ P ≤ 50 %), or fixed-Nmin / fixed-Ns (10 s to 1 day)",
     )
 }
 
@@ -239,6 +245,10 @@ pub fn markdown_table(summary: &[KeepSummary], runs: u64, args: &BenchKeepArgs) 
         ));
     }
     s.push_str(&time_by_kind_table(summary));
+    s.push_str("\nGoals (issue 23, judged on the strategies above):\n\n");
+    for line in KeepGoals::judge(summary).lines() {
+        s.push_str(&format!("- {line}\n"));
+    }
     s
 }
 

@@ -209,7 +209,7 @@ fn bench_keep_runs_a_frontier_point_and_reports_where_the_time_goes() {
                 "--threads",
                 "1",
                 "--strategies",
-                "predictive@5%,fixed-30min",
+                "predictive@5%,fixed-25min",
                 "--json",
             ])
             .arg(&json)
@@ -229,7 +229,7 @@ fn bench_keep_runs_a_frontier_point_and_reports_where_the_time_goes() {
         .iter()
         .map(|s| s["name"].as_str().unwrap())
         .collect();
-    assert_eq!(names, ["predictive@5%", "fixed-30min"]);
+    assert_eq!(names, ["predictive@5%", "fixed-25min"]);
     for s in strategies {
         // the parts add up to the measurement time
         let by_kind = s["minutes_per_hour_by_kind"].as_object().unwrap();
@@ -267,6 +267,11 @@ fn bench_keep_rejects_a_bad_strategy_naming_the_choices() {
         "predictive@0%",
         "predictive@70%",
         "predictive@2",
+        "fixed-0min",
+        "fixed-1441min",
+        "fixed-2.5min",
+        "fixed-5s",
+        "fixed-",
         "sometimes",
     ] {
         let out = bin()
@@ -284,7 +289,9 @@ fn bench_keep_rejects_a_bad_strategy_naming_the_choices() {
         assert_eq!(out.status.code(), Some(2), "{bad}");
         let err = String::from_utf8_lossy(&out.stderr);
         assert!(
-            err.contains("unknown keep strategy") && err.contains("predictive@P%"),
+            err.contains("unknown keep strategy")
+                && err.contains("predictive@P%")
+                && err.contains("fixed-Nmin / fixed-Ns (10 s to 1 day)"),
             "{err}"
         );
     }

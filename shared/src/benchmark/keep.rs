@@ -28,21 +28,19 @@ pub const SAMPLE_S: f64 = 60.0;
 /// time gives up on the seed (counted as `not_tuned`), s.
 pub const MAX_INITIAL_TUNE_S: f64 = 4.0 * 3600.0;
 
-/// A keep strategy.
+/// A keep strategy. Serialized as its name ([`KeepStrategy::name`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
+#[serde(into = "String", try_from = "String")]
 pub enum KeepStrategy {
     /// The product default: the drift model schedules checks and re-tunes.
     Predictive,
-    /// Check every parameter every 10 min, re-tune when out of band.
-    #[serde(rename = "fixed-10min")]
-    Fixed10,
-    /// Every 30 min.
-    #[serde(rename = "fixed-30min")]
-    Fixed30,
-    /// Every 60 min.
-    #[serde(rename = "fixed-60min")]
-    Fixed60,
+    /// Check every parameter every `seconds` of lab time, re-tune when a
+    /// measured value is out of band (`fixed-10min` or `fixed-90s` on the
+    /// command line; [`MIN_FIXED_SECONDS`] ..= [`MAX_FIXED_SECONDS`]).
+    Fixed {
+        /// Interval, lab seconds.
+        seconds: u32,
+    },
     /// Tune once, then leave it.
     Never,
     /// The predictive schedule at another out-of-band probability (in
@@ -55,6 +53,25 @@ pub enum KeepStrategy {
     },
 }
 
+/// Shortest interval of a `fixed-…` strategy, lab seconds (the keep
+/// config's [`crate::tuner::MIN_CHECK_INTERVAL_S`]).
+pub const MIN_FIXED_SECONDS: u32 = 10;
+/// Longest interval of a `fixed-…` strategy, lab seconds (a day).
+pub const MAX_FIXED_SECONDS: u32 = 86_400;
+
+impl From<KeepStrategy> for String {
+    fn from(s: KeepStrategy) -> String {
+        s.name()
+    }
+}
+
+impl TryFrom<String> for KeepStrategy {
+    type Error = String;
+    fn try_from(name: String) -> Result<Self, String> {
+        KeepStrategy::parse(&name).ok_or_else(|| format!("unknown keep strategy {name:?}"))
+    }
+}
+
 /// Highest out-of-band probability of a `predictive@P%` strategy, bp (50 %).
 pub const MAX_PREDICTIVE_AT_BP: u32 = 5_000;
 
@@ -62,9 +79,9 @@ impl KeepStrategy {
     /// Every strategy, in report order.
     pub const ALL: [KeepStrategy; 5] = [
         KeepStrategy::Predictive,
-        KeepStrategy::Fixed10,
-        KeepStrategy::Fixed30,
-        KeepStrategy::Fixed60,
+        KeepStrategy::Fixed { seconds: 600 },
+        KeepStrategy::Fixed { seconds: 1_800 },
+        KeepStrategy::Fixed { seconds: 3_600 },
         KeepStrategy::Never,
     ];
 
@@ -78,13 +95,20 @@ impl KeepStrategy {
     /// assert_eq!(KeepStrategy::parse("fixed-30min").unwrap().name(), "fixed-30min");
     /// assert!(KeepStrategy::parse("predictive@0%").is_none());
     /// assert!(KeepStrategy::parse("predictive@60%").is_none());
+    /// assert_eq!(KeepStrategy::parse("fixed-2min"), Some(KeepStrategy::Fixed { seconds: 120 }));
+    /// assert_eq!(KeepStrategy::parse("fixed-90s").unwrap().name(), "fixed-90s");
+    /// assert_eq!(KeepStrategy::parse("fixed-120s").unwrap().name(), "fixed-2min");
+    /// assert!(KeepStrategy::parse("fixed-0min").is_none());
+    /// assert!(KeepStrategy::parse("fixed-9s").is_none());
+    /// assert!(KeepStrategy::parse("fixed-1441min").is_none());
     /// ```
     pub fn name(self) -> String {
         match self {
             KeepStrategy::Predictive => "predictive".into(),
-            KeepStrategy::Fixed10 => "fixed-10min".into(),
-            KeepStrategy::Fixed30 => "fixed-30min".into(),
-            KeepStrategy::Fixed60 => "fixed-60min".into(),
+            KeepStrategy::Fixed { seconds } if seconds % 60 == 0 => {
+                format!("fixed-{}min", seconds / 60)
+            }
+            KeepStrategy::Fixed { seconds } => format!("fixed-{seconds}s"),
             KeepStrategy::Never => "never".into(),
             KeepStrategy::PredictiveAt { basis_points } => {
                 format!("predictive@{}%", f64::from(basis_points) / 100.0)
@@ -93,8 +117,19 @@ impl KeepStrategy {
     }
 
     /// Parse a name of [`KeepStrategy::name`]; `predictive@P%` takes any P
-    /// in (0, 50] % with at most two decimals.
+    /// in (0, 50] % with at most two decimals, `fixed-Nmin` and `fixed-Ns`
+    /// any whole interval in [`MIN_FIXED_SECONDS`] ..= [`MAX_FIXED_SECONDS`].
     pub fn parse(name: &str) -> Option<Self> {
+        if let Some(n) = name.strip_prefix("fixed-") {
+            let seconds = match (n.strip_suffix("min"), n.strip_suffix('s')) {
+                (Some(m), _) => m.parse::<u32>().ok()?.checked_mul(60)?,
+                (None, Some(s)) => s.parse::<u32>().ok()?,
+                (None, None) => return None,
+            };
+            return (MIN_FIXED_SECONDS..=MAX_FIXED_SECONDS)
+                .contains(&seconds)
+                .then_some(KeepStrategy::Fixed { seconds });
+        }
         if let Some(p) = name.strip_prefix("predictive@") {
             let percent: f64 = p.strip_suffix('%')?.trim().parse().ok()?;
             let bp = (percent * 100.0).round();
@@ -112,9 +147,9 @@ impl KeepStrategy {
     pub fn keep_config(self, product: &KeepConfig) -> KeepConfig {
         let schedule = match self {
             KeepStrategy::Predictive => product.schedule,
-            KeepStrategy::Fixed10 => KeepSchedule::Fixed { interval_s: 600.0 },
-            KeepStrategy::Fixed30 => KeepSchedule::Fixed { interval_s: 1800.0 },
-            KeepStrategy::Fixed60 => KeepSchedule::Fixed { interval_s: 3600.0 },
+            KeepStrategy::Fixed { seconds } => KeepSchedule::Fixed {
+                interval_s: f64::from(seconds),
+            },
             KeepStrategy::Never => KeepSchedule::Never,
             KeepStrategy::PredictiveAt { basis_points } => KeepSchedule::Predictive {
                 out_of_band_probability: f64::from(basis_points) / 10_000.0,

@@ -25,6 +25,7 @@
 pub mod array;
 pub mod array_timeline;
 pub mod keep;
+pub mod keep_goals;
 
 use std::collections::BTreeMap;
 

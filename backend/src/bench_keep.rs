@@ -31,8 +31,9 @@ pub struct BenchKeepArgs {
     /// Number of seeds (seeds 1..=N, at most 10,000).
     #[arg(long, default_value_t = 20)]
     pub seeds: u64,
-    /// Comma-separated strategies (default: all): predictive, fixed-10min,
-    /// fixed-30min, fixed-60min, never; and `predictive@P%`, the predictive
+    /// Comma-separated strategies (default: predictive, the fixed intervals
+    /// 20s, 30s, 45s, 1min, 90s, 2min, 3min, 5min, 10min, 30min, 60min, and
+    /// never); also `predictive@P%`, the predictive
     /// schedule at out-of-band probability P (e.g. `predictive@2%`), and
     /// `fixed-Nmin` / `fixed-Ns`, any whole interval from 10 s to a day
     /// (e.g. `fixed-2min`, `fixed-90s`), for the frontier of lab time

@@ -213,9 +213,17 @@ impl RunConfig {
         {
             d.extend(b);
         }
-        if let (Value::Object(d), Some(Ok(a))) =
+        if let (Value::Object(d), Some(Ok(mut a))) =
             (&mut doc, self.array.as_ref().map(serde_json::to_value))
         {
+            if self.backend.driver == DriverKind::Bridge {
+                // A lab's array (its description) has no simulated world:
+                // `array.array` and `array.device` would be printed unused.
+                if let Value::Object(a) = &mut a {
+                    a.remove("array");
+                    a.remove("device");
+                }
+            }
             d.insert("array".into(), a);
         }
         drop_nulls(&mut doc);

@@ -73,6 +73,34 @@ fn resolved_configs_read_back_unchanged() {
     }
 }
 
+/// A lab's array (driver `bridge`) resolves without the simulated world it
+/// never uses; the same description on the simulator keeps it.
+#[test]
+fn a_bridge_array_resolves_without_a_simulated_world() {
+    let resolved = stdout_of(&spintune(&[
+        "config",
+        "resolve",
+        example("array-lab.toml").to_str().unwrap(),
+    ]));
+    assert!(resolved.contains("[array.description]"), "{resolved}");
+    assert!(!resolved.contains("[array.array"), "{resolved}");
+    assert!(!resolved.contains("[array.device"), "{resolved}");
+
+    let dir = temp_dir("bridge-array");
+    let on_simulator = dir.join("array-sim.toml");
+    let text = std::fs::read_to_string(example("array-lab.toml"))
+        .unwrap()
+        .replace("driver = \"bridge\"", "driver = \"simulator\"");
+    std::fs::write(&on_simulator, text).unwrap();
+    let resolved = stdout_of(&spintune(&[
+        "config",
+        "resolve",
+        on_simulator.to_str().unwrap(),
+    ]));
+    assert!(resolved.contains("[array.array]"), "{resolved}");
+    assert!(resolved.contains("[array.device]"), "{resolved}");
+}
+
 #[test]
 fn the_lab_description_derives_the_levels_and_tunes_the_simulated_device() {
     let json: serde_json::Value = serde_json::from_str(&stdout_of(&spintune(&[

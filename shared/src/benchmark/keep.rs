@@ -76,9 +76,21 @@ impl TryFrom<String> for KeepStrategy {
 pub const MAX_PREDICTIVE_AT_BP: u32 = 5_000;
 
 impl KeepStrategy {
-    /// Every strategy, in report order.
-    pub const ALL: [KeepStrategy; 5] = [
+    /// The strategies run by default, in report order: `predictive`, a
+    /// ladder of fixed intervals from 20 s (a check of t_sr and w takes
+    /// 33 s, so checking runs nearly back to back) to 60 min, and `never`.
+    /// The ladder is what the goal needs: the cheapest fixed interval that
+    /// keeps the qubit in band ([`super::keep_goals`]).
+    pub const ALL: [KeepStrategy; 13] = [
         KeepStrategy::Predictive,
+        KeepStrategy::Fixed { seconds: 20 },
+        KeepStrategy::Fixed { seconds: 30 },
+        KeepStrategy::Fixed { seconds: 45 },
+        KeepStrategy::Fixed { seconds: 60 },
+        KeepStrategy::Fixed { seconds: 90 },
+        KeepStrategy::Fixed { seconds: 120 },
+        KeepStrategy::Fixed { seconds: 180 },
+        KeepStrategy::Fixed { seconds: 300 },
         KeepStrategy::Fixed { seconds: 600 },
         KeepStrategy::Fixed { seconds: 1_800 },
         KeepStrategy::Fixed { seconds: 3_600 },

@@ -230,6 +230,19 @@ fn bench_keep_runs_a_frontier_point_and_reports_where_the_time_goes() {
         .map(|s| s["name"].as_str().unwrap())
         .collect();
     assert_eq!(names, ["predictive@5%", "fixed-25min"]);
+    // the goals are judged on what ran: no `predictive` or `never` here,
+    // and the fixed interval is the reference only if it reached 0.99
+    let goals = &report["goals"];
+    assert!(goals["predictive_in_band"].is_null(), "{goals}");
+    assert!(goals["drift_is_real"].is_null(), "{goals}");
+    assert_eq!(goals["safe"], true, "{goals}");
+    let fixed_in_band = strategies[1]["fraction_in_band"].as_f64().unwrap();
+    assert_eq!(
+        goals["cheapest_fixed_in_band"].is_null(),
+        fixed_in_band < 0.99,
+        "{goals}"
+    );
+    assert!(stdout.contains("Goals (issue 23"), "{stdout}");
     for s in strategies {
         // the parts add up to the measurement time
         let by_kind = s["minutes_per_hour_by_kind"].as_object().unwrap();

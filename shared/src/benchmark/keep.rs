@@ -55,7 +55,7 @@ pub enum KeepStrategy {
 
 /// Shortest interval of a `fixed-…` strategy, lab seconds (the keep
 /// config's [`crate::tuner::MIN_CHECK_INTERVAL_S`]).
-pub const MIN_FIXED_SECONDS: u32 = 10;
+pub const MIN_FIXED_SECONDS: u32 = crate::tuner::MIN_CHECK_INTERVAL_S as u32;
 /// Longest interval of a `fixed-…` strategy, lab seconds (a day).
 pub const MAX_FIXED_SECONDS: u32 = 86_400;
 

@@ -41,6 +41,7 @@ use std::collections::BTreeMap;
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
+use super::flank::{FlankForecast, FlankModel};
 use crate::config_error::ConfigError;
 use crate::fit::{evaluate_with, uncertainty::References};
 use crate::protocol::{
@@ -52,7 +53,9 @@ use crate::session::{Output, RunSession, SessionConfig};
 use crate::sim::array::{parameter_name, split_gate};
 use crate::tuner::array::{CellKnowledge, JointArrayTuner, JointConfig, Measured};
 use crate::tuner::level_forecast::{compensation_columns, LevelForecast};
-use crate::tuner::{GradientRow, InitialGradient, LevelKind, ParameterForecast, TunerConfig};
+use crate::tuner::{
+    FlankPrediction, GradientRow, InitialGradient, LevelKind, ParameterForecast, TunerConfig,
+};
 
 /// The array's parameters per cell, in order.
 pub const CELL_PARAMETERS: [&str; 2] = ["t_sr", "w"];
@@ -94,6 +97,16 @@ pub struct ArrayRunSettings {
     /// single-cell level's confirming-scan rule (docs/array.md).
     #[serde(default = "default_skip_sigma")]
     pub skip_confident_sigma: Option<f64>,
+    /// Park a cell's sensing dot on its flank as predicted from the gates
+    /// of its neighbourhood (a [`FlankModel`] per cell, learned from every
+    /// sweep) instead of sweeping, when the prediction is confident
+    /// (`skip_std_mv`), the cell's evaluations have not failed since its
+    /// last sweep and fewer than `max_skips` sweeps were skipped in a row
+    /// (`max_skips = 0`: sweep every time). A cell sweeps anyway when its
+    /// readout group sweeps in the same batch for as long (the lab time is
+    /// the same). Default: the single-cell sensing-dot level's defaults.
+    #[serde(default)]
+    pub flank_prediction: FlankPrediction,
 }
 
 impl Default for ArrayRunSettings {
@@ -107,6 +120,7 @@ impl Default for ArrayRunSettings {
             precorrect_lines_mv: Some(1.0),
             max_iterations: default_max_iterations(),
             skip_confident_sigma: default_skip_sigma(),
+            flank_prediction: FlankPrediction::default(),
         }
     }
 }
@@ -161,6 +175,12 @@ impl ArrayRunSettings {
                 k.to_string(),
             )?;
         }
+        self.flank_prediction
+            .validate()
+            .map_err(|(field, message)| {
+                let field = field.trim_start_matches("prediction.");
+                ConfigError::new(format!("flank_prediction.{field}"), message)
+            })?;
         let l = self.line_tolerance_mv;
         check(
             l.is_finite() && l > 0.0 && l <= 1.0,
@@ -219,6 +239,14 @@ struct CellLower {
     /// ([`LevelForecast`], centred on the cell's virtual-gate matrix): where
     /// a move took them, so that a far shift is corrected before the scan.
     lines: LevelForecast,
+    /// The sensing dot's flank as a learned function of the neighbourhood's
+    /// gates (`None`: no sensing-dot level).
+    #[serde(default)]
+    flank: Option<FlankModel>,
+    /// An evaluation of the cell failed since its last sweep (the sensor
+    /// may be off its flank: the next park sweeps).
+    #[serde(default)]
+    failed_since_sweep: bool,
 }
 
 impl CellLower {
@@ -253,8 +281,11 @@ enum Step {
     Oracle,
     /// Joint move `m` (0-based).
     Move(u32),
-    /// Sensor sweeps of these cells, then `next`.
+    /// Park the sensors of these cells (sweep or predict), then `next`.
     ParkSweep(Vec<u32>, AfterPark),
+    /// Sensor sweeps of these cells are out; the flanks (gate, mV) of the
+    /// cells parked from their prediction; then `next`.
+    Sweeping(Vec<u32>, Vec<(String, f64)>, AfterPark),
     /// Sensor sets to these flanks (gate, mV), from the voltages when the
     /// batch is handed out, then `next`.
     ParkSet(Vec<(String, f64)>, AfterPark),
@@ -672,10 +703,21 @@ impl ArrayRun {
                     self.step = Self::after_park(next);
                     Vec::new()
                 } else {
-                    let sweeps = self.sensor_sweeps(&cells)?;
-                    self.step = Step::ParkSweep(cells, next);
-                    sweeps
+                    let (sweep, predicted) = self.plan_parks(&cells)?;
+                    if sweep.is_empty() {
+                        self.step = Step::ParkSet(predicted, next);
+                        Vec::new()
+                    } else {
+                        let sweeps = self.sensor_sweeps(&sweep)?;
+                        self.step = Step::Sweeping(sweep, predicted, next);
+                        sweeps
+                    }
                 }
+            }
+            Step::Sweeping(..) => {
+                return Err(ArrayRunError::Protocol(
+                    "sensor sweeps planned without a batch".into(),
+                ))
             }
             Step::ParkSet(flanks, next) => {
                 if flanks.is_empty() {
@@ -802,9 +844,15 @@ impl ArrayRun {
                 self.step = Step::Move(0);
             }
             Step::Move(m) => self.moved(m)?,
-            Step::ParkSweep(cells, next) => {
-                let flanks = self.sensor_flanks(&cells, &answers)?;
+            Step::Sweeping(cells, predicted, next) => {
+                let mut flanks = self.sensor_flanks(&cells, &answers)?;
+                flanks.extend(predicted);
                 self.step = Step::ParkSet(flanks, next);
+            }
+            Step::ParkSweep(..) => {
+                return Err(ArrayRunError::Protocol(
+                    "a park answered before its sweeps were planned".into(),
+                ))
             }
             Step::ParkSet(_, next) => self.step = Self::after_park(next),
             Step::Precorrect(cells) => self.step = Step::LineScan(cells, 0),
@@ -928,6 +976,8 @@ impl ArrayRun {
                 line_max_step_mv: 0.0,
                 references: cfg.fit_references,
                 lines: LevelForecast::new(Vec::new(), 2, 0.1, Vec::new()),
+                flank: None,
+                failed_since_sweep: false,
             };
             for level in cfg.levels.iter().skip(1) {
                 match &level.kind {
@@ -968,6 +1018,18 @@ impl ArrayRun {
                 .map_or_else(Vec::new, |(rows, m)| {
                     compensation_columns(&own.gates, rows, m, &l.line_gates)
                 });
+            if !l.sd_gate.is_empty() {
+                // the flank's model sees the neighbourhood's gates but the swept one
+                let others = self
+                    .voltages_mv
+                    .keys()
+                    .filter(|g| {
+                        split_gate(g).is_some_and(|(k, _)| k.abs_diff(c) <= 1) && **g != l.sd_gate
+                    })
+                    .cloned()
+                    .collect();
+                l.flank = Some(FlankModel::new(others, &self.settings.flank_prediction));
+            }
             l.lines = LevelForecast::new(
                 near,
                 2,
@@ -1060,7 +1122,7 @@ impl ArrayRun {
             let (c, p) = (measured[i / 2], i % 2);
             match self.evaluate(c, a, CELL_PARAMETERS[p]) {
                 Some(v) => raw[c][p] = Some(v),
-                None => self.failed_fits += 1,
+                None => self.evaluation_failed(c),
             }
         }
         // a skipped cell: its prediction, reported as an event, not a value
@@ -1102,6 +1164,12 @@ impl ArrayRun {
             .zip(&skip)
             .map(|(m, &s)| !s && m.iter().any(Option::is_none))
             .collect();
+        // too uncertain: the sensor may be off its flank too
+        if let Some(j) = self.joint.as_mut() {
+            for (l, _) in j.lower.iter_mut().zip(&unsure).filter(|(_, &u)| u) {
+                l.failed_since_sweep = true;
+            }
+        }
         let v = self.voltages_mv.clone();
         for (c, vals) in values.iter().enumerate() {
             if vals.iter().all(Option::is_some) {
@@ -1196,6 +1264,15 @@ impl ArrayRun {
             Step::Move(0)
         };
         Ok(())
+    }
+
+    /// An evaluation of cell `c` failed: counted, and its sensor sweeps at
+    /// its next park (it may have left its flank).
+    fn evaluation_failed(&mut self, c: usize) {
+        self.failed_fits += 1;
+        if let Some(l) = self.joint.as_mut().and_then(|j| j.lower.get_mut(c)) {
+            l.failed_since_sweep = true;
+        }
     }
 
     /// Joint move `m`: one set per cell (the first move also retreats the
@@ -1327,23 +1404,120 @@ impl ArrayRun {
             .collect())
     }
 
-    /// Park each swept sensor on its fitted flank (a failed fit leaves it).
+    /// Park each swept sensor on its fitted flank (a failed fit leaves it);
+    /// the cell's flank model learns from it.
     fn sensor_flanks(
         &mut self,
         cells: &[u32],
         answers: &[Response],
     ) -> Result<Vec<(String, f64)>, ArrayRunError> {
         let mut flanks = Vec::new();
+        let noise = self.settings.flank_prediction.noise_mv;
         for (&c, a) in cells.iter().zip(answers) {
-            match self.evaluate(c as usize, a, "sd_flank_mv") {
-                Some((flank, _)) => {
-                    let gate = self.joint()?.lower[c as usize].sd_gate.clone();
-                    flanks.push((gate, flank));
+            let found = self.evaluate(c as usize, a, "sd_flank_mv");
+            let v = &self.voltages_mv;
+            let Some(joint) = self.joint.as_mut() else {
+                continue;
+            };
+            let l = &mut joint.lower[c as usize];
+            match found {
+                Some((flank, variance)) => {
+                    if let Some(model) = l.flank.as_mut() {
+                        model.observe(v, flank, variance, noise);
+                    }
+                    l.failed_since_sweep = false;
+                    flanks.push((l.sd_gate.clone(), flank));
                 }
-                None => self.failed_fits += 1,
+                None => {
+                    l.failed_since_sweep = true;
+                    self.failed_fits += 1;
+                }
             }
         }
         Ok(flanks)
+    }
+
+    /// Which of `cells` sweep their sensor, and the flanks (gate, mV) of
+    /// those parked from their prediction instead
+    /// ([`ArrayRunSettings::flank_prediction`]). A cell sweeps when its
+    /// prediction is not confident, or when its readout group's sweeps in
+    /// this batch leave room for it: the batch lasts as long as its busiest
+    /// group, so such a sweep costs no lab time. Records the skips as events.
+    fn plan_parks(
+        &mut self,
+        cells: &[u32],
+    ) -> Result<(Vec<u32>, Vec<(String, f64)>), ArrayRunError> {
+        let p = self.settings.flank_prediction.clone();
+        let v = self.voltages_mv.clone();
+        let limits = &self.limits;
+        let joint = self.joint()?;
+        let forecasts: Vec<Option<FlankForecast>> = cells
+            .iter()
+            .map(|&c| {
+                let l = &joint.lower[c as usize];
+                let model = l.flank.as_ref()?;
+                if l.failed_since_sweep || model.skips >= p.max_skips {
+                    return None;
+                }
+                let f = model.predict(&v, p.noise_mv)?;
+                let spec = limits.gate(&l.sd_gate)?;
+                let parked = v.get(&l.sd_gate).copied()?;
+                (f.std_mv <= p.skip_std_mv
+                    && (spec.min_mv..=spec.max_mv).contains(&f.flank_mv)
+                    && (f.flank_mv - parked).abs() <= l.sd_half_width_mv)
+                    .then_some(f)
+            })
+            .collect();
+        // the sweeps each readout group must make; the batch lasts as long
+        // as the busiest group's
+        let group = |c: u32| {
+            self.readout_group
+                .get(c as usize)
+                .copied()
+                .unwrap_or(c as usize)
+        };
+        let mut needed: BTreeMap<usize, usize> = BTreeMap::new();
+        for (&c, f) in cells.iter().zip(&forecasts) {
+            if f.is_none() {
+                *needed.entry(group(c)).or_default() += 1;
+            }
+        }
+        let busiest = needed.values().copied().max().unwrap_or(0);
+        let mut sweep = Vec::new();
+        let mut predicted = Vec::new();
+        let mut skipped = Vec::new();
+        for (&c, f) in cells.iter().zip(&forecasts) {
+            let n = needed.entry(group(c)).or_default();
+            match f {
+                Some(f) if *n >= busiest => skipped.push((c, *f)),
+                Some(_) => {
+                    *n += 1;
+                    sweep.push(c);
+                }
+                None => sweep.push(c),
+            }
+        }
+        let Some(joint) = self.joint.as_mut() else {
+            return Ok((sweep, predicted));
+        };
+        for (c, f) in skipped {
+            let l = &mut joint.lower[c as usize];
+            if let Some(model) = l.flank.as_mut() {
+                model.skips += 1;
+            }
+            predicted.push((l.sd_gate.clone(), f.flank_mv));
+            if let Some(record) = self.scratch.record.as_mut() {
+                record.events.push(TunerEvent {
+                    level: "array".into(),
+                    kind: EventKind::SweepSkipped {
+                        gate: l.sd_gate.clone(),
+                        predicted_mv: f.flank_mv,
+                        std_mv: f.std_mv,
+                    },
+                });
+            }
+        }
+        Ok((sweep, predicted))
     }
 
     /// Before the first line scan: the cells whose forecast puts a line
@@ -1380,7 +1554,7 @@ impl ArrayRun {
                 self.evaluate(c as usize, a, "mu_a_mv"),
                 self.evaluate(c as usize, a, "mu_b_mv"),
             ) else {
-                self.failed_fits += 1;
+                self.evaluation_failed(c as usize);
                 continue;
             };
             if let Some(joint) = self.joint.as_mut() {

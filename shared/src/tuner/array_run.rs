@@ -1468,35 +1468,15 @@ impl ArrayRun {
                     .then_some(f)
             })
             .collect();
-        // the sweeps each readout group must make; the batch lasts as long
-        // as the busiest group's
-        let group = |c: u32| {
-            self.readout_group
-                .get(c as usize)
-                .copied()
-                .unwrap_or(c as usize)
-        };
-        let mut needed: BTreeMap<usize, usize> = BTreeMap::new();
-        for (&c, f) in cells.iter().zip(&forecasts) {
-            if f.is_none() {
-                *needed.entry(group(c)).or_default() += 1;
-            }
-        }
-        let busiest = needed.values().copied().max().unwrap_or(0);
-        let mut sweep = Vec::new();
+        let confident: Vec<bool> = forecasts.iter().map(Option::is_some).collect();
+        let sweep = who_scans(cells, &confident, &self.readout_group);
         let mut predicted = Vec::new();
-        let mut skipped = Vec::new();
-        for (&c, f) in cells.iter().zip(&forecasts) {
-            let n = needed.entry(group(c)).or_default();
-            match f {
-                Some(f) if *n >= busiest => skipped.push((c, *f)),
-                Some(_) => {
-                    *n += 1;
-                    sweep.push(c);
-                }
-                None => sweep.push(c),
-            }
-        }
+        let skipped: Vec<(u32, FlankForecast)> = cells
+            .iter()
+            .zip(forecasts)
+            .filter(|(c, _)| !sweep.contains(c))
+            .filter_map(|(&c, f)| Some((c, f?)))
+            .collect();
         let Some(joint) = self.joint.as_mut() else {
             return Ok((sweep, predicted));
         };
@@ -1600,6 +1580,39 @@ impl ArrayRun {
         }
         Some(Request::SetVoltages { voltages_mv: set })
     }
+}
+
+/// The cells of `cells` that scan in one batch: every cell that is not
+/// `confident` (its scan cannot be replaced by a prediction), and each
+/// confident cell whose readout group (`readout_group[c]`; empty: one
+/// sensor per cell) has room below the busiest group's count of needed
+/// scans: the batch lasts as long as its busiest group, so such a scan
+/// costs no lab time.
+///
+/// ```text
+/// one sensor per cell, cell 1 unsure: every cell scans (1 scan per group)
+/// groups [0,1] [2,3], cell 1 unsure: cells 1 and 2 scan (2 and 3 wait)
+/// ```
+fn who_scans(cells: &[u32], confident: &[bool], readout_group: &[usize]) -> Vec<u32> {
+    let group = |c: u32| readout_group.get(c as usize).copied().unwrap_or(c as usize);
+    let mut needed: BTreeMap<usize, usize> = BTreeMap::new();
+    for (&c, &ok) in cells.iter().zip(confident) {
+        if !ok {
+            *needed.entry(group(c)).or_default() += 1;
+        }
+    }
+    let busiest = needed.values().copied().max().unwrap_or(0);
+    let mut scan = Vec::new();
+    for (&c, &ok) in cells.iter().zip(confident) {
+        let n = needed.entry(group(c)).or_default();
+        if !ok {
+            scan.push(c);
+        } else if *n < busiest {
+            *n += 1;
+            scan.push(c);
+        }
+    }
+    scan
 }
 
 /// Whether a line Jacobian (mV/mV) can be inverted.
@@ -1802,7 +1815,32 @@ mod tests {
             line_max_step_mv: 2.0,
             references: References::default(),
             lines: LevelForecast::new(Vec::new(), 2, 0.1, Vec::new()),
+            flank: None,
+            failed_since_sweep: false,
         }
+    }
+
+    #[test]
+    fn a_confident_cell_scans_only_where_its_group_has_room() {
+        // one sensor per cell: one unsure cell makes the batch a scan long,
+        // so every cell scans
+        assert_eq!(
+            who_scans(&[0, 1, 2], &[true, false, true], &[]),
+            vec![0, 1, 2]
+        );
+        // everybody confident: nobody scans
+        assert!(who_scans(&[0, 1, 2], &[true; 3], &[]).is_empty());
+        // groups [0, 1] and [2, 3]: cell 1's scan takes one slot of its
+        // group; group [2, 3] has room for one of its confident cells
+        assert_eq!(
+            who_scans(&[0, 1, 2, 3], &[true, false, true, true], &[0, 0, 1, 1]),
+            vec![1, 2]
+        );
+        // two unsure cells in group 0: group 1's two cells fit
+        assert_eq!(
+            who_scans(&[0, 1, 2, 3], &[false, false, true, true], &[0, 0, 1, 1]),
+            vec![0, 1, 2, 3]
+        );
     }
 
     /// A cell without a learned line Jacobian borrows the mean of the cells

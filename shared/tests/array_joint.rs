@@ -255,3 +255,51 @@ fn a_batchs_lab_time_is_split_over_its_requests_by_their_own_time() {
         "{by:?}"
     );
 }
+
+/// A cell's sensing dot parks on its flank predicted from its
+/// neighbourhood's gates once the prediction is confident
+/// (`ArrayRunSettings::flank_prediction`): on 3 cells, the same changes
+/// converge with fewer lab minutes of sensor sweeps than with every sweep
+/// taken (`max_skips = 0`), within every step limit; bounds are named.
+#[test]
+fn predicted_flanks_replace_sweeps_and_the_changes_still_converge() {
+    let array = || {
+        world(
+            &DeviceConfig::default(),
+            ArrayConfig::chain(3, 5, 11),
+            |_| true,
+        )
+        .unwrap()
+    };
+    let with = short_protocol();
+    assert_eq!(with.tuning.flank_prediction.max_skips, 3, "the default");
+    let mut without = short_protocol();
+    without.tuning.flank_prediction.max_skips = 0;
+    let a = run_strategy(ArrayStrategy::Joint, array(), &with).unwrap();
+    let b = run_strategy(ArrayStrategy::Joint, array(), &without).unwrap();
+    let sweeps = |r: &ArrayRunResult| r.lab_minutes_by_kind["sensing_dot"];
+    eprintln!(
+        "sweeps: {:.1} lab min predicted, {:.1} swept; lab min {:?} vs {:?}",
+        sweeps(&a),
+        sweeps(&b),
+        a.changes,
+        b.changes
+    );
+    assert!(a.cold_start_lab_minutes.is_some(), "{a:?}");
+    assert!(a.changes.iter().all(Option::is_some), "{a:?}");
+    assert!(a.single_cell_changes.iter().all(Option::is_some), "{a:?}");
+    assert_eq!(a.limit_violations, 0);
+    assert!(
+        sweeps(&a) < 0.8 * sweeps(&b),
+        "{} vs {}",
+        sweeps(&a),
+        sweeps(&b)
+    );
+    // out of bounds: named
+    let mut bad = short_protocol();
+    bad.tuning.flank_prediction.skip_std_mv = 0.0;
+    assert_eq!(
+        bad.validate().unwrap_err().field,
+        "tuning.flank_prediction.skip_std_mv"
+    );
+}

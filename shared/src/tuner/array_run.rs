@@ -318,6 +318,10 @@ struct Scratch {
     record: Option<Box<IterationRecord>>,
 }
 
+/// A park's plan: the cells that sweep, and the sensing gates parked on
+/// their predicted flank (gate, mV).
+type Parks = (Vec<u32>, Vec<(String, f64)>);
+
 /// A line round's outcome: (cell, its lines in mV) to correct, and the
 /// cells that move.
 type LineCorrections = (Vec<(u32, [f64; 2])>, Vec<u32>);
@@ -1443,10 +1447,7 @@ impl ArrayRun {
     /// prediction is not confident, or when its readout group's sweeps in
     /// this batch leave room for it: the batch lasts as long as its busiest
     /// group, so such a sweep costs no lab time. Records the skips as events.
-    fn plan_parks(
-        &mut self,
-        cells: &[u32],
-    ) -> Result<(Vec<u32>, Vec<(String, f64)>), ArrayRunError> {
+    fn plan_parks(&mut self, cells: &[u32]) -> Result<Parks, ArrayRunError> {
         let p = self.settings.flank_prediction.clone();
         let v = self.voltages_mv.clone();
         let limits = &self.limits;

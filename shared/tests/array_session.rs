@@ -372,3 +372,90 @@ fn a_record_of_sixteen_cells_stays_below_64_kib() {
     eprintln!("a 16-cell record: {bytes} bytes of JSON");
     assert!(bytes < 64 * 1024, "{bytes} bytes");
 }
+
+/// A batch handed out but not answered is planned again when a read-back
+/// moved the gates (`Plan::adopt_voltages`). A park whose sweeps were out
+/// (some cells sweeping, others parked on their predicted flank) is planned
+/// again from the new voltages, every one of its cells, instead of ending
+/// the run: the regression that stalled the array bridge's fault test.
+#[test]
+fn a_park_dropped_by_a_moved_read_back_is_planned_again() {
+    use spintune::benchmark::array::{cell_tuner, world, ArrayProtocol};
+    use spintune::protocol::ScanKind;
+    use spintune::session::Plan;
+    use spintune::sim::DeviceConfig;
+    use spintune::tuner::array_run::{ArrayAction, ArrayRun};
+
+    let protocol = ArrayProtocol::default();
+    let mut device = world(
+        &DeviceConfig::default(),
+        ArrayConfig::chain(3, 5, 11),
+        |_| true,
+    )
+    .unwrap();
+    let cells = (0..3).map(|c| cell_tuner(c, &protocol)).collect();
+    let mut run = ArrayRun::new(
+        cells,
+        &device.gates(),
+        protocol.run_settings(),
+        [0.3, 0.05],
+        false,
+    )
+    .unwrap();
+    let is_sweep = |r: &Request| matches!(r, Request::Measure { scan } if scan.kind == ScanKind::SensingDot && scan.cell.is_some());
+    // run until the joint loop hands out a park's sweeps
+    let mut parks = 0;
+    let batch = loop {
+        match run.poll().unwrap() {
+            ArrayAction::Execute(batch) => {
+                if run.tuner().is_some() && batch.iter().all(is_sweep) {
+                    parks += 1;
+                    if parks == 3 {
+                        break batch;
+                    }
+                }
+                let before = device.lab_seconds();
+                let answers = device.execute_batch(&batch);
+                run.feed(answers, device.lab_seconds() - before).unwrap();
+            }
+            ArrayAction::Iteration(_) => {}
+            ArrayAction::Idle => panic!("tuned before its third park"),
+        }
+    };
+    // someone moves c1.SD1 by 0.5 mV; the read-back shows it
+    let mut v = device.voltages_mv();
+    let g = "c1.SD1".to_string();
+    let moved = v[&g] + 0.5;
+    device.execute(&Request::SetVoltages {
+        voltages_mv: [(g.clone(), moved)].into(),
+    });
+    v.insert(g.clone(), moved);
+    run.adopt_voltages(&v, 0.0);
+    let ArrayAction::Execute(again) = run.poll().unwrap() else {
+        panic!("no batch after the read-back")
+    };
+    assert!(!again.is_empty() && again.iter().all(is_sweep), "{again:?}");
+    assert!(again.len() >= batch.len(), "{again:?} vs {batch:?}");
+    // c1's sweep, if it sweeps, is centred on the moved gate
+    for r in &again {
+        if let Request::Measure { scan } = r {
+            let s = scan.sweep.as_ref().unwrap();
+            if s.gate == g {
+                assert!(((s.from_mv + s.to_mv) / 2.0 - moved).abs() < 1e-9, "{s:?}");
+            }
+        }
+    }
+    // and the run goes on: three more iterations without an error
+    let mut iterations = 0;
+    while iterations < 3 {
+        match run.poll().unwrap() {
+            ArrayAction::Execute(batch) => {
+                let before = device.lab_seconds();
+                let answers = device.execute_batch(&batch);
+                run.feed(answers, device.lab_seconds() - before).unwrap();
+            }
+            ArrayAction::Iteration(_) => iterations += 1,
+            ArrayAction::Idle => break,
+        }
+    }
+}

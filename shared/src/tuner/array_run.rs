@@ -718,10 +718,15 @@ impl ArrayRun {
                     }
                 }
             }
-            Step::Sweeping(..) => {
-                return Err(ArrayRunError::Protocol(
-                    "sensor sweeps planned without a batch".into(),
-                ))
+            Step::Sweeping(cells, predicted, next) => {
+                // the sweeps' batch was dropped unanswered (a read-back moved
+                // the gates): plan the park of every one of its cells again
+                let mut all = cells;
+                all.extend(predicted.iter().filter_map(|(g, _)| Some(split_gate(g)?.0)));
+                all.sort_unstable();
+                all.dedup();
+                self.step = Step::ParkSweep(all, next);
+                Vec::new()
             }
             Step::ParkSet(flanks, next) => {
                 if flanks.is_empty() {

@@ -1461,17 +1461,18 @@ impl ArrayRun {
             .iter()
             .map(|&c| {
                 let l = &joint.lower[c as usize];
-                let model = l.flank.as_ref()?;
-                if l.failed_since_sweep || model.skips >= p.max_skips {
+                if l.failed_since_sweep {
                     return None;
                 }
-                let f = model.predict(&v, p.noise_mv)?;
                 let spec = limits.gate(&l.sd_gate)?;
                 let parked = v.get(&l.sd_gate).copied()?;
-                (f.std_mv <= p.skip_std_mv
-                    && (spec.min_mv..=spec.max_mv).contains(&f.flank_mv)
-                    && (f.flank_mv - parked).abs() <= l.sd_half_width_mv)
-                    .then_some(f)
+                l.flank.as_ref()?.confident(
+                    &v,
+                    &p,
+                    (spec.min_mv, spec.max_mv),
+                    parked,
+                    l.sd_half_width_mv,
+                )
             })
             .collect();
         let confident: Vec<bool> = forecasts.iter().map(Option::is_some).collect();
@@ -1597,7 +1598,7 @@ impl ArrayRun {
 ///
 /// ```text
 /// one sensor per cell, cell 1 unsure: every cell scans (1 scan per group)
-/// groups [0,1] [2,3], cell 1 unsure: cells 1 and 2 scan (2 and 3 wait)
+/// groups [0,1] [2,3], cell 1 unsure: cells 1 and 2 scan, 0 and 3 use their prediction
 /// ```
 fn who_scans(cells: &[u32], confident: &[bool], readout_group: &[usize]) -> Vec<u32> {
     let group = |c: u32| readout_group.get(c as usize).copied().unwrap_or(c as usize);

@@ -104,6 +104,30 @@ impl FlankModel {
         self.consistency
     }
 
+    /// The flank predicted at `voltages_mv` if it may replace a sweep
+    /// (the one rule of [`FlankPrediction`]): fewer than `max_skips` skips
+    /// in a row, σ ≤ `skip_std_mv`, within the swept gate's limits
+    /// `limits_mv` and within the sweep's reach (`half_width_mv` of the
+    /// gate's present voltage `parked_mv`). Whether an evaluation failed
+    /// since the last sweep is the caller's to check.
+    pub(super) fn confident(
+        &self,
+        voltages_mv: &BTreeMap<String, f64>,
+        p: &FlankPrediction,
+        limits_mv: (f64, f64),
+        parked_mv: f64,
+        half_width_mv: f64,
+    ) -> Option<FlankForecast> {
+        if self.skips >= p.max_skips {
+            return None;
+        }
+        let f = self.predict(voltages_mv, p.noise_mv)?;
+        (f.std_mv <= p.skip_std_mv
+            && (limits_mv.0..=limits_mv.1).contains(&f.flank_mv)
+            && (f.flank_mv - parked_mv).abs() <= half_width_mv)
+            .then_some(f)
+    }
+
     /// The flank predicted at `voltages_mv` (`None` before the first sweep).
     pub(super) fn predict(
         &self,

@@ -760,19 +760,13 @@ impl Tuner {
         else {
             return None;
         };
-        if model.skips >= p.max_skips || model.failed_at_sweep != failed {
+        if model.failed_at_sweep != failed {
             return None;
         }
-        let f = model.predict(&self.voltages_mv, p.noise_mv)?;
         let parked = self.voltages_mv.get(&sd.gate).copied()?;
-        // within the limits and within the sweep's reach: else the sweep looks
-        let ok = f.std_mv <= p.skip_std_mv
-            && (lo..=hi).contains(&f.flank_mv)
-            && (f.flank_mv - parked).abs() <= sd.half_width_mv;
-        ok.then(|| {
-            model.skips += 1;
-            f
-        })
+        let f = model.confident(&self.voltages_mv, p, (lo, hi), parked, sd.half_width_mv)?;
+        model.skips += 1;
+        Some(f)
     }
 
     /// A sweep found the flank: the flank model learns from it.

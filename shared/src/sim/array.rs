@@ -395,6 +395,25 @@ impl ArrayDevice {
         self.cells.get(cell as usize).map(SimulatedDevice::truth)
     }
 
+    /// World side: a charge rearrangement near cell `cell`'s dots
+    /// ([`SimulatedDevice::rearrange_charges`]): its two transition lines
+    /// jump by `shift_mv` (mV on its RFA / RFB) and stay there. No gate
+    /// moves; a tuner finds out by scanning. `false` if there is no such cell.
+    ///
+    /// ```
+    /// use spintune::sim::array::{ArrayConfig, ArrayDevice};
+    /// use spintune::sim::DeviceConfig;
+    /// let mut a = ArrayDevice::new(ArrayConfig::chain(2, 0, 1), vec![DeviceConfig::default(); 2]).unwrap();
+    /// assert!(a.rearrange_charges(1, [7.0, 0.0]));
+    /// assert!(!a.rearrange_charges(2, [7.0, 0.0]));
+    /// ```
+    pub fn rearrange_charges(&mut self, cell: u32, shift_mv: [f64; 2]) -> bool {
+        self.cells
+            .get_mut(cell as usize)
+            .map(|c| c.rearrange_charges(shift_mv))
+            .is_some()
+    }
+
     /// Refuse [`Request::TrueJacobian`] from now on (still counted). Irreversible.
     pub fn seal_truth(&mut self) {
         self.truth_sealed = true;

@@ -42,6 +42,7 @@ use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
 use super::flank::{FlankForecast, FlankModel};
+use super::search::{SearchMemory, SearchMove};
 use crate::config_error::ConfigError;
 use crate::fit::{evaluate_with, uncertainty::References};
 use crate::protocol::{
@@ -54,7 +55,8 @@ use crate::sim::array::{parameter_name, split_gate};
 use crate::tuner::array::{CellKnowledge, JointArrayTuner, JointConfig, Measured};
 use crate::tuner::level_forecast::{compensation_columns, LevelForecast};
 use crate::tuner::{
-    FlankPrediction, GradientRow, InitialGradient, LevelKind, ParameterForecast, TunerConfig,
+    FlankPrediction, GradientRow, InitialGradient, LevelKind, ParameterForecast, ParameterSearch,
+    TunerConfig, MAX_SEARCH_PROBES,
 };
 
 /// The array's parameters per cell, in order.
@@ -247,6 +249,16 @@ struct CellLower {
     /// may be off its flank: the next park sweeps).
     #[serde(default)]
     failed_since_sweep: bool,
+    /// How the cell's line level searches for lines its scans lost (the
+    /// single-cell line level's [`ParameterSearch`]; `None`: no search).
+    #[serde(default)]
+    line_search: Option<ParameterSearch>,
+    /// The line search's memory (failures in a row, last seen, probes).
+    #[serde(default)]
+    search: SearchMemory,
+    /// A search probe's plunger move not yet sent (mV per line gate).
+    #[serde(default)]
+    probe_mv: Option<Vec<f64>>,
 }
 
 impl CellLower {
@@ -753,12 +765,18 @@ impl ArrayRun {
             Step::LineScan(cells, round) => {
                 // (a cell without a line level has no lines to scan)
                 let joint = self.joint()?;
+                // (beyond the configured rounds, only a searching cell scans:
+                // its probe is looked at in the iteration that made it)
+                let extra = round >= self.settings.line_rounds;
                 let cells: Vec<u32> = cells
                     .into_iter()
-                    .filter(|&c| joint.lower[c as usize].line_gates.len() == 2)
+                    .filter(|&c| {
+                        let l = &joint.lower[c as usize];
+                        l.line_gates.len() == 2 && (!extra || l.search.active.is_some())
+                    })
                     .collect();
                 self.step = Step::LineScan(cells.clone(), round);
-                if cells.is_empty() || round >= self.settings.line_rounds {
+                if cells.is_empty() || round >= self.settings.line_rounds + MAX_SEARCH_PROBES {
                     self.step = Step::Boundary;
                     Vec::new()
                 } else {
@@ -776,10 +794,15 @@ impl ArrayRun {
             }
             Step::LineSet(lines, moved, round) => {
                 let joint = self.joint()?;
-                let sets: Vec<Request> = lines
+                let mut sets: Vec<Request> = lines
                     .iter()
                     .filter_map(|&(c, mu)| self.line_step(joint, c as usize, mu))
                     .collect();
+                sets.extend(
+                    moved
+                        .iter()
+                        .filter_map(|&c| self.probe_set(joint, c as usize)),
+                );
                 if sets.is_empty() {
                     self.step =
                         Step::ParkSweep(moved.clone(), AfterPark::LineRound(moved, round + 1));
@@ -870,6 +893,9 @@ impl ArrayRun {
                 self.step = Step::LineSet(lines, moved, round);
             }
             Step::LineSet(_, moved, round) => {
+                if let Some(joint) = self.joint.as_mut() {
+                    joint.lower.iter_mut().for_each(|l| l.probe_mv = None);
+                }
                 self.step = Step::ParkSweep(moved.clone(), AfterPark::LineRound(moved, round + 1));
             }
             Step::Boundary | Step::Idle => {
@@ -987,6 +1013,9 @@ impl ArrayRun {
                 lines: LevelForecast::new(Vec::new(), 2, 0.1, Vec::new()),
                 flank: None,
                 failed_since_sweep: false,
+                line_search: None,
+                search: SearchMemory::default(),
+                probe_mv: None,
             };
             for level in cfg.levels.iter().skip(1) {
                 match &level.kind {
@@ -1005,6 +1034,7 @@ impl ArrayRun {
                         }
                         l.line_gates = n.gates.clone();
                         l.line_max_step_mv = n.solver.max_step_mv;
+                        l.line_search = n.search.clone();
                     }
                     LevelKind::Newton(_) => {}
                 }
@@ -1537,15 +1567,30 @@ impl ArrayRun {
         let mut moved = Vec::new();
         let v = self.voltages_mv.clone();
         for (&c, a) in cells.iter().zip(answers) {
-            let (Some(a_mv), Some(b_mv)) = (
+            let found = [
                 self.evaluate(c as usize, a, "mu_a_mv"),
                 self.evaluate(c as usize, a, "mu_b_mv"),
-            ) else {
+            ];
+            let [Some(a_mv), Some(b_mv)] = found else {
                 self.evaluation_failed(c as usize);
+                if self.lines_lost(c as usize, found) {
+                    moved.push(c);
+                }
                 continue;
             };
             if let Some(joint) = self.joint.as_mut() {
                 observe_lines(joint, c as usize, [a_mv, b_mv], &v);
+                let search = &mut joint.lower[c as usize].search;
+                search.seen(&[Some(a_mv.0), Some(b_mv.0)]);
+                if let Some(probes) = search.found() {
+                    self.note_line_event(
+                        c,
+                        EventKind::SearchEnded {
+                            probes,
+                            found: true,
+                        },
+                    );
+                }
             }
             let mu = [a_mv.0, b_mv.0];
             if mu
@@ -1560,6 +1605,87 @@ impl ArrayRun {
             }
         }
         Ok((lines, moved))
+    }
+
+    /// A line scan of `cell` lost a line (`found`: what it gave): the line
+    /// level's search ([`ParameterSearch`], as a single cell's line level
+    /// searches) plans its next probe or its way back. Whether the cell's
+    /// plungers move.
+    fn lines_lost(&mut self, cell: usize, found: [Option<Measured>; 2]) -> bool {
+        let Some(l) = self.joint.as_mut().and_then(|j| j.lower.get_mut(cell)) else {
+            return false;
+        };
+        let Some(cfg) = l.line_search.clone() else {
+            return false;
+        };
+        if l.line_gates.len() != 2 || !invertible(&l.line_jacobian) {
+            return false;
+        }
+        l.search.seen(&found.map(|m| m.map(|m| m.0)));
+        let j = l.line_jacobian;
+        let jacobian = DMatrix::from_fn(2, 2, |r, s| j[r][s]);
+        let missing = found.map(|m| m.is_none());
+        let Some(next) = l.search.lost(&cfg, &missing, &[Some(0.0); 2], &jacobian) else {
+            return false;
+        };
+        let (dv, event) = match next {
+            SearchMove::Probe {
+                probe,
+                offsets,
+                dv_mv,
+            } => (
+                dv_mv,
+                EventKind::SearchProbe {
+                    probe,
+                    parameters: ["mu_a_mv", "mu_b_mv"]
+                        .iter()
+                        .zip(&missing)
+                        .filter(|(_, &m)| m)
+                        .map(|(p, _)| parameter_name(cell as u32, p))
+                        .collect(),
+                    offsets: offsets
+                        .iter()
+                        .zip(&missing)
+                        .filter(|(_, &m)| m)
+                        .map(|(o, _)| *o)
+                        .collect(),
+                },
+            ),
+            SearchMove::GiveUp { probes, dv_mv } => (
+                dv_mv,
+                EventKind::SearchEnded {
+                    probes,
+                    found: false,
+                },
+            ),
+        };
+        let moves = dv.iter().any(|d| d.abs() > 1e-9);
+        l.probe_mv = moves.then_some(dv);
+        self.note_line_event(cell as u32, event);
+        moves
+    }
+
+    /// An event of cell `cell`'s line level in this iteration's record.
+    fn note_line_event(&mut self, cell: u32, kind: EventKind) {
+        if let Some(record) = self.scratch.record.as_mut() {
+            record.events.push(TunerEvent {
+                level: format!("c{cell}.lines"),
+                kind,
+            });
+        }
+    }
+
+    /// The set that makes cell `cell`'s pending search move (`None`: none).
+    fn probe_set(&self, joint: &Joint, cell: usize) -> Option<Request> {
+        let l = joint.lower.get(cell)?;
+        let dv = l.probe_mv.as_ref()?;
+        let mut set = BTreeMap::new();
+        for (g, d) in l.line_gates.iter().zip(dv) {
+            if let Some(&now) = self.voltages_mv.get(g) {
+                set.insert(g.clone(), self.limits.clip(g, now, now + d));
+            }
+        }
+        Some(Request::SetVoltages { voltages_mv: set })
     }
 
     /// The limited plunger correction that cancels `mu` (mV) with the
@@ -1628,15 +1754,28 @@ fn invertible(j: &[[f64; 2]; 2]) -> bool {
     det.is_finite() && det.abs() > 1e-12
 }
 
+/// Whether a learned line Jacobian (mV/mV) can be a double dot's: invertible,
+/// and each line moving most with its own plunger (`|J_ii| > |J_ij|`; the
+/// line level lists its plungers in the lines' order). A finite difference
+/// taken while a line was lost gives a near-singular matrix that fails this
+/// (seen on random arrays: a row of (−3.2, −18.0) beside (0.34, 1.9), or
+/// (15.3, 4.3)); every plausible one measured had `|J_ii|` ≥ 2.5 `|J_ij|`.
+fn plausible(j: &[[f64; 2]; 2]) -> bool {
+    invertible(j) && j[0][0].abs() > j[0][1].abs() && j[1][1].abs() > j[1][0].abs()
+}
+
 /// A cell whose initial measurement never had to move its lines learned no
 /// line Jacobian (its line level measures one only when it first corrects),
-/// and without one its lines are never corrected again: it borrows the mean
-/// of the cells that learned one (cells of one design share their lever
-/// arms). Nothing changes when no cell learned one.
+/// and without one its lines are never corrected again; a cell whose
+/// measurement gave an implausible one ([`plausible`]) would correct and
+/// search its lines the wrong way for the whole run. Either borrows the
+/// mean of the cells whose Jacobian is plausible (cells of one design share
+/// their lever arms). Nothing changes when no cell's is plausible (e.g. a
+/// description that lists the plungers in the other order).
 fn borrow_line_jacobians(lower: &mut [CellLower]) {
     let learned: Vec<[[f64; 2]; 2]> = lower
         .iter()
-        .filter(|l| l.line_gates.len() == 2 && invertible(&l.line_jacobian))
+        .filter(|l| l.line_gates.len() == 2 && plausible(&l.line_jacobian))
         .map(|l| l.line_jacobian)
         .collect();
     if learned.is_empty() {
@@ -1656,7 +1795,7 @@ fn borrow_line_jacobians(lower: &mut [CellLower]) {
     }
     for l in lower
         .iter_mut()
-        .filter(|l| l.line_gates.len() == 2 && !invertible(&l.line_jacobian))
+        .filter(|l| l.line_gates.len() == 2 && !plausible(&l.line_jacobian))
     {
         l.line_jacobian = mean;
     }
@@ -1824,6 +1963,9 @@ mod tests {
             lines: LevelForecast::new(Vec::new(), 2, 0.1, Vec::new()),
             flank: None,
             failed_since_sweep: false,
+            line_search: None,
+            search: SearchMemory::default(),
+            probe_mv: None,
         }
     }
 
@@ -1854,24 +1996,29 @@ mod tests {
     /// that learned one; a cell without lines and a learned one are left
     /// alone; with nothing learned nothing changes.
     #[test]
-    fn a_cell_without_a_line_jacobian_borrows_the_mean_of_the_learned_ones() {
+    fn a_cell_without_a_plausible_line_jacobian_borrows_the_mean_of_the_plausible_ones() {
         let plungers = ["PA", "PB"];
         let mut cells = vec![
             lower(&plungers, [[1.0, 0.2], [0.1, 0.9]]),
             lower(&plungers, [[0.0; 2]; 2]),
             lower(&plungers, [[0.8, 0.1], [0.3, 1.1]]),
             lower(&[], [[0.0; 2]; 2]),
+            // measured while a line was lost: near-singular, line A moving most with PB
+            lower(&plungers, [[-3.19, -17.98], [0.34, 1.90]]),
         ];
         borrow_line_jacobians(&mut cells);
-        // by hand: ((1.0 + 0.8)/2, (0.2 + 0.1)/2; (0.1 + 0.3)/2, (0.9 + 1.1)/2)
+        // by hand: ((1.0 + 0.8)/2, (0.2 + 0.1)/2; (0.1 + 0.3)/2, (0.9 + 1.1)/2),
+        // the implausible one neither lent nor kept
         let want = [[0.9, 0.15], [0.2, 1.0]];
-        for (r, row) in want.iter().enumerate() {
-            for (s, w) in row.iter().enumerate() {
-                assert!(
-                    (cells[1].line_jacobian[r][s] - w).abs() < 1e-12,
-                    "{:?}",
-                    cells[1].line_jacobian
-                );
+        for c in [1, 4] {
+            for (r, row) in want.iter().enumerate() {
+                for (s, w) in row.iter().enumerate() {
+                    assert!(
+                        (cells[c].line_jacobian[r][s] - w).abs() < 1e-12,
+                        "cell {c}: {:?}",
+                        cells[c].line_jacobian
+                    );
+                }
             }
         }
         assert_eq!(cells[0].line_jacobian, [[1.0, 0.2], [0.1, 0.9]]);

@@ -1759,7 +1759,7 @@ fn invertible(j: &[[f64; 2]; 2]) -> bool {
 /// line level lists its plungers in the lines' order). A finite difference
 /// taken while a line was lost gives a near-singular matrix that fails this
 /// (seen on random arrays: a row of (−3.2, −18.0) beside (0.34, 1.9), or
-/// (15.3, 4.3)); every plausible one measured had `|J_ii|` ≥ 2.5 `|J_ij|`.
+/// (15.3, 4.3)); the plausible ones measured there had `|J_ii|` ≥ 2 `|J_ij|`.
 fn plausible(j: &[[f64; 2]; 2]) -> bool {
     invertible(j) && j[0][0].abs() > j[0][1].abs() && j[1][1].abs() > j[1][0].abs()
 }

@@ -9,23 +9,18 @@
 //! World side: the simulator's charge rearrangement shifts cell 1's lines
 //! and nothing else; the loop only sees its scans fail.
 
-use spintune::benchmark::array::{cell_tuner, world, ArrayProtocol};
+mod support;
+
+use spintune::benchmark::array::{cell_tuner, ArrayProtocol};
 use spintune::benchmark::PAPER_SET_POINTS;
 use spintune::protocol::{EventKind, IterationRecord};
-use spintune::sim::array::{ArrayConfig, ArrayDevice};
-use spintune::sim::DeviceConfig;
+use spintune::sim::array::ArrayDevice;
 use spintune::tuner::array_run::{ArrayAction, ArrayRun};
 use spintune::tuner::LevelKind;
 
 /// Three default-population cells, every cell's line search on or off.
 fn array(search: bool) -> (ArrayRun, ArrayDevice) {
     let protocol = ArrayProtocol::default();
-    let device = world(
-        &DeviceConfig::default(),
-        ArrayConfig::chain(3, 5, 11),
-        |_| true,
-    )
-    .unwrap();
     let cells = (0..3)
         .map(|c| {
             let mut t = cell_tuner(c, &protocol);
@@ -40,15 +35,7 @@ fn array(search: bool) -> (ArrayRun, ArrayDevice) {
             t
         })
         .collect();
-    let run = ArrayRun::new(
-        cells,
-        &device.gates(),
-        protocol.run_settings(),
-        [0.3, 0.05],
-        false,
-    )
-    .unwrap();
-    (run, device)
+    support::array::three_cells(cells)
 }
 
 /// Drive the run until it is measured in band or `max` iterations end.

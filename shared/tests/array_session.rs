@@ -7,6 +7,8 @@
 
 use std::collections::BTreeMap;
 
+mod support;
+
 use spintune::driver::array::ArraySimulationConfig;
 use spintune::driver::{ArraySimulationRun, Halt, Simulated, SimulationRun};
 use spintune::protocol::{ControlCommand, EventKind, FaultKind, Request, Response, RunStatus};
@@ -380,28 +382,14 @@ fn a_record_of_sixteen_cells_stays_below_64_kib() {
 /// the run: the regression that stalled the array bridge's fault test.
 #[test]
 fn a_park_dropped_by_a_moved_read_back_is_planned_again() {
-    use spintune::benchmark::array::{cell_tuner, world, ArrayProtocol};
+    use spintune::benchmark::array::{cell_tuner, ArrayProtocol};
     use spintune::protocol::ScanKind;
     use spintune::session::Plan;
-    use spintune::sim::DeviceConfig;
-    use spintune::tuner::array_run::{ArrayAction, ArrayRun};
+    use spintune::tuner::array_run::ArrayAction;
 
     let protocol = ArrayProtocol::default();
-    let mut device = world(
-        &DeviceConfig::default(),
-        ArrayConfig::chain(3, 5, 11),
-        |_| true,
-    )
-    .unwrap();
     let cells = (0..3).map(|c| cell_tuner(c, &protocol)).collect();
-    let mut run = ArrayRun::new(
-        cells,
-        &device.gates(),
-        protocol.run_settings(),
-        [0.3, 0.05],
-        false,
-    )
-    .unwrap();
+    let (mut run, mut device) = support::array::three_cells(cells);
     let is_sweep = |r: &Request| matches!(r, Request::Measure { scan } if scan.kind == ScanKind::SensingDot && scan.cell.is_some());
     // run until the joint loop hands out a park's sweeps
     let mut parks = 0;

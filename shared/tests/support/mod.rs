@@ -5,6 +5,8 @@
 
 #![allow(dead_code)] // each test file uses what it needs
 
+pub mod array;
+
 use spintune::driver::SimulationConfig;
 use spintune::protocol::{ControlCommand, IterationRecord, Request, Response};
 use spintune::session::{Output, RunSession, SessionConfig};

@@ -1678,14 +1678,7 @@ impl ArrayRun {
     /// The set that makes cell `cell`'s pending search move (`None`: none).
     fn probe_set(&self, joint: &Joint, cell: usize) -> Option<Request> {
         let l = joint.lower.get(cell)?;
-        let dv = l.probe_mv.as_ref()?;
-        let mut set = BTreeMap::new();
-        for (g, d) in l.line_gates.iter().zip(dv) {
-            if let Some(&now) = self.voltages_mv.get(g) {
-                set.insert(g.clone(), self.limits.clip(g, now, now + d));
-            }
-        }
-        Some(Request::SetVoltages { voltages_mv: set })
+        Some(self.plunger_set(l, l.probe_mv.as_ref()?))
     }
 
     /// The limited plunger correction that cancels `mu` (mV) with the
@@ -1705,13 +1698,19 @@ impl ArrayRun {
         if norm > l.line_max_step_mv {
             dp.iter_mut().for_each(|x| *x *= l.line_max_step_mv / norm);
         }
+        Some(self.plunger_set(l, &dp))
+    }
+
+    /// The set that moves cell `l`'s line gates by `dv` (mV, in their
+    /// order) from where they are, each clipped to its limits and step.
+    fn plunger_set(&self, l: &CellLower, dv: &[f64]) -> Request {
         let mut set = BTreeMap::new();
-        for (g, d) in l.line_gates.iter().zip(dp) {
+        for (g, d) in l.line_gates.iter().zip(dv) {
             if let Some(&now) = self.voltages_mv.get(g) {
                 set.insert(g.clone(), self.limits.clip(g, now, now + d));
             }
         }
-        Some(Request::SetVoltages { voltages_mv: set })
+        Request::SetVoltages { voltages_mv: set }
     }
 }
 

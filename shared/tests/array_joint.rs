@@ -159,6 +159,72 @@ fn rows_span_the_neighbourhood_with_a_zero_mean_neighbour_prior() {
     );
 }
 
+/// A lockstep move (every cell moves `SA` by 2 mV, as in the cells'
+/// parallel initial measurements or an all-cell change) cannot tell cell
+/// 1's own `SA` gradient from its neighbours'. Under the correlated prior
+/// the neighbours' gradients are `λ̂ = 0.3` times the own one plus a small
+/// independent part, so the filter learns them together; independent
+/// blocks let the neighbours absorb most of the surprise.
+///
+/// Expected values, derived by hand from the scalar view of the update
+/// (the step sees `x = g_own + g_left + g_right` along SA; Kalman gain of
+/// each term `cov(term, x) / var(x)`): prior `g_own = 0.02`, var `1e-4`
+/// (1/mV)², neighbour mean `0.3·0.02 = 0.006`; measured `x = 0.064`,
+/// innovation `0.064 − 1.6·0.02 = 0.032` per mV.
+/// * correlated, `f = 0.1`: independent part var `d = (0.1·0.02)² +
+///   (0.01·0.03)² = 4.09e-6`; `var x = 1.6²·1e-4 + 2d = 2.6418e-4`;
+///   own `0.02 + 1.6e-4/var x·0.032 = 0.039381`, neighbour `0.006 +
+///   0.3·0.019381 + d/var x·0.032 = 0.012310`.
+/// * independent, `f = 0.5`: `d = (0.5·0.02)² + (0.05·0.03)² = 1.0225e-4`;
+///   `var x = 1e-4 + 2d = 3.045e-4`; own `0.02 + 1e-4/var x·0.032 =
+///   0.030509`, neighbour `0.006 + d/var x·0.032 = 0.016745`.
+#[test]
+fn a_lockstep_move_teaches_the_own_gradient_and_its_crosstalk_together() {
+    let cell = |c: u32| CellKnowledge {
+        gates: ["N", "SA", "SB", "T"]
+            .iter()
+            .map(|g| spintune::sim::array::gate_name(c, g))
+            .collect(),
+        parameters: vec!["t_sr".into(), "w".into()],
+        gradient: vec![vec![0.01, 0.02, -0.03, 0.0]; 2],
+        covariance: vec![
+            (0..4)
+                .map(|r| (0..4).map(|s| if r == s { 1e-4 } else { 0.0 }).collect())
+                .collect();
+            2
+        ],
+        process_noise_per_mv: vec![0.003; 2],
+        max_step_mv: 10.0,
+        compensation: None,
+    };
+    let learn = |config: &JointConfig| {
+        let mut t = JointArrayTuner::new((0..3).map(cell).collect(), config, [0.3, 0.05]).unwrap();
+        let mut v: std::collections::BTreeMap<String, f64> =
+            t.gates().iter().map(|g| (g.clone(), 0.0)).collect();
+        let p0 = 100.0;
+        t.observe(1, &[Some((p0, 1e-12)), None], &v);
+        for c in 0..3 {
+            v.insert(spintune::sim::array::gate_name(c, "SA"), 2.0);
+        }
+        t.observe(1, &[Some((p0 * 0.128f64.exp(), 1e-12)), None], &v);
+        let row: std::collections::BTreeMap<String, f64> =
+            t.row_gradient(1, 0).into_iter().collect();
+        (row["c1.SA"], row["c0.SA"], row["c2.SA"], row["c1.N"])
+    };
+    let (own, left, right, untouched) = learn(&JointConfig::default());
+    assert!((own - 0.039381).abs() < 2e-6, "{own}");
+    assert!((left - 0.012310).abs() < 2e-6, "{left}");
+    assert!((right - left).abs() < 1e-12);
+    assert_eq!(untouched, 0.01);
+    let (own, left, _, _) = learn(&JointConfig {
+        correlated_prior: false,
+        neighbour_prior_fraction: 0.5,
+        ..JointConfig::default()
+    });
+    assert!((own - 0.030509).abs() < 2e-6, "{own}");
+    assert!((left - 0.016745).abs() < 2e-6, "{left}");
+}
+
 #[test]
 fn single_cell_changes_pick_distinct_cells() {
     assert_eq!(single_change_cells(9, 3), vec![4, 0, 8]);

@@ -9,16 +9,23 @@
 //!   Parameters are tuned in log space (`y = ln p`), as the recommended
 //!   single-cell tuner does.
 //! * **Prior.** The own-cell block is the cell's initial measurement (its
-//!   learned gradient and covariance). A neighbour's block has the mean
-//!   `λ̂(d)·g_own(gate)` (the lab's cross-cell virtual-gate calibration
-//!   `λ̂`, the same that feeds the compensation; zero with
-//!   [`JointConfig::calibrated_prior_mean`] off) and a diagonal variance from
-//!   the locality model: `(f·|g_own(gate)|)² + (f/10·max|g_own|)²` for the
-//!   same gate name of the own block, `f` =
+//!   learned gradient `g_own` and covariance `P_own`). A neighbour's block
+//!   follows the lab's cross-cell virtual-gate calibration `λ̂` (the same
+//!   that feeds the compensation): a neighbour at distance `d` moving gate
+//!   `X` acts on this cell like `λ̂(d)` times the cell's own `X`. So the
+//!   neighbour's gradient is `λ̂(d)·g_own(X) + e` with an independent
+//!   deviation `e` of variance `(f·|g_own(X)|)² + (f/10·max|g_own|)²`, `f` =
 //!   [`JointConfig::neighbour_prior_fraction`] (an assumption of the lab,
-//!   not the simulator's crosstalk).
-//! * **Step.** Residuals `y − ln target` of the cells out of band, 0 for the
-//!   cells in band (held where they are, so the step compensates the
+//!   not the simulator's crosstalk). With the map `T` (own gate → every
+//!   column of the row: 1 on the own block, `λ̂(d)` on a neighbour's same
+//!   gate), the row's prior is mean `T·g_own` and covariance
+//!   `T·P_own·Tᵀ + diag(var e)`, and its process noise `σ²·T·Tᵀ`: an own
+//!   gradient and the crosstalk it implies are learned together
+//!   ([`JointConfig::correlated_prior`]; without it the blocks are
+//!   independent, `Q = σ²·I`; with [`JointConfig::calibrated_prior_mean`]
+//!   off the neighbours' mean is zero and their blocks independent).
+//! * **Step.** Residuals `y − ln target` of the cells the caller aims, 0 for
+//!   the cells it holds (kept where they are, so the step compensates the
 //!   crosstalk the filter predicts onto them), one minimum-norm Newton step
 //!   `−J⁺Δ` over every tuning gate of the array ([`newton_step`]), then per
 //!   cell: scaled to the cell's step limit (mV, Euclidean over its tuning
@@ -44,8 +51,11 @@ use crate::solver::{newton_step, SolverConfig, StepRule};
 pub struct JointConfig {
     /// Neighbourhood radius in cells, 0..=2 (1: own cell + nearest neighbours).
     pub radius: u32,
-    /// Prior standard deviation of a neighbour's gradient as a fraction of
-    /// the own gradient of the same gate, 0 < f ≤ 2. Default 0.5.
+    /// Prior standard deviation of a neighbour's gradient around its mean,
+    /// as a fraction of the own gradient of the same gate, 0 < f ≤ 2.
+    /// Default 0.1 with the correlated prior (chosen on random arrays,
+    /// docs/array.md "The neighbours' prior follows the own gradient");
+    /// 0.5 suits the independent prior.
     pub neighbour_prior_fraction: f64,
     /// Kalman outlier gate, σ (1..=100). Default 5.
     pub outlier_sigma: f64,
@@ -63,6 +73,13 @@ pub struct JointConfig {
     /// compensation already cancels most of its neighbours' line shift.
     #[serde(default)]
     pub cross_compensation: bool,
+    /// Whether a neighbour's block is correlated with the own block through
+    /// the calibration `λ̂` (module docs, "Prior"). Default `true`: the
+    /// lockstep moves of an array cannot tell an own gradient from its
+    /// neighbours' copies, and independent blocks learned them apart badly
+    /// (docs/array.md).
+    #[serde(default = "yes")]
+    pub correlated_prior: bool,
 }
 
 fn yes() -> bool {
@@ -73,11 +90,12 @@ impl Default for JointConfig {
     fn default() -> Self {
         Self {
             radius: 1,
-            neighbour_prior_fraction: 0.5,
+            neighbour_prior_fraction: 0.1,
             outlier_sigma: 5.0,
             min_step_mv: 0.01,
             calibrated_prior_mean: true,
             cross_compensation: false,
+            correlated_prior: true,
         }
     }
 }
@@ -167,6 +185,59 @@ pub fn check_cross_calibration(lambda: [f64; 2]) -> Result<(), ConfigError> {
 /// A measured value (parameter unit) and its variance (unit²).
 pub type Measured = (f64, f64);
 
+/// The index in `own_gates` of the gate named like `gate` (array names,
+/// compared without their cell prefix).
+fn same_gate(own_gates: &[String], gate: &str) -> Option<usize> {
+    let local = crate::sim::array::split_gate(gate).map(|(_, l)| l);
+    own_gates
+        .iter()
+        .position(|o| crate::sim::array::split_gate(o).map(|(_, l)| l) == local)
+}
+
+/// One row's prior (module docs, "Prior"): mean `T_mean·g_own`,
+/// covariance `T·P_own·Tᵀ + diag(deviation)` and process noise
+/// `σ²·(T·Tᵀ + U)`, `σ` = `sigma_per_mv`. `T_mean` (columns × own gates) is
+/// 1 from each own column to its gate and `λ̂(d)` from a neighbour's column
+/// to the same own gate; `T` is `T_mean` with the neighbours' entries kept
+/// only when `correlated` (the own block is rows `own_at..own_at + own
+/// gates`). `U` is 1 on the diagonal of a column `T` leaves empty (an
+/// independent neighbour column).
+fn row_prior(
+    g_own: &[f64],
+    own_covariance: &[Vec<f64>],
+    t_mean: &DMatrix<f64>,
+    own_at: usize,
+    deviation: &[f64],
+    sigma_per_mv: f64,
+    correlated: bool,
+) -> (DVector<f64>, DMatrix<f64>, ProcessNoise) {
+    let (n, no) = t_mean.shape();
+    let p_own = DMatrix::from_fn(no, no, |r, s| {
+        own_covariance
+            .get(r)
+            .and_then(|row| row.get(s))
+            .copied()
+            .unwrap_or(0.0)
+    });
+    let g0 = t_mean * DVector::from_column_slice(g_own);
+    let mut t = t_mean.clone();
+    if !correlated {
+        for a in (0..n).filter(|a| !(own_at..own_at + no).contains(a)) {
+            t.row_mut(a).fill(0.0);
+        }
+    }
+    let c0 =
+        &t * p_own * t.transpose() + DMatrix::from_diagonal(&DVector::from_column_slice(deviation));
+    let mut q = &t * t.transpose();
+    for a in 0..n {
+        if t.row(a).iter().all(|&x| x == 0.0) {
+            q[(a, a)] = 1.0;
+        }
+    }
+    let s2 = sigma_per_mv * sigma_per_mv;
+    (g0, c0, ProcessNoise::Constant { q: q * s2 })
+}
+
 impl JointArrayTuner {
     /// Rows and priors from each cell's knowledge (module docs).
     pub fn new(
@@ -192,63 +263,51 @@ impl JointArrayTuner {
                 if g_own.len() != c.gates.len() || g_own.iter().any(|x| !x.is_finite()) {
                     return Err(ConfigError::new(field, "one finite value per gate"));
                 }
+                let lambda = |d: usize| -> f64 {
+                    if !config.calibrated_prior_mean {
+                        return 0.0;
+                    }
+                    [1.0, cross_calibration[0], cross_calibration[1]]
+                        .get(d)
+                        .copied()
+                        .unwrap_or(0.0)
+                };
                 let scale = g_own.iter().fold(0.0f64, |m, x| m.max(x.abs()));
-                let mut columns = Vec::new();
-                let mut g0 = Vec::new();
-                let mut var = Vec::new();
+                let n = (lo..=hi).map(|nj| cells[nj].gates.len()).sum();
+                let mut t_mean = DMatrix::zeros(n, c.gates.len());
+                let (mut columns, mut deviation) = (Vec::with_capacity(n), Vec::with_capacity(n));
                 let mut own_at = 0;
                 for (nj, nc) in cells.iter().enumerate().take(hi + 1).skip(lo) {
                     if nj == ci {
                         own_at = columns.len();
                     }
                     for (gi, gname) in nc.gates.iter().enumerate() {
+                        let col = columns.len();
                         columns.push(offsets[nj] + gi);
                         if nj == ci {
-                            g0.push(g_own[gi]);
-                            var.push(0.0);
-                        } else {
-                            // same gate type in the own block (prefix stripped)
-                            let local = crate::sim::array::split_gate(gname).map(|(_, l)| l);
-                            let own = c
-                                .gates
-                                .iter()
-                                .position(|o| {
-                                    crate::sim::array::split_gate(o).map(|(_, l)| l) == local
-                                })
-                                .map_or(scale, |k| g_own[k].abs());
-                            let d = ci.abs_diff(nj);
-                            let mean = if config.calibrated_prior_mean {
-                                let lambda = [1.0, cross_calibration[0], cross_calibration[1]];
-                                let signed = c
-                                    .gates
-                                    .iter()
-                                    .position(|o| {
-                                        crate::sim::array::split_gate(o).map(|(_, l)| l) == local
-                                    })
-                                    .map_or(0.0, |k| g_own[k]);
-                                lambda.get(d).copied().unwrap_or(0.0) * signed
-                            } else {
-                                0.0
-                            };
-                            g0.push(mean);
-                            var.push((f * own).powi(2) + (0.1 * f * scale).powi(2));
+                            t_mean[(col, gi)] = 1.0;
+                            deviation.push(0.0);
+                            continue;
                         }
+                        // the same gate of the own block (prefix stripped)
+                        let own = same_gate(&c.gates, gname);
+                        if let Some(k) = own {
+                            t_mean[(col, k)] = lambda(ci.abs_diff(nj));
+                        }
+                        let size = own.map_or(scale, |k| g_own[k].abs());
+                        deviation.push((f * size).powi(2) + (0.1 * f * scale).powi(2));
                     }
                 }
-                let n = columns.len();
-                let mut c0 = DMatrix::from_diagonal(&DVector::from_vec(var));
-                let cov = &c.covariance[pi];
-                for r in 0..c.gates.len() {
-                    for s in 0..c.gates.len() {
-                        c0[(own_at + r, own_at + s)] = cov
-                            .get(r)
-                            .and_then(|row| row.get(s))
-                            .copied()
-                            .unwrap_or(0.0);
-                    }
-                }
-                let q = ProcessNoise::isotropic(n, c.process_noise_per_mv[pi]);
-                let filter = KalmanGradient::new(DVector::from_vec(g0), c0, q)
+                let (g0, c0, q) = row_prior(
+                    g_own,
+                    &c.covariance[pi],
+                    &t_mean,
+                    own_at,
+                    &deviation,
+                    c.process_noise_per_mv[pi],
+                    config.correlated_prior,
+                );
+                let filter = KalmanGradient::new(g0, c0, q)
                     .and_then(|k| k.with_outlier_sigma(Some(config.outlier_sigma)))
                     .and_then(|k| k.with_min_step_mv(config.min_step_mv))
                     .map_err(|e: FilterError| ConfigError::new(field, e.to_string()))?;
@@ -373,8 +432,8 @@ impl JointArrayTuner {
     }
 
     /// The next move (array gate → absolute mV) from the present values.
-    /// `residual[cell][parameter]` is `ln(value/target)` of a cell out of
-    /// band, `Some(0)` for a cell in band (held), `None` where unknown (the
+    /// `residual[cell][parameter]` is `ln(value/target)` of a cell aimed at
+    /// its targets, `Some(0)` for a cell held, `None` where unknown (the
     /// row is left out). `jacobian`: the log-space Jacobian to use (the
     /// filter's [`JointArrayTuner::jacobian`], or the oracle's). Gates that
     /// do not move are left out; steps below 1 µV dropped.

@@ -20,7 +20,9 @@
 //!    skipped, [`ArrayRunSettings::skip_confident_sigma`]); values with
 //!    an error bar wider than the band are not acted on; the filter rows
 //!    learn; if every cell is in band the iteration ends there and the run
-//!    idles (as it does after [`ArrayRunSettings::max_iterations`]). Otherwise one joint limited move per cell (cells in band held;
+//!    idles (as it does after [`ArrayRunSettings::max_iterations`]). Otherwise one joint limited move per cell (cells in band
+//!    aimed at their targets like the others, or held with
+//!    [`ArrayRunSettings::hold_in_band`]; skipped cells held;
 //!    a cell whose evaluation failed retreats half-way to the voltages of
 //!    its last good evaluation), then the lower levels of the moved cells,
 //!    their neighbours and every uncertain cell: sensing dots swept and
@@ -109,6 +111,14 @@ pub struct ArrayRunSettings {
     /// the same). Default: the single-cell sensing-dot level's defaults.
     #[serde(default)]
     pub flank_prediction: FlankPrediction,
+    /// Hold a cell measured in band where it is (residual 0: the joint step
+    /// only compensates the crosstalk onto it) instead of aiming it at its
+    /// targets like the cells out of band. Default `false`: a held cell sits
+    /// wherever it entered the band, often at its edge, and measurement
+    /// noise then flips it out again (measured on random arrays,
+    /// docs/array.md).
+    #[serde(default)]
+    pub hold_in_band: bool,
 }
 
 impl Default for ArrayRunSettings {
@@ -123,6 +133,7 @@ impl Default for ArrayRunSettings {
             max_iterations: default_max_iterations(),
             skip_confident_sigma: default_skip_sigma(),
             flank_prediction: FlankPrediction::default(),
+            hold_in_band: false,
         }
     }
 }
@@ -1244,7 +1255,7 @@ impl ArrayRun {
                 }
                 for (p, m) in values[c].iter().enumerate() {
                     residual[c][p] = m.filter(|(x, _)| *x > 0.0).map(|(x, _)| {
-                        if in_band {
+                        if in_band && self.settings.hold_in_band {
                             0.0
                         } else {
                             (x / tv[p]).ln()

@@ -362,7 +362,7 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
     let plot = dir.join("timeline.png");
     std::fs::write(
         &tuning,
-        "line_rounds = 2\n[joint]\nneighbour_prior_fraction = 0.4\n",
+        "line_rounds = 2\nhold_in_band = true\n[joint]\nneighbour_prior_fraction = 0.4\ncorrelated_prior = false\n",
     )
     .unwrap();
     let out = run_ok(
@@ -394,6 +394,12 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
     assert_eq!(
         report["protocol"]["tuning"]["joint"]["neighbour_prior_fraction"],
         0.4
+    );
+    // last round's loop, as docs/array.md compares it
+    assert_eq!(report["protocol"]["tuning"]["hold_in_band"], true);
+    assert_eq!(
+        report["protocol"]["tuning"]["joint"]["correlated_prior"],
+        false
     );
     let joint = &report["strategies"][0];
     assert_eq!(joint["name"], "joint");

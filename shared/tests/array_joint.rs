@@ -111,20 +111,34 @@ fn only_the_oracle_reads_the_truth() {
     assert_eq!(independent.limit_violations, 0);
 }
 
-#[test]
-fn rows_span_the_neighbourhood_with_a_zero_mean_neighbour_prior() {
-    let cell = |c: u32| CellKnowledge {
+/// Cell `c` after its initial measurement: gates N, SA, SB, T; both
+/// parameters' log gradient (0.01, 0.02, −0.03, 0) 1/mV with the diagonal
+/// covariance `variance` (1/mV)².
+fn knowledge(c: u32, variance: f64) -> CellKnowledge {
+    CellKnowledge {
         gates: ["N", "SA", "SB", "T"]
             .iter()
             .map(|g| spintune::sim::array::gate_name(c, g))
             .collect(),
         parameters: vec!["t_sr".into(), "w".into()],
         gradient: vec![vec![0.01, 0.02, -0.03, 0.0]; 2],
-        covariance: vec![vec![vec![0.0; 4]; 4]; 2],
+        covariance: vec![
+            (0..4)
+                .map(|r| (0..4)
+                    .map(|s| if r == s { variance } else { 0.0 })
+                    .collect())
+                .collect();
+            2
+        ],
         process_noise_per_mv: vec![0.003; 2],
         max_step_mv: 10.0,
         compensation: None,
-    };
+    }
+}
+
+#[test]
+fn rows_span_the_neighbourhood_with_a_zero_mean_neighbour_prior() {
+    let cell = |c: u32| knowledge(c, 0.0);
     let t = JointArrayTuner::new(
         (0..4).map(cell).collect(),
         &JointConfig {
@@ -180,23 +194,7 @@ fn rows_span_the_neighbourhood_with_a_zero_mean_neighbour_prior() {
 ///   0.030509`, neighbour `0.006 + d/var x·0.032 = 0.016745`.
 #[test]
 fn a_lockstep_move_teaches_the_own_gradient_and_its_crosstalk_together() {
-    let cell = |c: u32| CellKnowledge {
-        gates: ["N", "SA", "SB", "T"]
-            .iter()
-            .map(|g| spintune::sim::array::gate_name(c, g))
-            .collect(),
-        parameters: vec!["t_sr".into(), "w".into()],
-        gradient: vec![vec![0.01, 0.02, -0.03, 0.0]; 2],
-        covariance: vec![
-            (0..4)
-                .map(|r| (0..4).map(|s| if r == s { 1e-4 } else { 0.0 }).collect())
-                .collect();
-            2
-        ],
-        process_noise_per_mv: vec![0.003; 2],
-        max_step_mv: 10.0,
-        compensation: None,
-    };
+    let cell = |c: u32| knowledge(c, 1e-4);
     let learn = |config: &JointConfig| {
         let mut t = JointArrayTuner::new((0..3).map(cell).collect(), config, [0.3, 0.05]).unwrap();
         let mut v: std::collections::BTreeMap<String, f64> =

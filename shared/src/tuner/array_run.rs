@@ -20,8 +20,9 @@
 //!    skipped, [`ArrayRunSettings::skip_confident_sigma`]); values with
 //!    an error bar wider than the band are not acted on; the filter rows
 //!    learn; if every cell is in band the iteration ends there and the run
-//!    idles (as it does after [`ArrayRunSettings::max_iterations`]). Otherwise one joint limited move per cell (cells in band
-//!    aimed at their targets like the others, or held with
+//!    idles (as it does after [`ArrayRunSettings::max_iterations`]).
+//!    Otherwise one joint limited move per cell (cells in band aimed at
+//!    their targets like the others, or held with
 //!    [`ArrayRunSettings::hold_in_band`]; skipped cells held;
 //!    a cell whose evaluation failed retreats half-way to the voltages of
 //!    its last good evaluation), then the lower levels of the moved cells,
@@ -114,9 +115,10 @@ pub struct ArrayRunSettings {
     /// Hold a cell measured in band where it is (residual 0: the joint step
     /// only compensates the crosstalk onto it) instead of aiming it at its
     /// targets like the cells out of band. Default `false`: a held cell sits
-    /// wherever it entered the band, often at its edge, and measurement
-    /// noise then flips it out again (measured on random arrays,
-    /// docs/array.md).
+    /// wherever it entered the band, often near its edge, where noise and
+    /// the crosstalk the estimate misses push it out again; aiming it
+    /// measured better for `joint` on random arrays (with the correlated
+    /// prior; docs/array.md), though worse for the oracle.
     #[serde(default)]
     pub hold_in_band: bool,
 }

@@ -223,6 +223,60 @@ fn a_lockstep_move_teaches_the_own_gradient_and_its_crosstalk_together() {
     assert!((left - 0.016745).abs() < 2e-6, "{left}");
 }
 
+/// A row that learned something returns to exactly its prior on
+/// `reset_row` (the loop does this when a parameter out of band stopped
+/// responding); the other rows keep what they learned.
+#[test]
+fn a_reset_row_returns_to_its_prior_and_only_that_row() {
+    let cells = || (0..3).map(|c| knowledge(c, 1e-4)).collect::<Vec<_>>();
+    let fresh = JointArrayTuner::new(cells(), &JointConfig::default(), [0.3, 0.05]).unwrap();
+    let mut t = fresh.clone();
+    let mut v: std::collections::BTreeMap<String, f64> =
+        t.gates().iter().map(|g| (g.clone(), 0.0)).collect();
+    t.observe(1, &[Some((100.0, 1e-12)), Some((200.0, 1e-12))], &v);
+    v.insert(spintune::sim::array::gate_name(1, "SA"), 2.0);
+    // neither parameter responds to the move: both rows learn a smaller SA element
+    t.observe(1, &[Some((100.0, 1e-12)), Some((200.0, 1e-12))], &v);
+    let sa = |t: &JointArrayTuner, p: usize| {
+        t.row_gradient(1, p)
+            .into_iter()
+            .find(|(g, _)| g == "c1.SA")
+            .unwrap()
+            .1
+    };
+    assert!(sa(&t, 0) < 0.5 * sa(&fresh, 0), "{}", sa(&t, 0));
+    let learned_w = t.row_gradient(1, 1);
+    assert!(t.reset_row(1, 0));
+    assert_eq!(t.row_gradient(1, 0), fresh.row_gradient(1, 0));
+    assert_eq!(t.row_gradient(1, 1), learned_w);
+    let norm: f64 = fresh
+        .row_gradient(1, 0)
+        .iter()
+        .map(|(_, g)| g * g)
+        .sum::<f64>()
+        .sqrt();
+    assert!((t.row_norm(1, 0).unwrap() - norm).abs() < 1e-15);
+    assert!(!t.reset_row(7, 0));
+    assert_eq!(t.row_norm(7, 0), None);
+}
+
+#[test]
+fn the_flat_row_reset_is_bounded_and_on_by_default() {
+    let p = short_protocol();
+    assert_eq!(p.tuning.reset_flat_row_fraction, 0.5, "the default");
+    for bad in [-0.1, 1.5, f64::NAN] {
+        let mut q = short_protocol();
+        q.tuning.reset_flat_row_fraction = bad;
+        assert_eq!(
+            q.validate().unwrap_err().field,
+            "tuning.reset_flat_row_fraction"
+        );
+    }
+    let mut off = short_protocol();
+    off.tuning.reset_flat_row_fraction = 0.0;
+    assert!(off.validate().is_ok());
+}
+
 #[test]
 fn single_cell_changes_pick_distinct_cells() {
     assert_eq!(single_change_cells(9, 3), vec![4, 0, 8]);

@@ -151,6 +151,10 @@ struct Row {
     filter: KalmanGradient,
     /// Last accepted (y, var y, voltages of `columns`).
     last: Option<(f64, f64, Vec<f64>)>,
+    /// The row as it started (its prior), for [`JointArrayTuner::reset_row`]
+    /// (`None` in runs saved before it).
+    #[serde(default)]
+    prior: Option<KalmanGradient>,
 }
 
 /// The joint tuner (module docs).
@@ -315,6 +319,7 @@ impl JointArrayTuner {
                     cell: ci,
                     parameter: pi,
                     columns,
+                    prior: Some(filter.clone()),
                     filter,
                     last: None,
                 });
@@ -331,6 +336,36 @@ impl JointArrayTuner {
                 [0.0; 2]
             },
         })
+    }
+
+    /// Euclidean norm of a row's learned gradient (log space, 1/mV); `None`
+    /// for an unknown row.
+    pub fn row_norm(&self, cell: usize, parameter: usize) -> Option<f64> {
+        self.rows
+            .iter()
+            .find(|r| r.cell == cell && r.parameter == parameter)
+            .map(|r| r.filter.gradient().norm())
+    }
+
+    /// Return a row's estimate to its prior (the cell's initial measurement
+    /// and the calibrated crosstalk, module docs): what was learned since is
+    /// dropped; the next update starts from the row's last accepted value.
+    /// Whether the row exists (and has a prior to return to).
+    pub fn reset_row(&mut self, cell: usize, parameter: usize) -> bool {
+        let Some(row) = self
+            .rows
+            .iter_mut()
+            .find(|r| r.cell == cell && r.parameter == parameter)
+        else {
+            return false;
+        };
+        match &row.prior {
+            Some(prior) => {
+                row.filter = prior.clone();
+                true
+            }
+            None => false,
+        }
     }
 
     /// Every tuning gate of the array, cell by cell (array names).

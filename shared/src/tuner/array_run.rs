@@ -121,6 +121,21 @@ pub struct ArrayRunSettings {
     /// prior; docs/array.md), though worse for the oracle.
     #[serde(default)]
     pub hold_in_band: bool,
+    /// Return a cell's parameter row to its prior
+    /// ([`JointArrayTuner::reset_row`]) when the parameter is measured out of
+    /// band and the row's learned gradient would move it by less than this
+    /// fraction of its band over a full step (`‖g‖·max_step_mv < f·band`, log
+    /// space; 0 ≤ f ≤ 1, 0: never). A parameter that stopped responding
+    /// (`w` at its thermal floor `2kT/α`, where `t_c` drifts unseen while
+    /// `w`'s target sits on the floor) is then steered by what the lab
+    /// measured where it did respond, instead of by a gradient learned to be
+    /// zero. Default 0.5, chosen on random arrays (docs/array.md).
+    #[serde(default = "default_reset_flat_row_fraction")]
+    pub reset_flat_row_fraction: f64,
+}
+
+fn default_reset_flat_row_fraction() -> f64 {
+    0.5
 }
 
 impl Default for ArrayRunSettings {
@@ -136,6 +151,7 @@ impl Default for ArrayRunSettings {
             skip_confident_sigma: default_skip_sigma(),
             flank_prediction: FlankPrediction::default(),
             hold_in_band: false,
+            reset_flat_row_fraction: default_reset_flat_row_fraction(),
         }
     }
 }
@@ -180,6 +196,12 @@ impl ArrayRunSettings {
                 p.to_string(),
             )?;
         }
+        let f = self.reset_flat_row_fraction;
+        check(
+            f.is_finite() && (0.0..=1.0).contains(&f),
+            "reset_flat_row_fraction",
+            f.to_string(),
+        )?;
         if let Some(m) = self.max_iterations {
             check((1..=100_000).contains(&m), "max_iterations", m.to_string())?;
         }
@@ -1256,6 +1278,9 @@ impl ArrayRun {
                     j.in_band[c] = in_band;
                 }
                 for (p, m) in values[c].iter().enumerate() {
+                    if m.is_some_and(|(x, _)| (x - tv[p]).abs() > band * tv[p]) {
+                        self.reset_if_flat(c, p);
+                    }
                     residual[c][p] = m.filter(|(x, _)| *x > 0.0).map(|(x, _)| {
                         if in_band && self.settings.hold_in_band {
                             0.0
@@ -1316,6 +1341,21 @@ impl ArrayRun {
             Step::Move(0)
         };
         Ok(())
+    }
+
+    /// Cell `c`'s parameter `p`, measured out of band: its row returns to its
+    /// prior if its gradient is flat
+    /// ([`ArrayRunSettings::reset_flat_row_fraction`]).
+    fn reset_if_flat(&mut self, c: usize, p: usize) {
+        let band = self.settings.relative_tolerance;
+        let f = self.settings.reset_flat_row_fraction;
+        let Some(j) = self.joint.as_mut() else { return };
+        let Some(step) = j.tuner.cells().get(c).map(|k| k.max_step_mv) else {
+            return;
+        };
+        if j.tuner.row_norm(c, p).is_some_and(|g| g * step < f * band) {
+            j.tuner.reset_row(c, p);
+        }
     }
 
     /// An evaluation of cell `c` failed: counted, and its sensor sweeps at

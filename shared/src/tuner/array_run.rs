@@ -1266,10 +1266,10 @@ impl ArrayRun {
                 // predicted in band with margin (plan_skips): held
                 residual[c] = vec![Some(0.0); 2];
             } else {
-                let in_band = values[c]
-                    .iter()
-                    .zip(tv)
-                    .all(|(m, t)| m.is_some_and(|(p, _)| (p - t).abs() <= band * t));
+                // a measured parameter within its band
+                let within =
+                    |p: usize| values[c][p].is_some_and(|(x, _)| (x - tv[p]).abs() <= band * tv[p]);
+                let in_band = (0..tv.len()).all(within);
                 all_in &= in_band;
                 if let Some(j) = self.joint.as_mut() {
                     if j.in_band.len() != k {
@@ -1277,8 +1277,11 @@ impl ArrayRun {
                     }
                     j.in_band[c] = in_band;
                 }
+                let out: Vec<bool> = (0..tv.len())
+                    .map(|p| values[c][p].is_some() && !within(p))
+                    .collect();
                 for (p, m) in values[c].iter().enumerate() {
-                    if m.is_some_and(|(x, _)| (x - tv[p]).abs() > band * tv[p]) {
+                    if out[p] {
                         self.reset_if_flat(c, p);
                     }
                     residual[c][p] = m.filter(|(x, _)| *x > 0.0).map(|(x, _)| {

@@ -362,7 +362,7 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
     let plot = dir.join("timeline.png");
     std::fs::write(
         &tuning,
-        "line_rounds = 2\nhold_in_band = true\nreset_flat_row_fraction = 0\n[joint]\nneighbour_prior_fraction = 0.4\ncorrelated_prior = false\n",
+        "line_rounds = 2\nhold_in_band = true\nreset_flat_row_fraction = 0\n[joint]\nneighbour_prior_fraction = 0.4\ncorrelated_prior = false\nlockstep_correction = false\n",
     )
     .unwrap();
     let out = run_ok(
@@ -400,6 +400,10 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
     assert_eq!(report["protocol"]["tuning"]["reset_flat_row_fraction"], 0.0);
     assert_eq!(
         report["protocol"]["tuning"]["joint"]["correlated_prior"],
+        false
+    );
+    assert_eq!(
+        report["protocol"]["tuning"]["joint"]["lockstep_correction"],
         false
     );
     let joint = &report["strategies"][0];

@@ -209,7 +209,12 @@ fn a_lockstep_move_teaches_the_own_gradient_and_its_crosstalk_together() {
             t.row_gradient(1, 0).into_iter().collect();
         (row["c1.SA"], row["c0.SA"], row["c2.SA"], row["c1.N"])
     };
-    let (own, left, right, untouched) = learn(&JointConfig::default());
+    // the prior as given (the lockstep correction has its own test)
+    let given = JointConfig {
+        lockstep_correction: false,
+        ..JointConfig::default()
+    };
+    let (own, left, right, untouched) = learn(&given);
     assert!((own - 0.039381).abs() < 2e-6, "{own}");
     assert!((left - 0.012310).abs() < 2e-6, "{left}");
     assert!((right - left).abs() < 1e-12);
@@ -217,10 +222,86 @@ fn a_lockstep_move_teaches_the_own_gradient_and_its_crosstalk_together() {
     let (own, left, _, _) = learn(&JointConfig {
         correlated_prior: false,
         neighbour_prior_fraction: 0.5,
-        ..JointConfig::default()
+        ..given
     });
     assert!((own - 0.030509).abs() < 2e-6, "{own}");
     assert!((left - 0.016745).abs() < 2e-6, "{left}");
+}
+
+/// The cells' initial finite differences run in lockstep: every cell
+/// moves the same gate by the same step at once, so a cell measures the
+/// sum of its own derivative and its neighbours' crosstalk copies. On the
+/// simulated chain (three default cells, crosstalk 0.3 nearest and 0.05
+/// next), that sum is the sum of the world's Jacobian columns of the gate
+/// over all cells (first order); by the world's effective-voltage model it
+/// is `1 + 0.3 + 0.05 = 1.35` times the own derivative for an end cell and
+/// `1 + 2·0.3 = 1.6` for the middle one. Given that measurement, the tuner
+/// starts its own block at the world's own derivative (within the central
+/// differences' error); without the correction it starts that factor too
+/// steep.
+#[test]
+fn lockstep_initial_gradients_start_at_the_own_derivative() {
+    use spintune::sim::array::{gate_name, parameter_name, ArrayDevice};
+    let dev = ArrayDevice::new(
+        ArrayConfig::chain(3, 0, 7),
+        vec![DeviceConfig::default(); 3],
+    )
+    .unwrap();
+    let gates = ["N", "SA", "SB", "T"];
+    let all: Vec<String> = (0..3)
+        .flat_map(|c| gates.map(|g| gate_name(c, g)))
+        .collect();
+    let all: Vec<&str> = all.iter().map(String::as_str).collect();
+    let params: Vec<String> = (0..3)
+        .flat_map(|c| ["t_sr", "w"].map(|p| parameter_name(c, p)))
+        .collect();
+    let params: Vec<&str> = params.iter().map(String::as_str).collect();
+    let jac = dev.true_jacobian(&all, &params).unwrap();
+    let value = |c: u32, p: usize| {
+        let t = dev.truth(c).unwrap();
+        [t.t_sr_ns, t.w_uv][p]
+    };
+    // log-space derivative of cell c's parameter p along gate g of cell k
+    let d = |c: u32, p: usize, k: u32, g: usize| {
+        jac[(2 * c as usize + p, 4 * k as usize + g)] / value(c, p)
+    };
+    let measured = |c: u32| CellKnowledge {
+        gradient: (0..2)
+            .map(|p| {
+                (0..4)
+                    .map(|g| (0..3).map(|k| d(c, p, k, g)).sum())
+                    .collect()
+            })
+            .collect(),
+        ..knowledge(c, 1e-6)
+    };
+    let off = JointConfig {
+        lockstep_correction: false,
+        ..JointConfig::default()
+    };
+    for (config, corrected) in [(JointConfig::default(), true), (off, false)] {
+        let t = JointArrayTuner::new((0..3).map(measured).collect(), &config, [0.3, 0.05]).unwrap();
+        for (c, factor) in [(0u32, 1.35), (1, 1.6), (2, 1.35)] {
+            for p in 0..2 {
+                let row: std::collections::BTreeMap<String, f64> =
+                    t.row_gradient(c as usize, p).into_iter().collect();
+                for (g, name) in gates.iter().enumerate() {
+                    let own = d(c, p, c, g);
+                    if own.abs() < 1e-6 {
+                        continue;
+                    }
+                    // the prior's own element, against the own derivative
+                    // (correction on) or factor × it (off)
+                    let expected = if corrected { own } else { own * factor };
+                    let got = row[&gate_name(c, name)];
+                    assert!(
+                        ((got - expected) / expected).abs() < 0.01,
+                        "cell {c} parameter {p} gate {name}: {got} against {expected}"
+                    );
+                }
+            }
+        }
+    }
 }
 
 /// A row that learned something returns to exactly its prior on

@@ -9,7 +9,10 @@
 //!   Parameters are tuned in log space (`y = ln p`), as the recommended
 //!   single-cell tuner does.
 //! * **Prior.** The own-cell block is the cell's initial measurement (its
-//!   learned gradient `g_own` and covariance `P_own`). A neighbour's block
+//!   learned gradient and covariance), divided by the cell's
+//!   [`lockstep_factor`] (and its square): `g_own`, `P_own`. The cells
+//!   measured in lockstep, so each saw its neighbours' crosstalk copies of
+//!   its own gradient too ([`JointConfig::lockstep_correction`]). A neighbour's block
 //!   follows the lab's cross-cell virtual-gate calibration `λ̂` (the same
 //!   that feeds the compensation): a neighbour at distance `d` moving gate
 //!   `X` acts on this cell like `λ̂(d)` times the cell's own `X`. So the
@@ -80,6 +83,14 @@ pub struct JointConfig {
     /// (docs/array.md).
     #[serde(default = "yes")]
     pub correlated_prior: bool,
+    /// Whether each cell's initial gradient is divided by its lockstep
+    /// factor ([`lockstep_factor`]) and its covariance by the factor's
+    /// square. Default `true`: the cells' initial finite differences run in
+    /// every cell at once, each moving the same gate by the same step, so a
+    /// cell measured its own gradient plus its neighbours' crosstalk copies
+    /// of it (docs/array.md "Lockstep-corrected initial gradients").
+    #[serde(default = "yes")]
+    pub lockstep_correction: bool,
 }
 
 fn yes() -> bool {
@@ -96,6 +107,7 @@ impl Default for JointConfig {
             calibrated_prior_mean: true,
             cross_compensation: false,
             correlated_prior: true,
+            lockstep_correction: true,
         }
     }
 }
@@ -189,6 +201,33 @@ pub fn check_cross_calibration(lambda: [f64; 2]) -> Result<(), ConfigError> {
 /// A measured value (parameter unit) and its variance (unit²).
 pub type Measured = (f64, f64);
 
+/// How much larger cell `cell`'s initial gradient comes out when all
+/// `cells` take their finite differences in lockstep (every cell moving
+/// the same gate by the same step at once) than its own gradient:
+/// `1 + Σ_{k ≠ cell} λ̂(|cell − k|)`, `λ̂ = cross_calibration` (nearest,
+/// next; 0 beyond). A neighbour moving gate X acts on the cell like `λ̂`
+/// times the cell's own X (the crosstalk model of the prior), so a
+/// lockstep step δ moves the cell as its own gate would by `factor·δ`.
+///
+/// ```
+/// use spintune::tuner::array::lockstep_factor;
+/// // an end cell of three sees one nearest and one next neighbour,
+/// // the middle cell two nearest
+/// assert!((lockstep_factor(0, 3, [0.3, 0.05]) - 1.35).abs() < 1e-12);
+/// assert!((lockstep_factor(1, 3, [0.3, 0.05]) - 1.6).abs() < 1e-12);
+/// assert_eq!(lockstep_factor(0, 1, [0.3, 0.05]), 1.0);
+/// ```
+pub fn lockstep_factor(cell: usize, cells: usize, cross_calibration: [f64; 2]) -> f64 {
+    1.0 + (0..cells)
+        .filter(|&k| k != cell)
+        .map(|k| match cell.abs_diff(k) {
+            1 => cross_calibration[0],
+            2 => cross_calibration[1],
+            _ => 0.0,
+        })
+        .sum::<f64>()
+}
+
 /// The index in `own_gates` of the gate named like `gate` (array names,
 /// compared without their cell prefix).
 fn same_gate(own_gates: &[String], gate: &str) -> Option<usize> {
@@ -262,11 +301,26 @@ impl JointArrayTuner {
         for (ci, c) in cells.iter().enumerate() {
             let lo = ci.saturating_sub(config.radius as usize);
             let hi = (ci + config.radius as usize).min(cells.len() - 1);
-            for (pi, g_own) in c.gradient.iter().enumerate() {
+            let lockstep = if config.lockstep_correction {
+                lockstep_factor(ci, cells.len(), cross_calibration)
+            } else {
+                1.0
+            };
+            for (pi, measured) in c.gradient.iter().enumerate() {
                 let field = format!("cells[{ci}].gradient[{pi}]");
-                if g_own.len() != c.gates.len() || g_own.iter().any(|x| !x.is_finite()) {
+                if measured.len() != c.gates.len() || measured.iter().any(|x| !x.is_finite()) {
                     return Err(ConfigError::new(field, "one finite value per gate"));
                 }
+                let g_own: Vec<f64> = measured.iter().map(|g| g / lockstep).collect();
+                let g_own = &g_own;
+                let own_covariance: Vec<Vec<f64>> = c
+                    .covariance
+                    .get(pi)
+                    .map(|p| p.iter())
+                    .into_iter()
+                    .flatten()
+                    .map(|row| row.iter().map(|x| x / (lockstep * lockstep)).collect())
+                    .collect();
                 let lambda = |d: usize| -> f64 {
                     if !config.calibrated_prior_mean {
                         return 0.0;
@@ -304,7 +358,7 @@ impl JointArrayTuner {
                 }
                 let (g0, c0, q) = row_prior(
                     g_own,
-                    &c.covariance[pi],
+                    &own_covariance,
                     &t_mean,
                     own_at,
                     &deviation,

@@ -11,7 +11,10 @@
 //! # The loop
 //! 1. **Initial measurements**: one single-cell [`RunSession`] per cell
 //!    (gates renamed `c{k}.…`, `max_iterations = 0`), stepped in parallel,
-//!    one request per cell and batch, each through its own session's guard.
+//!    one request per cell and batch, each through its own session's guard,
+//!    in lockstep: a move of a cell's tuning gates waits until no other cell
+//!    has a scan pending, so the cells' finite differences move together
+//!    (`initial_sent`; the prior's lockstep factor assumes it).
 //!    Then every gate is read once and the lab's knowledge of each cell
 //!    (learned gradient and covariance, virtual-gate matrix, line Jacobian,
 //!    sensing-dot sweep) starts the [`JointArrayTuner`].
@@ -683,13 +686,17 @@ impl ArrayRun {
     fn next_batch(&mut self) -> Result<Option<Vec<Request>>, ArrayRunError> {
         Ok(Some(match self.step.clone() {
             Step::Initial => {
-                let mut batch = Vec::new();
                 for k in 0..self.sessions.len() {
                     self.step_session(k)?;
-                    if let Some(r) = &self.session_pending[k] {
-                        batch.push(r.clone());
-                    }
                 }
+                let sent = self.initial_sent();
+                let batch: Vec<Request> = self
+                    .session_pending
+                    .iter()
+                    .zip(&sent)
+                    .filter(|(_, &s)| s)
+                    .filter_map(|(r, _)| r.clone())
+                    .collect();
                 if batch.is_empty() {
                     self.step = Step::ReadAll;
                     vec![Request::ReadVoltages {
@@ -977,6 +984,44 @@ impl ArrayRun {
         Ok(())
     }
 
+    /// Which cells' pending requests the initial measurements' next batch
+    /// sends. The cells measure in lockstep: a request that moves a cell's
+    /// tuning gates (a finite-difference step) waits while another cell
+    /// still has a scan or any other request pending, so every cell moves
+    /// its gates at the same time and scans with its neighbours standing
+    /// still (the joint prior's lockstep factor,
+    /// [`super::array::lockstep_factor`], assumes exactly this). A cell
+    /// that needs extra requests (a re-sweep, a line correction) delays the
+    /// others' next move instead of moving out of step. No deadlock: when
+    /// every pending request is a move, all are sent.
+    fn initial_sent(&self) -> Vec<bool> {
+        let moves: Vec<bool> = self
+            .session_pending
+            .iter()
+            .zip(&self.sessions)
+            .map(|(r, s)| match (r, s) {
+                (Some(Request::SetVoltages { voltages_mv }), Some(s)) => s
+                    .tuner()
+                    .config()
+                    .top()
+                    .gates
+                    .iter()
+                    .any(|g| voltages_mv.contains_key(g)),
+                _ => false,
+            })
+            .collect();
+        let busy = self
+            .session_pending
+            .iter()
+            .zip(&moves)
+            .any(|(r, &m)| r.is_some() && !m);
+        self.session_pending
+            .iter()
+            .zip(&moves)
+            .map(|(r, &m)| r.is_some() && !(busy && m))
+            .collect()
+    }
+
     fn feed_sessions(
         &mut self,
         batch: &[Request],
@@ -984,8 +1029,9 @@ impl ArrayRun {
     ) -> Result<(), ArrayRunError> {
         let mut answers = answers.into_iter();
         let mut sent = batch.iter();
+        let in_batch = self.initial_sent();
         for k in 0..self.sessions.len() {
-            if self.session_pending[k].is_none() {
+            if self.session_pending[k].is_none() || !in_batch[k] {
                 continue;
             }
             let (Some(_), Some(answer)) = (sent.next(), answers.next()) else {

@@ -43,35 +43,29 @@ fn every_cell_moves_its_tuning_gates_in_the_same_batch() {
     // than its neighbours' before the finite differences begin
     assert!(device.rearrange_charges(1, [2.0, 0.0]));
     let (mut batches, mut moves, mut scans_per_cell) = (0, 0, [0u32; 3]);
-    loop {
-        match run.poll().unwrap() {
-            ArrayAction::Execute(batch) => {
-                batches += 1;
-                let moved: Vec<_> = batch.iter().filter_map(tuning_move).collect();
-                if !moved.is_empty() {
-                    moves += 1;
-
-                    // nothing else in the batch, one move per cell, the same gates
-                    assert_eq!(moved.len(), batch.len(), "batch {batches}: {batch:?}");
-                    let cells: BTreeSet<u32> = moved.iter().map(|(c, _)| *c).collect();
-                    assert_eq!(cells.len(), 3, "batch {batches}: {batch:?}");
-                    assert!(
-                        moved.iter().all(|(_, g)| *g == moved[0].1),
-                        "batch {batches}"
-                    );
-                }
-                for r in &batch {
-                    if let Request::Measure { scan } = r {
-                        scans_per_cell[scan.cell.unwrap() as usize] += 1;
-                    }
-                }
-                let before = device.lab_seconds();
-                let answers = device.execute_batch(&batch);
-                run.feed(answers, device.lab_seconds() - before).unwrap();
-            }
-            // the initial measurements end before the first iteration
-            ArrayAction::Iteration(_) | ArrayAction::Idle => break,
+    // the initial measurements end before the first iteration
+    while let ArrayAction::Execute(batch) = run.poll().unwrap() {
+        batches += 1;
+        let moved: Vec<_> = batch.iter().filter_map(tuning_move).collect();
+        if !moved.is_empty() {
+            moves += 1;
+            // nothing else in the batch, one move per cell, the same gates
+            assert_eq!(moved.len(), batch.len(), "batch {batches}: {batch:?}");
+            let cells: BTreeSet<u32> = moved.iter().map(|(c, _)| *c).collect();
+            assert_eq!(cells.len(), 3, "batch {batches}: {batch:?}");
+            assert!(
+                moved.iter().all(|(_, g)| *g == moved[0].1),
+                "batch {batches}"
+            );
         }
+        for r in &batch {
+            if let Request::Measure { scan } = r {
+                scans_per_cell[scan.cell.unwrap() as usize] += 1;
+            }
+        }
+        let before = device.lab_seconds();
+        let answers = device.execute_batch(&batch);
+        run.feed(answers, device.lab_seconds() - before).unwrap();
     }
     // the finite differences of four tuning gates happened
     assert!(moves >= 4, "{moves} moves");

@@ -1029,11 +1029,9 @@ impl ArrayRun {
     ) -> Result<(), ArrayRunError> {
         let mut answers = answers.into_iter();
         let mut sent = batch.iter();
+        // the cells whose pending request this batch carried, in order
         let in_batch = self.initial_sent();
-        for k in 0..self.sessions.len() {
-            if self.session_pending[k].is_none() || !in_batch[k] {
-                continue;
-            }
+        for k in (0..in_batch.len()).filter(|&k| in_batch[k]) {
             let (Some(_), Some(answer)) = (sent.next(), answers.next()) else {
                 return Err(ArrayRunError::Protocol("an answer is missing".into()));
             };

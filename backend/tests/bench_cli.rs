@@ -362,7 +362,7 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
     let plot = dir.join("timeline.png");
     std::fs::write(
         &tuning,
-        "line_rounds = 2\nhold_in_band = true\nreset_flat_row_fraction = 0\n[joint]\nneighbour_prior_fraction = 0.4\ncorrelated_prior = false\nlockstep_correction = false\n",
+        "line_rounds = 2\nhold_in_band = true\nreset_flat_row_fraction = 0\n[joint]\nneighbour_prior_fraction = 0.4\ncorrelated_prior = false\nlockstep_correction = true\n",
     )
     .unwrap();
     let out = run_ok(
@@ -395,7 +395,8 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
         report["protocol"]["tuning"]["joint"]["neighbour_prior_fraction"],
         0.4
     );
-    // earlier rounds' loop, as docs/array.md compares it
+    // earlier rounds' loop, as docs/array.md compares it, and the lockstep
+    // correction (off by default) switched on
     assert_eq!(report["protocol"]["tuning"]["hold_in_band"], true);
     assert_eq!(report["protocol"]["tuning"]["reset_flat_row_fraction"], 0.0);
     assert_eq!(
@@ -404,7 +405,7 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
     );
     assert_eq!(
         report["protocol"]["tuning"]["joint"]["lockstep_correction"],
-        false
+        true
     );
     let joint = &report["strategies"][0];
     assert_eq!(joint["name"], "joint");

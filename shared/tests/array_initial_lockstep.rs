@@ -1,9 +1,12 @@
 //! The cells' initial measurements run in lockstep: every cell moves its
 //! tuning gates (a finite-difference step) in the same batch as the others
 //! and scans while its neighbours stand still, even when one cell needs
-//! extra requests (a re-sweep of its sensor, a line correction). The joint
-//! prior divides each cell's initial gradient by its lockstep factor
-//! (`spintune::tuner::array::lockstep_factor`), which assumes exactly this.
+//! extra requests (a re-sweep of its sensor, a line correction). So every
+//! cell's initial gradient is its own plus its neighbours' crosstalk
+//! copies in the same proportion (`spintune::tuner::array::lockstep_factor`,
+//! what the joint prior's neighbour blocks and its optional lockstep
+//! correction assume); out of step, a cell's gradient could come out with
+//! the wrong sign.
 
 mod support;
 

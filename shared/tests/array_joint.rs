@@ -209,11 +209,8 @@ fn a_lockstep_move_teaches_the_own_gradient_and_its_crosstalk_together() {
             t.row_gradient(1, 0).into_iter().collect();
         (row["c1.SA"], row["c0.SA"], row["c2.SA"], row["c1.N"])
     };
-    // the prior as given (the lockstep correction has its own test)
-    let given = JointConfig {
-        lockstep_correction: false,
-        ..JointConfig::default()
-    };
+    // the prior as given (the lockstep correction, off by default, has its own test)
+    let given = JointConfig::default();
     let (own, left, right, untouched) = learn(&given);
     assert!((own - 0.039381).abs() < 2e-6, "{own}");
     assert!((left - 0.012310).abs() < 2e-6, "{left}");
@@ -275,11 +272,12 @@ fn lockstep_initial_gradients_start_at_the_own_derivative() {
             .collect(),
         ..knowledge(c, 1e-6)
     };
-    let off = JointConfig {
-        lockstep_correction: false,
+    let on = JointConfig {
+        lockstep_correction: true,
         ..JointConfig::default()
     };
-    for (config, corrected) in [(JointConfig::default(), true), (off, false)] {
+    // off by default (docs/array.md "Initial measurements in lockstep")
+    for (config, corrected) in [(on, true), (JointConfig::default(), false)] {
         let t = JointArrayTuner::new((0..3).map(measured).collect(), &config, [0.3, 0.05]).unwrap();
         for (c, factor) in [(0u32, 1.35), (1, 1.6), (2, 1.35)] {
             for p in 0..2 {

@@ -9,10 +9,11 @@
 //!   Parameters are tuned in log space (`y = ln p`), as the recommended
 //!   single-cell tuner does.
 //! * **Prior.** The own-cell block is the cell's initial measurement (its
-//!   learned gradient and covariance), divided by the cell's
-//!   [`lockstep_factor`] (and its square): `g_own`, `P_own`. The cells
-//!   measured in lockstep, so each saw its neighbours' crosstalk copies of
-//!   its own gradient too ([`JointConfig::lockstep_correction`]). A neighbour's block
+//!   learned gradient and covariance), `g_own` and `P_own` (with
+//!   [`JointConfig::lockstep_correction`], off by default, divided by the
+//!   cell's [`lockstep_factor`] and its square: the cells measured in
+//!   lockstep, so each saw its neighbours' crosstalk copies of its own
+//!   gradient too). A neighbour's block
 //!   follows the lab's cross-cell virtual-gate calibration `λ̂` (the same
 //!   that feeds the compensation): a neighbour at distance `d` moving gate
 //!   `X` acts on this cell like `λ̂(d)` times the cell's own `X`. So the
@@ -85,11 +86,14 @@ pub struct JointConfig {
     pub correlated_prior: bool,
     /// Whether each cell's initial gradient is divided by its lockstep
     /// factor ([`lockstep_factor`]) and its covariance by the factor's
-    /// square. Default `true`: the cells' initial finite differences run in
-    /// every cell at once, each moving the same gate by the same step, so a
-    /// cell measured its own gradient plus its neighbours' crosstalk copies
-    /// of it (docs/array.md "Lockstep-corrected initial gradients").
-    #[serde(default = "yes")]
+    /// square: the cells' initial finite differences run in every cell at
+    /// once, each moving the same gate by the same step, so a cell measured
+    /// its own gradient plus its neighbours' crosstalk copies of it.
+    /// Default `false`: the corrected prior is unbiased, and faster on the
+    /// development sets, but its larger first steps got whole runs stuck on
+    /// random arrays; the biased gradients' damping is kept (docs/array.md
+    /// "Initial measurements in lockstep").
+    #[serde(default)]
     pub lockstep_correction: bool,
 }
 
@@ -107,7 +111,7 @@ impl Default for JointConfig {
             calibrated_prior_mean: true,
             cross_compensation: false,
             correlated_prior: true,
-            lockstep_correction: true,
+            lockstep_correction: false,
         }
     }
 }

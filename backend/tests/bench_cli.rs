@@ -362,7 +362,7 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
     let plot = dir.join("timeline.png");
     std::fs::write(
         &tuning,
-        "line_rounds = 2\nhold_in_band = true\nreset_flat_row_fraction = 0\n[joint]\nneighbour_prior_fraction = 0.4\ncorrelated_prior = false\nlockstep_correction = true\n",
+        "line_rounds = 2\nhold_in_band = true\nreset_flat_row_fraction = 0\n[joint]\nneighbour_prior_fraction = 0.4\ncorrelated_prior = false\nlockstep_correction = true\nexcitation = 0.3\n",
     )
     .unwrap();
     let out = run_ok(
@@ -396,7 +396,7 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
         0.4
     );
     // earlier rounds' loop, as docs/array.md compares it, and the lockstep
-    // correction (off by default) switched on
+    // correction and the excitation (both off by default) switched on
     assert_eq!(report["protocol"]["tuning"]["hold_in_band"], true);
     assert_eq!(report["protocol"]["tuning"]["reset_flat_row_fraction"], 0.0);
     assert_eq!(
@@ -407,6 +407,7 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
         report["protocol"]["tuning"]["joint"]["lockstep_correction"],
         true
     );
+    assert_eq!(report["protocol"]["tuning"]["joint"]["excitation"], 0.3);
     let joint = &report["strategies"][0];
     assert_eq!(joint["name"], "joint");
     for key in [

@@ -500,3 +500,109 @@ fn predicted_flanks_replace_sweeps_and_the_changes_still_converge() {
         "tuning.flank_prediction.skip_std_mv"
     );
 }
+
+/// Null-space excitation (`JointConfig::excitation`, β): a cell whose step
+/// is cut to its limit moves `√(1−β²)` of the limit along its plan and `β`
+/// along a direction its own learned rows see as flat; the sign flips at
+/// each of its measurements; a cell within its limit moves exactly as
+/// planned; β = 0 is the plain step.
+///
+/// Expected values from the geometry alone: with the planned move `d₀`
+/// (β = 0, length 10 mV = the limit) the move `d` with β has length 10 mV,
+/// `d·d₀/100 = √(1−0.3²) = 0.953939`, and its rest `r = d − 0.953939·d₀`
+/// has length `0.3·10 = 3` mV with `J_own·r = 0`.
+#[test]
+fn a_limited_step_also_explores_the_own_rows_null_space() {
+    use nalgebra::DVector;
+    use spintune::safety::{GateSpec, SafetyLimits};
+    use std::collections::BTreeMap;
+    let cell = |c: u32| {
+        let mut k = knowledge(c, 1e-5);
+        k.gradient[1] = vec![-0.002, 0.001, 0.01, -0.001];
+        k
+    };
+    let tuner = |beta: f64| {
+        let config = JointConfig {
+            excitation: beta,
+            ..JointConfig::default()
+        };
+        JointArrayTuner::new((0..3).map(cell).collect(), &config, [0.3, 0.05]).unwrap()
+    };
+    let plain = tuner(0.0);
+    let gates: Vec<String> = plain.gates().to_vec();
+    let limits = SafetyLimits::new(
+        &gates
+            .iter()
+            .map(|g| GateSpec {
+                name: g.clone(),
+                min_mv: -2000.0,
+                max_mv: 2000.0,
+                max_step_mv: 10.0,
+                initial_mv: 0.0,
+            })
+            .collect::<Vec<_>>(),
+    );
+    let v: BTreeMap<String, f64> = gates.iter().map(|g| (g.clone(), 0.0)).collect();
+    // cell 0 far from its targets (ln residual 1: a step far beyond 10 mV),
+    // the others held
+    let residual = vec![
+        vec![Some(1.0), Some(-1.0)],
+        vec![Some(0.0), Some(0.0)],
+        vec![Some(0.0), Some(0.0)],
+    ];
+    let own = |m: &BTreeMap<String, f64>, c: u32| {
+        DVector::from_iterator(
+            4,
+            ["N", "SA", "SB", "T"].iter().map(|g| {
+                m.get(&spintune::sim::array::gate_name(c, g))
+                    .copied()
+                    .unwrap_or(0.0)
+            }),
+        )
+    };
+    let d0 = own(
+        &plain.plan_move(&residual, &plain.jacobian(), &v, &limits),
+        0,
+    );
+    assert!((d0.norm() - 10.0).abs() < 1e-9, "{}", d0.norm());
+    let mut exploring = tuner(0.3);
+    let j = exploring.jacobian();
+    let j_own = j.view((0, 0), (2, 4)).clone_owned();
+    let planned = exploring.plan_move(&residual, &j, &v, &limits);
+    let d = own(&planned, 0);
+    assert!((d.norm() - 10.0).abs() < 1e-9, "{}", d.norm());
+    let along = 0.3f64.mul_add(-0.3, 1.0).sqrt();
+    assert!((d.dot(&d0) / 100.0 - along).abs() < 1e-9);
+    let rest = &d - &d0 * along;
+    assert!((rest.norm() - 3.0).abs() < 1e-9, "{}", rest.norm());
+    assert!((&j_own * &rest).norm() < 1e-12, "{}", &j_own * &rest);
+    // a cell within its limit (cell 2 a little off, the others held):
+    // exactly the plain plan
+    let near = vec![
+        vec![Some(0.0), Some(0.0)],
+        vec![Some(0.0), Some(0.0)],
+        vec![Some(0.01), Some(0.0)],
+    ];
+    let p2 = own(&plain.plan_move(&near, &plain.jacobian(), &v, &limits), 2);
+    let e2 = own(&exploring.plan_move(&near, &j, &v, &limits), 2);
+    assert!(p2.norm() > 0.0 && p2.norm() < 10.0, "{}", p2.norm());
+    assert!((e2 - p2).norm() < 1e-9);
+    // a measurement of cell 0 flips the sign of its exploration
+    let p = |x: f64| Some((100.0 * f64::exp(x), 1e-6));
+    exploring.observe(0, &[p(0.0), p(0.0)], &v);
+    let j = exploring.jacobian();
+    let flipped = own(&exploring.plan_move(&residual, &j, &v, &limits), 0);
+    let rest_flipped = &flipped - &d0 * along;
+    assert!((rest_flipped + &rest).norm() < 1e-9);
+    // bounded: β beyond 0.9 names the field
+    let bad = JointConfig {
+        excitation: 0.95,
+        ..JointConfig::default()
+    };
+    assert_eq!(
+        JointArrayTuner::new(vec![cell(0)], &bad, [0.0; 2])
+            .unwrap_err()
+            .field,
+        "joint.excitation"
+    );
+}

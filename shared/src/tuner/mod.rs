@@ -32,6 +32,7 @@
 pub mod array;
 pub mod array_run;
 mod config;
+pub mod excitation;
 pub mod finite_difference;
 mod flank;
 mod gate_row;

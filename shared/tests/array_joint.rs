@@ -13,6 +13,7 @@ use spintune::benchmark::PAPER_SET_POINTS;
 use spintune::sim::array::ArrayConfig;
 use spintune::sim::DeviceConfig;
 use spintune::tuner::array::{CellKnowledge, JointArrayTuner, JointConfig};
+use spintune::tuner::thermal_floor::FloorLog;
 
 fn short_protocol() -> ArrayProtocol {
     ArrayProtocol {
@@ -133,6 +134,7 @@ fn knowledge(c: u32, variance: f64) -> CellKnowledge {
         process_noise_per_mv: vec![0.003; 2],
         max_step_mv: 10.0,
         compensation: None,
+        floors: Vec::new(),
     }
 }
 
@@ -605,4 +607,38 @@ fn a_limited_step_also_explores_the_own_rows_null_space() {
             .field,
         "joint.excitation"
     );
+}
+
+/// A row over a floor learns, predicts and aims in `y = ½·ln(w² − f²)`:
+/// with `w`'s floor at 144 µV, the value the row keeps is `y(w)`, the
+/// residual of 270 against 180 µV is `y(270) − y(180)` (not `ln 1.5`), and
+/// the band test maps 190 µV against a 180 µV target (5.6 % off) outside a
+/// 3 % band and inside one around 190 µV; `t_sr` (no floor) stays in `ln`.
+#[test]
+fn a_row_over_a_floor_learns_and_aims_in_the_excess_over_it() {
+    // (a prior wide enough that the first difference is not gated at 5σ)
+    let mut k = knowledge(0, 1e-2);
+    k.floors = vec![0.0, 144.0];
+    let mut t = JointArrayTuner::new(vec![k], &JointConfig::default(), [0.3, 0.05]).unwrap();
+    let mut v: std::collections::BTreeMap<String, f64> = ["N", "SA", "SB", "T"]
+        .iter()
+        .map(|g| (spintune::sim::array::gate_name(0, g), 0.0))
+        .collect();
+    t.observe(0, &[Some((20.0, 0.01)), Some((180.0, 1.0))], &v);
+    *v.get_mut("c0.N").unwrap() = 1.0;
+    t.observe(0, &[Some((21.0, 0.01)), Some((190.0, 1.0))], &v);
+    let s = FloorLog::new(144.0);
+    // y of w = 190 µV over 144 µV: ln √(190² − 144²) = ln 123.9…
+    let expected_y = 0.5 * (190.0f64 * 190.0 - 144.0 * 144.0).ln();
+    assert!((t.predict(0, 1, &v).unwrap().0 - expected_y).abs() < 1e-12);
+    assert!((t.predict(0, 0, &v).unwrap().0 - 21f64.ln()).abs() < 1e-12);
+    let r = t.residual(0, 1, 270.0, 180.0).unwrap();
+    assert!((r - (s.y(270.0) - s.y(180.0))).abs() < 1e-12);
+    assert!(r > 1.5f64.ln() + 0.3, "the excess grows faster than w: {r}");
+    assert_eq!(t.residual(0, 0, 30.0, 20.0), Some((30.0f64 / 20.0).ln()));
+    assert!(!t.predicted_in_band(0, 1, &v, 180.0, 0.03, 0.0));
+    assert!(t.predicted_in_band(0, 1, &v, 190.0, 0.03, 0.0));
+    // the learned step along N: Δy over 1 mV, pulled toward it from the prior 0.01
+    let g = t.row_gradient(0, 1)[0].1;
+    assert!(g > 0.01 && g <= expected_y - s.y(180.0) + 1e-9, "{g}");
 }

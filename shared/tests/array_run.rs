@@ -5,7 +5,7 @@
 
 use spintune::benchmark::array::{cell_tuner, world, ArrayProtocol};
 use spintune::protocol::{IterationRecord, Request, Response};
-use spintune::sim::array::{ArrayConfig, ArrayDevice};
+use spintune::sim::array::{cell_devices, ArrayConfig, ArrayDevice};
 use spintune::sim::DeviceConfig;
 use spintune::tuner::array_run::{ArrayAction, ArrayRun, ArrayRunError};
 
@@ -190,4 +190,37 @@ fn bad_targets_name_the_field() {
     assert_eq!(run.targets()[1], (20.0, 270.0));
     run.set_targets(1, (30.0, 250.0)).unwrap();
     assert_eq!(run.targets()[1], (30.0, 250.0));
+}
+
+/// With `[joint] thermal_floor` each cell's floor of `w` is measured from
+/// the lead-transition scans of its initial measurement: within 10 % of
+/// `2·k_B·T/α` of the cell's simulated device (k_B = 0.0861733 µeV/mK; the
+/// simulator draws α per cell). Off (the default), and for `t_sr` always,
+/// the rows learn in plain `ln`.
+#[test]
+fn the_thermal_floor_is_measured_from_the_lead_transitions() {
+    let devices = cell_devices(&DeviceConfig::default(), CELLS, 5, |_| true);
+    for on in [false, true] {
+        let mut a = array();
+        let protocol = ArrayProtocol::default();
+        let mut settings = protocol.run_settings();
+        settings.joint.thermal_floor = on;
+        let cells = (0..CELLS).map(|c| cell_tuner(c, &protocol)).collect();
+        let mut run = ArrayRun::new(cells, &a.gates(), settings, [0.3, 0.05], false).unwrap();
+        drive(&mut a, &mut run, 1, None);
+        let tuner = run.tuner().expect("the joint tuner after an iteration");
+        for (c, d) in devices.iter().enumerate() {
+            let expected = 2.0 * 0.0861733 * d.electron_temperature_mk / d.lever_arm_uev_per_uv;
+            let floor = tuner.scale(c, 1).unwrap().floor();
+            if on {
+                assert!(
+                    (floor / expected - 1.0).abs() < 0.1,
+                    "cell {c}: measured {floor} µV, 2kT/α = {expected} µV"
+                );
+            } else {
+                assert_eq!(floor, 0.0);
+            }
+            assert_eq!(tuner.scale(c, 0).unwrap().floor(), 0.0);
+        }
+    }
 }

@@ -160,12 +160,8 @@ pub fn evaluate_with(scan: &RawScan, references: &References) -> Result<Evaluati
             let mut values = Vec::new();
             let mut fit = Vec::new();
             let mut missing = Vec::new();
-            for (name, prefix) in [("mu_a_mv", "RFA"), ("mu_b_mv", "RFB")] {
-                let t = scan
-                    .traces
-                    .iter()
-                    .find(|t| t.label.starts_with(prefix))
-                    .ok_or_else(|| FitError::BadData(format!("no trace labelled {prefix:?}…")))?;
+            for (name, prefix) in LEAD_LINES {
+                let t = line_trace(scan, prefix)?;
                 let line = tanh::fit_tanh_step(&t.x, &t.y)
                     .and_then(|f| Ok((value(name, f.center, f.center_std * f.center_std)?, f)));
                 match line {
@@ -188,6 +184,57 @@ pub fn evaluate_with(scan: &RawScan, references: &References) -> Result<Evaluati
             })
         }
     }
+}
+
+/// The lead transitions of a [`ScanKind::ChemicalPotential`] scan: the value
+/// each line gives and the label its trace starts with.
+const LEAD_LINES: [(&str, &str); 2] = [("mu_a_mv", "RFA"), ("mu_b_mv", "RFB")];
+
+fn line_trace<'a>(scan: &'a RawScan, prefix: &str) -> Result<&'a Trace, FitError> {
+    scan.traces
+        .iter()
+        .find(|t| t.label.starts_with(prefix))
+        .ok_or_else(|| FitError::BadData(format!("no trace labelled {prefix:?}…")))
+}
+
+/// The thermal widths of a [`ScanKind::ChemicalPotential`] scan's lead
+/// transitions: `(width, standard error)` in mV of the swept RF gate, per
+/// line whose tanh fit succeeded with a finite error (none for other
+/// scans). A lead transition is broadened by temperature alone, so its
+/// width is `2kT/α` (electron temperature over the lever arm): the floor
+/// the inter-dot transition width `w` approaches as the tunnel coupling
+/// vanishes ([`crate::tuner::thermal_floor`]).
+///
+/// ```
+/// use spintune::fit::lead_widths_mv;
+/// use spintune::protocol::{RawScan, ScanKind, Trace};
+/// // a noiseless lead transition of width 0.15 mV on a linear background
+/// let x: Vec<f64> = (0..201).map(|i| -4.0 + 0.04 * i as f64).collect();
+/// let y = x.iter().map(|&x| 0.5 * (1.0 + (x / 0.15).tanh()) + 0.01 * x).collect();
+/// let trace = |label: &str| Trace { label: label.into(), x: x.clone(), y: Vec::clone(&y) };
+/// let scan = RawScan {
+///     kind: ScanKind::ChemicalPotential,
+///     x_label: "mV".into(),
+///     y_label: "signal".into(),
+///     traces: vec![trace("RFA sweep"), trace("RFB sweep")],
+/// };
+/// let widths = lead_widths_mv(&scan);
+/// assert_eq!(widths.len(), 2);
+/// assert!((widths[0].0 - 0.15).abs() < 1e-6);
+/// ```
+pub fn lead_widths_mv(scan: &RawScan) -> Vec<(f64, f64)> {
+    if scan.kind != ScanKind::ChemicalPotential {
+        return Vec::new();
+    }
+    LEAD_LINES
+        .iter()
+        .filter_map(|(_, prefix)| {
+            let t = line_trace(scan, prefix).ok()?;
+            let f = tanh::fit_tanh_step(&t.x, &t.y).ok()?;
+            (f.width.is_finite() && f.width > 0.0 && f.width_std.is_finite())
+                .then_some((f.width, f.width_std))
+        })
+        .collect()
 }
 
 fn single_trace(scan: &RawScan) -> Result<&Trace, FitError> {

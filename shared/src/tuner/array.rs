@@ -7,7 +7,11 @@
 //!   over the tuning gates of its *neighbourhood*: the cells within
 //!   `radius` of its own (own cell + nearest neighbours for radius 1).
 //!   Parameters are tuned in log space (`y = ln p`), as the recommended
-//!   single-cell tuner does.
+//!   single-cell tuner does, or, for a parameter with a floor (`w` over
+//!   its thermal floor with [`JointConfig::thermal_floor`],
+//!   [`CellKnowledge::floors`]), as the log of its excess over the floor
+//!   ([`FloorLog`]); residuals, predictions and the band are taken in the
+//!   same `y`.
 //! * **Prior.** The own-cell block is the cell's initial measurement (its
 //!   learned gradient and covariance), `g_own` and `P_own` (with
 //!   [`JointConfig::lockstep_correction`], off by default, divided by the
@@ -51,6 +55,7 @@ use crate::kalman::{FilterError, KalmanGradient, ProcessNoise};
 use crate::safety::SafetyLimits;
 use crate::solver::{newton_step, SolverConfig, StepRule};
 use crate::tuner::excitation::null_space_direction;
+use crate::tuner::thermal_floor::FloorLog;
 
 /// Settings of the joint array tuner.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -110,6 +115,16 @@ pub struct JointConfig {
     /// on fresh ones (docs/array.md "Steps that also teach").
     #[serde(default = "default_excitation")]
     pub excitation: f64,
+    /// Whether a cell's `w` is learned over its thermal floor, measured
+    /// from the lead transitions of its initial measurement
+    /// ([`super::thermal_floor`]): `y = ½·ln(w² − f²)`, which follows the
+    /// tunnel coupling where `ln w` bends. Without a measured floor (a
+    /// lab's own evaluation of its scans) or with `false`, `y = ln w`. The
+    /// oracle's Jacobian is log-space and never uses it. Default `false`:
+    /// on 132 runs of random development arrays it was no faster and left
+    /// more phases unconverged (docs/array.md "w over its thermal floor").
+    #[serde(default)]
+    pub thermal_floor: bool,
 }
 
 fn yes() -> bool {
@@ -132,6 +147,7 @@ impl Default for JointConfig {
             correlated_prior: true,
             lockstep_correction: false,
             excitation: default_excitation(),
+            thermal_floor: false,
         }
     }
 }
@@ -169,7 +185,8 @@ pub struct CellKnowledge {
     pub gates: Vec<String>,
     /// Parameter names (unprefixed, e.g. `t_sr`, `w`).
     pub parameters: Vec<String>,
-    /// Learned log-space gradient per parameter over `gates`, 1/mV.
+    /// Learned gradient of each parameter's `y` ([`FloorLog`] over its
+    /// floor: `ln p` without one) over `gates`, 1/mV.
     pub gradient: Vec<Vec<f64>>,
     /// Its covariance per parameter, (1/mV)².
     pub covariance: Vec<Vec<Vec<f64>>>,
@@ -179,6 +196,10 @@ pub struct CellKnowledge {
     pub max_step_mv: f64,
     /// Virtual-gate compensation: (gates, matrix rows × `gates`), mV/mV.
     pub compensation: Option<(Vec<String>, Vec<Vec<f64>>)>,
+    /// Floor per parameter, its unit (0 or missing: learned as `ln p`;
+    /// [`FloorLog`]). Empty in runs saved before floors.
+    #[serde(default)]
+    pub floors: Vec<f64>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -194,6 +215,10 @@ struct Row {
     /// (`None` in runs saved before it).
     #[serde(default)]
     prior: Option<KalmanGradient>,
+    /// The scale the row learns its parameter in (plain log in runs saved
+    /// before floors).
+    #[serde(default)]
+    scale: FloorLog,
 }
 
 /// The joint tuner (module docs).
@@ -412,6 +437,7 @@ impl JointArrayTuner {
                     prior: Some(filter.clone()),
                     filter,
                     last: None,
+                    scale: FloorLog::new(c.floors.get(pi).copied().unwrap_or(0.0)),
                 });
             }
         }
@@ -487,8 +513,9 @@ impl JointArrayTuner {
     }
 
     /// The filter's prediction of `cell`'s parameter `parameter` at
-    /// `voltages_mv` (array names) from its last accepted value: `(ln p,
-    /// variance of ln p)` — the last value's variance, the gradient's
+    /// `voltages_mv` (array names) from its last accepted value: `(y,
+    /// variance of y)` in the row's scale ([`JointArrayTuner::scale`]; `ln
+    /// p` without a floor) — the last value's variance, the gradient's
     /// uncertainty along the change and the process noise of that change.
     /// `None` before a first value or without every gate's voltage.
     pub fn predict(
@@ -513,6 +540,44 @@ impl JointArrayTuner {
         (y.is_finite() && var.is_finite()).then_some((y, var))
     }
 
+    /// The scale `cell`'s parameter `parameter` is learned in (`None` for an
+    /// unknown row).
+    pub fn scale(&self, cell: usize, parameter: usize) -> Option<FloorLog> {
+        self.rows
+            .iter()
+            .find(|r| r.cell == cell && r.parameter == parameter)
+            .map(|r| r.scale)
+    }
+
+    /// The step's residual of a value against its target, `y(value) −
+    /// y(target)` in the row's scale (`ln(value/target)` without a floor);
+    /// `None` for an unknown row or a value or target ≤ 0.
+    pub fn residual(&self, cell: usize, parameter: usize, value: f64, target: f64) -> Option<f64> {
+        let s = self.scale(cell, parameter)?;
+        (value > 0.0 && target > 0.0).then(|| s.residual(value, target))
+    }
+
+    /// Whether the prediction at `voltages_mv` lies inside the band
+    /// `target/(1 + tol) ..= target·(1 + tol)` with `sigma` standard
+    /// deviations of margin on both sides (`false` without a prediction).
+    pub fn predicted_in_band(
+        &self,
+        cell: usize,
+        parameter: usize,
+        voltages_mv: &BTreeMap<String, f64>,
+        target: f64,
+        relative_tolerance: f64,
+        sigma: f64,
+    ) -> bool {
+        let (Some(s), Some((y, var))) = (
+            self.scale(cell, parameter),
+            self.predict(cell, parameter, voltages_mv),
+        ) else {
+            return false;
+        };
+        s.within_band(y, sigma * var.sqrt(), target, relative_tolerance)
+    }
+
     /// A cell measured `values` (per parameter, unit and unit²; `None` where
     /// the fit failed) at `voltages_mv` (array names): each row learns from the
     /// change since its last value. Values ≤ 0 or non-finite are skipped.
@@ -532,8 +597,8 @@ impl JointArrayTuner {
             if !(p.is_finite() && p > 0.0 && var.is_finite() && var >= 0.0) {
                 continue;
             }
-            let y = p.ln();
-            let vy = var / (p * p);
+            let y = row.scale.y(p);
+            let vy = row.scale.variance(p, var);
             let v: Vec<f64> = row
                 .columns
                 .iter()

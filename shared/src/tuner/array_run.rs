@@ -50,7 +50,7 @@ use serde::{Deserialize, Serialize};
 use super::flank::{FlankForecast, FlankModel};
 use super::search::{SearchMemory, SearchMove};
 use crate::config_error::ConfigError;
-use crate::fit::{evaluate_with, uncertainty::References};
+use crate::fit::{evaluate_with, lead_widths_mv, uncertainty::References};
 use crate::protocol::{
     EventKind, GradientReport, IterationRecord, ParameterReport, Request, Response, ScanKind,
     ScanOutcome, ScanRequest, Sweep, TunerEvent,
@@ -60,6 +60,7 @@ use crate::session::{Output, RunSession, SessionConfig};
 use crate::sim::array::{parameter_name, split_gate};
 use crate::tuner::array::{CellKnowledge, JointArrayTuner, JointConfig, Measured};
 use crate::tuner::level_forecast::{compensation_columns, LevelForecast};
+use crate::tuner::thermal_floor::{self, floor_from_lead_widths, FloorLog};
 use crate::tuner::{
     FlankPrediction, GradientRow, InitialGradient, LevelKind, ParameterForecast, ParameterSearch,
     TunerConfig, MAX_SEARCH_PROBES,
@@ -426,6 +427,11 @@ pub struct ArrayRun {
     lab_seconds: f64,
     failed_fits: u64,
     measurements: u64,
+    /// Per cell: the lead-transition widths its initial measurement's
+    /// scans gave (mV, standard error), at most
+    /// [`thermal_floor::MAX_LEAD_WIDTHS`]: the thermal floor of its `w`.
+    #[serde(default)]
+    lead_widths_mv: Vec<Vec<(f64, f64)>>,
 }
 
 impl ArrayRun {
@@ -494,6 +500,7 @@ impl ArrayRun {
             lab_seconds: 0.0,
             failed_fits: 0,
             measurements: 0,
+            lead_widths_mv: vec![Vec::new(); n],
         })
     }
 
@@ -568,7 +575,7 @@ impl ArrayRun {
         let (Some(sigma), Some(joint)) = (self.settings.skip_confident_sigma, &self.joint) else {
             return vec![false; k];
         };
-        let room = (1.0 + self.settings.relative_tolerance).ln();
+        let band = self.settings.relative_tolerance;
         (0..k)
             .map(|c| {
                 self.shares_readout(c)
@@ -578,10 +585,7 @@ impl ArrayRun {
                         let target = [self.targets[c].0, self.targets[c].1][p];
                         joint
                             .tuner
-                            .predict(c, p, &self.voltages_mv)
-                            .is_some_and(|(y, var)| {
-                                (y - target.ln()).abs() + sigma * var.sqrt() <= room
-                            })
+                            .predicted_in_band(c, p, &self.voltages_mv, target, band, sigma)
                     })
             })
             .collect()
@@ -1036,6 +1040,7 @@ impl ArrayRun {
                 return Err(ArrayRunError::Protocol("an answer is missing".into()));
             };
             self.session_pending[k] = None;
+            self.note_lead_widths(k, &answer);
             if let Some(s) = self.sessions[k].as_mut() {
                 s.feed(answer).map_err(|e| ArrayRunError::Halted {
                     cell: k as u32,
@@ -1044,6 +1049,28 @@ impl ArrayRun {
             }
         }
         Ok(())
+    }
+
+    /// Cell `k`'s lead-transition widths from a raw chemical-potential
+    /// scan of its initial measurement (bounded; a lab's own evaluation
+    /// gives none, and the cell's `w` is then learned as `ln w`).
+    fn note_lead_widths(&mut self, k: usize, answer: &Response) {
+        let Response::Scanned {
+            outcome: ScanOutcome::Raw { scan },
+            ..
+        } = answer
+        else {
+            return;
+        };
+        if self.lead_widths_mv.len() != self.sessions.len() {
+            self.lead_widths_mv = vec![Vec::new(); self.sessions.len()];
+        }
+        let kept = &mut self.lead_widths_mv[k];
+        for w in lead_widths_mv(scan) {
+            if kept.len() < thermal_floor::MAX_LEAD_WIDTHS {
+                kept.push(w);
+            }
+        }
     }
 
     /// The lab's knowledge of every cell after its initial measurement.
@@ -1058,23 +1085,48 @@ impl ArrayRun {
             let session = session.as_ref().ok_or_else(|| halted("no session"))?;
             let cfg = session.tuner().config_with_learned_gradients();
             let top = cfg.top();
-            let (gradient, covariance) = match &top.initial_gradient {
+            let (mut gradient, mut covariance) = match &top.initial_gradient {
                 InitialGradient::Given {
                     gradient,
                     covariance,
                 } => (gradient.clone(), covariance.clone()),
                 _ => return Err(halted("no initial gradient was measured")),
             };
+            let mut process_noise_per_mv: Vec<f64> = top
+                .parameters
+                .iter()
+                .map(|p| p.process_noise_per_mv)
+                .collect();
+            // `w` over its measured thermal floor: the log-space knowledge
+            // scaled by dy/dln w at the initial measurement's value
+            let start = session.tuner().last_measured(0).unwrap_or_default();
+            let floor = self
+                .lead_widths_mv
+                .get(k)
+                .and_then(|w| floor_from_lead_widths(w))
+                .filter(|_| self.settings.joint.thermal_floor && !self.oracle);
+            let mut floors = vec![0.0; top.parameters.len()];
+            for (p, param) in top.parameters.iter().enumerate() {
+                let value = start.get(p).and_then(|v| v.as_ref()).map(|v| v.value);
+                let (Some(f), Some(value), true) = (floor, value, param.name == "w") else {
+                    continue;
+                };
+                let gain = FloorLog::new(f).log_gain(value);
+                floors[p] = f;
+                gradient[p].iter_mut().for_each(|g| *g *= gain);
+                covariance[p]
+                    .iter_mut()
+                    .flatten()
+                    .for_each(|c| *c *= gain * gain);
+                process_noise_per_mv[p] *= gain;
+            }
             cells.push(CellKnowledge {
                 gates: top.gates.clone(),
                 parameters: top.parameters.iter().map(|p| p.name.clone()).collect(),
                 gradient,
                 covariance,
-                process_noise_per_mv: top
-                    .parameters
-                    .iter()
-                    .map(|p| p.process_noise_per_mv)
-                    .collect(),
+                process_noise_per_mv,
+                floors,
                 max_step_mv: top.solver.max_step_mv,
                 compensation: top
                     .compensation
@@ -1253,14 +1305,18 @@ impl ArrayRun {
         if let Some(joint) = &self.joint {
             for c in (0..k).filter(|&c| skip[c]) {
                 for (p, name) in CELL_PARAMETERS.iter().enumerate() {
-                    if let Some((y, var)) = joint.tuner.predict(c, p, &self.voltages_mv) {
-                        let value = y.exp();
+                    let prediction = joint.tuner.predict(c, p, &self.voltages_mv);
+                    let scale = joint.tuner.scale(c, p).unwrap_or_default();
+                    if let Some((y, var)) = prediction {
+                        let value = scale.value(y);
+                        // first order: d value = d y / (dy/dp)
+                        let std = var.sqrt() * value / scale.log_gain(value);
                         events.push(TunerEvent {
                             level: "array".into(),
                             kind: EventKind::ConfirmationSkipped {
                                 parameter: parameter_name(c as u32, name),
                                 predicted: value,
-                                std: value * var.sqrt(),
+                                std,
                                 unit: ["ns", "µV"][p].into(),
                             },
                         });
@@ -1333,11 +1389,13 @@ impl ArrayRun {
                     if out[p] {
                         self.reset_if_flat(c, p);
                     }
-                    residual[c][p] = m.filter(|(x, _)| *x > 0.0).map(|(x, _)| {
-                        if in_band && self.settings.hold_in_band {
-                            0.0
+                    let hold = in_band && self.settings.hold_in_band;
+                    let tuner = self.joint.as_ref().map(|j| &j.tuner);
+                    residual[c][p] = m.filter(|(x, _)| *x > 0.0).and_then(|(x, _)| {
+                        if hold {
+                            Some(0.0)
                         } else {
-                            (x / tv[p]).ln()
+                            tuner?.residual(c, p, x, tv[p])
                         }
                     });
                 }

@@ -41,6 +41,7 @@ mod keep_tally;
 pub(crate) mod level_forecast;
 mod newton;
 mod search;
+pub mod thermal_floor;
 
 use std::collections::{BTreeMap, VecDeque};
 

@@ -121,8 +121,9 @@ pub struct JointConfig {
     /// tunnel coupling where `ln w` bends. Without a measured floor (a
     /// lab's own evaluation of its scans) or with `false`, `y = ln w`. The
     /// oracle's Jacobian is log-space and never uses it. Default `false`:
-    /// on 132 runs of random development arrays it was no faster and left
-    /// more phases unconverged (docs/array.md "w over its thermal floor").
+    /// on 132 runs of random development arrays it shortened the cold
+    /// start but left more phases unconverged and more neighbours out of
+    /// band (docs/array.md "`w` over its thermal floor").
     #[serde(default)]
     pub thermal_floor: bool,
 }

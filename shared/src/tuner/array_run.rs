@@ -1053,8 +1053,12 @@ impl ArrayRun {
 
     /// Cell `k`'s lead-transition widths from a raw chemical-potential
     /// scan of its initial measurement (bounded; a lab's own evaluation
-    /// gives none, and the cell's `w` is then learned as `ln w`).
+    /// gives none, and the cell's `w` is then learned as `ln w`). Only
+    /// with [`JointConfig::thermal_floor`], and never for the oracle.
     fn note_lead_widths(&mut self, k: usize, answer: &Response) {
+        if !self.settings.joint.thermal_floor || self.oracle {
+            return;
+        }
         let Response::Scanned {
             outcome: ScanOutcome::Raw { scan },
             ..
@@ -1097,14 +1101,14 @@ impl ArrayRun {
                 .iter()
                 .map(|p| p.process_noise_per_mv)
                 .collect();
-            // `w` over its measured thermal floor: the log-space knowledge
-            // scaled by dy/dln w at the initial measurement's value
+            // `w` over its measured thermal floor (widths are kept only
+            // with `thermal_floor`, never for the oracle): the log-space
+            // knowledge scaled by dy/dln w at the initial measurement's value
             let start = session.tuner().last_measured(0).unwrap_or_default();
             let floor = self
                 .lead_widths_mv
                 .get(k)
-                .and_then(|w| floor_from_lead_widths(w))
-                .filter(|_| self.settings.joint.thermal_floor && !self.oracle);
+                .and_then(|w| floor_from_lead_widths(w));
             let mut floors = vec![0.0; top.parameters.len()];
             for (p, param) in top.parameters.iter().enumerate() {
                 let value = start.get(p).and_then(|v| v.as_ref()).map(|v| v.value);

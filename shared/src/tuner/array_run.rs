@@ -1309,12 +1309,9 @@ impl ArrayRun {
         if let Some(joint) = &self.joint {
             for c in (0..k).filter(|&c| skip[c]) {
                 for (p, name) in CELL_PARAMETERS.iter().enumerate() {
-                    let prediction = joint.tuner.predict(c, p, &self.voltages_mv);
-                    let scale = joint.tuner.scale(c, p).unwrap_or_default();
-                    if let Some((y, var)) = prediction {
-                        let value = scale.value(y);
-                        // first order: d value = d y / (dy/dp)
-                        let std = var.sqrt() * value / scale.log_gain(value);
+                    if let Some((y, var)) = joint.tuner.predict(c, p, &self.voltages_mv) {
+                        let scale = joint.tuner.scale(c, p).unwrap_or_default();
+                        let (value, std) = scale.value_and_std(y, var);
                         events.push(TunerEvent {
                             level: "array".into(),
                             kind: EventKind::ConfirmationSkipped {

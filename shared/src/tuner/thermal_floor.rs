@@ -115,6 +115,14 @@ impl FloorLog {
         }
     }
 
+    /// The value and its standard deviation (unit) for `y` with variance
+    /// `var_y`: `(value(y), √var_y · p / (dy/dln p))`, first order — the
+    /// inverse of [`FloorLog::variance`].
+    pub fn value_and_std(&self, y: f64, var_y: f64) -> (f64, f64) {
+        let p = self.value(y);
+        (p, var_y.sqrt() * p / self.log_gain(p))
+    }
+
     /// `y(value) − y(target)`: a step's residual (`ln(value/target)` for
     /// plain log, computed as such).
     pub fn residual(&self, value: f64, target: f64) -> f64 {
@@ -239,6 +247,9 @@ mod tests {
         assert!(!s.within_band(s.y(180.0 * 1.04), 0.0, 180.0, 0.03));
         assert!(!s.within_band(s.y(180.0), hi - s.y(180.0) + 1e-9, 180.0, 0.03));
         assert!((s.residual(270.0, 180.0) - (s.y(270.0) - s.y(180.0))).abs() < 1e-15);
+        // the value's std back from y's variance: the inverse of `variance`
+        let (p, std) = s.value_and_std(s.y(200.0), s.variance(200.0, 4.0));
+        assert!((p - 200.0).abs() < 1e-9 && (std - 2.0).abs() < 1e-9);
         // the variance by the chain rule: dy/dp = p/(p² − f²)
         let d = 180.0 / (180.0f64 * 180.0 - 144.0 * 144.0);
         assert!((s.variance(180.0, 9.0) - 9.0 * d * d).abs() < 1e-15);

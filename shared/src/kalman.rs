@@ -397,6 +397,35 @@ impl KalmanGradient {
         })
     }
 
+    /// `C ← factor · C`: widen the gradient's uncertainty in every direction
+    /// (a shorter memory after the row's predictions kept missing;
+    /// [`crate::tuner::miss_cusum`]). `C` stays exactly symmetric and PSD.
+    /// A `factor` that is not finite or below 1 is an error and leaves the
+    /// state untouched.
+    ///
+    /// ```
+    /// use nalgebra::{DMatrix, DVector};
+    /// use spintune::kalman::{KalmanGradient, ProcessNoise};
+    /// let mut f = KalmanGradient::new(
+    ///     DVector::from_vec(vec![1.0, 0.0]),
+    ///     DMatrix::identity(2, 2) * 0.01,
+    ///     ProcessNoise::isotropic(2, 0.0),
+    /// ).unwrap();
+    /// f.inflate_covariance(4.0).unwrap();
+    /// assert_eq!(f.covariance()[(1, 1)], 0.04);
+    /// assert!(f.inflate_covariance(0.5).is_err());
+    /// ```
+    pub fn inflate_covariance(&mut self, factor: f64) -> Result<(), FilterError> {
+        if !(factor.is_finite() && factor >= 1.0) {
+            return Err(FilterError::Invalid {
+                what: "covariance inflation",
+                value: factor,
+            });
+        }
+        self.covariance *= factor;
+        Ok(())
+    }
+
     /// `C ← (I − K H) C (I − K H)ᵀ + K Δz² Kᵀ + Q`, in place and in O(n²).
     ///
     /// With `u = C Hᵀ` and `s = H C Hᵀ + Δz²` (the values the gain was

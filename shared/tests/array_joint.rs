@@ -642,3 +642,73 @@ fn a_row_over_a_floor_learns_and_aims_in_the_excess_over_it() {
     let g = t.row_gradient(0, 1)[0].1;
     assert!(g > 0.01 && g <= expected_y - s.y(180.0) + 1e-9, "{g}");
 }
+
+/// A row whose truth turns after it was learned: the cell's `w` stops
+/// responding to `SB` (the prior's −0.03/mV) and responds to `N` at
+/// +0.02/mV instead, while the moves go along `SB` and `N` in turn. The
+/// prior is confident (variance 1e-6 (1/mV)², σ 0.001/mV) and the values
+/// precise (σ 1 %), and the moves keep one direction (+2 mV, as a cell's
+/// steps toward a far target), so the innovations fall several σ on one
+/// side of the prediction, move after move, and the filter lags. With the persistent-miss
+/// detector (`h` = 4σ, ×4 covariance) the row's misses fire it and the
+/// row ends nearer the new truth than without; a turned-off detector
+/// never fires. The bounds name their field.
+#[test]
+fn persistent_misses_shorten_a_rows_memory() {
+    let learn = |config: &JointConfig| {
+        let mut k = knowledge(0, 1e-6);
+        k.process_noise_per_mv = vec![1e-4; 2];
+        let mut t = JointArrayTuner::new(vec![k], config, [0.3, 0.05]).unwrap();
+        let mut v: std::collections::BTreeMap<String, f64> =
+            t.gates().iter().map(|g| (g.clone(), 0.0)).collect();
+        let truth = [0.02, 0.0, 0.0, 0.0]; // (N, SA, SB, T), 1/mV
+        let w = |v: &std::collections::BTreeMap<String, f64>| {
+            let y: f64 = ["N", "SA", "SB", "T"]
+                .iter()
+                .zip(truth)
+                .map(|(g, d)| d * v[&format!("c0.{g}")])
+                .sum();
+            200.0 * y.exp()
+        };
+        t.observe(0, &[None, Some((w(&v), 4.0))], &v);
+        for i in 0..12 {
+            let gate = if i % 2 == 0 { "c0.SB" } else { "c0.N" };
+            *v.get_mut(gate).unwrap() += 2.0;
+            t.observe(0, &[None, Some((w(&v), 4.0))], &v);
+        }
+        let row: std::collections::BTreeMap<String, f64> =
+            t.row_gradient(0, 1).into_iter().collect();
+        let error = ((row["c0.N"] - truth[0]).powi(2) + (row["c0.SB"] - truth[2]).powi(2)).sqrt();
+        (error, t.persistent_misses)
+    };
+    let (lagging, never) = learn(&JointConfig::default());
+    assert_eq!(never, 0, "off by default");
+    let (caught_up, fired) = learn(&JointConfig {
+        persistent_miss_sigma: 4.0,
+        ..JointConfig::default()
+    });
+    assert!(fired > 0);
+    assert!(
+        caught_up < 0.5 * lagging,
+        "with the detector {caught_up}/mV off the truth, without {lagging}/mV"
+    );
+    for (field, config) in [
+        (
+            "joint.persistent_miss_sigma",
+            JointConfig {
+                persistent_miss_sigma: 0.5,
+                ..JointConfig::default()
+            },
+        ),
+        (
+            "joint.persistent_miss_inflation",
+            JointConfig {
+                persistent_miss_inflation: 0.9,
+                ..JointConfig::default()
+            },
+        ),
+    ] {
+        let err = JointArrayTuner::new(vec![knowledge(0, 1e-6)], &config, [0.0; 2]).unwrap_err();
+        assert_eq!(err.field, field);
+    }
+}

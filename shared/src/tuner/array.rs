@@ -51,10 +51,11 @@ use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
 use crate::config_error::ConfigError;
-use crate::kalman::{FilterError, KalmanGradient, ProcessNoise};
+use crate::kalman::{FilterError, KalmanGradient, ProcessNoise, UpdateOutcome};
 use crate::safety::SafetyLimits;
 use crate::solver::{newton_step, SolverConfig, StepRule};
 use crate::tuner::excitation::null_space_direction;
+use crate::tuner::miss_cusum::MissCusum;
 use crate::tuner::thermal_floor::FloorLog;
 
 /// Settings of the joint array tuner.
@@ -126,6 +127,20 @@ pub struct JointConfig {
     /// band (docs/array.md "`w` over its thermal floor").
     #[serde(default)]
     pub thermal_floor: bool,
+    /// Threshold `h` (σ) of the CUSUM that detects a row whose predictions
+    /// keep missing on one side ([`super::miss_cusum`]); when it fires,
+    /// the row's covariance is multiplied by
+    /// [`JointConfig::persistent_miss_inflation`] (a shorter memory for a
+    /// gradient that turns faster than its process noise allows). 0: off;
+    /// otherwise 1 ≤ h ≤ 50. Default 0: on 132 runs of random development
+    /// arrays neither `h` = 4 nor 6 (nor 4 on `w` rows alone, a hand patch)
+    /// left fewer phases unconverged (docs/array.md "Persistent misses").
+    #[serde(default)]
+    pub persistent_miss_sigma: f64,
+    /// The factor a row's covariance is multiplied by when its misses
+    /// persist, 1 ≤ factor ≤ 100 (default 4: the row's σ doubles).
+    #[serde(default = "default_persistent_miss_inflation")]
+    pub persistent_miss_inflation: f64,
 }
 
 fn yes() -> bool {
@@ -134,6 +149,10 @@ fn yes() -> bool {
 
 fn default_excitation() -> f64 {
     0.5
+}
+
+fn default_persistent_miss_inflation() -> f64 {
+    4.0
 }
 
 impl Default for JointConfig {
@@ -149,6 +168,8 @@ impl Default for JointConfig {
             lockstep_correction: false,
             excitation: default_excitation(),
             thermal_floor: false,
+            persistent_miss_sigma: 0.0,
+            persistent_miss_inflation: default_persistent_miss_inflation(),
         }
     }
 }
@@ -174,6 +195,14 @@ impl JointConfig {
         }
         if !(self.excitation.is_finite() && (0.0..=0.9).contains(&self.excitation)) {
             return bad("joint.excitation", self.excitation, "[0, 0.9]");
+        }
+        let h = self.persistent_miss_sigma;
+        if !(h == 0.0 || (h.is_finite() && (1.0..=50.0).contains(&h))) {
+            return bad("joint.persistent_miss_sigma", h, "0 (off) or [1, 50]");
+        }
+        let m = self.persistent_miss_inflation;
+        if !(m.is_finite() && (1.0..=100.0).contains(&m)) {
+            return bad("joint.persistent_miss_inflation", m, "[1, 100]");
         }
         Ok(())
     }
@@ -220,6 +249,9 @@ struct Row {
     /// before floors).
     #[serde(default)]
     scale: FloorLog,
+    /// Whether the row's misses persist ([`JointConfig::persistent_miss_sigma`]).
+    #[serde(default)]
+    misses: MissCusum,
 }
 
 /// The joint tuner (module docs).
@@ -243,6 +275,14 @@ pub struct JointArrayTuner {
     /// (or runs saved before it) start at `false`.
     #[serde(default)]
     excitation_flipped: Vec<bool>,
+    /// [`JointConfig::persistent_miss_sigma`] and
+    /// [`JointConfig::persistent_miss_inflation`] (off in runs saved
+    /// before them).
+    #[serde(default)]
+    persistent_miss: (f64, f64),
+    /// How often a row's covariance was widened after persistent misses.
+    #[serde(default)]
+    pub persistent_misses: u64,
 }
 
 /// `Err` naming the field unless each of the lab's cross-cell calibration
@@ -439,6 +479,7 @@ impl JointArrayTuner {
                     filter,
                     last: None,
                     scale: FloorLog::new(c.floors.get(pi).copied().unwrap_or(0.0)),
+                    misses: MissCusum::default(),
                 });
             }
         }
@@ -449,6 +490,11 @@ impl JointArrayTuner {
             rejected_updates: 0,
             excitation: config.excitation,
             excitation_flipped: vec![false; n_cells],
+            persistent_miss: (
+                config.persistent_miss_sigma,
+                config.persistent_miss_inflation,
+            ),
+            persistent_misses: 0,
             neighbour_compensation: if config.cross_compensation {
                 cross_calibration
             } else {
@@ -607,8 +653,28 @@ impl JointArrayTuner {
                 .collect();
             if let Some((y0, vy0, v0)) = &row.last {
                 let dv = DVector::from_iterator(v.len(), v.iter().zip(v0).map(|(a, b)| a - b));
-                if row.filter.update(&dv, y - y0, vy + vy0).is_err() {
-                    self.rejected_updates += 1;
+                match row.filter.update(&dv, y - y0, vy + vy0) {
+                    Err(_) => self.rejected_updates += 1,
+                    Ok(
+                        UpdateOutcome::Updated {
+                            innovation,
+                            innovation_sigma,
+                        }
+                        | UpdateOutcome::Gated {
+                            innovation,
+                            innovation_sigma,
+                        },
+                    ) => {
+                        let (h, factor) = self.persistent_miss;
+                        if h > 0.0
+                            && innovation_sigma > 0.0
+                            && row.misses.observe(innovation / innovation_sigma, h)
+                            && row.filter.inflate_covariance(factor).is_ok()
+                        {
+                            self.persistent_misses += 1;
+                        }
+                    }
+                    Ok(UpdateOutcome::SkippedSmallStep { .. }) => {}
                 }
             }
             row.last = Some((y, vy, v));

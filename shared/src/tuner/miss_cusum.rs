@@ -8,7 +8,8 @@
 //! as much as the filter's gain says; misses that persist in one direction
 //! are a change the row has not kept up with. The CUSUM tells the two
 //! apart: each normalised innovation `z = innovation / σ_innovation` is
-//! clamped to ±[`MAX_SCORE`] (one wild value alone cannot fire), less the
+//! clamped to ±[`MAX_SCORE`] (at `h` ≥ 2.5σ one wild value alone cannot
+//! fire: it counts at most `3 − k`), less the
 //! slack [`SLACK`] it is summed on each side, `S⁺ ← max(0, S⁺ + z − k)`,
 //! `S⁻ ← max(0, S⁻ − z − k)`; when either passes the threshold `h` the
 //! detector fires and restarts. With unit-variance innovations and the

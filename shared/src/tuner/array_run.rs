@@ -48,6 +48,7 @@ use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
 use super::flank::{FlankForecast, FlankModel};
+use super::line_steps::joint_line_steps;
 use super::search::{SearchMemory, SearchMove};
 use crate::config_error::ConfigError;
 use crate::fit::{evaluate_with, lead_widths_mv, uncertainty::References};
@@ -58,7 +59,7 @@ use crate::protocol::{
 use crate::safety::{GateSpec, SafetyLimits};
 use crate::session::{Output, RunSession, SessionConfig};
 use crate::sim::array::{parameter_name, split_gate};
-use crate::tuner::array::{CellKnowledge, JointArrayTuner, JointConfig, Measured};
+use crate::tuner::array::{lockstep_factor, CellKnowledge, JointArrayTuner, JointConfig, Measured};
 use crate::tuner::level_forecast::{compensation_columns, LevelForecast};
 use crate::tuner::thermal_floor::{self, floor_from_lead_widths, FloorLog};
 use crate::tuner::{
@@ -85,6 +86,20 @@ pub struct ArrayRunSettings {
     pub moves_per_iteration: u32,
     /// Band of the lines, mV (0 < b ≤ 1). Default 0.1.
     pub line_tolerance_mv: f64,
+    /// Whether the line level treats the cells as coupled: each cell's line
+    /// Jacobian, measured while every cell moved its plungers in lockstep,
+    /// is divided by its lockstep factor
+    /// ([`crate::tuner::array::lockstep_factor`]), and the cells that
+    /// correct their lines in one batch take out the crosstalk of each
+    /// other's plunger steps ([`joint_line_steps`]), both with the lab's
+    /// cross-cell calibration `λ̂`; a cell whose lines are in band within
+    /// two cells of one that corrects takes part with its own offsets (a
+    /// small step that keeps it in band). `false`: each cell corrects as if
+    /// alone with the Jacobian as measured. Default `false`: the lines sit
+    /// twice as near their centre at the scans, but on random arrays the
+    /// tuner was no better (docs/array.md, "The line level, coupled").
+    #[serde(default = "default_joint_line_steps")]
+    pub joint_line_steps: bool,
     /// Before a cell's line scan, correct its plungers from the lines'
     /// forecast when it puts a line beyond this, mV (0 < value ≤ 4, the
     /// scan's half-window; `None`: never). Default 1: chosen on random
@@ -138,6 +153,10 @@ pub struct ArrayRunSettings {
     pub reset_flat_row_fraction: f64,
 }
 
+fn default_joint_line_steps() -> bool {
+    false
+}
+
 fn default_reset_flat_row_fraction() -> f64 {
     0.5
 }
@@ -150,6 +169,7 @@ impl Default for ArrayRunSettings {
             line_rounds: 1,
             moves_per_iteration: 1,
             line_tolerance_mv: 0.1,
+            joint_line_steps: default_joint_line_steps(),
             precorrect_lines_mv: Some(1.0),
             max_iterations: default_max_iterations(),
             skip_confident_sigma: default_skip_sigma(),
@@ -840,10 +860,7 @@ impl ArrayRun {
             }
             Step::LineSet(lines, moved, round) => {
                 let joint = self.joint()?;
-                let mut sets: Vec<Request> = lines
-                    .iter()
-                    .filter_map(|&(c, mu)| self.line_step(joint, c as usize, mu))
-                    .collect();
+                let mut sets = self.line_steps(joint, &lines);
                 sets.extend(
                     moved
                         .iter()
@@ -1211,6 +1228,15 @@ impl ArrayRun {
                 centre,
             );
             lower.push(l);
+        }
+        if self.settings.joint_line_steps {
+            // measured in lockstep: each cell saw its neighbours' plunger
+            // moves too (`lockstep_factor`'s model)
+            let n = lower.len();
+            for (k, l) in lower.iter_mut().enumerate() {
+                let f = lockstep_factor(k, n, self.cross_calibration);
+                l.line_jacobian.iter_mut().flatten().for_each(|j| *j /= f);
+            }
         }
         borrow_line_jacobians(&mut lower);
         // the oracle knows the true Jacobian: it has nothing to explore for
@@ -1709,15 +1735,14 @@ impl ArrayRun {
         };
         let joint = self.joint()?;
         let v = &self.voltages_mv;
-        Ok(cells
+        let lines: Vec<(u32, [f64; 2])> = cells
             .iter()
             .filter_map(|&c| {
                 let mu = line_forecast(joint, c as usize, v)?;
-                (mu.iter().any(|m| m.abs() > limit))
-                    .then(|| self.line_step(joint, c as usize, mu))
-                    .flatten()
+                mu.iter().any(|m| m.abs() > limit).then_some((c, mu))
             })
-            .collect())
+            .collect();
+        Ok(self.line_steps(joint, &lines))
     }
 
     /// A line round's answers: every cell's lines learned; the cells whose
@@ -1729,6 +1754,7 @@ impl ArrayRun {
     ) -> Result<LineCorrections, ArrayRunError> {
         let mut lines = Vec::new();
         let mut moved = Vec::new();
+        let mut quiet = Vec::new();
         let v = self.voltages_mv.clone();
         for (&c, a) in cells.iter().zip(answers) {
             let found = [
@@ -1761,11 +1787,26 @@ impl ArrayRun {
                 .iter()
                 .all(|m| m.abs() <= self.settings.line_tolerance_mv)
             {
+                if single_line_step(&self.joint()?.lower[c as usize], mu).is_some() {
+                    quiet.push((c, mu));
+                }
                 continue;
             }
-            if self.line_step(self.joint()?, c as usize, mu).is_some() {
+            if single_line_step(&self.joint()?.lower[c as usize], mu).is_some() {
                 lines.push((c, mu));
                 moved.push(c);
+            }
+        }
+        // coupled: a cell in band near one that corrects takes part with its
+        // own small offsets, so that the others' steps do not push it out
+        // (the cells within two of a correcting one, as the crosstalk reaches)
+        if self.settings.joint_line_steps {
+            let correcting: Vec<u32> = lines.iter().map(|&(c, _)| c).collect();
+            for (c, mu) in quiet {
+                if correcting.iter().any(|k| k.abs_diff(c) <= 2) {
+                    lines.push((c, mu));
+                    moved.push(c);
+                }
             }
         }
         Ok((lines, moved))
@@ -1845,24 +1886,38 @@ impl ArrayRun {
         Some(self.plunger_set(l, l.probe_mv.as_ref()?))
     }
 
-    /// The limited plunger correction that cancels `mu` (mV) with the
-    /// cell's line Jacobian, as a set request (`None` if singular).
-    fn line_step(&self, joint: &Joint, cell: usize, mu: [f64; 2]) -> Option<Request> {
-        let l = &joint.lower[cell];
-        if !invertible(&l.line_jacobian) || l.line_gates.len() != 2 {
-            return None;
+    /// The limited plunger corrections that cancel each cell's `mu` (mV)
+    /// with the cell's line Jacobian, as set requests (a cell whose
+    /// Jacobian is singular is left out). All cells correct in one batch, so
+    /// with [`ArrayRunSettings::joint_line_steps`] the steps take out each
+    /// other's crosstalk ([`joint_line_steps`]); each is then limited to the
+    /// cell's line step.
+    fn line_steps(&self, joint: &Joint, lines: &[(u32, [f64; 2])]) -> Vec<Request> {
+        let single: Vec<(usize, Vec<f64>)> = lines
+            .iter()
+            .filter_map(|&(c, mu)| {
+                let q = single_line_step(&joint.lower[c as usize], mu)?;
+                Some((c as usize, q.to_vec()))
+            })
+            .collect();
+        let steps = if self.settings.joint_line_steps {
+            joint_line_steps(&single, self.cross_calibration)
+        } else {
+            None
         }
-        let [[a, b], [cc, d]] = l.line_jacobian;
-        let det = a * d - b * cc;
-        let mut dp = [
-            -(d * mu[0] - b * mu[1]) / det,
-            -(-cc * mu[0] + a * mu[1]) / det,
-        ];
-        let norm = dp[0].hypot(dp[1]);
-        if norm > l.line_max_step_mv {
-            dp.iter_mut().for_each(|x| *x *= l.line_max_step_mv / norm);
-        }
-        Some(self.plunger_set(l, &dp))
+        .unwrap_or_else(|| single.iter().map(|(_, q)| q.clone()).collect());
+        single
+            .iter()
+            .zip(steps)
+            .map(|(&(c, _), mut dp)| {
+                let l = &joint.lower[c];
+                let norm = dp[0].hypot(dp[1]);
+                if norm > l.line_max_step_mv {
+                    dp.iter_mut().for_each(|x| *x *= l.line_max_step_mv / norm);
+                }
+                self.plunger_set(l, &dp)
+            })
+            .collect()
     }
 
     /// The set that moves cell `l`'s line gates by `dv` (mV, in their
@@ -1912,6 +1967,21 @@ fn who_scans(cells: &[u32], confident: &[bool], readout_group: &[usize]) -> Vec<
 }
 
 /// Whether a line Jacobian (mV/mV) can be inverted.
+/// The plunger step (mV per line gate) that cancels the lines' offsets
+/// `mu` (mV) with the cell's line Jacobian, `−J⁻¹·μ`, before any limit
+/// (`None` if `J` is singular or the cell has no two line gates).
+fn single_line_step(l: &CellLower, mu: [f64; 2]) -> Option<[f64; 2]> {
+    if !invertible(&l.line_jacobian) || l.line_gates.len() != 2 {
+        return None;
+    }
+    let [[a, b], [c, d]] = l.line_jacobian;
+    let det = a * d - b * c;
+    Some([
+        -(d * mu[0] - b * mu[1]) / det,
+        -(-c * mu[0] + a * mu[1]) / det,
+    ])
+}
+
 fn invertible(j: &[[f64; 2]; 2]) -> bool {
     let det = j[0][0] * j[1][1] - j[0][1] * j[1][0];
     det.is_finite() && det.abs() > 1e-12

@@ -39,6 +39,7 @@ mod gate_row;
 mod keep;
 mod keep_tally;
 pub(crate) mod level_forecast;
+pub mod line_steps;
 pub mod miss_cusum;
 mod newton;
 mod search;

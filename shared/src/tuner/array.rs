@@ -321,12 +321,27 @@ pub type Measured = (f64, f64);
 pub fn lockstep_factor(cell: usize, cells: usize, cross_calibration: [f64; 2]) -> f64 {
     1.0 + (0..cells)
         .filter(|&k| k != cell)
-        .map(|k| match cell.abs_diff(k) {
-            1 => cross_calibration[0],
-            2 => cross_calibration[1],
-            _ => 0.0,
-        })
+        .map(|k| calibrated_fraction(cross_calibration, cell.abs_diff(k)))
         .sum::<f64>()
+}
+
+/// `λ̂(d)`: the fraction of a gate's own-cell effect that the lab's
+/// cross-cell calibration (`cross_calibration` = nearest, next) expects a
+/// cell `distance` cells away to feel: 1 for the cell itself, 0 beyond
+/// the next neighbour.
+///
+/// ```
+/// use spintune::tuner::array::calibrated_fraction;
+/// let l = [0.3, 0.05];
+/// assert_eq!([0, 1, 2, 3].map(|d| calibrated_fraction(l, d)), [1.0, 0.3, 0.05, 0.0]);
+/// ```
+pub fn calibrated_fraction(cross_calibration: [f64; 2], distance: usize) -> f64 {
+    match distance {
+        0 => 1.0,
+        1 => cross_calibration[0],
+        2 => cross_calibration[1],
+        _ => 0.0,
+    }
 }
 
 /// The index in `own_gates` of the gate named like `gate` (array names,
@@ -427,10 +442,7 @@ impl JointArrayTuner {
                     if !config.calibrated_prior_mean {
                         return 0.0;
                     }
-                    [1.0, cross_calibration[0], cross_calibration[1]]
-                        .get(d)
-                        .copied()
-                        .unwrap_or(0.0)
+                    calibrated_fraction(cross_calibration, d)
                 };
                 let scale = g_own.iter().fold(0.0f64, |m, x| m.max(x.abs()));
                 let n = (lo..=hi).map(|nj| cells[nj].gates.len()).sum();

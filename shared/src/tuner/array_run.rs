@@ -1966,7 +1966,6 @@ fn who_scans(cells: &[u32], confident: &[bool], readout_group: &[usize]) -> Vec<
     scan
 }
 
-/// Whether a line Jacobian (mV/mV) can be inverted.
 /// The plunger step (mV per line gate) that cancels the lines' offsets
 /// `mu` (mV) with the cell's line Jacobian, `−J⁻¹·μ`, before any limit
 /// (`None` if `J` is singular or the cell has no two line gates).
@@ -1982,6 +1981,7 @@ fn single_line_step(l: &CellLower, mu: [f64; 2]) -> Option<[f64; 2]> {
     ])
 }
 
+/// Whether a line Jacobian (mV/mV) can be inverted.
 fn invertible(j: &[[f64; 2]; 2]) -> bool {
     let det = j[0][0] * j[1][1] - j[0][1] * j[1][0];
     det.is_finite() && det.abs() > 1e-12

@@ -15,9 +15,12 @@
 //!
 //! one linear system per line gate (`m × m`, `m ≤` the array's 16 cells).
 //! Cells that do not correct in the batch take no step and are not
-//! constrained. With `λ̂ = 0` the steps are the single-cell ones.
+//! constrained. With `λ̂ = 0` the steps are the single-cell ones. (A cell
+//! listed twice would make the system singular: each cell once.)
 
 use nalgebra::{DMatrix, DVector};
+
+use super::array::calibrated_fraction;
 
 /// The joint steps: `cells[i] = (cell index, q)`, `q` the cell's
 /// single-cell plunger step (mV per line gate, the same gate names in the
@@ -43,11 +46,8 @@ pub fn joint_line_steps(
     if cells.iter().any(|(_, q)| q.len() != gates) {
         return None;
     }
-    let coupling = DMatrix::from_fn(m, m, |i, j| match cells[i].0.abs_diff(cells[j].0) {
-        0 => 1.0,
-        1 => cross_calibration[0],
-        2 => cross_calibration[1],
-        _ => 0.0,
+    let coupling = DMatrix::from_fn(m, m, |i, j| {
+        calibrated_fraction(cross_calibration, cells[i].0.abs_diff(cells[j].0))
     });
     let lu = coupling.lu();
     let mut steps = vec![vec![0.0; gates]; m];

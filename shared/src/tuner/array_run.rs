@@ -1787,7 +1787,9 @@ impl ArrayRun {
                 .iter()
                 .all(|m| m.abs() <= self.settings.line_tolerance_mv)
             {
-                if single_line_step(&self.joint()?.lower[c as usize], mu).is_some() {
+                if self.settings.joint_line_steps
+                    && single_line_step(&self.joint()?.lower[c as usize], mu).is_some()
+                {
                     quiet.push((c, mu));
                 }
                 continue;
@@ -1797,16 +1799,15 @@ impl ArrayRun {
                 moved.push(c);
             }
         }
-        // coupled: a cell in band near one that corrects takes part with its
-        // own small offsets, so that the others' steps do not push it out
-        // (the cells within two of a correcting one, as the crosstalk reaches)
-        if self.settings.joint_line_steps {
-            let correcting: Vec<u32> = lines.iter().map(|&(c, _)| c).collect();
-            for (c, mu) in quiet {
-                if correcting.iter().any(|k| k.abs_diff(c) <= 2) {
-                    lines.push((c, mu));
-                    moved.push(c);
-                }
+        // coupled (`quiet` is empty otherwise): a cell in band near one that
+        // corrects takes part with its own small offsets, so that the
+        // others' steps do not push it out (the cells within two of a
+        // correcting one, as the crosstalk reaches)
+        let correcting: Vec<u32> = lines.iter().map(|&(c, _)| c).collect();
+        for (c, mu) in quiet {
+            if correcting.iter().any(|k| k.abs_diff(c) <= 2) {
+                lines.push((c, mu));
+                moved.push(c);
             }
         }
         Ok((lines, moved))
@@ -1890,8 +1891,9 @@ impl ArrayRun {
     /// with the cell's line Jacobian, as set requests (a cell whose
     /// Jacobian is singular is left out). All cells correct in one batch, so
     /// with [`ArrayRunSettings::joint_line_steps`] the steps take out each
-    /// other's crosstalk ([`joint_line_steps`]); each is then limited to the
-    /// cell's line step.
+    /// other's crosstalk ([`joint_line_steps`]; if that system is singular,
+    /// a calibration far beyond physical crosstalk, each cell steps as if
+    /// alone); each is then limited to the cell's line step.
     fn line_steps(&self, joint: &Joint, lines: &[(u32, [f64; 2])]) -> Vec<Request> {
         let single: Vec<(usize, Vec<f64>)> = lines
             .iter()

@@ -22,6 +22,27 @@ fn sql(db: &Path, statements: &str) {
     conn.execute_batch(statements).unwrap();
 }
 
+/// Waits until the store itself holds a status of run `id` containing
+/// `needle` (read through a second connection): the API shows a failed run
+/// at once, before its status is stored (`persist::fail_run`), so a kill
+/// right after the API says `failed` may beat the store.
+async fn wait_stored_status(db: &Path, id: u64, needle: &str) {
+    for _ in 0..200 {
+        let conn = rusqlite::Connection::open(db).unwrap();
+        conn.busy_timeout(Duration::from_secs(10)).unwrap();
+        let status: String = conn
+            .query_row("SELECT status FROM runs WHERE id = ?1", [id as i64], |r| {
+                r.get(0)
+            })
+            .unwrap();
+        if status.contains(needle) {
+            return;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    panic!("run {id}: no stored status containing {needle:?} within 10 s");
+}
+
 fn failed_message(r: &RunSummary) -> Option<&str> {
     match &r.status {
         RunStatus::Failed { message } => Some(message),
@@ -53,6 +74,8 @@ async fn a_refused_iteration_write_fails_the_run_durably_across_a_restart() {
         committed = failed.iterations;
         // Nothing more happens to it.
         assert_eq!(records(addr, id).await.len() as u64, committed);
+        // the store takes the failed status (the trigger refuses iterations only)
+        wait_stored_status(&db, id, "simulated disk full").await;
     } // kill -9
     let (_p, addr) = spawn_server(&db);
     let after = get_run(addr, id).await;

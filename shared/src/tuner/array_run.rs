@@ -63,8 +63,8 @@ use crate::tuner::array::{lockstep_factor, CellKnowledge, JointArrayTuner, Joint
 use crate::tuner::level_forecast::{compensation_columns, LevelForecast};
 use crate::tuner::thermal_floor::{self, floor_from_lead_widths, FloorLog};
 use crate::tuner::{
-    FlankPrediction, GradientRow, InitialGradient, LevelKind, ParameterForecast, ParameterSearch,
-    TunerConfig, MAX_SEARCH_PROBES,
+    Consistency, FlankPrediction, GradientRow, InitialGradient, LevelKind, ParameterForecast,
+    ParameterSearch, TunerConfig, MAX_SEARCH_PROBES,
 };
 
 /// The array's parameters per cell, in order.
@@ -106,6 +106,19 @@ pub struct ArrayRunSettings {
     /// arrays (docs/array.md, "Lines corrected before their scan").
     #[serde(default)]
     pub precorrect_lines_mv: Option<f64>,
+    /// Correct a cell's lines from their forecast instead of scanning them
+    /// (the single-cell line level's rule, [`ParameterForecast`]: both
+    /// lines predicted within `skip_std` mV, fewer than `max_skips`
+    /// forecasts in a row, no failed evaluation of the cell since its last
+    /// line scan, that scan at most `max_age_s` old; the prediction's
+    /// `noise` and prior lever stay the array's own). A confident cell
+    /// scans anyway when its readout group scans in the same batch for as
+    /// long (the lab time is the same): with one sensor per cell, a line
+    /// batch is skipped only when every cell in it is confident. `None`:
+    /// scan every time. Default `None` (docs/array.md, "Lines forecast
+    /// instead of scanned").
+    #[serde(default)]
+    pub line_forecast: Option<ParameterForecast>,
     /// Iterations after the start or the last target change without every
     /// cell in band after which the run gives up: it finishes, not tuned,
     /// until a target changes (1..=100,000; `None`: never). Default 200
@@ -171,6 +184,7 @@ impl Default for ArrayRunSettings {
             line_tolerance_mv: 0.1,
             joint_line_steps: default_joint_line_steps(),
             precorrect_lines_mv: Some(1.0),
+            line_forecast: None,
             max_iterations: default_max_iterations(),
             skip_confident_sigma: default_skip_sigma(),
             flank_prediction: FlankPrediction::default(),
@@ -187,6 +201,12 @@ fn default_max_iterations() -> Option<u32> {
 fn default_skip_sigma() -> Option<f64> {
     Some(2.0)
 }
+
+/// Lines checked against their forecast (two per line scan) before a cell
+/// may act on a forecast instead of scanning
+/// ([`ArrayRunSettings::line_forecast`]): three scans, so that the scale of
+/// its spread ([`Consistency::nis_mean`]) rests on more than one.
+pub const MIN_LINE_CHECKS: u64 = 6;
 
 /// Most iterations in a row a cell's scans are skipped
 /// ([`ArrayRunSettings::skip_confident_sigma`]): it is measured at least
@@ -242,6 +262,12 @@ impl ArrayRunSettings {
                 let field = field.trim_start_matches("prediction.");
                 ConfigError::new(format!("flank_prediction.{field}"), message)
             })?;
+        if let Some(f) = &self.line_forecast {
+            f.validate().map_err(|e| {
+                let field = e.field.trim_start_matches("forecast.");
+                ConfigError::new(format!("line_forecast.{field}"), e.message)
+            })?;
+        }
         let l = self.line_tolerance_mv;
         check(
             l.is_finite() && l > 0.0 && l <= 1.0,
@@ -315,6 +341,15 @@ struct CellLower {
     /// The line search's memory (failures in a row, last seen, probes).
     #[serde(default)]
     search: SearchMemory,
+    /// Evaluations of the cell that failed (any scan): a line forecast is
+    /// not acted on after one since the last line scan.
+    #[serde(default)]
+    failed_evaluations: u64,
+    /// Every line scan against the forecast for it made just before (both
+    /// lines): how honest the forecast's spread is. A forecast acted on
+    /// has its variance scaled by the mean NIS when that is above 1.
+    #[serde(default)]
+    line_checks: Consistency,
     /// A search probe's plunger move not yet sent (mV per line gate).
     #[serde(default)]
     probe_mv: Option<Vec<f64>>,
@@ -362,6 +397,10 @@ enum Step {
     ParkSet(Vec<(String, f64)>, AfterPark),
     /// Line corrections from the forecast, then the first line round.
     Precorrect(Vec<u32>),
+    /// The corrections of [`Step::Precorrect`]'s cells (first) are out:
+    /// the cells that scan, and those that act on their forecast instead
+    /// (cell, forecast lines as (mV, variance mV²)).
+    Precorrecting(Vec<u32>, LinePlan),
     /// Line scans of these cells, round `round`.
     LineScan(Vec<u32>, u32),
     /// Line corrections of the cells that moved in round `round`.
@@ -384,6 +423,10 @@ struct Scratch {
     /// The Jacobian used for this iteration's moves (log space, rows cell by cell).
     jacobian: Option<DMatrix<f64>>,
     moved_cells: Vec<u32>,
+    /// Cells corrected from their line forecast before this line round:
+    /// their sensors are parked again with the cells that move after it.
+    #[serde(default)]
+    forecast_moved: Vec<u32>,
     /// Voltages before the present move, mV.
     before_move: BTreeMap<String, f64>,
     record: Option<Box<IterationRecord>>,
@@ -396,6 +439,14 @@ type Parks = (Vec<u32>, Vec<(String, f64)>);
 /// A line round's outcome: (cell, its lines in mV) to correct, and the
 /// cells that move.
 type LineCorrections = (Vec<(u32, [f64; 2])>, Vec<u32>);
+
+/// Before the line scan: the cells that scan, and the cells that act on
+/// their lines' forecast instead ((mV, variance mV²) per line).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct LinePlan {
+    scan: Vec<u32>,
+    forecast: Vec<(u32, [Measured; 2])>,
+}
 
 /// The joint state after the initial measurements.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -638,6 +689,18 @@ impl ArrayRun {
         self.joint.as_ref().map(|j| &j.tuner)
     }
 
+    /// Every cell's line scans checked against the lines' forecast made
+    /// just before each (both lines; normalised innovations): how honest
+    /// the forecast's spread is ([`ArrayRunSettings::line_forecast`] acts
+    /// on it with its variance scaled by a cell's own mean NIS above 1).
+    pub fn line_forecast_checks(&self) -> Consistency {
+        let mut all = Consistency::default();
+        for l in self.joint.iter().flat_map(|j| &j.lower) {
+            all.merge(&l.line_checks);
+        }
+        all
+    }
+
     /// The next thing to do.
     pub fn poll(&mut self) -> Result<ArrayAction, ArrayRunError> {
         loop {
@@ -822,11 +885,19 @@ impl ArrayRun {
                     .collect()
             }
             Step::Precorrect(cells) => {
-                let sets = self.precorrections(&cells)?;
+                let (sets, plan) = self.plan_lines(&cells)?;
                 if sets.is_empty() {
-                    self.step = Step::LineScan(cells, 0);
+                    self.lines_planned(plan);
+                } else {
+                    self.step = Step::Precorrecting(cells, plan);
                 }
                 sets
+            }
+            Step::Precorrecting(cells, _) => {
+                // the corrections' batch was dropped unanswered (a read-back
+                // moved the gates): plan them again
+                self.step = Step::Precorrect(cells);
+                Vec::new()
             }
             Step::LineScan(cells, round) => {
                 // (a cell without a line level has no lines to scan)
@@ -950,9 +1021,19 @@ impl ArrayRun {
                 ))
             }
             Step::ParkSet(_, next) => self.step = Self::after_park(next),
-            Step::Precorrect(cells) => self.step = Step::LineScan(cells, 0),
+            Step::Precorrecting(_, plan) => self.lines_planned(plan),
+            Step::Precorrect(_) => {
+                return Err(ArrayRunError::Protocol(
+                    "line corrections answered before they were planned".into(),
+                ))
+            }
             Step::LineScan(cells, round) => {
-                let (lines, moved) = self.line_corrections(&cells, &answers)?;
+                let (lines, mut moved) = self.line_corrections(&cells, &answers)?;
+                for c in std::mem::take(&mut self.scratch.forecast_moved) {
+                    if !moved.contains(&c) {
+                        moved.push(c);
+                    }
+                }
                 self.step = Step::LineSet(lines, moved, round);
             }
             Step::LineSet(_, moved, round) => {
@@ -1168,6 +1249,8 @@ impl ArrayRun {
                 line_search: None,
                 search: SearchMemory::default(),
                 probe_mv: None,
+                failed_evaluations: 0,
+                line_checks: Consistency::default(),
             };
             for level in cfg.levels.iter().skip(1) {
                 match &level.kind {
@@ -1466,6 +1549,7 @@ impl ArrayRun {
             unsure,
             jacobian: None,
             moved_cells: Vec::new(),
+            forecast_moved: Vec::new(),
             before_move: BTreeMap::new(),
             record: Some(Box::new(record)),
         };
@@ -1501,6 +1585,7 @@ impl ArrayRun {
         self.failed_fits += 1;
         if let Some(l) = self.joint.as_mut().and_then(|j| j.lower.get_mut(c)) {
             l.failed_since_sweep = true;
+            l.failed_evaluations += 1;
         }
     }
 
@@ -1727,22 +1812,108 @@ impl ArrayRun {
         Ok((sweep, predicted))
     }
 
-    /// Before the first line scan: the cells whose forecast puts a line
-    /// beyond [`ArrayRunSettings::precorrect_lines_mv`], corrected from it.
-    fn precorrections(&self, cells: &[u32]) -> Result<Vec<Request>, ArrayRunError> {
-        let Some(limit) = self.settings.precorrect_lines_mv else {
-            return Ok(Vec::new());
-        };
+    /// Before the first line scan: which of `cells` act on their lines'
+    /// forecast instead of scanning ([`ArrayRunSettings::line_forecast`];
+    /// corrected when it puts a line outside `line_tolerance_mv`), and the
+    /// scanning cells whose forecast puts a line beyond
+    /// [`ArrayRunSettings::precorrect_lines_mv`], corrected from it first.
+    fn plan_lines(&self, cells: &[u32]) -> Result<(Vec<Request>, LinePlan), ArrayRunError> {
         let joint = self.joint()?;
         let v = &self.voltages_mv;
-        let lines: Vec<(u32, [f64; 2])> = cells
+        let forecasts: Vec<Option<[Measured; 2]>> = cells
             .iter()
-            .filter_map(|&c| {
-                let mu = line_forecast(joint, c as usize, v)?;
-                mu.iter().any(|m| m.abs() > limit).then_some((c, mu))
+            .map(|&c| {
+                let mut f = line_forecast(joint, c as usize, v)?;
+                let checks = &joint.lower[c as usize].line_checks;
+                let scale = checks.nis_mean().unwrap_or(1.0).max(1.0);
+                f.iter_mut().for_each(|m| m.1 *= scale);
+                Some(f)
             })
             .collect();
-        Ok(self.line_steps(joint, &lines))
+        let confident: Vec<bool> = cells
+            .iter()
+            .zip(&forecasts)
+            .map(|(&c, f)| {
+                let l = &joint.lower[c as usize];
+                let (Some(skip), Some(f)) = (&self.settings.line_forecast, f) else {
+                    return false;
+                };
+                l.line_gates.len() == 2
+                    && l.line_checks.count >= MIN_LINE_CHECKS
+                    && l.search.active.is_none()
+                    && l.probe_mv.is_none()
+                    && l.lines
+                        .may_forecast(skip, l.failed_evaluations, self.lab_seconds)
+                    && f.iter().all(|&m| skip.confident(Some(m)))
+                    // one correction within the step limit reaches the centre
+                    && single_line_step(l, f.map(|m| m.0))
+                        .is_some_and(|q| q[0].hypot(q[1]) <= l.line_max_step_mv)
+            })
+            .collect();
+        let scan = who_scans(cells, &confident, &self.readout_group);
+        let mut plan = LinePlan {
+            scan,
+            forecast: Vec::new(),
+        };
+        let mut lines = Vec::new();
+        for (&c, f) in cells.iter().zip(forecasts) {
+            let Some(f) = f else { continue };
+            let mu = f.map(|m| m.0);
+            let limit = if plan.scan.contains(&c) {
+                match self.settings.precorrect_lines_mv {
+                    Some(limit) => limit,
+                    None => continue,
+                }
+            } else {
+                plan.forecast.push((c, f));
+                self.settings.line_tolerance_mv
+            };
+            if mu.iter().any(|m| m.abs() > limit) {
+                lines.push((c, mu));
+            }
+        }
+        Ok((self.line_steps(joint, &lines), plan))
+    }
+
+    /// The line corrections of `plan` are answered: the cells that acted
+    /// on their forecast count it (event `measurement_skipped` per line)
+    /// and have their sensors parked again when they moved; the others
+    /// scan (round 0). Without a cell to scan, the iteration's line
+    /// rounds are over.
+    fn lines_planned(&mut self, plan: LinePlan) {
+        let tolerance = self.settings.line_tolerance_mv;
+        let mut moved = Vec::new();
+        let mut events = Vec::new();
+        if let Some(joint) = self.joint.as_mut() {
+            for (c, f) in &plan.forecast {
+                let l = &mut joint.lower[*c as usize];
+                l.lines.skips += 1;
+                if f.iter().any(|m| m.0.abs() > tolerance) {
+                    moved.push(*c);
+                }
+                for (name, m) in ["mu_a_mv", "mu_b_mv"].iter().zip(f) {
+                    events.push((
+                        *c,
+                        EventKind::MeasurementSkipped {
+                            parameter: parameter_name(*c, name),
+                            predicted: m.0,
+                            std: m.1.max(0.0).sqrt(),
+                            unit: "mV".into(),
+                        },
+                    ));
+                }
+            }
+        }
+        for (c, kind) in events {
+            self.note_line_event(c, kind);
+        }
+        if plan.scan.is_empty() {
+            let done = AfterPark::LineRound(Vec::new(), self.settings.line_rounds);
+            self.step = Step::ParkSweep(moved, done);
+        } else {
+            self.scratch.forecast_moved = moved;
+            self.step = Step::LineScan(plan.scan, 0);
+        }
     }
 
     /// A line round's answers: every cell's lines learned; the cells whose
@@ -1769,7 +1940,7 @@ impl ArrayRun {
                 continue;
             };
             if let Some(joint) = self.joint.as_mut() {
-                observe_lines(joint, c as usize, [a_mv, b_mv], &v);
+                observe_lines(joint, c as usize, [a_mv, b_mv], &v, self.lab_seconds);
                 let search = &mut joint.lower[c as usize].search;
                 search.seen(&[Some(a_mv.0), Some(b_mv.0)]);
                 if let Some(probes) = search.found() {
@@ -2036,17 +2207,14 @@ fn borrow_line_jacobians(lower: &mut [CellLower]) {
     }
 }
 
-/// The cell's lines `[mu_a, mu_b]` (mV) forecast at `v` (`None` before
-/// its first line scan).
-fn line_forecast(joint: &Joint, cell: usize, v: &BTreeMap<String, f64>) -> Option<[f64; 2]> {
+/// The cell's lines `[mu_a, mu_b]` forecast at `v`, each as (mV, variance
+/// mV²) (`None` before its first line scan).
+fn line_forecast(joint: &Joint, cell: usize, v: &BTreeMap<String, f64>) -> Option<[Measured; 2]> {
     let l = &joint.lower[cell];
     let own = l.line_mv(v);
     let noise = ParameterForecast::default().noise;
     let p = l.lines.predict(&own, v, &line_rows(l), noise)?;
-    Some([
-        p.first().copied().flatten()?.0,
-        p.get(1).copied().flatten()?.0,
-    ])
+    Some([p.first().copied().flatten()?, p.get(1).copied().flatten()?])
 }
 
 /// The cell's line Jacobian as the forecast's own-gate rows.
@@ -2058,13 +2226,26 @@ fn line_rows(l: &CellLower) -> Vec<GradientRow> {
 }
 
 /// A line scan of `cell` at `v`: the forecast learns from it.
-fn observe_lines(joint: &mut Joint, cell: usize, mu: [Measured; 2], v: &BTreeMap<String, f64>) {
+fn observe_lines(
+    joint: &mut Joint,
+    cell: usize,
+    mu: [Measured; 2],
+    v: &BTreeMap<String, f64>,
+    lab_seconds: f64,
+) {
+    if let Some(predicted) = line_forecast(joint, cell, v) {
+        let checks = &mut joint.lower[cell].line_checks;
+        for (m, p) in mu.iter().zip(predicted) {
+            checks.add(m.0 - p.0, (m.1 + p.1).sqrt());
+        }
+    }
     let l = &mut joint.lower[cell];
     let rows = line_rows(l);
     let own = l.line_mv(v);
     let noise = ParameterForecast::default().noise;
     l.lines
         .observe(&own, v, &[Some(mu[0]), Some(mu[1])], &rows, noise);
+    l.lines.scanned(l.failed_evaluations, lab_seconds);
 }
 
 /// `c{k}.t_sr` → (k, `t_sr`) for the array's parameters.
@@ -2201,6 +2382,8 @@ mod tests {
             line_search: None,
             search: SearchMemory::default(),
             probe_mv: None,
+            failed_evaluations: 0,
+            line_checks: Consistency::default(),
         }
     }
 

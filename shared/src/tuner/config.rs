@@ -206,6 +206,13 @@ impl Default for ParameterForecast {
 }
 
 impl ParameterForecast {
+    /// Whether a forecast `sample` (estimator value and variance) is
+    /// narrow enough to act on: its standard deviation at most `skip_std`
+    /// (`None`, no forecast: not confident).
+    pub fn confident(&self, sample: Option<(f64, f64)>) -> bool {
+        sample.is_some_and(|(_, var)| var.sqrt() <= self.skip_std)
+    }
+
     /// Check the bounds; the error names the field (relative to the level).
     pub fn validate(&self) -> Result<(), ConfigError> {
         if !within(self.skip_std, true, 1000.0) {

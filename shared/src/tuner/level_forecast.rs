@@ -23,7 +23,7 @@ use serde::{Deserialize, Serialize};
 use super::config::LevelKind;
 use super::finite_difference::Sample;
 use super::gate_row::GateRow;
-use super::{Consistency, GradientRow, LevelState, Tuner};
+use super::{Consistency, GradientRow, LevelState, ParameterForecast, Tuner};
 use crate::protocol::EventKind;
 
 /// The last scan the model starts from.
@@ -46,9 +46,9 @@ pub(crate) struct LevelForecast {
     /// Calls corrected from the forecast since the last scan.
     pub(super) skips: u32,
     /// The tuner's failed evaluations when the level last scanned.
-    pub(super) failed_at_scan: u64,
+    failed_at_scan: u64,
     /// The tuner's lab time at the level's last scan, s.
-    pub(super) scanned_at_s: f64,
+    scanned_at_s: f64,
     /// Every scan that followed forecast calls, against what the model
     /// predicted for it (per parameter, config order): the forecasts the
     /// level acted on, checked by the next real scan.
@@ -185,6 +185,30 @@ impl LevelForecast {
         self.skips = 0;
     }
 
+    /// The level scanned at `lab_seconds` (s) with `failed_evaluations`
+    /// counted so far: where [`Self::may_forecast`] measures age and failures from.
+    pub(crate) fn scanned(&mut self, failed_evaluations: u64, lab_seconds: f64) {
+        self.failed_at_scan = failed_evaluations;
+        self.scanned_at_s = lab_seconds;
+    }
+
+    /// Whether a call may act on the forecast instead of scanning, before
+    /// its spread is looked at (the one rule of [`ParameterForecast`], with
+    /// [`ParameterForecast::confident`]): fewer than `max_skips` forecast
+    /// calls in a row, no failed evaluation since the last scan
+    /// (`failed_evaluations`: the count now, as passed to [`Self::scanned`]),
+    /// and that scan at most `max_age_s` old at `lab_seconds` (s).
+    pub(crate) fn may_forecast(
+        &self,
+        f: &ParameterForecast,
+        failed_evaluations: u64,
+        lab_seconds: f64,
+    ) -> bool {
+        self.skips < f.max_skips
+            && self.failed_at_scan == failed_evaluations
+            && lab_seconds - self.scanned_at_s <= f.max_age_s
+    }
+
     /// Centre every row's prior on `−g_own·M` (before any learning).
     fn centre(&mut self, own_rows: &[GradientRow]) {
         for (row, own) in self.rows.iter_mut().zip(own_rows) {
@@ -261,17 +285,14 @@ impl Tuner {
             return None;
         };
         let model = state.forecast.as_ref()?;
-        if model.skips >= f.max_skips
-            || model.failed_at_scan != self.failed_evaluations
-            || self.lab_seconds - model.scanned_at_s > f.max_age_s
-        {
+        if !model.may_forecast(f, self.failed_evaluations, self.lab_seconds) {
             return None;
         }
         let own_rows = state.gradients()?;
         let own_mv = self.level_voltages(level);
         let forecast = model.predict(&own_mv, &self.voltages_mv, &own_rows, f.noise)?;
         for (p, s) in cfg.parameters.iter().zip(&forecast) {
-            if p.target.is_some() && !s.is_some_and(|(_, var)| var.sqrt() <= f.skip_std) {
+            if p.target.is_some() && !f.confident(*s) {
                 return None;
             }
         }

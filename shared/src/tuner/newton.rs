@@ -632,8 +632,7 @@ impl Tuner {
         if let (Some(f), Some(own_rows)) = (&cfg.forecast, state.gradients()) {
             if let Some(model) = &mut state.forecast {
                 model.observe(&v_now, &all_v, &samples, &own_rows, f.noise);
-                model.failed_at_scan = failed;
-                model.scanned_at_s = now_s;
+                model.scanned(failed, now_s);
             }
         }
         // Targets held at their first measured values.

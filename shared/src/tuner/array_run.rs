@@ -111,12 +111,18 @@ pub struct ArrayRunSettings {
     /// lines predicted within `skip_std` mV, fewer than `max_skips`
     /// forecasts in a row, no failed evaluation of the cell since its last
     /// line scan, that scan at most `max_age_s` old; the prediction's
-    /// `noise` and prior lever stay the array's own). A confident cell
-    /// scans anyway when its readout group scans in the same batch for as
-    /// long (the lab time is the same): with one sensor per cell, a line
-    /// batch is skipped only when every cell in it is confident. `None`:
-    /// scan every time. Default `None` (docs/array.md, "Lines forecast
-    /// instead of scanned").
+    /// `noise` and prior lever stay the array's own). Beyond it, for an
+    /// array: the forecast's variance is scaled by the cell's mean NIS at
+    /// its line scans when above 1 ([`ArrayRun::line_forecast_checks`]), at
+    /// least [`MIN_LINE_CHECKS`] lines were checked, and one plunger step
+    /// within the step limit reaches the centre. A confident cell scans
+    /// anyway when its readout group scans in the same batch for as long
+    /// (the lab time is the same): with one sensor per cell, a line batch
+    /// is skipped only when every cell in it is confident. The forecast is
+    /// honest only with unbiased line Jacobians (`joint_line_steps`).
+    /// `None`: scan every time. Default `None`: every version measured left
+    /// more changes unconverged (docs/array.md, "Lines forecast instead of
+    /// scanned").
     #[serde(default)]
     pub line_forecast: Option<ParameterForecast>,
     /// Iterations after the start or the last target change without every

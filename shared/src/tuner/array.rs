@@ -43,7 +43,7 @@
 //!   own rows ([`super::excitation`]). Compensation gates follow with the cell's
 //!   virtual-gate matrix applied to its own move plus the lab's cross-cell
 //!   calibration `λ̂` times its neighbours' moves
-//!   ([`JointArrayTuner::set_neighbour_compensation`]), clipped the same way.
+//!   ([`JointConfig::cross_compensation`]), clipped the same way.
 
 use std::collections::BTreeMap;
 

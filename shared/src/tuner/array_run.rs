@@ -141,7 +141,7 @@ pub struct ArrayRunSettings {
     #[serde(default = "default_skip_sigma")]
     pub skip_confident_sigma: Option<f64>,
     /// Park a cell's sensing dot on its flank as predicted from the gates
-    /// of its neighbourhood (a [`FlankModel`] per cell, learned from every
+    /// of its neighbourhood (a `FlankModel` per cell, learned from every
     /// sweep) instead of sweeping, when the prediction is confident
     /// (`skip_std_mv`), the cell's evaluations have not failed since its
     /// last sweep and fewer than `max_skips` sweeps were skipped in a row

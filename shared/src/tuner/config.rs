@@ -130,7 +130,7 @@ pub struct NewtonConfig {
     pub forecast: Option<ParameterForecast>,
     /// For levels run as children: search for parameters the scans lost
     /// (a line that left the scan's window) by probing the level's gates
-    /// ([`super::search`]). `None` (default, the paper's rule): retreat and
+    /// (`tuner::search`). `None` (default, the paper's rule): retreat and
     /// re-scan only. Refused on the top level.
     #[serde(default)]
     pub search: Option<ParameterSearch>,

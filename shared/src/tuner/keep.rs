@@ -295,7 +295,7 @@ impl DriftModel {
     }
 
     /// The learned diffusion, estimator units² per s (never below
-    /// [`DIFFUSION_FLOOR`] of the prior: a quiet stretch does not make the
+    /// `DIFFUSION_FLOOR` of the prior: a quiet stretch does not make the
     /// model blind to the next jump).
     pub fn diffusion(&self) -> f64 {
         let q = (self.prior_diffusion * PRIOR_WEIGHT_S + self.excess_sum)

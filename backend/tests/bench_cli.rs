@@ -362,7 +362,7 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
     let plot = dir.join("timeline.png");
     std::fs::write(
         &tuning,
-        "line_rounds = 2\nhold_in_band = true\nreset_flat_row_fraction = 0\n[joint]\nneighbour_prior_fraction = 0.4\ncorrelated_prior = false\nlockstep_correction = true\nexcitation = 0.3\n",
+        "line_rounds = 2\nhold_in_band = true\nreset_flat_row_fraction = 0\n[joint]\nneighbour_prior_fraction = 0.4\ncorrelated_prior = false\nlockstep_correction = true\nexcitation = 0.3\n[line_forecast]\nmax_skips = 2\n",
     )
     .unwrap();
     let out = run_ok(
@@ -391,6 +391,23 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
     assert!(png.starts_with(b"\x89PNG"), "--plot wrote no PNG");
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
     assert_eq!(report["protocol"]["tuning"]["line_rounds"], 2);
+    // the line forecast (off by default): the file's field, the rest defaults
+    assert_eq!(
+        report["protocol"]["tuning"]["line_forecast"]["max_skips"],
+        2
+    );
+    assert_eq!(
+        report["protocol"]["tuning"]["line_forecast"]["skip_std"],
+        0.3
+    );
+    // how the cells came into band in the all-cell changes: first ≤ half ≤ every
+    let entry = &report["strategies"][0]["change_band_entry"];
+    let e: Vec<f64> = (0..3).map(|i| entry[i].as_f64().unwrap()).collect();
+    assert!(1.0 <= e[0] && e[0] <= e[1] && e[1] <= e[2], "{entry}");
+    assert!(
+        stdout.contains("| first cell | half the cells | every cell |"),
+        "{stdout}"
+    );
     assert_eq!(
         report["protocol"]["tuning"]["joint"]["neighbour_prior_fraction"],
         0.4

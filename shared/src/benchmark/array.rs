@@ -46,7 +46,7 @@ use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
-use super::array_timeline::{TimelinePoint, MAX_TIMELINE_POINTS};
+use super::array_timeline::{band_entry, TimelinePoint, MAX_TIMELINE_POINTS};
 use super::{quantiles, Quantiles, PAPER_SET_POINTS};
 use crate::config_error::ConfigError;
 use crate::parameter::Tolerance;
@@ -833,6 +833,25 @@ pub struct ArraySummary {
     pub runs: u64,
     /// Lab minutes of the whole protocol by request kind, mean per run.
     pub lab_minutes_by_kind: BTreeMap<String, f64>,
+    /// The all-cell changes that converged: iterations until the first
+    /// cell, half the cells and every cell were measured in band
+    /// ([`band_entry`]), mean over the changes (`None`: no timeline, as
+    /// for `serial` and `independent`, or no change converged).
+    #[serde(default)]
+    pub change_band_entry: Option<[f64; 3]>,
+}
+
+/// Mean [`band_entry`] of the all-cell changes (phases 1…) of `runs`.
+fn mean_band_entry(runs: &[&ArrayRunResult]) -> Option<[f64; 3]> {
+    let entries: Vec<[usize; 3]> = runs
+        .iter()
+        .flat_map(|r| (1..=r.changes.len() as u32).filter_map(|ph| band_entry(&r.timeline, ph)))
+        .collect();
+    if entries.is_empty() {
+        return None;
+    }
+    let n = entries.len() as f64;
+    Some([0, 1, 2].map(|i| entries.iter().map(|e| e[i] as f64).sum::<f64>() / n))
 }
 
 fn all_changes(r: &ArrayRunResult) -> Vec<Option<f64>> {
@@ -911,6 +930,7 @@ pub fn summarize_array(
                     }
                     by
                 },
+                change_band_entry: mean_band_entry(&mine),
             }
         })
         .collect()
@@ -978,6 +998,20 @@ pub fn markdown(summaries: &[ArraySummary]) -> String {
             f(get(kinds[4])),
             f(other)
         ));
+    }
+    if summaries.iter().any(|x| x.change_band_entry.is_some()) {
+        s.push_str("\nAll-cell changes that converged: iterations (mean) until cells were measured in band at once (a long tail: `every cell` far beyond `first cell`):\n\n| strategy | first cell | half the cells | every cell |\n|---|---|---|---|\n");
+        for x in summaries {
+            if let Some([first, half, every]) = x.change_band_entry {
+                s.push_str(&format!(
+                    "| {} | {} | {} | {} |\n",
+                    x.name,
+                    f(first),
+                    f(half),
+                    f(every)
+                ));
+            }
+        }
     }
     s
 }

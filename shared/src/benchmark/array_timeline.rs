@@ -91,3 +91,56 @@ impl TimelinePoint {
         }
     }
 }
+
+/// How the cells of `phase` came into band: the iterations of the phase
+/// (its timeline points, counted from 1) until the first cell, half the
+/// cells (rounded up) and every cell were measured in band at once.
+/// `None` if no point of the phase had every cell in band (the phase did
+/// not converge, or its points were dropped).
+///
+/// It tells a slow approach from a long tail: a tuner whose cells enter
+/// the band together has the three counts close; one whose last cells
+/// lag has `every` far beyond `first`.
+///
+/// ```
+/// use spintune::benchmark::array_timeline::{band_entry, CellBand::*, TimelinePoint};
+/// let point = |phase, measured: Vec<_>| TimelinePoint {
+///     lab_minutes: 0.0, phase, truly_in_band: vec![true; measured.len()], measured,
+/// };
+/// let points = [
+///     point(0, vec![InBand, InBand, InBand]),
+///     point(1, vec![OutOfBand, OutOfBand, OutOfBand]),
+///     point(1, vec![InBand, NotMeasured, OutOfBand]),
+///     point(1, vec![InBand, InBand, OutOfBand]),
+///     point(1, vec![InBand, OutOfBand, OutOfBand]),
+///     point(1, vec![InBand, InBand, InBand]),
+/// ];
+/// assert_eq!(band_entry(&points, 1), Some([2, 3, 5]));
+/// assert_eq!(band_entry(&points, 0), Some([1, 1, 1]));
+/// assert_eq!(band_entry(&points[..5], 1), None);
+/// ```
+pub fn band_entry(points: &[TimelinePoint], phase: u32) -> Option<[usize; 3]> {
+    let in_band: Vec<(usize, usize)> = points
+        .iter()
+        .filter(|p| p.phase == phase)
+        .map(|p| {
+            let n = p.measured.len();
+            let k = p
+                .measured
+                .iter()
+                .filter(|&&b| b == CellBand::InBand)
+                .count();
+            (k, n)
+        })
+        .collect();
+    let first_with = |enough: &dyn Fn(usize, usize) -> bool| {
+        in_band
+            .iter()
+            .position(|&(k, n)| n > 0 && enough(k, n))
+            .map(|i| i + 1)
+    };
+    let every = first_with(&|k, n| k == n)?;
+    let first = first_with(&|k, _| k >= 1)?;
+    let half = first_with(&|k, n| 2 * k >= n)?;
+    Some([first, half, every])
+}

@@ -5,6 +5,8 @@
 //! gate's `max_step_mv`, checked against the commanded voltages) and never
 //! ask for the truth.
 
+mod support;
+
 use spintune::benchmark::array::{
     run_strategy, single_change_cells, world, ArrayProtocol, ArrayRunResult, ArrayStrategy,
 };
@@ -14,6 +16,7 @@ use spintune::sim::array::ArrayConfig;
 use spintune::sim::DeviceConfig;
 use spintune::tuner::array::{CellKnowledge, JointArrayTuner, JointConfig};
 use spintune::tuner::thermal_floor::FloorLog;
+use support::array::{joint_in_lab, through_set_points};
 
 fn short_protocol() -> ArrayProtocol {
     ArrayProtocol {
@@ -724,8 +727,6 @@ fn persistent_misses_shorten_a_rows_memory() {
 /// when written). The world's lines are read world-side, never by the run.
 #[test]
 fn the_coupled_line_level_leaves_the_lines_nearer_their_centre() {
-    use spintune::benchmark::array::{cell_tuner, lab_cross_calibration, Lab};
-    use spintune::tuner::array_run::{ArrayAction, ArrayRun};
     let mean_offset = |joint_steps: bool| {
         let mut protocol = short_protocol();
         protocol.tuning.joint_line_steps = joint_steps;
@@ -735,47 +736,21 @@ fn the_coupled_line_level_leaves_the_lines_nearer_their_centre() {
             |_| true,
         )
         .unwrap();
-        let lambda = lab_cross_calibration(array.config(), &protocol, 3);
-        let cells = (0..5).map(|c| cell_tuner(c, &protocol)).collect();
-        let mut run = ArrayRun::new(
-            cells,
-            &array.gates(),
-            protocol.run_settings(),
-            lambda,
-            false,
-        )
-        .unwrap();
-        let mut lab = Lab::new(array);
-        lab.device.seal_truth();
-        let (mut sum, mut n, mut phase, mut iterations) = (0.0, 0, 0, 0);
-        while phase < 2 {
-            let phase_over = match run.poll().unwrap() {
-                ArrayAction::Execute(batch) => {
-                    let before = lab.device.lab_seconds();
-                    let answers = lab.batch(&batch);
-                    run.feed(answers, lab.device.lab_seconds() - before)
-                        .unwrap();
-                    false
-                }
-                ArrayAction::Iteration(record) => {
-                    for c in 0..5 {
-                        let t = lab.device.truth(c).unwrap();
-                        sum += t.mu_a_mv.hypot(t.mu_b_mv);
-                        n += 1;
-                    }
-                    iterations += 1;
-                    record.tuned || iterations >= 40
-                }
-                ArrayAction::Idle => true,
-            };
-            if phase_over {
-                phase += 1;
-                iterations = 0;
+        let (mut run, mut lab) = joint_in_lab(array, &protocol, 3);
+        let (mut sum, mut n) = (0.0, 0);
+        through_set_points(
+            &mut run,
+            &mut lab,
+            &protocol.set_points,
+            |_| {},
+            |lab, _| {
                 for c in 0..5 {
-                    run.set_targets(c, PAPER_SET_POINTS[1]).unwrap();
+                    let t = lab.device.truth(c).unwrap();
+                    sum += t.mu_a_mv.hypot(t.mu_b_mv);
+                    n += 1;
                 }
-            }
-        }
+            },
+        );
         assert_eq!(lab.violations, 0);
         sum / n as f64
     };

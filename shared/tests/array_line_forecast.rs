@@ -3,14 +3,14 @@
 //! forecast and skips the line scan. Checked against the world: where the
 //! lines truly sit after a skipped scan, and what the skips save.
 
-use spintune::benchmark::array::{
-    cell_tuner, lab_cross_calibration, run_strategy, world, ArrayProtocol, ArrayStrategy, Lab,
-};
+mod support;
+
+use spintune::benchmark::array::{run_strategy, world, ArrayProtocol, ArrayStrategy};
 use spintune::protocol::{EventKind, Request, ScanKind};
 use spintune::sim::array::ArrayConfig;
 use spintune::sim::DeviceConfig;
-use spintune::tuner::array_run::{ArrayAction, ArrayRun};
 use spintune::tuner::{Consistency, ParameterForecast};
+use support::array::{joint_in_lab, through_set_points};
 
 const CELLS: usize = 3;
 
@@ -37,74 +37,47 @@ fn drive(protocol: &ArrayProtocol) -> LineRecord {
         |_| true,
     )
     .unwrap();
-    let lambda = lab_cross_calibration(array.config(), protocol, 5);
-    let cells = (0..CELLS as u32).map(|c| cell_tuner(c, protocol)).collect();
-    let mut run = ArrayRun::new(
-        cells,
-        &array.gates(),
-        protocol.run_settings(),
-        lambda,
-        false,
-    )
-    .unwrap();
-    let mut lab = Lab::new(array);
-    lab.device.seal_truth();
+    let (mut run, mut lab) = joint_in_lab(array, protocol, 5);
     let mut record = LineRecord {
         forecast: Vec::new(),
         scanned: Vec::new(),
         checks: Consistency::default(),
     };
-    let mut scanned = Vec::new();
-    let (mut phase, mut iterations) = (0, 0);
-    while phase < protocol.set_points.len() {
-        let phase_over = match run.poll().unwrap() {
-            ArrayAction::Execute(batch) => {
-                for r in &batch {
-                    if let Request::Measure { scan } = r {
-                        if scan.kind == ScanKind::ChemicalPotential {
-                            scanned.extend(scan.cell);
-                        }
+    // (both hooks see the cells that scanned this iteration)
+    let scanned = std::cell::RefCell::new(Vec::new());
+    through_set_points(
+        &mut run,
+        &mut lab,
+        &protocol.set_points,
+        |batch| {
+            for r in batch {
+                if let Request::Measure { scan } = r {
+                    if scan.kind == ScanKind::ChemicalPotential {
+                        scanned.borrow_mut().extend(scan.cell);
                     }
                 }
-                let before = lab.device.lab_seconds();
-                let answers = lab.batch(&batch);
-                run.feed(answers, lab.device.lab_seconds() - before)
-                    .unwrap();
-                false
             }
-            ArrayAction::Iteration(it) => {
-                let mut forecast: Vec<u32> = it
-                    .events
-                    .iter()
-                    .filter(|e| matches!(e.kind, EventKind::MeasurementSkipped { .. }))
-                    .filter_map(|e| e.level.strip_prefix('c')?.split('.').next()?.parse().ok())
-                    .collect();
-                forecast.dedup();
-                for c in 0..CELLS as u32 {
-                    let t = lab.device.truth(c).unwrap();
-                    let lines = [t.mu_a_mv.abs(), t.mu_b_mv.abs()];
-                    if forecast.contains(&c) {
-                        record.forecast.extend(lines);
-                    } else if scanned.contains(&c) {
-                        record.scanned.extend(lines);
-                    }
-                }
-                scanned.clear();
-                iterations += 1;
-                it.tuned || iterations >= 40
-            }
-            ArrayAction::Idle => true,
-        };
-        if phase_over {
-            phase += 1;
-            iterations = 0;
-            if let Some(&targets) = protocol.set_points.get(phase) {
-                for c in 0..CELLS {
-                    run.set_targets(c, targets).unwrap();
+        },
+        |lab, it| {
+            let mut forecast: Vec<u32> = it
+                .events
+                .iter()
+                .filter(|e| matches!(e.kind, EventKind::MeasurementSkipped { .. }))
+                .filter_map(|e| e.level.strip_prefix('c')?.split('.').next()?.parse().ok())
+                .collect();
+            forecast.dedup();
+            for c in 0..CELLS as u32 {
+                let t = lab.device.truth(c).unwrap();
+                let lines = [t.mu_a_mv.abs(), t.mu_b_mv.abs()];
+                if forecast.contains(&c) {
+                    record.forecast.extend(lines);
+                } else if scanned.borrow().contains(&c) {
+                    record.scanned.extend(lines);
                 }
             }
-        }
-    }
+            scanned.borrow_mut().clear();
+        },
+    );
     assert_eq!(lab.violations, 0);
     record.checks = run.line_forecast_checks();
     record

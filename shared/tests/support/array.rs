@@ -3,10 +3,11 @@
 //! seed 11), at the benchmark's default settings and the world's crosstalk
 //! as the lab's calibration.
 
-use spintune::benchmark::array::{world, ArrayProtocol};
+use spintune::benchmark::array::{cell_tuner, lab_cross_calibration, world, ArrayProtocol, Lab};
+use spintune::protocol::{IterationRecord, Request};
 use spintune::sim::array::{ArrayConfig, ArrayDevice};
 use spintune::sim::DeviceConfig;
-use spintune::tuner::array_run::ArrayRun;
+use spintune::tuner::array_run::{ArrayAction, ArrayRun};
 use spintune::tuner::TunerConfig;
 
 /// The world and a joint loop with one tuner per cell (`cells.len()` = 3).
@@ -27,4 +28,68 @@ pub fn three_cells(cells: Vec<TunerConfig>) -> (ArrayRun, ArrayDevice) {
     )
     .unwrap();
     (run, device)
+}
+
+/// The joint loop as the benchmark runs it on `array` with `protocol`'s
+/// settings and the lab's calibration the benchmark draws for `seed`,
+/// against the world's `Lab` with the truth sealed.
+pub fn joint_in_lab(array: ArrayDevice, protocol: &ArrayProtocol, seed: u64) -> (ArrayRun, Lab) {
+    let lambda = lab_cross_calibration(array.config(), protocol, seed);
+    let cells = (0..array.cells())
+        .map(|c| cell_tuner(c, protocol))
+        .collect();
+    let run = ArrayRun::new(
+        cells,
+        &array.gates(),
+        protocol.run_settings(),
+        lambda,
+        false,
+    )
+    .unwrap();
+    let mut lab = Lab::new(array);
+    lab.device.seal_truth();
+    (run, lab)
+}
+
+/// Drive `run` against `lab` through `set_points`: each phase until its
+/// record says tuned, the run idles or 40 iterations pass; then every cell
+/// gets the next set point. `on_batch` sees each batch before the world
+/// answers it; `on_iteration` each record at its iteration's end, with the
+/// world as it is then. Every move the world refused is in
+/// `lab.violations`.
+pub fn through_set_points(
+    run: &mut ArrayRun,
+    lab: &mut Lab,
+    set_points: &[(f64, f64)],
+    mut on_batch: impl FnMut(&[Request]),
+    mut on_iteration: impl FnMut(&Lab, &IterationRecord),
+) {
+    let (mut phase, mut iterations) = (0, 0);
+    while phase < set_points.len() {
+        let phase_over = match run.poll().unwrap() {
+            ArrayAction::Execute(batch) => {
+                on_batch(&batch);
+                let before = lab.device.lab_seconds();
+                let answers = lab.batch(&batch);
+                run.feed(answers, lab.device.lab_seconds() - before)
+                    .unwrap();
+                false
+            }
+            ArrayAction::Iteration(record) => {
+                on_iteration(lab, &record);
+                iterations += 1;
+                record.tuned || iterations >= 40
+            }
+            ArrayAction::Idle => true,
+        };
+        if phase_over {
+            phase += 1;
+            iterations = 0;
+            if let Some(&targets) = set_points.get(phase) {
+                for c in 0..run.targets().len() {
+                    run.set_targets(c, targets).unwrap();
+                }
+            }
+        }
+    }
 }

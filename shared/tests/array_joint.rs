@@ -16,7 +16,7 @@ use spintune::sim::array::ArrayConfig;
 use spintune::sim::DeviceConfig;
 use spintune::tuner::array::{CellKnowledge, JointArrayTuner, JointConfig};
 use spintune::tuner::thermal_floor::FloorLog;
-use support::array::{joint_in_lab, through_set_points};
+use support::array::{joint_in_lab, oldest_settings, through_set_points};
 
 fn short_protocol() -> ArrayProtocol {
     ArrayProtocol {
@@ -763,11 +763,6 @@ fn the_coupled_line_level_leaves_the_lines_nearer_their_centre() {
         "the default (measured no better on random arrays)"
     );
     // an old settings file (before the option) loads with it off
-    let old: spintune::tuner::array_run::ArrayRunSettings =
-        serde_json::from_value(serde_json::json!({
-            "relative_tolerance": 0.1, "line_rounds": 1, "moves_per_iteration": 1,
-            "line_tolerance_mv": 0.1
-        }))
-        .unwrap();
+    let old = oldest_settings();
     assert!(!old.joint_line_steps);
 }

@@ -10,7 +10,7 @@ use spintune::protocol::{EventKind, Request, ScanKind};
 use spintune::sim::array::ArrayConfig;
 use spintune::sim::DeviceConfig;
 use spintune::tuner::{Consistency, ParameterForecast};
-use support::array::{joint_in_lab, through_set_points};
+use support::array::{joint_in_lab, oldest_settings, through_set_points};
 
 const CELLS: usize = 3;
 
@@ -207,12 +207,7 @@ fn the_line_forecast_is_bounded_and_named_in_errors() {
         "tuning.line_forecast.skip_std"
     );
     // an old settings file (before the option) loads without it
-    let old: spintune::tuner::array_run::ArrayRunSettings =
-        serde_json::from_value(serde_json::json!({
-            "relative_tolerance": 0.1, "line_rounds": 1, "moves_per_iteration": 1,
-            "line_tolerance_mv": 0.1
-        }))
-        .unwrap();
+    let old = oldest_settings();
     assert!(old.line_forecast.is_none());
     // and an empty table (every field at its default) turns it on
     let on: spintune::tuner::array_run::ArrayRunSettings =

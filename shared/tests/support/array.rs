@@ -7,7 +7,7 @@ use spintune::benchmark::array::{cell_tuner, lab_cross_calibration, world, Array
 use spintune::protocol::{IterationRecord, Request};
 use spintune::sim::array::{ArrayConfig, ArrayDevice};
 use spintune::sim::DeviceConfig;
-use spintune::tuner::array_run::{ArrayAction, ArrayRun};
+use spintune::tuner::array_run::{ArrayAction, ArrayRun, ArrayRunSettings};
 use spintune::tuner::TunerConfig;
 
 /// The world and a joint loop with one tuner per cell (`cells.len()` = 3).
@@ -92,4 +92,15 @@ pub fn through_set_points(
             }
         }
     }
+}
+
+/// The joint loop's settings as a file written before any of the optional
+/// fields existed (only the four every version had): what an old config
+/// or checkpoint holds.
+pub fn oldest_settings() -> ArrayRunSettings {
+    serde_json::from_value(serde_json::json!({
+        "relative_tolerance": 0.1, "line_rounds": 1, "moves_per_iteration": 1,
+        "line_tolerance_mv": 0.1
+    }))
+    .unwrap()
 }

@@ -209,6 +209,14 @@ impl ParameterForecast {
     /// Whether a forecast `sample` (estimator value and variance) is
     /// narrow enough to act on: its standard deviation at most `skip_std`
     /// (`None`, no forecast: not confident).
+    ///
+    /// ```
+    /// use spintune::tuner::ParameterForecast;
+    /// let f = ParameterForecast::default(); // skip_std 0.3
+    /// assert!(f.confident(Some((1.2, 0.3 * 0.3))));
+    /// assert!(!f.confident(Some((1.2, 0.31 * 0.31))));
+    /// assert!(!f.confident(None));
+    /// ```
     pub fn confident(&self, sample: Option<(f64, f64)>) -> bool {
         sample.is_some_and(|(_, var)| var.sqrt() <= self.skip_std)
     }

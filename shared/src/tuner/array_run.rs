@@ -1328,10 +1328,12 @@ impl ArrayRun {
             }
         }
         borrow_line_jacobians(&mut lower);
-        // the oracle knows the true Jacobian: it has nothing to explore for
+        // the oracle knows the true Jacobian: it has nothing to explore for;
+        // it keeps the paper's scaled step (its fastest, docs/array.md)
         let mut config = self.settings.joint.clone();
         if self.oracle {
             config.excitation = 0.0;
+            config.trust_region = false;
         }
         let mut tuner = JointArrayTuner::new(cells, &config, self.cross_calibration)?;
         // the initial measurement's last values start the filters' differences

@@ -31,6 +31,7 @@
 
 pub mod array;
 pub mod array_run;
+pub mod block_trust_region;
 mod config;
 pub mod excitation;
 pub mod finite_difference;

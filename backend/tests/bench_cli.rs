@@ -408,6 +408,19 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
         stdout.contains("| first cell | half the cells | every cell |"),
         "{stdout}"
     );
+    // the learned rows against the truth before the cells came into band:
+    // a length ratio and a cosine per parameter
+    let rows = &report["strategies"][0]["rows_before_band"];
+    for p in 0..2 {
+        let (length, cosine) = (rows[p][0].as_f64().unwrap(), rows[p][1].as_f64().unwrap());
+        assert!(length > 0.0 && (-1.0..=1.0).contains(&cosine), "{rows}");
+    }
+    assert!(
+        stdout.contains("| t_sr length | t_sr cosine | w length | w cosine |"),
+        "{stdout}"
+    );
+    // the trust region (on by default) reported in the protocol
+    assert_eq!(report["protocol"]["tuning"]["joint"]["trust_region"], true);
     assert_eq!(
         report["protocol"]["tuning"]["joint"]["neighbour_prior_fraction"],
         0.4

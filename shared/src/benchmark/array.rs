@@ -44,9 +44,11 @@
 
 use std::collections::BTreeMap;
 
+use nalgebra::DMatrix;
 use serde::{Deserialize, Serialize};
 
 use super::array_timeline::{band_entry, TimelinePoint, MAX_TIMELINE_POINTS};
+use super::row_agreement::{before_band, RowAgreement};
 use super::{quantiles, Quantiles, PAPER_SET_POINTS};
 use crate::config_error::ConfigError;
 use crate::parameter::Tolerance;
@@ -55,6 +57,7 @@ use crate::safety::SafetyLimits;
 use crate::session::{Output, RunSession, SessionConfig};
 use crate::sim::array::{ArrayConfig, ArrayDevice};
 use crate::sim::DeviceConfig;
+use crate::tuner::array::JointArrayTuner;
 use crate::tuner::array_run::{ArrayAction, ArrayRun, ArrayRunError, ArrayRunSettings};
 use crate::tuner::{Tuner, TunerConfig};
 
@@ -720,10 +723,14 @@ struct Timeline<'a> {
 }
 
 impl Timeline<'_> {
-    fn note(&mut self, lab: &Lab, record: &IterationRecord) {
+    fn note(&mut self, lab: &Lab, run: &ArrayRun, record: &IterationRecord) {
         if self.points.len() >= MAX_TIMELINE_POINTS {
             return;
         }
+        let rows = run
+            .tuner()
+            .map(|t| row_agreements(lab, t))
+            .unwrap_or_default();
         let truth = record
             .parameters
             .chunks(2)
@@ -736,13 +743,47 @@ impl Timeline<'_> {
                 truly_in_band(lab, c as u32, target, self.band)
             })
             .collect();
-        self.points.push(TimelinePoint::new(
-            record.lab_seconds,
-            &record.parameters,
-            self.phase,
-            truth,
-        ));
+        let mut point =
+            TimelinePoint::new(record.lab_seconds, &record.parameters, self.phase, truth);
+        point.rows = rows;
+        self.points.push(point);
     }
+}
+
+/// Every cell's learned own-gate rows against the world's true Jacobian at
+/// the present voltages, log space ([`RowAgreement`]; world side).
+fn row_agreements(lab: &Lab, tuner: &JointArrayTuner) -> Vec<Option<RowAgreement>> {
+    let gates: Vec<&str> = tuner.gates().iter().map(String::as_str).collect();
+    let k = tuner.cells().len();
+    let names: Vec<String> = (0..k as u32)
+        .flat_map(|c| ["t_sr", "w"].map(|p| format!("c{c}.{p}")))
+        .collect();
+    let names: Vec<&str> = names.iter().map(String::as_str).collect();
+    let values: Option<Vec<f64>> = (0..k as u32)
+        .flat_map(|c| ["t_sr", "w"].map(|p| lab.device.truth(c).and_then(|t| t.get(p))))
+        .collect();
+    let (Some(values), Ok(truth)) = (values, lab.device.true_jacobian(&gates, &names)) else {
+        return vec![None; k];
+    };
+    let learned = tuner.jacobian();
+    let mut offset = 0;
+    tuner
+        .cells()
+        .iter()
+        .enumerate()
+        .map(|(c, cell)| {
+            let own = offset..offset + cell.gates.len();
+            offset = own.end;
+            let row = |m: &DMatrix<f64>, r: usize, scale: f64| -> Vec<f64> {
+                own.clone().map(|g| m[(r, g)] / scale).collect()
+            };
+            let (t, w) = (2 * c, 2 * c + 1);
+            RowAgreement::new(
+                &[row(&learned, t, 1.0), row(&learned, w, 1.0)],
+                &[row(&truth, t, values[t]), row(&truth, w, values[w])],
+            )
+        })
+        .collect()
 }
 
 /// Drive `run` until every cell is measured in band (`Some(lab minutes
@@ -763,7 +804,7 @@ fn joint_until_in_band(
                 run.feed(answers, lab.device.lab_seconds() - before)?;
             }
             ArrayAction::Iteration(record) => {
-                timeline.note(lab, &record);
+                timeline.note(lab, run, &record);
                 if record.tuned {
                     return Ok(Some(lab.minutes() - t0));
                 }
@@ -839,6 +880,12 @@ pub struct ArraySummary {
     /// for `serial` and `independent`, or no change converged).
     #[serde(default)]
     pub change_band_entry: Option<[f64; 3]>,
+    /// The all-cell changes, each cell before it was first measured in band
+    /// in its change: the medians of its learned own-gate rows' length
+    /// against the truth's and of their cosine, `[[ratio, cosine] of t_sr,
+    /// … of w]` ([`before_band`]; `None` without a learned tuner's timeline).
+    #[serde(default)]
+    pub rows_before_band: Option<[[f64; 2]; 2]>,
 }
 
 /// Mean [`band_entry`] of the all-cell changes (phases 1…) of `runs`.
@@ -852,6 +899,14 @@ fn mean_band_entry(runs: &[&ArrayRunResult]) -> Option<[f64; 3]> {
     }
     let n = entries.len() as f64;
     Some([0, 1, 2].map(|i| entries.iter().map(|e| e[i] as f64).sum::<f64>() / n))
+}
+
+/// [`before_band`] over the all-cell changes (phases 1…) of every run.
+fn rows_before_band(runs: &[&ArrayRunResult]) -> Option<[[f64; 2]; 2]> {
+    let timelines: Vec<&[TimelinePoint]> = runs.iter().map(|r| &r.timeline[..]).collect();
+    let changes = runs.iter().map(|r| r.changes.len()).max().unwrap_or(0) as u32;
+    let phases: Vec<u32> = (1..=changes).collect();
+    before_band(&timelines, &phases)
 }
 
 fn all_changes(r: &ArrayRunResult) -> Vec<Option<f64>> {
@@ -931,6 +986,7 @@ pub fn summarize_array(
                     by
                 },
                 change_band_entry: mean_band_entry(&mine),
+                rows_before_band: rows_before_band(&mine),
             }
         })
         .collect()
@@ -998,6 +1054,17 @@ pub fn markdown(summaries: &[ArraySummary]) -> String {
             f(get(kinds[4])),
             f(other)
         ));
+    }
+    if summaries.iter().any(|x| x.rows_before_band.is_some()) {
+        s.push_str("\nLearned own-gate rows against the truth (world side), cells of the all-cell changes before they first came into band: medians of |learned|/|true| and of the cosine between them (log space):\n\n| strategy | t_sr length | t_sr cosine | w length | w cosine |\n|---|---|---|---|---|\n");
+        for x in summaries {
+            if let Some([[tl, tc], [wl, wc]]) = x.rows_before_band {
+                s.push_str(&format!(
+                    "| {} | {tl:.2} | {tc:.2} | {wl:.2} | {wc:.2} |\n",
+                    x.name
+                ));
+            }
+        }
     }
     if summaries.iter().any(|x| x.change_band_entry.is_some()) {
         s.push_str("\nAll-cell changes that converged: iterations (mean) until cells were measured in band at once (a long tail: `every cell` far beyond `first cell`):\n\n| strategy | first cell | half the cells | every cell |\n|---|---|---|---|\n");

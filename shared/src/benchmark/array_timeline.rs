@@ -4,6 +4,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::row_agreement::RowAgreement;
 use crate::protocol::ParameterReport;
 
 /// Most points a run's timeline keeps (bounded by construction: the
@@ -36,6 +37,10 @@ pub struct TimelinePoint {
     /// the iteration's end (after its moves; world side, never shown to
     /// the strategy).
     pub truly_in_band: Vec<bool>,
+    /// Per cell, its learned own-gate rows against the truth at the
+    /// measurement (world side; empty where not noted).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub rows: Vec<Option<RowAgreement>>,
 }
 
 impl TimelinePoint {
@@ -88,6 +93,7 @@ impl TimelinePoint {
             phase,
             measured,
             truly_in_band,
+            rows: Vec::new(),
         }
     }
 }
@@ -106,6 +112,7 @@ impl TimelinePoint {
 /// use spintune::benchmark::array_timeline::{band_entry, CellBand::*, TimelinePoint};
 /// let point = |phase, measured: Vec<_>| TimelinePoint {
 ///     lab_minutes: 0.0, phase, truly_in_band: vec![true; measured.len()], measured,
+///     rows: Vec::new(),
 /// };
 /// let points = [
 ///     point(0, vec![InBand, InBand, InBand]),

@@ -26,6 +26,7 @@ pub mod array;
 pub mod array_timeline;
 pub mod keep;
 pub mod keep_goals;
+pub mod row_agreement;
 
 use std::collections::BTreeMap;
 

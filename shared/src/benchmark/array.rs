@@ -47,8 +47,8 @@ use std::collections::BTreeMap;
 use nalgebra::DMatrix;
 use serde::{Deserialize, Serialize};
 
-use super::array_timeline::{band_entry, TimelinePoint, MAX_TIMELINE_POINTS};
-use super::row_agreement::{before_band, RowAgreement};
+use super::array_timeline::{band_entry, before_band, TimelinePoint, MAX_TIMELINE_POINTS};
+use super::row_agreement::RowAgreement;
 use super::{quantiles, Quantiles, PAPER_SET_POINTS};
 use crate::config_error::ConfigError;
 use crate::parameter::Tolerance;

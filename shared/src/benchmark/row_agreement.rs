@@ -1,11 +1,10 @@
 //! How well the joint tuner's learned rows agree with the truth, world
 //! side: each cell's own-gate block of its `t_sr` and `w` rows (log space,
 //! 1/mV) against the true Jacobian's at the same voltages. The benchmark
-//! notes it per timeline point; the strategy never sees it.
+//! notes it per timeline point ([`super::array_timeline::before_band`]
+//! sums it up); the strategy never sees it.
 
 use serde::{Deserialize, Serialize};
-
-use super::array_timeline::{CellBand, TimelinePoint};
 
 /// One cell's learned own-gate rows against the true ones, per parameter
 /// (`t_sr`, `w`).
@@ -57,56 +56,4 @@ impl RowAgreement {
         }
         Some(out)
     }
-}
-
-/// Medians over the runs' timelines (`runs`, one per run) and their
-/// all-cell changes (`phases`), each cell before it was first measured in
-/// band in its phase (the cells still on their way, the last ones longest):
-/// `[[length ratio, cosine] of t_sr, … of w]`; `None` without any such
-/// point with rows.
-///
-/// ```
-/// use spintune::benchmark::array_timeline::{CellBand::*, TimelinePoint};
-/// use spintune::benchmark::row_agreement::{before_band, RowAgreement};
-/// let rows = |r: f64| Some(RowAgreement { length_ratio: [1.0, r], cosine: [1.0, 0.9] });
-/// let point = |measured: Vec<_>, r: Vec<_>| TimelinePoint {
-///     lab_minutes: 0.0, phase: 1, truly_in_band: vec![false; 2], measured, rows: r,
-/// };
-/// let points = [
-///     point(vec![OutOfBand, OutOfBand], vec![rows(2.0), rows(1.5)]),
-///     point(vec![InBand, OutOfBand], vec![rows(9.0), rows(1.2)]), // cell 0 in: not counted
-///     point(vec![OutOfBand, InBand], vec![rows(9.0), rows(9.0)]), // neither: both were in
-/// ];
-/// let [t_sr, w] = before_band(&[&points[..]], &[1]).unwrap();
-/// assert_eq!(t_sr, [1.0, 1.0]);
-/// assert_eq!(w, [1.5, 0.9]); // median of 2.0, 1.5, 1.2
-/// ```
-pub fn before_band(runs: &[&[TimelinePoint]], phases: &[u32]) -> Option<[[f64; 2]; 2]> {
-    let mut samples: [[Vec<f64>; 2]; 2] = Default::default();
-    for (points, &phase) in runs.iter().flat_map(|r| phases.iter().map(move |p| (r, p))) {
-        let mut entered: Vec<bool> = Vec::new();
-        for p in points.iter().filter(|p| p.phase == phase) {
-            entered.resize(p.measured.len(), false);
-            for (c, band) in p.measured.iter().enumerate() {
-                entered[c] |= *band == CellBand::InBand;
-                if entered[c] {
-                    continue;
-                }
-                if let Some(Some(a)) = p.rows.get(c) {
-                    for (q, sample) in samples.iter_mut().enumerate() {
-                        sample[0].push(a.length_ratio[q]);
-                        sample[1].push(a.cosine[q]);
-                    }
-                }
-            }
-        }
-    }
-    let median = |x: &mut Vec<f64>| {
-        x.sort_by(f64::total_cmp);
-        x[x.len() / 2]
-    };
-    if samples[0][0].is_empty() {
-        return None;
-    }
-    Some(samples.map(|mut q| [median(&mut q[0]), median(&mut q[1])]))
 }

@@ -22,7 +22,7 @@
 //! in the blocks that are limited, so it never does worse on that cost than
 //! the scaled step of the same lengths.
 
-use nalgebra::{DMatrix, DVector};
+use nalgebra::{DMatrix, DVector, SymmetricEigen};
 
 /// Relative ridge `ε / max diag(JᵀJ)` that makes the normal matrix
 /// invertible where `J` has fewer rows than columns (it leaves the step of
@@ -32,6 +32,8 @@ const RIDGE: f64 = 1e-10;
 const MAX_SWEEPS: usize = 60;
 /// The sweeps stop when no multiplier changed by more than this, relative.
 const SETTLED: f64 = 1e-6;
+/// Most iterations of one block's eigen-decomposition (a few converge it).
+const MAX_EIGEN_ITERATIONS: usize = 10_000;
 
 /// The step (mV) that minimises `‖Δ + J·Δv‖² + Δvᵀ U Δv` (`U` =
 /// `uncertainty`, n×n PSD in (unit/mV)², or zero) with every block `c` of
@@ -137,7 +139,11 @@ pub fn block_trust_region_step(
             let inv_cols = chol.solve(&unit);
             let x_c = inv_cols.rows(starts[c], len).clone_owned();
             let x_c = (&x_c + x_c.transpose()) * 0.5;
-            let eig = x_c.symmetric_eigen();
+            if !x_c.iter().chain(x.iter()).all(finite) {
+                return None;
+            }
+            // bounded: nalgebra's default iterates until it converges
+            let eig = SymmetricEigen::try_new(x_c, f64::EPSILON, MAX_EIGEN_ITERATIONS)?;
             let comps: Vec<(f64, f64)> = (0..len)
                 .map(|k| {
                     let p = eig.eigenvectors.column(k).dot(&x.rows(starts[c], len));

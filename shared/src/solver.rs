@@ -344,19 +344,7 @@ pub fn expected_cost_step(
             };
         }
         // ‖Δv(λ)‖ falls monotonically; ‖Δv(λ)‖ ≤ ‖b‖/λ bounds the bracket.
-        let (mut lo, mut hi) = (0.0, b.norm() / radius_mv);
-        for _ in 0..200 {
-            let mid = 0.5 * (lo + hi);
-            if norm_at(mid) > radius_mv {
-                lo = mid;
-            } else {
-                hi = mid;
-            }
-            if hi - lo <= 1e-12 * hi {
-                break;
-            }
-        }
-        lambda = hi;
+        lambda = bisect_falling(norm_at, radius_mv, 0.0, b.norm() / radius_mv, 1e-12);
     }
     let mut dv = DVector::zeros(n);
     for (mu, c, k) in &comps {
@@ -374,6 +362,31 @@ pub fn expected_cost_step(
         unlimited_norm_mv: unlimited,
         rank: comps.len(),
     }
+}
+
+/// The damping `λ ∈ [lo, hi]` at which a step length `length(λ)` that falls
+/// monotonically in `λ` reaches `target`: bisection (at most 200 halvings,
+/// until the bracket is within `rel_tol·hi`), returning the bracket's upper
+/// end, so `length(λ) ≤ target` whenever `length(hi) ≤ target` held.
+pub(crate) fn bisect_falling(
+    length: impl Fn(f64) -> f64,
+    target: f64,
+    mut lo: f64,
+    mut hi: f64,
+    rel_tol: f64,
+) -> f64 {
+    for _ in 0..200 {
+        let mid = 0.5 * (lo + hi);
+        if length(mid) > target {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+        if hi - lo <= rel_tol * hi {
+            break;
+        }
+    }
+    hi
 }
 
 /// [`StepRule::CovarianceDirection`]: the direction `d` of the unlimited

@@ -16,7 +16,7 @@ use spintune::sim::array::ArrayConfig;
 use spintune::sim::DeviceConfig;
 use spintune::tuner::array::{CellKnowledge, JointArrayTuner, JointConfig};
 use spintune::tuner::thermal_floor::FloorLog;
-use support::array::{joint_in_lab, oldest_settings, through_set_points};
+use support::array::{joint_in_lab, oldest_settings, through_set_points, wide_limits};
 
 fn short_protocol() -> ArrayProtocol {
     ArrayProtocol {
@@ -519,7 +519,6 @@ fn predicted_flanks_replace_sweeps_and_the_changes_still_converge() {
 #[test]
 fn a_limited_step_also_explores_the_own_rows_null_space() {
     use nalgebra::DVector;
-    use spintune::safety::{GateSpec, SafetyLimits};
     use std::collections::BTreeMap;
     let cell = |c: u32| {
         let mut k = knowledge(c, 1e-5);
@@ -535,18 +534,7 @@ fn a_limited_step_also_explores_the_own_rows_null_space() {
     };
     let plain = tuner(0.0);
     let gates: Vec<String> = plain.gates().to_vec();
-    let limits = SafetyLimits::new(
-        &gates
-            .iter()
-            .map(|g| GateSpec {
-                name: g.clone(),
-                min_mv: -2000.0,
-                max_mv: 2000.0,
-                max_step_mv: 10.0,
-                initial_mv: 0.0,
-            })
-            .collect::<Vec<_>>(),
-    );
+    let limits = wide_limits(&gates);
     let v: BTreeMap<String, f64> = gates.iter().map(|g| (g.clone(), 0.0)).collect();
     // cell 0 far from its targets (ln residual 1: a step far beyond 10 mV),
     // the others held

@@ -5,12 +5,14 @@
 //! covariance weight named, and a tuner saved before the option planning
 //! with the paper's rule.
 
+mod support;
+
 use std::collections::BTreeMap;
 
 use nalgebra::DVector;
-use spintune::safety::{GateSpec, SafetyLimits};
 use spintune::sim::array::gate_name;
 use spintune::tuner::array::{CellKnowledge, JointArrayTuner, JointConfig};
+use support::array::wide_limits;
 
 const GATES: [&str; 4] = ["N", "SA", "SB", "T"];
 
@@ -40,21 +42,6 @@ fn cell(c: u32) -> CellKnowledge {
 
 fn tuner(config: &JointConfig) -> JointArrayTuner {
     JointArrayTuner::new((0..3).map(cell).collect(), config, [0.3, 0.05]).unwrap()
-}
-
-fn limits(gates: &[String]) -> SafetyLimits {
-    SafetyLimits::new(
-        &gates
-            .iter()
-            .map(|g| GateSpec {
-                name: g.clone(),
-                min_mv: -2000.0,
-                max_mv: 2000.0,
-                max_step_mv: 10.0,
-                initial_mv: 0.0,
-            })
-            .collect::<Vec<_>>(),
-    )
 }
 
 /// The move as one vector over every gate (0 where a gate stays), mV.
@@ -99,7 +86,7 @@ fn every_cell_stays_within_its_limit_and_the_model_residual_falls_further() {
     });
     let gates = paper.gates().to_vec();
     let v: BTreeMap<String, f64> = gates.iter().map(|g| (g.clone(), 0.0)).collect();
-    let limits = limits(&gates);
+    let limits = wide_limits(&gates);
     let scaled = as_vector(
         &paper,
         &paper.plan_move(&residual(), &paper.jacobian(), &v, &limits),
@@ -160,7 +147,7 @@ fn a_tuner_saved_before_the_trust_region_plans_with_the_paper_s_rule() {
     let old: JointArrayTuner = serde_json::from_value(saved).unwrap();
     let gates = paper.gates().to_vec();
     let v: BTreeMap<String, f64> = gates.iter().map(|g| (g.clone(), 0.0)).collect();
-    let limits = limits(&gates);
+    let limits = wide_limits(&gates);
     let plan = |t: &JointArrayTuner| t.plan_move(&residual(), &t.jacobian(), &v, &limits);
     assert_eq!(plan(&old), plan(&paper));
     assert_ne!(plan(&now), plan(&paper));

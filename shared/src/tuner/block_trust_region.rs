@@ -24,6 +24,8 @@
 
 use nalgebra::{DMatrix, DVector, SymmetricEigen};
 
+use crate::solver::bisect_falling;
+
 /// Relative ridge `ε / max diag(JᵀJ)` that makes the normal matrix
 /// invertible where `J` has fewer rows than columns (it leaves the step of
 /// an unlimited block equal to the minimum-norm one to ~1e-9 relative).
@@ -172,18 +174,7 @@ pub fn block_trust_region_step(
                     hi *= 4.0;
                     grow += 1;
                 }
-                for _ in 0..200 {
-                    let mid = 0.5 * (lo + hi);
-                    if length(mid) > r {
-                        lo = mid;
-                    } else {
-                        hi = mid;
-                    }
-                    if hi - lo <= 1e-13 * hi {
-                        break;
-                    }
-                }
-                hi
+                bisect_falling(length, r, lo, hi, 1e-13)
             };
             if (new - lambda[c]).abs() > SETTLED * new.max(lambda[c]) {
                 moved = true;

@@ -104,3 +104,20 @@ pub fn oldest_settings() -> ArrayRunSettings {
     }))
     .unwrap()
 }
+
+/// Limits of ±2000 mV and a 10 mV step on every gate of `gates`: wide
+/// enough that a planned move is cut only by its own step limit.
+pub fn wide_limits(gates: &[String]) -> spintune::safety::SafetyLimits {
+    spintune::safety::SafetyLimits::new(
+        &gates
+            .iter()
+            .map(|g| spintune::safety::GateSpec {
+                name: g.clone(),
+                min_mv: -2000.0,
+                max_mv: 2000.0,
+                max_step_mv: 10.0,
+                initial_mv: 0.0,
+            })
+            .collect::<Vec<_>>(),
+    )
+}

@@ -28,7 +28,7 @@
 //!   batches one request per cell ([`ArrayDevice::execute_batch`]), so
 //!   different readout groups run in parallel. Crosstalk is ignored.
 //! * `joint`: the per-cell sessions' initial measurements in parallel (as
-//!   `independent`), then [`JointArrayTuner`](crate::tuner::array::JointArrayTuner): one Kalman row per
+//!   `independent`), then [`JointArrayTuner`]: one Kalman row per
 //!   parameter over the neighbourhood's tuning gates, a joint step with
 //!   per-cell step limits, the lower levels (sensing dot re-park, lines
 //!   re-centred with the cell's learned line Jacobian) per cell, everything

@@ -34,10 +34,13 @@
 //!   off the neighbours' mean is zero and their blocks independent).
 //! * **Step.** Residuals `y − ln target` of the cells the caller aims, 0 for
 //!   the cells it holds (kept where they are, so the step compensates the
-//!   crosstalk the filter predicts onto them), one minimum-norm Newton step
-//!   `−J⁺Δ` over every tuning gate of the array ([`newton_step`]), then per
-//!   cell: scaled to the cell's step limit (mV, Euclidean over its tuning
-//!   gates) and clipped per gate to `max_step_mv` and the limits
+//!   crosstalk the filter predicts onto them), one step over every tuning
+//!   gate of the array with each cell's part within the cell's step limit
+//!   (mV, Euclidean over its tuning gates): by default the trust-region
+//!   step on the expected residual ([`JointConfig::trust_region`],
+//!   [`super::block_trust_region`]), otherwise the paper's minimum-norm
+//!   Newton step `−J⁺Δ` ([`newton_step`]) scaled per cell to its limit;
+//!   then clipped per gate to `max_step_mv` and the limits
 //!   ([`SafetyLimits::clip`]). A cell whose step is cut to its limit
 //!   spends [`JointConfig::excitation`] of it along the null space of its
 //!   own rows ([`super::excitation`]). Compensation gates follow with the cell's

@@ -30,8 +30,9 @@ use crate::solver::bisect_falling;
 /// invertible where `J` has fewer rows than columns (it leaves the step of
 /// an unlimited block equal to the minimum-norm one to ~1e-9 relative).
 const RIDGE: f64 = 1e-10;
-/// Most sweeps over the blocks (the multipliers usually settle in a few).
-const MAX_SWEEPS: usize = 60;
+/// Most sweeps over the blocks (the multipliers usually settle in a few;
+/// strongly coupled blocks can take hundreds).
+const MAX_SWEEPS: usize = 1_000;
 /// The sweeps stop when no multiplier changed by more than this, relative.
 const SETTLED: f64 = 1e-6;
 /// Most iterations of one block's eigen-decomposition (a few converge it).
@@ -185,18 +186,33 @@ pub fn block_trust_region_step(
             break;
         }
     }
-    let mut dv = -normal(&lambda, None)?.solve(&b);
+    let dv = -normal(&lambda, None)?.solve(&b);
     if !dv.iter().all(finite) {
         return None;
     }
     // the multipliers' tolerance may leave a block a hair long: onto its radius
-    for (c, &(len, r)) in blocks.iter().enumerate() {
-        let norm = block_norm(&dv, c);
-        if norm > r && norm > 0.0 {
-            dv.rows_mut(starts[c], len).scale_mut(r / norm);
+    let onto_radii = |mut dv: DVector<f64>| {
+        for (c, &(len, r)) in blocks.iter().enumerate() {
+            let norm = block_norm(&dv, c);
+            if norm > r && norm > 0.0 {
+                dv.rows_mut(starts[c], len).scale_mut(r / norm);
+            }
         }
-    }
-    Some(dv)
+        dv
+    };
+    let dv = onto_radii(dv);
+    // sweeps cut short by `MAX_SWEEPS` can leave the optimum unreached:
+    // never worse on the cost than the scaled Newton step
+    let cost = |dv: &DVector<f64>| {
+        let spread = uncertainty.map_or(0.0, |u| (dv.transpose() * u * dv)[(0, 0)]);
+        (delta + jacobian * dv).norm_squared() + spread
+    };
+    let scaled = onto_radii(unlimited.clone());
+    Some(if cost(&scaled) < cost(&dv) {
+        scaled
+    } else {
+        dv
+    })
 }
 
 #[cfg(test)]

@@ -19,8 +19,9 @@
 //!
 //! `λ_c = 0` where the block is inside its radius, otherwise the `λ_c` with
 //! `‖Δv_c‖ = r_c`. Its direction bends from Newton's toward steepest descent
-//! in the blocks that are limited, so it never does worse on that cost than
-//! the scaled step of the same lengths.
+//! in the blocks that are limited, so at the optimum it does no worse on
+//! that cost than the scaled step of the same lengths (the search is capped;
+//! should it stop short, the cheaper of the two is taken).
 
 use nalgebra::{DMatrix, DVector, SymmetricEigen};
 

@@ -55,10 +55,12 @@ use crate::parameter::Tolerance;
 use crate::protocol::{ControlCommand, IterationRecord, Request, Response};
 use crate::safety::SafetyLimits;
 use crate::session::{Output, RunSession, SessionConfig};
-use crate::sim::array::{ArrayConfig, ArrayDevice};
+use crate::sim::array::{parameter_name, ArrayConfig, ArrayDevice};
 use crate::sim::DeviceConfig;
 use crate::tuner::array::JointArrayTuner;
-use crate::tuner::array_run::{ArrayAction, ArrayRun, ArrayRunError, ArrayRunSettings};
+use crate::tuner::array_run::{
+    ArrayAction, ArrayRun, ArrayRunError, ArrayRunSettings, CELL_PARAMETERS,
+};
 use crate::tuner::{Tuner, TunerConfig};
 
 /// A strategy of the array benchmark (module docs).
@@ -756,11 +758,11 @@ fn row_agreements(lab: &Lab, tuner: &JointArrayTuner) -> Vec<Option<RowAgreement
     let gates: Vec<&str> = tuner.gates().iter().map(String::as_str).collect();
     let k = tuner.cells().len();
     let names: Vec<String> = (0..k as u32)
-        .flat_map(|c| ["t_sr", "w"].map(|p| format!("c{c}.{p}")))
+        .flat_map(|c| CELL_PARAMETERS.map(|p| parameter_name(c, p)))
         .collect();
     let names: Vec<&str> = names.iter().map(String::as_str).collect();
     let values: Option<Vec<f64>> = (0..k as u32)
-        .flat_map(|c| ["t_sr", "w"].map(|p| lab.device.truth(c).and_then(|t| t.get(p))))
+        .flat_map(|c| CELL_PARAMETERS.map(|p| lab.device.truth(c).and_then(|t| t.get(p))))
         .collect();
     let (Some(values), Ok(truth)) = (values, lab.device.true_jacobian(&gates, &names)) else {
         return vec![None; k];

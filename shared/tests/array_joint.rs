@@ -708,23 +708,24 @@ fn persistent_misses_shorten_a_rows_memory() {
 /// Jacobians unbiased from the lockstep measurement, steps that take out
 /// each other's crosstalk, `spintune::tuner::line_steps`) leaves the lines
 /// nearer their centre when the next `t_sr` and `w` scans run than cells
-/// correcting as if alone: on a 5-cell chain (cell 0 the default device),
-/// the world's line offsets (mV, `√(μ_a² + μ_b²)`) at every iteration
-/// boundary of the cold start and the first set-point change, averaged over
-/// the cells, come out at most 0.8 times as large (0.26 against 0.51 mV
-/// when written). The world's lines are read world-side, never by the run.
+/// correcting as if alone: on 5-cell chains (cell 0 the default device,
+/// noise seeds 3 to 6), the world's line offsets (mV, `√(μ_a² + μ_b²)`) at
+/// every iteration boundary of the cold start and the first set-point
+/// change, averaged over the cells and the seeds, come out at most 0.8
+/// times as large (0.32 against 0.60 mV). The world's lines are read
+/// world-side, never by the run.
 #[test]
 fn the_coupled_line_level_leaves_the_lines_nearer_their_centre() {
-    let mean_offset = |joint_steps: bool| {
+    let mean_offset = |joint_steps: bool, seed: u64| {
         let mut protocol = short_protocol();
         protocol.tuning.joint_line_steps = joint_steps;
         let array = world(
             &DeviceConfig::default(),
-            ArrayConfig::chain(5, 11, 3),
+            ArrayConfig::chain(5, 11, seed),
             |_| true,
         )
         .unwrap();
-        let (mut run, mut lab) = joint_in_lab(array, &protocol, 3);
+        let (mut run, mut lab) = joint_in_lab(array, &protocol, seed);
         let (mut sum, mut n) = (0.0, 0);
         through_set_points(
             &mut run,
@@ -742,8 +743,13 @@ fn the_coupled_line_level_leaves_the_lines_nearer_their_centre() {
         assert_eq!(lab.violations, 0);
         sum / n as f64
     };
-    let joint = mean_offset(true);
-    let alone = mean_offset(false);
+    // four worlds: one alone moves by tens of percent with any change of
+    // trajectory (seed 3: 0.23 against 0.51 mV when written, 0.46 against
+    // 0.59 with the trust-region step, 0.38 against 0.47 with a retreat of
+    // the tuning gates only)
+    let seeds = [3, 4, 5, 6];
+    let joint = seeds.iter().map(|&s| mean_offset(true, s)).sum::<f64>() / 4.0;
+    let alone = seeds.iter().map(|&s| mean_offset(false, s)).sum::<f64>() / 4.0;
     eprintln!("mean line offset at the scans: {joint:.3} mV joint, {alone:.3} mV cell by cell");
     assert!(joint < 0.8 * alone, "{joint} vs {alone}");
     assert!(

@@ -60,6 +60,7 @@ use crate::solver::{newton_step, SolverConfig, StepRule};
 use crate::tuner::block_trust_region::block_trust_region_step;
 use crate::tuner::excitation::null_space_direction;
 use crate::tuner::miss_cusum::MissCusum;
+use crate::tuner::newton::retreat_target;
 use crate::tuner::thermal_floor::FloorLog;
 
 /// Largest [`JointConfig::trust_region_covariance`].
@@ -909,16 +910,110 @@ impl JointArrayTuner {
                     seen.iter_mut().zip(dv).for_each(|(s, d)| *s += w * d);
                 }
             }
-            for (g, row) in comp_gates.iter().zip(matrix) {
-                let d: f64 = row.iter().zip(&seen).map(|(m, dv)| m * dv).sum();
-                if let Some(&now) = voltages_mv.get(g) {
-                    let target = limits.clip(g, now, now + d);
-                    if (target - now).abs() > 1e-3 {
-                        out.insert(g.clone(), target);
-                    }
-                }
-            }
+            compensate(comp_gates, matrix, &seen, voltages_mv, limits, &mut out);
         }
         out
+    }
+
+    /// The move that takes cell `cell` back after its evaluation failed:
+    /// its tuning gates half-way toward `good` (where it last measured
+    /// every parameter), the step capped at the cell's `max_step_mv`
+    /// (the single-cell tuner's rule, `tuner::newton::retreat_target`), and its
+    /// compensation gates following through its virtual-gate matrix, then
+    /// clipped to the limits. Its plungers and sensor are otherwise left
+    /// to the line and sensor levels, which re-centre them after the move
+    /// (their old voltages are stale: lines and sensor also moved with the
+    /// neighbours). Empty if there is nothing to retreat to (within
+    /// 0.01 mV, or no such cell). The joint loop's rule with
+    /// `ArrayRunSettings::retreat` = `tuning_gates` (not its default:
+    /// measured no better for the learned model, docs/array.md).
+    ///
+    /// ```
+    /// use std::collections::BTreeMap;
+    /// use spintune::safety::SafetyLimits;
+    /// use spintune::tuner::array::{CellKnowledge, JointArrayTuner, JointConfig};
+    /// let cell = CellKnowledge {
+    ///     gates: vec!["c0.N".into(), "c0.T".into()],
+    ///     parameters: vec!["t_sr".into(), "w".into()],
+    ///     gradient: vec![vec![0.02, 0.0], vec![0.0, 0.02]],
+    ///     covariance: vec![vec![vec![1e-6, 0.0], vec![0.0, 1e-6]]; 2],
+    ///     process_noise_per_mv: vec![1e-4; 2],
+    ///     max_step_mv: 10.0,
+    ///     // the plunger follows N with -0.5 mV/mV
+    ///     compensation: Some((vec!["c0.PA".into()], vec![vec![-0.5, 0.0]])),
+    ///     floors: Vec::new(),
+    /// };
+    /// let tuner = JointArrayTuner::new(vec![cell], &JointConfig::default(), [0.0, 0.0]).unwrap();
+    /// let now = BTreeMap::from([("c0.N".to_string(), -700.0), ("c0.T".into(), -640.0), ("c0.PA".into(), -300.0)]);
+    /// // where it last measured: N 4 mV lower, and the plunger elsewhere (the line level moved it since)
+    /// let good = BTreeMap::from([("c0.N".to_string(), -704.0), ("c0.T".into(), -640.0), ("c0.PA".into(), -290.0)]);
+    /// let no_limits = SafetyLimits::new(&[]); // (a run passes its gates' limits)
+    /// let back = tuner.retreat_move(0, &good, &now, &no_limits);
+    /// assert_eq!(back["c0.N"], -702.0); // half-way
+    /// assert!(!back.contains_key("c0.T")); // did not move
+    /// assert_eq!(back["c0.PA"], -299.0); // follows N's retreat, not good's plunger
+    /// ```
+    pub fn retreat_move(
+        &self,
+        cell: usize,
+        good: &BTreeMap<String, f64>,
+        voltages_mv: &BTreeMap<String, f64>,
+        limits: &SafetyLimits,
+    ) -> BTreeMap<String, f64> {
+        let mut out = BTreeMap::new();
+        let Some(knowledge) = self.cells.get(cell) else {
+            return out;
+        };
+        let (Some(now), Some(to)): (Option<Vec<f64>>, Option<Vec<f64>>) = (
+            knowledge
+                .gates
+                .iter()
+                .map(|g| voltages_mv.get(g).copied())
+                .collect(),
+            knowledge
+                .gates
+                .iter()
+                .map(|g| good.get(g).copied())
+                .collect(),
+        ) else {
+            return out;
+        };
+        let Some(target) = retreat_target(&now, &to, knowledge.max_step_mv) else {
+            return out;
+        };
+        let mut delta = Vec::with_capacity(now.len());
+        for ((g, &at), &t) in knowledge.gates.iter().zip(&now).zip(&target) {
+            let back = limits.clip(g, at, t);
+            delta.push(back - at);
+            if (back - at).abs() > 1e-3 {
+                out.insert(g.clone(), back);
+            }
+        }
+        if let Some((comp_gates, matrix)) = &knowledge.compensation {
+            compensate(comp_gates, matrix, &delta, voltages_mv, limits, &mut out);
+        }
+        out
+    }
+}
+
+/// Virtual gates: each of `comp_gates` moves by its `matrix` row times the
+/// tuning move `seen` (mV), clipped to the limits; moves below 1 µV are
+/// left out of `out`.
+fn compensate(
+    comp_gates: &[String],
+    matrix: &[Vec<f64>],
+    seen: &[f64],
+    voltages_mv: &BTreeMap<String, f64>,
+    limits: &SafetyLimits,
+    out: &mut BTreeMap<String, f64>,
+) {
+    for (g, row) in comp_gates.iter().zip(matrix) {
+        let d: f64 = row.iter().zip(seen).map(|(m, dv)| m * dv).sum();
+        if let Some(&now) = voltages_mv.get(g) {
+            let target = limits.clip(g, now, now + d);
+            if (target - now).abs() > 1e-3 {
+                out.insert(g.clone(), target);
+            }
+        }
     }
 }

@@ -28,7 +28,7 @@
 //!    their targets like the others, or held with
 //!    [`ArrayRunSettings::hold_in_band`]; skipped cells held;
 //!    a cell whose evaluation failed retreats half-way to the voltages of
-//!    its last good evaluation), then the lower levels of the moved cells,
+//!    its last good evaluation, [`ArrayRunSettings::retreat`]), then the lower levels of the moved cells,
 //!    their neighbours and every uncertain cell: sensing dots swept and
 //!    parked on the fitted flank, lines corrected from their forecast when
 //!    it puts them beyond [`ArrayRunSettings::precorrect_lines_mv`], then
@@ -170,6 +170,13 @@ pub struct ArrayRunSettings {
     /// zero. Default 0.5, chosen on random arrays (docs/array.md).
     #[serde(default = "default_reset_flat_row_fraction")]
     pub reset_flat_row_fraction: f64,
+    /// How a cell whose evaluation failed retreats (its first move of the
+    /// next iteration). Default [`Retreat::EveryGate`]: the two rules that
+    /// move only the tuning gates un-stranded the traced runs and the
+    /// oracle, but measured no better for `joint` on fresh random arrays
+    /// (docs/array.md, "A failed cell's retreat").
+    #[serde(default)]
+    pub retreat: Retreat,
 }
 
 fn default_joint_line_steps() -> bool {
@@ -196,8 +203,27 @@ impl Default for ArrayRunSettings {
             flank_prediction: FlankPrediction::default(),
             hold_in_band: false,
             reset_flat_row_fraction: default_reset_flat_row_fraction(),
+            retreat: Retreat::default(),
         }
     }
+}
+
+/// How a cell whose evaluation failed retreats ([`ArrayRunSettings::retreat`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Retreat {
+    /// Every gate of the cell (tuning gates, plungers, sensing gate)
+    /// half-way back to its voltage at the cell's last good evaluation,
+    /// when a value is missing.
+    #[default]
+    EveryGate,
+    /// The tuning gates half-way back, their compensation gates following
+    /// ([`JointArrayTuner::retreat_move`], the single-cell tuner's rule),
+    /// when a value is missing.
+    TuningGates,
+    /// As [`Retreat::TuningGates`], also when a value came back with an
+    /// error bar wider than its band (the single-cell tuner's trigger).
+    TuningGatesWhenUncertain,
 }
 
 fn default_max_iterations() -> Option<u32> {
@@ -424,7 +450,11 @@ enum Step {
 struct Scratch {
     /// Per cell: ln(value/target) of a cell out of band, 0 in band, `None` unknown.
     residual: Vec<Vec<Option<f64>>>,
+    /// Per cell: a value is missing (measured, not skipped): it retreats.
     failed: Vec<bool>,
+    /// Per cell: a value is missing or its error bar wider than its band:
+    /// its lower levels re-tune ([`Retreat::TuningGatesWhenUncertain`]:
+    /// it retreats too).
     unsure: Vec<bool>,
     /// The Jacobian used for this iteration's moves (log space, rows cell by cell).
     jacobian: Option<DMatrix<f64>>,
@@ -1598,7 +1628,7 @@ impl ArrayRun {
     }
 
     /// Joint move `m`: one set per cell (the first move also retreats the
-    /// cells whose evaluation failed).
+    /// cells whose evaluation failed, [`ArrayRunSettings::retreat`]).
     fn plan_moves(&mut self, m: u32) -> Result<Vec<Request>, ArrayRunError> {
         let joint = self.joint()?;
         let now = self.voltages_mv.clone();
@@ -1613,11 +1643,20 @@ impl ArrayRun {
                 .plan_move(&self.scratch.residual, &jacobian, &now, &self.limits);
         if m == 0 {
             for (c, good) in joint.last_good.iter().enumerate() {
-                if !self.scratch.failed.get(c).copied().unwrap_or(false) {
+                let rule = self.settings.retreat;
+                let trigger = match rule {
+                    Retreat::TuningGatesWhenUncertain => &self.scratch.unsure,
+                    _ => &self.scratch.failed,
+                };
+                if !trigger.get(c).copied().unwrap_or(false) {
                     continue;
                 }
                 let prefix = format!("c{c}.");
                 moves.retain(|g, _| !g.starts_with(&prefix));
+                if rule != Retreat::EveryGate {
+                    moves.extend(joint.tuner.retreat_move(c, good, &now, &self.limits));
+                    continue;
+                }
                 for (g, &to) in good {
                     let at = now.get(g).copied().unwrap_or(to);
                     let back = self.limits.clip(g, at, at + 0.5 * (to - at));

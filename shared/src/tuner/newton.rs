@@ -1271,7 +1271,7 @@ pub(super) fn plan_moves(
 ///
 /// (qtune's rule after a failed evaluation: go back half-way toward the last
 /// parameters that could be evaluated.)
-fn retreat_target(now: &[f64], good: &[f64], max_step_mv: f64) -> Option<Vec<f64>> {
+pub(crate) fn retreat_target(now: &[f64], good: &[f64], max_step_mv: f64) -> Option<Vec<f64>> {
     if now.len() != good.len() {
         return None;
     }

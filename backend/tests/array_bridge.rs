@@ -47,6 +47,18 @@ fn config(driver: &str, timeout_s: f64) -> Value {
     })
 }
 
+/// The faults test's run: the same array and bridge with a band no
+/// measurement meets (relative tolerance 10⁻⁶) and no iteration cap, so it
+/// never finishes while faults are scripted. (The honest run is tuned in 5
+/// iterations, and `serve_until` may serve more iterations than asked for
+/// while it polls the run's progress: on a loaded machine it served this
+/// run to the end before the faults were scripted, and the test failed.)
+fn endless_config(timeout_s: f64) -> Value {
+    let mut c = config("bridge", timeout_s);
+    c["array"]["tuning"] = json!({ "relative_tolerance": 1e-6, "max_iterations": null });
+    c
+}
+
 /// The lab's array: the world the simulator config draws.
 fn lab(timeout_s: f64) -> (ArrayDevice, Vec<GateSpec>) {
     let parsed = RunConfig::from_json_str(&config("simulator", timeout_s).to_string()).unwrap();
@@ -93,8 +105,8 @@ fn violations(device: &ArrayDevice, gates: &[GateSpec], req: &Request, out: &mut
     }
 }
 
-/// Serve honestly, checking every request, until the run has `iterations`
-/// committed or is over.
+/// Serve honestly, checking every request, until the run has at least
+/// `iterations` committed (possibly more: progress is polled) or is over.
 async fn serve_until(
     ws: &mut Ws,
     lab: &mut (ArrayDevice, Vec<GateSpec>),
@@ -109,6 +121,13 @@ async fn serve_until(
     })
     .await;
     found
+}
+
+/// The run is still running (the faults test's run never finishes by
+/// itself: `endless_config`).
+async fn assert_going(addr: std::net::SocketAddr, id: u64) {
+    let run = get_run(addr, id).await;
+    assert_eq!(run.status, RunStatus::Running, "{run:?}");
 }
 
 async fn act(addr: std::net::SocketAddr, id: u64, action: &str) -> Value {
@@ -156,7 +175,7 @@ async fn an_array_bridge_that_lies_drops_stalls_and_answers_short_faults_the_run
     let dir = TempDir::new("array-bridge-faults");
     let (_p, addr) = spawn_server(&dir.0.join("s.db"));
     let mut lab = lab(1.0);
-    let run = create_run(addr, &config("bridge", 1.0)).await;
+    let run = create_run(addr, &endless_config(1.0)).await;
     let id = run.id;
     let mut ws = bridge(addr, id).await;
 
@@ -175,6 +194,7 @@ async fn an_array_bridge_that_lies_drops_stalls_and_answers_short_faults_the_run
     act(addr, id, "resume").await;
     let found = serve_until(&mut ws, &mut lab, addr, id, 2).await;
     assert!(found.is_empty(), "{found:?}");
+    assert_going(addr, id).await;
 
     // 3. Paused, someone moves c1.SB by 50 mV by hand: the resumed run reads
     //    every gate, moves nothing and waits for a person's accept_positions,
@@ -214,6 +234,7 @@ async fn an_array_bridge_that_lies_drops_stalls_and_answers_short_faults_the_run
     let committed = get_run(addr, id).await.iterations;
     let found = serve_until(&mut ws, &mut lab, addr, id, committed + 2).await;
     assert!(found.is_empty(), "{found:?}");
+    assert_going(addr, id).await;
 
     // 4. A batch answered with one response short: a fault; nothing more.
     let (bid, batch) = loop {
@@ -262,6 +283,7 @@ async fn an_array_bridge_that_lies_drops_stalls_and_answers_short_faults_the_run
     let committed = get_run(addr, id).await.iterations;
     let found = serve_until(&mut ws, &mut lab, addr, id, committed + 1).await;
     assert!(found.is_empty(), "{found:?}");
+    assert_going(addr, id).await;
 
     // 6. Stop: nothing reaches the instrument afterwards, reconnect or not.
     act(addr, id, "stop").await;

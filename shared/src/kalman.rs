@@ -562,7 +562,9 @@ pub(crate) fn validate_covariance(m: &DMatrix<f64>, what: &'static str) -> Resul
     if (m - m.transpose()).iter().any(|x| x.abs() > 1e-9 * scale) {
         return Err(FilterError::NotPsd { what });
     }
-    let eig = symmetrise(m.clone()).symmetric_eigenvalues();
+    let Some(eig) = crate::decomposition::symmetric_eigenvalues(symmetrise(m.clone())) else {
+        return Err(FilterError::NotPsd { what });
+    };
     if eig.iter().any(|&l| l < -1e-9 * scale) {
         return Err(FilterError::NotPsd { what });
     }

@@ -22,6 +22,7 @@ pub mod alert;
 pub mod benchmark;
 pub mod config_error;
 pub mod config_merge;
+pub mod decomposition;
 pub mod description;
 pub mod detmath;
 pub mod driver;

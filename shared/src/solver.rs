@@ -156,7 +156,9 @@ fn svd_step(
     rank_tolerance: f64,
 ) -> (DVector<f64>, usize) {
     let n = jacobian.ncols();
-    let svd = jacobian.clone().svd(true, true);
+    let Some(svd) = crate::decomposition::svd(jacobian.clone(), true, true) else {
+        return (DVector::zeros(n), 0);
+    };
     let smax = svd.singular_values.max();
     let eps = (rank_tolerance * smax).max(f64::MIN_POSITIVE);
     let rank = svd.singular_values.iter().filter(|&&s| s > eps).count();
@@ -315,7 +317,9 @@ pub fn expected_cost_step(
         }
     }
     let b = js.transpose() * &ds;
-    let eig = a.symmetric_eigen();
+    let Some(eig) = crate::decomposition::symmetric_eigen(a) else {
+        return zero;
+    };
     let mu_max = eig.eigenvalues.iter().copied().fold(0.0, f64::max);
     let cut = (cfg.rank_tolerance * cfg.rank_tolerance).max(1e-13) * mu_max;
     // coordinates of b in the eigenbasis, kept where A is not numerically singular

@@ -20,7 +20,7 @@
 
 use std::collections::BTreeMap;
 
-use nalgebra::{DVector, SVD};
+use nalgebra::DVector;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -120,10 +120,6 @@ fn scale_map(
     }
 }
 
-/// Most sweeps the SVD in [`targets_reachable`] may take (it converges in
-/// tens; unbounded, a matrix it cannot decompose hung the draw).
-const MAX_SVD_ITERATIONS: usize = 10_000;
-
 /// Whether every `(t_sr ns, w µV)` set point can be reached within the gate
 /// limits: Newton with the noiseless Jacobian over `tuning` (lines held by
 /// `plungers`), 60 iterations from the start, voltages clamped to the
@@ -158,14 +154,9 @@ pub fn targets_reachable(
                 return false;
             };
             // a non-finite Jacobian (a device driven where its model breaks
-            // down) made nalgebra's unbounded SVD loop for ever: such a
-            // device is not a plausible subject
-            if !j.iter().all(|x| x.is_finite()) {
-                return false;
-            }
-            let Some(svd) =
-                SVD::try_new_unordered(j, true, true, 5.0 * f64::EPSILON, MAX_SVD_ITERATIONS)
-            else {
+            // down; nalgebra's unbounded SVD looped for ever on it) or one
+            // that does not decompose: not a plausible subject
+            let Some(svd) = crate::decomposition::svd_unordered(j, true, true) else {
                 return false;
             };
             let Ok(pinv) = svd.pseudo_inverse(1e-12) else {

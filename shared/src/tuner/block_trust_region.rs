@@ -23,7 +23,7 @@
 //! that cost than the scaled step of the same lengths (the search is capped;
 //! should it stop short, the cheaper of the two is taken).
 
-use nalgebra::{DMatrix, DVector, SymmetricEigen};
+use nalgebra::{DMatrix, DVector};
 
 use crate::solver::bisect_falling;
 
@@ -36,8 +36,6 @@ const RIDGE: f64 = 1e-10;
 const MAX_SWEEPS: usize = 1_000;
 /// The sweeps stop when no multiplier changed by more than this, relative.
 const SETTLED: f64 = 1e-6;
-/// Most iterations of one block's eigen-decomposition (a few converge it).
-const MAX_EIGEN_ITERATIONS: usize = 10_000;
 
 /// The step (mV) that minimises `‖Δ + J·Δv‖² + Δvᵀ U Δv` (`U` =
 /// `uncertainty`, n×n PSD in (unit/mV)², or zero) with every block `c` of
@@ -146,8 +144,7 @@ pub fn block_trust_region_step(
             if !x_c.iter().chain(x.iter()).all(finite) {
                 return None;
             }
-            // bounded: nalgebra's default iterates until it converges
-            let eig = SymmetricEigen::try_new(x_c, f64::EPSILON, MAX_EIGEN_ITERATIONS)?;
+            let eig = crate::decomposition::symmetric_eigen(x_c)?;
             let comps: Vec<(f64, f64)> = (0..len)
                 .map(|k| {
                     let p = eig.eigenvectors.column(k).dot(&x.rows(starts[c], len));

@@ -22,6 +22,8 @@
 
 use nalgebra::{DMatrix, DVector};
 
+use crate::decomposition::symmetric_eigen;
+
 /// Unit vector (over the cell's own gates) in the null space of `j_own`
 /// (rows: the cell's parameters; columns: its tuning gates, log space 1/mV),
 /// orthogonal to `step` (mV), along which `uncertainty` (the sum of the rows'
@@ -64,7 +66,7 @@ pub fn null_space_direction(
         return None;
     }
     // null-space basis: eigenvectors of JᵀJ with the n − m smallest eigenvalues
-    let eig = (j_own.transpose() * j_own).symmetric_eigen();
+    let eig = symmetric_eigen(j_own.transpose() * j_own)?;
     let mut order: Vec<usize> = (0..n).collect();
     order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
     let mut basis = DMatrix::from_fn(n, n - m, |r, c| eig.eigenvectors[(r, order[c])]);
@@ -75,7 +77,7 @@ pub fn null_space_direction(
     if a_norm > 1e-12 * step.norm().max(1.0) {
         let a = a / a_norm;
         let k = a.len();
-        let keep = (DMatrix::identity(k, k) - &a * a.transpose()).symmetric_eigen();
+        let keep = symmetric_eigen(DMatrix::identity(k, k) - &a * a.transpose())?;
         let rest: Vec<usize> = (0..k).filter(|&i| keep.eigenvalues[i] > 0.5).collect();
         if rest.is_empty() {
             return None;
@@ -85,7 +87,7 @@ pub fn null_space_direction(
     }
     // the basis direction the rows are least sure about
     let projected = basis.transpose() * uncertainty * &basis;
-    let small = projected.symmetric_eigen();
+    let small = symmetric_eigen(projected)?;
     let top = (0..small.eigenvalues.len())
         .max_by(|&a, &b| small.eigenvalues[a].total_cmp(&small.eigenvalues[b]))?;
     let e = &basis * small.eigenvectors.column(top);

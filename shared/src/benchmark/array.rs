@@ -659,6 +659,7 @@ pub fn run_strategy(
                 points: &mut result.timeline,
                 phase: 0,
                 band,
+                at_move: None,
             };
             result.cold_start_lab_minutes = joint_until_in_band(
                 &mut lab,
@@ -722,16 +723,34 @@ struct Timeline<'a> {
     phase: u32,
     /// Relative band of the world's check.
     band: f64,
+    /// The learned rows against the truth where this iteration's move
+    /// started ([`Timeline::before_batch`]), until the iteration is noted.
+    at_move: Option<Vec<Option<RowAgreement>>>,
 }
 
 impl Timeline<'_> {
+    /// Before `batch` runs: if it is the iteration's first to set a tuning
+    /// gate (its move), note the rows the move was planned with against the
+    /// truth at the voltages it starts from, those of the measurement.
+    fn before_batch(&mut self, lab: &Lab, run: &ArrayRun, batch: &[Request]) {
+        if self.at_move.is_some() {
+            return;
+        }
+        if let Some(t) = run.tuner() {
+            if sets_any(batch, t.gates()) {
+                self.at_move = Some(row_agreements(lab, t));
+            }
+        }
+    }
+
     fn note(&mut self, lab: &Lab, run: &ArrayRun, record: &IterationRecord) {
+        // an iteration without a move: its rows against the truth at its end
+        let at_move = self.at_move.take();
         if self.points.len() >= MAX_TIMELINE_POINTS {
             return;
         }
-        let rows = run
-            .tuner()
-            .map(|t| row_agreements(lab, t))
+        let rows = at_move
+            .or_else(|| run.tuner().map(|t| row_agreements(lab, t)))
             .unwrap_or_default();
         let truth = record
             .parameters
@@ -750,6 +769,16 @@ impl Timeline<'_> {
         point.rows = rows;
         self.points.push(point);
     }
+}
+
+/// Whether any request of `batch` (batches inside it included) sets one of
+/// `gates`.
+fn sets_any(batch: &[Request], gates: &[String]) -> bool {
+    batch.iter().any(|r| match r {
+        Request::SetVoltages { voltages_mv } => voltages_mv.keys().any(|g| gates.contains(g)),
+        Request::Batch { requests } => sets_any(requests, gates),
+        _ => false,
+    })
 }
 
 /// Every cell's learned own-gate rows against the world's true Jacobian at
@@ -798,9 +827,11 @@ fn joint_until_in_band(
     timeline: &mut Timeline,
 ) -> Result<Option<f64>, ArrayFailure> {
     let mut iterations = 0;
+    timeline.at_move = None;
     loop {
         match run.poll()? {
             ArrayAction::Execute(batch) => {
+                timeline.before_batch(lab, run, &batch);
                 let before = lab.device.lab_seconds();
                 let answers = lab.batch(&batch);
                 run.feed(answers, lab.device.lab_seconds() - before)?;
@@ -885,7 +916,10 @@ pub struct ArraySummary {
     /// The all-cell changes, each cell before it was first measured in band
     /// in its change: the medians of its learned own-gate rows' length
     /// against the truth's and of their cosine, `[[ratio, cosine] of t_sr,
-    /// … of w]` ([`before_band`]; `None` without a learned tuner's timeline).
+    /// … of w]`, at the measurement each move was planned from
+    /// ([`before_band`]; `None` without a learned tuner's timeline). For
+    /// `oracle`, the rows its filter learns along its own trajectory: it
+    /// plans with the true Jacobian instead.
     #[serde(default)]
     pub rows_before_band: Option<[[f64; 2]; 2]>,
 }
@@ -1058,7 +1092,7 @@ pub fn markdown(summaries: &[ArraySummary]) -> String {
         ));
     }
     if summaries.iter().any(|x| x.rows_before_band.is_some()) {
-        s.push_str("\nLearned own-gate rows against the truth (world side), cells of the all-cell changes before they first came into band: medians of |learned|/|true| and of the cosine between them (log space):\n\n| strategy | t_sr length | t_sr cosine | w length | w cosine |\n|---|---|---|---|---|\n");
+        s.push_str("\nLearned own-gate rows against the truth (world side) at the measurement each move was planned from, cells of the all-cell changes before they first came into band: medians of |learned|/|true| and of the cosine between them (log space; `oracle`: the rows its filter learns on its trajectory, it plans with the truth):\n\n| strategy | t_sr length | t_sr cosine | w length | w cosine |\n|---|---|---|---|---|\n");
         for x in summaries {
             if let Some([[tl, tc], [wl, wc]]) = x.rows_before_band {
                 s.push_str(&format!(

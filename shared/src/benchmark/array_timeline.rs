@@ -38,7 +38,9 @@ pub struct TimelinePoint {
     /// the strategy).
     pub truly_in_band: Vec<bool>,
     /// Per cell, its learned own-gate rows against the truth at the
-    /// measurement (world side; empty where not noted).
+    /// measurement: the rows the iteration's move was planned with, the
+    /// truth at the voltages the move started from (an iteration without a
+    /// move: both at its end). World side; empty where not noted.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub rows: Vec<Option<RowAgreement>>,
 }

@@ -76,10 +76,10 @@ pub fn symmetric_eigenvalues(m: DMatrix<f64>) -> Option<DVector<f64>> {
 /// assert!(svd(DMatrix::from_element(2, 2, f64::NAN), false, false).is_none());
 /// ```
 pub fn svd(m: DMatrix<f64>, compute_u: bool, compute_v: bool) -> Option<SVD<f64, Dyn, Dyn>> {
-    if !usable(&m) {
-        return None;
-    }
-    SVD::try_new(m, compute_u, compute_v, 5.0 * f64::EPSILON, MAX_ITERATIONS)
+    let mut s = svd_unordered(m, compute_u, compute_v)?;
+    // nalgebra's `SVD::try_new`: the unordered decomposition, then sorted
+    s.sort_by_singular_values();
+    Some(s)
 }
 
 /// [`svd`] with the singular values in no particular order (nalgebra's

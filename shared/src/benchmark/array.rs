@@ -744,11 +744,11 @@ impl Timeline<'_> {
     }
 
     fn note(&mut self, lab: &Lab, run: &ArrayRun, record: &IterationRecord) {
-        // an iteration without a move: its rows against the truth at its end
         let at_move = self.at_move.take();
         if self.points.len() >= MAX_TIMELINE_POINTS {
             return;
         }
+        // an iteration without a move: its rows against the truth at its end
         let rows = at_move
             .or_else(|| run.tuner().map(|t| row_agreements(lab, t)))
             .unwrap_or_default();

@@ -86,6 +86,12 @@ pub struct BenchArrayArgs {
     /// Seed drawn by `--plot` (1..=--seeds).
     #[arg(long, default_value_t = 1)]
     pub plot_seed: u64,
+    /// Follow cell K (0..--cells) through every `joint`/`oracle` run: per
+    /// iteration its gate voltages, measured and true `t_sr` and `w`, and
+    /// the own-gate rows its move was planned with against the true ones
+    /// (printed after the table, and in the JSON's timeline).
+    #[arg(long, value_name = "K")]
+    pub trace_cell: Option<u32>,
 }
 
 /// The JSON report.
@@ -147,6 +153,15 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
     }
     if let Some(l) = args.cross_calibration {
         protocol.cross_calibration = Some(l);
+    }
+    if let Some(c) = args.trace_cell {
+        if c >= args.cells {
+            return Err(CliError::input(format!(
+                "--trace-cell {c}: the cells are 0..{} (--cells {})",
+                args.cells, args.cells
+            )));
+        }
+        protocol.trace_cell = Some(c);
     }
     protocol.validate().map_err(|e| {
         CliError::input(format!(
@@ -235,6 +250,9 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
         args.next
     );
     println!("{}", markdown(&summary));
+    if let Some(c) = args.trace_cell {
+        print_traces(&results, c);
+    }
     if let (Some(path), Some(strategy)) = (&args.plot, plotted) {
         let first = devices.first().map(|d| d.0);
         let run = results
@@ -266,6 +284,26 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
         return Err(CliError::runtime(format!("{} runs failed", failures.len())));
     }
     Ok(())
+}
+
+/// Every traced run's cell `c`, one line per iteration.
+fn print_traces(results: &[ArrayRunResult], c: u32) {
+    for r in results
+        .iter()
+        .filter(|r| r.timeline.iter().any(|p| p.trace.is_some()))
+    {
+        println!(
+            "\nCell {c}, {} on device {} seed {} (phase, lab min since the start):",
+            r.strategy.name(),
+            r.device,
+            r.seed
+        );
+        for p in &r.timeline {
+            if let Some(t) = &p.trace {
+                println!("{} {:6.1} | {}", p.phase, p.lab_minutes, t.line());
+            }
+        }
+    }
 }
 
 fn parse_strategies(names: &[String]) -> Result<Vec<ArrayStrategy>, CliError> {

@@ -11,6 +11,7 @@ use spintune::benchmark::array::{
     run_strategy, single_change_cells, world, ArrayProtocol, ArrayRunResult, ArrayStrategy,
 };
 use spintune::benchmark::array_timeline::{CellBand, TimelinePoint};
+use spintune::benchmark::row_agreement::RowAgreement;
 use spintune::benchmark::PAPER_SET_POINTS;
 use spintune::sim::array::ArrayConfig;
 use spintune::sim::DeviceConfig;
@@ -91,6 +92,55 @@ fn timeline_agrees_with_the_result(r: &ArrayRunResult) {
             f64::NAN
         };
     }
+}
+
+/// `trace_cell` follows one cell without changing the run: the same
+/// result as untraced, and every point's trace is taken where its rows
+/// were (the same learned and true rows), with the scans' values where
+/// the timeline says the cell was measured.
+#[test]
+fn a_traced_cell_is_followed_where_its_rows_are_taken_without_changing_the_run() {
+    let array = || {
+        world(
+            &DeviceConfig::default(),
+            ArrayConfig::chain(3, 5, 11),
+            |_| true,
+        )
+        .unwrap()
+    };
+    let traced = ArrayProtocol {
+        trace_cell: Some(1),
+        ..short_protocol()
+    };
+    let plain = run_strategy(ArrayStrategy::Joint, array(), &short_protocol()).unwrap();
+    let r = run_strategy(ArrayStrategy::Joint, array(), &traced).unwrap();
+    assert_eq!(r.cold_start_lab_minutes, plain.cold_start_lab_minutes);
+    assert_eq!(r.changes, plain.changes);
+    assert_eq!(r.single_cell_changes, plain.single_cell_changes);
+    assert_eq!(r.measurements, plain.measurements);
+    assert!(plain.timeline.iter().all(|p| p.trace.is_none()));
+    assert_eq!(r.timeline.len(), plain.timeline.len());
+    for p in &r.timeline {
+        let t = p.trace.as_ref().expect("every point traced");
+        assert_eq!(t.cell, 1);
+        let gates: Vec<&str> = t.voltages_mv.iter().map(|(g, _)| g.as_str()).collect();
+        assert_eq!(gates, ["c1.N", "c1.SA", "c1.SB", "c1.T"]);
+        assert!(t.voltages_mv.iter().all(|(_, v)| v.is_finite()));
+        assert!(t.truth.iter().all(|&x| x.is_finite() && x > 0.0));
+        assert_eq!(
+            RowAgreement::new(&t.learned_rows, &t.true_rows),
+            p.rows[1],
+            "{t:?}"
+        );
+        let failed = t.measured.iter().any(Option::is_none);
+        assert_eq!(failed, p.measured[1] == CellBand::NotMeasured, "{p:?}");
+    }
+    let bad = ArrayProtocol {
+        trace_cell: Some(3),
+        ..short_protocol()
+    };
+    let e = run_strategy(ArrayStrategy::Joint, array(), &bad).unwrap_err();
+    assert!(e.to_string().contains("trace_cell"), "{e}");
 }
 
 #[test]

@@ -48,6 +48,7 @@ use nalgebra::DMatrix;
 use serde::{Deserialize, Serialize};
 
 use super::array_timeline::{band_entry, before_band, TimelinePoint, MAX_TIMELINE_POINTS};
+use super::cell_trace::CellTrace;
 use super::row_agreement::RowAgreement;
 use super::{quantiles, Quantiles, PAPER_SET_POINTS};
 use crate::config_error::ConfigError;
@@ -139,6 +140,12 @@ pub struct ArrayProtocol {
     /// `serial` and `independent`).
     #[serde(default)]
     pub tuning: ArrayRunSettings,
+    /// A cell the joint loop's timeline follows in detail (`joint`,
+    /// `oracle`; [`CellTrace`] per point, world side), below
+    /// [`crate::sim::array::MAX_CELLS`] and the array's cell count;
+    /// `None` (default): none.
+    #[serde(default)]
+    pub trace_cell: Option<u32>,
 }
 
 impl Default for ArrayProtocol {
@@ -153,6 +160,7 @@ impl Default for ArrayProtocol {
             cross_compensation_error: 0.2,
             cross_calibration: None,
             tuning: ArrayRunSettings::default(),
+            trace_cell: None,
         }
     }
 }
@@ -208,6 +216,13 @@ impl ArrayProtocol {
         )?;
         if let Some(l) = self.cross_calibration {
             crate::tuner::array::check_cross_calibration(l)?;
+        }
+        if let Some(c) = self.trace_cell {
+            check(
+                c < crate::sim::array::MAX_CELLS,
+                "trace_cell",
+                format!("{c} (0..{})", crate::sim::array::MAX_CELLS),
+            )?;
         }
         self.tuning.validate().map_err(|e| e.within("tuning"))
     }
@@ -585,6 +600,9 @@ pub fn run_strategy(
     let seed = array.config().seed;
     let device = array.config().device_seed;
     let k = array.cells();
+    if let Some(c) = protocol.trace_cell.filter(|&c| c >= k) {
+        return Err(ConfigError::new("trace_cell", format!("{c}: the array has {k} cells")).into());
+    }
     let mut lab = Lab::new(array);
     let band = protocol.tuning.relative_tolerance;
     let mut runs = (0..k)
@@ -660,6 +678,7 @@ pub fn run_strategy(
                 phase: 0,
                 band,
                 at_move: None,
+                trace: protocol.trace_cell,
             };
             result.cold_start_lab_minutes = joint_until_in_band(
                 &mut lab,
@@ -724,8 +743,11 @@ struct Timeline<'a> {
     /// Relative band of the world's check.
     band: f64,
     /// The learned rows against the truth where this iteration's move
-    /// started ([`Timeline::before_batch`]), until the iteration is noted.
-    at_move: Option<Vec<Option<RowAgreement>>>,
+    /// started ([`Timeline::before_batch`]), and the traced cell there,
+    /// until the iteration is noted.
+    at_move: Option<(Vec<Option<RowAgreement>>, Option<CellTrace>)>,
+    /// The cell followed in detail ([`ArrayProtocol::trace_cell`]).
+    trace: Option<u32>,
 }
 
 impl Timeline<'_> {
@@ -738,7 +760,7 @@ impl Timeline<'_> {
         }
         if let Some(t) = run.tuner() {
             if sets_any(batch, t.gates()) {
-                self.at_move = Some(row_agreements(lab, t));
+                self.at_move = Some(self.rows_and_trace(lab, t));
             }
         }
     }
@@ -749,9 +771,18 @@ impl Timeline<'_> {
             return;
         }
         // an iteration without a move: its rows against the truth at its end
-        let rows = at_move
-            .or_else(|| run.tuner().map(|t| row_agreements(lab, t)))
+        let (rows, mut trace) = at_move
+            .or_else(|| run.tuner().map(|t| self.rows_and_trace(lab, t)))
             .unwrap_or_default();
+        if let Some(t) = &mut trace {
+            let c = t.cell as usize;
+            for (p, m) in t.measured.iter_mut().enumerate() {
+                *m = record
+                    .parameters
+                    .get(2 * c + p)
+                    .and_then(|r| Some((r.value?, r.std.unwrap_or(f64::NAN))));
+            }
+        }
         let truth = record
             .parameters
             .chunks(2)
@@ -767,7 +798,42 @@ impl Timeline<'_> {
         let mut point =
             TimelinePoint::new(record.lab_seconds, &record.parameters, self.phase, truth);
         point.rows = rows;
+        point.trace = trace;
         self.points.push(point);
+    }
+
+    /// Every cell's rows against the truth at the present voltages, and the
+    /// traced cell there (its measured values still to be filled in).
+    fn rows_and_trace(
+        &self,
+        lab: &Lab,
+        tuner: &JointArrayTuner,
+    ) -> (Vec<Option<RowAgreement>>, Option<CellTrace>) {
+        let k = tuner.cells().len();
+        let Some(rows) = own_rows(lab, tuner) else {
+            return (vec![None; k], None);
+        };
+        let trace = self.trace.and_then(|c| {
+            let (learned, truth, values) = rows.get(c as usize)?.clone();
+            let voltages = lab.device.voltages_mv();
+            let gates = &tuner.cells().get(c as usize)?.gates;
+            Some(CellTrace {
+                cell: c,
+                voltages_mv: gates
+                    .iter()
+                    .map(|g| (g.clone(), voltages.get(g).copied().unwrap_or(f64::NAN)))
+                    .collect(),
+                measured: [None, None],
+                truth: values,
+                learned_rows: learned,
+                true_rows: truth,
+            })
+        });
+        let agreements = rows
+            .iter()
+            .map(|(learned, truth, _)| RowAgreement::new(learned, truth))
+            .collect();
+        (agreements, trace)
     }
 }
 
@@ -781,9 +847,13 @@ fn sets_any(batch: &[Request], gates: &[String]) -> bool {
     })
 }
 
-/// Every cell's learned own-gate rows against the world's true Jacobian at
-/// the present voltages, log space ([`RowAgreement`]; world side).
-fn row_agreements(lab: &Lab, tuner: &JointArrayTuner) -> Vec<Option<RowAgreement>> {
+/// Per cell, its learned own-gate rows and the world's true ones at the
+/// present voltages, log space (1/mV; `[t_sr, w]` each), and its true
+/// values (world side); `None` if the world cannot tell.
+type OwnRows = ([Vec<f64>; 2], [Vec<f64>; 2], [f64; 2]);
+
+/// [`OwnRows`] of every cell.
+fn own_rows(lab: &Lab, tuner: &JointArrayTuner) -> Option<Vec<OwnRows>> {
     let gates: Vec<&str> = tuner.gates().iter().map(String::as_str).collect();
     let k = tuner.cells().len();
     let names: Vec<String> = (0..k as u32)
@@ -794,11 +864,11 @@ fn row_agreements(lab: &Lab, tuner: &JointArrayTuner) -> Vec<Option<RowAgreement
         .flat_map(|c| CELL_PARAMETERS.map(|p| lab.device.truth(c).and_then(|t| t.get(p))))
         .collect();
     let (Some(values), Ok(truth)) = (values, lab.device.true_jacobian(&gates, &names)) else {
-        return vec![None; k];
+        return None;
     };
     let learned = tuner.jacobian();
     let mut offset = 0;
-    tuner
+    let rows = tuner
         .cells()
         .iter()
         .enumerate()
@@ -809,12 +879,14 @@ fn row_agreements(lab: &Lab, tuner: &JointArrayTuner) -> Vec<Option<RowAgreement
                 own.clone().map(|g| m[(r, g)] / scale).collect()
             };
             let (t, w) = (2 * c, 2 * c + 1);
-            RowAgreement::new(
-                &[row(&learned, t, 1.0), row(&learned, w, 1.0)],
-                &[row(&truth, t, values[t]), row(&truth, w, values[w])],
+            (
+                [row(&learned, t, 1.0), row(&learned, w, 1.0)],
+                [row(&truth, t, values[t]), row(&truth, w, values[w])],
+                [values[t], values[w]],
             )
         })
-        .collect()
+        .collect();
+    Some(rows)
 }
 
 /// Drive `run` until every cell is measured in band (`Some(lab minutes

@@ -4,6 +4,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::cell_trace::CellTrace;
 use super::row_agreement::RowAgreement;
 use crate::protocol::ParameterReport;
 
@@ -43,6 +44,10 @@ pub struct TimelinePoint {
     /// move: both at its end). World side; empty where not noted.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub rows: Vec<Option<RowAgreement>>,
+    /// The cell followed in detail ([`super::array::ArrayProtocol::trace_cell`]),
+    /// at the same voltages as `rows`; world side.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub trace: Option<CellTrace>,
 }
 
 impl TimelinePoint {
@@ -96,6 +101,7 @@ impl TimelinePoint {
             measured,
             truly_in_band,
             rows: Vec::new(),
+            trace: None,
         }
     }
 }
@@ -114,7 +120,7 @@ impl TimelinePoint {
 /// use spintune::benchmark::array_timeline::{band_entry, CellBand::*, TimelinePoint};
 /// let point = |phase, measured: Vec<_>| TimelinePoint {
 ///     lab_minutes: 0.0, phase, truly_in_band: vec![true; measured.len()], measured,
-///     rows: Vec::new(),
+///     rows: Vec::new(), trace: None,
 /// };
 /// let points = [
 ///     point(0, vec![InBand, InBand, InBand]),
@@ -166,6 +172,7 @@ pub fn band_entry(points: &[TimelinePoint], phase: u32) -> Option<[usize; 3]> {
 /// let rows = |r: f64| Some(RowAgreement { length_ratio: [1.0, r], cosine: [1.0, 0.9] });
 /// let point = |measured: Vec<_>, r: Vec<_>| TimelinePoint {
 ///     lab_minutes: 0.0, phase: 1, truly_in_band: vec![false; 2], measured, rows: r,
+///     trace: None,
 /// };
 /// let points = [
 ///     point(vec![OutOfBand, OutOfBand], vec![rows(2.0), rows(1.5)]),

@@ -24,6 +24,7 @@
 
 pub mod array;
 pub mod array_timeline;
+pub mod cell_trace;
 pub mod keep;
 pub mod keep_goals;
 pub mod row_agreement;

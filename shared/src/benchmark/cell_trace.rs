@@ -1,0 +1,84 @@
+//! One cell followed through the joint loop, world side
+//! (`spintune bench-array --trace-cell K`): per iteration, where its
+//! tuning gates stood when it was measured, what the scans said against
+//! the truth there, and the own-gate rows its move was planned with
+//! against the true ones. The strategy never sees it; it is how a stalled
+//! cell is diagnosed (docs/array.md).
+
+use serde::{Deserialize, Serialize};
+
+/// Parameters of a cell in trace order (`t_sr` ns, `w` µV).
+const UNITS: [(&str, &str); 2] = [("t_sr", "ns"), ("w", "µV")];
+
+/// The traced cell at one iteration of the joint loop.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CellTrace {
+    /// The cell followed.
+    pub cell: u32,
+    /// Its tuning gates (array names) and their voltages at the
+    /// measurement, mV.
+    pub voltages_mv: Vec<(String, f64)>,
+    /// What its scans measured, `(value, σ)` of `t_sr` (ns) and `w` (µV);
+    /// `None` where the fit failed.
+    pub measured: [Option<(f64, f64)>; 2],
+    /// The world's true `t_sr` (ns) and `w` (µV) at the measurement.
+    pub truth: [f64; 2],
+    /// The learned own-gate rows the iteration's move was planned with,
+    /// `∂ln p/∂V` in 1/mV over [`CellTrace::voltages_mv`]'s gates, `t_sr`
+    /// then `w`.
+    pub learned_rows: [Vec<f64>; 2],
+    /// The true rows at the measurement, same units and order.
+    pub true_rows: [Vec<f64>; 2],
+}
+
+impl CellTrace {
+    /// One line of text with units, for a terminal.
+    ///
+    /// ```
+    /// use spintune::benchmark::cell_trace::CellTrace;
+    /// let t = CellTrace {
+    ///     cell: 2,
+    ///     voltages_mv: vec![("c2.N".into(), -700.0), ("c2.T".into(), -650.5)],
+    ///     measured: [Some((21.0, 1.5)), None],
+    ///     truth: [20.0, 180.0],
+    ///     learned_rows: [vec![0.01, -0.02], vec![0.0, 0.005]],
+    ///     true_rows: [vec![0.011, -0.019], vec![0.002, 0.004]],
+    /// };
+    /// assert_eq!(
+    ///     t.line(),
+    ///     "c2.N -700.0 c2.T -650.5 mV | t_sr 21.0 ± 1.5 (true 20.0) ns, \
+    ///      rows /mV learned [+0.0100 -0.0200] true [+0.0110 -0.0190] | \
+    ///      w failed (true 180.0) µV, rows /mV learned [+0.0000 +0.0050] true [+0.0020 +0.0040]"
+    /// );
+    /// ```
+    pub fn line(&self) -> String {
+        let volts: Vec<String> = self
+            .voltages_mv
+            .iter()
+            .map(|(g, v)| format!("{g} {v:.1}"))
+            .collect();
+        let row = |r: &[f64]| {
+            r.iter()
+                .map(|x| format!("{x:+.4}"))
+                .collect::<Vec<_>>()
+                .join(" ")
+        };
+        let params: Vec<String> = UNITS
+            .iter()
+            .enumerate()
+            .map(|(p, (name, unit))| {
+                let value = match self.measured[p] {
+                    Some((v, s)) => format!("{v:.1} ± {s:.1}"),
+                    None => "failed".into(),
+                };
+                format!(
+                    "{name} {value} (true {:.1}) {unit}, rows /mV learned [{}] true [{}]",
+                    self.truth[p],
+                    row(&self.learned_rows[p]),
+                    row(&self.true_rows[p])
+                )
+            })
+            .collect();
+        format!("{} mV | {}", volts.join(" "), params.join(" | "))
+    }
+}

@@ -47,6 +47,7 @@ use std::collections::BTreeMap;
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
+use super::borrowed_gradient::borrow_failed_gradients;
 use super::flank::{FlankForecast, FlankModel};
 use super::line_steps::joint_line_steps;
 use super::search::{SearchMemory, SearchMove};
@@ -177,6 +178,17 @@ pub struct ArrayRunSettings {
     /// (docs/array.md, "A failed cell's retreat").
     #[serde(default)]
     pub retreat: Retreat,
+    /// Whether a cell whose initial finite differences failed for a
+    /// parameter (a zero row) starts that row from the mean of the other
+    /// cells' measured rows ([`borrow_failed_gradients`]) instead of from
+    /// zero. Default `true`, measured on random arrays (docs/array.md,
+    /// "Stalled cells traced").
+    #[serde(default = "yes")]
+    pub borrow_failed_gradients: bool,
+}
+
+fn yes() -> bool {
+    true
 }
 
 fn default_joint_line_steps() -> bool {
@@ -204,6 +216,7 @@ impl Default for ArrayRunSettings {
             hold_in_band: false,
             reset_flat_row_fraction: default_reset_flat_row_fraction(),
             retreat: Retreat::default(),
+            borrow_failed_gradients: true,
         }
     }
 }
@@ -1358,6 +1371,9 @@ impl ArrayRun {
             }
         }
         borrow_line_jacobians(&mut lower);
+        if self.settings.borrow_failed_gradients {
+            borrow_failed_gradients(&mut cells);
+        }
         // the oracle knows the true Jacobian: it has nothing to explore for;
         // it keeps the paper's scaled step (its fastest, docs/array.md)
         let mut config = self.settings.joint.clone();

@@ -32,6 +32,7 @@
 pub mod array;
 pub mod array_run;
 pub mod block_trust_region;
+pub mod borrowed_gradient;
 mod config;
 pub mod excitation;
 pub mod finite_difference;

@@ -1,0 +1,94 @@
+//! A cell whose initial finite differences of `w` fail (its transition-
+//! width scans at the gate offsets fail) starts the joint tuner with the
+//! mean `w` row of the cells that measured theirs
+//! (`ArrayRunSettings::borrow_failed_gradients`, on by default), and from
+//! a zero row without it.
+
+mod support;
+
+use spintune::benchmark::array::{world, ArrayProtocol, Lab};
+use spintune::protocol::{Request, Response, ScanKind, ScanOutcome};
+use spintune::sim::array::{ArrayConfig, ArrayDevice};
+use spintune::sim::DeviceConfig;
+use spintune::tuner::array_run::{ArrayAction, ArrayRun};
+use support::array::joint_in_lab;
+
+/// Answer `requests` from `lab`, except that cell 1's transition-width
+/// scans after its first (the base point's) fail; `seen` counts them.
+fn answer(lab: &mut Lab, requests: &[Request], seen: &mut u32) -> Vec<Response> {
+    let mut answers = lab.batch(requests);
+    for (r, a) in requests.iter().zip(answers.iter_mut()) {
+        fail_offsets(r, a, seen);
+    }
+    answers
+}
+
+fn fail_offsets(request: &Request, answer: &mut Response, seen: &mut u32) {
+    match (request, answer) {
+        (Request::Batch { requests }, Response::Batch { responses, .. }) => {
+            for (r, a) in requests.iter().zip(responses.iter_mut()) {
+                fail_offsets(r, a, seen);
+            }
+        }
+        (Request::Measure { scan }, Response::Scanned { outcome, .. })
+            if scan.kind == ScanKind::TransitionWidth
+                && ArrayDevice::cell_of(request) == Some(1) =>
+        {
+            *seen += 1;
+            if *seen > 1 {
+                *outcome = ScanOutcome::Failed {
+                    reason: "no transition in the window".into(),
+                };
+            }
+        }
+        _ => {}
+    }
+}
+
+/// The `w` rows (parameter 1) of cells 0, 1 and 2 once the joint tuner
+/// starts, with `borrow` as the setting.
+fn w_rows_at_the_start(borrow: bool) -> Vec<Vec<f64>> {
+    let mut protocol = ArrayProtocol::default();
+    protocol.tuning.borrow_failed_gradients = borrow;
+    let array = world(
+        &DeviceConfig::default(),
+        ArrayConfig::chain(3, 5, 11),
+        |_| true,
+    )
+    .unwrap();
+    let (mut run, mut lab): (ArrayRun, Lab) = joint_in_lab(array, &protocol, 1);
+    let mut seen = 0;
+    for _ in 0..500 {
+        if let Some(t) = run.tuner() {
+            assert!(seen > 1, "cell 1's offsets were scanned");
+            return t.cells().iter().map(|c| c.gradient[1].clone()).collect();
+        }
+        match run.poll().unwrap() {
+            ArrayAction::Execute(batch) => {
+                let before = lab.device.lab_seconds();
+                let answers = answer(&mut lab, &batch, &mut seen);
+                run.feed(answers, lab.device.lab_seconds() - before)
+                    .unwrap();
+            }
+            ArrayAction::Iteration(_) => {}
+            ArrayAction::Idle => panic!("idle before the joint tuner started"),
+        }
+    }
+    panic!("the joint tuner never started");
+}
+
+#[test]
+fn a_cell_whose_w_finite_differences_failed_borrows_the_mean_w_row() {
+    let rows = w_rows_at_the_start(true);
+    let measured = |c: usize| rows[c].iter().any(|&g| g != 0.0);
+    assert!(measured(0) && measured(2), "{rows:?}");
+    for j in 0..rows[1].len() {
+        let mean = 0.5 * (rows[0][j] + rows[2][j]);
+        assert!((rows[1][j] - mean).abs() < 1e-12, "gate {j}: {rows:?}");
+    }
+    assert!(measured(1));
+    let without = w_rows_at_the_start(false);
+    assert!(without[1].iter().all(|&g| g == 0.0), "{without:?}");
+    assert_eq!(without[0], rows[0]);
+    assert_eq!(without[2], rows[2]);
+}

@@ -383,13 +383,29 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
             .arg("--json")
             .arg(&json)
             .arg("--plot")
-            .arg(&plot),
+            .arg(&plot)
+            .args(["--trace-cell", "1"]),
     );
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(stdout.contains("| joint |"), "{stdout}");
+    // cell 1 followed through the run: a line per iteration with units,
+    // and a trace at every point of the JSON timeline
+    assert!(stdout.contains("Cell 1, joint on device"), "{stdout}");
+    assert!(stdout.contains("c1.SB") && stdout.contains(" µV, rows /mV learned ["));
     let png = std::fs::read(&plot).unwrap();
     assert!(png.starts_with(b"\x89PNG"), "--plot wrote no PNG");
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    let timeline = report["runs"][0]["timeline"].as_array().unwrap();
+    assert!(!timeline.is_empty());
+    assert!(
+        timeline.iter().all(|p| p["trace"]["cell"] == 1),
+        "{timeline:?}"
+    );
+    assert_eq!(report["protocol"]["trace_cell"], 1);
+    assert_eq!(
+        report["protocol"]["tuning"]["borrow_failed_gradients"],
+        true
+    );
     assert_eq!(report["protocol"]["tuning"]["line_rounds"], 2);
     // the line forecast (off by default): the file's field, the rest defaults
     assert_eq!(
@@ -508,6 +524,7 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
     // calibration is two finite numbers, each within [0, 0.9]
     for (value, expected) in [
         ("--cells-per-sensor=17", "--cells-per-sensor"),
+        ("--trace-cell=2", "--trace-cell 2: the cells are 0..2"),
         ("--skip-confident-sigma=0.1", "skip_confident_sigma"),
         ("--cross-calibration=0.3", "two numbers"),
         ("--cross-calibration=0.3,x", "not a finite number"),

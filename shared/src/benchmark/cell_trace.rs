@@ -10,7 +10,9 @@ use serde::{Deserialize, Serialize};
 /// Parameters of a cell in trace order (`t_sr` ns, `w` µV).
 const UNITS: [(&str, &str); 2] = [("t_sr", "ns"), ("w", "µV")];
 
-/// The traced cell at one iteration of the joint loop.
+/// The traced cell at one iteration of the joint loop, taken where the
+/// timeline's rows are (where the iteration's move started; an iteration
+/// without a move: at its end).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CellTrace {
     /// The cell followed.

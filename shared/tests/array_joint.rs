@@ -13,7 +13,7 @@ use spintune::benchmark::array::{
 use spintune::benchmark::array_timeline::{CellBand, TimelinePoint};
 use spintune::benchmark::row_agreement::RowAgreement;
 use spintune::benchmark::PAPER_SET_POINTS;
-use spintune::sim::array::ArrayConfig;
+use spintune::sim::array::{ArrayConfig, ArrayDevice};
 use spintune::sim::DeviceConfig;
 use spintune::tuner::array::{CellKnowledge, JointArrayTuner, JointConfig};
 use spintune::tuner::thermal_floor::FloorLog;
@@ -27,15 +27,19 @@ fn short_protocol() -> ArrayProtocol {
     }
 }
 
-#[test]
-fn joint_converges_on_three_cells_within_every_step_limit() {
-    let array = world(
+/// The 3-cell world of these tests (device seed 5, noise seed 11).
+fn three_cells() -> ArrayDevice {
+    world(
         &DeviceConfig::default(),
         ArrayConfig::chain(3, 5, 11),
         |_| true,
     )
-    .unwrap();
-    let r = run_strategy(ArrayStrategy::Joint, array, &short_protocol()).unwrap();
+    .unwrap()
+}
+
+#[test]
+fn joint_converges_on_three_cells_within_every_step_limit() {
+    let r = run_strategy(ArrayStrategy::Joint, three_cells(), &short_protocol()).unwrap();
     let cold = r.cold_start_lab_minutes.expect("cold start converged");
     assert!(cold > 0.0);
     assert_eq!(r.changes.len(), 1);
@@ -100,14 +104,7 @@ fn timeline_agrees_with_the_result(r: &ArrayRunResult) {
 /// the timeline says the cell was measured.
 #[test]
 fn a_traced_cell_is_followed_where_its_rows_are_taken_without_changing_the_run() {
-    let array = || {
-        world(
-            &DeviceConfig::default(),
-            ArrayConfig::chain(3, 5, 11),
-            |_| true,
-        )
-        .unwrap()
-    };
+    let array = three_cells;
     let traced = ArrayProtocol {
         trace_cell: Some(1),
         ..short_protocol()
@@ -515,14 +512,7 @@ fn a_batchs_lab_time_is_split_over_its_requests_by_their_own_time() {
 /// taken (`max_skips = 0`), within every step limit; bounds are named.
 #[test]
 fn predicted_flanks_replace_sweeps_and_the_changes_still_converge() {
-    let array = || {
-        world(
-            &DeviceConfig::default(),
-            ArrayConfig::chain(3, 5, 11),
-            |_| true,
-        )
-        .unwrap()
-    };
+    let array = three_cells;
     let with = short_protocol();
     assert_eq!(with.tuning.flank_prediction.max_skips, 3, "the default");
     let mut without = short_protocol();

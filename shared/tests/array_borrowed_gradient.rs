@@ -1,8 +1,9 @@
 //! A cell whose initial finite differences of `w` fail (its transition-
 //! width scans at the gate offsets fail) starts the joint tuner with the
 //! mean `w` row of the cells that measured theirs
-//! (`ArrayRunSettings::borrow_failed_gradients`, on by default), and from
-//! a zero row without it.
+//! (`ArrayRunSettings::borrow_failed_gradients`), and from a zero row
+//! without it. With `ArrayRunSettings::pool_initial_gradients` every
+//! cell's rows start pooled with the other cells' (`pool_gradients`).
 
 mod support;
 
@@ -10,7 +11,9 @@ use spintune::benchmark::array::{world, ArrayProtocol, Lab};
 use spintune::protocol::{Request, Response, ScanKind, ScanOutcome};
 use spintune::sim::array::{ArrayConfig, ArrayDevice};
 use spintune::sim::DeviceConfig;
+use spintune::tuner::array::CellKnowledge;
 use spintune::tuner::array_run::{ArrayAction, ArrayRun};
+use spintune::tuner::pooled_gradient::pool_gradients;
 use support::array::joint_in_lab;
 
 /// Answer `requests` from `lab`, except that cell 1's transition-width
@@ -46,13 +49,23 @@ fn fail_offsets(request: &Request, answer: &mut Response, seen: &mut u32) {
 }
 
 /// The `w` rows (parameter 1) of cells 0, 1 and 2 once the joint tuner
-/// starts, with `borrow` as the setting.
+/// starts, with `borrow` as the setting (and no pooling).
 fn w_rows_at_the_start(borrow: bool) -> Vec<Vec<f64>> {
+    knowledge_at_the_start(3, borrow, false)
+        .iter()
+        .map(|c| c.gradient[1].clone())
+        .collect()
+}
+
+/// Every cell's knowledge once the joint tuner starts, in a world of
+/// `cells` cells, with the two settings.
+fn knowledge_at_the_start(cells: u32, borrow: bool, pool: bool) -> Vec<CellKnowledge> {
     let mut protocol = ArrayProtocol::default();
     protocol.tuning.borrow_failed_gradients = borrow;
+    protocol.tuning.pool_initial_gradients = pool;
     let array = world(
         &DeviceConfig::default(),
-        ArrayConfig::chain(3, 5, 11),
+        ArrayConfig::chain(cells, 5, 11),
         |_| true,
     )
     .unwrap();
@@ -61,7 +74,7 @@ fn w_rows_at_the_start(borrow: bool) -> Vec<Vec<f64>> {
     for _ in 0..500 {
         if let Some(t) = run.tuner() {
             assert!(seen > 1, "cell 1's offsets were scanned");
-            return t.cells().iter().map(|c| c.gradient[1].clone()).collect();
+            return t.cells().to_vec();
         }
         match run.poll().unwrap() {
             ArrayAction::Execute(batch) => {
@@ -91,4 +104,25 @@ fn a_cell_whose_w_finite_differences_failed_borrows_the_mean_w_row() {
     assert!(without[1].iter().all(|&g| g == 0.0), "{without:?}");
     assert_eq!(without[0], rows[0]);
     assert_eq!(without[2], rows[2]);
+}
+
+#[test]
+fn pooled_rows_are_the_measured_rows_pooled_and_the_failed_row_takes_the_others() {
+    let measured = knowledge_at_the_start(4, false, false);
+    assert!(measured[1].gradient[1].iter().all(|&g| g == 0.0));
+    let pooled = knowledge_at_the_start(4, false, true);
+    let mut expected = measured.clone();
+    let changed = pool_gradients(&mut expected);
+    assert_eq!(pooled, expected);
+    // every cell's rows, both parameters, were pooled: the failed one too
+    assert_eq!(changed.len(), 8, "{changed:?}");
+    assert!(pooled[1].gradient[1].iter().any(|&g| g != 0.0));
+    for (p, m) in pooled.iter().zip(&measured) {
+        for (a, b) in p.covariance.iter().zip(&m.covariance) {
+            for j in 0..a.len() {
+                // a prior only adds information: no gate's variance grows
+                assert!(a[j][j] <= b[j][j], "{a:?} against {b:?}");
+            }
+        }
+    }
 }

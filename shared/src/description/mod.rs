@@ -296,6 +296,7 @@ impl DeviceDescription {
                     step_mv: fd_step_mv,
                     repetitions: 1,
                     recentre_between_offsets: false,
+                    central: false,
                 },
                 solver: SolverConfig {
                     max_step_mv: q.step_limit_mv,
@@ -339,6 +340,7 @@ impl DeviceDescription {
                         step_mv: plunger_step,
                         repetitions: 1,
                         recentre_between_offsets: true,
+                        central: false,
                     },
                     solver: SolverConfig {
                         max_step_mv: plunger_step,

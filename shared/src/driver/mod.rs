@@ -99,6 +99,7 @@ impl SimulationConfig {
                 step_mv: 4.0,
                 repetitions: 3,
                 recentre_between_offsets: true,
+                central: false,
             },
             solver: SolverConfig::default(),
             outlier_sigma: Some(5.0),
@@ -130,6 +131,7 @@ impl SimulationConfig {
                 step_mv: 2.0,
                 repetitions: 1,
                 recentre_between_offsets: true,
+                central: false,
             },
             solver: SolverConfig {
                 // the transition lines are scanned over ±4 mV: small corrections only

@@ -50,6 +50,7 @@ use serde::{Deserialize, Serialize};
 use super::borrowed_gradient::borrow_failed_gradients;
 use super::flank::{FlankForecast, FlankModel};
 use super::line_steps::joint_line_steps;
+use super::pooled_gradient::pool_gradients;
 use super::search::{SearchMemory, SearchMove};
 use crate::config_error::ConfigError;
 use crate::fit::{evaluate_with, lead_widths_mv, uncertainty::References};
@@ -185,6 +186,14 @@ pub struct ArrayRunSettings {
     /// "Stalled cells traced").
     #[serde(default = "yes")]
     pub borrow_failed_gradients: bool,
+    /// Whether every cell's initial row is pooled with the other cells'
+    /// rows ([`pool_gradients`]: each gate's value the precision-weighted
+    /// mean of the cell's own measurement and the others' mean, weighted by
+    /// the spread between the cells). A failed row then takes the others'
+    /// prior, so this replaces [`Self::borrow_failed_gradients`]. Default
+    /// `false`.
+    #[serde(default)]
+    pub pool_initial_gradients: bool,
 }
 
 fn yes() -> bool {
@@ -217,6 +226,7 @@ impl Default for ArrayRunSettings {
             reset_flat_row_fraction: default_reset_flat_row_fraction(),
             retreat: Retreat::default(),
             borrow_failed_gradients: true,
+            pool_initial_gradients: false,
         }
     }
 }
@@ -1371,7 +1381,9 @@ impl ArrayRun {
             }
         }
         borrow_line_jacobians(&mut lower);
-        if self.settings.borrow_failed_gradients {
+        if self.settings.pool_initial_gradients {
+            pool_gradients(&mut cells);
+        } else if self.settings.borrow_failed_gradients {
             borrow_failed_gradients(&mut cells);
         }
         // the oracle knows the true Jacobian: it has nothing to explore for;

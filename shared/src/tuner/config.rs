@@ -34,6 +34,17 @@ pub enum InitialGradient {
         /// the cold start costs a fraction of the lab time). Default `true`.
         #[serde(default = "default_true")]
         recentre_between_offsets: bool,
+        /// Measure each gate at `−step_mv` too and take the central
+        /// difference (`finite_difference` module docs): effects even in
+        /// the offset cancel (the transition lines that an offset moves
+        /// when the levels are not re-run between offsets) and the noise
+        /// halves, for one more measurement per gate. Consecutive points
+        /// offset different gates in opposite directions (`√2·step_mv`
+        /// apart, through the base where that exceeds the solver's
+        /// `max_step_mv`). Default `false` (the paper's one-sided
+        /// differences).
+        #[serde(default)]
+        central: bool,
     },
     /// Known gradient rows (one per parameter, unit/mV) and covariances.
     Given {

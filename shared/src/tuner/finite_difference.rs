@@ -2,6 +2,12 @@
 //! "Initial conditions"): `g(0)` is the mean of the repeated one-sided
 //! estimates, `C(0)` diagonal with their sample variances.
 //!
+//! A gate measured on both sides of the base (offsets `+δ` and `−δ`) gives
+//! the central estimate `(y₊ − y₋)/(δ₊ − δ₋)` instead: every effect even in
+//! the offset cancels (a transition line left off by `a·δ` reads an
+//! apparent `t_sr·(1 + c·a²δ²)` in both directions), and the noise is
+//! half the one-sided estimate's for the same `δ`.
+//!
 //! Values are in estimator space (after the parameter's transform); voltages in mV.
 
 use nalgebra::{DMatrix, DVector};
@@ -28,6 +34,10 @@ pub struct FiniteDifference {
     base: Vec<Vec<Option<Sample>>>,
     /// `points[rep][gate][param]` with the actual voltage offset (mV) of that gate.
     points: Vec<Vec<Option<Point>>>,
+    /// The points below the base (negative offsets), as `points`; empty
+    /// for one-sided differences.
+    #[serde(default)]
+    below: Vec<Vec<Option<Point>>>,
 }
 
 impl FiniteDifference {
@@ -41,6 +51,7 @@ impl FiniteDifference {
             step_mv,
             base: vec![vec![None; params]; repetitions],
             points: vec![vec![None; gates]; repetitions],
+            below: vec![vec![None; gates]; repetitions],
         }
     }
 
@@ -54,7 +65,8 @@ impl FiniteDifference {
         self.base[rep] = samples;
     }
 
-    /// Record the measurement with gate `gate` offset by `actual_offset_mv`.
+    /// Record the measurement with gate `gate` offset by `actual_offset_mv`
+    /// (negative: the point below the base of a central difference).
     pub fn record_point(
         &mut self,
         rep: usize,
@@ -62,7 +74,37 @@ impl FiniteDifference {
         actual_offset_mv: f64,
         samples: Vec<Option<Sample>>,
     ) {
-        self.points[rep][gate] = Some((actual_offset_mv, samples));
+        let side = if actual_offset_mv < 0.0 {
+            if self.below.len() < self.points.len() {
+                self.below = vec![vec![None; self.gates]; self.points.len()];
+            }
+            &mut self.below
+        } else {
+            &mut self.points
+        };
+        side[rep][gate] = Some((actual_offset_mv, samples));
+    }
+
+    /// One repetition's estimate of `∂p_param/∂v_gate` and its propagated
+    /// variance: central where both sides were measured, else one-sided
+    /// from the base.
+    fn estimate(&self, rep: usize, param: usize, gate: usize) -> Option<(f64, f64)> {
+        let sample = |side: &Vec<Vec<Option<Point>>>| {
+            let (dv, samples) = side.get(rep)?.get(gate)?.as_ref()?;
+            samples[param].map(|y| (*dv, y))
+        };
+        let (above, below) = (sample(&self.points), sample(&self.below));
+        let (base, far) = match (above, below) {
+            (Some(a), Some(b)) => (b, a),
+            (Some(far), None) | (None, Some(far)) => ((0.0, self.base[rep][param]?), far),
+            (None, None) => return None,
+        };
+        let ((d0, (y0, v0)), (d1, (y1, v1))) = (base, far);
+        let dv = d1 - d0;
+        if dv.abs() < 1e-12 {
+            return None;
+        }
+        Some(((y1 - y0) / dv, (v0 + v1) / (dv * dv)))
     }
 
     /// Gradient rows and diagonal covariances; `None` for a parameter with a
@@ -73,21 +115,9 @@ impl FiniteDifference {
                 let mut g = DVector::zeros(self.gates);
                 let mut var = DVector::zeros(self.gates);
                 for j in 0..self.gates {
-                    let mut estimates = Vec::new();
-                    let mut propagated = Vec::new();
-                    for rep in 0..self.repetitions() {
-                        let (Some((y0, v0)), Some((dv, samples))) =
-                            (self.base[rep][i], &self.points[rep][j])
-                        else {
-                            continue;
-                        };
-                        let Some((y1, v1)) = samples[i] else { continue };
-                        if dv.abs() < 1e-12 {
-                            continue;
-                        }
-                        estimates.push((y1 - y0) / dv);
-                        propagated.push((v0 + v1) / (dv * dv));
-                    }
+                    let (estimates, propagated): (Vec<f64>, Vec<f64>) = (0..self.repetitions())
+                        .filter_map(|rep| self.estimate(rep, i, j))
+                        .unzip();
                     if estimates.is_empty() {
                         return None;
                     }
@@ -137,6 +167,32 @@ mod tests {
         let (g, c) = fd.result()[0].clone().unwrap();
         assert_eq!(g[0], 2.0);
         assert_eq!(c[(0, 0)], 1.0);
+    }
+
+    #[test]
+    fn both_sides_give_the_central_difference_and_cancel_an_even_term() {
+        // y = 0.02·δ + 0.01·δ² (an even term, e.g. a line left off by ∝ δ)
+        let y = |d: f64| 0.02 * d + 0.01 * d * d;
+        let mut fd = FiniteDifference::new(1, vec![0.0], 6.0, 1);
+        fd.record_base(0, vec![Some((0.0, 1e-4))]);
+        fd.record_point(0, 0, 6.0, vec![Some((y(6.0), 1e-4))]);
+        let one_sided = fd.result()[0].clone().unwrap();
+        assert!((one_sided.0[0] - 0.08).abs() < 1e-12); // 0.02 + 0.01·6: biased
+        fd.record_point(0, 0, -6.0, vec![Some((y(-6.0), 1e-4))]);
+        let (g, c) = fd.result()[0].clone().unwrap();
+        assert!((g[0] - 0.02).abs() < 1e-12);
+        // (1e-4 + 1e-4)/12², a quarter of the one-sided variance
+        assert!((c[(0, 0)] - 2e-4 / 144.0).abs() < 1e-18);
+        assert!((one_sided.1[(0, 0)] - 4.0 * c[(0, 0)]).abs() < 1e-15);
+    }
+
+    #[test]
+    fn a_failed_side_falls_back_to_the_base() {
+        let mut fd = FiniteDifference::new(1, vec![0.0], 2.0, 1);
+        fd.record_base(0, vec![Some((1.0, 0.0))]);
+        fd.record_point(0, 0, 2.0, vec![None]);
+        fd.record_point(0, 0, -2.0, vec![Some((0.0, 0.0))]);
+        assert_eq!(fd.result()[0].clone().unwrap().0[0], 0.5);
     }
 
     #[test]

@@ -44,6 +44,7 @@ pub(crate) mod level_forecast;
 pub mod line_steps;
 pub mod miss_cusum;
 mod newton;
+pub mod pooled_gradient;
 mod search;
 pub mod thermal_floor;
 

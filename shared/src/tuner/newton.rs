@@ -488,10 +488,12 @@ impl Tuner {
             step_mv,
             repetitions,
             recentre_between_offsets,
+            central,
         } = cfg.initial_gradient
         else {
             return None;
         };
+        let diagonal_ok = std::f64::consts::SQRT_2 * step_mv <= cfg.solver.max_step_mv;
         let base = self.level_voltages(level);
         let children = self.after_move_ops(level);
         let scans = scan_ops(cfg);
@@ -506,9 +508,16 @@ impl Tuner {
             }
             ops.extend(scans.iter().cloned());
             ops.push_back(Op::Decide(Decision::FdBase(rep)));
-            for j in 0..base.len() {
+            let mut previous: Option<usize> = None;
+            for (j, offset) in offset_order(base.len(), step_mv, central) {
                 let mut v = base.clone();
-                v[j] += step_mv;
+                v[j] += offset;
+                // from the last point straight only to another gate's
+                // offset (√2·step_mv), and only within one step
+                if central && !previous.is_none_or(|i| i != j && diagonal_ok) {
+                    ops.push_back(Op::Move(base.clone()));
+                }
+                previous = Some(j);
                 ops.push_back(Op::Move(v));
                 if recentre_between_offsets {
                     ops.extend(children.iter().cloned());
@@ -1286,6 +1295,16 @@ pub(crate) fn retreat_target(now: &[f64], good: &[f64], max_step_mv: f64) -> Opt
         1.0
     };
     Some(now.iter().zip(&half).map(|(a, d)| a + d * scale).collect())
+}
+
+/// The finite differences' offset points in order, `(gate, offset mV)`:
+/// every gate at `+step_mv`, then (central) every gate at `−step_mv`, so
+/// consecutive points offset different gates where there are two gates or
+/// more (`√2·step_mv` apart).
+fn offset_order(gates: usize, step_mv: f64, central: bool) -> Vec<(usize, f64)> {
+    let above = (0..gates).map(|j| (j, step_mv));
+    let below = (0..gates).map(|j| (j, -step_mv)).filter(|_| central);
+    above.chain(below).collect()
 }
 
 #[cfg(test)]

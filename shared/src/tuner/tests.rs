@@ -174,6 +174,7 @@ fn qubit(estimator: EstimatorKind) -> NewtonConfig {
             step_mv: 3.0,
             repetitions: 2,
             recentre_between_offsets: true,
+            central: false,
         },
         solver: SolverConfig::default(),
         outlier_sigma: Some(5.0),
@@ -836,4 +837,43 @@ fn multi_move_iteration(lower_levels_between_moves: bool) {
     assert!(!parameter_scan_after_move);
     // every request's lab time, moves included, is on the tuner's clock
     assert!((tuner.lab_seconds() - charged_s).abs() < 1e-9);
+}
+
+#[test]
+fn central_finite_differences_cancel_the_curvature_and_stay_within_a_step() {
+    // ∂p_a/∂N at the start (every gate at 0): −40/60 ns/mV exactly; a
+    // one-sided 3 mV difference reads (40·e^(−0.05) − 40)/3 = −0.6503, the
+    // central one (40·e^(−0.05) − 40·e^(0.05))/6 = −0.66694
+    let exact = -40.0 / 60.0;
+    let first_gradient = |central: bool| {
+        let mut cfg = flat(EstimatorKind::FixedJacobian);
+        if let LevelKind::Newton(n) = &mut cfg.levels[0].kind {
+            n.initial_gradient = InitialGradient::FiniteDifference {
+                step_mv: 3.0,
+                repetitions: 1,
+                recentre_between_offsets: false,
+                central,
+            };
+        }
+        let mut tuner = Tuner::new(cfg).unwrap();
+        let mut dev = Toy::new(&gates(), 11);
+        dev.sigma = [1e-6, 1e-6];
+        // `drive` checks every set against the gates' limits and steps
+        let recs = drive(&mut tuner, &mut dev, 1);
+        let sets = dev.log.iter().filter(|l| l.starts_with("set")).count();
+        (
+            recs[0].gradients[0].gradient[0],
+            recs[0].scan_counts[&ScanKind::ReloadTime],
+            sets,
+        )
+    };
+    let (one_sided, one_sided_scans, one_sided_sets) = first_gradient(false);
+    let (central, central_scans, central_sets) = first_gradient(true);
+    assert!((one_sided - exact).abs() > 0.01, "{one_sided}");
+    assert!((central - exact).abs() < 1e-3, "{central}");
+    // a base and 4 offsets, against a base and 8 offsets
+    assert_eq!(central_scans, one_sided_scans + 4);
+    // 3·√2 mV between consecutive offsets is within the 10 mV step: no
+    // return to the base between them (4 more sets, one per offset)
+    assert_eq!(central_sets, one_sided_sets + 4);
 }

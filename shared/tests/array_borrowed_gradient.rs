@@ -11,10 +11,13 @@ use spintune::benchmark::array::{world, ArrayProtocol, Lab};
 use spintune::protocol::{Request, Response, ScanKind, ScanOutcome};
 use spintune::sim::array::{ArrayConfig, ArrayDevice};
 use spintune::sim::DeviceConfig;
-use spintune::tuner::array::CellKnowledge;
+use spintune::tuner::array::{lockstep_factor, CellKnowledge};
 use spintune::tuner::array_run::{ArrayAction, ArrayRun};
 use spintune::tuner::pooled_gradient::pool_gradients;
 use support::array::joint_in_lab;
+
+/// The lab's cross-cell calibration `λ̂` (nearest, next).
+const LAMBDA: [f64; 2] = [0.3, 0.05];
 
 /// Answer `requests` from `lab`, except that cell 1's transition-width
 /// scans after its first (the base point's) fail; `seen` counts them.
@@ -63,6 +66,7 @@ fn knowledge_at_the_start(cells: u32, borrow: bool, pool: bool) -> Vec<CellKnowl
     let mut protocol = ArrayProtocol::default();
     protocol.tuning.borrow_failed_gradients = borrow;
     protocol.tuning.pool_initial_gradients = pool;
+    protocol.cross_calibration = Some(LAMBDA);
     let array = world(
         &DeviceConfig::default(),
         ArrayConfig::chain(cells, 5, 11),
@@ -112,7 +116,8 @@ fn pooled_rows_are_the_measured_rows_pooled_and_the_failed_row_takes_the_others(
     assert!(measured[1].gradient[1].iter().all(|&g| g == 0.0));
     let pooled = knowledge_at_the_start(4, false, true);
     let mut expected = measured.clone();
-    let changed = pool_gradients(&mut expected);
+    let lockstep: Vec<f64> = (0..4).map(|k| lockstep_factor(k, 4, LAMBDA)).collect();
+    let changed = pool_gradients(&mut expected, &lockstep);
     assert_eq!(pooled, expected);
     // every cell's rows, both parameters, were pooled: the failed one too
     assert_eq!(changed.len(), 8, "{changed:?}");

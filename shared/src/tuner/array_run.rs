@@ -182,18 +182,31 @@ pub struct ArrayRunSettings {
     /// Whether a cell whose initial finite differences failed for a
     /// parameter (a zero row) starts that row from the mean of the other
     /// cells' measured rows ([`borrow_failed_gradients`]) instead of from
-    /// zero. Default `true`, measured on random arrays (docs/array.md,
-    /// "Stalled cells traced").
+    /// zero, when the rows are not pooled
+    /// ([`Self::pool_initial_gradients`], which does it too). Default
+    /// `true`, measured on random arrays (docs/array.md, "Stalled cells
+    /// traced").
     #[serde(default = "yes")]
     pub borrow_failed_gradients: bool,
     /// Whether every cell's initial row is pooled with the other cells'
     /// rows ([`pool_gradients`]: each gate's value the precision-weighted
     /// mean of the cell's own measurement and the others' mean, weighted by
-    /// the spread between the cells). A failed row then takes the others'
-    /// prior, so this replaces [`Self::borrow_failed_gradients`]. Default
-    /// `false`.
-    #[serde(default)]
+    /// the spread between the cells, in units of each cell's lockstep
+    /// factor). A failed row then takes the others' prior, so this replaces
+    /// [`Self::borrow_failed_gradients`]. Default `true` (docs/array.md,
+    /// "Initial rows: central and pooled").
+    #[serde(default = "yes")]
     pub pool_initial_gradients: bool,
+    /// Whether each cell's initial finite differences are central (every
+    /// tuning gate offset by `±step_mv`, `InitialGradient::FiniteDifference`
+    /// `central`) instead of the single-cell default's one-sided ones. The
+    /// cells' lines are not re-centred between offsets, and a line left off
+    /// by `μ` reads an apparent `t_sr·(1 + c·μ²)`: even in the offset, so
+    /// the central difference cancels it, and it halves the rows' noise,
+    /// for one more measurement per gate. Default `true` (docs/array.md,
+    /// "Initial rows: central and pooled").
+    #[serde(default = "yes")]
+    pub central_differences: bool,
 }
 
 fn yes() -> bool {
@@ -226,7 +239,8 @@ impl Default for ArrayRunSettings {
             reset_flat_row_fraction: default_reset_flat_row_fraction(),
             retreat: Retreat::default(),
             borrow_failed_gradients: true,
-            pool_initial_gradients: false,
+            pool_initial_gradients: true,
+            central_differences: true,
         }
     }
 }
@@ -603,6 +617,11 @@ impl ArrayRun {
             };
             targets.push((target("t_sr"), target("w")));
             t.max_iterations = Some(0);
+            if let InitialGradient::FiniteDifference { central, .. } =
+                &mut t.top_mut().initial_gradient
+            {
+                *central = settings.central_differences;
+            }
             let session = RunSession::new(t, SessionConfig::default())
                 .map_err(|e| e.within(&format!("cells[{k}]")))?;
             sessions.push(Some(session));
@@ -1382,7 +1401,11 @@ impl ArrayRun {
         }
         borrow_line_jacobians(&mut lower);
         if self.settings.pool_initial_gradients {
-            pool_gradients(&mut cells);
+            let n = cells.len();
+            let lockstep: Vec<f64> = (0..n)
+                .map(|k| lockstep_factor(k, n, self.cross_calibration))
+                .collect();
+            pool_gradients(&mut cells, &lockstep);
         } else if self.settings.borrow_failed_gradients {
             borrow_failed_gradients(&mut cells);
         }

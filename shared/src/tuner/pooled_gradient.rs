@@ -19,14 +19,23 @@
 //! `1 / (1/σ² + 1/τ²)`. A row whose measurement failed (all zero) has no
 //! measurement and takes the prior. Nothing here is a tuned constant: the
 //! weights come from the rows' own measured variances and their spread.
+//!
+//! The cells measure in lockstep, so each measured its own row times its
+//! lockstep factor ([`super::array::lockstep_factor`]: larger inside the
+//! chain than at its ends). The rows are pooled in units of that factor
+//! (each row divided by its cell's `scale`, its variance by the square)
+//! and scaled back, so an end cell is not pulled towards the inner cells'
+//! longer rows.
 
 use super::array::CellKnowledge;
 
-/// Pool every alike cell's row with the other cells' rows (module docs).
-/// Cells of another gate or parameter count, and rows that are not finite,
-/// neither lend nor change; a parameter needs two measured rows besides
-/// the cell's own to estimate the spread, else the cell's row is kept.
-/// Returns the `(cell, parameter)` pairs that changed.
+/// Pool every alike cell's row with the other cells' rows (module docs),
+/// each cell's row in units of its `scales` entry (a missing, non-finite or
+/// non-positive entry counts as 1). Cells of another gate or parameter
+/// count, and rows that are not finite, neither lend nor change; a
+/// parameter needs two measured rows besides the cell's own to estimate the
+/// spread, else the cell's row is kept. Returns the `(cell, parameter)`
+/// pairs that changed.
 ///
 /// ```
 /// use spintune::tuner::array::CellKnowledge;
@@ -43,15 +52,22 @@ use super::array::CellKnowledge;
 /// };
 /// // three cells measured with noise σ² = 1e-4 (σ = 0.01 /mV)
 /// let mut cells = vec![cell(0.010, 1e-4), cell(0.014, 1e-4), cell(-0.006, 1e-4)];
-/// pool_gradients(&mut cells);
+/// pool_gradients(&mut cells, &[1.0; 3]);
 /// // cell 2's prior from cells 0 and 1: μ = 0.012, s² = 8e-6 < σ̄² = 1e-4,
 /// // so τ² = σ̄²/2 = 5e-5: the noisy −0.006 is pulled to +0.006
 /// let (g, var) = (cells[2].gradient[0][0], cells[2].covariance[0][0][0]);
 /// assert!((g - 0.006).abs() < 1e-12);
 /// assert!((var - 1.0 / (1.0 / 1e-4 + 1.0 / 5e-5)).abs() < 1e-15);
 /// ```
-pub fn pool_gradients(cells: &mut [CellKnowledge]) -> Vec<(usize, usize)> {
+pub fn pool_gradients(cells: &mut [CellKnowledge], scales: &[f64]) -> Vec<(usize, usize)> {
     let mut changed = Vec::new();
+    let scale = |k: usize| {
+        scales
+            .get(k)
+            .copied()
+            .filter(|s| s.is_finite() && *s > 0.0)
+            .unwrap_or(1.0)
+    };
     let Some(first) = cells.first() else {
         return changed;
     };
@@ -70,19 +86,22 @@ pub fn pool_gradients(cells: &mut [CellKnowledge]) -> Vec<(usize, usize)> {
         // the row failed (all zero); non-finite rows are left out
         let rows: Vec<Option<(Vec<f64>, Vec<f64>)>> = cells
             .iter()
-            .map(|c| {
+            .enumerate()
+            .map(|(k, c)| {
                 if !alike(c) || !c.gradient[p].iter().all(|x| x.is_finite()) {
                     return None;
                 }
                 if c.gradient[p].iter().all(|&x| x == 0.0) {
                     return None;
                 }
+                let s = scale(k);
                 let var = (0..n_gates)
-                    .map(|j| c.covariance[p][j][j])
+                    .map(|j| c.covariance[p][j][j] / (s * s))
                     .collect::<Vec<f64>>();
+                let row = c.gradient[p].iter().map(|g| g / s).collect();
                 var.iter()
                     .all(|v| v.is_finite() && *v > 0.0)
-                    .then(|| (c.gradient[p].clone(), var))
+                    .then_some((row, var))
             })
             .collect();
         let mut pooled = Vec::new();
@@ -124,6 +143,9 @@ pub fn pool_gradients(cells: &mut [CellKnowledge]) -> Vec<(usize, usize)> {
             pooled.push((k, g, var));
         }
         for (k, g, var) in pooled {
+            let s = scale(k);
+            let (g, var): (Vec<f64>, Vec<f64>) =
+                g.iter().zip(&var).map(|(g, v)| (g * s, v * s * s)).unzip();
             let c = &mut cells[k];
             c.gradient[p] = g;
             c.covariance[p] = (0..n_gates)
@@ -167,7 +189,7 @@ mod tests {
             cell(vec![0.02, 0.0], 1e-6),
             cell(vec![0.0, 0.0], 1.0), // failed
         ];
-        pool_gradients(&mut cells);
+        pool_gradients(&mut cells, &[]);
         // others of cell 3: 0.01, 0.03, 0.02 → μ 0.02, s² 1e-4, σ̄² 1e-6
         assert!((cells[3].gradient[0][0] - 0.02).abs() < 1e-12);
         let tau2 = (1e-4 - 1e-6) + 1e-4 / 3.0;
@@ -186,9 +208,24 @@ mod tests {
             cell(vec![0.03], 1e-10),
             cell(vec![0.02], 1e-10),
         ];
-        pool_gradients(&mut cells);
+        pool_gradients(&mut cells, &[]);
         for (c, g) in cells.iter().zip([0.01, 0.03, 0.02]) {
             assert!((c.gradient[0][0] - g).abs() < 1e-7, "{c:?}");
+        }
+    }
+
+    #[test]
+    fn rows_are_pooled_in_units_of_their_scale() {
+        // one true row 0.01, measured ×1.6 inside the chain, ×1.35 at its ends
+        let scales = [1.35, 1.6, 1.6, 1.35];
+        let mut cells: Vec<CellKnowledge> = scales
+            .iter()
+            .map(|s| cell(vec![0.01 * s], 1e-6 * s * s))
+            .collect();
+        cells[3].gradient[0][0] = 0.0; // failed
+        pool_gradients(&mut cells, &scales);
+        for (c, s) in cells.iter().zip(scales) {
+            assert!((c.gradient[0][0] - 0.01 * s).abs() < 1e-12, "{c:?}");
         }
     }
 
@@ -196,7 +233,7 @@ mod tests {
     fn two_cells_are_too_few_to_pool() {
         let mut cells = vec![cell(vec![0.01], 1e-4), cell(vec![-0.03], 1e-4)];
         let before = cells.clone();
-        assert!(pool_gradients(&mut cells).is_empty());
+        assert!(pool_gradients(&mut cells, &[]).is_empty());
         assert_eq!(cells, before);
     }
 
@@ -208,7 +245,7 @@ mod tests {
             cell(vec![0.02], 1e-4),
             cell(vec![0.03], 1e-4),
         ];
-        let changed = pool_gradients(&mut cells);
+        let changed = pool_gradients(&mut cells, &[]);
         assert!(cells[1].gradient[0][0].is_nan());
         assert!(!changed.contains(&(1, 0)));
         assert_eq!(changed.len(), 3);

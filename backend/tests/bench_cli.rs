@@ -406,6 +406,9 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
         report["protocol"]["tuning"]["borrow_failed_gradients"],
         true
     );
+    // this round's defaults, not in the file: central and pooled initial rows
+    assert_eq!(report["protocol"]["tuning"]["central_differences"], true);
+    assert_eq!(report["protocol"]["tuning"]["pool_initial_gradients"], true);
     assert_eq!(report["protocol"]["tuning"]["line_rounds"], 2);
     // the line forecast (off by default): the file's field, the rest defaults
     assert_eq!(

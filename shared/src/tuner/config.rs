@@ -38,11 +38,11 @@ pub enum InitialGradient {
         /// difference (`finite_difference` module docs): effects even in
         /// the offset cancel (the transition lines that an offset moves
         /// when the levels are not re-run between offsets) and the noise
-        /// halves, for one more measurement per gate. Consecutive points
-        /// offset different gates in opposite directions (`√2·step_mv`
-        /// apart, through the base where that exceeds the solver's
-        /// `max_step_mv`). Default `false` (the paper's one-sided
-        /// differences).
+        /// halves, for one more measurement per gate. Every gate at
+        /// `+step_mv`, then every gate at `−step_mv`: consecutive points
+        /// offset different gates (`√2·step_mv` apart; through the base
+        /// where that exceeds the solver's `max_step_mv`, or with one
+        /// gate). Default `false` (the paper's one-sided differences).
         #[serde(default)]
         central: bool,
     },

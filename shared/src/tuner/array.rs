@@ -269,6 +269,22 @@ pub struct CellKnowledge {
     pub floors: Vec<f64>,
 }
 
+impl CellKnowledge {
+    /// Whether the cell has `gates` gates and `parameters` rows, each row
+    /// and covariance over all of them: the cells whose rows can be
+    /// compared gate by gate (`borrowed_gradient`, `pooled_gradient`).
+    pub fn has_shape(&self, gates: usize, parameters: usize) -> bool {
+        self.gates.len() == gates
+            && self.gradient.len() == parameters
+            && self.gradient.iter().all(|g| g.len() == gates)
+            && self.covariance.len() == parameters
+            && self
+                .covariance
+                .iter()
+                .all(|m| m.len() == gates && m.iter().all(|r| r.len() == gates))
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 struct Row {
     cell: usize,

@@ -54,11 +54,7 @@ pub fn borrow_failed_gradients(cells: &mut [CellKnowledge]) -> Vec<(usize, usize
         return borrowed;
     };
     let (n_gates, n_params) = (first.gates.len(), first.gradient.len());
-    let alike = |c: &CellKnowledge| {
-        c.gates.len() == n_gates
-            && c.gradient.len() == n_params
-            && c.gradient.iter().all(|g| g.len() == n_gates)
-    };
+    let alike = |c: &CellKnowledge| c.has_shape(n_gates, n_params);
     for p in 0..n_params {
         let (mut measured, mut failed) = (Vec::new(), Vec::new());
         for (k, c) in cells.iter().enumerate().filter(|(_, c)| alike(c)) {

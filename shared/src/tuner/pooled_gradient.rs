@@ -72,15 +72,7 @@ pub fn pool_gradients(cells: &mut [CellKnowledge], scales: &[f64]) -> Vec<(usize
         return changed;
     };
     let (n_gates, n_params) = (first.gates.len(), first.gradient.len());
-    let alike = |c: &CellKnowledge| {
-        c.gates.len() == n_gates
-            && c.gradient.len() == n_params
-            && c.gradient.iter().all(|g| g.len() == n_gates)
-            && c.covariance.len() == n_params
-            && c.covariance
-                .iter()
-                .all(|m| m.len() == n_gates && m.iter().all(|r| r.len() == n_gates))
-    };
+    let alike = |c: &CellKnowledge| c.has_shape(n_gates, n_params);
     for p in 0..n_params {
         // (row, own variance per gate) of every alike cell: `None` where
         // the row failed (all zero); non-finite rows are left out

@@ -12,7 +12,7 @@ use spintune::protocol::{Request, Response, ScanKind, ScanOutcome};
 use spintune::sim::array::{ArrayConfig, ArrayDevice};
 use spintune::sim::DeviceConfig;
 use spintune::tuner::array::{lockstep_factor, CellKnowledge};
-use spintune::tuner::array_run::{ArrayAction, ArrayRun};
+use spintune::tuner::array_run::{ArrayAction, ArrayRun, ArrayRunSettings};
 use spintune::tuner::pooled_gradient::pool_gradients;
 use support::array::joint_in_lab;
 
@@ -63,9 +63,17 @@ fn w_rows_at_the_start(borrow: bool) -> Vec<Vec<f64>> {
 /// Every cell's knowledge once the joint tuner starts, in a world of
 /// `cells` cells, with the two settings.
 fn knowledge_at_the_start(cells: u32, borrow: bool, pool: bool) -> Vec<CellKnowledge> {
+    knowledge_with(cells, |s| {
+        s.borrow_failed_gradients = borrow;
+        s.pool_initial_gradients = pool;
+    })
+}
+
+/// Every cell's knowledge once the joint tuner starts, in a world of
+/// `cells` cells, with the settings `edit` makes.
+fn knowledge_with(cells: u32, edit: impl Fn(&mut ArrayRunSettings)) -> Vec<CellKnowledge> {
     let mut protocol = ArrayProtocol::default();
-    protocol.tuning.borrow_failed_gradients = borrow;
-    protocol.tuning.pool_initial_gradients = pool;
+    edit(&mut protocol.tuning);
     protocol.cross_calibration = Some(LAMBDA);
     let array = world(
         &DeviceConfig::default(),
@@ -115,9 +123,17 @@ fn pooled_rows_are_the_measured_rows_pooled_and_the_failed_row_takes_the_others(
     let measured = knowledge_at_the_start(4, false, false);
     assert!(measured[1].gradient[1].iter().all(|&g| g == 0.0));
     let pooled = knowledge_at_the_start(4, false, true);
-    let mut expected = measured.clone();
+    // in lockstep units: each row pooled divided by its cell's factor
+    let mut in_units = measured.clone();
     let lockstep: Vec<f64> = (0..4).map(|k| lockstep_factor(k, 4, LAMBDA)).collect();
-    let changed = pool_gradients(&mut expected, &lockstep);
+    pool_gradients(&mut in_units, &lockstep);
+    assert_ne!(in_units, pooled);
+    assert_eq!(
+        knowledge_with(4, |s| s.pool_in_lockstep_units = true),
+        in_units
+    );
+    let mut expected = measured.clone();
+    let changed = pool_gradients(&mut expected, &[]);
     assert_eq!(pooled, expected);
     // every cell's rows, both parameters, were pooled: the failed one too
     assert_eq!(changed.len(), 8, "{changed:?}");

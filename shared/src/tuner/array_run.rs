@@ -191,12 +191,17 @@ pub struct ArrayRunSettings {
     /// Whether every cell's initial row is pooled with the other cells'
     /// rows ([`pool_gradients`]: each gate's value the precision-weighted
     /// mean of the cell's own measurement and the others' mean, weighted by
-    /// the spread between the cells, in units of each cell's lockstep
-    /// factor). A failed row then takes the others' prior, so this replaces
-    /// [`Self::borrow_failed_gradients`]. Default `true` (docs/array.md,
-    /// "Initial rows: central and pooled").
+    /// the spread between the cells). A failed row then takes the others'
+    /// prior, so this replaces [`Self::borrow_failed_gradients`]. Default
+    /// `true` (docs/array.md, "Initial rows: central and pooled").
     #[serde(default = "yes")]
     pub pool_initial_gradients: bool,
+    /// Whether the rows are pooled in units of each cell's lockstep factor
+    /// (an end cell measured its row ×1.35, an inner one ×1.6 with the
+    /// default crosstalk) instead of as measured. Default `false`: as
+    /// measured left fewer phases unconverged (docs/array.md).
+    #[serde(default)]
+    pub pool_in_lockstep_units: bool,
     /// Whether each cell's initial finite differences are central (every
     /// tuning gate offset by `±step_mv`, `InitialGradient::FiniteDifference`
     /// `central`) instead of the single-cell default's one-sided ones. The
@@ -240,6 +245,7 @@ impl Default for ArrayRunSettings {
             retreat: Retreat::default(),
             borrow_failed_gradients: true,
             pool_initial_gradients: true,
+            pool_in_lockstep_units: false,
             central_differences: true,
         }
     }
@@ -1402,10 +1408,13 @@ impl ArrayRun {
         borrow_line_jacobians(&mut lower);
         if self.settings.pool_initial_gradients {
             let n = cells.len();
-            let lockstep: Vec<f64> = (0..n)
-                .map(|k| lockstep_factor(k, n, self.cross_calibration))
+            let units: Vec<f64> = (0..n)
+                .map(|k| match self.settings.pool_in_lockstep_units {
+                    true => lockstep_factor(k, n, self.cross_calibration),
+                    false => 1.0,
+                })
                 .collect();
-            pool_gradients(&mut cells, &lockstep);
+            pool_gradients(&mut cells, &units);
         } else if self.settings.borrow_failed_gradients {
             borrow_failed_gradients(&mut cells);
         }

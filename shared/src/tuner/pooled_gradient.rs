@@ -22,10 +22,12 @@
 //!
 //! The cells measure in lockstep, so each measured its own row times its
 //! lockstep factor ([`super::array::lockstep_factor`]: larger inside the
-//! chain than at its ends). The rows are pooled in units of that factor
-//! (each row divided by its cell's `scale`, its variance by the square)
-//! and scaled back, so an end cell is not pulled towards the inner cells'
-//! longer rows.
+//! chain than at its ends). The rows can be pooled in units of a scale per
+//! cell (each row divided by its cell's `scale`, its variance by the
+//! square, and scaled back), so an end cell is not pulled towards the
+//! inner cells' longer rows. The array does that only with
+//! `ArrayRunSettings::pool_in_lockstep_units`: it measured worse than
+//! pooling the rows as measured (docs/array.md).
 
 use super::array::CellKnowledge;
 

@@ -11,6 +11,7 @@ use spintune::benchmark::array::{
     markdown, run_strategy, single_change_cells, summarize_array, world, ArrayProtocol,
     ArrayRunResult, ArrayStrategy, ArraySummary,
 };
+use spintune::benchmark::cell_trace::error_bar_coverage;
 use spintune::benchmark::BenchmarkProtocol;
 use spintune::driver::SimulationConfig;
 use spintune::sim::array::{ArrayConfig, MAX_CELLS};
@@ -304,6 +305,20 @@ fn print_traces(results: &[ArrayRunResult], c: u32) {
             }
         }
     }
+    let traces = results
+        .iter()
+        .flat_map(|r| &r.timeline)
+        .filter_map(|p| p.trace.as_ref());
+    let coverage = error_bar_coverage(traces);
+    let part = |p: usize, name: &str| match coverage[p] {
+        Some((f, n)) => format!("{name} {:.0} % of {n}", 100.0 * f),
+        None => format!("{name} never measured"),
+    };
+    println!(
+        "\nCell {c}'s scans within 1 reported σ of the truth (Gaussian error bars: 68 %): {}, {}",
+        part(0, "t_sr"),
+        part(1, "w")
+    );
 }
 
 fn parse_strategies(names: &[String]) -> Result<Vec<ArrayStrategy>, CliError> {

@@ -392,6 +392,15 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
     // and a trace at every point of the JSON timeline
     assert!(stdout.contains("Cell 1, joint on device"), "{stdout}");
     assert!(stdout.contains("c1.SB") && stdout.contains(" µV, rows /mV learned ["));
+    // …and how often its scans' error bars covered the truth, with a count
+    let coverage = stdout
+        .lines()
+        .find(|l| l.starts_with("Cell 1's scans within 1 reported σ of the truth"))
+        .unwrap_or_else(|| panic!("no coverage line: {stdout}"));
+    assert!(
+        coverage.contains("t_sr ") && coverage.contains(" % of "),
+        "{coverage}"
+    );
     let png = std::fs::read(&plot).unwrap();
     assert!(png.starts_with(b"\x89PNG"), "--plot wrote no PNG");
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
@@ -409,6 +418,8 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
     // this round's defaults, not in the file: central and pooled initial rows
     assert_eq!(report["protocol"]["tuning"]["central_differences"], true);
     assert_eq!(report["protocol"]["tuning"]["pool_initial_gradients"], true);
+    // a cell counts in band on its measurements (the estimate's rules measured no better)
+    assert_eq!(report["protocol"]["tuning"]["in_band"], "measured");
     assert_eq!(report["protocol"]["tuning"]["line_rounds"], 2);
     // the line forecast (off by default): the file's field, the rest defaults
     assert_eq!(
@@ -521,6 +532,19 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(
         err.contains("tuning.toml") && err.contains("colour"),
+        "{err}"
+    );
+    // a rule that does not exist names the field and the rules that do
+    std::fs::write(&tuning, "in_band = \"estimated\"\n").unwrap();
+    let out = bin()
+        .args(["bench-array", "--tuning"])
+        .arg(&tuning)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("in_band") && err.contains("measured_and_estimate"),
         "{err}"
     );
     // every bound of the array flags, before anything runs; the lab's

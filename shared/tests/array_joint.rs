@@ -640,6 +640,48 @@ fn a_limited_step_also_explores_the_own_rows_null_space() {
     );
 }
 
+/// The estimate behind `in_band_by_estimate` weighs a measurement against
+/// the row's prediction by their precisions in the row's scale: with equal
+/// variances a plain-log `t_sr` gets the geometric mean of 18 and 22 ns, a
+/// prediction 100× less sure moves the measurement by a 101st of the log
+/// distance, and `w` over its 144 µV floor averages the excess `ln √(w² −
+/// f²)`, not `ln w`. A value ≤ 0 or a variance that is not finite gives
+/// nothing.
+#[test]
+fn the_estimate_is_the_precision_weighted_mean_of_measurement_and_prediction() {
+    let mut k = knowledge(0, 1e-2);
+    k.floors = vec![0.0, 144.0];
+    let t = JointArrayTuner::new(vec![k], &JointConfig::default(), [0.3, 0.05]).unwrap();
+    // 22 ns ± 1.1 ns is 5 % (variance 0.0025 in ln), as the prediction
+    let e = t
+        .estimate(0, 0, (18f64.ln(), 0.0025), (22.0, 1.21))
+        .unwrap();
+    assert!((e - (18.0f64 * 22.0).sqrt()).abs() < 1e-9, "{e}");
+    let e = t.estimate(0, 0, (18f64.ln(), 0.25), (22.0, 1.21)).unwrap();
+    let expected = (100.0 * 22f64.ln() / 101.0 + 18f64.ln() / 101.0).exp();
+    assert!((e - expected).abs() < 1e-9, "{e} against {expected}");
+    assert!(e < 22.0 && e > 21.9);
+    // w over the floor: the measurement's variance in y, taken equal
+    let s = FloorLog::new(144.0);
+    let var_y = s.variance(190.0, 100.0);
+    let e = t
+        .estimate(0, 1, (s.y(180.0), var_y), (190.0, 100.0))
+        .unwrap();
+    let excess =
+        ((190.0f64.powi(2) - 144.0f64.powi(2)) * (180.0f64.powi(2) - 144.0f64.powi(2))).sqrt();
+    let expected = (excess + 144.0f64.powi(2)).sqrt();
+    assert!((e - expected).abs() < 1e-9, "{e} against {expected}");
+    assert!(expected < (180.0f64 * 190.0).sqrt(), "not the mean of ln w");
+    // nothing to weigh
+    assert_eq!(t.estimate(0, 0, (18f64.ln(), 0.0025), (0.0, 1.0)), None);
+    assert_eq!(
+        t.estimate(0, 0, (18f64.ln(), 0.0025), (22.0, f64::NAN)),
+        None
+    );
+    assert_eq!(t.estimate(0, 0, (f64::NAN, 0.0025), (22.0, 1.21)), None);
+    assert_eq!(t.estimate(3, 0, (18f64.ln(), 0.0025), (22.0, 1.21)), None);
+}
+
 /// A row over a floor learns, predicts and aims in `y = ½·ln(w² − f²)`:
 /// with `w`'s floor at 144 µV, the value the row keeps is `y(w)`, the
 /// residual of 270 against 180 µV is `y(270) − y(180)` (not `ln 1.5`), and

@@ -84,3 +84,42 @@ impl CellTrace {
         format!("{} mV | {}", volts.join(" "), params.join(" | "))
     }
 }
+
+/// How honest the traced scans' error bars are: per parameter (`t_sr`,
+/// `w`), the fraction of the measured values within one reported σ of the
+/// truth, and how many were measured (failed fits left out). Gaussian
+/// error bars cover 68 %; `None` where nothing was measured.
+///
+/// ```
+/// use spintune::benchmark::cell_trace::{error_bar_coverage, CellTrace};
+/// let at = |t_sr: f64, w: f64| CellTrace {
+///     cell: 0,
+///     voltages_mv: Vec::new(),
+///     measured: [Some((t_sr, 1.0)), Some((w, 10.0))],
+///     truth: [20.0, 200.0],
+///     learned_rows: [Vec::new(), Vec::new()],
+///     true_rows: [Vec::new(), Vec::new()],
+/// };
+/// // t_sr 0.5σ, 1σ (covered), 3σ off; w 0.1σ, 2σ, 0σ off
+/// let traces = [at(20.5, 201.0), at(21.0, 220.0), at(17.0, 200.0)];
+/// let c = error_bar_coverage(traces.iter());
+/// assert_eq!(c[0], Some((2.0 / 3.0, 3)));
+/// assert_eq!(c[1], Some((2.0 / 3.0, 3)));
+/// ```
+pub fn error_bar_coverage<'a>(
+    traces: impl IntoIterator<Item = &'a CellTrace>,
+) -> [Option<(f64, usize)>; 2] {
+    let mut within = [0usize; 2];
+    let mut n = [0usize; 2];
+    for t in traces {
+        for p in 0..2 {
+            if let Some((v, s)) = t.measured[p] {
+                n[p] += 1;
+                if (v - t.truth[p]).abs() <= s {
+                    within[p] += 1;
+                }
+            }
+        }
+    }
+    [0, 1].map(|p| (n[p] > 0).then(|| (within[p] as f64 / n[p] as f64, n[p])))
+}

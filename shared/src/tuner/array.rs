@@ -677,6 +677,36 @@ impl JointArrayTuner {
         (value > 0.0 && target > 0.0).then(|| s.residual(value, target))
     }
 
+    /// The filter's estimate of a value measured as `measured` (value and
+    /// variance, unit and unit²) where the row predicted `prediction` (in its
+    /// scale, from [`JointArrayTuner::predict`] before the measurement):
+    /// their precision-weighted mean, back in the parameter's unit. `None`
+    /// for an unknown row, a value ≤ 0 or a variance that is not finite.
+    ///
+    /// The measurement alone is noisy at the band's edge (a `w` scan's σ is
+    /// about 5 %, half the default band); the prediction carries what the
+    /// earlier measurements and the learned rows know about the same cell.
+    pub fn estimate(
+        &self,
+        cell: usize,
+        parameter: usize,
+        prediction: (f64, f64),
+        measured: Measured,
+    ) -> Option<f64> {
+        let s = self.scale(cell, parameter)?;
+        let (x, var) = measured;
+        let (yp, vp) = prediction;
+        if !(x > 0.0 && var.is_finite() && var >= 0.0 && yp.is_finite() && vp > 0.0) {
+            return None;
+        }
+        let vy = s.variance(x, var);
+        if vy <= 0.0 {
+            return Some(x);
+        }
+        let y = (s.y(x) / vy + yp / vp) / (1.0 / vy + 1.0 / vp);
+        Some(s.value(y)).filter(|v| v.is_finite())
+    }
+
     /// Whether the prediction at `voltages_mv` lies inside the band
     /// `target/(1 + tol) ..= target·(1 + tol)` with `sigma` standard
     /// deviations of margin on both sides (`false` without a prediction).

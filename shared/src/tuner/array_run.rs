@@ -49,6 +49,7 @@ use serde::{Deserialize, Serialize};
 
 use super::borrowed_gradient::borrow_failed_gradients;
 use super::flank::{FlankForecast, FlankModel};
+use super::in_band::InBandRule;
 use super::line_steps::joint_line_steps;
 use super::pooled_gradient::pool_gradients;
 use super::search::{SearchMemory, SearchMove};
@@ -212,6 +213,10 @@ pub struct ArrayRunSettings {
     /// "Initial rows: central and pooled").
     #[serde(default = "yes")]
     pub central_differences: bool,
+    /// When a measured cell counts in band ([`InBandRule`]). Default
+    /// [`InBandRule::Measured`].
+    #[serde(default)]
+    pub in_band: InBandRule,
 }
 
 fn yes() -> bool {
@@ -247,6 +252,7 @@ impl Default for ArrayRunSettings {
             pool_initial_gradients: true,
             pool_in_lockstep_units: false,
             central_differences: true,
+            in_band: InBandRule::Measured,
         }
     }
 }
@@ -1558,6 +1564,22 @@ impl ArrayRun {
             }
         }
         let v = self.voltages_mv.clone();
+        // the filter's estimate of each value, from its prediction before
+        // this measurement (ArrayRunSettings::in_band)
+        let estimates: Vec<Vec<Option<f64>>> = (0..k)
+            .map(|c| {
+                (0..CELL_PARAMETERS.len())
+                    .map(|p| {
+                        let j = self
+                            .joint
+                            .as_ref()
+                            .filter(|_| self.settings.in_band != InBandRule::Measured)?;
+                        let prediction = j.tuner.predict(c, p, &v)?;
+                        j.tuner.estimate(c, p, prediction, values[c][p]?)
+                    })
+                    .collect()
+            })
+            .collect();
         for (c, vals) in values.iter().enumerate() {
             if vals.iter().all(Option::is_some) {
                 let good = self.cell_voltages(c);
@@ -1580,9 +1602,12 @@ impl ArrayRun {
                 residual[c] = vec![Some(0.0); 2];
             } else {
                 // a measured parameter within its band
-                let within =
-                    |p: usize| values[c][p].is_some_and(|(x, _)| (x - tv[p]).abs() <= band * tv[p]);
-                let in_band = (0..tv.len()).all(within);
+                let near = |x: f64, p: usize| (x - tv[p]).abs() <= band * tv[p];
+                let within = |p: usize| values[c][p].is_some_and(|(x, _)| near(x, p));
+                let in_band = self
+                    .settings
+                    .in_band
+                    .in_band(&values[c], &estimates[c], &tv, band);
                 all_in &= in_band;
                 if let Some(j) = self.joint.as_mut() {
                     if j.in_band.len() != k {

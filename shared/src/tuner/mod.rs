@@ -38,6 +38,7 @@ pub mod excitation;
 pub mod finite_difference;
 mod flank;
 mod gate_row;
+pub mod in_band;
 mod keep;
 mod keep_tally;
 pub(crate) mod level_forecast;

@@ -1,0 +1,129 @@
+//! When a measured array cell counts in band: [`InBandRule`].
+//!
+//! The joint array loop stops on the first iteration that finds every cell
+//! in band. A cell hovering just outside its band reads inside about as
+//! often as its noise allows (a `w` scan's σ is about 5 %, half the default
+//! band of ±10 %), so a rule that trusts one reading stops with cells truly
+//! out. The filter's estimate ([`super::array::JointArrayTuner::estimate`]:
+//! each measurement combined with the value its row predicted before it,
+//! from the earlier measurements and the learned rows) weighs that reading
+//! against what the lab already knew about the cell.
+
+use serde::{Deserialize, Serialize};
+
+use super::array::Measured;
+
+/// When a measured cell counts in band
+/// ([`super::array_run::ArrayRunSettings::in_band`]). A parameter is within
+/// its band when `|x − target| ≤ relative_tolerance · target` (the band the
+/// records report). A parameter without an estimate (no prediction yet: the
+/// first measurement after the start) is judged on its measurement under
+/// every rule; a parameter without a measurement (a failed fit, or an error
+/// bar wider than the band) is never in band.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum InBandRule {
+    /// Every parameter measured within its band.
+    #[default]
+    Measured,
+    /// Every parameter measured within its band, and its estimate within it
+    /// too: stricter than [`InBandRule::Measured`].
+    MeasuredAndEstimate,
+    /// Every parameter's estimate within its band (a measurement just
+    /// outside may pass when the earlier ones put it inside).
+    Estimate,
+}
+
+impl InBandRule {
+    /// Whether a cell is in band: `values` its measurements (value, unit²
+    /// variance; `None` not measured), `estimates` the filter's estimate of
+    /// each (`None` without a prediction), `targets` (unit) and the band's
+    /// `relative_tolerance`, per parameter.
+    ///
+    /// ```
+    /// use spintune::tuner::in_band::InBandRule;
+    /// // t_sr on target; w measured 8 % high but estimated 12 % high
+    /// let values = [Some((20.0, 0.1)), Some((194.4, 81.0))];
+    /// let estimates = [Some(20.0), Some(201.6)];
+    /// let targets = [20.0, 180.0];
+    /// assert!(InBandRule::Measured.in_band(&values, &estimates, &targets, 0.1));
+    /// assert!(!InBandRule::MeasuredAndEstimate.in_band(&values, &estimates, &targets, 0.1));
+    /// assert!(!InBandRule::Estimate.in_band(&values, &estimates, &targets, 0.1));
+    /// ```
+    pub fn in_band(
+        self,
+        values: &[Option<Measured>],
+        estimates: &[Option<f64>],
+        targets: &[f64],
+        relative_tolerance: f64,
+    ) -> bool {
+        let near = |x: f64, t: f64| (x - t).abs() <= relative_tolerance * t;
+        targets.iter().enumerate().all(|(p, &t)| {
+            let Some(Some((x, _))) = values.get(p) else {
+                return false;
+            };
+            let measured = near(*x, t);
+            let estimated = estimates.get(p).copied().flatten().map(|e| near(e, t));
+            match self {
+                InBandRule::Measured => measured,
+                InBandRule::MeasuredAndEstimate => measured && estimated != Some(false),
+                InBandRule::Estimate => estimated.unwrap_or(measured),
+            }
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::InBandRule::{self, *};
+
+    const T: [f64; 2] = [20.0, 180.0];
+
+    fn judge(rule: InBandRule, w: Option<f64>, w_estimate: Option<f64>) -> bool {
+        rule.in_band(
+            &[Some((20.0, 0.1)), w.map(|w| (w, 81.0))],
+            &[Some(20.0), w_estimate],
+            &T,
+            0.1,
+        )
+    }
+
+    /// The band's edges: 162 and 198 µV around 180 µV are inside, a hair
+    /// beyond is out, under every rule alike when measurement and estimate
+    /// agree.
+    #[test]
+    fn the_band_is_relative_to_the_target_edges_included() {
+        for rule in [Measured, MeasuredAndEstimate, Estimate] {
+            for (w, inside) in [(162.0, true), (198.0, true), (161.9, false), (198.1, false)] {
+                assert_eq!(judge(rule, Some(w), Some(w)), inside, "{rule:?} at {w}");
+            }
+        }
+    }
+
+    /// Measurement and estimate on either side of the edge: only the rule
+    /// decides.
+    #[test]
+    fn each_rule_weighs_measurement_and_estimate_as_documented() {
+        // measured in, estimated out
+        assert!(judge(Measured, Some(190.0), Some(200.0)));
+        assert!(!judge(MeasuredAndEstimate, Some(190.0), Some(200.0)));
+        assert!(!judge(Estimate, Some(190.0), Some(200.0)));
+        // measured out, estimated in
+        assert!(!judge(Measured, Some(200.0), Some(190.0)));
+        assert!(!judge(MeasuredAndEstimate, Some(200.0), Some(190.0)));
+        assert!(judge(Estimate, Some(200.0), Some(190.0)));
+    }
+
+    /// Without an estimate the measurement decides; without a measurement
+    /// nothing is in band, whatever the estimate says.
+    #[test]
+    fn a_missing_estimate_defers_to_the_measurement_and_a_missing_value_is_out() {
+        for rule in [Measured, MeasuredAndEstimate, Estimate] {
+            assert!(judge(rule, Some(190.0), None), "{rule:?}");
+            assert!(!judge(rule, Some(200.0), None), "{rule:?}");
+            assert!(!judge(rule, None, Some(180.0)), "{rule:?}");
+        }
+        // every target needs its value
+        assert!(!Measured.in_band(&[Some((20.0, 0.1))], &[], &T, 0.1));
+    }
+}

@@ -682,6 +682,59 @@ fn the_estimate_is_the_precision_weighted_mean_of_measurement_and_prediction() {
     assert_eq!(t.estimate(3, 0, (18f64.ln(), 0.0025), (22.0, 1.21)), None);
 }
 
+/// A row whose predictions keep missing by more than their spread is
+/// trusted less in the estimate: after `t_sr` jumps between 20 and 40 ns
+/// at every 1 mV step (the row's prior says 1 %), the estimate of a 22 ns
+/// measurement against an 18 ns prediction of equal variance lies nearer
+/// the measurement than the plain precision-weighted mean; a row whose
+/// predictions came true (a mean NIS below 1) is not trusted more.
+#[test]
+fn the_estimate_trusts_a_row_as_far_as_its_predictions_came_true() {
+    let gates = |n: f64| -> std::collections::BTreeMap<String, f64> {
+        ["N", "SA", "SB", "T"]
+            .iter()
+            .map(|g| {
+                (
+                    spintune::sim::array::gate_name(0, g),
+                    if *g == "N" { n } else { 0.0 },
+                )
+            })
+            .collect()
+    };
+    let plain = (18.0f64 * 22.0).sqrt();
+    let mut missing = JointArrayTuner::new(
+        vec![knowledge(0, 1e-2)],
+        &JointConfig::default(),
+        [0.3, 0.05],
+    )
+    .unwrap();
+    for (i, t_sr) in [20.0, 40.0, 20.0, 40.0, 20.0, 40.0].into_iter().enumerate() {
+        missing.observe(0, &[Some((t_sr, 0.01)), None], &gates(i as f64));
+    }
+    let e = missing
+        .estimate(0, 0, (18f64.ln(), 0.0025), (22.0, 1.21))
+        .unwrap();
+    assert!(
+        e > plain + 0.5 && e < 22.0,
+        "{e} against the plain mean {plain}"
+    );
+    // predictions that came true: the gradient followed exactly
+    let mut right = JointArrayTuner::new(
+        vec![knowledge(0, 1e-2)],
+        &JointConfig::default(),
+        [0.3, 0.05],
+    )
+    .unwrap();
+    for i in 0..6 {
+        let t_sr = 20.0 * (0.01 * i as f64).exp();
+        right.observe(0, &[Some((t_sr, 0.01)), None], &gates(i as f64));
+    }
+    let e = right
+        .estimate(0, 0, (18f64.ln(), 0.0025), (22.0, 1.21))
+        .unwrap();
+    assert!((e - plain).abs() < 1e-9, "{e} against {plain}");
+}
+
 /// A row over a floor learns, predicts and aims in `y = ½·ln(w² − f²)`:
 /// with `w`'s floor at 144 µV, the value the row keeps is `y(w)`, the
 /// residual of 270 against 180 µV is `y(270) − y(180)` (not `ln 1.5`), and

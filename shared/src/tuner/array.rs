@@ -60,7 +60,7 @@ use crate::solver::{newton_step, SolverConfig, StepRule};
 use crate::tuner::block_trust_region::block_trust_region_step;
 use crate::tuner::excitation::null_space_direction;
 use crate::tuner::miss_cusum::MissCusum;
-use crate::tuner::newton::retreat_target;
+use crate::tuner::newton::{retreat_target, Consistency};
 use crate::tuner::thermal_floor::FloorLog;
 
 /// Largest [`JointConfig::trust_region_covariance`].
@@ -305,6 +305,10 @@ struct Row {
     /// Whether the row's misses persist ([`JointConfig::persistent_miss_sigma`]).
     #[serde(default)]
     misses: MissCusum,
+    /// How well the row's predictions matched the measurements (every
+    /// update's normalised innovation), for [`JointArrayTuner::estimate`].
+    #[serde(default)]
+    checks: Consistency,
 }
 
 /// The joint tuner (module docs).
@@ -360,6 +364,10 @@ pub fn check_cross_calibration(lambda: [f64; 2]) -> Result<(), ConfigError> {
 
 /// A measured value (parameter unit) and its variance (unit²).
 pub type Measured = (f64, f64);
+
+/// Updates a row needs before its predictions' consistency scales the
+/// prediction in [`JointArrayTuner::estimate`].
+pub const MIN_CHECKS_FOR_ESTIMATE: u64 = 3;
 
 /// How much larger cell `cell`'s initial gradient comes out when all
 /// `cells` take their finite differences in lockstep (every cell moving
@@ -551,6 +559,7 @@ impl JointArrayTuner {
                     last: None,
                     scale: FloorLog::new(c.floors.get(pi).copied().unwrap_or(0.0)),
                     misses: MissCusum::default(),
+                    checks: Consistency::default(),
                 });
             }
         }
@@ -680,8 +689,12 @@ impl JointArrayTuner {
     /// The filter's estimate of a value measured as `measured` (value and
     /// variance, unit and unit²) where the row predicted `prediction` (in its
     /// scale, from [`JointArrayTuner::predict`] before the measurement):
-    /// their precision-weighted mean, back in the parameter's unit. `None`
-    /// for an unknown row, a value ≤ 0 or a variance that is not finite.
+    /// their precision-weighted mean, back in the parameter's unit. The
+    /// prediction's variance is first scaled by the mean NIS of the row's
+    /// updates so far when above 1 (after [`MIN_CHECKS_FOR_ESTIMATE`]
+    /// updates): a row whose predictions missed by more than they said is
+    /// trusted as far as they came true. `None` for an unknown row, a value
+    /// ≤ 0 or a variance that is not finite.
     ///
     /// The measurement alone is noisy at the band's edge (a `w` scan's σ is
     /// about 5 %, half the default band); the prediction carries what the
@@ -693,9 +706,18 @@ impl JointArrayTuner {
         prediction: (f64, f64),
         measured: Measured,
     ) -> Option<f64> {
-        let s = self.scale(cell, parameter)?;
+        let row = self
+            .rows
+            .iter()
+            .find(|r| r.cell == cell && r.parameter == parameter)?;
+        let s = row.scale;
         let (x, var) = measured;
         let (yp, vp) = prediction;
+        // a row whose predictions missed by more than they said is trusted less
+        let vp = match row.checks.nis_mean() {
+            Some(nis) if row.checks.count >= MIN_CHECKS_FOR_ESTIMATE => vp * nis.max(1.0),
+            _ => vp,
+        };
         if !(x > 0.0 && var.is_finite() && var >= 0.0 && yp.is_finite() && vp > 0.0) {
             return None;
         }
@@ -768,6 +790,7 @@ impl JointArrayTuner {
                             innovation_sigma,
                         },
                     ) => {
+                        row.checks.add(innovation, innovation_sigma);
                         let (h, factor) = self.persistent_miss;
                         if h > 0.0
                             && innovation_sigma > 0.0

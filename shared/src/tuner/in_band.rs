@@ -6,8 +6,9 @@
 //! band of ±10 %), so a rule that trusts one reading stops with cells truly
 //! out. The filter's estimate ([`super::array::JointArrayTuner::estimate`]:
 //! each measurement combined with the value its row predicted before it,
-//! from the earlier measurements and the learned rows) weighs that reading
-//! against what the lab already knew about the cell.
+//! from the earlier measurements and the learned rows, trusted as far as
+//! the row's predictions came true) weighs that reading against what the
+//! lab already knew about the cell.
 
 use serde::{Deserialize, Serialize};
 

@@ -511,42 +511,29 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
         assert!(err.contains(expected), "{err}");
     }
 
-    std::fs::write(&tuning, "line_rounds = 9\n").unwrap();
-    let out = bin()
-        .args(["bench-array", "--cells", "2", "--seeds", "1", "--tuning"])
-        .arg(&tuning)
-        .output()
-        .unwrap();
-    assert_eq!(out.status.code(), Some(2));
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(
-        err.contains("--tuning") && err.contains("tuning.line_rounds"),
-        "{err}"
-    );
-    std::fs::write(&tuning, "colour = \"red\"\n").unwrap();
-    let out = bin()
-        .args(["bench-array", "--tuning"])
-        .arg(&tuning)
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(
-        err.contains("tuning.toml") && err.contains("colour"),
-        "{err}"
-    );
-    // a rule that does not exist names the field and the rules that do
-    std::fs::write(&tuning, "in_band = \"estimated\"\n").unwrap();
-    let out = bin()
-        .args(["bench-array", "--tuning"])
-        .arg(&tuning)
-        .output()
-        .unwrap();
-    assert_eq!(out.status.code(), Some(2));
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(
-        err.contains("in_band") && err.contains("measured_and_estimate"),
-        "{err}"
-    );
+    // a tuning file's bad value, unknown key or unknown rule names the
+    // flag, the file and the field (a rule: also the rules that exist)
+    for (contents, expected) in [
+        ("line_rounds = 9\n", &["--tuning", "tuning.line_rounds"][..]),
+        ("colour = \"red\"\n", &["tuning.toml", "colour"][..]),
+        (
+            "in_band = \"estimated\"\n",
+            &["in_band", "measured_and_estimate"][..],
+        ),
+    ] {
+        std::fs::write(&tuning, contents).unwrap();
+        let out = bin()
+            .args(["bench-array", "--cells", "2", "--seeds", "1", "--tuning"])
+            .arg(&tuning)
+            .output()
+            .unwrap();
+        assert_eq!(out.status.code(), Some(2), "{contents}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            expected.iter().all(|e| err.contains(e)),
+            "{contents}: {err}"
+        );
+    }
     // every bound of the array flags, before anything runs; the lab's
     // calibration is two finite numbers, each within [0, 0.9]
     for (value, expected) in [

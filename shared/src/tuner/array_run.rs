@@ -49,7 +49,7 @@ use serde::{Deserialize, Serialize};
 
 use super::borrowed_gradient::borrow_failed_gradients;
 use super::flank::{FlankForecast, FlankModel};
-use super::in_band::InBandRule;
+use super::in_band::{within_band, InBandRule};
 use super::line_steps::joint_line_steps;
 use super::pooled_gradient::pool_gradients;
 use super::search::{SearchMemory, SearchMove};
@@ -1574,8 +1574,9 @@ impl ArrayRun {
                             .joint
                             .as_ref()
                             .filter(|_| self.settings.in_band != InBandRule::Measured)?;
+                        let measured = values[c][p]?;
                         let prediction = j.tuner.predict(c, p, &v)?;
-                        j.tuner.estimate(c, p, prediction, values[c][p]?)
+                        j.tuner.estimate(c, p, prediction, measured)
                     })
                     .collect()
             })
@@ -1602,8 +1603,8 @@ impl ArrayRun {
                 residual[c] = vec![Some(0.0); 2];
             } else {
                 // a measured parameter within its band
-                let near = |x: f64, p: usize| (x - tv[p]).abs() <= band * tv[p];
-                let within = |p: usize| values[c][p].is_some_and(|(x, _)| near(x, p));
+                let within =
+                    |p: usize| values[c][p].is_some_and(|(x, _)| within_band(x, tv[p], band));
                 let in_band = self
                     .settings
                     .in_band

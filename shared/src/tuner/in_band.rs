@@ -35,6 +35,17 @@ pub enum InBandRule {
     Estimate,
 }
 
+/// Whether `value` lies within `relative_tolerance · target` of `target`
+/// (edges included): the band a measured parameter is judged against.
+///
+/// ```
+/// use spintune::tuner::in_band::within_band;
+/// assert!(within_band(198.0, 180.0, 0.1) && !within_band(198.1, 180.0, 0.1));
+/// ```
+pub fn within_band(value: f64, target: f64, relative_tolerance: f64) -> bool {
+    (value - target).abs() <= relative_tolerance * target
+}
+
 impl InBandRule {
     /// Whether a cell is in band: `values` its measurements (value, unit²
     /// variance; `None` not measured), `estimates` the filter's estimate of
@@ -58,7 +69,7 @@ impl InBandRule {
         targets: &[f64],
         relative_tolerance: f64,
     ) -> bool {
-        let near = |x: f64, t: f64| (x - t).abs() <= relative_tolerance * t;
+        let near = |x: f64, t: f64| within_band(x, t, relative_tolerance);
         targets.iter().enumerate().all(|(p, &t)| {
             let Some(Some((x, _))) = values.get(p) else {
                 return false;

@@ -62,6 +62,7 @@ use crate::tuner::array::JointArrayTuner;
 use crate::tuner::array_run::{
     ArrayAction, ArrayRun, ArrayRunError, ArrayRunSettings, CELL_PARAMETERS,
 };
+use crate::tuner::in_band::within_band;
 use crate::tuner::{Tuner, TunerConfig};
 
 /// A strategy of the array benchmark (module docs).
@@ -574,7 +575,7 @@ pub fn single_change_cells(cells: u32, n: u32) -> Vec<u32> {
 fn truly_in_band(lab: &Lab, cell: u32, (t_sr, w): (f64, f64), band: f64) -> bool {
     lab.device
         .truth(cell)
-        .is_some_and(|t| (t.t_sr_ns - t_sr).abs() <= band * t_sr && (t.w_uv - w).abs() <= band * w)
+        .is_some_and(|t| within_band(t.t_sr_ns, t_sr, band) && within_band(t.w_uv, w, band))
 }
 
 /// The world: an array of `cells` on population `device_seed`, noise `seed`.

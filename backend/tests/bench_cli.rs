@@ -362,7 +362,7 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
     let plot = dir.join("timeline.png");
     std::fs::write(
         &tuning,
-        "line_rounds = 2\nhold_in_band = true\nreset_flat_row_fraction = 0\n[joint]\nneighbour_prior_fraction = 0.4\ncorrelated_prior = false\nlockstep_correction = true\nexcitation = 0.3\n[line_forecast]\nmax_skips = 2\n",
+        "line_rounds = 2\nhold_in_band = true\nreset_flat_row_fraction = 0\nreset_stalled_row_after = 3\nstalled_row_from = \"prior\"\n[joint]\nneighbour_prior_fraction = 0.4\ncorrelated_prior = false\nlockstep_correction = true\nexcitation = 0.3\n[line_forecast]\nmax_skips = 2\n",
     )
     .unwrap();
     let out = run_ok(
@@ -420,6 +420,9 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
     assert_eq!(report["protocol"]["tuning"]["pool_initial_gradients"], true);
     // a cell counts in band on its measurements (the estimate's rules measured no better)
     assert_eq!(report["protocol"]["tuning"]["in_band"], "measured");
+    // the file's stalled-row rule
+    assert_eq!(report["protocol"]["tuning"]["reset_stalled_row_after"], 3);
+    assert_eq!(report["protocol"]["tuning"]["stalled_row_from"], "prior");
     assert_eq!(report["protocol"]["tuning"]["line_rounds"], 2);
     // the line forecast (off by default): the file's field, the rest defaults
     assert_eq!(
@@ -519,6 +522,14 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
         (
             "in_band = \"estimated\"\n",
             &["in_band", "measured_and_estimate"][..],
+        ),
+        (
+            "reset_stalled_row_after = 1\n",
+            &["tuning.reset_stalled_row_after", "1"][..],
+        ),
+        (
+            "stalled_row_from = \"neighbours\"\n",
+            &["stalled_row_from", "peers", "widened"][..],
         ),
     ] {
         std::fs::write(&tuning, contents).unwrap();

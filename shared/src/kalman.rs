@@ -397,6 +397,56 @@ impl KalmanGradient {
         })
     }
 
+    /// Replace the estimate: gradient `g` (unit/mV) and covariance `c`
+    /// ((unit/mV)², symmetric PSD), keeping the process noise, the minimum
+    /// step and the outlier gate (a row that borrows what other rows
+    /// learned, [`crate::tuner::array::JointArrayTuner::borrow_row`]).
+    /// Invalid input (wrong dimension, a non-finite entry, a covariance that
+    /// is not PSD) is an error and leaves the state untouched.
+    ///
+    /// ```
+    /// use nalgebra::{DMatrix, DVector};
+    /// use spintune::kalman::{KalmanGradient, ProcessNoise};
+    /// let mut f = KalmanGradient::new(
+    ///     DVector::from_vec(vec![1.0, 0.0]),
+    ///     DMatrix::identity(2, 2) * 0.01,
+    ///     ProcessNoise::isotropic(2, 0.001),
+    /// ).unwrap();
+    /// f.set_estimate(DVector::from_vec(vec![0.0, 2.0]), DMatrix::identity(2, 2) * 0.04).unwrap();
+    /// assert_eq!(f.gradient()[1], 2.0);
+    /// assert_eq!(f.covariance()[(0, 0)], 0.04);
+    /// assert!(f.set_estimate(DVector::from_vec(vec![f64::NAN, 0.0]), DMatrix::identity(2, 2)).is_err());
+    /// assert!(f.set_estimate(DVector::from_vec(vec![1.0]), DMatrix::identity(1, 1)).is_err());
+    /// assert_eq!(f.gradient()[1], 2.0);
+    /// ```
+    pub fn set_estimate(&mut self, g: DVector<f64>, c: DMatrix<f64>) -> Result<(), FilterError> {
+        let n = self.gradient.len();
+        if g.len() != n {
+            return Err(FilterError::Dimension {
+                what: "gradient",
+                expected: n,
+                got: g.len(),
+            });
+        }
+        if let Some(&bad) = g.iter().find(|x| !x.is_finite()) {
+            return Err(FilterError::Invalid {
+                what: "gradient",
+                value: bad,
+            });
+        }
+        if c.shape() != (n, n) {
+            return Err(FilterError::Dimension {
+                what: "covariance",
+                expected: n,
+                got: c.nrows(),
+            });
+        }
+        validate_covariance(&c, "covariance")?;
+        self.gradient = g;
+        self.covariance = symmetrise(c);
+        Ok(())
+    }
+
     /// `C ← factor · C`: widen the gradient's uncertainty in every direction
     /// (a shorter memory after the row's predictions kept missing;
     /// [`crate::tuner::miss_cusum`]). `C` stays exactly symmetric and PSD.

@@ -16,6 +16,7 @@ use spintune::benchmark::PAPER_SET_POINTS;
 use spintune::sim::array::{ArrayConfig, ArrayDevice};
 use spintune::sim::DeviceConfig;
 use spintune::tuner::array::{CellKnowledge, JointArrayTuner, JointConfig};
+use spintune::tuner::stall::StalledRowSource;
 use spintune::tuner::thermal_floor::FloorLog;
 use support::array::{joint_in_lab, oldest_settings, through_set_points, wide_limits};
 
@@ -389,6 +390,117 @@ fn a_reset_row_returns_to_its_prior_and_only_that_row() {
     assert!((t.row_norm(1, 0).unwrap() - norm).abs() < 1e-15);
     assert!(!t.reset_row(7, 0));
     assert_eq!(t.row_norm(7, 0), None);
+}
+
+/// The predicted variance of cell 1's `t_sr` after its `SA` moves by
+/// 2 mV, from a value measured (variance 1e-12) at 0 mV: `1e-12 + 2²·C_SA,SA
+/// + Q(2 mV)`.
+fn variance_after_sa_step(t: &JointArrayTuner, cell: u32) -> f64 {
+    let mut v: std::collections::BTreeMap<String, f64> =
+        t.gates().iter().map(|g| (g.clone(), 0.0)).collect();
+    v.insert(spintune::sim::array::gate_name(cell, "SA"), 2.0);
+    t.predict(cell as usize, 0, &v).unwrap().1
+}
+
+/// A stalled row widened (`StalledRowSource::Widened`) keeps its gradient
+/// and gains its prior's covariance: along a 2 mV step on the own `SA`
+/// (prior variance 1e-4 (1/mV)²) the prediction's variance grows by
+/// exactly 2²·1e-4.
+#[test]
+fn a_widened_row_keeps_its_gradient_and_gains_its_priors_covariance() {
+    let cells = || (0..3).map(|c| knowledge(c, 1e-4)).collect::<Vec<_>>();
+    let mut t = JointArrayTuner::new(cells(), &JointConfig::default(), [0.3, 0.05]).unwrap();
+    let v: std::collections::BTreeMap<String, f64> =
+        t.gates().iter().map(|g| (g.clone(), 0.0)).collect();
+    t.observe(1, &[Some((100.0, 1e-12)), Some((200.0, 1e-12))], &v);
+    let before = variance_after_sa_step(&t, 1);
+    let gradient = t.row_gradient(1, 0);
+    assert!(t.widen_row(1, 0));
+    assert_eq!(t.row_gradient(1, 0), gradient);
+    let after = variance_after_sa_step(&t, 1);
+    assert!(
+        (after - before - 4.0 * 1e-4).abs() < 1e-12,
+        "{before} → {after}"
+    );
+    assert!(!t.widen_row(7, 0));
+}
+
+/// A stalled row borrowing from its peers (`StalledRowSource::Peers`):
+/// cells 1 and 2 measured `SA` gradients 0.02 and 0.04 (1/mV), each with
+/// variance 1e-4. Cell 0's own `SA` becomes their mean 0.03 with variance
+/// 1e-4 (their own) + 2e-4 (the sample variance of 0.02 and 0.04), so the
+/// prediction along a 2 mV `SA` step grows by 2²·(3e-4 − 1e-4) = 8e-4;
+/// its crosstalk columns stay as they were.
+#[test]
+fn a_borrowed_row_takes_the_peers_mean_and_their_spread() {
+    let cells = || {
+        (0..3)
+            .map(|c| {
+                let mut k = knowledge(c, 1e-4);
+                let sa = [0.01, 0.02, 0.04][c as usize];
+                for g in &mut k.gradient {
+                    g[1] = sa;
+                }
+                k
+            })
+            .collect::<Vec<_>>()
+    };
+    let mut t = JointArrayTuner::new(cells(), &JointConfig::default(), [0.3, 0.05]).unwrap();
+    let v: std::collections::BTreeMap<String, f64> =
+        t.gates().iter().map(|g| (g.clone(), 0.0)).collect();
+    t.observe(0, &[Some((100.0, 1e-12)), Some((200.0, 1e-12))], &v);
+    let before = variance_after_sa_step(&t, 0);
+    let crosstalk = |t: &JointArrayTuner| -> Vec<(String, f64)> {
+        t.row_gradient(0, 0)
+            .into_iter()
+            .filter(|(g, _)| !g.starts_with("c0."))
+            .collect()
+    };
+    let neighbours = crosstalk(&t);
+    assert!(t.borrow_row(0, 0, &[1, 2]));
+    let own: Vec<f64> = t
+        .row_gradient(0, 0)
+        .into_iter()
+        .filter(|(g, _)| g.starts_with("c0."))
+        .map(|(_, x)| x)
+        .collect();
+    let expected = [0.01, 0.03, -0.03, 0.0];
+    for (o, e) in own.iter().zip(expected) {
+        assert!((o - e).abs() < 1e-12, "{own:?}");
+    }
+    assert_eq!(crosstalk(&t), neighbours);
+    let after = variance_after_sa_step(&t, 0);
+    assert!((after - before - 8e-4).abs() < 1e-12, "{before} → {after}");
+    // nothing to borrow from: itself, a cell that does not exist
+    assert!(!t.borrow_row(0, 0, &[0, 9]));
+    // a row over a thermal floor is not comparable between cells
+    let floored = (0..3)
+        .map(|c| CellKnowledge {
+            floors: vec![0.0, 144.0],
+            ..knowledge(c, 1e-4)
+        })
+        .collect();
+    let mut f = JointArrayTuner::new(floored, &JointConfig::default(), [0.3, 0.05]).unwrap();
+    assert!(f.borrow_row(0, 0, &[1, 2]));
+    assert!(!f.borrow_row(0, 1, &[1, 2]));
+}
+
+#[test]
+fn the_stalled_row_rule_is_bounded_and_on_by_default() {
+    let p = short_protocol();
+    assert_eq!(p.tuning.reset_stalled_row_after, 8, "the default");
+    assert_eq!(p.tuning.stalled_row_from, StalledRowSource::Widened);
+    for bad in [1, 31] {
+        let mut q = short_protocol();
+        q.tuning.reset_stalled_row_after = bad;
+        assert_eq!(
+            q.validate().unwrap_err().field,
+            "tuning.reset_stalled_row_after"
+        );
+    }
+    let mut off = short_protocol();
+    off.tuning.reset_stalled_row_after = 0;
+    assert!(off.validate().is_ok());
 }
 
 #[test]

@@ -615,6 +615,119 @@ impl JointArrayTuner {
         }
     }
 
+    /// Widen `cell`'s row of `parameter`: its covariance gains its prior's
+    /// (the learned gradient is kept, but the row is again as unsure as it
+    /// started, so the next moves teach it as much as the first did).
+    /// Whether the row exists and has a prior.
+    pub fn widen_row(&mut self, cell: usize, parameter: usize) -> bool {
+        let Some(row) = self
+            .rows
+            .iter_mut()
+            .find(|r| r.cell == cell && r.parameter == parameter)
+        else {
+            return false;
+        };
+        let Some(prior) = &row.prior else {
+            return false;
+        };
+        let c = row.filter.covariance() + prior.covariance();
+        let g = row.filter.gradient().clone();
+        row.filter.set_estimate(g, c).is_ok()
+    }
+
+    /// Give `cell`'s row of `parameter` the own-gate gradient the rows of
+    /// the cells `from` learned (each of their own gates matched to the
+    /// cell's gate of the same name): mean, and per gate a variance of the
+    /// rows' own variance (mean) plus the spread between them (the sample
+    /// variance; the mean's square from a single row), uncorrelated with the
+    /// row's other gates. The row's neighbour columns keep what they
+    /// learned. The cells of an array are alike and, tuned to the same
+    /// targets, sit where their gradients are alike: what the others learned
+    /// there is a better start than a row that stopped tracking its own
+    /// parameter ([`super::stall`]). Rows in a scale over a thermal floor
+    /// are not comparable between cells (each has its own floor): only rows
+    /// in plain log take part. Whether the row exists, `from` held at least
+    /// one other cell's plain row, and the estimate was replaced.
+    ///
+    /// ```
+    /// use spintune::tuner::array::{CellKnowledge, JointArrayTuner, JointConfig};
+    /// let cell = |k: u32, g: [f64; 2]| CellKnowledge {
+    ///     gates: vec![format!("c{k}.A"), format!("c{k}.B")],
+    ///     parameters: vec!["t_sr".into()],
+    ///     gradient: vec![g.to_vec()],
+    ///     covariance: vec![vec![vec![1e-6, 0.0], vec![0.0, 1e-6]]],
+    ///     process_noise_per_mv: vec![0.0],
+    ///     floors: vec![0.0],
+    ///     max_step_mv: 10.0,
+    ///     compensation: None,
+    /// };
+    /// let cells = vec![cell(0, [0.01, 0.0]), cell(1, [0.0, 0.02]), cell(2, [0.0, 0.04])];
+    /// let mut tuner = JointArrayTuner::new(cells, &JointConfig::default(), [0.0; 2]).unwrap();
+    /// assert!(tuner.borrow_row(0, 0, &[1, 2]));
+    /// let own: Vec<f64> = tuner.row_gradient(0, 0).iter()
+    ///     .filter(|(g, _)| g.starts_with("c0.")).map(|(_, x)| *x).collect();
+    /// assert!((own[0] - 0.0).abs() < 1e-12 && (own[1] - 0.03).abs() < 1e-12);
+    /// assert!(!tuner.borrow_row(0, 0, &[0]), "a row does not borrow from itself");
+    /// ```
+    pub fn borrow_row(&mut self, cell: usize, parameter: usize, from: &[usize]) -> bool {
+        let own_gates = |r: &Row| -> Vec<(usize, String)> {
+            r.columns
+                .iter()
+                .enumerate()
+                .filter_map(|(a, &col)| {
+                    let (c, local) = crate::sim::array::split_gate(&self.gates[col])?;
+                    (c as usize == r.cell).then(|| (a, local.to_string()))
+                })
+                .collect()
+        };
+        let Some(target) = self
+            .rows
+            .iter()
+            .position(|r| r.cell == cell && r.parameter == parameter)
+        else {
+            return false;
+        };
+        if self.rows[target].scale != FloorLog::default() {
+            return false;
+        }
+        let gates = own_gates(&self.rows[target]);
+        // per own gate of the target: the peers' (gradient, variance)
+        let mut samples: Vec<Vec<(f64, f64)>> = vec![Vec::new(); gates.len()];
+        for r in self.rows.iter().filter(|r| {
+            r.parameter == parameter
+                && r.cell != cell
+                && from.contains(&r.cell)
+                && r.scale == FloorLog::default()
+        }) {
+            for (a, local) in own_gates(r) {
+                if let Some(i) = gates.iter().position(|(_, l)| *l == local) {
+                    samples[i].push((r.filter.gradient()[a], r.filter.covariance()[(a, a)]));
+                }
+            }
+        }
+        if samples.iter().any(Vec::is_empty) || samples.is_empty() {
+            return false;
+        }
+        let row = &mut self.rows[target];
+        let mut g = row.filter.gradient().clone();
+        let mut c = row.filter.covariance().clone();
+        for ((a, _), peers) in gates.iter().zip(&samples) {
+            let n = peers.len() as f64;
+            let mean = peers.iter().map(|p| p.0).sum::<f64>() / n;
+            let own = peers.iter().map(|p| p.1).sum::<f64>() / n;
+            let spread = if peers.len() >= 2 {
+                peers.iter().map(|p| (p.0 - mean).powi(2)).sum::<f64>() / (n - 1.0)
+            } else {
+                mean * mean
+            };
+            g[*a] = mean;
+            c.row_mut(*a).fill(0.0);
+            c.column_mut(*a).fill(0.0);
+            c[(*a, *a)] = own + spread;
+        }
+        row.filter.set_estimate(g, c).is_ok()
+    }
+
     /// Every tuning gate of the array, cell by cell (array names).
     pub fn gates(&self) -> &[String] {
         &self.gates

@@ -53,6 +53,7 @@ use super::in_band::{within_band, InBandRule};
 use super::line_steps::joint_line_steps;
 use super::pooled_gradient::pool_gradients;
 use super::search::{SearchMemory, SearchMove};
+use super::stall::{StallWatch, StalledRowSource, MAX_STALL_WINDOW};
 use crate::config_error::ConfigError;
 use crate::fit::{evaluate_with, lead_widths_mv, uncertainty::References};
 use crate::protocol::{
@@ -217,6 +218,20 @@ pub struct ArrayRunSettings {
     /// [`InBandRule::Measured`].
     #[serde(default)]
     pub in_band: InBandRule,
+    /// Start a cell's parameter row again ([`Self::stalled_row_from`]) when
+    /// the parameter stalled: measured out of band on one side this many
+    /// iterations in a row without coming nearer its target by a band
+    /// ([`StallWatch`]; 2..=[`MAX_STALL_WINDOW`], 0: never). Never for the
+    /// oracle. Default 8, chosen among 4 and 8 on random development arrays
+    /// and checked on fresh ones (docs/array.md, "Stalled parameters").
+    #[serde(default = "default_reset_stalled_row_after")]
+    pub reset_stalled_row_after: u32,
+    /// Where a stalled row starts again ([`StalledRowSource`]). Default
+    /// [`StalledRowSource::Widened`]: the rows borrowed from the peers or
+    /// returned to their prior left more phases unconverged on random
+    /// development arrays (docs/array.md).
+    #[serde(default = "default_stalled_row_from")]
+    pub stalled_row_from: StalledRowSource,
 }
 
 fn yes() -> bool {
@@ -225,6 +240,14 @@ fn yes() -> bool {
 
 fn default_joint_line_steps() -> bool {
     false
+}
+
+fn default_reset_stalled_row_after() -> u32 {
+    8
+}
+
+fn default_stalled_row_from() -> StalledRowSource {
+    StalledRowSource::Widened
 }
 
 fn default_reset_flat_row_fraction() -> f64 {
@@ -253,6 +276,8 @@ impl Default for ArrayRunSettings {
             pool_in_lockstep_units: false,
             central_differences: true,
             in_band: InBandRule::Measured,
+            reset_stalled_row_after: default_reset_stalled_row_after(),
+            stalled_row_from: default_stalled_row_from(),
         }
     }
 }
@@ -326,6 +351,12 @@ impl ArrayRunSettings {
             f.is_finite() && (0.0..=1.0).contains(&f),
             "reset_flat_row_fraction",
             f.to_string(),
+        )?;
+        let n = self.reset_stalled_row_after;
+        check(
+            n == 0 || (2..=MAX_STALL_WINDOW as u32).contains(&n),
+            "reset_stalled_row_after",
+            n.to_string(),
         )?;
         if let Some(m) = self.max_iterations {
             check((1..=100_000).contains(&m), "max_iterations", m.to_string())?;
@@ -549,6 +580,10 @@ struct Joint {
     /// Per cell: measurements skipped in a row.
     #[serde(default)]
     skips_in_a_row: Vec<u32>,
+    /// Per cell and parameter: its stall watch
+    /// ([`ArrayRunSettings::reset_stalled_row_after`]).
+    #[serde(default)]
+    stalls: Vec<[StallWatch; 2]>,
 }
 
 /// The joint array loop (module docs). Serializable as a whole.
@@ -684,9 +719,14 @@ impl ArrayRun {
         })?;
         *slot = targets;
         self.iterations_since_change = 0;
-        // measured in band against the old targets says nothing now
-        if let Some(b) = self.joint.as_mut().and_then(|j| j.in_band.get_mut(cell)) {
-            *b = false;
+        // measured in band (or stalled) against the old targets says nothing now
+        if let Some(j) = self.joint.as_mut() {
+            if let Some(b) = j.in_band.get_mut(cell) {
+                *b = false;
+            }
+            if let Some(s) = j.stalls.get_mut(cell) {
+                *s = Default::default();
+            }
         }
         if self.step == Step::Idle {
             self.step = Step::Measure;
@@ -1455,6 +1495,7 @@ impl ArrayRun {
             in_band: vec![false; k],
             skip: vec![false; k],
             skips_in_a_row: vec![0; k],
+            stalls: vec![Default::default(); k],
         });
         Ok(())
     }
@@ -1623,6 +1664,9 @@ impl ArrayRun {
                     if out[p] {
                         self.reset_if_flat(c, p);
                     }
+                    if let Some((x, _)) = m {
+                        self.reset_if_stalled(c, p, x / tv[p]);
+                    }
                     let hold = in_band && self.settings.hold_in_band;
                     let tuner = self.joint.as_ref().map(|j| &j.tuner);
                     residual[c][p] = m.filter(|(x, _)| *x > 0.0).and_then(|(x, _)| {
@@ -1700,6 +1744,47 @@ impl ArrayRun {
         };
         if j.tuner.row_norm(c, p).is_some_and(|g| g * step < f * band) {
             j.tuner.reset_row(c, p);
+        }
+    }
+
+    /// Cell `c`'s parameter `p`, measured at `ratio` = value/target: its
+    /// row starts again if it stalled
+    /// ([`ArrayRunSettings::reset_stalled_row_after`],
+    /// [`ArrayRunSettings::stalled_row_from`]).
+    fn reset_if_stalled(&mut self, c: usize, p: usize, ratio: f64) {
+        let window = self.settings.reset_stalled_row_after;
+        if window == 0 {
+            return;
+        }
+        let band = self.settings.relative_tolerance;
+        let k = self.sessions.len();
+        let Some(j) = self.joint.as_mut().filter(|_| !self.oracle) else {
+            return;
+        };
+        if j.stalls.len() != k {
+            j.stalls = vec![Default::default(); k];
+        }
+        if !j.stalls[c][p].note(ratio, band, window as usize) {
+            return;
+        }
+        match self.settings.stalled_row_from {
+            StalledRowSource::Prior => {
+                j.tuner.reset_row(c, p);
+            }
+            StalledRowSource::Widened => {
+                j.tuner.widen_row(c, p);
+            }
+            StalledRowSource::Peers => {
+                let in_band: Vec<usize> = (0..k)
+                    .filter(|&o| o != c && j.in_band.get(o).copied().unwrap_or(false))
+                    .collect();
+                let peers = if in_band.is_empty() {
+                    (0..k).filter(|&o| o != c).collect()
+                } else {
+                    in_band
+                };
+                j.tuner.borrow_row(c, p, &peers);
+            }
         }
     }
 

@@ -47,6 +47,7 @@ pub mod miss_cusum;
 mod newton;
 pub mod pooled_gradient;
 mod search;
+pub mod stall;
 pub mod thermal_floor;
 
 use std::collections::{BTreeMap, VecDeque};

@@ -6,13 +6,13 @@
 //! row ends up pointing wherever the noise took it, and the cell's moves
 //! stop bringing the parameter nearer its target while the filter, having
 //! seen little to contradict it, stays confident. Traced on random arrays
-//! (docs/array.md, "Stalled parameters return to their prior"): a `w` held
-//! at 154 µV for 30 iterations against a target of 180, a `t_sr` row that
-//! put the reload time on the wrong gate. A watch per parameter notices
-//! when the measurements have stayed out of band on one side for a window
-//! of iterations without coming nearer by a band, and the loop returns the
-//! row to its prior (the initial measurement's), so that the cell is
-//! steered again by what the lab measured where the parameter did respond.
+//! (docs/array.md, "Stalled parameters"): a `w` held at 154 µV for 30
+//! iterations against a target of 180, a `t_sr` row that put the reload
+//! time on the wrong gate. A watch per parameter notices when the
+//! measurements have stayed out of band on one side for a window of
+//! iterations without coming nearer by a band, and the loop starts the row
+//! again ([`StalledRowSource`]): by default it keeps the learned gradient
+//! but becomes as unsure as it started, so the next moves teach it again.
 
 use serde::{Deserialize, Serialize};
 

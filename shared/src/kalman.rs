@@ -247,22 +247,7 @@ impl KalmanGradient {
     /// process noise `q`. No outlier gating, minimum step 1e-6 mV.
     pub fn new(g0: DVector<f64>, c0: DMatrix<f64>, q: ProcessNoise) -> Result<Self, FilterError> {
         let n = g0.len();
-        for &x in g0.iter() {
-            if !x.is_finite() {
-                return Err(FilterError::Invalid {
-                    what: "initial gradient",
-                    value: x,
-                });
-            }
-        }
-        if c0.shape() != (n, n) {
-            return Err(FilterError::Dimension {
-                what: "initial covariance",
-                expected: n,
-                got: c0.nrows(),
-            });
-        }
-        validate_covariance(&c0, "initial covariance")?;
+        validate_estimate(&g0, &c0, n, ("initial gradient", "initial covariance"))?;
         q.validate(n)?;
         Ok(Self {
             gradient: g0,
@@ -420,28 +405,7 @@ impl KalmanGradient {
     /// assert_eq!(f.gradient()[1], 2.0);
     /// ```
     pub fn set_estimate(&mut self, g: DVector<f64>, c: DMatrix<f64>) -> Result<(), FilterError> {
-        let n = self.gradient.len();
-        if g.len() != n {
-            return Err(FilterError::Dimension {
-                what: "gradient",
-                expected: n,
-                got: g.len(),
-            });
-        }
-        if let Some(&bad) = g.iter().find(|x| !x.is_finite()) {
-            return Err(FilterError::Invalid {
-                what: "gradient",
-                value: bad,
-            });
-        }
-        if c.shape() != (n, n) {
-            return Err(FilterError::Dimension {
-                what: "covariance",
-                expected: n,
-                got: c.nrows(),
-            });
-        }
-        validate_covariance(&c, "covariance")?;
+        validate_estimate(&g, &c, self.gradient.len(), ("gradient", "covariance"))?;
         self.gradient = g;
         self.covariance = symmetrise(c);
         Ok(())
@@ -595,6 +559,37 @@ pub(crate) fn symmetrise(m: DMatrix<f64>) -> DMatrix<f64> {
 }
 
 /// Check that `m` is finite, symmetric (to 1e-9 relative) and PSD (eigenvalues ≥ −1e-9·max).
+/// A gradient `g` of `n` finite entries and its covariance `c` (n×n,
+/// finite, symmetric PSD); `what` names them in the error.
+fn validate_estimate(
+    g: &DVector<f64>,
+    c: &DMatrix<f64>,
+    n: usize,
+    what: (&'static str, &'static str),
+) -> Result<(), FilterError> {
+    if g.len() != n {
+        return Err(FilterError::Dimension {
+            what: what.0,
+            expected: n,
+            got: g.len(),
+        });
+    }
+    if let Some(&bad) = g.iter().find(|x| !x.is_finite()) {
+        return Err(FilterError::Invalid {
+            what: what.0,
+            value: bad,
+        });
+    }
+    if c.shape() != (n, n) {
+        return Err(FilterError::Dimension {
+            what: what.1,
+            expected: n,
+            got: c.nrows(),
+        });
+    }
+    validate_covariance(c, what.1)
+}
+
 pub(crate) fn validate_covariance(m: &DMatrix<f64>, what: &'static str) -> Result<(), FilterError> {
     if let Some(&bad) = m.iter().find(|x| !x.is_finite()) {
         return Err(FilterError::Invalid {

@@ -585,12 +585,24 @@ impl JointArrayTuner {
         })
     }
 
-    /// Euclidean norm of a row's learned gradient (log space, 1/mV); `None`
-    /// for an unknown row.
-    pub fn row_norm(&self, cell: usize, parameter: usize) -> Option<f64> {
+    /// `cell`'s row of `parameter`.
+    fn row(&self, cell: usize, parameter: usize) -> Option<&Row> {
         self.rows
             .iter()
             .find(|r| r.cell == cell && r.parameter == parameter)
+    }
+
+    /// `cell`'s row of `parameter`, to change.
+    fn row_mut(&mut self, cell: usize, parameter: usize) -> Option<&mut Row> {
+        self.rows
+            .iter_mut()
+            .find(|r| r.cell == cell && r.parameter == parameter)
+    }
+
+    /// Euclidean norm of a row's learned gradient (log space, 1/mV); `None`
+    /// for an unknown row.
+    pub fn row_norm(&self, cell: usize, parameter: usize) -> Option<f64> {
+        self.row(cell, parameter)
             .map(|r| r.filter.gradient().norm())
     }
 
@@ -599,11 +611,7 @@ impl JointArrayTuner {
     /// dropped; the next update starts from the row's last accepted value.
     /// Whether the row exists (and has a prior to return to).
     pub fn reset_row(&mut self, cell: usize, parameter: usize) -> bool {
-        let Some(row) = self
-            .rows
-            .iter_mut()
-            .find(|r| r.cell == cell && r.parameter == parameter)
-        else {
+        let Some(row) = self.row_mut(cell, parameter) else {
             return false;
         };
         match &row.prior {
@@ -620,11 +628,7 @@ impl JointArrayTuner {
     /// started, so the next moves teach it as much as the first did).
     /// Whether the row exists and has a prior.
     pub fn widen_row(&mut self, cell: usize, parameter: usize) -> bool {
-        let Some(row) = self
-            .rows
-            .iter_mut()
-            .find(|r| r.cell == cell && r.parameter == parameter)
-        else {
+        let Some(row) = self.row_mut(cell, parameter) else {
             return false;
         };
         let Some(prior) = &row.prior else {
@@ -741,9 +745,7 @@ impl JointArrayTuner {
     /// The gradient of `cell`'s parameter `parameter` over its neighbourhood:
     /// (array gate name, log-space gradient 1/mV).
     pub fn row_gradient(&self, cell: usize, parameter: usize) -> Vec<(String, f64)> {
-        self.rows
-            .iter()
-            .find(|r| r.cell == cell && r.parameter == parameter)
+        self.row(cell, parameter)
             .map(|r| {
                 r.columns
                     .iter()
@@ -766,10 +768,7 @@ impl JointArrayTuner {
         parameter: usize,
         voltages_mv: &BTreeMap<String, f64>,
     ) -> Option<(f64, f64)> {
-        let row = self
-            .rows
-            .iter()
-            .find(|r| r.cell == cell && r.parameter == parameter)?;
+        let row = self.row(cell, parameter)?;
         let (y0, vy0, v0) = row.last.as_ref()?;
         let mut dv = DVector::zeros(row.columns.len());
         for (k, &c) in row.columns.iter().enumerate() {
@@ -785,10 +784,7 @@ impl JointArrayTuner {
     /// The scale `cell`'s parameter `parameter` is learned in (`None` for an
     /// unknown row).
     pub fn scale(&self, cell: usize, parameter: usize) -> Option<FloorLog> {
-        self.rows
-            .iter()
-            .find(|r| r.cell == cell && r.parameter == parameter)
-            .map(|r| r.scale)
+        self.row(cell, parameter).map(|r| r.scale)
     }
 
     /// The step's residual of a value against its target, `y(value) −
@@ -819,10 +815,7 @@ impl JointArrayTuner {
         prediction: (f64, f64),
         measured: Measured,
     ) -> Option<f64> {
-        let row = self
-            .rows
-            .iter()
-            .find(|r| r.cell == cell && r.parameter == parameter)?;
+        let row = self.row(cell, parameter)?;
         let s = row.scale;
         let (x, var) = measured;
         let (yp, vp) = prediction;

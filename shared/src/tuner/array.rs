@@ -645,10 +645,10 @@ impl JointArrayTuner {
     /// rows' own variance (mean) plus the spread between them (the sample
     /// variance; the mean's square from a single row), uncorrelated with the
     /// row's other gates. The row's neighbour columns keep what they
-    /// learned. The cells of an array are alike and, tuned to the same
-    /// targets, sit where their gradients are alike: what the others learned
-    /// there is a better start than a row that stopped tracking its own
-    /// parameter ([`super::stall`]). Rows in a scale over a thermal floor
+    /// learned. The cells of an array are alike, but a cell may sit where
+    /// its gradient is not the others': for a stalled row
+    /// ([`super::stall`]) this measured worse than widening it
+    /// ([`Self::widen_row`]; docs/array.md). Rows in a scale over a thermal floor
     /// are not comparable between cells (each has its own floor): only rows
     /// in plain log take part. Whether the row exists, `from` held at least
     /// one other cell's plain row, and the estimate was replaced.

@@ -102,12 +102,39 @@ pub struct CellParameter {
     /// `value` is the filter's prediction: the cell's scan was skipped
     /// (it shares a sensor and was predicted in band with margin).
     pub predicted: bool,
+    /// `value` is a second scan's: the cell had just entered its band near
+    /// the edge, and the run scanned it again before stopping (the
+    /// record's `band_entry_rechecked` event).
+    pub rechecked: bool,
 }
 
 impl CellParameter {
     /// The parameter as reported, or (not measured) as the record's
-    /// `confirmation_skipped` event for it predicts it.
+    /// `confirmation_skipped` event for it predicts it, or (scanned again)
+    /// as its `band_entry_rechecked` event read it last.
     fn of(local: &str, p: &ParameterReport, events: &[TunerEvent]) -> Self {
+        let again = events.iter().find_map(|e| match &e.kind {
+            EventKind::BandEntryRechecked {
+                parameter,
+                value,
+                std,
+                ..
+            } if parameter == &p.name => Some((*value, *std)),
+            _ => None,
+        });
+        if let Some((value, std)) = again {
+            return Self {
+                name: local.to_string(),
+                unit: p.unit.clone(),
+                value,
+                std,
+                target: p.target,
+                tolerance: p.tolerance,
+                in_band: in_band(value, p.target, p.tolerance),
+                predicted: false,
+                rechecked: true,
+            };
+        }
         let skipped = p.value.is_none().then(|| {
             events.iter().find_map(|e| match &e.kind {
                 EventKind::ConfirmationSkipped {
@@ -132,6 +159,7 @@ impl CellParameter {
             tolerance: p.tolerance,
             in_band: in_band(value, p.target, p.tolerance),
             predicted,
+            rechecked: false,
         }
     }
 
@@ -141,6 +169,7 @@ impl CellParameter {
         let u = &self.unit;
         let value = match (self.value, self.predicted) {
             (None, _) => "no valid measurement".to_string(),
+            (Some(v), _) if self.rechecked => format!("{} {u}, scanned again", n(v)),
             (Some(v), false) => format!("{} {u}", n(v)),
             (Some(v), true) => format!("predicted {} {u}, scan skipped", n(v)),
         };
@@ -556,6 +585,29 @@ mod tests {
                 .starts_with("predicted 20.5 ns, scan skipped"),
             "{}",
             tile.parameters[0].text()
+        );
+        // a second scan of a cell that had just entered its band read it
+        // out: the tile shows that latest reading, out of band
+        let mut rechecked = recs[5].clone();
+        rechecked.events.push(TunerEvent {
+            level: "array".into(),
+            kind: EventKind::BandEntryRechecked {
+                parameter: rechecked.parameters[3].name.clone(),
+                value: Some(300.0),
+                std: Some(12.0),
+                in_band: false,
+                unit: "µV".into(),
+            },
+        });
+        let tile = &tiles(&rechecked)[1];
+        assert_eq!(tile.band, Band::Out, "{tile:?}");
+        assert!(tile.parameters[1].rechecked && !tile.parameters[0].rechecked);
+        assert!(
+            tile.parameters[1]
+                .text()
+                .starts_with("300 µV, scanned again"),
+            "{}",
+            tile.parameters[1].text()
         );
     }
 

@@ -27,7 +27,8 @@ fn event_parameter(kind: &mut EventKind) -> Option<&mut String> {
         | EventKind::UpdateRejected { parameter, .. }
         | EventKind::ConfirmationSkipped { parameter, .. }
         | EventKind::MeasurementSkipped { parameter, .. }
-        | EventKind::KeepCheck { parameter, .. } => Some(parameter),
+        | EventKind::KeepCheck { parameter, .. }
+        | EventKind::BandEntryRechecked { parameter, .. } => Some(parameter),
         _ => None,
     }
 }

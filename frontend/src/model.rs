@@ -264,6 +264,7 @@ pub fn event_name(e: &EventKind) -> &'static str {
         EventKind::SweepSkipped { .. } => "sweep_skipped",
         EventKind::MeasurementSkipped { .. } => "measurement_skipped",
         EventKind::KeepCheck { .. } => "keep_check",
+        EventKind::BandEntryRechecked { .. } => "band_entry_rechecked",
         EventKind::RetuneStarted { .. } => "retune_started",
         EventKind::BackInBand { .. } => "back_in_band",
         EventKind::NotBackInBand { .. } => "not_back_in_band",

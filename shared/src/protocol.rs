@@ -702,6 +702,22 @@ pub enum EventKind {
         /// Unit of the parameter.
         unit: String,
     },
+    /// An array cell that had just entered its band near the edge had this
+    /// parameter scanned again where it was before the run stopped
+    /// (`ArrayRunSettings::confirm_entry_sigma`): the run stops only when
+    /// every such scan is in band too.
+    BandEntryRechecked {
+        /// Parameter name.
+        parameter: String,
+        /// Measured value (`unit`); `None` if the scan gave none.
+        value: Option<f64>,
+        /// Its standard deviation (`unit`).
+        std: Option<f64>,
+        /// Whether the value is inside the band (with an error bar that fits it).
+        in_band: bool,
+        /// Unit of the parameter.
+        unit: String,
+    },
     /// Keep mode starts re-tuning: a check found a parameter out of band.
     RetuneStarted {
         /// Why (which parameter, its value and band).
@@ -842,6 +858,29 @@ impl std::fmt::Display for EventKind {
                     " (predicted P(out) {:.1} %)",
                     100.0 * predicted_out_of_band
                 )
+            }
+            EventKind::BandEntryRechecked {
+                parameter,
+                value,
+                std,
+                in_band,
+                unit,
+            } => {
+                let verdict = if *in_band {
+                    "in band: entry confirmed"
+                } else {
+                    "OUT of band: not yet in"
+                };
+                match (value, std) {
+                    (Some(v), Some(s)) => write!(
+                        f,
+                        "{parameter} entered near its band's edge; scanned again: {v:.3} ± {s:.3} {unit}, {verdict}"
+                    ),
+                    _ => write!(
+                        f,
+                        "{parameter} entered near its band's edge; scanned again: no value, {verdict}"
+                    ),
+                }
             }
             EventKind::RetuneStarted { reason } => write!(f, "re-tuning: {reason}"),
             EventKind::BackInBand { after_lab_seconds } => write!(

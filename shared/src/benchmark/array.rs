@@ -798,6 +798,7 @@ impl Timeline<'_> {
             .collect();
         let mut point =
             TimelinePoint::new(record.lab_seconds, &record.parameters, self.phase, truth);
+        point.apply_rechecks(&record.events);
         point.rows = rows;
         point.trace = trace;
         self.points.push(point);

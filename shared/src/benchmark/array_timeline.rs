@@ -6,7 +6,8 @@ use serde::{Deserialize, Serialize};
 
 use super::cell_trace::CellTrace;
 use super::row_agreement::RowAgreement;
-use crate::protocol::ParameterReport;
+use crate::protocol::{EventKind, ParameterReport, TunerEvent};
+use crate::sim::array::split_gate;
 
 /// Most points a run's timeline keeps (bounded by construction: the
 /// protocol's caps allow fewer iterations; later points are dropped).
@@ -18,7 +19,9 @@ pub const MAX_TIMELINE_POINTS: usize = 4_096;
 pub enum CellBand {
     /// Both parameters measured within target ± tolerance.
     InBand,
-    /// Both measured, at least one outside its band.
+    /// Both measured, at least one outside its band (or a second scan of a
+    /// cell that had just entered its band read it outside:
+    /// [`TimelinePoint::apply_rechecks`]).
     OutOfBand,
     /// A fit failed: no value to compare.
     NotMeasured,
@@ -102,6 +105,41 @@ impl TimelinePoint {
             truly_in_band,
             rows: Vec::new(),
             trace: None,
+        }
+    }
+
+    /// The record's `events` applied: a cell whose entry into its band a
+    /// second scan did not confirm ([`EventKind::BandEntryRechecked`] out
+    /// of band) was last measured out of band.
+    ///
+    /// ```
+    /// use spintune::benchmark::array_timeline::{CellBand, TimelinePoint};
+    /// use spintune::protocol::{EventKind, TunerEvent};
+    /// let mut point = TimelinePoint::new(60.0, &[], 1, vec![true, true]);
+    /// point.measured = vec![CellBand::InBand, CellBand::InBand];
+    /// let recheck = |parameter: &str, in_band| TunerEvent {
+    ///     level: "array".into(),
+    ///     kind: EventKind::BandEntryRechecked {
+    ///         parameter: parameter.into(), value: Some(199.0), std: Some(9.0),
+    ///         in_band, unit: "µV".into(),
+    ///     },
+    /// };
+    /// point.apply_rechecks(&[recheck("c0.w", true), recheck("c1.w", false)]);
+    /// assert_eq!(point.measured, [CellBand::InBand, CellBand::OutOfBand]);
+    /// ```
+    pub fn apply_rechecks(&mut self, events: &[TunerEvent]) {
+        for e in events {
+            if let EventKind::BandEntryRechecked {
+                parameter,
+                in_band: false,
+                ..
+            } = &e.kind
+            {
+                let cell = split_gate(parameter).map(|(c, _)| c as usize);
+                if let Some(m) = cell.and_then(|c| self.measured.get_mut(c)) {
+                    *m = CellBand::OutOfBand;
+                }
+            }
         }
     }
 }

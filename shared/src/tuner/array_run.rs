@@ -23,7 +23,9 @@
 //!    skipped, [`ArrayRunSettings::skip_confident_sigma`]); values with
 //!    an error bar wider than the band are not acted on; the filter rows
 //!    learn; if every cell is in band the iteration ends there and the run
-//!    idles (as it does after [`ArrayRunSettings::max_iterations`]).
+//!    idles (as it does after [`ArrayRunSettings::max_iterations`]), once
+//!    the parameters of cells that just entered their band near its edge
+//!    read in band in a second scan ([`ArrayRunSettings::confirm_entry_sigma`]).
 //!    Otherwise one joint limited move per cell (cells in band aimed at
 //!    their targets like the others, or held with
 //!    [`ArrayRunSettings::hold_in_band`]; skipped cells held;
@@ -49,7 +51,7 @@ use serde::{Deserialize, Serialize};
 
 use super::borrowed_gradient::borrow_failed_gradients;
 use super::flank::{FlankForecast, FlankModel};
-use super::in_band::{within_band, InBandRule};
+use super::in_band::{to_confirm, within_band, InBandRule};
 use super::line_steps::joint_line_steps;
 use super::pooled_gradient::pool_gradients;
 use super::search::{SearchMemory, SearchMove};
@@ -73,6 +75,9 @@ use crate::tuner::{
 
 /// The array's parameters per cell, in order.
 pub const CELL_PARAMETERS: [&str; 2] = ["t_sr", "w"];
+
+/// The scan that measures each of [`CELL_PARAMETERS`], in order.
+const CELL_SCANS: [ScanKind; 2] = [ScanKind::ReloadTime, ScanKind::TransitionWidth];
 
 /// Settings of the joint loop (bounded; [`ArrayRunSettings::validate`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -218,6 +223,15 @@ pub struct ArrayRunSettings {
     /// [`InBandRule::Measured`].
     #[serde(default)]
     pub in_band: InBandRule,
+    /// When every cell is measured in band, each parameter of a cell that
+    /// has just entered its band within this many of its reported σ of the
+    /// band's edge ([`to_confirm`]) is scanned once more where it is, and
+    /// the run stops only if every such scan is in band too; otherwise the
+    /// iteration moves on, the two readings' mean aimed at. 0..=3; 0:
+    /// never. Default 1 (docs/array.md, "A cell entering near its band's
+    /// edge scanned again").
+    #[serde(default = "default_confirm_entry_sigma")]
+    pub confirm_entry_sigma: f64,
     /// Start a cell's parameter row again ([`Self::stalled_row_from`]) when
     /// the parameter stalled: measured out of band on one side this many
     /// iterations in a row without coming nearer its target by a band
@@ -240,6 +254,10 @@ fn yes() -> bool {
 
 fn default_joint_line_steps() -> bool {
     false
+}
+
+fn default_confirm_entry_sigma() -> f64 {
+    1.0
 }
 
 fn default_reset_stalled_row_after() -> u32 {
@@ -276,6 +294,7 @@ impl Default for ArrayRunSettings {
             pool_in_lockstep_units: false,
             central_differences: true,
             in_band: InBandRule::Measured,
+            confirm_entry_sigma: default_confirm_entry_sigma(),
             reset_stalled_row_after: default_reset_stalled_row_after(),
             stalled_row_from: default_stalled_row_from(),
         }
@@ -351,6 +370,12 @@ impl ArrayRunSettings {
             f.is_finite() && (0.0..=1.0).contains(&f),
             "reset_flat_row_fraction",
             f.to_string(),
+        )?;
+        let s = self.confirm_entry_sigma;
+        check(
+            s.is_finite() && (0.0..=3.0).contains(&s),
+            "confirm_entry_sigma",
+            s.to_string(),
         )?;
         let n = self.reset_stalled_row_after;
         check(
@@ -495,6 +520,11 @@ enum Step {
     ReadAll,
     /// `t_sr` and `w` of every cell.
     Measure,
+    /// Every cell measured in band: these parameters (cell, index into
+    /// [`CELL_PARAMETERS`]) of cells that just entered their band near its
+    /// edge are scanned once more before the run stops
+    /// ([`ArrayRunSettings::confirm_entry_sigma`]).
+    Confirm(Vec<(u32, usize)>),
     /// The oracle's true Jacobian.
     Oracle,
     /// Joint move `m` (0-based).
@@ -938,18 +968,26 @@ impl ArrayRun {
                 (0..self.sessions.len() as u32)
                     .filter(|&c| !skip[c as usize])
                     .flat_map(|c| {
-                        [ScanKind::ReloadTime, ScanKind::TransitionWidth].map(|kind| {
-                            Request::Measure {
-                                scan: ScanRequest {
-                                    kind,
-                                    sweep: None,
-                                    cell: Some(c),
-                                },
-                            }
+                        CELL_SCANS.map(|kind| Request::Measure {
+                            scan: ScanRequest {
+                                kind,
+                                sweep: None,
+                                cell: Some(c),
+                            },
                         })
                     })
                     .collect()
             }
+            Step::Confirm(pending) => pending
+                .iter()
+                .map(|&(c, p)| Request::Measure {
+                    scan: ScanRequest {
+                        kind: CELL_SCANS[p],
+                        sweep: None,
+                        cell: Some(c),
+                    },
+                })
+                .collect(),
             Step::Oracle => {
                 let joint = self.joint()?;
                 let parameters = (0..joint.tuner.cells().len() as u32)
@@ -1125,6 +1163,7 @@ impl ArrayRun {
                 }
             }
             Step::Measure => self.evaluate_measurement(&answers)?,
+            Step::Confirm(pending) => self.confirm_entries(&pending, &answers)?,
             Step::Oracle => {
                 let joint = self.joint()?;
                 let cols = joint.tuner.gates().len();
@@ -1635,6 +1674,7 @@ impl ArrayRun {
         }
         let mut residual = vec![vec![None; 2]; k];
         let mut all_in = true;
+        let mut confirm = Vec::new();
         let mut reports = Vec::with_capacity(2 * k);
         for c in 0..k {
             let (t_sr, w) = self.targets[c];
@@ -1654,6 +1694,14 @@ impl ArrayRun {
                 if let Some(j) = self.joint.as_mut() {
                     if j.in_band.len() != k {
                         j.in_band = vec![false; k];
+                    }
+                    if in_band {
+                        let sigma = self.settings.confirm_entry_sigma;
+                        confirm.extend(
+                            to_confirm(&values[c], &tv, band, j.in_band[c], sigma)
+                                .into_iter()
+                                .map(|p| (c as u32, p)),
+                        );
                     }
                     j.in_band[c] = in_band;
                 }
@@ -1721,13 +1769,109 @@ impl ArrayRun {
             before_move: BTreeMap::new(),
             record: Some(Box::new(record)),
         };
-        self.step = if all_in {
+        self.step = if all_in && !confirm.is_empty() {
+            if let Some(r) = self.scratch.record.as_mut() {
+                r.tuned = false;
+            }
+            Step::Confirm(confirm)
+        } else if all_in {
             Step::Boundary
-        } else if self.oracle {
+        } else {
+            self.step_to_move()?
+        };
+        Ok(())
+    }
+
+    /// The step after a measurement that left cells out of band: the
+    /// oracle's Jacobian, or the first move planned with the learned one.
+    fn step_to_move(&mut self) -> Result<Step, ArrayRunError> {
+        Ok(if self.oracle {
             Step::Oracle
         } else {
             self.scratch.jacobian = Some(self.joint()?.tuner.jacobian());
             Step::Move(0)
+        })
+    }
+
+    /// The answers to [`Step::Confirm`]'s scans: the iteration is tuned when
+    /// each confirms its parameter in band (a value whose error bar fits
+    /// the band, within it). Otherwise a parameter that read out aims at
+    /// the mean of its two readings, its cell counts out of band, and the
+    /// iteration moves on. Each scan is reported as an event.
+    fn confirm_entries(
+        &mut self,
+        pending: &[(u32, usize)],
+        answers: &[Response],
+    ) -> Result<(), ArrayRunError> {
+        if answers.len() != pending.len() {
+            return Err(ArrayRunError::Protocol(format!(
+                "{} answers to {} confirming scans",
+                answers.len(),
+                pending.len()
+            )));
+        }
+        let band = self.settings.relative_tolerance;
+        let mut confirmed = true;
+        let mut events = Vec::with_capacity(pending.len());
+        for (&(c, p), a) in pending.iter().zip(answers) {
+            let cell = c as usize;
+            let (t_sr, w) = self.targets[cell];
+            let target = [t_sr, w][p];
+            let name = CELL_PARAMETERS[p];
+            let m = self.evaluate(cell, a, name);
+            if m.is_none() {
+                self.evaluation_failed(cell);
+            }
+            let inside = m.is_some_and(|(x, var)| {
+                x > 0.0 && var.sqrt() <= band * x && within_band(x, target, band)
+            });
+            confirmed &= inside;
+            events.push(TunerEvent {
+                level: "array".into(),
+                kind: EventKind::BandEntryRechecked {
+                    parameter: parameter_name(c, name),
+                    value: m.map(|(x, _)| x),
+                    std: m.map(|(_, var)| var.max(0.0).sqrt()),
+                    in_band: inside,
+                    unit: ["ns", "µV"][p].into(),
+                },
+            });
+            if inside {
+                continue;
+            }
+            let first = self
+                .scratch
+                .record
+                .as_ref()
+                .and_then(|r| r.parameters.get(2 * cell + p))
+                .and_then(|r| r.value);
+            if let Some(j) = self.joint.as_mut() {
+                if let Some(b) = j.in_band.get_mut(cell) {
+                    *b = false;
+                }
+                let mean = match (first, m) {
+                    (Some(a), Some((b, _))) if b > 0.0 => Some(0.5 * (a + b)),
+                    _ => None,
+                };
+                if let (Some(x), Some(slot)) = (
+                    mean,
+                    self.scratch
+                        .residual
+                        .get_mut(cell)
+                        .and_then(|r| r.get_mut(p)),
+                ) {
+                    *slot = j.tuner.residual(cell, p, x, target);
+                }
+            }
+        }
+        if let Some(r) = self.scratch.record.as_mut() {
+            r.events.extend(events);
+            r.tuned = confirmed;
+        }
+        self.step = if confirmed {
+            Step::Boundary
+        } else {
+            self.step_to_move()?
         };
         Ok(())
     }

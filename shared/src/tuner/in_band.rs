@@ -9,6 +9,10 @@
 //! from the earlier measurements and the learned rows, trusted as far as
 //! the row's predictions came true) weighs that reading against what the
 //! lab already knew about the cell.
+//!
+//! A cell that has just entered its band near the edge is scanned once
+//! more, where it is, before the run stops ([`to_confirm`]): two readings
+//! in band are much less likely than one for a cell truly just outside.
 
 use serde::{Deserialize, Serialize};
 
@@ -85,8 +89,53 @@ impl InBandRule {
     }
 }
 
+/// The parameters of a cell measured in band that are scanned once more
+/// before the run stops ([`super::array_run::ArrayRunSettings::confirm_entry_sigma`]):
+/// none when its previous measurement was in band (`was_in_band`; not so
+/// when it was out, never measured, or against other targets) or when
+/// `sigma = 0`; else those (by index) within `sigma` of their reported
+/// error bars of the band's edge (`|x − target| + sigma·σ > relative_tolerance
+/// · target`, `σ` the square root of the measured variance).
+///
+/// ```
+/// use spintune::tuner::in_band::to_confirm;
+/// // w read 6 % high with σ = 5 % (9 µV): 1σ from the edge of a ±10 % band
+/// let values = [Some((20.0, 0.01)), Some((190.8, 81.0))];
+/// let targets = [20.0, 180.0];
+/// assert_eq!(to_confirm(&values, &targets, 0.1, false, 1.0), [1]);
+/// // in band at the previous measurement, or not asked for: nothing
+/// assert!(to_confirm(&values, &targets, 0.1, true, 1.0).is_empty());
+/// assert!(to_confirm(&values, &targets, 0.1, false, 0.0).is_empty());
+/// // read 2 % high: more than 1σ inside
+/// let values = [Some((20.0, 0.01)), Some((183.6, 81.0))];
+/// assert!(to_confirm(&values, &targets, 0.1, false, 1.0).is_empty());
+/// ```
+pub fn to_confirm(
+    values: &[Option<Measured>],
+    targets: &[f64],
+    relative_tolerance: f64,
+    was_in_band: bool,
+    sigma: f64,
+) -> Vec<usize> {
+    if was_in_band || sigma <= 0.0 {
+        return Vec::new();
+    }
+    values
+        .iter()
+        .zip(targets)
+        .enumerate()
+        .filter(|(_, (m, &t))| {
+            m.is_some_and(|(x, var)| {
+                (x - t).abs() + sigma * var.max(0.0).sqrt() > relative_tolerance * t
+            })
+        })
+        .map(|(p, _)| p)
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
+    use super::to_confirm;
     use super::InBandRule::{self, *};
 
     const T: [f64; 2] = [20.0, 180.0];
@@ -137,5 +186,29 @@ mod tests {
         }
         // every target needs its value
         assert!(!Measured.in_band(&[Some((20.0, 0.1))], &[], &T, 0.1));
+    }
+
+    /// A cell entering near either edge of either parameter has that
+    /// parameter confirmed; deep inside, or in band before, nothing is. A
+    /// parameter without a value has nothing to confirm.
+    #[test]
+    fn entry_near_an_edge_is_confirmed_parameter_by_parameter() {
+        let w = |x: f64| [Some((20.0, 0.01)), Some((x, 81.0))];
+        // σ = 9 µV; the band's edges at 162 and 198 µV
+        for (x, confirm) in [(188.0, false), (190.0, true), (170.0, true), (172.0, false)] {
+            let expected: &[usize] = if confirm { &[1] } else { &[] };
+            assert_eq!(to_confirm(&w(x), &T, 0.1, false, 1.0), expected, "w {x}");
+            assert!(
+                to_confirm(&w(x), &T, 0.1, true, 1.0).is_empty(),
+                "w {x}, in before"
+            );
+        }
+        // two σ: 3 µV off is within 18 µV of the edge
+        assert_eq!(to_confirm(&w(183.0), &T, 0.1, false, 2.0), [1]);
+        // t_sr near its edge (σ 0.3 ns; 1.8 + 0.3 > 2), alone or with w
+        let t = |w: f64| [Some((21.8, 0.09)), Some((w, 81.0))];
+        assert_eq!(to_confirm(&t(180.0), &T, 0.1, false, 1.0), [0]);
+        assert_eq!(to_confirm(&t(191.0), &T, 0.1, false, 1.0), [0, 1]);
+        assert!(to_confirm(&[None, Some((180.0, 81.0))], &T, 0.1, false, 1.0).is_empty());
     }
 }

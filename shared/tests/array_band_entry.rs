@@ -1,0 +1,212 @@
+//! A cell that has just entered its band near the edge is scanned once
+//! more before the joint loop stops (`ArrayRunSettings::confirm_entry_sigma`),
+//! checked from outside: the 3-cell world through the paper's set points,
+//! every record's rechecks derived again from its own parameter reports and
+//! the record before it, and every recheck's batch read off the requests.
+
+mod support;
+
+use spintune::benchmark::array::{world, ArrayProtocol};
+use spintune::benchmark::PAPER_SET_POINTS;
+use spintune::protocol::{EventKind, IterationRecord, ParameterReport, Request, ScanKind};
+use spintune::sim::array::{split_gate, ArrayConfig, ArrayDevice};
+use spintune::sim::DeviceConfig;
+use support::array::{joint_in_lab, through_set_points};
+
+fn world_of(seed: u64) -> ArrayDevice {
+    world(
+        &DeviceConfig::default(),
+        ArrayConfig::chain(3, 5, seed),
+        |_| true,
+    )
+    .unwrap()
+}
+
+/// One iteration: its record and the batches it sent.
+struct Iteration {
+    record: IterationRecord,
+    batches: Vec<Vec<Request>>,
+}
+
+fn run(seed: u64, sigma: f64) -> Vec<Iteration> {
+    let mut protocol = ArrayProtocol::default();
+    protocol.tuning.confirm_entry_sigma = sigma;
+    let (mut run, mut lab) = joint_in_lab(world_of(seed), &protocol, seed);
+    let batches = std::cell::RefCell::new(Vec::new());
+    let mut records = Vec::new();
+    through_set_points(
+        &mut run,
+        &mut lab,
+        &PAPER_SET_POINTS,
+        |b| batches.borrow_mut().push(b.to_vec()),
+        |_, r| records.push((r.clone(), batches.borrow().len())),
+    );
+    let batches = batches.into_inner();
+    let mut from = 0;
+    records
+        .into_iter()
+        .map(|(record, to)| {
+            let it = Iteration {
+                record,
+                batches: batches[from..to].to_vec(),
+            };
+            from = to;
+            it
+        })
+        .collect()
+}
+
+fn in_band(p: &ParameterReport) -> bool {
+    match (p.value, p.target, p.tolerance) {
+        (Some(x), Some(t), Some(tol)) => {
+            (x - t).abs() <= tol && p.std.is_some_and(|s| s <= 0.1 * x)
+        }
+        _ => false,
+    }
+}
+
+/// (cell, parameter name, in band) of each recheck in `r`.
+fn rechecks(r: &IterationRecord) -> Vec<(u32, String, bool)> {
+    r.events
+        .iter()
+        .filter_map(|e| match &e.kind {
+            EventKind::BandEntryRechecked {
+                parameter, in_band, ..
+            } => {
+                let (c, name) = split_gate(parameter)?;
+                Some((c, name.to_string(), *in_band))
+            }
+            _ => None,
+        })
+        .collect()
+}
+
+/// What must be rechecked: when every cell reads in band, each parameter
+/// within one σ of its band's edge of a cell not in band at the
+/// iteration before (of the same phase: every target changes between
+/// phases; a failed recheck counts out).
+fn expected_rechecks(r: &IterationRecord, before: Option<&IterationRecord>) -> Vec<(u32, String)> {
+    let cells = r.parameters.chunks(2).collect::<Vec<_>>();
+    if !cells.iter().all(|c| c.iter().all(in_band)) {
+        return Vec::new();
+    }
+    let was_in = |c: usize| {
+        before.is_some_and(|b| {
+            b.parameters[2 * c..2 * c + 2].iter().all(in_band)
+                && !rechecks(b).iter().any(|(k, _, ok)| *k as usize == c && !ok)
+        })
+    };
+    let mut out = Vec::new();
+    for (c, ps) in cells.iter().enumerate() {
+        if was_in(c) {
+            continue;
+        }
+        for p in ps.iter() {
+            let (x, t, s) = (p.value.unwrap(), p.target.unwrap(), p.std.unwrap());
+            if (x - t).abs() + s > 0.1 * t {
+                out.push((c as u32, split_gate(&p.name).unwrap().1.to_string()));
+            }
+        }
+    }
+    out
+}
+
+/// Over three worlds: the rechecks are exactly those the rule names, each
+/// is one scan of its parameter in the batch right after the measurement
+/// (nothing set in between), a run stops only when every recheck read in
+/// band, and one that read out sends the iteration on to its move.
+#[test]
+fn near_edge_entries_are_scanned_again_before_the_run_stops() {
+    let (mut confirmed, mut refused) = (0, 0);
+    for seed in [11, 12, 13] {
+        let iterations = run(seed, 1.0);
+        let mut before: Option<&IterationRecord> = None;
+        for it in &iterations {
+            let r = &it.record;
+            let got: Vec<(u32, String)> = rechecks(r).into_iter().map(|(c, p, _)| (c, p)).collect();
+            assert_eq!(
+                got,
+                expected_rechecks(r, before),
+                "seed {seed} iteration {}",
+                r.iteration
+            );
+            if !got.is_empty() {
+                let scans: Vec<(u32, ScanKind)> = it.batches[1]
+                    .iter()
+                    .map(|q| match q {
+                        Request::Measure { scan } => (scan.cell.unwrap(), scan.kind),
+                        other => panic!("a recheck batch sent {other:?}"),
+                    })
+                    .collect();
+                let want: Vec<(u32, ScanKind)> = got
+                    .iter()
+                    .map(|(c, p)| {
+                        let kind = if p == "t_sr" {
+                            ScanKind::ReloadTime
+                        } else {
+                            ScanKind::TransitionWidth
+                        };
+                        (*c, kind)
+                    })
+                    .collect();
+                assert_eq!(scans, want, "seed {seed} iteration {}", r.iteration);
+                let all_in = rechecks(r).iter().all(|(_, _, ok)| *ok);
+                assert_eq!(r.tuned, all_in, "seed {seed} iteration {}", r.iteration);
+                if all_in {
+                    confirmed += 1;
+                    assert_eq!(it.batches.len(), 2, "a confirmed stop sends nothing more");
+                } else {
+                    refused += 1;
+                    assert!(
+                        it.batches[2]
+                            .iter()
+                            .any(|q| matches!(q, Request::SetVoltages { .. })),
+                        "a refused stop moves on"
+                    );
+                }
+            }
+            if r.tuned {
+                assert!(r.parameters.iter().all(in_band));
+            }
+            // the next phase starts on new targets for every cell
+            before = (!r.tuned).then_some(r);
+        }
+    }
+    assert!(
+        confirmed > 0 && refused > 0,
+        "confirmed {confirmed}, refused {refused}"
+    );
+}
+
+/// With `confirm_entry_sigma = 0` nothing is rechecked and a run stops on
+/// its first measurement with every cell in band.
+#[test]
+fn the_rule_off_rechecks_nothing() {
+    for it in run(11, 0.0) {
+        let r = &it.record;
+        assert!(rechecks(r).is_empty());
+        assert_eq!(
+            r.tuned,
+            r.parameters.iter().all(in_band),
+            "iteration {}",
+            r.iteration
+        );
+    }
+}
+
+#[test]
+fn the_rule_is_bounded_and_on_by_default() {
+    let p = ArrayProtocol::default();
+    assert_eq!(p.tuning.confirm_entry_sigma, 1.0, "the default");
+    for bad in [-0.5, 3.5, f64::NAN] {
+        let mut q = ArrayProtocol::default();
+        q.tuning.confirm_entry_sigma = bad;
+        assert_eq!(
+            q.validate().unwrap_err().field,
+            "tuning.confirm_entry_sigma"
+        );
+    }
+    let mut off = ArrayProtocol::default();
+    off.tuning.confirm_entry_sigma = 0.0;
+    assert!(off.validate().is_ok());
+}

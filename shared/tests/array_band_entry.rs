@@ -65,6 +65,10 @@ fn in_band(p: &ParameterReport) -> bool {
     }
 }
 
+fn is_parameter_scan(q: &Request) -> bool {
+    matches!(q, Request::Measure { scan } if matches!(scan.kind, ScanKind::ReloadTime | ScanKind::TransitionWidth))
+}
+
 /// (cell, parameter name, in band) of each recheck in `r`.
 fn rechecks(r: &IterationRecord) -> Vec<(u32, String, bool)> {
     r.events
@@ -121,6 +125,7 @@ fn near_edge_entries_are_scanned_again_before_the_run_stops() {
     for seed in [11, 12, 13] {
         let iterations = run(seed, 1.0);
         let mut before: Option<&IterationRecord> = None;
+        let mut in_phase = 0;
         for it in &iterations {
             let r = &it.record;
             let got: Vec<(u32, String)> = rechecks(r).into_iter().map(|(c, p, _)| (c, p)).collect();
@@ -131,7 +136,15 @@ fn near_edge_entries_are_scanned_again_before_the_run_stops() {
                 r.iteration
             );
             if !got.is_empty() {
-                let scans: Vec<(u32, ScanKind)> = it.batches[1]
+                // the iteration's measurement: every cell's t_sr and w
+                // (the first iteration's batches start with the initial
+                // measurements', one request per cell)
+                let m = it
+                    .batches
+                    .iter()
+                    .rposition(|b| b.len() == 6 && b.iter().all(is_parameter_scan))
+                    .expect("the iteration's measurement");
+                let scans: Vec<(u32, ScanKind)> = it.batches[m + 1]
                     .iter()
                     .map(|q| match q {
                         Request::Measure { scan } => (scan.cell.unwrap(), scan.kind),
@@ -154,11 +167,15 @@ fn near_edge_entries_are_scanned_again_before_the_run_stops() {
                 assert_eq!(r.tuned, all_in, "seed {seed} iteration {}", r.iteration);
                 if all_in {
                     confirmed += 1;
-                    assert_eq!(it.batches.len(), 2, "a confirmed stop sends nothing more");
+                    assert_eq!(
+                        it.batches.len(),
+                        m + 2,
+                        "a confirmed stop sends nothing more"
+                    );
                 } else {
                     refused += 1;
                     assert!(
-                        it.batches[2]
+                        it.batches[m + 2]
                             .iter()
                             .any(|q| matches!(q, Request::SetVoltages { .. })),
                         "a refused stop moves on"
@@ -168,8 +185,14 @@ fn near_edge_entries_are_scanned_again_before_the_run_stops() {
             if r.tuned {
                 assert!(r.parameters.iter().all(in_band));
             }
-            // the next phase starts on new targets for every cell
-            before = (!r.tuned).then_some(r);
+            // the next phase (`through_set_points`: tuned, or 40
+            // iterations) starts on new targets for every cell
+            in_phase += 1;
+            let phase_over = r.tuned || in_phase >= 40;
+            if phase_over {
+                in_phase = 0;
+            }
+            before = (!phase_over).then_some(r);
         }
     }
     assert!(

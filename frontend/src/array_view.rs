@@ -122,19 +122,6 @@ impl CellParameter {
             } if parameter == &p.name => Some((*value, *std)),
             _ => None,
         });
-        if let Some((value, std)) = again {
-            return Self {
-                name: local.to_string(),
-                unit: p.unit.clone(),
-                value,
-                std,
-                target: p.target,
-                tolerance: p.tolerance,
-                in_band: in_band(value, p.target, p.tolerance),
-                predicted: false,
-                rechecked: true,
-            };
-        }
         let skipped = p.value.is_none().then(|| {
             events.iter().find_map(|e| match &e.kind {
                 EventKind::ConfirmationSkipped {
@@ -146,9 +133,10 @@ impl CellParameter {
                 _ => None,
             })
         });
-        let (value, std, predicted) = match skipped.flatten() {
-            Some((v, s)) => (Some(v), Some(s), true),
-            None => (p.value, p.std, false),
+        let (value, std, predicted) = match (again, skipped.flatten()) {
+            (Some((v, s)), _) => (v, s, false),
+            (None, Some((v, s))) => (Some(v), Some(s), true),
+            (None, None) => (p.value, p.std, false),
         };
         Self {
             name: local.to_string(),
@@ -159,7 +147,7 @@ impl CellParameter {
             tolerance: p.tolerance,
             in_band: in_band(value, p.target, p.tolerance),
             predicted,
-            rechecked: false,
+            rechecked: again.is_some(),
         }
     }
 

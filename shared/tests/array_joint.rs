@@ -521,6 +521,25 @@ fn the_flat_row_reset_is_bounded_and_on_by_default() {
 }
 
 #[test]
+fn the_flat_reset_refutation_is_bounded_and_on_by_default() {
+    let p = short_protocol();
+    assert_eq!(p.tuning.flat_reset_refuted_sigma, 3.0, "the default");
+    for bad in [-0.5, 5.5, f64::NAN, f64::INFINITY] {
+        let mut q = short_protocol();
+        q.tuning.flat_reset_refuted_sigma = bad;
+        assert_eq!(
+            q.validate().unwrap_err().field,
+            "tuning.flat_reset_refuted_sigma"
+        );
+    }
+    for good in [0.0, 5.0] {
+        let mut q = short_protocol();
+        q.tuning.flat_reset_refuted_sigma = good;
+        assert!(q.validate().is_ok());
+    }
+}
+
+#[test]
 fn single_cell_changes_pick_distinct_cells() {
     assert_eq!(single_change_cells(9, 3), vec![4, 0, 8]);
     assert_eq!(single_change_cells(1, 3), vec![0]);

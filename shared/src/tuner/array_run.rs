@@ -51,6 +51,7 @@ use serde::{Deserialize, Serialize};
 
 use super::borrowed_gradient::borrow_failed_gradients;
 use super::flank::{FlankForecast, FlankModel};
+use super::flat_reset::FlatResetWatch;
 use super::in_band::{to_confirm, within_band, InBandRule};
 use super::line_steps::joint_line_steps;
 use super::pooled_gradient::pool_gradients;
@@ -179,6 +180,16 @@ pub struct ArrayRunSettings {
     /// zero. Default 0.5, chosen on random arrays (docs/array.md).
     #[serde(default = "default_reset_flat_row_fraction")]
     pub reset_flat_row_fraction: f64,
+    /// A flat row is not returned to its prior again once its parameter
+    /// has, since the row's first reset, moved away from its target (same
+    /// side) by more than this many σ of the two readings, counted from its
+    /// nearest reading since that reset: the prior's direction is refuted
+    /// where the cell now is ([`FlatResetWatch`]), until the parameter
+    /// comes into band, crosses its target or gets a new one. 0..=5; 0:
+    /// never refuted (the earlier loop). Default 3 (docs/array.md, "A flat
+    /// row's prior refuted").
+    #[serde(default = "default_flat_reset_refuted_sigma")]
+    pub flat_reset_refuted_sigma: f64,
     /// How a cell whose evaluation failed retreats (its first move of the
     /// next iteration). Default [`Retreat::EveryGate`]: the two rules that
     /// move only the tuning gates un-stranded the traced runs and the
@@ -272,6 +283,10 @@ fn default_reset_flat_row_fraction() -> f64 {
     0.5
 }
 
+fn default_flat_reset_refuted_sigma() -> f64 {
+    3.0
+}
+
 impl Default for ArrayRunSettings {
     fn default() -> Self {
         Self {
@@ -288,6 +303,7 @@ impl Default for ArrayRunSettings {
             flank_prediction: FlankPrediction::default(),
             hold_in_band: false,
             reset_flat_row_fraction: default_reset_flat_row_fraction(),
+            flat_reset_refuted_sigma: default_flat_reset_refuted_sigma(),
             retreat: Retreat::default(),
             borrow_failed_gradients: true,
             pool_initial_gradients: true,
@@ -370,6 +386,12 @@ impl ArrayRunSettings {
             f.is_finite() && (0.0..=1.0).contains(&f),
             "reset_flat_row_fraction",
             f.to_string(),
+        )?;
+        let s = self.flat_reset_refuted_sigma;
+        check(
+            s.is_finite() && (0.0..=5.0).contains(&s),
+            "flat_reset_refuted_sigma",
+            s.to_string(),
         )?;
         let s = self.confirm_entry_sigma;
         check(
@@ -614,6 +636,10 @@ struct Joint {
     /// ([`ArrayRunSettings::reset_stalled_row_after`]).
     #[serde(default)]
     stalls: Vec<[StallWatch; 2]>,
+    /// Per cell and parameter: its flat-row resets
+    /// ([`ArrayRunSettings::flat_reset_refuted_sigma`]).
+    #[serde(default)]
+    flat_resets: Vec<[FlatResetWatch; 2]>,
 }
 
 /// The joint array loop (module docs). Serializable as a whole.
@@ -756,6 +782,9 @@ impl ArrayRun {
             }
             if let Some(s) = j.stalls.get_mut(cell) {
                 *s = Default::default();
+            }
+            if let Some(f) = j.flat_resets.get_mut(cell) {
+                *f = Default::default();
             }
         }
         if self.step == Step::Idle {
@@ -1535,6 +1564,7 @@ impl ArrayRun {
             skip: vec![false; k],
             skips_in_a_row: vec![0; k],
             stalls: vec![Default::default(); k],
+            flat_resets: vec![Default::default(); k],
         });
         Ok(())
     }
@@ -1709,8 +1739,9 @@ impl ArrayRun {
                     .map(|p| values[c][p].is_some() && !within(p))
                     .collect();
                 for (p, m) in values[c].iter().enumerate() {
+                    self.note_flat_reset(c, p, *m, tv[p]);
                     if out[p] {
-                        self.reset_if_flat(c, p);
+                        self.reset_if_flat(c, p, *m, tv[p]);
                     }
                     if let Some((x, _)) = m {
                         self.reset_if_stalled(c, p, x / tv[p]);
@@ -1876,18 +1907,46 @@ impl ArrayRun {
         Ok(())
     }
 
-    /// Cell `c`'s parameter `p`, measured out of band: its row returns to its
-    /// prior if its gradient is flat
-    /// ([`ArrayRunSettings::reset_flat_row_fraction`]).
-    fn reset_if_flat(&mut self, c: usize, p: usize) {
+    /// Cell `c`'s parameter `p` measured (`m`: value and variance, against
+    /// `target`): its flat-row watch notes it
+    /// ([`ArrayRunSettings::flat_reset_refuted_sigma`]).
+    fn note_flat_reset(&mut self, c: usize, p: usize, m: Option<Measured>, target: f64) {
+        let band = self.settings.relative_tolerance;
+        let sigmas = self.settings.flat_reset_refuted_sigma;
+        let k = self.sessions.len();
+        let (Some(j), Some((x, var))) = (self.joint.as_mut(), m) else {
+            return;
+        };
+        if j.flat_resets.len() != k {
+            j.flat_resets = vec![Default::default(); k];
+        }
+        j.flat_resets[c][p].note(x / target, var.max(0.0).sqrt() / x, band, sigmas);
+    }
+
+    /// Cell `c`'s parameter `p`, measured out of band (`m`: value and
+    /// variance, against `target`): its row returns to its prior if its
+    /// gradient is flat ([`ArrayRunSettings::reset_flat_row_fraction`]) and
+    /// no reset since it was last in band was refuted
+    /// ([`ArrayRunSettings::flat_reset_refuted_sigma`]).
+    fn reset_if_flat(&mut self, c: usize, p: usize, m: Option<Measured>, target: f64) {
         let band = self.settings.relative_tolerance;
         let f = self.settings.reset_flat_row_fraction;
+        let k = self.sessions.len();
         let Some(j) = self.joint.as_mut() else { return };
         let Some(step) = j.tuner.cells().get(c).map(|k| k.max_step_mv) else {
             return;
         };
-        if j.tuner.row_norm(c, p).is_some_and(|g| g * step < f * band) {
-            j.tuner.reset_row(c, p);
+        if j.flat_resets.len() != k {
+            j.flat_resets = vec![Default::default(); k];
+        }
+        let watch = &mut j.flat_resets[c][p];
+        if watch.may_reset()
+            && j.tuner.row_norm(c, p).is_some_and(|g| g * step < f * band)
+            && j.tuner.reset_row(c, p)
+        {
+            if let Some((x, var)) = m {
+                watch.reset_at(x / target, var.max(0.0).sqrt() / x);
+            }
         }
     }
 

@@ -36,6 +36,7 @@ pub mod borrowed_gradient;
 mod config;
 pub mod excitation;
 pub mod finite_difference;
+pub mod flat_reset;
 mod flank;
 mod gate_row;
 pub mod in_band;

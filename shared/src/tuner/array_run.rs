@@ -177,7 +177,9 @@ pub struct ArrayRunSettings {
     /// (`w` at its thermal floor `2kT/α`, where `t_c` drifts unseen while
     /// `w`'s target sits on the floor) is then steered by what the lab
     /// measured where it did respond, instead of by a gradient learned to be
-    /// zero. Default 0.5, chosen on random arrays (docs/array.md).
+    /// zero. Default 0.5, chosen on random arrays (docs/array.md). Not
+    /// again once the parameter turned away from its target since the
+    /// first reset ([`Self::flat_reset_refuted_sigma`]).
     #[serde(default = "default_reset_flat_row_fraction")]
     pub reset_flat_row_fraction: f64,
     /// A flat row is not returned to its prior again once its parameter

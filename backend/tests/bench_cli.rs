@@ -531,6 +531,10 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
             "stalled_row_from = \"neighbours\"\n",
             &["stalled_row_from", "peers", "widened"][..],
         ),
+        (
+            "flat_reset_refuted_sigma = 7\n",
+            &["tuning.flat_reset_refuted_sigma", "7"][..],
+        ),
     ] {
         std::fs::write(&tuning, contents).unwrap();
         let out = bin()

@@ -15,8 +15,7 @@ use spintune::benchmark::cell_trace::error_bar_coverage;
 use spintune::benchmark::BenchmarkProtocol;
 use spintune::driver::SimulationConfig;
 use spintune::sim::array::{ArrayConfig, MAX_CELLS};
-use spintune::sim::default_gates;
-use spintune::sim::random::targets_reachable;
+use spintune::sim::random::cell_targets_reachable;
 use spintune::tuner::array_run::ArrayRunSettings;
 
 use crate::bench::{parallel_map, select_devices, RandomDevices};
@@ -204,15 +203,7 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
         .max(1);
     let mut set_points = protocol.set_points.clone();
     set_points.push(protocol.single_cell_target);
-    let reachable = |d: &spintune::sim::DeviceConfig| {
-        targets_reachable(
-            d,
-            &default_gates(),
-            &["N", "SA", "SB", "T"],
-            &["PA", "PB"],
-            &set_points,
-        )
-    };
+    let reachable = |d: &spintune::sim::DeviceConfig| cell_targets_reachable(d, &set_points);
     let work: Vec<(usize, u64, ArrayStrategy)> = (0..devices.len())
         .flat_map(|d| (1..=args.seeds).flat_map(move |s| ArrayStrategy::ALL.map(|k| (d, s, k))))
         .filter(|(_, _, k)| strategies.contains(k))

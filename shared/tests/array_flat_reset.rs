@@ -19,8 +19,7 @@ use spintune::benchmark::array_timeline::TimelinePoint;
 use spintune::benchmark::PAPER_SET_POINTS;
 use spintune::driver::SimulationConfig;
 use spintune::sim::array::ArrayConfig;
-use spintune::sim::default_gates;
-use spintune::sim::random::targets_reachable;
+use spintune::sim::random::cell_targets_reachable;
 
 const CELL: u32 = 6;
 const W: usize = 1;
@@ -39,15 +38,7 @@ fn traced(sigma: f64) -> (Vec<TimelinePoint>, Vec<f64>) {
     };
     protocol.tuning.flat_reset_refuted_sigma = sigma;
     set_points.push(protocol.single_cell_target);
-    let reachable = |d: &spintune::sim::DeviceConfig| {
-        targets_reachable(
-            d,
-            &default_gates(),
-            &["N", "SA", "SB", "T"],
-            &["PA", "PB"],
-            &set_points,
-        )
-    };
+    let reachable = |d: &spintune::sim::DeviceConfig| cell_targets_reachable(d, &set_points);
     let config = ArrayConfig {
         seed: 10,
         device_seed: 0,

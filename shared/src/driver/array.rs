@@ -10,7 +10,7 @@ use crate::config_error::ConfigError;
 use crate::description::array::{array_cell_tuner, ArrayDescription};
 use crate::session::{RunSession, SessionConfig};
 use crate::sim::array::{cell_devices, ArrayConfig, ArrayDevice, MAX_CELLS};
-use crate::sim::random::targets_reachable;
+use crate::sim::random::cell_targets_reachable;
 use crate::sim::{default_gates, DeviceConfig};
 use crate::tuner::array_run::{ArrayRun, ArrayRunSettings};
 use crate::tuner::TunerConfig;
@@ -195,15 +195,7 @@ impl ArraySimulationConfig {
             ));
         }
         let targets = self.cell_targets()?;
-        let reachable = |d: &DeviceConfig| {
-            targets_reachable(
-                d,
-                &default_gates(),
-                &["N", "SA", "SB", "T"],
-                &["PA", "PB"],
-                &targets,
-            )
-        };
+        let reachable = |d: &DeviceConfig| cell_targets_reachable(d, &targets);
         let devices = cell_devices(&self.device, world.cells, world.device_seed, reachable);
         let mut device = ArrayDevice::new(world, devices).map_err(|e| e.within("array"))?;
         device.seal_truth();

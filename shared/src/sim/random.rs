@@ -120,6 +120,27 @@ fn scale_map(
     }
 }
 
+/// Whether every `(t_sr ns, w µV)` set point can be reached on a simulated
+/// array cell `config`: [`targets_reachable`] over the default gates
+/// ([`super::default_gates`]), tuning gates N, SA, SB, T and plungers PA,
+/// PB. The filter a simulated array's cells are drawn with
+/// ([`super::array::cell_devices`]) by the array driver and
+/// `spintune bench-array`.
+///
+/// ```
+/// use spintune::sim::{random::cell_targets_reachable, DeviceConfig};
+/// assert!(cell_targets_reachable(&DeviceConfig::default(), &[(20.0, 270.0)]));
+/// ```
+pub fn cell_targets_reachable(config: &DeviceConfig, set_points: &[(f64, f64)]) -> bool {
+    targets_reachable(
+        config,
+        &super::default_gates(),
+        &["N", "SA", "SB", "T"],
+        &["PA", "PB"],
+        set_points,
+    )
+}
+
 /// Whether every `(t_sr ns, w µV)` set point can be reached within the gate
 /// limits: Newton with the noiseless Jacobian over `tuning` (lines held by
 /// `plungers`), 60 iterations from the start, voltages clamped to the

@@ -829,6 +829,7 @@ impl Timeline<'_> {
                 truth: values,
                 learned_rows: learned,
                 true_rows: truth,
+                true_lines_mv: lab.device.lines_now_mv(c)?,
             })
         });
         let agreements = rows

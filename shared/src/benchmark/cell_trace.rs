@@ -31,6 +31,13 @@ pub struct CellTrace {
     pub learned_rows: [Vec<f64>; 2],
     /// The true rows at the measurement, same units and order.
     pub true_rows: [Vec<f64>; 2],
+    /// Where its two transition lines truly sat at the measurement, mV on
+    /// RFA / RFB from the operating point (drift included,
+    /// [`crate::sim::SimulatedDevice::lines_now_mv`]). Off 0 the load
+    /// curve reads `t_sr` long and the detuning scan fades. Absent in
+    /// traces written before it existed: 0.
+    #[serde(default)]
+    pub true_lines_mv: [f64; 2],
 }
 
 impl CellTrace {
@@ -45,12 +52,14 @@ impl CellTrace {
     ///     truth: [20.0, 180.0],
     ///     learned_rows: [vec![0.01, -0.02], vec![0.0, 0.005]],
     ///     true_rows: [vec![0.011, -0.019], vec![0.002, 0.004]],
+    ///     true_lines_mv: [0.3, -1.5],
     /// };
     /// assert_eq!(
     ///     t.line(),
     ///     "c2.N -700.0 c2.T -650.5 mV | t_sr 21.0 ± 1.5 (true 20.0) ns, \
     ///      rows /mV learned [+0.0100 -0.0200] true [+0.0110 -0.0190] | \
-    ///      w failed (true 180.0) µV, rows /mV learned [+0.0000 +0.0050] true [+0.0020 +0.0040]"
+    ///      w failed (true 180.0) µV, rows /mV learned [+0.0000 +0.0050] true [+0.0020 +0.0040] | \
+    ///      lines true A +0.3 B -1.5 mV"
     /// );
     /// ```
     pub fn line(&self) -> String {
@@ -81,7 +90,12 @@ impl CellTrace {
                 )
             })
             .collect();
-        format!("{} mV | {}", volts.join(" "), params.join(" | "))
+        let [a, b] = self.true_lines_mv;
+        format!(
+            "{} mV | {} | lines true A {a:+.1} B {b:+.1} mV",
+            volts.join(" "),
+            params.join(" | ")
+        )
     }
 }
 
@@ -99,6 +113,7 @@ impl CellTrace {
 ///     truth: [20.0, 200.0],
 ///     learned_rows: [Vec::new(), Vec::new()],
 ///     true_rows: [Vec::new(), Vec::new()],
+///     true_lines_mv: [0.0, 0.0],
 /// };
 /// // t_sr 0.5σ, 1σ (covered), 3σ off; w 0.1σ, 2σ, 0σ off
 /// let traces = [at(20.5, 201.0), at(21.0, 220.0), at(17.0, 200.0)];

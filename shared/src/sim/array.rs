@@ -395,6 +395,14 @@ impl ArrayDevice {
         self.cells.get(cell as usize).map(SimulatedDevice::truth)
     }
 
+    /// World side: cell `cell`'s transition lines now, drift included
+    /// ([`SimulatedDevice::lines_now_mv`]), mV; `None` if there is no such cell.
+    pub fn lines_now_mv(&self, cell: u32) -> Option<[f64; 2]> {
+        self.cells
+            .get(cell as usize)
+            .map(SimulatedDevice::lines_now_mv)
+    }
+
     /// World side: a charge rearrangement near cell `cell`'s dots
     /// ([`SimulatedDevice::rearrange_charges`]): its two transition lines
     /// jump by `shift_mv` (mV on its RFA / RFB) and stay there. No gate

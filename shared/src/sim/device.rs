@@ -415,6 +415,22 @@ impl SimulatedDevice {
         self.truth_at(&self.voltages_mv)
     }
 
+    /// World side: where the two transition lines sit now, mV on RFA / RFB
+    /// from the operating point, with the fast line drift and charge jumps
+    /// that a scan sees (unlike [`SimulatedDevice::truth`]). A cell whose
+    /// lines sit off 0 reads `t_sr` long and `w` faint (`sim::scans`).
+    ///
+    /// ```
+    /// use spintune::sim::{default_gates, DeviceConfig, SimulatedDevice};
+    /// let dev = SimulatedDevice::new(DeviceConfig::default(), &default_gates(), 3).unwrap();
+    /// let [a, b] = dev.lines_now_mv();
+    /// assert!(a.abs() < 1.0 && b.abs() < 1.0); // calibrated at the start
+    /// ```
+    pub fn lines_now_mv(&self) -> [f64; 2] {
+        let t = self.truth();
+        self.lines_now([t.mu_a_mv, t.mu_b_mv])
+    }
+
     pub(crate) fn truth_at(&self, voltages_mv: &BTreeMap<String, f64>) -> Truth {
         let c = &self.config;
         let d = model::deviations(c, voltages_mv);

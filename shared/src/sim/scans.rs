@@ -83,7 +83,7 @@ impl SimulatedDevice {
     }
 
     /// Line positions now, relative to the calibrated operating point, with drift, mV.
-    fn lines_now(&self, base: [f64; 2]) -> [f64; 2] {
+    pub(super) fn lines_now(&self, base: [f64; 2]) -> [f64; 2] {
         let jump = self.drift.jump_mu_mv;
         [
             base[0] + self.drift.mu_a_mv + jump[0],

@@ -535,6 +535,14 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
             "flat_reset_refuted_sigma = 7\n",
             &["tuning.flat_reset_refuted_sigma", "7"][..],
         ),
+        (
+            "line_max_step_mv = 12.5\n",
+            &["tuning.line_max_step_mv", "12.5"][..],
+        ),
+        (
+            "retreat = \"lines\"\n",
+            &["retreat", "every_gate_lines_kept", "tuning_gates"][..],
+        ),
     ] {
         std::fs::write(&tuning, contents).unwrap();
         let out = bin()

@@ -8,6 +8,9 @@
 //! phase by the two levels undoing each other, found on random arrays;
 //! docs/array.md "A failed cell's retreat"). `tuning_gates_when_uncertain`
 //! also retreats on a value whose error bar is wider than its band.
+//! `every_gate_lines_kept` retreats every gate half-way, the plungers
+//! toward their last good voltages shifted by the line corrections made
+//! since (docs/array.md, "Lines brought back in one step").
 //!
 //! The failure is scripted: the world answers cell 1's second measurement
 //! after a set-point change with instrument errors, or with a `w` of
@@ -96,6 +99,27 @@ fn by_default_a_failed_cell_moves_every_gate_half_way_back() {
 }
 
 #[test]
+fn with_lines_kept_the_plungers_retreat_toward_their_corrected_voltages() {
+    let m = after_a_scripted_failure(Retreat::EveryGateLinesKept, instrument_error);
+    // the line level corrected cell 1's plungers between the two
+    // measurements; otherwise the rule is the default's and this proves nothing
+    assert!(
+        m.line_corrections.values().any(|d| d.abs() > 0.05),
+        "no line correction between the measurements: {:?}",
+        m.line_corrections
+    );
+    for (g, to) in &m.good {
+        let target = to + m.line_corrections.get(g).copied().unwrap_or(0.0);
+        let expected = m.now[g] + 0.5 * (target - m.now[g]);
+        let at = m.retreat.get(g).copied().unwrap_or(m.now[g]);
+        assert!(
+            (at - expected).abs() < 1e-6,
+            "{g}: {at} mV, expected {expected} mV"
+        );
+    }
+}
+
+#[test]
 fn with_tuning_gates_a_failed_cell_retreats_them_and_its_plungers_follow() {
     tuning_gates_retreat(&after_a_scripted_failure(
         Retreat::TuningGates,
@@ -128,6 +152,9 @@ struct AfterFailure {
     retreat: BTreeMap<String, f64>,
     /// Cell 1's knowledge (gates, compensation).
     cell: CellKnowledge,
+    /// What the sets right after cell 1's line scans moved its gates by
+    /// between the two measurements (world side), mV.
+    line_corrections: BTreeMap<String, f64>,
 }
 
 /// Tuning gates half-way back, compensation gates at their matrix times
@@ -195,11 +222,26 @@ fn after_a_scripted_failure(
     let mut measured = 0;
     let mut records: Vec<IterationRecord> = Vec::new();
     let mut retreat: Option<BTreeMap<String, f64>> = None;
+    let mut line_corrections: BTreeMap<String, f64> = BTreeMap::new();
+    let mut after_line_scan = false;
     for _ in 0..500 {
         match run.poll().unwrap() {
             ArrayAction::Execute(batch) => {
                 let before = device.lab_seconds();
+                let volts_before = device.voltages_mv();
                 let mut answers = device.execute_batch(&batch);
+                if measured == 1 && after_line_scan {
+                    for (g, v) in device.voltages_mv() {
+                        let d = v - volts_before[&g];
+                        if g.starts_with("c1.") && d != 0.0 {
+                            *line_corrections.entry(g).or_default() += d;
+                        }
+                    }
+                }
+                after_line_scan = batch.iter().any(|r| {
+                    matches!(r, Request::Measure { scan }
+                        if scan.cell == Some(1) && scan.kind == ScanKind::ChemicalPotential)
+                });
                 if batch.iter().any(|r| is_measurement_of(r, 1)) {
                     measured += 1;
                     if measured == 2 {
@@ -253,5 +295,6 @@ fn after_a_scripted_failure(
         now: cell_1(failed_record),
         retreat: retreat.expect("a move of cell 1 after its failed evaluation"),
         cell: run.tuner().expect("the joint tuner").cells()[1].clone(),
+        line_corrections,
     }
 }

@@ -34,8 +34,9 @@
 //!    their neighbours and every uncertain cell: sensing dots swept and
 //!    parked on the fitted flank, lines corrected from their forecast when
 //!    it puts them beyond [`ArrayRunSettings::precorrect_lines_mv`], then
-//!    up to [`ArrayRunSettings::line_rounds`] line scans with a limited
-//!    plunger correction each (and a re-park of the cells moved).
+//!    up to [`ArrayRunSettings::line_rounds`] line scans with a plunger
+//!    correction each, at most [`ArrayRunSettings::line_max_step_mv`]
+//!    (and a re-park of the cells moved).
 //!
 //! The run's voltages are what the instrument answered: every gate is read
 //! after the initial measurements, and each accepted set's read-back
@@ -116,6 +117,18 @@ pub struct ArrayRunSettings {
     /// arrays (docs/array.md, "Lines corrected before their scan").
     #[serde(default)]
     pub precorrect_lines_mv: Option<f64>,
+    /// Longest plunger correction of a cell's lines per line round, mV
+    /// (norm over its two plungers; 0 < value ≤ 10; each gate's own
+    /// `max_step_mv` still applies). `None`: the step limit of the cell
+    /// tuner's line level (2 mV in the recommended tuner). Default 4, the
+    /// half-window of the simulator's line scan: a line the scan sees comes
+    /// back to its centre in one correction. With 2 mV a line found 3 mV
+    /// off was still off at the next measurement, which then failed or
+    /// read `t_sr` long, and the cell's retreat undid the correction
+    /// (docs/array.md, "Lines brought back in one step"). A lab whose line
+    /// scan is narrower sets its half-window here.
+    #[serde(default = "default_line_max_step_mv")]
+    pub line_max_step_mv: Option<f64>,
     /// Correct a cell's lines from their forecast instead of scanning them
     /// (the single-cell line level's rule, [`ParameterForecast`]: both
     /// lines predicted within `skip_std` mV, fewer than `max_skips`
@@ -196,7 +209,8 @@ pub struct ArrayRunSettings {
     /// next iteration). Default [`Retreat::EveryGate`]: the two rules that
     /// move only the tuning gates un-stranded the traced runs and the
     /// oracle, but measured no better for `joint` on fresh random arrays
-    /// (docs/array.md, "A failed cell's retreat").
+    /// (docs/array.md, "A failed cell's retreat"), and neither did
+    /// [`Retreat::EveryGateLinesKept`] ("Lines brought back in one step").
     #[serde(default)]
     pub retreat: Retreat,
     /// Whether a cell whose initial finite differences failed for a
@@ -299,6 +313,7 @@ impl Default for ArrayRunSettings {
             line_tolerance_mv: 0.1,
             joint_line_steps: default_joint_line_steps(),
             precorrect_lines_mv: Some(1.0),
+            line_max_step_mv: default_line_max_step_mv(),
             line_forecast: None,
             max_iterations: default_max_iterations(),
             skip_confident_sigma: default_skip_sigma(),
@@ -335,6 +350,18 @@ pub enum Retreat {
     /// As [`Retreat::TuningGates`], also when a value came back with an
     /// error bar wider than its band (the single-cell tuner's trigger).
     TuningGatesWhenUncertain,
+    /// As [`Retreat::EveryGate`], but the plunger corrections made since the
+    /// cell's last good evaluation from line scans that found both lines
+    /// are kept: each such correction shifts the plungers' retreat target
+    /// with it. A line scan is newer knowledge than the last good
+    /// evaluation: the neighbours' moves and drift have shifted the lines
+    /// since, and retreating the plungers toward their old voltages would
+    /// undo the correction and take the lines off again.
+    EveryGateLinesKept,
+}
+
+fn default_line_max_step_mv() -> Option<f64> {
+    Some(4.0)
 }
 
 fn default_max_iterations() -> Option<u32> {
@@ -381,6 +408,13 @@ impl ArrayRunSettings {
                 p.is_finite() && p > 0.0 && p <= 4.0,
                 "precorrect_lines_mv",
                 p.to_string(),
+            )?;
+        }
+        if let Some(m) = self.line_max_step_mv {
+            check(
+                m.is_finite() && m > 0.0 && m <= 10.0,
+                "line_max_step_mv",
+                m.to_string(),
             )?;
         }
         let f = self.reset_flat_row_fraction;
@@ -599,6 +633,9 @@ struct Scratch {
     forecast_moved: Vec<u32>,
     /// Voltages before the present move, mV.
     before_move: BTreeMap<String, f64>,
+    /// Voltages before the present line round's corrections, mV.
+    #[serde(default)]
+    before_lines: BTreeMap<String, f64>,
     record: Option<Box<IterationRecord>>,
 }
 
@@ -1140,6 +1177,7 @@ impl ArrayRun {
                     self.step =
                         Step::ParkSweep(moved.clone(), AfterPark::LineRound(moved, round + 1));
                 }
+                self.scratch.before_lines = self.voltages_mv.clone();
                 sets
             }
             Step::Boundary | Step::Idle => return Ok(None),
@@ -1236,7 +1274,10 @@ impl ArrayRun {
                 }
                 self.step = Step::LineSet(lines, moved, round);
             }
-            Step::LineSet(_, moved, round) => {
+            Step::LineSet(lines, moved, round) => {
+                if self.settings.retreat == Retreat::EveryGateLinesKept {
+                    self.keep_line_corrections(&lines);
+                }
                 if let Some(joint) = self.joint.as_mut() {
                     joint.lower.iter_mut().for_each(|l| l.probe_mv = None);
                 }
@@ -1800,6 +1841,7 @@ impl ArrayRun {
             moved_cells: Vec::new(),
             forecast_moved: Vec::new(),
             before_move: BTreeMap::new(),
+            before_lines: BTreeMap::new(),
             record: Some(Box::new(record)),
         };
         self.step = if all_in && !confirm.is_empty() {
@@ -2003,6 +2045,30 @@ impl ArrayRun {
         }
     }
 
+    /// [`Retreat::EveryGateLinesKept`]: the line corrections just answered
+    /// (`lines`: the cells corrected from scans that found both lines) shift
+    /// those cells' retreat targets by what their plungers moved.
+    fn keep_line_corrections(&mut self, lines: &[(u32, [f64; 2])]) {
+        let before = &self.scratch.before_lines;
+        let now = &self.voltages_mv;
+        let Some(joint) = self.joint.as_mut() else {
+            return;
+        };
+        for &(c, _) in lines {
+            let (Some(l), Some(good)) = (
+                joint.lower.get(c as usize),
+                joint.last_good.get_mut(c as usize),
+            ) else {
+                continue;
+            };
+            for g in &l.line_gates {
+                if let (Some(b), Some(n), Some(to)) = (before.get(g), now.get(g), good.get_mut(g)) {
+                    *to += n - b;
+                }
+            }
+        }
+    }
+
     /// Joint move `m`: one set per cell (the first move also retreats the
     /// cells whose evaluation failed, [`ArrayRunSettings::retreat`]).
     fn plan_moves(&mut self, m: u32) -> Result<Vec<Request>, ArrayRunError> {
@@ -2029,7 +2095,10 @@ impl ArrayRun {
                 }
                 let prefix = format!("c{c}.");
                 moves.retain(|g, _| !g.starts_with(&prefix));
-                if rule != Retreat::EveryGate {
+                if matches!(
+                    rule,
+                    Retreat::TuningGates | Retreat::TuningGatesWhenUncertain
+                ) {
                     moves.extend(joint.tuner.retreat_move(c, good, &now, &self.limits));
                     continue;
                 }
@@ -2270,7 +2339,7 @@ impl ArrayRun {
                     && f.iter().all(|&m| skip.confident(Some(m)))
                     // one correction within the step limit reaches the centre
                     && single_line_step(l, f.map(|m| m.0))
-                        .is_some_and(|q| q[0].hypot(q[1]) <= l.line_max_step_mv)
+                        .is_some_and(|q| q[0].hypot(q[1]) <= self.line_step_limit(l))
             })
             .collect();
         let scan = who_scans(cells, &confident, &self.readout_group);
@@ -2508,12 +2577,19 @@ impl ArrayRun {
             .map(|(&(c, _), mut dp)| {
                 let l = &joint.lower[c];
                 let norm = dp[0].hypot(dp[1]);
-                if norm > l.line_max_step_mv {
-                    dp.iter_mut().for_each(|x| *x *= l.line_max_step_mv / norm);
+                let limit = self.line_step_limit(l);
+                if norm > limit {
+                    dp.iter_mut().for_each(|x| *x *= limit / norm);
                 }
                 self.plunger_set(l, &dp)
             })
             .collect()
+    }
+
+    /// Longest line correction of cell `l` per round, mV
+    /// ([`ArrayRunSettings::line_max_step_mv`]).
+    fn line_step_limit(&self, l: &CellLower) -> f64 {
+        self.settings.line_max_step_mv.unwrap_or(l.line_max_step_mv)
     }
 
     /// The set that moves cell `l`'s line gates by `dv` (mV, in their

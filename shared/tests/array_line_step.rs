@@ -7,40 +7,21 @@
 //! stops short, and the lines are farther off at the next measurement
 //! (docs/array.md, "Lines brought back in one step").
 
+mod support;
+
 use std::collections::BTreeMap;
 
 use spintune::benchmark::array::{cell_tuner, world, ArrayProtocol};
 use spintune::benchmark::PAPER_SET_POINTS;
 use spintune::protocol::{Request, ScanKind};
-use spintune::sim::array::{ArrayConfig, ArrayDevice};
+use spintune::sim::array::ArrayConfig;
 use spintune::sim::DeviceConfig;
 use spintune::tuner::array_run::{ArrayAction, ArrayRun, ArrayRunSettings};
-
-/// Drive until the run is tuned (a cold start).
-fn cold_start(run: &mut ArrayRun, device: &mut ArrayDevice) {
-    for _ in 0..2000 {
-        match run.poll().unwrap() {
-            ArrayAction::Execute(batch) => {
-                let before = device.lab_seconds();
-                let answers = device.execute_batch(&batch);
-                run.feed(answers, device.lab_seconds() - before).unwrap();
-            }
-            ArrayAction::Iteration(record) if record.tuned => return,
-            ArrayAction::Iteration(_) | ArrayAction::Idle => {}
-        }
-    }
-    panic!("no cold start within 2000 polls");
-}
+use support::array::{is_measurement_of, until_tuned};
 
 fn is_line_scan_of(request: &Request, cell: u32) -> bool {
     matches!(request, Request::Measure { scan }
         if scan.cell == Some(cell) && scan.kind == ScanKind::ChemicalPotential)
-}
-
-fn is_measurement_of(request: &Request, cell: u32) -> bool {
-    matches!(request, Request::Measure { scan }
-        if scan.cell == Some(cell)
-            && matches!(scan.kind, ScanKind::ReloadTime | ScanKind::TransitionWidth))
 }
 
 /// What cell 1's first line round after the rearrangement did.
@@ -63,7 +44,7 @@ fn first_line_round(settings: ArrayRunSettings) -> LineRound {
     )
     .unwrap();
     let mut run = ArrayRun::new(cells, &device.gates(), settings, [0.3, 0.05], false).unwrap();
-    cold_start(&mut run, &mut device);
+    until_tuned(&mut run, &mut device);
     for c in 0..3 {
         run.set_targets(c, PAPER_SET_POINTS[1]).unwrap();
     }

@@ -16,6 +16,8 @@
 //! after a set-point change with instrument errors, or with a `w` of
 //! σ = 2,000 µV (its band: ±10 % of 180–270 µV).
 
+mod support;
+
 use std::collections::BTreeMap;
 
 use spintune::benchmark::array::{cell_tuner, world, ArrayProtocol};
@@ -23,16 +25,11 @@ use spintune::benchmark::PAPER_SET_POINTS;
 use spintune::protocol::{
     IterationRecord, ParameterValue, Request, Response, ScanKind, ScanOutcome,
 };
-use spintune::sim::array::{ArrayConfig, ArrayDevice};
+use spintune::sim::array::ArrayConfig;
 use spintune::sim::DeviceConfig;
 use spintune::tuner::array::CellKnowledge;
 use spintune::tuner::array_run::{ArrayAction, ArrayRun, Retreat};
-
-fn is_measurement_of(request: &Request, cell: u32) -> bool {
-    matches!(request, Request::Measure { scan }
-        if scan.cell == Some(cell)
-            && matches!(scan.kind, ScanKind::ReloadTime | ScanKind::TransitionWidth))
-}
+use support::array::{is_measurement_of, until_tuned};
 
 /// Cell 1's gates in a record, mV.
 fn cell_1(record: &IterationRecord) -> BTreeMap<String, f64> {
@@ -42,23 +39,6 @@ fn cell_1(record: &IterationRecord) -> BTreeMap<String, f64> {
         .filter(|(g, _)| g.starts_with("c1."))
         .map(|(g, v)| (g.clone(), *v))
         .collect()
-}
-
-/// Drive until the run is tuned (a cold start).
-fn cold_start(run: &mut ArrayRun, device: &mut ArrayDevice) {
-    for _ in 0..2000 {
-        match run.poll().unwrap() {
-            ArrayAction::Execute(batch) => {
-                let before = device.lab_seconds();
-                let answers = device.execute_batch(&batch);
-                run.feed(answers, device.lab_seconds() - before).unwrap();
-            }
-            ArrayAction::Iteration(record) if record.tuned => return,
-            ArrayAction::Iteration(_) => {}
-            ArrayAction::Idle => return,
-        }
-    }
-    panic!("no cold start within 2000 polls");
 }
 
 /// Cell 1's answers to a scripted failure: instrument errors.
@@ -215,7 +195,7 @@ fn after_a_scripted_failure(
     let mut settings = protocol.run_settings();
     settings.retreat = rule;
     let mut run = ArrayRun::new(cells, &device.gates(), settings, [0.3, 0.05], false).unwrap();
-    cold_start(&mut run, &mut device);
+    until_tuned(&mut run, &mut device);
     run.set_targets(1, PAPER_SET_POINTS[1]).unwrap();
 
     // measurement batches of cell 1 in the new phase; the second fails

@@ -4,7 +4,7 @@
 //! as the lab's calibration.
 
 use spintune::benchmark::array::{cell_tuner, lab_cross_calibration, world, ArrayProtocol, Lab};
-use spintune::protocol::{IterationRecord, Request};
+use spintune::protocol::{IterationRecord, Request, ScanKind};
 use spintune::sim::array::{ArrayConfig, ArrayDevice};
 use spintune::sim::DeviceConfig;
 use spintune::tuner::array_run::{ArrayAction, ArrayRun, ArrayRunSettings};
@@ -120,4 +120,29 @@ pub fn wide_limits(gates: &[String]) -> spintune::safety::SafetyLimits {
             })
             .collect::<Vec<_>>(),
     )
+}
+
+/// Drive `run` against `device` until a record says tuned or the run
+/// idles (a cold start, or the end of a phase); at most 2000 polls.
+pub fn until_tuned(run: &mut ArrayRun, device: &mut ArrayDevice) {
+    for _ in 0..2000 {
+        match run.poll().unwrap() {
+            ArrayAction::Execute(batch) => {
+                let before = device.lab_seconds();
+                let answers = device.execute_batch(&batch);
+                run.feed(answers, device.lab_seconds() - before).unwrap();
+            }
+            ArrayAction::Iteration(record) if record.tuned => return,
+            ArrayAction::Iteration(_) => {}
+            ArrayAction::Idle => return,
+        }
+    }
+    panic!("not tuned within 2000 polls");
+}
+
+/// Whether `request` is a `t_sr` or `w` scan of cell `cell`.
+pub fn is_measurement_of(request: &Request, cell: u32) -> bool {
+    matches!(request, Request::Measure { scan }
+        if scan.cell == Some(cell)
+            && matches!(scan.kind, ScanKind::ReloadTime | ScanKind::TransitionWidth))
 }

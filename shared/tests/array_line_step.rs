@@ -11,13 +11,11 @@ mod support;
 
 use std::collections::BTreeMap;
 
-use spintune::benchmark::array::{cell_tuner, world, ArrayProtocol};
+use spintune::benchmark::array::ArrayProtocol;
 use spintune::benchmark::PAPER_SET_POINTS;
 use spintune::protocol::{Request, ScanKind};
-use spintune::sim::array::ArrayConfig;
-use spintune::sim::DeviceConfig;
-use spintune::tuner::array_run::{ArrayAction, ArrayRun, ArrayRunSettings};
-use support::array::{is_measurement_of, until_tuned};
+use spintune::tuner::array_run::{ArrayAction, ArrayRunSettings};
+use support::array::{is_measurement_of, three_cells_tuned};
 
 fn is_line_scan_of(request: &Request, cell: u32) -> bool {
     matches!(request, Request::Measure { scan }
@@ -35,16 +33,7 @@ struct LineRound {
 /// A 3-cell chain tuned from cold, then a set-point change with cell 1's
 /// lines shifted by (2.5, −1.5) mV; `settings` as given.
 fn first_line_round(settings: ArrayRunSettings) -> LineRound {
-    let protocol = ArrayProtocol::default();
-    let cells = (0..3).map(|c| cell_tuner(c, &protocol)).collect();
-    let mut device = world(
-        &DeviceConfig::default(),
-        ArrayConfig::chain(3, 5, 11),
-        |_| true,
-    )
-    .unwrap();
-    let mut run = ArrayRun::new(cells, &device.gates(), settings, [0.3, 0.05], false).unwrap();
-    until_tuned(&mut run, &mut device);
+    let (mut run, mut device) = three_cells_tuned(settings);
     for c in 0..3 {
         run.set_targets(c, PAPER_SET_POINTS[1]).unwrap();
     }

@@ -20,16 +20,14 @@ mod support;
 
 use std::collections::BTreeMap;
 
-use spintune::benchmark::array::{cell_tuner, world, ArrayProtocol};
+use spintune::benchmark::array::ArrayProtocol;
 use spintune::benchmark::PAPER_SET_POINTS;
 use spintune::protocol::{
     IterationRecord, ParameterValue, Request, Response, ScanKind, ScanOutcome,
 };
-use spintune::sim::array::ArrayConfig;
-use spintune::sim::DeviceConfig;
 use spintune::tuner::array::CellKnowledge;
-use spintune::tuner::array_run::{ArrayAction, ArrayRun, Retreat};
-use support::array::{is_measurement_of, until_tuned};
+use spintune::tuner::array_run::{ArrayAction, Retreat};
+use support::array::{is_measurement_of, three_cells_tuned};
 
 /// Cell 1's gates in a record, mV.
 fn cell_1(record: &IterationRecord) -> BTreeMap<String, f64> {
@@ -183,19 +181,10 @@ fn after_a_scripted_failure(
     rule: Retreat,
     script: fn(&Request, Response) -> Response,
 ) -> AfterFailure {
-    let protocol = ArrayProtocol::default();
-    let cells = (0..3).map(|c| cell_tuner(c, &protocol)).collect();
-    // the world of the other array tests (`support::array::three_cells`), with `rule`
-    let mut device = world(
-        &DeviceConfig::default(),
-        ArrayConfig::chain(3, 5, 11),
-        |_| true,
-    )
-    .unwrap();
-    let mut settings = protocol.run_settings();
+    // the world of the other array tests, with `rule`
+    let mut settings = ArrayProtocol::default().run_settings();
     settings.retreat = rule;
-    let mut run = ArrayRun::new(cells, &device.gates(), settings, [0.3, 0.05], false).unwrap();
-    until_tuned(&mut run, &mut device);
+    let (mut run, mut device) = three_cells_tuned(settings);
     run.set_targets(1, PAPER_SET_POINTS[1]).unwrap();
 
     // measurement batches of cell 1 in the new phase; the second fails

@@ -12,21 +12,31 @@ use spintune::tuner::TunerConfig;
 
 /// The world and a joint loop with one tuner per cell (`cells.len()` = 3).
 pub fn three_cells(cells: Vec<TunerConfig>) -> (ArrayRun, ArrayDevice) {
-    let protocol = ArrayProtocol::default();
+    three_cells_with(cells, ArrayProtocol::default().run_settings())
+}
+
+/// [`three_cells`] with the joint loop's `settings`.
+pub fn three_cells_with(
+    cells: Vec<TunerConfig>,
+    settings: ArrayRunSettings,
+) -> (ArrayRun, ArrayDevice) {
     let device = world(
         &DeviceConfig::default(),
         ArrayConfig::chain(3, 5, 11),
         |_| true,
     )
     .unwrap();
-    let run = ArrayRun::new(
-        cells,
-        &device.gates(),
-        protocol.run_settings(),
-        [0.3, 0.05],
-        false,
-    )
-    .unwrap();
+    let run = ArrayRun::new(cells, &device.gates(), settings, [0.3, 0.05], false).unwrap();
+    (run, device)
+}
+
+/// The 3-cell chain of [`three_cells_with`] with the recommended tuner per
+/// cell, tuned from cold.
+pub fn three_cells_tuned(settings: ArrayRunSettings) -> (ArrayRun, ArrayDevice) {
+    let protocol = ArrayProtocol::default();
+    let cells = (0..3).map(|c| cell_tuner(c, &protocol)).collect();
+    let (mut run, mut device) = three_cells_with(cells, settings);
+    until_tuned(&mut run, &mut device);
     (run, device)
 }
 

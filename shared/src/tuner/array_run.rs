@@ -548,6 +548,13 @@ struct CellLower {
     /// A search probe's plunger move not yet sent (mV per line gate).
     #[serde(default)]
     probe_mv: Option<Vec<f64>>,
+    /// The cell's last line scan lost a line. Its lines' forecast still
+    /// starts from the scan before, where the lines no longer are, so
+    /// nothing acts on it (no pre-correction, no forecast instead of a scan)
+    /// until a scan finds both lines again. Seen on random arrays: a stale
+    /// forecast pre-corrected a lost line 10 mV further away every iteration.
+    #[serde(default)]
+    lines_unseen: bool,
 }
 
 impl CellLower {
@@ -1490,6 +1497,7 @@ impl ArrayRun {
                 line_search: None,
                 search: SearchMemory::default(),
                 probe_mv: None,
+                lines_unseen: false,
                 failed_evaluations: 0,
                 line_checks: Consistency::default(),
             };
@@ -2315,6 +2323,9 @@ impl ArrayRun {
         let forecasts: Vec<Option<[Measured; 2]>> = cells
             .iter()
             .map(|&c| {
+                if joint.lower[c as usize].lines_unseen {
+                    return None;
+                }
                 let mut f = line_forecast(joint, c as usize, v)?;
                 let checks = &joint.lower[c as usize].line_checks;
                 let scale = checks.nis_mean().unwrap_or(1.0).max(1.0);
@@ -2426,6 +2437,13 @@ impl ArrayRun {
             ];
             let [Some(a_mv), Some(b_mv)] = found else {
                 self.evaluation_failed(c as usize);
+                if let Some(l) = self
+                    .joint
+                    .as_mut()
+                    .and_then(|j| j.lower.get_mut(c as usize))
+                {
+                    l.lines_unseen = true;
+                }
                 if self.lines_lost(c as usize, found) {
                     moved.push(c);
                 }
@@ -2745,6 +2763,7 @@ fn observe_lines(
     l.lines
         .observe(&own, v, &[Some(mu[0]), Some(mu[1])], &rows, noise);
     l.lines.scanned(l.failed_evaluations, lab_seconds);
+    l.lines_unseen = false;
 }
 
 /// `c{k}.t_sr` → (k, `t_sr`) for the array's parameters.
@@ -2881,6 +2900,7 @@ mod tests {
             line_search: None,
             search: SearchMemory::default(),
             probe_mv: None,
+            lines_unseen: false,
             failed_evaluations: 0,
             line_checks: Consistency::default(),
         }

@@ -115,6 +115,8 @@ pub struct ArrayRunSettings {
     /// forecast when it puts a line beyond this, mV (0 < value ≤ 4, the
     /// scan's half-window; `None`: never). Default 1: chosen on random
     /// arrays (docs/array.md, "Lines corrected before their scan").
+    /// Never while the cell's lines count as lost by its line search's rule
+    /// (a lost line's forecast starts from a scan made before the loss).
     #[serde(default)]
     pub precorrect_lines_mv: Option<f64>,
     /// Longest plunger correction of a cell's lines per line round, mV
@@ -129,6 +131,16 @@ pub struct ArrayRunSettings {
     /// scan is narrower sets its half-window here.
     #[serde(default = "default_line_max_step_mv")]
     pub line_max_step_mv: Option<f64>,
+    /// A cell's line search that gave up starts again after this many more
+    /// line scans that lost a line (1..=30; `None`: never, the single-cell
+    /// line level's rule). Default 3. While a line is lost the cell's
+    /// lines' forecast is not acted on (it starts from a scan made before
+    /// the loss), so without a new search nothing would bring the line
+    /// back; the moves and drift since the last search may have brought it
+    /// within the probes' reach (docs/array.md, "A lost line: no forecast,
+    /// a new search").
+    #[serde(default = "default_rearm_line_search_after")]
+    pub rearm_line_search_after: Option<u32>,
     /// Correct a cell's lines from their forecast instead of scanning them
     /// (the single-cell line level's rule, [`ParameterForecast`]: both
     /// lines predicted within `skip_std` mV, fewer than `max_skips`
@@ -314,6 +326,7 @@ impl Default for ArrayRunSettings {
             joint_line_steps: default_joint_line_steps(),
             precorrect_lines_mv: Some(1.0),
             line_max_step_mv: default_line_max_step_mv(),
+            rearm_line_search_after: default_rearm_line_search_after(),
             line_forecast: None,
             max_iterations: default_max_iterations(),
             skip_confident_sigma: default_skip_sigma(),
@@ -362,6 +375,10 @@ pub enum Retreat {
 
 fn default_line_max_step_mv() -> Option<f64> {
     Some(4.0)
+}
+
+fn default_rearm_line_search_after() -> Option<u32> {
+    Some(3)
 }
 
 fn default_max_iterations() -> Option<u32> {
@@ -415,6 +432,13 @@ impl ArrayRunSettings {
                 m.is_finite() && m > 0.0 && m <= 10.0,
                 "line_max_step_mv",
                 m.to_string(),
+            )?;
+        }
+        if let Some(n) = self.rearm_line_search_after {
+            check(
+                (1..=30).contains(&n),
+                "rearm_line_search_after",
+                n.to_string(),
             )?;
         }
         let f = self.reset_flat_row_fraction;
@@ -548,16 +572,23 @@ struct CellLower {
     /// A search probe's plunger move not yet sent (mV per line gate).
     #[serde(default)]
     probe_mv: Option<Vec<f64>>,
-    /// The cell's last line scan lost a line. Its lines' forecast still
-    /// starts from the scan before, where the lines no longer are, so
-    /// nothing acts on it (no pre-correction, no forecast instead of a scan)
-    /// until a scan finds both lines again. Seen on random arrays: a stale
-    /// forecast pre-corrected a lost line 10 mV further away every iteration.
-    #[serde(default)]
-    lines_unseen: bool,
 }
 
 impl CellLower {
+    /// Whether the cell's lines count as lost by its line search's rule
+    /// (the failures in a row that start a search, a search under way, or
+    /// one that gave up, until a scan finds both lines again). Its lines'
+    /// forecast then starts from a scan made before they were lost, where
+    /// they no longer are: nothing acts on it. A single failed fit (noise)
+    /// does not count.
+    fn lines_missing(&self) -> bool {
+        self.line_search.as_ref().is_some_and(|cfg| {
+            self.search.active.is_some()
+                || self.search.exhausted
+                || self.search.lost_in_a_row >= cfg.after_failures
+        })
+    }
+
     /// The cell's line gates at `v`, mV (their order; a missing gate as 0).
     fn line_mv(&self, v: &BTreeMap<String, f64>) -> Vec<f64> {
         self.line_gates
@@ -1497,7 +1528,6 @@ impl ArrayRun {
                 line_search: None,
                 search: SearchMemory::default(),
                 probe_mv: None,
-                lines_unseen: false,
                 failed_evaluations: 0,
                 line_checks: Consistency::default(),
             };
@@ -2323,7 +2353,7 @@ impl ArrayRun {
         let forecasts: Vec<Option<[Measured; 2]>> = cells
             .iter()
             .map(|&c| {
-                if joint.lower[c as usize].lines_unseen {
+                if joint.lower[c as usize].lines_missing() {
                     return None;
                 }
                 let mut f = line_forecast(joint, c as usize, v)?;
@@ -2437,13 +2467,6 @@ impl ArrayRun {
             ];
             let [Some(a_mv), Some(b_mv)] = found else {
                 self.evaluation_failed(c as usize);
-                if let Some(l) = self
-                    .joint
-                    .as_mut()
-                    .and_then(|j| j.lower.get_mut(c as usize))
-                {
-                    l.lines_unseen = true;
-                }
                 if self.lines_lost(c as usize, found) {
                     moved.push(c);
                 }
@@ -2499,6 +2522,7 @@ impl ArrayRun {
     /// searches) plans its next probe or its way back. Whether the cell's
     /// plungers move.
     fn lines_lost(&mut self, cell: usize, found: [Option<Measured>; 2]) -> bool {
+        let rearm = self.settings.rearm_line_search_after;
         let Some(l) = self.joint.as_mut().and_then(|j| j.lower.get_mut(cell)) else {
             return false;
         };
@@ -2509,6 +2533,9 @@ impl ArrayRun {
             return false;
         }
         l.search.seen(&found.map(|m| m.map(|m| m.0)));
+        if let Some(after) = rearm {
+            l.search.rearm_after(&cfg, after);
+        }
         let j = l.line_jacobian;
         let jacobian = DMatrix::from_fn(2, 2, |r, s| j[r][s]);
         let missing = found.map(|m| m.is_none());
@@ -2763,7 +2790,6 @@ fn observe_lines(
     l.lines
         .observe(&own, v, &[Some(mu[0]), Some(mu[1])], &rows, noise);
     l.lines.scanned(l.failed_evaluations, lab_seconds);
-    l.lines_unseen = false;
 }
 
 /// `c{k}.t_sr` → (k, `t_sr`) for the array's parameters.
@@ -2900,7 +2926,6 @@ mod tests {
             line_search: None,
             search: SearchMemory::default(),
             probe_mv: None,
-            lines_unseen: false,
             failed_evaluations: 0,
             line_checks: Consistency::default(),
         }

@@ -125,8 +125,12 @@ pub(super) struct ActiveSearch {
 pub(super) struct SearchMemory {
     /// Failed evaluations in a row with nothing to retreat to.
     pub(super) lost_in_a_row: u32,
-    /// A search gave up: none until an evaluation works again.
+    /// A search gave up: none until an evaluation works again (or, where
+    /// the level re-arms it, [`SearchMemory::rearm_after`]).
     pub(super) exhausted: bool,
+    /// Failed evaluations since the last search gave up.
+    #[serde(default)]
+    pub(super) lost_since_give_up: u32,
     /// Per parameter, the last value a scan gave (estimator units).
     pub(super) last_seen: Vec<Option<f64>>,
     pub(super) active: Option<ActiveSearch>,
@@ -151,6 +155,7 @@ impl SearchMemory {
     pub(super) fn found(&mut self) -> Option<u32> {
         self.lost_in_a_row = 0;
         self.exhausted = false;
+        self.lost_since_give_up = 0;
         self.active.take().map(|a| a.probes)
     }
 
@@ -161,6 +166,23 @@ impl SearchMemory {
             if let Some(v) = v.filter(|v| v.is_finite()) {
                 *s = Some(v);
             }
+        }
+    }
+
+    /// Another failed evaluation after a search gave up: at the `after`-th
+    /// the give-up ends, and the next [`SearchMemory::lost`] starts a new
+    /// search at once (the moves and the drift since may have brought the
+    /// parameter within the probes' reach). Call before `lost`. The
+    /// single-cell level never re-arms; the array's line level does.
+    pub(super) fn rearm_after(&mut self, cfg: &ParameterSearch, after: u32) {
+        if !self.exhausted || self.active.is_some() {
+            return;
+        }
+        self.lost_since_give_up += 1;
+        if self.lost_since_give_up >= after {
+            self.exhausted = false;
+            self.lost_since_give_up = 0;
+            self.lost_in_a_row = cfg.after_failures.saturating_sub(1);
         }
     }
 
@@ -255,6 +277,7 @@ impl SearchMemory {
         let active = self.active.take();
         self.exhausted = true;
         self.lost_in_a_row = 0;
+        self.lost_since_give_up = 0;
         SearchMove::GiveUp {
             probes: active.as_ref().map_or(0, |a| a.probes),
             dv_mv: active.map_or_else(Vec::new, |a| a.applied_mv.iter().map(|d| -d).collect()),

@@ -540,6 +540,10 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
             &["tuning.line_max_step_mv", "12.5"][..],
         ),
         (
+            "rearm_line_search_after = 31\n",
+            &["tuning.rearm_line_search_after", "31"][..],
+        ),
+        (
             "retreat = \"lines\"\n",
             &["retreat", "every_gate_lines_kept", "tuning_gates"][..],
         ),

@@ -11,7 +11,7 @@
 //!   a lost line a few mV further away at every iteration.
 //! * A search that gave up starts again after
 //!   `ArrayRunSettings::rearm_line_search_after` more lost scans (default 3);
-//!   `None` keeps the single-cell rule, one search until a scan works.
+//!   0 keeps the single-cell rule, one search until a scan works.
 
 mod support;
 
@@ -133,10 +133,10 @@ fn a_forecast_from_before_a_lost_line_is_not_acted_on() {
 #[test]
 fn a_search_that_gave_up_starts_again() {
     let settings = ArrayProtocol::default().run_settings();
-    assert_eq!(settings.rearm_line_search_after, Some(3));
+    assert_eq!(settings.rearm_line_search_after, 3);
     let rearmed = watch_after_rearrangement(settings.clone());
     let once = watch_after_rearrangement(ArrayRunSettings {
-        rearm_line_search_after: None,
+        rearm_line_search_after: 0,
         ..settings
     });
     assert_eq!(once.searches_given_up, 1, "{once:?}");

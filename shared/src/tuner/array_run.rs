@@ -132,15 +132,17 @@ pub struct ArrayRunSettings {
     #[serde(default = "default_line_max_step_mv")]
     pub line_max_step_mv: Option<f64>,
     /// A cell's line search that gave up starts again after this many more
-    /// line scans that lost a line (1..=30; `None`: never, the single-cell
-    /// line level's rule). Default 3. While a line is lost the cell's
+    /// line scans that lost a line (0..=30; 0: never, the single-cell line
+    /// level's rule). Default 3: one more than the failures in a row that
+    /// start a search (`ParameterSearch::after_failures`, 2); set once,
+    /// not tuned. While a line is lost the cell's
     /// lines' forecast is not acted on (it starts from a scan made before
     /// the loss), so without a new search nothing would bring the line
     /// back; the moves and drift since the last search may have brought it
     /// within the probes' reach (docs/array.md, "A lost line: no forecast,
     /// a new search").
     #[serde(default = "default_rearm_line_search_after")]
-    pub rearm_line_search_after: Option<u32>,
+    pub rearm_line_search_after: u32,
     /// Correct a cell's lines from their forecast instead of scanning them
     /// (the single-cell line level's rule, [`ParameterForecast`]: both
     /// lines predicted within `skip_std` mV, fewer than `max_skips`
@@ -377,8 +379,8 @@ fn default_line_max_step_mv() -> Option<f64> {
     Some(4.0)
 }
 
-fn default_rearm_line_search_after() -> Option<u32> {
-    Some(3)
+fn default_rearm_line_search_after() -> u32 {
+    3
 }
 
 fn default_max_iterations() -> Option<u32> {
@@ -434,13 +436,8 @@ impl ArrayRunSettings {
                 m.to_string(),
             )?;
         }
-        if let Some(n) = self.rearm_line_search_after {
-            check(
-                (1..=30).contains(&n),
-                "rearm_line_search_after",
-                n.to_string(),
-            )?;
-        }
+        let n = self.rearm_line_search_after;
+        check(n <= 30, "rearm_line_search_after", n.to_string())?;
         let f = self.reset_flat_row_fraction;
         check(
             f.is_finite() && (0.0..=1.0).contains(&f),
@@ -2533,8 +2530,8 @@ impl ArrayRun {
             return false;
         }
         l.search.seen(&found.map(|m| m.map(|m| m.0)));
-        if let Some(after) = rearm {
-            l.search.rearm_after(&cfg, after);
+        if rearm > 0 {
+            l.search.rearm_after(&cfg, rearm);
         }
         let j = l.line_jacobian;
         let jacobian = DMatrix::from_fn(2, 2, |r, s| j[r][s]);

@@ -135,12 +135,11 @@ pub struct ArrayRunSettings {
     /// line scans that lost a line (0..=30; 0: never, the single-cell line
     /// level's rule). Default 3: one more than the failures in a row that
     /// start a search (`ParameterSearch::after_failures`, 2); set once,
-    /// not tuned. While a line is lost the cell's
-    /// lines' forecast is not acted on (it starts from a scan made before
-    /// the loss), so without a new search nothing would bring the line
-    /// back; the moves and drift since the last search may have brought it
-    /// within the probes' reach (docs/array.md, "A lost line: no forecast,
-    /// a new search").
+    /// not tuned. While a line is lost the cell's lines' forecast is not
+    /// acted on (it starts from a scan made before the loss), so without a
+    /// new search nothing would bring the line back; the moves and drift
+    /// since the last search may have brought it within the probes' reach
+    /// (docs/array.md, "A lost line: no forecast, a new search").
     #[serde(default = "default_rearm_line_search_after")]
     pub rearm_line_search_after: u32,
     /// Correct a cell's lines from their forecast instead of scanning them

@@ -510,4 +510,45 @@ mod tests {
         assert_eq!(m.lost(&cfg(), &[true, true], &[Some(0.0); 2], &zero), None);
         assert_eq!(m.lost(&cfg(), &[true, true], &[Some(0.0); 2], &zero), None);
     }
+
+    /// A search that gave up stays given up (the single-cell rule) until
+    /// `rearm_after` has counted `after` more failures: then the very next
+    /// failure starts a new search (its first probe), as the first search
+    /// started after `after_failures` (2) failures in a row.
+    #[test]
+    fn a_given_up_search_is_rearmed_after_that_many_failures() {
+        let j = DMatrix::from_row_slice(2, 2, &[0.5, 0.1, 0.1, 0.4]);
+        let lost = |m: &mut SearchMemory| m.lost(&cfg(), &[true, false], &[Some(0.0); 2], &j);
+        let mut m = SearchMemory::default();
+        assert_eq!(lost(&mut m), None);
+        for _ in 0..4 {
+            assert!(matches!(lost(&mut m), Some(SearchMove::Probe { .. })));
+        }
+        assert!(matches!(
+            lost(&mut m),
+            Some(SearchMove::GiveUp { probes: 4, .. })
+        ));
+        assert!(m.exhausted);
+        // given up: without a re-arm, no search however long it stays lost
+        let mut never = m.clone();
+        for _ in 0..10 {
+            assert_eq!(lost(&mut never), None);
+        }
+        for _ in 0..2 {
+            m.rearm_after(&cfg(), 3);
+            assert_eq!(lost(&mut m), None);
+        }
+        m.rearm_after(&cfg(), 3);
+        assert!(!m.exhausted);
+        assert!(matches!(
+            lost(&mut m),
+            Some(SearchMove::Probe { probe: 1, .. })
+        ));
+        // a scan that works ends it all, the count since giving up too
+        m.found();
+        assert_eq!(
+            (m.lost_in_a_row, m.lost_since_give_up, m.exhausted),
+            (0, 0, false)
+        );
+    }
 }

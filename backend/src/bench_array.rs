@@ -89,8 +89,9 @@ pub struct BenchArrayArgs {
     /// Follow cell K (0..--cells) through every `joint`/`oracle` run: per
     /// iteration its gate voltages, measured and true `t_sr` and `w`, and
     /// the own-gate rows its move was planned with against the true ones,
-    /// and where its transition lines truly sat (printed after the table,
-    /// and in the JSON's timeline).
+    /// and where its transition lines truly sat, at the measurement and at
+    /// its line scan after the move (printed after the table, and in the
+    /// JSON's timeline).
     #[arg(long, value_name = "K")]
     pub trace_cell: Option<u32>,
 }

@@ -11,6 +11,7 @@ use spintune::benchmark::array::{
     run_strategy, single_change_cells, world, ArrayProtocol, ArrayRunResult, ArrayStrategy,
 };
 use spintune::benchmark::array_timeline::{CellBand, TimelinePoint};
+use spintune::benchmark::cell_trace::CellTrace;
 use spintune::benchmark::row_agreement::RowAgreement;
 use spintune::benchmark::PAPER_SET_POINTS;
 use spintune::sim::array::{ArrayConfig, ArrayDevice};
@@ -133,6 +134,43 @@ fn a_traced_cell_is_followed_where_its_rows_are_taken_without_changing_the_run()
         let failed = t.measured.iter().any(Option::is_none);
         assert_eq!(failed, p.measured[1] == CellBand::NotMeasured, "{p:?}");
     }
+    // the line scan after each move: a moved cell re-centres its lines
+    // every iteration, so most points have one, and the lines it finds
+    // are where the move left them, not where the correction put them
+    let scanned: Vec<&CellTrace> = r
+        .timeline
+        .iter()
+        .filter_map(|p| p.trace.as_ref())
+        .filter(|t| t.lines_at_line_scan_mv.is_some())
+        .collect();
+    assert!(
+        2 * scanned.len() >= r.timeline.len(),
+        "{} of {} points with a line scan after the move",
+        scanned.len(),
+        r.timeline.len()
+    );
+    for t in &scanned {
+        let at_scan = t.lines_at_line_scan_mv.unwrap();
+        assert!(at_scan.iter().all(|x| x.is_finite()), "{t:?}");
+    }
+    assert!(
+        scanned
+            .iter()
+            .any(|t| t.lines_at_line_scan_mv != Some(t.true_lines_mv)),
+        "the lines moved between the measurement and the line scan"
+    );
+    // what the scan found was corrected: at the next measurement the
+    // lines sit nearer their centre than at the scan (mean offset, mV)
+    let traces: Vec<&CellTrace> = r.timeline.iter().filter_map(|p| p.trace.as_ref()).collect();
+    let norm = |[a, b]: [f64; 2]| a.hypot(b);
+    let pairs: Vec<(f64, f64)> = traces
+        .windows(2)
+        .filter_map(|w| Some((norm(w[0].lines_at_line_scan_mv?), norm(w[1].true_lines_mv))))
+        .collect();
+    let mean = |f: fn(&(f64, f64)) -> f64| pairs.iter().map(f).sum::<f64>() / pairs.len() as f64;
+    let (at_scan, after) = (mean(|p| p.0), mean(|p| p.1));
+    println!("mean line offset: {at_scan:.3} mV at the scan, {after:.3} mV at the next measurement ({} pairs)", pairs.len());
+    assert!(after < 0.8 * at_scan, "{at_scan} → {after}");
     let bad = ArrayProtocol {
         trace_cell: Some(3),
         ..short_protocol()

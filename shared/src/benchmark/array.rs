@@ -53,7 +53,7 @@ use super::row_agreement::RowAgreement;
 use super::{quantiles, Quantiles, PAPER_SET_POINTS};
 use crate::config_error::ConfigError;
 use crate::parameter::Tolerance;
-use crate::protocol::{ControlCommand, IterationRecord, Request, Response};
+use crate::protocol::{ControlCommand, IterationRecord, Request, Response, ScanKind};
 use crate::safety::SafetyLimits;
 use crate::session::{Output, RunSession, SessionConfig};
 use crate::sim::array::{parameter_name, ArrayConfig, ArrayDevice};
@@ -755,13 +755,21 @@ impl Timeline<'_> {
     /// Before `batch` runs: if it is the iteration's first to set a tuning
     /// gate (its move), note the rows the move was planned with against the
     /// truth at the voltages it starts from, those of the measurement.
+    ///
+    /// After the move, the traced cell's first line scan: where its lines
+    /// truly sit as the scan starts ([`CellTrace::lines_at_line_scan_mv`]).
     fn before_batch(&mut self, lab: &Lab, run: &ArrayRun, batch: &[Request]) {
-        if self.at_move.is_some() {
+        let Some((_, trace)) = &mut self.at_move else {
+            if let Some(t) = run.tuner() {
+                if sets_any(batch, t.gates()) {
+                    self.at_move = Some(self.rows_and_trace(lab, t));
+                }
+            }
             return;
-        }
-        if let Some(t) = run.tuner() {
-            if sets_any(batch, t.gates()) {
-                self.at_move = Some(self.rows_and_trace(lab, t));
+        };
+        if let Some(t) = trace.as_mut() {
+            if t.lines_at_line_scan_mv.is_none() && scans_lines_of(batch, t.cell) {
+                t.lines_at_line_scan_mv = lab.device.lines_now_mv(t.cell);
             }
         }
     }
@@ -830,6 +838,7 @@ impl Timeline<'_> {
                 learned_rows: learned,
                 true_rows: truth,
                 true_lines_mv: lab.device.lines_now_mv(c)?,
+                lines_at_line_scan_mv: None,
             })
         });
         let agreements = rows
@@ -846,6 +855,18 @@ fn sets_any(batch: &[Request], gates: &[String]) -> bool {
     batch.iter().any(|r| match r {
         Request::SetVoltages { voltages_mv } => voltages_mv.keys().any(|g| gates.contains(g)),
         Request::Batch { requests } => sets_any(requests, gates),
+        _ => false,
+    })
+}
+
+/// Whether `batch` (batches inside it included) holds a line scan (the
+/// chemical-potential scan) of cell `cell`.
+fn scans_lines_of(batch: &[Request], cell: u32) -> bool {
+    batch.iter().any(|r| match r {
+        Request::Measure { scan } => {
+            scan.kind == ScanKind::ChemicalPotential && scan.cell == Some(cell)
+        }
+        Request::Batch { requests } => scans_lines_of(requests, cell),
         _ => false,
     })
 }

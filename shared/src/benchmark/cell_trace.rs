@@ -38,6 +38,14 @@ pub struct CellTrace {
     /// traces written before it existed: 0.
     #[serde(default)]
     pub true_lines_mv: [f64; 2],
+    /// Where those lines truly sat at the cell's first line scan after the
+    /// iteration's move, mV (world side, as [`CellTrace::true_lines_mv`]):
+    /// what that scan found, before the correction it led to; the next
+    /// point's [`CellTrace::true_lines_mv`] shows what the correction left
+    /// at the next measurement. `None`: no line scan of the cell after a
+    /// move in this iteration (or a trace written before it existed).
+    #[serde(default)]
+    pub lines_at_line_scan_mv: Option<[f64; 2]>,
 }
 
 impl CellTrace {
@@ -53,13 +61,14 @@ impl CellTrace {
     ///     learned_rows: [vec![0.01, -0.02], vec![0.0, 0.005]],
     ///     true_rows: [vec![0.011, -0.019], vec![0.002, 0.004]],
     ///     true_lines_mv: [0.3, -1.5],
+    ///     lines_at_line_scan_mv: Some([1.6, -2.0]),
     /// };
     /// assert_eq!(
     ///     t.line(),
     ///     "c2.N -700.0 c2.T -650.5 mV | t_sr 21.0 ± 1.5 (true 20.0) ns, \
     ///      rows /mV learned [+0.0100 -0.0200] true [+0.0110 -0.0190] | \
     ///      w failed (true 180.0) µV, rows /mV learned [+0.0000 +0.0050] true [+0.0020 +0.0040] | \
-    ///      lines true A +0.3 B -1.5 mV"
+    ///      lines true A +0.3 B -1.5 mV | at its line scan after the move A +1.6 B -2.0 mV"
     /// );
     /// ```
     pub fn line(&self) -> String {
@@ -91,8 +100,12 @@ impl CellTrace {
             })
             .collect();
         let [a, b] = self.true_lines_mv;
+        let scanned = match self.lines_at_line_scan_mv {
+            Some([a, b]) => format!(" | at its line scan after the move A {a:+.1} B {b:+.1} mV"),
+            None => String::new(),
+        };
         format!(
-            "{} mV | {} | lines true A {a:+.1} B {b:+.1} mV",
+            "{} mV | {} | lines true A {a:+.1} B {b:+.1} mV{scanned}",
             volts.join(" "),
             params.join(" | ")
         )
@@ -114,6 +127,7 @@ impl CellTrace {
 ///     learned_rows: [Vec::new(), Vec::new()],
 ///     true_rows: [Vec::new(), Vec::new()],
 ///     true_lines_mv: [0.0, 0.0],
+///     lines_at_line_scan_mv: None,
 /// };
 /// // t_sr 0.5σ, 1σ (covered), 3σ off; w 0.1σ, 2σ, 0σ off
 /// let traces = [at(20.5, 201.0), at(21.0, 220.0), at(17.0, 200.0)];

@@ -1020,9 +1020,10 @@ fn persistent_misses_shorten_a_rows_memory() {
 /// world-side, never by the run.
 #[test]
 fn the_coupled_line_level_leaves_the_lines_nearer_their_centre() {
-    let mean_offset = |joint_steps: bool, seed: u64| {
+    let mean_offset = |joint_steps: bool, couple: bool, seed: u64| {
         let mut protocol = short_protocol();
         protocol.tuning.joint_line_steps = joint_steps;
+        protocol.tuning.couple_line_corrections = couple;
         let array = world(
             &DeviceConfig::default(),
             ArrayConfig::chain(5, 11, seed),
@@ -1052,10 +1053,25 @@ fn the_coupled_line_level_leaves_the_lines_nearer_their_centre() {
     // 0.59 with the trust-region step, 0.38 against 0.47 with a retreat of
     // the tuning gates only)
     let seeds = [3, 4, 5, 6];
-    let joint = seeds.iter().map(|&s| mean_offset(true, s)).sum::<f64>() / 4.0;
-    let alone = seeds.iter().map(|&s| mean_offset(false, s)).sum::<f64>() / 4.0;
-    eprintln!("mean line offset at the scans: {joint:.3} mV joint, {alone:.3} mV cell by cell");
+    let mean = |joint: bool, couple: bool| {
+        seeds
+            .iter()
+            .map(|&s| mean_offset(joint, couple, s))
+            .sum::<f64>()
+            / 4.0
+    };
+    let (joint, couple, alone) = (mean(true, false), mean(false, true), mean(false, false));
+    eprintln!(
+        "mean line offset at the scans: {joint:.3} mV joint, {couple:.3} mV corrections \
+         solved together, {alone:.3} mV cell by cell"
+    );
     assert!(joint < 0.8 * alone, "{joint} vs {alone}");
+    // the corrections alone solved together (`couple_line_corrections`)
+    assert!(couple < 0.8 * alone, "{couple} vs {alone}");
+    assert!(
+        !ArrayProtocol::default().tuning.couple_line_corrections,
+        "off by default (docs/array.md)"
+    );
     assert!(
         !ArrayProtocol::default().tuning.joint_line_steps,
         "the default (measured no better on random arrays)"
@@ -1063,4 +1079,5 @@ fn the_coupled_line_level_leaves_the_lines_nearer_their_centre() {
     // an old settings file (before the option) loads with it off
     let old = oldest_settings();
     assert!(!old.joint_line_steps);
+    assert!(!old.couple_line_corrections);
 }

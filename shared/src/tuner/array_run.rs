@@ -111,6 +111,23 @@ pub struct ArrayRunSettings {
     /// tuner was no better (docs/array.md, "The line level, coupled").
     #[serde(default = "default_joint_line_steps")]
     pub joint_line_steps: bool,
+    /// Solve the line corrections of one batch together, as
+    /// [`Self::joint_line_steps`] does ([`joint_line_steps`]: each step
+    /// takes out the crosstalk of the others), with each cell's lone lever
+    /// (its line Jacobian as measured divided by its lockstep factor,
+    /// [`crate::tuner::array::lockstep_factor`]), but for those steps only:
+    /// the lines' forecast, the pre-correction and the line search keep
+    /// the Jacobian as measured, and cells in band do not take part. A
+    /// cell correcting alone otherwise moves its lines by 1/1.7 of what it
+    /// asks in mid-chain, and its neighbours' corrections in the same batch
+    /// push it by their crosstalk (docs/array.md, "Two fresh failures
+    /// traced"). No effect when `joint_line_steps` is on (it does this and
+    /// more). Default `false`: measured slower on every set (5–9 lab min
+    /// per cold start, 1.5–3 per all-cell change), with more neighbours
+    /// out and half as many failed fits again (docs/array.md, "Line
+    /// corrections solved together").
+    #[serde(default)]
+    pub couple_line_corrections: bool,
     /// Before a cell's line scan, correct its plungers from the lines'
     /// forecast when it puts a line beyond this, mV (0 < value ≤ 4, the
     /// scan's half-window; `None`: never). Default 1: chosen on random
@@ -325,6 +342,7 @@ impl Default for ArrayRunSettings {
             moves_per_iteration: 1,
             line_tolerance_mv: 0.1,
             joint_line_steps: default_joint_line_steps(),
+            couple_line_corrections: false,
             precorrect_lines_mv: Some(1.0),
             line_max_step_mv: default_line_max_step_mv(),
             rearm_line_search_after: default_rearm_line_search_after(),
@@ -2608,6 +2626,18 @@ impl ArrayRun {
             .collect();
         let steps = if self.settings.joint_line_steps {
             joint_line_steps(&single, self.cross_calibration)
+        } else if self.settings.couple_line_corrections {
+            // the lone lever: the measured Jacobian ÷ the lockstep factor,
+            // so each single step × that factor
+            let n = joint.lower.len();
+            let lone: Vec<(usize, Vec<f64>)> = single
+                .iter()
+                .map(|(c, q)| {
+                    let f = lockstep_factor(*c, n, self.cross_calibration);
+                    (*c, q.iter().map(|x| x * f).collect())
+                })
+                .collect();
+            joint_line_steps(&lone, self.cross_calibration)
         } else {
             None
         }

@@ -159,6 +159,20 @@ pub struct ArrayRunSettings {
     /// (docs/array.md, "A lost line: no forecast, a new search").
     #[serde(default = "default_rearm_line_search_after")]
     pub rearm_line_search_after: u32,
+    /// Before the run stops with every cell measured in band, each measured
+    /// cell whose last line scan found a line farther than this from its
+    /// centre, mV, or lost one, scans its lines again where they are
+    /// (0 < value ≤ 4, the scan's half-window; `None`: never). A cell
+    /// found off by more than this again is corrected (one line step) and
+    /// its `t_sr` (and `w` when line A was off) scanned again: the run
+    /// stops only if those readings are in band too. Why: the load curve
+    /// reads `t_sr` long by a factor that grows with the square of line
+    /// B's offset at it, and a cell correcting alone among neighbours that
+    /// also correct keeps part of its offset (docs/array.md, "Lines
+    /// checked before a run stops"); the in-band verdict that ends a
+    /// change is then taken on lines known to be near their centre.
+    #[serde(default = "default_verify_lines_above_mv")]
+    pub verify_lines_above_mv: Option<f64>,
     /// Correct a cell's lines from their forecast instead of scanning them
     /// (the single-cell line level's rule, [`ParameterForecast`]: both
     /// lines predicted within `skip_std` mV, fewer than `max_skips`
@@ -346,6 +360,7 @@ impl Default for ArrayRunSettings {
             precorrect_lines_mv: Some(1.0),
             line_max_step_mv: default_line_max_step_mv(),
             rearm_line_search_after: default_rearm_line_search_after(),
+            verify_lines_above_mv: default_verify_lines_above_mv(),
             line_forecast: None,
             max_iterations: default_max_iterations(),
             skip_confident_sigma: default_skip_sigma(),
@@ -398,6 +413,10 @@ fn default_line_max_step_mv() -> Option<f64> {
 
 fn default_rearm_line_search_after() -> u32 {
     3
+}
+
+fn default_verify_lines_above_mv() -> Option<f64> {
+    None
 }
 
 fn default_max_iterations() -> Option<u32> {
@@ -455,6 +474,13 @@ impl ArrayRunSettings {
         }
         let n = self.rearm_line_search_after;
         check(n <= 30, "rearm_line_search_after", n.to_string())?;
+        if let Some(m) = self.verify_lines_above_mv {
+            check(
+                m.is_finite() && m > 0.0 && m <= 4.0,
+                "verify_lines_above_mv",
+                m.to_string(),
+            )?;
+        }
         let f = self.reset_flat_row_fraction;
         check(
             f.is_finite() && (0.0..=1.0).contains(&f),
@@ -586,6 +612,11 @@ struct CellLower {
     /// A search probe's plunger move not yet sent (mV per line gate).
     #[serde(default)]
     probe_mv: Option<Vec<f64>>,
+    /// The cell's last line scan lost a line, or found one farther from its
+    /// centre than [`ArrayRunSettings::verify_lines_above_mv`]: its lines
+    /// are scanned again before the run stops.
+    #[serde(default)]
+    lines_unverified: bool,
 }
 
 impl CellLower {
@@ -619,6 +650,8 @@ enum AfterPark {
     Lines(Vec<u32>),
     /// Line round `round` (0-based) of these cells.
     LineRound(Vec<u32>, u32),
+    /// The confirming scans of [`Step::Confirm`].
+    Confirm(Vec<(u32, usize)>),
 }
 
 /// Where the loop is; what the outstanding batch (if any) is for.
@@ -635,6 +668,14 @@ enum Step {
     /// edge are scanned once more before the run stops
     /// ([`ArrayRunSettings::confirm_entry_sigma`]).
     Confirm(Vec<(u32, usize)>),
+    /// Every cell measured in band: the line scans of these cells, whose
+    /// last line scan found their lines off
+    /// ([`ArrayRunSettings::verify_lines_above_mv`]), then the scans of
+    /// [`Step::Confirm`] (these pending).
+    VerifyLines(Vec<u32>, Vec<(u32, usize)>),
+    /// The corrections of the cells [`Step::VerifyLines`] found off ((cell,
+    /// lines mV); the cells that move), then these confirming scans.
+    VerifySet(Vec<(u32, [f64; 2])>, Vec<u32>, Vec<(u32, usize)>),
     /// The oracle's true Jacobian.
     Oracle,
     /// Joint move `m` (0-based).
@@ -688,6 +729,10 @@ struct Scratch {
     /// Voltages before the present line round's corrections, mV.
     #[serde(default)]
     before_lines: BTreeMap<String, f64>,
+    /// Cells whose lines [`Step::VerifyLines`] found off and corrected:
+    /// their confirming scans replace this iteration's readings.
+    #[serde(default)]
+    lines_verified: Vec<u32>,
     record: Option<Box<IterationRecord>>,
 }
 
@@ -1108,6 +1153,29 @@ impl ArrayRun {
                     },
                 })
                 .collect(),
+            Step::VerifyLines(cells, _) => cells
+                .iter()
+                .map(|&c| Request::Measure {
+                    scan: ScanRequest {
+                        kind: ScanKind::ChemicalPotential,
+                        sweep: None,
+                        cell: Some(c),
+                    },
+                })
+                .collect(),
+            Step::VerifySet(lines, moved, pending) => {
+                let joint = self.joint()?;
+                let mut sets = self.line_steps(joint, &lines);
+                sets.extend(
+                    moved
+                        .iter()
+                        .filter_map(|&c| self.probe_set(joint, c as usize)),
+                );
+                if sets.is_empty() {
+                    self.step = Step::ParkSweep(moved, AfterPark::Confirm(pending));
+                }
+                sets
+            }
             Step::Oracle => {
                 let joint = self.joint()?;
                 let parameters = (0..joint.tuner.cells().len() as u32)
@@ -1240,6 +1308,7 @@ impl ArrayRun {
         match next {
             AfterPark::Lines(cells) => Step::Precorrect(cells),
             AfterPark::LineRound(cells, round) => Step::LineScan(cells, round),
+            AfterPark::Confirm(pending) => Step::Confirm(pending),
         }
     }
 
@@ -1285,6 +1354,13 @@ impl ArrayRun {
             }
             Step::Measure => self.evaluate_measurement(&answers)?,
             Step::Confirm(pending) => self.confirm_entries(&pending, &answers)?,
+            Step::VerifyLines(cells, pending) => self.lines_verified(&cells, pending, &answers)?,
+            Step::VerifySet(_, moved, pending) => {
+                if let Some(joint) = self.joint.as_mut() {
+                    joint.lower.iter_mut().for_each(|l| l.probe_mv = None);
+                }
+                self.step = Step::ParkSweep(moved, AfterPark::Confirm(pending));
+            }
             Step::Oracle => {
                 let joint = self.joint()?;
                 let cols = joint.tuner.gates().len();
@@ -1542,6 +1618,7 @@ impl ArrayRun {
                 line_search: None,
                 search: SearchMemory::default(),
                 probe_mv: None,
+                lines_unverified: false,
                 failed_evaluations: 0,
                 line_checks: Consistency::default(),
             };
@@ -1894,9 +1971,20 @@ impl ArrayRun {
             forecast_moved: Vec::new(),
             before_move: BTreeMap::new(),
             before_lines: BTreeMap::new(),
+            lines_verified: Vec::new(),
             record: Some(Box::new(record)),
         };
-        self.step = if all_in && !confirm.is_empty() {
+        let verify = if all_in {
+            self.lines_to_verify(&skip)
+        } else {
+            Vec::new()
+        };
+        self.step = if all_in && !verify.is_empty() {
+            if let Some(r) = self.scratch.record.as_mut() {
+                r.tuned = false;
+            }
+            Step::VerifyLines(verify, confirm)
+        } else if all_in && !confirm.is_empty() {
             if let Some(r) = self.scratch.record.as_mut() {
                 r.tuned = false;
             }
@@ -1905,6 +1993,81 @@ impl ArrayRun {
             Step::Boundary
         } else {
             self.step_to_move()?
+        };
+        Ok(())
+    }
+
+    /// The measured cells (not `skip`ped) whose lines are scanned again
+    /// before the run stops ([`ArrayRunSettings::verify_lines_above_mv`]).
+    fn lines_to_verify(&self, skip: &[bool]) -> Vec<u32> {
+        let (Some(_), Some(joint)) = (self.settings.verify_lines_above_mv, &self.joint) else {
+            return Vec::new();
+        };
+        joint
+            .lower
+            .iter()
+            .enumerate()
+            .filter(|(c, l)| {
+                l.lines_unverified
+                    && l.line_gates.len() == 2
+                    && !skip.get(*c).copied().unwrap_or(true)
+            })
+            .map(|(c, _)| c as u32)
+            .collect()
+    }
+
+    /// The answers to [`Step::VerifyLines`]'s scans of `cells`: every
+    /// cell's lines learned as in a line round; the cells that lost a line
+    /// or found one beyond [`ArrayRunSettings::verify_lines_above_mv`] are
+    /// corrected and their `t_sr` (and `w`, when line A was off or lost)
+    /// joins `pending`'s confirming scans, their readings replacing this
+    /// iteration's. None found off: `pending` as it was (or the run stops).
+    fn lines_verified(
+        &mut self,
+        cells: &[u32],
+        pending: Vec<(u32, usize)>,
+        answers: &[Response],
+    ) -> Result<(), ArrayRunError> {
+        let limit = self.settings.verify_lines_above_mv.unwrap_or(f64::INFINITY);
+        let (lines, moved) = self.line_corrections(cells, answers)?;
+        // the cells that lost a line: those of `cells` with no lines found
+        let found: Vec<u32> = lines.iter().map(|&(c, _)| c).collect();
+        let joint = self.joint()?;
+        let lost: Vec<u32> = cells
+            .iter()
+            .copied()
+            .filter(|&c| !found.contains(&c) && joint.lower[c as usize].lines_unverified)
+            .collect();
+        let off: Vec<(u32, [f64; 2])> = lines
+            .into_iter()
+            .filter(|(_, mu)| mu.iter().any(|m| m.abs() > limit))
+            .collect();
+        let mut confirm = pending;
+        let mut verified = Vec::new();
+        for &(c, mu) in &off {
+            confirm.push((c, 0));
+            if mu[0].abs() > limit {
+                confirm.push((c, 1));
+            }
+            verified.push(c);
+        }
+        for &c in &lost {
+            confirm.extend([(c, 0), (c, 1)]);
+            verified.push(c);
+        }
+        confirm.sort_unstable();
+        confirm.dedup();
+        let moved: Vec<u32> = moved.into_iter().filter(|c| verified.contains(c)).collect();
+        self.scratch.lines_verified = verified;
+        self.step = if moved.is_empty() && confirm.is_empty() {
+            if let Some(r) = self.scratch.record.as_mut() {
+                r.tuned = true;
+            }
+            Step::Boundary
+        } else if moved.is_empty() {
+            Step::Confirm(confirm)
+        } else {
+            Step::VerifySet(off, moved, confirm)
         };
         Ok(())
     }
@@ -1976,7 +2139,9 @@ impl ArrayRun {
                 if let Some(b) = j.in_band.get_mut(cell) {
                     *b = false;
                 }
+                let verified = self.scratch.lines_verified.contains(&c);
                 let mean = match (first, m) {
+                    (_, Some((b, _))) if b > 0.0 && verified => Some(b),
                     (Some(a), Some((b, _))) if b > 0.0 => Some(0.5 * (a + b)),
                     _ => None,
                 };
@@ -2479,6 +2644,18 @@ impl ArrayRun {
                 self.evaluate(c as usize, a, "mu_a_mv"),
                 self.evaluate(c as usize, a, "mu_b_mv"),
             ];
+            let verify = self.settings.verify_lines_above_mv;
+            if let Some(l) = self
+                .joint
+                .as_mut()
+                .and_then(|j| j.lower.get_mut(c as usize))
+            {
+                l.lines_unverified = verify.is_some_and(|limit| {
+                    found
+                        .iter()
+                        .any(|m| m.is_none_or(|(mu, _)| mu.abs() > limit))
+                });
+            }
             let [Some(a_mv), Some(b_mv)] = found else {
                 self.evaluation_failed(c as usize);
                 if self.lines_lost(c as usize, found) {
@@ -2952,6 +3129,7 @@ mod tests {
             line_search: None,
             search: SearchMemory::default(),
             probe_mv: None,
+            lines_unverified: false,
             failed_evaluations: 0,
             line_checks: Consistency::default(),
         }

@@ -354,6 +354,16 @@ fn bad_configs_name_the_field() {
     let mut c = config(2);
     c.tuning.line_rounds = 9;
     assert_eq!(c.build().err().unwrap().field, "tuning.line_rounds");
+    // the lines' check before a stop must sit above the tolerance that
+    // line corrections aim at (a line beyond it is taken as lost)
+    let mut c = config(2);
+    c.tuning.line_tolerance_mv = 0.5;
+    c.tuning.verify_lines_above_mv = Some(0.3);
+    let e = c.build().err().unwrap();
+    assert_eq!(e.field, "tuning.verify_lines_above_mv", "{e}");
+    assert!(e.to_string().contains("line_tolerance_mv"), "{e}");
+    c.tuning.verify_lines_above_mv = Some(0.5);
+    assert!(c.build().is_ok());
 }
 
 /// Bounded by construction (invariant 8): at the most cells an array may

@@ -162,7 +162,8 @@ pub struct ArrayRunSettings {
     /// Before the run stops with every cell measured in band, each measured
     /// cell whose last line scan found a line farther than this from its
     /// centre, mV, or lost one, scans its lines again where they are
-    /// (0 < value ≤ 4, the scan's half-window; `None`: never). A cell
+    /// (0 < value ≤ 4, the scan's half-window, and at least
+    /// `line_tolerance_mv`; `None`: never). A cell
     /// found off by more than this again is corrected (one line step) and
     /// its `t_sr` (and `w` when line A was off) scanned again: the run
     /// stops only if those readings are in band too. Why: the load curve
@@ -415,6 +416,20 @@ fn default_rearm_line_search_after() -> u32 {
     3
 }
 
+/// One chemical-potential (transition-line) scan of each of `cells`.
+fn line_scan_requests(cells: &[u32]) -> Vec<Request> {
+    cells
+        .iter()
+        .map(|&c| Request::Measure {
+            scan: ScanRequest {
+                kind: ScanKind::ChemicalPotential,
+                sweep: None,
+                cell: Some(c),
+            },
+        })
+        .collect()
+}
+
 fn default_verify_lines_above_mv() -> Option<f64> {
     None
 }
@@ -533,6 +548,14 @@ impl ArrayRunSettings {
             "line_tolerance_mv",
             l.to_string(),
         )?;
+        // (a line off by more than the verification's threshold is taken as
+        // lost, which is only sound above the tolerance a correction aims at)
+        if let Some(m) = self.verify_lines_above_mv.filter(|&m| m < l) {
+            return Err(ConfigError::new(
+                "verify_lines_above_mv",
+                format!("{m} mV is below line_tolerance_mv ({l} mV); it must be at least that"),
+            ));
+        }
         self.joint.validate()
     }
 }
@@ -1153,24 +1176,9 @@ impl ArrayRun {
                     },
                 })
                 .collect(),
-            Step::VerifyLines(cells, _) => cells
-                .iter()
-                .map(|&c| Request::Measure {
-                    scan: ScanRequest {
-                        kind: ScanKind::ChemicalPotential,
-                        sweep: None,
-                        cell: Some(c),
-                    },
-                })
-                .collect(),
+            Step::VerifyLines(cells, _) => line_scan_requests(&cells),
             Step::VerifySet(lines, moved, pending) => {
-                let joint = self.joint()?;
-                let mut sets = self.line_steps(joint, &lines);
-                sets.extend(
-                    moved
-                        .iter()
-                        .filter_map(|&c| self.probe_set(joint, c as usize)),
-                );
+                let sets = self.line_set_requests(self.joint()?, &lines, &moved);
                 if sets.is_empty() {
                     self.step = Step::ParkSweep(moved, AfterPark::Confirm(pending));
                 }
@@ -1273,26 +1281,11 @@ impl ArrayRun {
                     self.step = Step::Boundary;
                     Vec::new()
                 } else {
-                    cells
-                        .iter()
-                        .map(|&c| Request::Measure {
-                            scan: ScanRequest {
-                                kind: ScanKind::ChemicalPotential,
-                                sweep: None,
-                                cell: Some(c),
-                            },
-                        })
-                        .collect()
+                    line_scan_requests(&cells)
                 }
             }
             Step::LineSet(lines, moved, round) => {
-                let joint = self.joint()?;
-                let mut sets = self.line_steps(joint, &lines);
-                sets.extend(
-                    moved
-                        .iter()
-                        .filter_map(|&c| self.probe_set(joint, c as usize)),
-                );
+                let sets = self.line_set_requests(self.joint()?, &lines, &moved);
                 if sets.is_empty() {
                     self.step =
                         Step::ParkSweep(moved.clone(), AfterPark::LineRound(moved, round + 1));
@@ -2781,6 +2774,23 @@ impl ArrayRun {
     }
 
     /// The set that makes cell `cell`'s pending search move (`None`: none).
+    /// The line corrections `lines` ((cell, measured line centres in mV))
+    /// and then the search probe of every cell in `moved` that has one.
+    fn line_set_requests(
+        &self,
+        joint: &Joint,
+        lines: &[(u32, [f64; 2])],
+        moved: &[u32],
+    ) -> Vec<Request> {
+        let mut sets = self.line_steps(joint, lines);
+        sets.extend(
+            moved
+                .iter()
+                .filter_map(|&c| self.probe_set(joint, c as usize)),
+        );
+        sets
+    }
+
     fn probe_set(&self, joint: &Joint, cell: usize) -> Option<Request> {
         let l = joint.lower.get(cell)?;
         Some(self.plunger_set(l, l.probe_mv.as_ref()?))

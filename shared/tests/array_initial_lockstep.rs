@@ -78,3 +78,82 @@ fn every_cell_moves_its_tuning_gates_in_the_same_batch() {
         "{scans_per_cell:?}"
     );
 }
+
+/// Each cell's initial own-gate `t_sr` row (log space) projected on the
+/// truth's at the voltages where the initial measurements ended:
+/// `⟨learned, true⟩ / |true|²` (1: its own gradient exactly), cells 1..=3
+/// of a 5-cell chain (each with two nearest neighbours), unpooled.
+fn interior_row_ratios(staggered: bool) -> Vec<f64> {
+    use spintune::sim::array::{parameter_name, ArrayConfig};
+    use spintune::sim::DeviceConfig;
+    let protocol = ArrayProtocol::default();
+    let mut settings = protocol.run_settings();
+    settings.pool_initial_gradients = false;
+    settings.staggered_differences = staggered;
+    let mut device = spintune::benchmark::array::world(
+        &DeviceConfig::default(),
+        ArrayConfig::chain(5, 5, 11),
+        |_| true,
+    )
+    .unwrap();
+    let cells = (0..5).map(|c| cell_tuner(c, &protocol)).collect();
+    let mut run = spintune::tuner::array_run::ArrayRun::new(
+        cells,
+        &device.gates(),
+        settings,
+        [0.3, 0.05],
+        false,
+    )
+    .unwrap();
+    while run.tuner().is_none() {
+        let ArrayAction::Execute(batch) = run.poll().unwrap() else {
+            panic!("the initial measurements ended without a joint tuner");
+        };
+        let before = device.lab_seconds();
+        let answers = device.execute_batch(&batch);
+        run.feed(answers, device.lab_seconds() - before).unwrap();
+    }
+    let tuner = run.tuner().unwrap();
+    let gates: Vec<&str> = tuner.gates().iter().map(String::as_str).collect();
+    let learned = tuner.jacobian();
+    (1..=3u32)
+        .map(|c| {
+            let name = parameter_name(c, "t_sr");
+            let truth = device.true_jacobian(&gates, &[name.as_str()]).unwrap();
+            let value = device.truth(c).unwrap().get("t_sr").unwrap();
+            let own: Vec<usize> = (0..gates.len())
+                .filter(|&g| split_gate(gates[g]).is_some_and(|(k, _)| k == c))
+                .collect();
+            let (mut dot, mut norm) = (0.0, 0.0);
+            for &g in &own {
+                let t = truth[(0, g)] / value;
+                dot += learned[(2 * c as usize, g)] * t;
+                norm += t * t;
+            }
+            dot / norm
+        })
+        .collect()
+}
+
+/// Staggered repetitions (`ArrayRunSettings::staggered_differences`) take
+/// the nearest neighbours' crosstalk out of the initial rows. In lockstep
+/// a cell two cells from either end measures `1 + 2·0.3 + 2·0.05 = 1.7`
+/// times its own gradient at this crosstalk (`lockstep_factor`; the
+/// world's copies are not exactly the cell's own gradient, so only
+/// roughly), one cell from an end 1.65; staggered over the two
+/// repetitions (`staggered_mirror`), the nearest neighbours' copies
+/// cancel, leaving `1 + 2·0.05 = 1.1` and `1.05`.
+#[test]
+fn staggered_repetitions_measure_a_cell_s_own_gradient() {
+    let lockstep = interior_row_ratios(false);
+    let staggered = interior_row_ratios(true);
+    eprintln!(
+        "interior t_sr rows / own gradient: lockstep {lockstep:.2?}, staggered {staggered:.2?}"
+    );
+    let mean = |x: &[f64]| x.iter().sum::<f64>() / x.len() as f64;
+    assert!(mean(&lockstep) > 1.4, "lockstep {lockstep:?}");
+    assert!(
+        (mean(&staggered) - 1.07).abs() < 0.2,
+        "staggered {staggered:?}"
+    );
+}

@@ -34,6 +34,7 @@ fn paper_device_derives_the_paper_hierarchy_with_the_recommended_strategy() {
         repetitions: 1,
         recentre_between_offsets: false,
         central: false,
+        mirrored: Vec::new(),
     };
     top.fd_step_mv = RECOMMENDED_FD_STEP_MV;
     // the paper states its targets; a description leaves them to the run config

@@ -297,6 +297,7 @@ impl DeviceDescription {
                     repetitions: 1,
                     recentre_between_offsets: false,
                     central: false,
+                    mirrored: Vec::new(),
                 },
                 solver: SolverConfig {
                     max_step_mv: q.step_limit_mv,
@@ -341,6 +342,7 @@ impl DeviceDescription {
                         repetitions: 1,
                         recentre_between_offsets: true,
                         central: false,
+                        mirrored: Vec::new(),
                     },
                     solver: SolverConfig {
                         max_step_mv: plunger_step,

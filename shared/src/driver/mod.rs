@@ -100,6 +100,7 @@ impl SimulationConfig {
                 repetitions: 3,
                 recentre_between_offsets: true,
                 central: false,
+                mirrored: Vec::new(),
             },
             solver: SolverConfig::default(),
             outlier_sigma: Some(5.0),
@@ -132,6 +133,7 @@ impl SimulationConfig {
                 repetitions: 1,
                 recentre_between_offsets: true,
                 central: false,
+                mirrored: Vec::new(),
             },
             solver: SolverConfig {
                 // the transition lines are scanned over ±4 mV: small corrections only

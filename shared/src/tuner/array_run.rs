@@ -291,6 +291,27 @@ pub struct ArrayRunSettings {
     /// "Initial rows: central and pooled").
     #[serde(default = "yes")]
     pub central_differences: bool,
+    /// Each tuning gate's offset in the cells' initial finite differences,
+    /// mV (0 < value ≤ 8; `None`: the cell tuner's `step_mv`, 4 mV by
+    /// default). A longer offset measures a row with less of the fits'
+    /// noise and more of the gradient's curvature.
+    #[serde(default)]
+    pub finite_difference_step_mv: Option<f64>,
+    /// Whether the cells' initial repetitions are staggered against each
+    /// other ([`staggered_mirror`]), at least two of them (one more than
+    /// the recommended cell tuner's one: a cold start some 4 lab min
+    /// longer). In lockstep, every cell moving the same gate the same way
+    /// at once, a cell's rows come out `1 + Σλ` times its own gradient
+    /// ([`lockstep_factor`], 1.7 mid-chain at the default crosstalk).
+    /// Mirrored, repetition 1 has the nearest neighbours moving the other
+    /// way, so over two repetitions the mean is `1 + 2λ₂` mid-chain (1.1),
+    /// over three (repetition 2 mirroring the next-nearest) `1 + 2λ₂/3`,
+    /// whatever the lab's calibration; the repetitions' spread, which sets
+    /// the rows' initial variance, then holds the neighbours' share.
+    /// Needs `central_differences` to leave the lines' even offsets out.
+    /// Default `false`.
+    #[serde(default)]
+    pub staggered_differences: bool,
     /// When a measured cell counts in band ([`InBandRule`]). Default
     /// [`InBandRule::Measured`].
     #[serde(default)]
@@ -374,6 +395,8 @@ impl Default for ArrayRunSettings {
             pool_initial_gradients: true,
             pool_in_lockstep_units: false,
             central_differences: true,
+            finite_difference_step_mv: None,
+            staggered_differences: false,
             in_band: InBandRule::Measured,
             confirm_entry_sigma: default_confirm_entry_sigma(),
             reset_stalled_row_after: default_reset_stalled_row_after(),
@@ -414,6 +437,29 @@ fn default_line_max_step_mv() -> Option<f64> {
 
 fn default_rearm_line_search_after() -> u32 {
     3
+}
+
+/// Whether cell `cell` mirrors its initial repetition `rep`
+/// ([`ArrayRunSettings::staggered_differences`]): repetition 0 (mod 3)
+/// nobody, 1 the odd cells, 2 cells 2, 3 (mod 4). Against cell `c`, its
+/// nearest neighbours move the same way in repetition 0, the other way in
+/// 1 and one each way in 2; its next-nearest the same way in 0 and 1 and
+/// the other way in 2.
+///
+/// ```
+/// use spintune::tuner::array_run::staggered_mirror;
+/// let pattern = |rep| (0..6).map(|c| staggered_mirror(c, rep)).collect::<Vec<_>>();
+/// assert_eq!(pattern(0), [false; 6]);
+/// assert_eq!(pattern(1), [false, true, false, true, false, true]);
+/// assert_eq!(pattern(2), [false, false, true, true, false, false]);
+/// assert_eq!(pattern(3), pattern(0));
+/// ```
+pub fn staggered_mirror(cell: usize, rep: u32) -> bool {
+    match rep % 3 {
+        1 => cell % 2 == 1,
+        2 => (cell / 2) % 2 == 1,
+        _ => false,
+    }
 }
 
 /// One chemical-potential (transition-line) scan of each of `cells`.
@@ -485,6 +531,13 @@ impl ArrayRunSettings {
                 m.is_finite() && m > 0.0 && m <= 10.0,
                 "line_max_step_mv",
                 m.to_string(),
+            )?;
+        }
+        if let Some(h) = self.finite_difference_step_mv {
+            check(
+                h.is_finite() && h > 0.0 && h <= 8.0,
+                "finite_difference_step_mv",
+                h.to_string(),
             )?;
         }
         let n = self.rearm_line_search_after;
@@ -879,10 +932,22 @@ impl ArrayRun {
             };
             targets.push((target("t_sr"), target("w")));
             t.max_iterations = Some(0);
-            if let InitialGradient::FiniteDifference { central, .. } =
-                &mut t.top_mut().initial_gradient
+            if let InitialGradient::FiniteDifference {
+                central,
+                step_mv,
+                repetitions,
+                mirrored,
+                ..
+            } = &mut t.top_mut().initial_gradient
             {
                 *central = settings.central_differences;
+                if let Some(h) = settings.finite_difference_step_mv {
+                    *step_mv = h;
+                }
+                if settings.staggered_differences {
+                    *repetitions = (*repetitions).max(2);
+                    *mirrored = (0..*repetitions).map(|r| staggered_mirror(k, r)).collect();
+                }
             }
             let session = RunSession::new(t, SessionConfig::default())
                 .map_err(|e| e.within(&format!("cells[{k}]")))?;

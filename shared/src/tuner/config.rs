@@ -45,6 +45,16 @@ pub enum InitialGradient {
         /// gate). Default `false` (the paper's one-sided differences).
         #[serde(default)]
         central: bool,
+        /// Per repetition (missing: `false`), whether its offsets take the
+        /// opposite sign: every gate at `−step_mv` first, then (central)
+        /// at `+step_mv`. On one double dot the same points in another
+        /// order; in an array whose cells take their differences in
+        /// lockstep, two cells mirrored against each other move opposite
+        /// ways at every point, so their crosstalk enters that repetition's
+        /// estimate with a minus sign (`tuner::array_run`,
+        /// `staggered_differences`). At most `repetitions` entries.
+        #[serde(default, skip_serializing_if = "Vec::is_empty")]
+        mirrored: Vec<bool>,
     },
     /// Known gradient rows (one per parameter, unit/mV) and covariances.
     Given {
@@ -346,6 +356,10 @@ pub fn check_magnitudes(v: &serde_json::Value, path: &str) -> Result<(), ConfigE
 /// Largest magnitude of a gate's limits, initial voltage and step, mV
 /// (±100 V: beyond any DC source; bounded by construction).
 pub const MAX_GATE_MV: f64 = 100_000.0;
+
+/// Upper bound on the repetitions of [`InitialGradient::FiniteDifference`]
+/// (bounded by construction: each repetition keeps its points).
+pub const MAX_FD_REPETITIONS: u32 = 20;
 
 /// Upper bound on [`SensingDotConfig::points`] (bounded by construction).
 pub const MAX_SWEEP_POINTS: usize = 10_000;
@@ -873,15 +887,25 @@ fn validate_newton(n: &NewtonConfig, has_gate: &dyn Fn(&str) -> bool) -> Result<
         InitialGradient::FiniteDifference {
             step_mv,
             repetitions,
+            mirrored,
             ..
         } => {
             if !(step_mv.is_finite() && *step_mv > 0.0) {
                 return Err(ConfigError::new("initial_gradient.step_mv", "must be > 0"));
             }
-            if *repetitions == 0 {
+            if !(1..=MAX_FD_REPETITIONS).contains(repetitions) {
                 return Err(ConfigError::new(
                     "initial_gradient.repetitions",
-                    "must be ≥ 1",
+                    format!("must be 1..={MAX_FD_REPETITIONS}, got {repetitions}"),
+                ));
+            }
+            if mirrored.len() > *repetitions as usize {
+                return Err(ConfigError::new(
+                    "initial_gradient.mirrored",
+                    format!(
+                        "{} entries for {repetitions} repetitions: at most one per repetition",
+                        mirrored.len()
+                    ),
                 ));
             }
         }

@@ -489,6 +489,7 @@ impl Tuner {
             repetitions,
             recentre_between_offsets,
             central,
+            ref mirrored,
         } = cfg.initial_gradient
         else {
             return None;
@@ -509,7 +510,12 @@ impl Tuner {
             ops.extend(scans.iter().cloned());
             ops.push_back(Op::Decide(Decision::FdBase(rep)));
             let mut previous: Option<usize> = None;
-            for (j, offset) in offset_order(base.len(), step_mv, central) {
+            let sign = if mirrored.get(rep).copied().unwrap_or(false) {
+                -1.0
+            } else {
+                1.0
+            };
+            for (j, offset) in offset_order(base.len(), sign * step_mv, central) {
                 let mut v = base.clone();
                 v[j] += offset;
                 // from the last point straight only to another gate's
@@ -1298,7 +1304,8 @@ pub(crate) fn retreat_target(now: &[f64], good: &[f64], max_step_mv: f64) -> Opt
 }
 
 /// The finite differences' offset points in order, `(gate, offset mV)`:
-/// every gate at `+step_mv`, then (central) every gate at `−step_mv`, so
+/// every gate at `+step_mv`, then (central) every gate at `−step_mv` (a
+/// mirrored repetition passes a negative `step_mv`), so
 /// consecutive points offset different gates where there are two gates or
 /// more (`√2·step_mv` apart).
 fn offset_order(gates: usize, step_mv: f64, central: bool) -> Vec<(usize, f64)> {

@@ -175,6 +175,7 @@ fn qubit(estimator: EstimatorKind) -> NewtonConfig {
             repetitions: 2,
             recentre_between_offsets: true,
             central: false,
+            mirrored: Vec::new(),
         },
         solver: SolverConfig::default(),
         outlier_sigma: Some(5.0),
@@ -853,6 +854,7 @@ fn central_finite_differences_cancel_the_curvature_and_stay_within_a_step() {
                 repetitions: 1,
                 recentre_between_offsets: false,
                 central,
+                mirrored: Vec::new(),
             };
         }
         let mut tuner = Tuner::new(cfg).unwrap();

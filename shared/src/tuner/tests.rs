@@ -879,3 +879,28 @@ fn central_finite_differences_cancel_the_curvature_and_stay_within_a_step() {
     // return to the base between them (4 more sets, one per offset)
     assert_eq!(central_sets, one_sided_sets + 4);
 }
+
+/// Bounded by construction: the initial repetitions (each keeps its
+/// points) are at most `MAX_FD_REPETITIONS`, and `mirrored` has at most one
+/// entry per repetition; the error names the field.
+#[test]
+fn finite_difference_repetitions_and_mirrors_are_bounded() {
+    let with = |reps: u32, mirrored: Vec<bool>| {
+        let mut cfg = flat(EstimatorKind::Kalman);
+        if let LevelKind::Newton(n) = &mut cfg.levels[0].kind {
+            n.initial_gradient = InitialGradient::FiniteDifference {
+                step_mv: 3.0,
+                repetitions: reps,
+                recentre_between_offsets: false,
+                central: true,
+                mirrored,
+            };
+        }
+        Tuner::new(cfg).err().map(|e| e.to_string())
+    };
+    assert_eq!(with(2, vec![false, true]), None);
+    let too_many = with(super::config::MAX_FD_REPETITIONS + 1, Vec::new()).unwrap();
+    assert!(too_many.contains("repetitions"), "{too_many}");
+    let mirrors = with(1, vec![false, true]).unwrap();
+    assert!(mirrors.contains("mirrored"), "{mirrors}");
+}

@@ -157,3 +157,78 @@ fn staggered_repetitions_measure_a_cell_s_own_gradient() {
         "staggered {staggered:?}"
     );
 }
+
+/// The longest offset of any tuning gate from where it started, mV, over
+/// the initial measurements of a 3-cell chain with the given
+/// `finite_difference_step_mv` (the solver has not moved yet, so every
+/// tuning-gate offset is a finite difference's).
+fn longest_initial_offset_mv(step_mv: Option<f64>) -> f64 {
+    use spintune::sim::array::ArrayConfig;
+    use spintune::sim::DeviceConfig;
+    let protocol = ArrayProtocol::default();
+    let mut settings = protocol.run_settings();
+    settings.finite_difference_step_mv = step_mv;
+    let mut device = spintune::benchmark::array::world(
+        &DeviceConfig::default(),
+        ArrayConfig::chain(3, 5, 11),
+        |_| true,
+    )
+    .unwrap();
+    let start: std::collections::BTreeMap<String, f64> = device
+        .gates()
+        .into_iter()
+        .map(|g| (g.name, g.initial_mv))
+        .collect();
+    let cells = (0..3).map(|c| cell_tuner(c, &protocol)).collect();
+    let mut run = spintune::tuner::array_run::ArrayRun::new(
+        cells,
+        &device.gates(),
+        settings,
+        [0.3, 0.05],
+        false,
+    )
+    .unwrap();
+    let mut longest: f64 = 0.0;
+    while run.tuner().is_none() {
+        let ArrayAction::Execute(batch) = run.poll().unwrap() else {
+            panic!("the initial measurements ended without a joint tuner");
+        };
+        for r in &batch {
+            if let Request::SetVoltages { voltages_mv } = r {
+                for (g, v) in voltages_mv {
+                    if split_gate(g).is_some_and(|(_, l)| TUNING_GATES.contains(&l)) {
+                        longest = longest.max((v - start[g]).abs());
+                    }
+                }
+            }
+        }
+        let before = device.lab_seconds();
+        let answers = device.execute_batch(&batch);
+        run.feed(answers, device.lab_seconds() - before).unwrap();
+    }
+    longest
+}
+
+/// The initial offset is the run's `finite_difference_step_mv` (3 mV by
+/// default), never longer than the cell tuner's own (6 mV, what `None`
+/// keeps): a longer setting is cut to it rather than exceed what the
+/// description derived from the gates' step limits.
+#[test]
+fn initial_offsets_follow_the_setting_capped_at_the_cell_tuner_s() {
+    let protocol = ArrayProtocol::default();
+    let own = match &cell_tuner(0, &protocol).top().initial_gradient {
+        spintune::tuner::InitialGradient::FiniteDifference { step_mv, .. } => *step_mv,
+        other => panic!("the cell tuner starts from {other:?}"),
+    };
+    assert_eq!(own, 6.0);
+    assert_eq!(protocol.run_settings().finite_difference_step_mv, Some(3.0));
+    let close = |a: f64, b: f64| (a - b).abs() < 1e-9;
+    let default = longest_initial_offset_mv(Some(3.0));
+    assert!(close(default, 3.0), "default {default} mV");
+    let shorter = longest_initial_offset_mv(Some(2.0));
+    assert!(close(shorter, 2.0), "2 mV setting: {shorter} mV");
+    let none = longest_initial_offset_mv(None);
+    assert!(close(none, own), "None: {none} mV");
+    let longer = longest_initial_offset_mv(Some(8.0));
+    assert!(close(longer, own), "8 mV setting: {longer} mV");
+}

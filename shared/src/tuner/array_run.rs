@@ -292,10 +292,15 @@ pub struct ArrayRunSettings {
     #[serde(default = "yes")]
     pub central_differences: bool,
     /// Each tuning gate's offset in the cells' initial finite differences,
-    /// mV (0 < value ≤ 8; `None`: the cell tuner's `step_mv`, 4 mV by
-    /// default). A longer offset measures a row with less of the fits'
-    /// noise and more of the gradient's curvature.
-    #[serde(default)]
+    /// mV, at most the cell tuner's own offset (`step_mv`: 6 mV from a
+    /// description, [`crate::description::RECOMMENDED_FD_STEP_MV`], or its
+    /// qubit step limit if shorter); 0 < value ≤ 8. `None`: the cell
+    /// tuner's own offset. Default 3 mV: a longer offset measures a row
+    /// with less of the fits' noise but more of the gradient's curvature
+    /// and, all cells moving at once, more of the neighbours' line shifts
+    /// (chosen on random arrays 13501–13801 over 2, 4, 5 and 6 mV, checked
+    /// on fresh 13901–14001: docs/array.md, "Initial differences").
+    #[serde(default = "default_finite_difference_step_mv")]
     pub finite_difference_step_mv: Option<f64>,
     /// Whether the cells' initial repetitions are staggered against each
     /// other ([`staggered_mirror`]), at least two of them (one more than
@@ -349,6 +354,9 @@ fn default_joint_line_steps() -> bool {
     false
 }
 
+fn default_finite_difference_step_mv() -> Option<f64> {
+    Some(3.0)
+}
 fn default_confirm_entry_sigma() -> f64 {
     1.0
 }
@@ -395,7 +403,7 @@ impl Default for ArrayRunSettings {
             pool_initial_gradients: true,
             pool_in_lockstep_units: false,
             central_differences: true,
-            finite_difference_step_mv: None,
+            finite_difference_step_mv: default_finite_difference_step_mv(),
             staggered_differences: false,
             in_band: InBandRule::Measured,
             confirm_entry_sigma: default_confirm_entry_sigma(),
@@ -942,7 +950,7 @@ impl ArrayRun {
             {
                 *central = settings.central_differences;
                 if let Some(h) = settings.finite_difference_step_mv {
-                    *step_mv = h;
+                    *step_mv = step_mv.min(h);
                 }
                 if settings.staggered_differences {
                     *repetitions = (*repetitions).max(2);

@@ -28,9 +28,10 @@ struct Iteration {
     batches: Vec<Vec<Request>>,
 }
 
-fn run(seed: u64, sigma: f64) -> Vec<Iteration> {
+fn run(seed: u64, sigma: f64, in_band_cells: bool) -> Vec<Iteration> {
     let mut protocol = ArrayProtocol::default();
     protocol.tuning.confirm_entry_sigma = sigma;
+    protocol.tuning.confirm_in_band_cells = in_band_cells;
     let (mut run, mut lab) = joint_in_lab(world_of(seed), &protocol, seed);
     let batches = std::cell::RefCell::new(Vec::new());
     let mut records = Vec::new();
@@ -88,8 +89,13 @@ fn rechecks(r: &IterationRecord) -> Vec<(u32, String, bool)> {
 /// What must be rechecked: when every cell reads in band, each parameter
 /// within one σ of its band's edge of a cell not in band at the
 /// iteration before (of the same phase: every target changes between
-/// phases; a failed recheck counts out).
-fn expected_rechecks(r: &IterationRecord, before: Option<&IterationRecord>) -> Vec<(u32, String)> {
+/// phases; a failed recheck counts out), or of any cell with
+/// `in_band_cells` (`ArrayRunSettings::confirm_in_band_cells`).
+fn expected_rechecks(
+    r: &IterationRecord,
+    before: Option<&IterationRecord>,
+    in_band_cells: bool,
+) -> Vec<(u32, String)> {
     let cells = r.parameters.chunks(2).collect::<Vec<_>>();
     if !cells.iter().all(|c| c.iter().all(in_band)) {
         return Vec::new();
@@ -102,7 +108,7 @@ fn expected_rechecks(r: &IterationRecord, before: Option<&IterationRecord>) -> V
     };
     let mut out = Vec::new();
     for (c, ps) in cells.iter().enumerate() {
-        if was_in(c) {
+        if was_in(c) && !in_band_cells {
             continue;
         }
         for p in ps.iter() {
@@ -115,16 +121,16 @@ fn expected_rechecks(r: &IterationRecord, before: Option<&IterationRecord>) -> V
     out
 }
 
-/// Over six worlds (three gave no refused recheck once lines were corrected
-/// in one step): the rechecks are exactly those the rule names, each
-/// is one scan of its parameter in the batch right after the measurement
-/// (nothing set in between), a run stops only when every recheck read in
-/// band, and one that read out sends the iteration on to its move.
-#[test]
-fn near_edge_entries_are_scanned_again_before_the_run_stops() {
-    let (mut confirmed, mut refused) = (0, 0);
-    for seed in [11, 12, 13, 14, 15, 16] {
-        let iterations = run(seed, 1.0);
+/// Over the worlds `seeds`: the rechecks are exactly those the rule names,
+/// each is one scan of its parameter in the batch right after the
+/// measurement (nothing set in between), a run stops only when every
+/// recheck read in band, and one that read out sends the iteration on to
+/// its move. Returns the stops confirmed, the stops refused and the
+/// rechecks of cells in band at the iteration before.
+fn check_rechecks(seeds: &[u64], in_band_cells: bool) -> (u32, u32, u32) {
+    let (mut confirmed, mut refused, mut of_in_band) = (0, 0, 0);
+    for &seed in seeds {
+        let iterations = run(seed, 1.0, in_band_cells);
         let mut before: Option<&IterationRecord> = None;
         let mut in_phase = 0;
         for it in &iterations {
@@ -132,10 +138,12 @@ fn near_edge_entries_are_scanned_again_before_the_run_stops() {
             let got: Vec<(u32, String)> = rechecks(r).into_iter().map(|(c, p, _)| (c, p)).collect();
             assert_eq!(
                 got,
-                expected_rechecks(r, before),
+                expected_rechecks(r, before, in_band_cells),
                 "seed {seed} iteration {}",
                 r.iteration
             );
+            let before_rule = expected_rechecks(r, before, false);
+            of_in_band += got.iter().filter(|g| !before_rule.contains(g)).count() as u32;
             if !got.is_empty() {
                 // the iteration's measurement: every cell's t_sr and w
                 // (the first iteration's batches start with the initial
@@ -196,17 +204,36 @@ fn near_edge_entries_are_scanned_again_before_the_run_stops() {
             before = (!phase_over).then_some(r);
         }
     }
+    (confirmed, refused, of_in_band)
+}
+
+/// Over twelve worlds (with the initial differences at 3 mV the first
+/// refused recheck is the twelfth's, seed 22), the default rule: only
+/// cells entering their band.
+#[test]
+fn near_edge_entries_are_scanned_again_before_the_run_stops() {
+    let (confirmed, refused, of_in_band) = check_rechecks(&(11..=22).collect::<Vec<_>>(), false);
     assert!(
         confirmed > 0 && refused > 0,
         "confirmed {confirmed}, refused {refused}"
     );
+    assert_eq!(of_in_band, 0);
+}
+
+/// With `confirm_in_band_cells` the cells already in band are rechecked
+/// near their edge too (some of them here), by the same rule otherwise.
+#[test]
+fn with_in_band_cells_every_near_edge_reading_is_scanned_again() {
+    let (confirmed, _, of_in_band) = check_rechecks(&[11, 12, 13], true);
+    assert!(confirmed > 0, "confirmed {confirmed}");
+    assert!(of_in_band > 0, "no cell in band before was rechecked");
 }
 
 /// With `confirm_entry_sigma = 0` nothing is rechecked and a run stops on
 /// its first measurement with every cell in band.
 #[test]
 fn the_rule_off_rechecks_nothing() {
-    for it in run(11, 0.0) {
+    for it in run(11, 0.0, false) {
         let r = &it.record;
         assert!(rechecks(r).is_empty());
         assert_eq!(

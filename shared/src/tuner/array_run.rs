@@ -330,6 +330,12 @@ pub struct ArrayRunSettings {
     /// edge scanned again").
     #[serde(default = "default_confirm_entry_sigma")]
     pub confirm_entry_sigma: f64,
+    /// Whether that second scan also takes the cells already in band at
+    /// their previous measurement (the neighbours of a changed cell, whose
+    /// true values the change's crosstalk may have pushed just past the
+    /// edge while they still read in band). Default `false`.
+    #[serde(default)]
+    pub confirm_in_band_cells: bool,
     /// Start a cell's parameter row again ([`Self::stalled_row_from`]) when
     /// the parameter stalled: measured out of band on one side this many
     /// iterations in a row without coming nearer its target by a band
@@ -407,6 +413,7 @@ impl Default for ArrayRunSettings {
             staggered_differences: false,
             in_band: InBandRule::Measured,
             confirm_entry_sigma: default_confirm_entry_sigma(),
+            confirm_in_band_cells: false,
             reset_stalled_row_after: default_reset_stalled_row_after(),
             stalled_row_from: default_stalled_row_from(),
         }
@@ -1965,8 +1972,9 @@ impl ArrayRun {
                     }
                     if in_band {
                         let sigma = self.settings.confirm_entry_sigma;
+                        let was_in = j.in_band[c] && !self.settings.confirm_in_band_cells;
                         confirm.extend(
-                            to_confirm(&values[c], &tv, band, j.in_band[c], sigma)
+                            to_confirm(&values[c], &tv, band, was_in, sigma)
                                 .into_iter()
                                 .map(|p| (c as u32, p)),
                         );

@@ -43,6 +43,7 @@ fn traced(sigma: f64) -> (Vec<TimelinePoint>, Vec<f64>) {
     };
     protocol.tuning.flat_reset_refuted_sigma = sigma;
     protocol.tuning.line_max_step_mv = Some(2.0);
+    protocol.tuning.finite_difference_step_mv = None;
     set_points.push(protocol.single_cell_target);
     let reachable = |d: &spintune::sim::DeviceConfig| cell_targets_reachable(d, &set_points);
     let config = ArrayConfig {

@@ -3,15 +3,19 @@
 //! A line-scan batch that follows a measurement batch with no set and no
 //! record in between is a check (in the plain loop a measurement is
 //! followed by a move, a confirming scan or the record). With the setting
-//! such checks happen, only of cells whose previous line scan was at lines
-//! near or beyond the threshold (world side, at the time of that scan),
-//! and every cell a check finds off is moved and its `t_sr` scanned again
+//! such checks happen, only of cells whose previous line scan found a line
+//! beyond the threshold or lost one (fitted here again from the scan's raw
+//! data: a misfit several σ off, world side within the threshold, is a
+//! reason to check too, as the loop cannot know), and every cell a check
+//! finds truly off (world side) is moved and its `t_sr` scanned again
 //! before the iteration's record; without it, none happen.
 
 mod support;
 
 use spintune::benchmark::array::{world, ArrayProtocol};
-use spintune::protocol::{Request, ScanKind};
+use spintune::fit::evaluate_with;
+use spintune::fit::uncertainty::References;
+use spintune::protocol::{Request, Response, ScanKind, ScanOutcome};
 use spintune::sim::array::ArrayConfig;
 use spintune::sim::DeviceConfig;
 use support::array::{joint_in_lab, through_set_points};
@@ -25,8 +29,8 @@ struct Checks {
     batches: usize,
     /// Cells checked.
     cells: usize,
-    /// Cells checked whose previous line scan had both lines within the
-    /// threshold less 0.2 mV (the scan's noise): should never be checked.
+    /// Cells checked whose previous line scan found both lines within the
+    /// threshold: should never be checked.
     needless: usize,
     /// Checked cells found beyond the threshold plus 0.2 mV.
     found_off: usize,
@@ -40,6 +44,23 @@ fn line_scan_cell(q: &Request) -> Option<u32> {
         Request::Measure { scan } if scan.kind == ScanKind::ChemicalPotential => scan.cell,
         _ => None,
     }
+}
+
+/// A line scan's answer fitted to `name`, mV, if the fit is valid (the
+/// loop's rule for a line found).
+fn fitted(answer: &Response, references: &References, name: &str) -> Option<f64> {
+    let Response::Scanned {
+        outcome: ScanOutcome::Raw { scan },
+        ..
+    } = answer
+    else {
+        return None;
+    };
+    let e = evaluate_with(scan, references).ok()?;
+    e.values
+        .iter()
+        .find(|v| v.name == name && v.validate().is_ok())
+        .map(|v| v.value)
 }
 
 fn is_parameter_scan(q: &Request) -> bool {
@@ -62,6 +83,12 @@ fn run(verify: Option<f64>, seed: u64) -> Checks {
     let mut checks = Checks::default();
     // the lines (world side) at each cell's last line scan, mV
     let mut at_last_scan = vec![0.0; CELLS as usize];
+    // the farthest line (fitted, mV) a cell's last line scan found, `None`
+    // when it lost one
+    let mut found_at_last_scan: Vec<Option<f64>> = vec![None; CELLS as usize];
+    let references: Vec<_> = (0..CELLS)
+        .map(|c| spintune::benchmark::array::cell_tuner(c, &protocol).fit_references)
+        .collect();
     let mut after_measurement = false;
     // cells a check found off: (cell, set since, t_sr scanned since)
     let mut open: Vec<(u32, bool, bool)> = Vec::new();
@@ -99,7 +126,7 @@ fn run(verify: Option<f64>, seed: u64) -> Checks {
                 let now = off(replay.device.lines_now_mv(c).unwrap());
                 if after_measurement {
                     checks.cells += 1;
-                    if at_last_scan[c as usize] < limit - 0.2 {
+                    if found_at_last_scan[c as usize].is_some_and(|m| m <= limit) {
                         checks.needless += 1;
                     }
                     if now > limit + 0.2 {
@@ -137,7 +164,18 @@ fn run(verify: Option<f64>, seed: u64) -> Checks {
                 }
             }
         }
-        replay.batch(&batch);
+        let answers = replay.batch(&batch);
+        for (q, a) in batch.iter().zip(&answers) {
+            if let Some(c) = line_scan_cell(q) {
+                found_at_last_scan[c as usize] = match [
+                    fitted(a, &references[c as usize], "mu_a_mv"),
+                    fitted(a, &references[c as usize], "mu_b_mv"),
+                ] {
+                    [Some(a), Some(b)] => Some(a.abs().max(b.abs())),
+                    _ => None,
+                };
+            }
+        }
     }
     assert_eq!(replay.device.voltages_mv(), lab.device.voltages_mv());
     assert_eq!(replay.device.lab_seconds(), lab.device.lab_seconds());

@@ -14,8 +14,9 @@ use std::collections::BTreeSet;
 
 use spintune::benchmark::array::{cell_tuner, ArrayProtocol};
 use spintune::protocol::Request;
-use spintune::sim::array::split_gate;
-use spintune::tuner::array_run::ArrayAction;
+use spintune::sim::array::{parameter_name, split_gate, ArrayConfig, ArrayDevice};
+use spintune::sim::DeviceConfig;
+use spintune::tuner::array_run::{ArrayAction, ArrayRun, ArrayRunSettings};
 
 const TUNING_GATES: [&str; 4] = ["N", "SA", "SB", "T"];
 
@@ -79,40 +80,45 @@ fn every_cell_moves_its_tuning_gates_in_the_same_batch() {
     );
 }
 
+/// A `cells`-cell chain (noise seed 11) run with `settings` through its
+/// initial measurements, each batch shown to `on_batch` (with the world)
+/// before the world answers it: the run (its joint tuner just built) and
+/// the world.
+fn through_initial_measurements(
+    cells: u32,
+    settings: ArrayRunSettings,
+    mut on_batch: impl FnMut(&[Request], &ArrayDevice),
+) -> (ArrayRun, ArrayDevice) {
+    let protocol = ArrayProtocol::default();
+    let mut device = spintune::benchmark::array::world(
+        &DeviceConfig::default(),
+        ArrayConfig::chain(cells, 5, 11),
+        |_| true,
+    )
+    .unwrap();
+    let tuners = (0..cells).map(|c| cell_tuner(c, &protocol)).collect();
+    let mut run = ArrayRun::new(tuners, &device.gates(), settings, [0.3, 0.05], false).unwrap();
+    while run.tuner().is_none() {
+        let ArrayAction::Execute(batch) = run.poll().unwrap() else {
+            panic!("the initial measurements ended without a joint tuner");
+        };
+        on_batch(&batch, &device);
+        let before = device.lab_seconds();
+        let answers = device.execute_batch(&batch);
+        run.feed(answers, device.lab_seconds() - before).unwrap();
+    }
+    (run, device)
+}
+
 /// Each cell's initial own-gate `t_sr` row (log space) projected on the
 /// truth's at the voltages where the initial measurements ended:
 /// `⟨learned, true⟩ / |true|²` (1: its own gradient exactly), cells 1..=3
 /// of a 5-cell chain (each with two nearest neighbours), unpooled.
 fn interior_row_ratios(staggered: bool) -> Vec<f64> {
-    use spintune::sim::array::{parameter_name, ArrayConfig};
-    use spintune::sim::DeviceConfig;
-    let protocol = ArrayProtocol::default();
-    let mut settings = protocol.run_settings();
+    let mut settings = ArrayProtocol::default().run_settings();
     settings.pool_initial_gradients = false;
     settings.staggered_differences = staggered;
-    let mut device = spintune::benchmark::array::world(
-        &DeviceConfig::default(),
-        ArrayConfig::chain(5, 5, 11),
-        |_| true,
-    )
-    .unwrap();
-    let cells = (0..5).map(|c| cell_tuner(c, &protocol)).collect();
-    let mut run = spintune::tuner::array_run::ArrayRun::new(
-        cells,
-        &device.gates(),
-        settings,
-        [0.3, 0.05],
-        false,
-    )
-    .unwrap();
-    while run.tuner().is_none() {
-        let ArrayAction::Execute(batch) = run.poll().unwrap() else {
-            panic!("the initial measurements ended without a joint tuner");
-        };
-        let before = device.lab_seconds();
-        let answers = device.execute_batch(&batch);
-        run.feed(answers, device.lab_seconds() - before).unwrap();
-    }
+    let (run, device) = through_initial_measurements(5, settings, |_, _| {});
     let tuner = run.tuner().unwrap();
     let gates: Vec<&str> = tuner.gates().iter().map(String::as_str).collect();
     let learned = tuner.jacobian();
@@ -163,49 +169,28 @@ fn staggered_repetitions_measure_a_cell_s_own_gradient() {
 /// `finite_difference_step_mv` (the solver has not moved yet, so every
 /// tuning-gate offset is a finite difference's).
 fn longest_initial_offset_mv(step_mv: Option<f64>) -> f64 {
-    use spintune::sim::array::ArrayConfig;
-    use spintune::sim::DeviceConfig;
-    let protocol = ArrayProtocol::default();
-    let mut settings = protocol.run_settings();
+    let mut settings = ArrayProtocol::default().run_settings();
     settings.finite_difference_step_mv = step_mv;
-    let mut device = spintune::benchmark::array::world(
-        &DeviceConfig::default(),
-        ArrayConfig::chain(3, 5, 11),
-        |_| true,
-    )
-    .unwrap();
-    let start: std::collections::BTreeMap<String, f64> = device
-        .gates()
-        .into_iter()
-        .map(|g| (g.name, g.initial_mv))
-        .collect();
-    let cells = (0..3).map(|c| cell_tuner(c, &protocol)).collect();
-    let mut run = spintune::tuner::array_run::ArrayRun::new(
-        cells,
-        &device.gates(),
-        settings,
-        [0.3, 0.05],
-        false,
-    )
-    .unwrap();
     let mut longest: f64 = 0.0;
-    while run.tuner().is_none() {
-        let ArrayAction::Execute(batch) = run.poll().unwrap() else {
-            panic!("the initial measurements ended without a joint tuner");
+    through_initial_measurements(3, settings, |batch, device| {
+        let start = |gate: &str| {
+            device
+                .gates()
+                .into_iter()
+                .find(|g| g.name == gate)
+                .map(|g| g.initial_mv)
+                .unwrap()
         };
-        for r in &batch {
+        for r in batch {
             if let Request::SetVoltages { voltages_mv } = r {
                 for (g, v) in voltages_mv {
                     if split_gate(g).is_some_and(|(_, l)| TUNING_GATES.contains(&l)) {
-                        longest = longest.max((v - start[g]).abs());
+                        longest = longest.max((v - start(g)).abs());
                     }
                 }
             }
         }
-        let before = device.lab_seconds();
-        let answers = device.execute_batch(&batch);
-        run.feed(answers, device.lab_seconds() - before).unwrap();
-    }
+    });
     longest
 }
 

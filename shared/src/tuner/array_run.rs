@@ -333,7 +333,9 @@ pub struct ArrayRunSettings {
     /// Whether that second scan also takes the cells already in band at
     /// their previous measurement (the neighbours of a changed cell, whose
     /// true values the change's crosstalk may have pushed just past the
-    /// edge while they still read in band). Default `false`.
+    /// edge while they still read in band). Default `false` (measured no
+    /// better: as many neighbours left out, slower; docs/array.md, "Initial
+    /// differences at a 3 mV offset").
     #[serde(default)]
     pub confirm_in_band_cells: bool,
     /// Start a cell's parameter row again ([`Self::stalled_row_from`]) when

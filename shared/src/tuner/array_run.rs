@@ -297,9 +297,10 @@ pub struct ArrayRunSettings {
     /// qubit step limit if shorter); 0 < value ≤ 8. `None`: the cell
     /// tuner's own offset. Default 3 mV: a longer offset measures a row
     /// with less of the fits' noise but more of the gradient's curvature
-    /// and, all cells moving at once, more of the neighbours' line shifts
-    /// (chosen on random arrays 13501–13801 over 2, 4, 5 and 6 mV, checked
-    /// on fresh 13901–14001: docs/array.md, "Initial differences").
+    /// and, all cells moving at once, likely more of the neighbours' line
+    /// shifts (chosen on random arrays 13501–13801 over 2 to 6 mV, checked
+    /// on fresh 13901–14201: docs/array.md, "Initial differences at a 3 mV
+    /// offset").
     #[serde(default = "default_finite_difference_step_mv")]
     pub finite_difference_step_mv: Option<f64>,
     /// Whether the cells' initial repetitions are staggered against each

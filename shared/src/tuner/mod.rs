@@ -31,6 +31,7 @@
 
 pub mod array;
 pub mod array_run;
+pub mod array_run_settings;
 pub mod block_trust_region;
 pub mod borrowed_gradient;
 mod config;

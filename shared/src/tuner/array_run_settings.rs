@@ -36,9 +36,10 @@ pub struct ArrayRunSettings {
     /// cross-cell calibration `λ̂`; a cell whose lines are in band within
     /// two cells of one that corrects takes part with its own offsets (a
     /// small step that keeps it in band). `false`: each cell corrects as if
-    /// alone with the Jacobian as measured. Default `false`: the lines sit
-    /// twice as near their centre at the scans, but on random arrays the
-    /// tuner was no better (docs/array.md, "The line level, coupled").
+    /// alone with the Jacobian as measured. Default `true`, together with
+    /// the 10 mV [`Self::line_max_step_mv`] that lets its steps through
+    /// (docs/array.md, "Line steps that are not cut"); with the old 4 mV
+    /// limit it was no better (docs/array.md, "The line level, coupled").
     #[serde(default = "default_joint_line_steps")]
     pub joint_line_steps: bool,
     /// Solve the line corrections of one batch together, as
@@ -69,13 +70,15 @@ pub struct ArrayRunSettings {
     /// Longest plunger correction of a cell's lines per line round, mV
     /// (norm over its two plungers; 0 < value ≤ 10; each gate's own
     /// `max_step_mv` still applies). `None`: the step limit of the cell
-    /// tuner's line level (2 mV in the recommended tuner). Default 4, the
-    /// half-window of the simulator's line scan: a line the scan sees comes
-    /// back to its centre in one correction. With 2 mV a line found 3 mV
-    /// off was still off at the next measurement, which then failed or
-    /// read `t_sr` long, and the cell's retreat undid the correction
-    /// (docs/array.md, "Lines brought back in one step"). A lab whose line
-    /// scan is narrower sets its half-window here.
+    /// tuner's line level (2 mV in the recommended tuner). Default 10: a
+    /// line the scan sees (within its ±4 mV half-window) comes back to its
+    /// centre in one correction even where the cell's two lines respond to
+    /// its plungers nearly alike, and a line 2–3 mV off asks for 10–18 mV
+    /// of plunger (docs/array.md, "Line steps that are not cut"; the
+    /// earlier 4 mV cut those corrections to a quarter). With 2 mV a line
+    /// found 3 mV off was still off at the next measurement, which then
+    /// failed or read `t_sr` long, and the cell's retreat undid the
+    /// correction (docs/array.md, "Lines brought back in one step").
     #[serde(default = "default_line_max_step_mv")]
     pub line_max_step_mv: Option<f64>,
     /// A cell's line search that gave up starts again after this many more
@@ -290,7 +293,7 @@ fn yes() -> bool {
 }
 
 fn default_joint_line_steps() -> bool {
-    false
+    true
 }
 
 fn default_finite_difference_step_mv() -> Option<f64> {
@@ -380,7 +383,7 @@ pub enum Retreat {
 }
 
 fn default_line_max_step_mv() -> Option<f64> {
-    Some(4.0)
+    Some(10.0)
 }
 
 fn default_rearm_line_search_after() -> u32 {

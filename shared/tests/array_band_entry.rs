@@ -3,6 +3,10 @@
 //! checked from outside: the 3-cell world through the paper's set points,
 //! every record's rechecks derived again from its own parameter reports and
 //! the record before it, and every recheck's batch read off the requests.
+//! Then single-cell changes with the bystander rule
+//! (`ArrayRunSettings::confirm_bystander_sigma`): the cells whose targets
+//! did not change are rechecked near their edge with the wider margin,
+//! whether or not they were in band before.
 
 mod support;
 
@@ -11,7 +15,7 @@ use spintune::benchmark::PAPER_SET_POINTS;
 use spintune::protocol::{EventKind, IterationRecord, ParameterReport, Request, ScanKind};
 use spintune::sim::array::{split_gate, ArrayConfig, ArrayDevice};
 use spintune::sim::DeviceConfig;
-use support::array::{joint_in_lab, through_set_points};
+use support::array::{joint_in_lab, through_changes, TargetChange};
 
 fn world_of(seed: u64) -> ArrayDevice {
     world(
@@ -28,17 +32,51 @@ struct Iteration {
     batches: Vec<Vec<Request>>,
 }
 
-fn run(seed: u64, sigma: f64, in_band_cells: bool) -> Vec<Iteration> {
+/// The confirmation settings under test.
+#[derive(Clone, Copy)]
+struct Rules {
+    /// `confirm_entry_sigma`.
+    sigma: f64,
+    /// `confirm_in_band_cells`.
+    in_band_cells: bool,
+    /// `confirm_bystander_sigma`.
+    bystander_sigma: f64,
+}
+
+const DEFAULT_RULES: Rules = Rules {
+    sigma: 1.0,
+    in_band_cells: false,
+    bystander_sigma: 0.0,
+};
+
+/// The paper's set points, every cell at once.
+fn paper_phases() -> Vec<TargetChange> {
+    PAPER_SET_POINTS.iter().map(|&t| (None, t)).collect()
+}
+
+/// A cold start to the paper's first set point, then each of the three
+/// cells alone to (70 ns, 180 µV) and back: two bystanders every change.
+fn single_cell_phases() -> Vec<TargetChange> {
+    let mut phases = vec![(None, PAPER_SET_POINTS[0])];
+    for c in [1, 0, 2] {
+        phases.push((Some(c), (70.0, 180.0)));
+        phases.push((Some(c), PAPER_SET_POINTS[0]));
+    }
+    phases
+}
+
+fn run(seed: u64, rules: Rules, phases: &[TargetChange]) -> Vec<Iteration> {
     let mut protocol = ArrayProtocol::default();
-    protocol.tuning.confirm_entry_sigma = sigma;
-    protocol.tuning.confirm_in_band_cells = in_band_cells;
+    protocol.tuning.confirm_entry_sigma = rules.sigma;
+    protocol.tuning.confirm_in_band_cells = rules.in_band_cells;
+    protocol.tuning.confirm_bystander_sigma = rules.bystander_sigma;
     let (mut run, mut lab) = joint_in_lab(world_of(seed), &protocol, seed);
     let batches = std::cell::RefCell::new(Vec::new());
     let mut records = Vec::new();
-    through_set_points(
+    through_changes(
         &mut run,
         &mut lab,
-        &PAPER_SET_POINTS,
+        phases,
         |b| batches.borrow_mut().push(b.to_vec()),
         |_, r| records.push((r.clone(), batches.borrow().len())),
     );
@@ -87,33 +125,43 @@ fn rechecks(r: &IterationRecord) -> Vec<(u32, String, bool)> {
 }
 
 /// What must be rechecked: when every cell reads in band, each parameter
-/// within one σ of its band's edge of a cell not in band at the
-/// iteration before (of the same phase: every target changes between
-/// phases; a failed recheck counts out), or of any cell with
-/// `in_band_cells` (`ArrayRunSettings::confirm_in_band_cells`).
+/// within one σ of its band's edge of a cell not in band at the record
+/// before (`before`; a cell whose targets were set since, in `reset`,
+/// counts as not in band; a failed recheck counts out), or of any cell
+/// with `in_band_cells` (`ArrayRunSettings::confirm_in_band_cells`); and
+/// of each `bystander` cell (targets not set since the run last stopped
+/// tuned) each parameter within `bystander_sigma` of its edge, whether or
+/// not it was in band before (when `bystander_sigma > 0`).
 fn expected_rechecks(
     r: &IterationRecord,
     before: Option<&IterationRecord>,
-    in_band_cells: bool,
+    reset: &[bool],
+    bystander: &[bool],
+    rules: Rules,
 ) -> Vec<(u32, String)> {
     let cells = r.parameters.chunks(2).collect::<Vec<_>>();
     if !cells.iter().all(|c| c.iter().all(in_band)) {
         return Vec::new();
     }
     let was_in = |c: usize| {
-        before.is_some_and(|b| {
-            b.parameters[2 * c..2 * c + 2].iter().all(in_band)
-                && !rechecks(b).iter().any(|(k, _, ok)| *k as usize == c && !ok)
-        })
+        !reset[c]
+            && before.is_some_and(|b| {
+                b.parameters[2 * c..2 * c + 2].iter().all(in_band)
+                    && !rechecks(b).iter().any(|(k, _, ok)| *k as usize == c && !ok)
+            })
     };
     let mut out = Vec::new();
     for (c, ps) in cells.iter().enumerate() {
-        if was_in(c) && !in_band_cells {
+        let margin = if bystander[c] && rules.bystander_sigma > 0.0 {
+            rules.bystander_sigma
+        } else if was_in(c) && !rules.in_band_cells {
             continue;
-        }
+        } else {
+            rules.sigma
+        };
         for p in ps.iter() {
             let (x, t, s) = (p.value.unwrap(), p.target.unwrap(), p.std.unwrap());
-            if (x - t).abs() + s > 0.1 * t {
+            if (x - t).abs() + margin * s > 0.1 * t {
                 out.push((c as u32, split_gate(&p.name).unwrap().1.to_string()));
             }
         }
@@ -127,23 +175,31 @@ fn expected_rechecks(
 /// recheck read in band, and one that read out sends the iteration on to
 /// its move. Returns the stops confirmed, the stops refused and the
 /// rechecks of cells in band at the iteration before.
-fn check_rechecks(seeds: &[u64], in_band_cells: bool) -> (u32, u32, u32) {
-    let (mut confirmed, mut refused, mut of_in_band) = (0, 0, 0);
+fn check_rechecks(seeds: &[u64], rules: Rules, phases: &[TargetChange]) -> Tally {
+    let mut tally = Tally::default();
+    let cells = 3;
     for &seed in seeds {
-        let iterations = run(seed, 1.0, in_band_cells);
+        let iterations = run(seed, rules, phases);
         let mut before: Option<&IterationRecord> = None;
         let mut in_phase = 0;
+        let mut phase = 0;
+        // targets set since `before` / since the run last stopped tuned
+        let mut reset = vec![true; cells];
+        let mut changed = vec![true; cells];
         for it in &iterations {
             let r = &it.record;
             let got: Vec<(u32, String)> = rechecks(r).into_iter().map(|(c, p, _)| (c, p)).collect();
+            let bystander: Vec<bool> = changed.iter().map(|c| !c).collect();
             assert_eq!(
                 got,
-                expected_rechecks(r, before, in_band_cells),
+                expected_rechecks(r, before, &reset, &bystander, rules),
                 "seed {seed} iteration {}",
                 r.iteration
             );
-            let before_rule = expected_rechecks(r, before, false);
-            of_in_band += got.iter().filter(|g| !before_rule.contains(g)).count() as u32;
+            let entry_rule = expected_rechecks(r, before, &reset, &bystander, DEFAULT_RULES);
+            tally.beyond_entry_rule +=
+                got.iter().filter(|g| !entry_rule.contains(g)).count() as u32;
+            tally.of_bystanders += got.iter().filter(|g| bystander[g.0 as usize]).count() as u32;
             if !got.is_empty() {
                 // the iteration's measurement: every cell's t_sr and w
                 // (the first iteration's batches start with the initial
@@ -175,14 +231,14 @@ fn check_rechecks(seeds: &[u64], in_band_cells: bool) -> (u32, u32, u32) {
                 let all_in = rechecks(r).iter().all(|(_, _, ok)| *ok);
                 assert_eq!(r.tuned, all_in, "seed {seed} iteration {}", r.iteration);
                 if all_in {
-                    confirmed += 1;
+                    tally.confirmed += 1;
                     assert_eq!(
                         it.batches.len(),
                         m + 2,
                         "a confirmed stop sends nothing more"
                     );
                 } else {
-                    refused += 1;
+                    tally.refused += 1;
                     assert!(
                         it.batches[m + 2]
                             .iter()
@@ -194,17 +250,45 @@ fn check_rechecks(seeds: &[u64], in_band_cells: bool) -> (u32, u32, u32) {
             if r.tuned {
                 assert!(r.parameters.iter().all(in_band));
             }
-            // the next phase (`through_set_points`: tuned, or 40
-            // iterations) starts on new targets for every cell
-            in_phase += 1;
-            let phase_over = r.tuned || in_phase >= 40;
-            if phase_over {
-                in_phase = 0;
+            // the next phase (`through_changes`: tuned, or 40 iterations)
+            // starts on its change's targets
+            if r.tuned {
+                changed = vec![false; cells];
             }
-            before = (!phase_over).then_some(r);
+            reset = vec![false; cells];
+            in_phase += 1;
+            if r.tuned || in_phase >= 40 {
+                in_phase = 0;
+                phase += 1;
+                match phases.get(phase) {
+                    Some((Some(c), _)) => {
+                        reset[*c] = true;
+                        changed[*c] = true;
+                    }
+                    Some((None, _)) => {
+                        reset = vec![true; cells];
+                        changed = vec![true; cells];
+                    }
+                    None => {}
+                }
+            }
+            before = Some(r);
         }
     }
-    (confirmed, refused, of_in_band)
+    tally
+}
+
+/// What [`check_rechecks`] counted.
+#[derive(Debug, Default)]
+struct Tally {
+    /// Stops every recheck confirmed.
+    confirmed: u32,
+    /// Stops a recheck refused.
+    refused: u32,
+    /// Rechecks the default rule would not have made.
+    beyond_entry_rule: u32,
+    /// Rechecks of bystanders.
+    of_bystanders: u32,
 }
 
 /// Over twelve worlds (with the initial differences at 3 mV the first
@@ -212,12 +296,10 @@ fn check_rechecks(seeds: &[u64], in_band_cells: bool) -> (u32, u32, u32) {
 /// cells entering their band.
 #[test]
 fn near_edge_entries_are_scanned_again_before_the_run_stops() {
-    let (confirmed, refused, of_in_band) = check_rechecks(&(11..=22).collect::<Vec<_>>(), false);
-    assert!(
-        confirmed > 0 && refused > 0,
-        "confirmed {confirmed}, refused {refused}"
-    );
-    assert_eq!(of_in_band, 0);
+    let seeds: Vec<u64> = (11..=22).collect();
+    let t = check_rechecks(&seeds, DEFAULT_RULES, &paper_phases());
+    assert!(t.confirmed > 0 && t.refused > 0, "{t:?}");
+    assert_eq!(t.beyond_entry_rule, 0);
 }
 
 /// With `confirm_in_band_cells` the cells already in band are rechecked
@@ -225,16 +307,54 @@ fn near_edge_entries_are_scanned_again_before_the_run_stops() {
 /// the same rule otherwise.
 #[test]
 fn with_in_band_cells_every_near_edge_reading_is_scanned_again() {
-    let (confirmed, _, of_in_band) = check_rechecks(&(11..=22).collect::<Vec<_>>(), true);
-    assert!(confirmed > 0, "confirmed {confirmed}");
-    assert!(of_in_band > 0, "no cell in band before was rechecked");
+    let seeds: Vec<u64> = (11..=22).collect();
+    let rules = Rules {
+        in_band_cells: true,
+        ..DEFAULT_RULES
+    };
+    let t = check_rechecks(&seeds, rules, &paper_phases());
+    assert!(t.confirmed > 0, "{t:?}");
+    assert!(
+        t.beyond_entry_rule > 0,
+        "no cell in band before was rechecked"
+    );
+}
+
+/// Single-cell changes with the default rules: the bystanders are held to
+/// the entry rule like every other cell (the same derivation with
+/// `bystander_sigma = 0`).
+#[test]
+fn without_the_bystander_rule_single_cell_changes_recheck_entries_only() {
+    let t = check_rechecks(&[11, 12, 13], DEFAULT_RULES, &single_cell_phases());
+    assert!(t.confirmed > 0, "{t:?}");
+    assert_eq!(t.beyond_entry_rule, 0);
+}
+
+/// `confirm_bystander_sigma = 2`: in single-cell changes the cells whose
+/// targets did not change are rechecked within 2σ of their edge whether or
+/// not they were in band before; the changed cell keeps the entry rule.
+/// Some bystanders are rechecked here that the entry rule would have let
+/// stop, and some stops are confirmed.
+#[test]
+fn bystanders_near_their_edge_are_scanned_again_with_the_wider_margin() {
+    let rules = Rules {
+        bystander_sigma: 2.0,
+        ..DEFAULT_RULES
+    };
+    let t = check_rechecks(&[11, 12, 13], rules, &single_cell_phases());
+    assert!(t.confirmed > 0, "{t:?}");
+    assert!(t.of_bystanders > 0 && t.beyond_entry_rule > 0, "{t:?}");
 }
 
 /// With `confirm_entry_sigma = 0` nothing is rechecked and a run stops on
 /// its first measurement with every cell in band.
 #[test]
 fn the_rule_off_rechecks_nothing() {
-    for it in run(11, 0.0, false) {
+    let off = Rules {
+        sigma: 0.0,
+        ..DEFAULT_RULES
+    };
+    for it in run(11, off, &paper_phases()) {
         let r = &it.record;
         assert!(rechecks(r).is_empty());
         assert_eq!(
@@ -261,4 +381,13 @@ fn the_rule_is_bounded_and_on_by_default() {
     let mut off = ArrayProtocol::default();
     off.tuning.confirm_entry_sigma = 0.0;
     assert!(off.validate().is_ok());
+    assert_eq!(p.tuning.confirm_bystander_sigma, 0.0, "off by default");
+    for bad in [-0.5, 3.5, f64::NAN] {
+        let mut q = ArrayProtocol::default();
+        q.tuning.confirm_bystander_sigma = bad;
+        assert_eq!(
+            q.validate().unwrap_err().field,
+            "tuning.confirm_bystander_sigma"
+        );
+    }
 }

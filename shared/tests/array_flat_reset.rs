@@ -3,7 +3,7 @@
 //! 9-cell array of `spintune bench-array`, noise seed 10, cell 6 through
 //! the paper's set points. At the last change (`w` 180 → 270 µV) its `w`
 //! rose towards the target, turned over, and the flat-row resets walked it
-//! back onto its thermal floor (docs/array.md, "A flat row's prior
+//! back onto its thermal floor (docs/array-history.md, "A flat row's prior
 //! refuted").
 //!
 //! The test reads the trace of cell 6: a move planned with the `w` row

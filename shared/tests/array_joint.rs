@@ -367,7 +367,7 @@ fn lockstep_initial_gradients_start_at_the_own_derivative() {
         lockstep_correction: true,
         ..JointConfig::default()
     };
-    // off by default (docs/array.md "Initial measurements in lockstep")
+    // off by default (docs/array-history.md "Initial measurements in lockstep")
     for (config, corrected) in [(on, true), (JointConfig::default(), false)] {
         let t = JointArrayTuner::new((0..3).map(measured).collect(), &config, [0.3, 0.05]).unwrap();
         for (c, factor) in [(0u32, 1.35), (1, 1.6), (2, 1.35)] {
@@ -1081,11 +1081,11 @@ fn the_coupled_line_level_leaves_the_lines_nearer_their_centre() {
     assert!(couple < 0.8 * alone_four, "{couple} vs {alone_four}");
     assert!(
         !ArrayProtocol::default().tuning.couple_line_corrections,
-        "off by default (docs/array.md)"
+        "off by default (docs/array-history.md)"
     );
     assert!(
         ArrayProtocol::default().tuning.joint_line_steps,
-        "the default since its steps are not cut (docs/array.md)"
+        "the default since its steps are not cut (docs/array-history.md)"
     );
     // a settings file that does not name it gets the default
     let old = oldest_settings();

@@ -16,7 +16,7 @@ const CELLS: usize = 3;
 
 /// The default protocol, with or without the line forecast, and the
 /// joint step as it was when the forecast was measured (the paper's scaled
-/// step: the figures below are that round's, docs/array.md).
+/// step: the figures below are that round's, docs/array-history.md).
 fn protocol(forecast: bool) -> ArrayProtocol {
     let mut p = ArrayProtocol::default();
     p.tuning.line_forecast = forecast.then(ParameterForecast::default);
@@ -94,7 +94,7 @@ fn mean(x: &[f64]) -> f64 {
 /// The line forecast's spread is honest only with unbiased line Jacobians.
 /// Each cell's line Jacobian is measured while every cell moves its
 /// plungers in lockstep, so it comes out larger than the cell's own by the
-/// lockstep factor (1.35–1.7; docs/array.md). The forecast takes it as
+/// lockstep factor (1.35–1.7; docs/array-history.md). The forecast takes it as
 /// exact for the cell's own plunger moves, so its misses at the next scan
 /// go far beyond its σ. Divided by the factor (`joint_line_steps`), the
 /// misses come near σ. For a consistent forecast the mean NIS is 1; the

@@ -6,7 +6,7 @@
 //! coupled line level asks for (its Jacobian divided by the lockstep
 //! factor: about 6 mV), the earlier 4 mV and the recommended cell tuner's
 //! 2 mV stop short, and the lines are farther off at the next measurement
-//! (docs/array.md, "Line steps that are not cut", "Lines brought back in
+//! (docs/array-history.md, "Line steps that are not cut", "Lines brought back in
 //! one step").
 
 mod support;

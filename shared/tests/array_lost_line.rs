@@ -1,4 +1,4 @@
-//! A cell whose line is lost (docs/array.md, "A lost line: no forecast, a
+//! A cell whose line is lost (docs/array-history.md, "A lost line: no forecast, a
 //! new search"). A charge rearrangement puts cell 1's line B 14 mV off
 //! (world side), past the line scan's ±4 mV window and the line search's
 //! probes, right after a set-point change: the line stays lost.

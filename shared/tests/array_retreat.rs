@@ -6,11 +6,11 @@
 //! sensor) following through its virtual-gate matrix, not to their old
 //! voltages, which the line level moved since (a cell stranded for a whole
 //! phase by the two levels undoing each other, found on random arrays;
-//! docs/array.md "A failed cell's retreat"). `tuning_gates_when_uncertain`
+//! docs/array-history.md "A failed cell's retreat"). `tuning_gates_when_uncertain`
 //! also retreats on a value whose error bar is wider than its band.
 //! `every_gate_lines_kept` retreats every gate half-way, the plungers
 //! toward their last good voltages shifted by the line corrections made
-//! since (docs/array.md, "Lines brought back in one step").
+//! since (docs/array-history.md, "Lines brought back in one step").
 //!
 //! The failure is scripted: the world answers cell 1's second measurement
 //! after a set-point change with instrument errors, or with a `w` of

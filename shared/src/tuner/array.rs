@@ -75,7 +75,7 @@ pub struct JointConfig {
     /// Prior standard deviation of a neighbour's gradient around its mean,
     /// as a fraction of the own gradient of the same gate, 0 < f ≤ 2.
     /// Default 0.1 with the correlated prior (chosen on random arrays,
-    /// docs/array.md "The neighbours' prior follows the own gradient");
+    /// docs/array-history.md "The neighbours' prior follows the own gradient");
     /// 0.5 suits the independent prior.
     pub neighbour_prior_fraction: f64,
     /// Kalman outlier gate, σ (1..=100). Default 5.
@@ -85,7 +85,7 @@ pub struct JointConfig {
     /// Prior mean of a neighbour's gradient: `true` (default) the lab's
     /// cross-cell calibration `λ̂(d)` times the own gradient of the same
     /// gate; `false` zero (crosstalk learned from nothing; measured worse on
-    /// random arrays, docs/array.md).
+    /// random arrays, docs/array-history.md).
     #[serde(default = "yes")]
     pub calibrated_prior_mean: bool,
     /// Whether the plungers also follow `λ̂` times the neighbours' tuning
@@ -98,7 +98,7 @@ pub struct JointConfig {
     /// the calibration `λ̂` (module docs, "Prior"). Default `true`: the
     /// lockstep moves of an array cannot tell an own gradient from its
     /// neighbours' copies, and independent blocks learned them apart badly
-    /// (docs/array.md).
+    /// (docs/array-history.md).
     #[serde(default = "yes")]
     pub correlated_prior: bool,
     /// Whether each cell's initial gradient is divided by its lockstep
@@ -108,7 +108,7 @@ pub struct JointConfig {
     /// its own gradient plus its neighbours' crosstalk copies of it.
     /// Default `false`: the corrected prior is unbiased, and faster on the
     /// development sets, but its larger first steps got whole runs stuck on
-    /// random arrays; the biased gradients' damping is kept (docs/array.md
+    /// random arrays; the biased gradients' damping is kept (docs/array-history.md
     /// "Initial measurements in lockstep").
     #[serde(default)]
     pub lockstep_correction: bool,
@@ -121,7 +121,7 @@ pub struct JointConfig {
     /// targets, move as planned; the oracle never explores. Default 0.5,
     /// chosen on 132 runs of random development arrays (0, 0.3, 0.5, each
     /// with and without a rule sparing cells next to near ones) and checked
-    /// on fresh ones (docs/array.md "Steps that also teach").
+    /// on fresh ones (docs/array-history.md "Steps that also teach").
     #[serde(default = "default_excitation")]
     pub excitation: f64,
     /// Whether a cell's `w` is learned over its thermal floor, measured
@@ -132,7 +132,7 @@ pub struct JointConfig {
     /// oracle's Jacobian is log-space and never uses it. Default `false`:
     /// on 132 runs of random development arrays it shortened the cold
     /// start but left more phases unconverged and more neighbours out of
-    /// band (docs/array.md "`w` over its thermal floor").
+    /// band (docs/array-history.md "`w` over its thermal floor").
     #[serde(default)]
     pub thermal_floor: bool,
     /// Threshold `h` (σ) of the CUSUM that detects a row whose predictions
@@ -142,7 +142,7 @@ pub struct JointConfig {
     /// gradient that turns faster than its process noise allows). 0: off;
     /// otherwise 1 ≤ h ≤ 50. Default 0: on 132 runs of random development
     /// arrays neither `h` = 4 nor 6 (nor 4 on `w` rows alone, a hand patch)
-    /// left fewer phases unconverged (docs/array.md "Persistent misses").
+    /// left fewer phases unconverged (docs/array-history.md "Persistent misses").
     #[serde(default)]
     pub persistent_miss_sigma: f64,
     /// The factor a row's covariance is multiplied by when its misses
@@ -159,7 +159,7 @@ pub struct JointConfig {
     /// step that would leave a cell's limit changes; the oracle keeps the
     /// paper's rule. Default `true`,
     /// chosen on 132 runs of random development arrays and checked on
-    /// fresh ones (docs/array.md "Steps inside a trust region per cell").
+    /// fresh ones (docs/array-history.md "Steps inside a trust region per cell").
     #[serde(default = "yes")]
     pub trust_region: bool,
     /// Weight `κ` of the rows' covariance in the trust-region step's cost
@@ -648,7 +648,7 @@ impl JointArrayTuner {
     /// learned. The cells of an array are alike, but a cell may sit where
     /// its gradient is not the others': for a stalled row
     /// ([`super::stall`]) this measured worse than widening it
-    /// ([`Self::widen_row`]; docs/array.md). Rows in a scale over a thermal floor
+    /// ([`Self::widen_row`]; docs/array-history.md). Rows in a scale over a thermal floor
     /// are not comparable between cells (each has its own floor): only rows
     /// in plain log take part. Whether the row exists, `from` held at least
     /// one other cell's plain row, and the estimate was replaced.
@@ -1101,7 +1101,7 @@ impl JointArrayTuner {
     /// neighbours). Empty if there is nothing to retreat to (within
     /// 0.01 mV, or no such cell). The joint loop's rule with
     /// `ArrayRunSettings::retreat` = `tuning_gates` (not its default:
-    /// measured no better for the learned model, docs/array.md).
+    /// measured no better for the learned model, docs/array-history.md).
     ///
     /// ```
     /// use std::collections::BTreeMap;

@@ -38,8 +38,8 @@ pub struct ArrayRunSettings {
     /// small step that keeps it in band). `false`: each cell corrects as if
     /// alone with the Jacobian as measured. Default `true`, together with
     /// the 10 mV [`Self::line_max_step_mv`] that lets its steps through
-    /// (docs/array.md, "Line steps that are not cut"); with the old 4 mV
-    /// limit it was no better (docs/array.md, "The line level, coupled").
+    /// (docs/array-history.md, "Line steps that are not cut"); with the old 4 mV
+    /// limit it was no better (docs/array-history.md, "The line level, coupled").
     #[serde(default = "default_joint_line_steps")]
     pub joint_line_steps: bool,
     /// Solve the line corrections of one batch together, as
@@ -51,18 +51,18 @@ pub struct ArrayRunSettings {
     /// the Jacobian as measured, and cells in band do not take part. A
     /// cell correcting alone otherwise moves its lines by 1/1.7 of what it
     /// asks in mid-chain, and its neighbours' corrections in the same batch
-    /// push it by their crosstalk (docs/array.md, "Two fresh failures
+    /// push it by their crosstalk (docs/array-history.md, "Two fresh failures
     /// traced"). No effect when `joint_line_steps` is on (it does this and
     /// more). Default `false`: measured slower on every set (5–9 lab min
     /// per cold start, 1.5–3 per all-cell change), with more neighbours
-    /// out and half as many failed fits again (docs/array.md, "Line
+    /// out and half as many failed fits again (docs/array-history.md, "Line
     /// corrections solved together").
     #[serde(default)]
     pub couple_line_corrections: bool,
     /// Before a cell's line scan, correct its plungers from the lines'
     /// forecast when it puts a line beyond this, mV (0 < value ≤ 4, the
     /// scan's half-window; `None`: never). Default 1: chosen on random
-    /// arrays (docs/array.md, "Lines corrected before their scan").
+    /// arrays (docs/array-history.md, "Lines corrected before their scan").
     /// Never while the cell's lines count as lost by its line search's rule
     /// (a lost line's forecast starts from a scan made before the loss).
     #[serde(default)]
@@ -74,11 +74,11 @@ pub struct ArrayRunSettings {
     /// line the scan sees (within its ±4 mV half-window) comes back to its
     /// centre in one correction even where the cell's two lines respond to
     /// its plungers nearly alike, and a line 2–3 mV off asks for 10–18 mV
-    /// of plunger (docs/array.md, "Line steps that are not cut"; the
+    /// of plunger (docs/array-history.md, "Line steps that are not cut"; the
     /// earlier 4 mV cut those corrections to a quarter). With 2 mV a line
     /// found 3 mV off was still off at the next measurement, which then
     /// failed or read `t_sr` long, and the cell's retreat undid the
-    /// correction (docs/array.md, "Lines brought back in one step").
+    /// correction (docs/array-history.md, "Lines brought back in one step").
     #[serde(default = "default_line_max_step_mv")]
     pub line_max_step_mv: Option<f64>,
     /// A cell's line search that gave up starts again after this many more
@@ -89,7 +89,7 @@ pub struct ArrayRunSettings {
     /// acted on (it starts from a scan made before the loss), so without a
     /// new search nothing would bring the line back; the moves and drift
     /// since the last search may have brought it within the probes' reach
-    /// (docs/array.md, "A lost line: no forecast, a new search").
+    /// (docs/array-history.md, "A lost line: no forecast, a new search").
     #[serde(default = "default_rearm_line_search_after")]
     pub rearm_line_search_after: u32,
     /// Before the run stops with every cell measured in band, each measured
@@ -102,7 +102,7 @@ pub struct ArrayRunSettings {
     /// stops only if those readings are in band too. Why: the load curve
     /// reads `t_sr` long by a factor that grows with the square of line
     /// B's offset at it, and a cell correcting alone among neighbours that
-    /// also correct keeps part of its offset (docs/array.md, "Lines
+    /// also correct keeps part of its offset (docs/array-history.md, "Lines
     /// checked before a run stops"); the in-band verdict that ends a
     /// change is then taken on lines known to be near their centre.
     #[serde(default = "default_verify_lines_above_mv")]
@@ -122,7 +122,7 @@ pub struct ArrayRunSettings {
     /// is skipped only when every cell in it is confident. The forecast is
     /// honest only with unbiased line Jacobians (`joint_line_steps`).
     /// `None`: scan every time. Default `None`: every version measured left
-    /// more changes unconverged (docs/array.md, "Lines forecast instead of
+    /// more changes unconverged (docs/array-history.md, "Lines forecast instead of
     /// scanned").
     #[serde(default)]
     pub line_forecast: Option<ParameterForecast>,
@@ -138,7 +138,7 @@ pub struct ArrayRunSettings {
     /// in band and is predicted by the filter to stay in band with this many
     /// σ of margin (0.5..=10; `None`: measure every cell every iteration).
     /// At most [`MAX_SKIPS_IN_A_ROW`](super::array_run::MAX_SKIPS_IN_A_ROW) iterations in a row. Default 2, the
-    /// single-cell level's confirming-scan rule (docs/array.md).
+    /// single-cell level's confirming-scan rule (docs/array-history.md).
     #[serde(default = "default_skip_sigma")]
     pub skip_confident_sigma: Option<f64>,
     /// Park a cell's sensing dot on its flank as predicted from the gates
@@ -157,7 +157,7 @@ pub struct ArrayRunSettings {
     /// wherever it entered the band, often near its edge, where noise and
     /// the crosstalk the estimate misses push it out again; aiming it
     /// measured better for `joint` on random arrays (with the correlated
-    /// prior; docs/array.md), though worse for the oracle.
+    /// prior; docs/array-history.md), though worse for the oracle.
     #[serde(default)]
     pub hold_in_band: bool,
     /// Return a cell's parameter row to its prior
@@ -168,7 +168,7 @@ pub struct ArrayRunSettings {
     /// (`w` at its thermal floor `2kT/α`, where `t_c` drifts unseen while
     /// `w`'s target sits on the floor) is then steered by what the lab
     /// measured where it did respond, instead of by a gradient learned to be
-    /// zero. Default 0.5, chosen on random arrays (docs/array.md). Not
+    /// zero. Default 0.5, chosen on random arrays (docs/array-history.md). Not
     /// again once the parameter turned away from its target since the
     /// first reset ([`Self::flat_reset_refuted_sigma`]).
     #[serde(default = "default_reset_flat_row_fraction")]
@@ -179,7 +179,7 @@ pub struct ArrayRunSettings {
     /// nearest reading since that reset: the prior's direction is refuted
     /// where the cell now is ([`FlatResetWatch`](super::flat_reset::FlatResetWatch)), until the parameter
     /// comes into band, crosses its target or gets a new one. 0..=5; 0:
-    /// never refuted (the earlier loop). Default 3 (docs/array.md, "A flat
+    /// never refuted (the earlier loop). Default 3 (docs/array-history.md, "A flat
     /// row's prior refuted").
     #[serde(default = "default_flat_reset_refuted_sigma")]
     pub flat_reset_refuted_sigma: f64,
@@ -187,7 +187,7 @@ pub struct ArrayRunSettings {
     /// next iteration). Default [`Retreat::EveryGate`]: the two rules that
     /// move only the tuning gates un-stranded the traced runs and the
     /// oracle, but measured no better for `joint` on fresh random arrays
-    /// (docs/array.md, "A failed cell's retreat"), and neither did
+    /// (docs/array-history.md, "A failed cell's retreat"), and neither did
     /// [`Retreat::EveryGateLinesKept`] ("Lines brought back in one step").
     #[serde(default)]
     pub retreat: Retreat,
@@ -196,7 +196,7 @@ pub struct ArrayRunSettings {
     /// cells' measured rows ([`borrow_failed_gradients`](super::borrowed_gradient::borrow_failed_gradients)) instead of from
     /// zero, when the rows are not pooled
     /// ([`Self::pool_initial_gradients`], which does it too). Default
-    /// `true`, measured on random arrays (docs/array.md, "Stalled cells
+    /// `true`, measured on random arrays (docs/array-history.md, "Stalled cells
     /// traced").
     #[serde(default = "yes")]
     pub borrow_failed_gradients: bool,
@@ -205,13 +205,13 @@ pub struct ArrayRunSettings {
     /// mean of the cell's own measurement and the others' mean, weighted by
     /// the spread between the cells). A failed row then takes the others'
     /// prior, so this replaces [`Self::borrow_failed_gradients`]. Default
-    /// `true` (docs/array.md, "Initial rows: central and pooled").
+    /// `true` (docs/array-history.md, "Initial rows: central and pooled").
     #[serde(default = "yes")]
     pub pool_initial_gradients: bool,
     /// Whether the rows are pooled in units of each cell's lockstep factor
     /// (an end cell measured its row ×1.35, an inner one ×1.6 with the
     /// default crosstalk) instead of as measured. Default `false`: as
-    /// measured left fewer phases unconverged (docs/array.md).
+    /// measured left fewer phases unconverged (docs/array-history.md).
     #[serde(default)]
     pub pool_in_lockstep_units: bool,
     /// Whether each cell's initial finite differences are central (every
@@ -220,7 +220,7 @@ pub struct ArrayRunSettings {
     /// cells' lines are not re-centred between offsets, and a line left off
     /// by `μ` reads an apparent `t_sr·(1 + c·μ²)`: even in the offset, so
     /// the central difference cancels it, and it halves the rows' noise,
-    /// for one more measurement per gate. Default `true` (docs/array.md,
+    /// for one more measurement per gate. Default `true` (docs/array-history.md,
     /// "Initial rows: central and pooled").
     #[serde(default = "yes")]
     pub central_differences: bool,
@@ -232,7 +232,7 @@ pub struct ArrayRunSettings {
     /// with less of the fits' noise but more of the gradient's curvature
     /// and, all cells moving at once, likely more of the neighbours' line
     /// shifts (chosen on random arrays 13501–13801 over 2 to 6 mV, checked
-    /// on fresh 13901–14201: docs/array.md, "Initial differences at a 3 mV
+    /// on fresh 13901–14201: docs/array-history.md, "Initial differences at a 3 mV
     /// offset").
     #[serde(default = "default_finite_difference_step_mv")]
     pub finite_difference_step_mv: Option<f64>,
@@ -260,7 +260,7 @@ pub struct ArrayRunSettings {
     /// band's edge ([`to_confirm`](super::in_band::to_confirm)) is scanned once more where it is, and
     /// the run stops only if every such scan is in band too; otherwise the
     /// iteration moves on, the two readings' mean aimed at. 0..=3; 0:
-    /// never. Default 1 (docs/array.md, "A cell entering near its band's
+    /// never. Default 1 (docs/array-history.md, "A cell entering near its band's
     /// edge scanned again").
     #[serde(default = "default_confirm_entry_sigma")]
     pub confirm_entry_sigma: f64,
@@ -268,22 +268,34 @@ pub struct ArrayRunSettings {
     /// their previous measurement (the neighbours of a changed cell, whose
     /// true values the change's crosstalk may have pushed just past the
     /// edge while they still read in band). Default `false` (measured no
-    /// better: as many neighbours left out, slower; docs/array.md, "Initial
+    /// better: as many neighbours left out, slower; docs/array-history.md, "Initial
     /// differences at a 3 mV offset").
     #[serde(default)]
     pub confirm_in_band_cells: bool,
+    /// The second scan's margin for a **bystander**: a cell whose targets
+    /// were not set since the run last stopped with every cell in band (the
+    /// neighbours of a cell whose targets changed alone). Such a cell read
+    /// in band within this many of its reported σ of its band's edge is
+    /// scanned once more before the run stops, whether or not it was in band
+    /// at its previous measurement: the change's crosstalk, and the joint
+    /// step's compensation of it, moved it although nobody asked. 0..=3; 0:
+    /// bystanders are confirmed like every other cell
+    /// ([`Self::confirm_entry_sigma`], [`Self::confirm_in_band_cells`]).
+    /// Default 0 (off).
+    #[serde(default)]
+    pub confirm_bystander_sigma: f64,
     /// Start a cell's parameter row again ([`Self::stalled_row_from`]) when
     /// the parameter stalled: measured out of band on one side this many
     /// iterations in a row without coming nearer its target by a band
     /// ([`StallWatch`](super::stall::StallWatch); 2..=[`MAX_STALL_WINDOW`], 0: never). Never for the
     /// oracle. Default 8, chosen among 4 and 8 on random development arrays
-    /// and checked on fresh ones (docs/array.md, "Stalled parameters").
+    /// and checked on fresh ones (docs/array-history.md, "Stalled parameters").
     #[serde(default = "default_reset_stalled_row_after")]
     pub reset_stalled_row_after: u32,
     /// Where a stalled row starts again ([`StalledRowSource`]). Default
     /// [`StalledRowSource::Widened`]: the rows borrowed from the peers or
     /// returned to their prior left more phases unconverged on random
-    /// development arrays (docs/array.md).
+    /// development arrays (docs/array-history.md).
     #[serde(default = "default_stalled_row_from")]
     pub stalled_row_from: StalledRowSource,
 }
@@ -350,6 +362,7 @@ impl Default for ArrayRunSettings {
             in_band: InBandRule::Measured,
             confirm_entry_sigma: default_confirm_entry_sigma(),
             confirm_in_band_cells: false,
+            confirm_bystander_sigma: 0.0,
             reset_stalled_row_after: default_reset_stalled_row_after(),
             stalled_row_from: default_stalled_row_from(),
         }
@@ -458,18 +471,21 @@ impl ArrayRunSettings {
             "reset_flat_row_fraction",
             f.to_string(),
         )?;
-        let s = self.flat_reset_refuted_sigma;
-        check(
-            s.is_finite() && (0.0..=5.0).contains(&s),
-            "flat_reset_refuted_sigma",
-            s.to_string(),
-        )?;
-        let s = self.confirm_entry_sigma;
-        check(
-            s.is_finite() && (0.0..=3.0).contains(&s),
-            "confirm_entry_sigma",
-            s.to_string(),
-        )?;
+        for (name, s, max) in [
+            (
+                "flat_reset_refuted_sigma",
+                self.flat_reset_refuted_sigma,
+                5.0,
+            ),
+            ("confirm_entry_sigma", self.confirm_entry_sigma, 3.0),
+            ("confirm_bystander_sigma", self.confirm_bystander_sigma, 3.0),
+        ] {
+            check(
+                s.is_finite() && (0.0..=max).contains(&s),
+                name,
+                s.to_string(),
+            )?;
+        }
         let n = self.reset_stalled_row_after;
         check(
             n == 0 || (2..=MAX_STALL_WINDOW as u32).contains(&n),

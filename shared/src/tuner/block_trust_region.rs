@@ -6,7 +6,7 @@
 //! down to the step limit. Where `J` is nearly singular (two rows of a cell
 //! pointing almost the same way over its gates) that step is long, and
 //! scaling it shrinks the well-determined part of the move with the rest: a
-//! cell far from its targets then creeps (docs/array.md "Steps inside a trust
+//! cell far from its targets then creeps (docs/array-history.md "Steps inside a trust
 //! region per cell"). The trust-region step instead minimises
 //!
 //! `‖Δ + J·Δv‖² + Δvᵀ U Δv` subject to `‖Δv_c‖ ≤ r_c` for every block `c`

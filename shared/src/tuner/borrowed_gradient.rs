@@ -5,7 +5,7 @@
 //! gate's offset), the single-cell level starts that row from zero with an
 //! identity covariance (`EventKind::FiniteDifferenceFailed`: nothing known,
 //! σ = 1/mV in log space). In an array that left a fifth of the cells'
-//! `w` rows at zero when the joint tuner started (docs/array.md, "Stalled
+//! `w` rows at zero when the joint tuner started (docs/array-history.md, "Stalled
 //! cells traced"), and a zero row gives the step no direction for that
 //! parameter. The cells of an array are alike (one design, one process):
 //! the mean of the measured rows is a prior with the right signs, and the

@@ -10,7 +10,7 @@
 //! back off its floor, but the prior is a straight line measured at the cold
 //! start, and the rows are not straight: `ln t_c` has quadratic terms in the
 //! gates, and a hundred mV away its gradient can point the other way.
-//! Traced on the default array and on 7003 (docs/array.md, "A flat row's
+//! Traced on the default array and on 7003 (docs/array-history.md, "A flat row's
 //! prior refuted"): `w` rose towards its target, turned over, and the
 //! repeated resets walked the cell down onto its floor and on to the gate
 //! limits, where `t_c` had vanished.

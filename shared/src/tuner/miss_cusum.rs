@@ -2,7 +2,7 @@
 //! two-sided CUSUM over the row's normalised innovations.
 //!
 //! A Kalman row whose process noise was chosen for a gently changing
-//! gradient lags a gradient that turns fast (docs/array.md, "why a stuck
+//! gradient lags a gradient that turns fast (docs/array-history.md, "why a stuck
 //! row lags"): its predictions then miss, step after step, on the same
 //! side. A single miss of a few σ is a noisy value and should teach only
 //! as much as the filter's gain says; misses that persist in one direction

@@ -3,7 +3,7 @@
 //!
 //! One repetition of a 6 mV finite difference leaves each gate's `w`
 //! gradient with a noise of about 0.010 /mV, the size of the true own-cell
-//! gradients themselves (docs/array.md, "Stalled cells traced"), so a
+//! gradients themselves (docs/array-history.md, "Stalled cells traced"), so a
 //! cell's own row often points the wrong way. The cells of an array are
 //! one design: their true rows scatter around a common mean. Per parameter
 //! and gate, the other cells' rows give a prior for cell `k`'s true value
@@ -27,7 +27,7 @@
 //! square, and scaled back), so an end cell is not pulled towards the
 //! inner cells' longer rows. The array does that only with
 //! `ArrayRunSettings::pool_in_lockstep_units`: it measured worse than
-//! pooling the rows as measured (docs/array.md).
+//! pooling the rows as measured (docs/array-history.md).
 
 use super::array::CellKnowledge;
 

@@ -6,7 +6,7 @@
 //! row ends up pointing wherever the noise took it, and the cell's moves
 //! stop bringing the parameter nearer its target while the filter, having
 //! seen little to contradict it, stays confident. Traced on random arrays
-//! (docs/array.md, "Stalled parameters"): a `w` held at 154 µV for 30
+//! (docs/array-history.md, "Stalled parameters"): a `w` held at 154 µV for 30
 //! iterations against a target of 180, a `t_sr` row that put the reload
 //! time on the wrong gate. A watch per parameter notices when the
 //! measurements have stayed out of band on one side for a window of

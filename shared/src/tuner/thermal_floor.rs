@@ -1,7 +1,7 @@
 //! The thermal floor of the inter-dot transition width `w`, and the scale
 //! in which the joint array tuner can learn `w` ([`FloorLog`];
 //! [`crate::tuner::array::JointConfig::thermal_floor`], off by default:
-//! measured no better on random arrays, docs/array.md).
+//! measured no better on random arrays, docs/array-history.md).
 //!
 //! The transition is broadened by the tunnel coupling `t_c` and by
 //! temperature: as `t_c → 0`, `w` falls to the floor `f = 2kT/α` (electron

@@ -71,11 +71,29 @@ pub fn through_set_points(
     run: &mut ArrayRun,
     lab: &mut Lab,
     set_points: &[(f64, f64)],
+    on_batch: impl FnMut(&[Request]),
+    on_iteration: impl FnMut(&Lab, &IterationRecord),
+) {
+    let changes: Vec<TargetChange> = set_points.iter().map(|&t| (None, t)).collect();
+    through_changes(run, lab, &changes, on_batch, on_iteration);
+}
+
+/// A phase's target change: the cell whose targets change (`None`: every
+/// cell) and its new targets (t_sr ns, w µV).
+pub type TargetChange = (Option<usize>, (f64, f64));
+
+/// [`through_set_points`] with each phase's change of its own: the first
+/// phase runs on the run's own targets, each later one starts with its
+/// change applied.
+pub fn through_changes(
+    run: &mut ArrayRun,
+    lab: &mut Lab,
+    changes: &[TargetChange],
     mut on_batch: impl FnMut(&[Request]),
     mut on_iteration: impl FnMut(&Lab, &IterationRecord),
 ) {
     let (mut phase, mut iterations) = (0, 0);
-    while phase < set_points.len() {
+    while phase < changes.len() {
         let phase_over = match run.poll().unwrap() {
             ArrayAction::Execute(batch) => {
                 on_batch(&batch);
@@ -95,10 +113,14 @@ pub fn through_set_points(
         if phase_over {
             phase += 1;
             iterations = 0;
-            if let Some(&targets) = set_points.get(phase) {
-                for c in 0..run.targets().len() {
-                    run.set_targets(c, targets).unwrap();
+            match changes.get(phase) {
+                Some(&(Some(c), targets)) => run.set_targets(c, targets).unwrap(),
+                Some(&(None, targets)) => {
+                    for c in 0..run.targets().len() {
+                        run.set_targets(c, targets).unwrap();
+                    }
                 }
+                None => {}
             }
         }
     }

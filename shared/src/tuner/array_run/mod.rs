@@ -387,6 +387,13 @@ pub struct ArrayRun {
     /// Iterations since the start or the last target change.
     #[serde(default)]
     iterations_since_change: u64,
+    /// Per cell: its targets were set since the run last stopped with every
+    /// cell in band (all cells at the start). A cell that is not is a
+    /// bystander of the present change
+    /// ([`ArrayRunSettings::confirm_bystander_sigma`]). Empty (a checkpoint
+    /// from before this field): every cell counts as changed.
+    #[serde(default)]
+    changed_since_stop: Vec<bool>,
     /// Per cell: its readout group (empty: one sensor per cell).
     #[serde(default)]
     readout_group: Vec<usize>,
@@ -479,6 +486,7 @@ impl ArrayRun {
             outstanding: None,
             iteration: 0,
             iterations_since_change: 0,
+            changed_since_stop: vec![true; n],
             readout_group: Vec::new(),
             lab_seconds: 0.0,
             failed_fits: 0,
@@ -506,6 +514,9 @@ impl ArrayRun {
         })?;
         *slot = targets;
         self.iterations_since_change = 0;
+        if let Some(c) = self.changed_since_stop.get_mut(cell) {
+            *c = true;
+        }
         // measured in band (or stalled) against the old targets says nothing now
         if let Some(j) = self.joint.as_mut() {
             if let Some(b) = j.in_band.get_mut(cell) {
@@ -642,6 +653,9 @@ impl ArrayRun {
                         .settings
                         .max_iterations
                         .is_some_and(|m| self.iterations_since_change >= u64::from(m));
+                    if tuned {
+                        self.changed_since_stop.iter_mut().for_each(|c| *c = false);
+                    }
                     self.step = if tuned || given_up {
                         Step::Idle
                     } else {
@@ -1463,8 +1477,19 @@ impl ArrayRun {
                         j.in_band = vec![false; k];
                     }
                     if in_band {
-                        let sigma = self.settings.confirm_entry_sigma;
-                        let was_in = j.in_band[c] && !self.settings.confirm_in_band_cells;
+                        let bystander = !self.changed_since_stop.get(c).copied().unwrap_or(true);
+                        let by_sigma = self.settings.confirm_bystander_sigma;
+                        // a bystander near its edge is scanned again whether or
+                        // not it was in band before: the change's crosstalk and
+                        // the compensation of it moved it unasked
+                        let (sigma, was_in) = if bystander && by_sigma > 0.0 {
+                            (by_sigma, false)
+                        } else {
+                            (
+                                self.settings.confirm_entry_sigma,
+                                j.in_band[c] && !self.settings.confirm_in_band_cells,
+                            )
+                        };
                         confirm.extend(
                             to_confirm(&values[c], &tv, band, was_in, sigma)
                                 .into_iter()

@@ -203,6 +203,29 @@ struct CellLower {
 }
 
 impl CellLower {
+    /// A cell with no sensing-dot or line level yet (filled in from its
+    /// tuner's levels), evaluating its scans with `references`.
+    fn empty(references: References) -> Self {
+        Self {
+            sd_gate: String::new(),
+            sd_half_width_mv: 0.0,
+            sd_points: 0,
+            line_gates: Vec::new(),
+            line_jacobian: [[0.0; 2]; 2],
+            line_max_step_mv: 0.0,
+            references,
+            lines: LevelForecast::new(Vec::new(), 2, 0.1, Vec::new()),
+            flank: None,
+            failed_since_sweep: false,
+            line_search: None,
+            search: SearchMemory::default(),
+            probe_mv: None,
+            lines_unverified: false,
+            failed_evaluations: 0,
+            line_checks: Consistency::default(),
+        }
+    }
+
     /// Whether the cell's lines count as lost by its line search's rule
     /// (the failures in a row that start a search, a search under way, or
     /// one that gave up, until a scan finds both lines again). Its lines'
@@ -1183,24 +1206,7 @@ impl ArrayRun {
                     .as_ref()
                     .map(|c| (c.gates.clone(), c.matrix.clone())),
             });
-            let mut l = CellLower {
-                sd_gate: String::new(),
-                sd_half_width_mv: 0.0,
-                sd_points: 0,
-                line_gates: Vec::new(),
-                line_jacobian: [[0.0; 2]; 2],
-                line_max_step_mv: 0.0,
-                references: cfg.fit_references,
-                lines: LevelForecast::new(Vec::new(), 2, 0.1, Vec::new()),
-                flank: None,
-                failed_since_sweep: false,
-                line_search: None,
-                search: SearchMemory::default(),
-                probe_mv: None,
-                lines_unverified: false,
-                failed_evaluations: 0,
-                line_checks: Consistency::default(),
-            };
+            let mut l = CellLower::empty(cfg.fit_references);
             for level in cfg.levels.iter().skip(1) {
                 match &level.kind {
                     LevelKind::SensingDot(sd) => {
@@ -2049,22 +2055,10 @@ mod tests {
 
     fn lower(line_gates: &[&str], line_jacobian: [[f64; 2]; 2]) -> CellLower {
         CellLower {
-            sd_gate: String::new(),
-            sd_half_width_mv: 0.0,
-            sd_points: 0,
             line_gates: line_gates.iter().map(|g| g.to_string()).collect(),
             line_jacobian,
             line_max_step_mv: 2.0,
-            references: References::default(),
-            lines: LevelForecast::new(Vec::new(), 2, 0.1, Vec::new()),
-            flank: None,
-            failed_since_sweep: false,
-            line_search: None,
-            search: SearchMemory::default(),
-            probe_mv: None,
-            lines_unverified: false,
-            failed_evaluations: 0,
-            line_checks: Consistency::default(),
+            ..CellLower::empty(References::default())
         }
     }
 

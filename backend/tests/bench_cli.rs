@@ -458,7 +458,7 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
         report["protocol"]["tuning"]["joint"]["neighbour_prior_fraction"],
         0.4
     );
-    // earlier rounds' loop, as docs/array.md compares it, and the lockstep
+    // earlier rounds' loop, as docs/array-history.md compares it, and the lockstep
     // correction and the excitation (both off by default) switched on
     assert_eq!(report["protocol"]["tuning"]["hold_in_band"], true);
     assert_eq!(report["protocol"]["tuning"]["reset_flat_row_fraction"], 0.0);

@@ -150,7 +150,7 @@ async fn python_bridge_client_serves_an_array_run_to_every_cell_in_band() {
     config["bridge"]["request_timeout_s"] = json!(10.0);
     // The toy's cells do not couple: the lab's calibration says so (with the
     // example's 0.3 the joint prior expects crosstalk that never comes; see
-    // docs/array.md, "A calibration that is wrong").
+    // docs/array-history.md, "A calibration that is wrong").
     config["array"]["cross_calibration"] = json!([0.0, 0.0]);
     config["array"]["description"]
         .as_object_mut()

@@ -34,7 +34,7 @@ pub(super) fn line_scan_requests(cells: &[u32]) -> Vec<Request> {
 
 impl ArrayRun {
     /// The measured cells (not `skip`ped) whose lines are scanned again
-    /// before the run stops ([`ArrayRunSettings::verify_lines_above_mv`]).
+    /// before the run stops ([`ArrayRunSettings::verify_lines_above_mv`](super::ArrayRunSettings::verify_lines_above_mv)).
     pub(super) fn lines_to_verify(&self, skip: &[bool]) -> Vec<u32> {
         let (Some(_), Some(joint)) = (self.settings.verify_lines_above_mv, &self.joint) else {
             return Vec::new();
@@ -54,7 +54,7 @@ impl ArrayRun {
 
     /// The answers to [`Step::VerifyLines`]'s scans of `cells`: every
     /// cell's lines learned as in a line round; the cells that lost a line
-    /// or found one beyond [`ArrayRunSettings::verify_lines_above_mv`] are
+    /// or found one beyond [`ArrayRunSettings::verify_lines_above_mv`](super::ArrayRunSettings::verify_lines_above_mv) are
     /// corrected and their `t_sr` (and `w`, when line A was off or lost)
     /// joins `pending`'s confirming scans, their readings replacing this
     /// iteration's. None found off: `pending` as it was (or the run stops).
@@ -133,10 +133,10 @@ impl ArrayRun {
     }
 
     /// Before the first line scan: which of `cells` act on their lines'
-    /// forecast instead of scanning ([`ArrayRunSettings::line_forecast`];
+    /// forecast instead of scanning ([`ArrayRunSettings::line_forecast`](super::ArrayRunSettings::line_forecast);
     /// corrected when it puts a line outside `line_tolerance_mv`), and the
     /// scanning cells whose forecast puts a line beyond
-    /// [`ArrayRunSettings::precorrect_lines_mv`], corrected from it first.
+    /// [`ArrayRunSettings::precorrect_lines_mv`](super::ArrayRunSettings::precorrect_lines_mv), corrected from it first.
     pub(super) fn plan_lines(
         &self,
         cells: &[u32],
@@ -323,7 +323,7 @@ impl ArrayRun {
     }
 
     /// A line scan of `cell` lost a line (`found`: what it gave): the line
-    /// level's search ([`ParameterSearch`], as a single cell's line level
+    /// level's search ([`ParameterSearch`](crate::tuner::ParameterSearch), as a single cell's line level
     /// searches) plans its next probe or its way back. Whether the cell's
     /// plungers move.
     fn lines_lost(&mut self, cell: usize, found: [Option<Measured>; 2]) -> bool {
@@ -420,7 +420,7 @@ impl ArrayRun {
     /// The limited plunger corrections that cancel each cell's `mu` (mV)
     /// with the cell's line Jacobian, as set requests (a cell whose
     /// Jacobian is singular is left out). All cells correct in one batch, so
-    /// with [`ArrayRunSettings::joint_line_steps`] the steps take out each
+    /// with [`ArrayRunSettings::joint_line_steps`](super::ArrayRunSettings::joint_line_steps) the steps take out each
     /// other's crosstalk ([`joint_line_steps`]; if that system is singular,
     /// a calibration far beyond physical crosstalk, each cell steps as if
     /// alone); each is then limited to the cell's line step.
@@ -466,7 +466,7 @@ impl ArrayRun {
     }
 
     /// Longest line correction of cell `l` per round, mV
-    /// ([`ArrayRunSettings::line_max_step_mv`]).
+    /// ([`ArrayRunSettings::line_max_step_mv`](super::ArrayRunSettings::line_max_step_mv)).
     fn line_step_limit(&self, l: &CellLower) -> f64 {
         self.settings.line_max_step_mv.unwrap_or(l.line_max_step_mv)
     }

@@ -1,6 +1,6 @@
 //! The joint loop's sensing dots: each cell's sensor swept and parked on its
 //! fitted flank, or parked on the flank its model predicts from the
-//! neighbourhood's gates ([`ArrayRunSettings::flank_prediction`]).
+//! neighbourhood's gates ([`ArrayRunSettings::flank_prediction`](super::ArrayRunSettings::flank_prediction)).
 
 use super::{who_scans, ArrayRun, ArrayRunError, Parks};
 use crate::protocol::{EventKind, Request, Response, ScanKind, ScanRequest, Sweep, TunerEvent};
@@ -67,7 +67,7 @@ impl ArrayRun {
 
     /// Which of `cells` sweep their sensor, and the flanks (gate, mV) of
     /// those parked from their prediction instead
-    /// ([`ArrayRunSettings::flank_prediction`]). A cell sweeps when its
+    /// ([`ArrayRunSettings::flank_prediction`](super::ArrayRunSettings::flank_prediction)). A cell sweeps when its
     /// prediction is not confident, or when its readout group's sweeps in
     /// this batch leave room for it: the batch lasts as long as its busiest
     /// group, so such a sweep costs no lab time. Records the skips as events.

@@ -479,11 +479,13 @@ impl KalmanGradient {
         if n == 0 {
             return;
         }
-        let shape = *self
-            .noise_shape
-            .0
-            .get_or_insert_with(|| self.process_noise.shape());
-        let (q, q_factor) = self.process_noise.matrix_and_factor(dv);
+        let process_noise = &self.process_noise;
+        let (shape, q_diagonal) = self.noise_shape.0.get_or_insert_with(|| {
+            let q = process_noise.matrix_and_factor(dv).0;
+            (process_noise.shape(), q.diagonal().as_slice().to_vec())
+        });
+        let shape = *shape;
+        let (q, q_factor) = process_noise.matrix_and_factor(dv);
         let q = q.as_slice();
         let c = self.covariance.as_mut_slice();
         // Column-major: column j is c[j·n .. (j+1)·n].
@@ -509,7 +511,7 @@ impl KalmanGradient {
                 }
             }
             if shape == QShape::Diagonal {
-                cj[j] += qj[j] * q_factor;
+                cj[j] += q_diagonal[j] * q_factor;
             }
         }
         if shape == QShape::Asymmetric {
@@ -542,10 +544,13 @@ enum QShape {
     Asymmetric,
 }
 
-/// The [`QShape`] of the process noise: a cache, not state (skipped by
-/// serde, equal to any other in `PartialEq`), filled on the first update.
-#[derive(Debug, Clone, Copy, Default)]
-struct NoiseShape(Option<QShape>);
+/// The [`QShape`] of the process noise and `Q`'s diagonal: a cache, not
+/// state (skipped by serde, equal to any other in `PartialEq`), filled on
+/// the first update (`Q` never changes after [`KalmanGradient::new`]). The
+/// diagonal's own copy spares a diagonal `Q`'s update one cache line per
+/// column of the n×n matrix.
+#[derive(Debug, Clone, Default)]
+struct NoiseShape(Option<(QShape, Vec<f64>)>);
 
 impl PartialEq for NoiseShape {
     fn eq(&self, _: &Self) -> bool {

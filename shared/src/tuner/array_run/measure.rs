@@ -1,0 +1,470 @@
+//! One iteration's measurement: every cell's `t_sr` and `w` evaluated,
+//! the filter rows taught, the in-band decision (which cells count in band,
+//! which entries are scanned again before the run stops,
+//! [`ArrayRunSettings::confirm_entry_sigma`](super::ArrayRunSettings::confirm_entry_sigma)),
+//! the rows that start again (flat, [`ArrayRunSettings::reset_flat_row_fraction`](super::ArrayRunSettings::reset_flat_row_fraction);
+//! stalled, [`ArrayRunSettings::reset_stalled_row_after`](super::ArrayRunSettings::reset_stalled_row_after)),
+//! and the step that follows.
+
+use std::collections::BTreeMap;
+
+use super::{ArrayRun, ArrayRunError, Scratch, Step, CELL_PARAMETERS};
+use crate::fit::evaluate_with;
+use crate::protocol::{
+    EventKind, IterationRecord, ParameterReport, Response, ScanOutcome, TunerEvent,
+};
+use crate::sim::array::parameter_name;
+use crate::tuner::array::Measured;
+use crate::tuner::in_band::{to_confirm, within_band, InBandRule};
+use crate::tuner::stall::StalledRowSource;
+
+impl ArrayRun {
+    /// The value `name` of a scan's answer: fitted from raw traces with
+    /// the cell's references, or as a lab's own analysis evaluated it.
+    pub(super) fn evaluate(&self, cell: usize, answer: &Response, name: &str) -> Option<Measured> {
+        let Response::Scanned { outcome, .. } = answer else {
+            return None;
+        };
+        let fitted;
+        let values = match outcome {
+            ScanOutcome::Raw { scan } => {
+                let references = &self.joint.as_ref()?.lower.get(cell)?.references;
+                fitted = evaluate_with(scan, references).ok()?.values;
+                &fitted
+            }
+            ScanOutcome::Evaluated { values } => values,
+            ScanOutcome::Failed { .. } => return None,
+        };
+        values
+            .iter()
+            .find(|v| v.name == name)
+            .filter(|v| v.validate().is_ok())
+            .map(|v| (v.value, v.variance))
+    }
+
+    pub(super) fn evaluate_measurement(
+        &mut self,
+        answers: &[Response],
+    ) -> Result<(), ArrayRunError> {
+        let k = self.sessions.len();
+        let band = self.settings.relative_tolerance;
+        let skip = match &self.joint {
+            Some(j) if j.skip.len() == k => j.skip.clone(),
+            _ => vec![false; k],
+        };
+        let measured: Vec<usize> = (0..k).filter(|&c| !skip[c]).collect();
+        if answers.len() != 2 * measured.len() {
+            return Err(ArrayRunError::Protocol(format!(
+                "{} answers to the measurement of {} cells",
+                answers.len(),
+                measured.len()
+            )));
+        }
+        let mut raw = vec![vec![None; 2]; k];
+        for (i, a) in answers.iter().enumerate() {
+            let (c, p) = (measured[i / 2], i % 2);
+            match self.evaluate(c, a, CELL_PARAMETERS[p]) {
+                Some(v) => raw[c][p] = Some(v),
+                None => self.evaluation_failed(c),
+            }
+        }
+        // a skipped cell: its prediction, reported as an event, not a value
+        let mut events = Vec::new();
+        if let Some(joint) = &self.joint {
+            for c in (0..k).filter(|&c| skip[c]) {
+                for (p, name) in CELL_PARAMETERS.iter().enumerate() {
+                    if let Some((y, var)) = joint.tuner.predict(c, p, &self.voltages_mv) {
+                        let scale = joint.tuner.scale(c, p).unwrap_or_default();
+                        let (value, std) = scale.value_and_std(y, var);
+                        events.push(TunerEvent {
+                            level: "array".into(),
+                            kind: EventKind::ConfirmationSkipped {
+                                parameter: parameter_name(c as u32, name),
+                                predicted: value,
+                                std,
+                                unit: ["ns", "µV"][p].into(),
+                            },
+                        });
+                    }
+                }
+            }
+        }
+        // values with error bars wider than the band are not acted on
+        let values: Vec<Vec<Option<Measured>>> = raw
+            .iter()
+            .map(|m| {
+                m.iter()
+                    .map(|x| x.filter(|(p, var)| *p > 0.0 && var.sqrt() <= band * p))
+                    .collect()
+            })
+            .collect();
+        let failed: Vec<bool> = raw
+            .iter()
+            .zip(&skip)
+            .map(|(m, &s)| !s && m.iter().any(Option::is_none))
+            .collect();
+        let unsure: Vec<bool> = values
+            .iter()
+            .zip(&skip)
+            .map(|(m, &s)| !s && m.iter().any(Option::is_none))
+            .collect();
+        // too uncertain: the sensor may be off its flank too
+        if let Some(j) = self.joint.as_mut() {
+            for (l, _) in j.lower.iter_mut().zip(&unsure).filter(|(_, &u)| u) {
+                l.failed_since_sweep = true;
+            }
+        }
+        let v = self.voltages_mv.clone();
+        // the filter's estimate of each value, from its prediction before
+        // this measurement (ArrayRunSettings::in_band)
+        let estimates: Vec<Vec<Option<f64>>> = (0..k)
+            .map(|c| {
+                (0..CELL_PARAMETERS.len())
+                    .map(|p| {
+                        let j = self
+                            .joint
+                            .as_ref()
+                            .filter(|_| self.settings.in_band != InBandRule::Measured)?;
+                        let measured = values[c][p]?;
+                        let prediction = j.tuner.predict(c, p, &v)?;
+                        j.tuner.estimate(c, p, prediction, measured)
+                    })
+                    .collect()
+            })
+            .collect();
+        for (c, vals) in values.iter().enumerate() {
+            if vals.iter().all(Option::is_some) {
+                let good = self.cell_voltages(c);
+                if let Some(j) = self.joint.as_mut() {
+                    j.last_good[c] = good;
+                }
+            }
+            if let Some(j) = self.joint.as_mut() {
+                j.tuner.observe(c, vals, &v);
+            }
+        }
+        let mut residual = vec![vec![None; 2]; k];
+        let mut all_in = true;
+        let mut confirm = Vec::new();
+        let mut reports = Vec::with_capacity(2 * k);
+        for c in 0..k {
+            let (t_sr, w) = self.targets[c];
+            let tv = [t_sr, w];
+            if skip[c] {
+                // predicted in band with margin (plan_skips): held
+                residual[c] = vec![Some(0.0); 2];
+            } else {
+                // a measured parameter within its band
+                let within =
+                    |p: usize| values[c][p].is_some_and(|(x, _)| within_band(x, tv[p], band));
+                let in_band = self
+                    .settings
+                    .in_band
+                    .in_band(&values[c], &estimates[c], &tv, band);
+                all_in &= in_band;
+                if let Some(j) = self.joint.as_mut() {
+                    if j.in_band.len() != k {
+                        j.in_band = vec![false; k];
+                    }
+                    if in_band {
+                        let bystander = !self.changed_since_stop.get(c).copied().unwrap_or(true);
+                        let by_sigma = self.settings.confirm_bystander_sigma;
+                        // a bystander near its edge is scanned again whether or
+                        // not it was in band before: the change's crosstalk and
+                        // the compensation of it moved it unasked
+                        let (sigma, was_in) = if bystander && by_sigma > 0.0 {
+                            (by_sigma, false)
+                        } else {
+                            (
+                                self.settings.confirm_entry_sigma,
+                                j.in_band[c] && !self.settings.confirm_in_band_cells,
+                            )
+                        };
+                        confirm.extend(
+                            to_confirm(&values[c], &tv, band, was_in, sigma)
+                                .into_iter()
+                                .map(|p| (c as u32, p)),
+                        );
+                    }
+                    j.in_band[c] = in_band;
+                }
+                let out: Vec<bool> = (0..tv.len())
+                    .map(|p| values[c][p].is_some() && !within(p))
+                    .collect();
+                for (p, m) in values[c].iter().enumerate() {
+                    self.note_flat_reset(c, p, *m, tv[p]);
+                    if out[p] {
+                        self.reset_if_flat(c, p, *m, tv[p]);
+                    }
+                    if let Some((x, _)) = m {
+                        self.reset_if_stalled(c, p, x / tv[p]);
+                    }
+                    let hold = in_band && self.settings.hold_in_band;
+                    let tuner = self.joint.as_ref().map(|j| &j.tuner);
+                    residual[c][p] = m.filter(|(x, _)| *x > 0.0).and_then(|(x, _)| {
+                        if hold {
+                            Some(0.0)
+                        } else {
+                            tuner?.residual(c, p, x, tv[p])
+                        }
+                    });
+                }
+            }
+            if let Some(j) = self.joint.as_mut() {
+                if j.skips_in_a_row.len() != k {
+                    j.skips_in_a_row = vec![0; k];
+                }
+                j.skips_in_a_row[c] = if skip[c] { j.skips_in_a_row[c] + 1 } else { 0 };
+            }
+            for (p, name) in CELL_PARAMETERS.iter().enumerate() {
+                reports.push(ParameterReport {
+                    name: parameter_name(c as u32, name),
+                    unit: ["ns", "µV"][p].into(),
+                    value: raw[c][p].map(|m| m.0),
+                    std: raw[c][p].map(|m| m.1.sqrt()),
+                    target: Some(tv[p]),
+                    tolerance: Some(band * tv[p]),
+                });
+            }
+        }
+        let joint = self.joint()?;
+        let record = IterationRecord {
+            iteration: self.iteration,
+            voltages_mv: v,
+            gates: joint.tuner.gates().to_vec(),
+            parameters: reports,
+            gradients: Vec::new(),
+            step_mv: vec![0.0; joint.tuner.gates().len()],
+            tuned: all_in,
+            lab_seconds: self.lab_seconds,
+            scan_counts: BTreeMap::new(),
+            failed_evaluations: self.failed_evaluations(),
+            scans: Vec::new(),
+            events,
+            keep: None,
+        };
+        self.scratch = Scratch {
+            residual,
+            failed,
+            unsure,
+            jacobian: None,
+            moved_cells: Vec::new(),
+            forecast_moved: Vec::new(),
+            before_move: BTreeMap::new(),
+            before_lines: BTreeMap::new(),
+            lines_verified: Vec::new(),
+            record: Some(Box::new(record)),
+        };
+        let verify = if all_in {
+            self.lines_to_verify(&skip)
+        } else {
+            Vec::new()
+        };
+        self.step = if all_in && !verify.is_empty() {
+            if let Some(r) = self.scratch.record.as_mut() {
+                r.tuned = false;
+            }
+            Step::VerifyLines(verify, confirm)
+        } else if all_in && !confirm.is_empty() {
+            if let Some(r) = self.scratch.record.as_mut() {
+                r.tuned = false;
+            }
+            Step::Confirm(confirm)
+        } else if all_in {
+            Step::Boundary
+        } else {
+            self.step_to_move()?
+        };
+        Ok(())
+    }
+
+    /// The step after a measurement that left cells out of band: the
+    /// oracle's Jacobian, or the first move planned with the learned one.
+    pub(super) fn step_to_move(&mut self) -> Result<Step, ArrayRunError> {
+        Ok(if self.oracle {
+            Step::Oracle
+        } else {
+            self.scratch.jacobian = Some(self.joint()?.tuner.jacobian());
+            Step::Move(0)
+        })
+    }
+
+    /// The answers to [`Step::Confirm`]'s scans: the iteration is tuned when
+    /// each confirms its parameter in band (a value whose error bar fits
+    /// the band, within it). Otherwise a parameter that read out aims at
+    /// the mean of its two readings, its cell counts out of band, and the
+    /// iteration moves on. Each scan is reported as an event.
+    pub(super) fn confirm_entries(
+        &mut self,
+        pending: &[(u32, usize)],
+        answers: &[Response],
+    ) -> Result<(), ArrayRunError> {
+        if answers.len() != pending.len() {
+            return Err(ArrayRunError::Protocol(format!(
+                "{} answers to {} confirming scans",
+                answers.len(),
+                pending.len()
+            )));
+        }
+        let band = self.settings.relative_tolerance;
+        let mut confirmed = true;
+        let mut events = Vec::with_capacity(pending.len());
+        for (&(c, p), a) in pending.iter().zip(answers) {
+            let cell = c as usize;
+            let (t_sr, w) = self.targets[cell];
+            let target = [t_sr, w][p];
+            let name = CELL_PARAMETERS[p];
+            let m = self.evaluate(cell, a, name);
+            if m.is_none() {
+                self.evaluation_failed(cell);
+            }
+            let inside = m.is_some_and(|(x, var)| {
+                x > 0.0 && var.sqrt() <= band * x && within_band(x, target, band)
+            });
+            confirmed &= inside;
+            events.push(TunerEvent {
+                level: "array".into(),
+                kind: EventKind::BandEntryRechecked {
+                    parameter: parameter_name(c, name),
+                    value: m.map(|(x, _)| x),
+                    std: m.map(|(_, var)| var.max(0.0).sqrt()),
+                    in_band: inside,
+                    unit: ["ns", "µV"][p].into(),
+                },
+            });
+            if inside {
+                continue;
+            }
+            let first = self
+                .scratch
+                .record
+                .as_ref()
+                .and_then(|r| r.parameters.get(2 * cell + p))
+                .and_then(|r| r.value);
+            if let Some(j) = self.joint.as_mut() {
+                if let Some(b) = j.in_band.get_mut(cell) {
+                    *b = false;
+                }
+                let verified = self.scratch.lines_verified.contains(&c);
+                let mean = match (first, m) {
+                    (_, Some((b, _))) if b > 0.0 && verified => Some(b),
+                    (Some(a), Some((b, _))) if b > 0.0 => Some(0.5 * (a + b)),
+                    _ => None,
+                };
+                if let (Some(x), Some(slot)) = (
+                    mean,
+                    self.scratch
+                        .residual
+                        .get_mut(cell)
+                        .and_then(|r| r.get_mut(p)),
+                ) {
+                    *slot = j.tuner.residual(cell, p, x, target);
+                }
+            }
+        }
+        if let Some(r) = self.scratch.record.as_mut() {
+            r.events.extend(events);
+            r.tuned = confirmed;
+        }
+        self.step = if confirmed {
+            Step::Boundary
+        } else {
+            self.step_to_move()?
+        };
+        Ok(())
+    }
+
+    /// Cell `c`'s parameter `p` measured (`m`: value and variance, against
+    /// `target`): its flat-row watch notes it
+    /// ([`ArrayRunSettings::flat_reset_refuted_sigma`](super::ArrayRunSettings::flat_reset_refuted_sigma)).
+    pub(super) fn note_flat_reset(&mut self, c: usize, p: usize, m: Option<Measured>, target: f64) {
+        let band = self.settings.relative_tolerance;
+        let sigmas = self.settings.flat_reset_refuted_sigma;
+        let k = self.sessions.len();
+        let (Some(j), Some((x, var))) = (self.joint.as_mut(), m) else {
+            return;
+        };
+        if j.flat_resets.len() != k {
+            j.flat_resets = vec![Default::default(); k];
+        }
+        j.flat_resets[c][p].note(x / target, var.max(0.0).sqrt() / x, band, sigmas);
+    }
+
+    /// Cell `c`'s parameter `p`, measured out of band (`m`: value and
+    /// variance, against `target`): its row returns to its prior if its
+    /// gradient is flat ([`ArrayRunSettings::reset_flat_row_fraction`](super::ArrayRunSettings::reset_flat_row_fraction)) and
+    /// no reset since it was last in band was refuted
+    /// ([`ArrayRunSettings::flat_reset_refuted_sigma`](super::ArrayRunSettings::flat_reset_refuted_sigma)).
+    pub(super) fn reset_if_flat(&mut self, c: usize, p: usize, m: Option<Measured>, target: f64) {
+        let band = self.settings.relative_tolerance;
+        let f = self.settings.reset_flat_row_fraction;
+        let k = self.sessions.len();
+        let Some(j) = self.joint.as_mut() else { return };
+        let Some(step) = j.tuner.cells().get(c).map(|k| k.max_step_mv) else {
+            return;
+        };
+        if j.flat_resets.len() != k {
+            j.flat_resets = vec![Default::default(); k];
+        }
+        let watch = &mut j.flat_resets[c][p];
+        if watch.may_reset()
+            && j.tuner.row_norm(c, p).is_some_and(|g| g * step < f * band)
+            && j.tuner.reset_row(c, p)
+        {
+            if let Some((x, var)) = m {
+                watch.reset_at(x / target, var.max(0.0).sqrt() / x);
+            }
+        }
+    }
+
+    /// Cell `c`'s parameter `p`, measured at `ratio` = value/target: its
+    /// row starts again if it stalled
+    /// ([`ArrayRunSettings::reset_stalled_row_after`](super::ArrayRunSettings::reset_stalled_row_after),
+    /// [`ArrayRunSettings::stalled_row_from`](super::ArrayRunSettings::stalled_row_from)).
+    pub(super) fn reset_if_stalled(&mut self, c: usize, p: usize, ratio: f64) {
+        let window = self.settings.reset_stalled_row_after;
+        if window == 0 {
+            return;
+        }
+        let band = self.settings.relative_tolerance;
+        let k = self.sessions.len();
+        let Some(j) = self.joint.as_mut().filter(|_| !self.oracle) else {
+            return;
+        };
+        if j.stalls.len() != k {
+            j.stalls = vec![Default::default(); k];
+        }
+        if !j.stalls[c][p].note(ratio, band, window as usize) {
+            return;
+        }
+        match self.settings.stalled_row_from {
+            StalledRowSource::Prior => {
+                j.tuner.reset_row(c, p);
+            }
+            StalledRowSource::Widened => {
+                j.tuner.widen_row(c, p);
+            }
+            StalledRowSource::Peers => {
+                let in_band: Vec<usize> = (0..k)
+                    .filter(|&o| o != c && j.in_band.get(o).copied().unwrap_or(false))
+                    .collect();
+                let peers = if in_band.is_empty() {
+                    (0..k).filter(|&o| o != c).collect()
+                } else {
+                    in_band
+                };
+                j.tuner.borrow_row(c, p, &peers);
+            }
+        }
+    }
+
+    /// An evaluation of cell `c` failed: counted, and its sensor sweeps at
+    /// its next park (it may have left its flank).
+    pub(super) fn evaluation_failed(&mut self, c: usize) {
+        self.failed_fits += 1;
+        if let Some(l) = self.joint.as_mut().and_then(|j| j.lower.get_mut(c)) {
+            l.failed_since_sweep = true;
+            l.failed_evaluations += 1;
+        }
+    }
+}

@@ -68,27 +68,7 @@ impl ArrayRun {
                 None => self.evaluation_failed(c),
             }
         }
-        // a skipped cell: its prediction, reported as an event, not a value
-        let mut events = Vec::new();
-        if let Some(joint) = &self.joint {
-            for c in (0..k).filter(|&c| skip[c]) {
-                for (p, name) in CELL_PARAMETERS.iter().enumerate() {
-                    if let Some((y, var)) = joint.tuner.predict(c, p, &self.voltages_mv) {
-                        let scale = joint.tuner.scale(c, p).unwrap_or_default();
-                        let (value, std) = scale.value_and_std(y, var);
-                        events.push(TunerEvent {
-                            level: "array".into(),
-                            kind: EventKind::ConfirmationSkipped {
-                                parameter: parameter_name(c as u32, name),
-                                predicted: value,
-                                std,
-                                unit: ["ns", "µV"][p].into(),
-                            },
-                        });
-                    }
-                }
-            }
-        }
+        let events = self.skipped_predictions(&skip);
         // values with error bars wider than the band are not acted on
         let values: Vec<Vec<Option<Measured>>> = raw
             .iter()
@@ -115,23 +95,7 @@ impl ArrayRun {
             }
         }
         let v = self.voltages_mv.clone();
-        // the filter's estimate of each value, from its prediction before
-        // this measurement (ArrayRunSettings::in_band)
-        let estimates: Vec<Vec<Option<f64>>> = (0..k)
-            .map(|c| {
-                (0..CELL_PARAMETERS.len())
-                    .map(|p| {
-                        let j = self
-                            .joint
-                            .as_ref()
-                            .filter(|_| self.settings.in_band != InBandRule::Measured)?;
-                        let measured = values[c][p]?;
-                        let prediction = j.tuner.predict(c, p, &v)?;
-                        j.tuner.estimate(c, p, prediction, measured)
-                    })
-                    .collect()
-            })
-            .collect();
+        let estimates = self.filter_estimates(&values);
         for (c, vals) in values.iter().enumerate() {
             if vals.iter().all(Option::is_some) {
                 let good = self.cell_voltages(c);
@@ -162,32 +126,7 @@ impl ArrayRun {
                     .in_band
                     .in_band(&values[c], &estimates[c], &tv, band);
                 all_in &= in_band;
-                if let Some(j) = self.joint.as_mut() {
-                    if j.in_band.len() != k {
-                        j.in_band = vec![false; k];
-                    }
-                    if in_band {
-                        let bystander = !self.changed_since_stop.get(c).copied().unwrap_or(true);
-                        let by_sigma = self.settings.confirm_bystander_sigma;
-                        // a bystander near its edge is scanned again whether or
-                        // not it was in band before: the change's crosstalk and
-                        // the compensation of it moved it unasked
-                        let (sigma, was_in) = if bystander && by_sigma > 0.0 {
-                            (by_sigma, false)
-                        } else {
-                            (
-                                self.settings.confirm_entry_sigma,
-                                j.in_band[c] && !self.settings.confirm_in_band_cells,
-                            )
-                        };
-                        confirm.extend(
-                            to_confirm(&values[c], &tv, band, was_in, sigma)
-                                .into_iter()
-                                .map(|p| (c as u32, p)),
-                        );
-                    }
-                    j.in_band[c] = in_band;
-                }
+                confirm.extend(self.note_in_band(c, &values[c], tv, in_band));
                 let out: Vec<bool> = (0..tv.len())
                     .map(|p| values[c][p].is_some() && !within(p))
                     .collect();
@@ -255,32 +194,142 @@ impl ArrayRun {
             lines_verified: Vec::new(),
             record: Some(Box::new(record)),
         };
+        self.step = self.step_after_measurement(all_in, confirm, &skip)?;
+        Ok(())
+    }
+
+    /// A skipped cell's parameters: its predictions, reported as events,
+    /// not values ([`ArrayRunSettings::skip_confident_sigma`](super::ArrayRunSettings::skip_confident_sigma)).
+    fn skipped_predictions(&self, skip: &[bool]) -> Vec<TunerEvent> {
+        let mut events = Vec::new();
+        let Some(joint) = &self.joint else {
+            return events;
+        };
+        for c in (0..skip.len()).filter(|&c| skip[c]) {
+            for (p, name) in CELL_PARAMETERS.iter().enumerate() {
+                if let Some((y, var)) = joint.tuner.predict(c, p, &self.voltages_mv) {
+                    let scale = joint.tuner.scale(c, p).unwrap_or_default();
+                    let (value, std) = scale.value_and_std(y, var);
+                    events.push(TunerEvent {
+                        level: "array".into(),
+                        kind: EventKind::ConfirmationSkipped {
+                            parameter: parameter_name(c as u32, name),
+                            predicted: value,
+                            std,
+                            unit: ["ns", "µV"][p].into(),
+                        },
+                    });
+                }
+            }
+        }
+        events
+    }
+
+    /// The filter's estimate of each measured value (per cell and
+    /// parameter, in the values' units), from its prediction before this
+    /// measurement; `None` throughout under [`InBandRule::Measured`], which
+    /// does not use them ([`ArrayRunSettings::in_band`](super::ArrayRunSettings::in_band)).
+    fn filter_estimates(&self, values: &[Vec<Option<Measured>>]) -> Vec<Vec<Option<f64>>> {
+        values
+            .iter()
+            .enumerate()
+            .map(|(c, cell)| {
+                cell.iter()
+                    .enumerate()
+                    .map(|(p, m)| {
+                        let j = self
+                            .joint
+                            .as_ref()
+                            .filter(|_| self.settings.in_band != InBandRule::Measured)?;
+                        let measured = (*m)?;
+                        let prediction = j.tuner.predict(c, p, &self.voltages_mv)?;
+                        j.tuner.estimate(c, p, prediction, measured)
+                    })
+                    .collect()
+            })
+            .collect()
+    }
+
+    /// Cell `c` was measured (`values` against the targets `tv`) and counts
+    /// `in_band` or not: remembered, and the parameters to scan again
+    /// before the run stops returned as (cell, parameter index): those
+    /// near the band's edge of a cell that just entered it
+    /// ([`ArrayRunSettings::confirm_entry_sigma`](super::ArrayRunSettings::confirm_entry_sigma)), or of a changed
+    /// cell's bystander whether it was in band before or not
+    /// ([`ArrayRunSettings::confirm_bystander_sigma`](super::ArrayRunSettings::confirm_bystander_sigma)).
+    fn note_in_band(
+        &mut self,
+        c: usize,
+        values: &[Option<Measured>],
+        tv: [f64; 2],
+        in_band: bool,
+    ) -> Vec<(u32, usize)> {
+        let k = self.sessions.len();
+        let band = self.settings.relative_tolerance;
+        let Some(j) = self.joint.as_mut() else {
+            return Vec::new();
+        };
+        if j.in_band.len() != k {
+            j.in_band = vec![false; k];
+        }
+        let mut confirm = Vec::new();
+        if in_band {
+            let bystander = !self.changed_since_stop.get(c).copied().unwrap_or(true);
+            let by_sigma = self.settings.confirm_bystander_sigma;
+            // a bystander near its edge is scanned again whether or
+            // not it was in band before: the change's crosstalk and
+            // the compensation of it moved it unasked
+            let (sigma, was_in) = if bystander && by_sigma > 0.0 {
+                (by_sigma, false)
+            } else {
+                (
+                    self.settings.confirm_entry_sigma,
+                    j.in_band[c] && !self.settings.confirm_in_band_cells,
+                )
+            };
+            confirm.extend(
+                to_confirm(values, &tv, band, was_in, sigma)
+                    .into_iter()
+                    .map(|p| (c as u32, p)),
+            );
+        }
+        j.in_band[c] = in_band;
+        confirm
+    }
+
+    /// After the measurement: lines to verify or entries to confirm when
+    /// every cell counts in band (the record not tuned until they are
+    /// done), the iteration's end when none, a move otherwise.
+    fn step_after_measurement(
+        &mut self,
+        all_in: bool,
+        confirm: Vec<(u32, usize)>,
+        skip: &[bool],
+    ) -> Result<Step, ArrayRunError> {
         let verify = if all_in {
-            self.lines_to_verify(&skip)
+            self.lines_to_verify(skip)
         } else {
             Vec::new()
         };
-        self.step = if all_in && !verify.is_empty() {
+        if all_in && (!verify.is_empty() || !confirm.is_empty()) {
             if let Some(r) = self.scratch.record.as_mut() {
                 r.tuned = false;
             }
+        }
+        Ok(if all_in && !verify.is_empty() {
             Step::VerifyLines(verify, confirm)
         } else if all_in && !confirm.is_empty() {
-            if let Some(r) = self.scratch.record.as_mut() {
-                r.tuned = false;
-            }
             Step::Confirm(confirm)
         } else if all_in {
             Step::Boundary
         } else {
             self.step_to_move()?
-        };
-        Ok(())
+        })
     }
 
     /// The step after a measurement that left cells out of band: the
     /// oracle's Jacobian, or the first move planned with the learned one.
-    pub(super) fn step_to_move(&mut self) -> Result<Step, ArrayRunError> {
+    fn step_to_move(&mut self) -> Result<Step, ArrayRunError> {
         Ok(if self.oracle {
             Step::Oracle
         } else {
@@ -377,7 +426,7 @@ impl ArrayRun {
     /// Cell `c`'s parameter `p` measured (`m`: value and variance, against
     /// `target`): its flat-row watch notes it
     /// ([`ArrayRunSettings::flat_reset_refuted_sigma`](super::ArrayRunSettings::flat_reset_refuted_sigma)).
-    pub(super) fn note_flat_reset(&mut self, c: usize, p: usize, m: Option<Measured>, target: f64) {
+    fn note_flat_reset(&mut self, c: usize, p: usize, m: Option<Measured>, target: f64) {
         let band = self.settings.relative_tolerance;
         let sigmas = self.settings.flat_reset_refuted_sigma;
         let k = self.sessions.len();
@@ -395,7 +444,7 @@ impl ArrayRun {
     /// gradient is flat ([`ArrayRunSettings::reset_flat_row_fraction`](super::ArrayRunSettings::reset_flat_row_fraction)) and
     /// no reset since it was last in band was refuted
     /// ([`ArrayRunSettings::flat_reset_refuted_sigma`](super::ArrayRunSettings::flat_reset_refuted_sigma)).
-    pub(super) fn reset_if_flat(&mut self, c: usize, p: usize, m: Option<Measured>, target: f64) {
+    fn reset_if_flat(&mut self, c: usize, p: usize, m: Option<Measured>, target: f64) {
         let band = self.settings.relative_tolerance;
         let f = self.settings.reset_flat_row_fraction;
         let k = self.sessions.len();
@@ -421,7 +470,7 @@ impl ArrayRun {
     /// row starts again if it stalled
     /// ([`ArrayRunSettings::reset_stalled_row_after`](super::ArrayRunSettings::reset_stalled_row_after),
     /// [`ArrayRunSettings::stalled_row_from`](super::ArrayRunSettings::stalled_row_from)).
-    pub(super) fn reset_if_stalled(&mut self, c: usize, p: usize, ratio: f64) {
+    fn reset_if_stalled(&mut self, c: usize, p: usize, ratio: f64) {
         let window = self.settings.reset_stalled_row_after;
         if window == 0 {
             return;

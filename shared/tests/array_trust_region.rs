@@ -152,3 +152,88 @@ fn a_tuner_saved_before_the_trust_region_plans_with_the_paper_s_rule() {
     assert_eq!(plan(&old), plan(&paper));
     assert_ne!(plan(&now), plan(&paper));
 }
+
+/// `JointConfig::widened_row_explores`: a widened row's covariance stays
+/// out of the step's uncertainty term for that many of its measurements,
+/// then counts again. With every row widened and left out, the step is the
+/// plain trust region's (`κ = 0`); once the count is used up it is the
+/// step of a tuner that never left them out.
+#[test]
+fn a_widened_row_is_left_out_of_the_step_s_uncertainty_for_its_explores() {
+    let uncertain = |c: u32| {
+        let mut k = cell(c);
+        for cov in &mut k.covariance {
+            for (r, row) in cov.iter_mut().enumerate() {
+                row[r] = 1e-4;
+            }
+        }
+        k
+    };
+    let make = |config: JointConfig| {
+        let mut t = JointArrayTuner::new(
+            (0..3).map(uncertain).collect(),
+            &JointConfig {
+                excitation: 0.0,
+                ..config
+            },
+            [0.3, 0.05],
+        )
+        .unwrap();
+        for c in 0..3 {
+            for p in 0..2 {
+                assert!(t.widen_row(c, p));
+            }
+        }
+        t
+    };
+    let mut explore = make(JointConfig {
+        widened_row_explores: 2,
+        ..JointConfig::default()
+    });
+    let mut counted = make(JointConfig::default());
+    let mut plain = make(JointConfig {
+        trust_region_covariance: 0.0,
+        ..JointConfig::default()
+    });
+    let gates = explore.gates().to_vec();
+    let v: BTreeMap<String, f64> = gates.iter().map(|g| (g.clone(), 0.0)).collect();
+    let limits = wide_limits(&gates);
+    let plan =
+        |t: &JointArrayTuner| as_vector(t, &t.plan_move(&residual(), &t.jacobian(), &v, &limits));
+    let close = |a: &DVector<f64>, b: &DVector<f64>| (a - b).norm() <= 1e-9 * b.norm().max(1.0);
+    // the widened covariance shortens the counted step measurably
+    assert!(
+        (plan(&counted) - plan(&plain)).norm() > 1e-3,
+        "{}",
+        plan(&counted)
+    );
+    for seen in 0..=2 {
+        let (e, c, p) = (plan(&explore), plan(&counted), plan(&plain));
+        if seen < 2 {
+            assert!(
+                close(&e, &p),
+                "after {seen} measurements: {e} against κ = 0's {p}"
+            );
+        } else {
+            assert!(close(&e, &c), "after {seen} measurements: {e} against {c}");
+            assert!(!close(&e, &p));
+        }
+        // one measurement of every cell (the same in each tuner)
+        for t in [&mut explore, &mut counted, &mut plain] {
+            for cell in 0..3 {
+                t.observe(cell, &[Some((20.0, 0.25)), Some((250.0, 100.0))], &v);
+            }
+        }
+    }
+    // bounded and named
+    let err = JointArrayTuner::new(
+        vec![cell(0)],
+        &JointConfig {
+            widened_row_explores: 31,
+            ..JointConfig::default()
+        },
+        [0.0; 2],
+    )
+    .unwrap_err();
+    assert_eq!(err.field, "joint.widened_row_explores");
+}

@@ -168,7 +168,18 @@ pub struct JointConfig {
     /// Default 0.5, chosen on the same runs among 0, 0.25, 0.5, 1 and 4.
     #[serde(default = "default_trust_region_covariance")]
     pub trust_region_covariance: f64,
+    /// Measurements of a row after it was widened (a stalled parameter,
+    /// [`JointArrayTuner::widen_row`]) during which its covariance is left
+    /// out of the trust-region step's `κ` term, 0..=[`MAX_WIDENED_ROW_EXPLORES`]:
+    /// the widened row is meant to learn from the next moves, and counting
+    /// its new uncertainty would steer the step away from the very gates it
+    /// must learn about. 0: off (the widened covariance counts at once).
+    #[serde(default)]
+    pub widened_row_explores: u32,
 }
+
+/// Largest [`JointConfig::widened_row_explores`].
+pub const MAX_WIDENED_ROW_EXPLORES: u32 = 30;
 
 fn yes() -> bool {
     true
@@ -203,6 +214,7 @@ impl Default for JointConfig {
             persistent_miss_inflation: default_persistent_miss_inflation(),
             trust_region: true,
             trust_region_covariance: default_trust_region_covariance(),
+            widened_row_explores: 0,
         }
     }
 }
@@ -240,6 +252,13 @@ impl JointConfig {
         let k = self.trust_region_covariance;
         if !(k.is_finite() && (0.0..=MAX_TRUST_REGION_COVARIANCE).contains(&k)) {
             return bad("joint.trust_region_covariance", k, "[0, 10]");
+        }
+        if self.widened_row_explores > MAX_WIDENED_ROW_EXPLORES {
+            return bad(
+                "joint.widened_row_explores",
+                f64::from(self.widened_row_explores),
+                "0..=30",
+            );
         }
         Ok(())
     }
@@ -309,6 +328,10 @@ struct Row {
     /// update's normalised innovation), for [`JointArrayTuner::estimate`].
     #[serde(default)]
     checks: Consistency,
+    /// Measurements left during which the row's covariance stays out of
+    /// the step's uncertainty term ([`JointConfig::widened_row_explores`]).
+    #[serde(default)]
+    explores_left: u32,
 }
 
 /// The joint tuner (module docs).
@@ -346,6 +369,9 @@ pub struct JointArrayTuner {
     /// [`JointConfig::trust_region_covariance`].
     #[serde(default)]
     trust_region_covariance: f64,
+    /// [`JointConfig::widened_row_explores`] (off in runs saved before it).
+    #[serde(default)]
+    widened_row_explores: u32,
 }
 
 /// `Err` naming the field unless each of the lab's cross-cell calibration
@@ -560,6 +586,7 @@ impl JointArrayTuner {
                     scale: FloorLog::new(c.floors.get(pi).copied().unwrap_or(0.0)),
                     misses: MissCusum::default(),
                     checks: Consistency::default(),
+                    explores_left: 0,
                 });
             }
         }
@@ -571,6 +598,7 @@ impl JointArrayTuner {
             excitation: config.excitation,
             trust_region: config.trust_region,
             trust_region_covariance: config.trust_region_covariance,
+            widened_row_explores: config.widened_row_explores,
             excitation_flipped: vec![false; n_cells],
             persistent_miss: (
                 config.persistent_miss_sigma,
@@ -628,6 +656,7 @@ impl JointArrayTuner {
     /// started, so the next moves teach it as much as the first did).
     /// Whether the row exists and has a prior.
     pub fn widen_row(&mut self, cell: usize, parameter: usize) -> bool {
+        let explores = self.widened_row_explores;
         let Some(row) = self.row_mut(cell, parameter) else {
             return false;
         };
@@ -636,7 +665,11 @@ impl JointArrayTuner {
         };
         let c = row.filter.covariance() + prior.covariance();
         let g = row.filter.gradient().clone();
-        row.filter.set_estimate(g, c).is_ok()
+        let widened = row.filter.set_estimate(g, c).is_ok();
+        if widened {
+            row.explores_left = explores;
+        }
+        widened
     }
 
     /// Give `cell`'s row of `parameter` the own-gate gradient the rows of
@@ -875,6 +908,7 @@ impl JointArrayTuner {
             if !(p.is_finite() && p > 0.0 && var.is_finite() && var >= 0.0) {
                 continue;
             }
+            row.explores_left = row.explores_left.saturating_sub(1);
             let y = row.scale.y(p);
             let vy = row.scale.variance(p, var);
             let v: Vec<f64> = row
@@ -970,6 +1004,9 @@ impl JointArrayTuner {
         let mut u = DMatrix::zeros(n, n);
         for &(i, _) in picked {
             let row = &self.rows[i];
+            if row.explores_left > 0 {
+                continue;
+            }
             let cov = row.filter.covariance();
             for (a, &ca) in row.columns.iter().enumerate() {
                 for (b, &cb) in row.columns.iter().enumerate() {

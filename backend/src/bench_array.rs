@@ -13,6 +13,7 @@ use spintune::benchmark::array::{
 };
 use spintune::benchmark::cell_trace::error_bar_coverage;
 use spintune::benchmark::BenchmarkProtocol;
+use spintune::description::layout::Layout;
 use spintune::driver::SimulationConfig;
 use spintune::sim::array::{ArrayConfig, MAX_CELLS};
 use spintune::sim::random::cell_targets_reachable;
@@ -27,9 +28,13 @@ pub const MAX_SEEDS: u64 = 1_000;
 /// Arguments of `spintune bench-array`.
 #[derive(Debug, Args)]
 pub struct BenchArrayArgs {
-    /// Cells in the chain (1..=16).
+    /// Cells in the array (1..=16).
     #[arg(long, default_value_t = 9)]
     pub cells: u32,
+    /// Where the cells sit: `chain`, or `ladder` (two rows of cells/2,
+    /// numbered row by row; an even number of cells, at least 4).
+    #[arg(long, default_value = "chain", value_parser = parse_layout)]
+    pub layout: Layout,
     /// Number of noise seeds (seeds 1..=N, at most 1,000).
     #[arg(long, default_value_t = 3)]
     pub seeds: u64,
@@ -101,6 +106,9 @@ pub struct BenchArrayArgs {
 pub struct BenchArrayReport {
     /// Cells per array.
     pub cells: u32,
+    /// Where they sit (left out for a chain).
+    #[serde(skip_serializing_if = "Layout::is_chain")]
+    pub layout: Layout,
     /// Seeds per array.
     pub seeds: u64,
     /// The protocol.
@@ -179,6 +187,10 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
         args.device_seed,
     )?;
     let mut probe = ArrayConfig::chain(args.cells, 0, 0);
+    probe.layout = args.layout;
+    probe
+        .grid()
+        .map_err(|e| CliError::input(format!("--cells {} --layout ladder: {e}", args.cells)))?;
     probe.crosstalk.nearest = args.nearest;
     probe.crosstalk.next = args.next;
     probe
@@ -236,10 +248,14 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
         None => "the lab's calibration λ̂ the world's ± 20 %".to_string(),
     };
     println!(
-        "Arrays: {} × {} seeds, {} cells, crosstalk nearest {} / next {} ({calibration}), {readout}.\n",
+        "Arrays: {} × {} seeds, {} cells{}, crosstalk nearest {} / next {} ({calibration}), {readout}.\n",
         devices.len(),
         args.seeds,
         args.cells,
+        match args.layout {
+            Layout::Chain => "",
+            Layout::Ladder => " in a ladder of two rows",
+        },
         args.nearest,
         args.next
     );
@@ -264,6 +280,7 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
     if let Some(path) = &args.json {
         let report = BenchArrayReport {
             cells: args.cells,
+            layout: args.layout,
             seeds: args.seeds,
             protocol,
             strategies: summary,
@@ -340,6 +357,15 @@ fn read_tuning(path: &std::path::Path) -> Result<ArrayRunSettings, CliError> {
 }
 
 /// `A,B` → `[A, B]` (two finite numbers).
+/// `chain` or `ladder`.
+fn parse_layout(text: &str) -> Result<Layout, String> {
+    match text {
+        "chain" => Ok(Layout::Chain),
+        "ladder" => Ok(Layout::Ladder),
+        other => Err(format!("{other:?}: chain or ladder")),
+    }
+}
+
 fn parse_pair(text: &str) -> Result<[f64; 2], String> {
     let parts: Vec<&str> = text.split(',').collect();
     let [a, b] = parts[..] else {

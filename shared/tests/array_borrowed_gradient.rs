@@ -125,7 +125,15 @@ fn pooled_rows_are_the_measured_rows_pooled_and_the_failed_row_takes_the_others(
     let pooled = knowledge_at_the_start(4, false, true);
     // in lockstep units: each row pooled divided by its cell's factor
     let mut in_units = measured.clone();
-    let lockstep: Vec<f64> = (0..4).map(|k| lockstep_factor(k, 4, LAMBDA)).collect();
+    let lockstep: Vec<f64> = (0..4)
+        .map(|k| {
+            lockstep_factor(
+                &spintune::description::layout::CellGrid::chain(4),
+                k,
+                LAMBDA,
+            )
+        })
+        .collect();
     pool_gradients(&mut in_units, &lockstep);
     assert_ne!(in_units, pooled);
     assert_eq!(

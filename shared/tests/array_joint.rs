@@ -7,6 +7,8 @@
 
 mod support;
 
+use std::collections::BTreeMap;
+
 use spintune::benchmark::array::{
     run_strategy, single_change_cells, world, ArrayProtocol, ArrayRunResult, ArrayStrategy,
 };
@@ -14,6 +16,7 @@ use spintune::benchmark::array_timeline::{CellBand, TimelinePoint};
 use spintune::benchmark::cell_trace::CellTrace;
 use spintune::benchmark::row_agreement::RowAgreement;
 use spintune::benchmark::PAPER_SET_POINTS;
+use spintune::description::layout::{CellGrid, Layout};
 use spintune::sim::array::{ArrayConfig, ArrayDevice};
 use spintune::sim::DeviceConfig;
 use spintune::tuner::array::{CellKnowledge, JointArrayTuner, JointConfig};
@@ -52,6 +55,24 @@ fn joint_converges_on_three_cells_within_every_step_limit() {
     assert_eq!(r.truth_queries, 0);
     assert!(r.measurements > 0);
     timeline_agrees_with_the_result(&r);
+}
+
+/// A 2×2 ladder (the same population and noise seeds as the chain above):
+/// every cell has two nearest neighbours, one along its row and one across
+/// the rung. The joint tuner converges in every phase within every step
+/// limit, without the truth.
+#[test]
+fn joint_converges_on_a_two_by_two_ladder() {
+    let mut config = ArrayConfig::chain(4, 5, 11);
+    config.layout = Layout::Ladder;
+    let array = world(&DeviceConfig::default(), config, |_| true).unwrap();
+    let r = run_strategy(ArrayStrategy::Joint, array, &short_protocol()).unwrap();
+    assert!(r.cold_start_lab_minutes.is_some(), "{r:?}");
+    assert!(r.changes.iter().all(Option::is_some), "{r:?}");
+    assert!(r.single_cell_changes.iter().all(Option::is_some), "{r:?}");
+    assert_eq!(r.limit_violations, 0);
+    assert_eq!(r.truth_queries, 0);
+    assert!(r.timeline.iter().all(|p| p.measured.len() == 4));
 }
 
 /// The timeline (the figure of `bench-array --plot`) against the result's
@@ -262,6 +283,46 @@ fn rows_span_the_neighbourhood_with_a_zero_mean_neighbour_prior() {
             .field,
         "joint.radius"
     );
+}
+
+/// In a 2×3 ladder (cells 0 1 2 over 3 4 5) a row's neighbourhood is the
+/// cells one step away on the grid: cell 0 sees 1 and 3 (across the rung),
+/// cell 4 sees 1, 3 and 5; the calibrated prior puts `λ̂(1) = 0.3` of the
+/// own gradient on the cell across the rung. A grid of another number of
+/// cells is refused, naming the field.
+#[test]
+fn in_a_ladder_a_row_spans_the_cell_across_the_rung() {
+    let grid = CellGrid::new(Layout::Ladder, 6).unwrap();
+    let t = JointArrayTuner::with_grid(
+        grid,
+        (0..6).map(|c| knowledge(c, 0.0)).collect(),
+        &JointConfig::default(),
+        [0.3, 0.05],
+    )
+    .unwrap();
+    let cells_of = |cell: usize| {
+        let mut cells: Vec<u32> = t
+            .row_gradient(cell, 0)
+            .iter()
+            .filter_map(|(g, _)| spintune::sim::array::split_gate(g).map(|(c, _)| c))
+            .collect();
+        cells.dedup();
+        cells
+    };
+    assert_eq!(cells_of(0), [0, 1, 3]);
+    assert_eq!(cells_of(4), [1, 3, 4, 5]);
+    let row: BTreeMap<String, f64> = t.row_gradient(0, 0).into_iter().collect();
+    assert!((row["c3.SB"] - 0.3 * -0.03).abs() < 1e-12, "{row:?}");
+    assert!((row["c0.SB"] - -0.03).abs() < 1e-12);
+    let wrong = CellGrid::new(Layout::Ladder, 4).unwrap();
+    let err = JointArrayTuner::with_grid(
+        wrong,
+        (0..6).map(|c| knowledge(c, 0.0)).collect(),
+        &JointConfig::default(),
+        [0.3, 0.05],
+    )
+    .unwrap_err();
+    assert_eq!(err.field, "layout");
 }
 
 /// A lockstep move (every cell moves `SA` by 2 mV, as in the cells'

@@ -6,6 +6,7 @@
 
 use std::collections::BTreeMap;
 
+use spintune::description::layout::Layout;
 use spintune::protocol::{Request, Response, ScanKind, ScanRequest};
 use spintune::sim::array::{gate_name, parameter_name, ArrayConfig, ArrayDevice};
 use spintune::sim::DeviceConfig;
@@ -68,6 +69,46 @@ fn crosstalk_decays_with_distance_and_vanishes_beyond_the_next_cell() {
     let dt = |c: u32| before[c as usize].t_sr_ns - dev.truth(c).unwrap().t_sr_ns;
     assert!(dt(3) > dt(2) && dt(2) > dt(1) && dt(1) > 0.0);
     assert!((dt(2) - dt(4)).abs() < 1e-9);
+}
+
+/// A 2×3 ladder (cells 0 1 2 over 3 4 5): the cell across the rung is a
+/// nearest neighbour, the diagonal ones next-nearest; cell 3 is three
+/// cells away from cell 2 in a chain but one step from cell 0 here.
+#[test]
+fn in_a_ladder_the_cell_across_the_rung_is_a_nearest_neighbour() {
+    let mut d = DeviceConfig::default();
+    d.noise.slow.tunnel_coupling_rel = 0.0;
+    d.noise.slow.lead_rate_rel = 0.0;
+    d.noise.slow.jump_rate_per_s = 0.0;
+    let mut cfg = ArrayConfig::chain(6, 0, 7);
+    cfg.layout = Layout::Ladder;
+    let mut dev = ArrayDevice::new(cfg, vec![d; 6]).unwrap();
+    let start: Vec<f64> = (0..6)
+        .map(|c| dev.effective_voltages_mv(c).unwrap()["SB"])
+        .collect();
+    let sb = dev.voltages_mv()[&gate_name(0, "SB")];
+    set(&mut dev, &gate_name(0, "SB"), sb + 4.0);
+    let shift = |c: u32| dev.effective_voltages_mv(c).unwrap()["SB"] - start[c as usize];
+    // distances from cell 0: 1 → 1, 3 → 1 (the rung), 2 → 2, 4 → 2 (diagonal), 5 → 3
+    for (c, lambda) in [(0, 1.0), (1, 0.3), (3, 0.3), (2, 0.05), (4, 0.05), (5, 0.0)] {
+        assert!(
+            (shift(c) - lambda * 4.0).abs() < 1e-12,
+            "cell {c}: {}",
+            shift(c)
+        );
+    }
+    // a ladder needs an even number of cells, at least 4: the error names the field
+    let mut odd = ArrayConfig::chain(5, 0, 0);
+    odd.layout = Layout::Ladder;
+    assert_eq!(odd.validate().unwrap_err().field, "layout");
+    // the layout is read from a config file, a chain when left out
+    let read: ArrayConfig =
+        serde_json::from_str(r#"{"cells": 4, "layout": "ladder", "device_seed": 0, "seed": 1}"#)
+            .unwrap();
+    assert_eq!(read.layout, Layout::Ladder);
+    let chain: ArrayConfig =
+        serde_json::from_str(r#"{"cells": 4, "device_seed": 0, "seed": 1}"#).unwrap();
+    assert_eq!(chain.layout, Layout::Chain);
 }
 
 #[test]

@@ -52,6 +52,7 @@ use super::cell_trace::CellTrace;
 use super::row_agreement::RowAgreement;
 use super::{quantiles, Quantiles, PAPER_SET_POINTS};
 use crate::config_error::ConfigError;
+use crate::description::layout::CellGrid;
 use crate::parameter::Tolerance;
 use crate::protocol::{ControlCommand, IterationRecord, Request, Response, ScanKind};
 use crate::safety::SafetyLimits;
@@ -673,6 +674,7 @@ pub fn run_strategy(
                 strategy == ArrayStrategy::Oracle,
             )?;
             run.set_readout_groups(lab.device.config().readout_groups.as_deref());
+            run.set_grid(lab.device.config().grid()?)?;
             // the cold start counts from the run's start (initial measurements included)
             let mut timeline = Timeline {
                 points: &mut result.timeline,
@@ -965,11 +967,16 @@ pub fn lab_cross_calibration(array: &ArrayConfig, protocol: &ArrayProtocol, seed
     })
 }
 
+/// The nearest neighbours of cell `c` on the array's grid that are truly
+/// out of band.
 fn neighbours_out(lab: &Lab, c: u32, targets: &[(f64, f64)], band: f64) -> u64 {
-    [c.checked_sub(1), Some(c + 1)]
-        .into_iter()
-        .flatten()
-        .filter(|&n| n < lab.device.cells())
+    let config = lab.device.config();
+    let grid = config
+        .grid()
+        .unwrap_or_else(|_| CellGrid::chain(config.cells as usize));
+    grid.within(c as usize, 1)
+        .map(|n| n as u32)
+        .filter(|&n| n != c)
         .filter(|&n| !truly_in_band(lab, n, targets[n as usize], band))
         .count() as u64
 }

@@ -34,6 +34,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::layout::{CellGrid, Layout};
 use super::DeviceDescription;
 use crate::config_error::ConfigError;
 use crate::parameter::Tolerance;
@@ -41,14 +42,20 @@ use crate::safety::GateSpec;
 use crate::sim::array::{check_readout_groups, gate_name, MAX_CELLS};
 use crate::tuner::{LevelKind, TunerConfig};
 
-/// A chain of double-dot cells as a lab describes it (see the module docs).
+/// An array of double-dot cells as a lab describes it (see the module docs).
 /// Every field but `cells` and `cell` has a default.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ArrayDescription {
-    /// Number of cells in the chain, 1..=[`MAX_CELLS`]; cell k's neighbours
+    /// Number of cells, 1..=[`MAX_CELLS`]; in a chain cell k's neighbours
     /// are cells k − 1 and k + 1.
     pub cells: u32,
+    /// Where the cells sit: `"chain"` (default) or `"ladder"` (two rows of
+    /// `cells / 2`, numbered row by row; an even number of cells, at least
+    /// 4). Which cells are neighbours follows from it
+    /// ([`crate::description::layout`]).
+    #[serde(default, skip_serializing_if = "Layout::is_chain")]
+    pub layout: Layout,
     /// Every cell's device, with its gates named without the cell prefix
     /// (`"N"`, not `"c0.N"`). Its qubit level tunes `t_sr` and `w` (the
     /// joint array tuner's parameters); its `qubit.relative_tolerance` is
@@ -93,10 +100,17 @@ impl ArrayDescription {
     pub fn simulated(cells: u32, readout_groups: Option<Vec<Vec<u32>>>) -> Self {
         Self {
             cells,
+            layout: Layout::Chain,
             cell: DeviceDescription::paper_device(),
             cell_gates: Vec::new(),
             readout_groups,
         }
+    }
+
+    /// The cells on their grid; `Err` naming `layout` (a ladder of an odd
+    /// number of cells, or of fewer than 4).
+    pub fn grid(&self) -> Result<CellGrid, ConfigError> {
+        CellGrid::new(self.layout, self.cells)
     }
 
     /// Check every field; the error names it (`cells`, `cell.qubit.gates[0]`,
@@ -169,6 +183,7 @@ impl ArrayDescription {
                 format!("{} outside 1..={MAX_CELLS}", self.cells),
             ));
         }
+        self.grid()?;
         let base = self.cell.tuner().map_err(|e| e.within("cell"))?;
         for (i, g) in self.cell.gates.iter().enumerate() {
             if g.name.is_empty() || g.name.contains(char::is_whitespace) {

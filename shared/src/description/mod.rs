@@ -30,6 +30,7 @@
 //! ```
 
 pub mod array;
+pub mod layout;
 
 use serde::{Deserialize, Serialize};
 

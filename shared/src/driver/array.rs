@@ -100,9 +100,12 @@ impl ArraySimulationConfig {
     /// The array as described: [`ArraySimulationConfig::description`], or
     /// the simulated array's own.
     pub fn described(&self) -> ArrayDescription {
-        self.description.clone().unwrap_or_else(|| {
-            ArrayDescription::simulated(self.array.cells, self.array.readout_groups.clone())
-        })
+        self.description
+            .clone()
+            .unwrap_or_else(|| ArrayDescription {
+                layout: self.array.layout,
+                ..ArrayDescription::simulated(self.array.cells, self.array.readout_groups.clone())
+            })
     }
 
     /// Every gate of the array with its limits (prefixed `c{k}.`), `Err`
@@ -115,7 +118,7 @@ impl ArraySimulationConfig {
 
     /// An error of the described array, named where the user wrote it:
     /// under `description`, or (for the simulated array's own description)
-    /// `array.cells` and `array.readout_groups`.
+    /// `array.cells`, `array.layout` and `array.readout_groups`.
     fn described_error(&self, e: ConfigError) -> ConfigError {
         match self.description {
             Some(_) => e.within("description"),
@@ -165,6 +168,9 @@ impl ArraySimulationConfig {
             other => ConfigError::new("", other.to_string()),
         })?;
         run.set_readout_groups(described.readout_groups.as_deref());
+        let grid = described.grid().map_err(|e| self.described_error(e))?;
+        run.set_grid(grid)
+            .map_err(|e| ConfigError::new("", e.to_string()))?;
         Ok(run)
     }
 
@@ -176,6 +182,7 @@ impl ArraySimulationConfig {
         let mut world = self.array.clone();
         if let Some(d) = &self.description {
             world.cells = d.cells;
+            world.layout = d.layout;
             world.readout_groups = d.readout_groups.clone();
             let simulated = default_gates();
             for (i, g) in d.cell.gates.iter().enumerate() {

@@ -1,5 +1,5 @@
-//! [`ArrayDevice`]: a chain of K double-dot cells with crosstalk between
-//! neighbours and readout groups (issue 24, first slice).
+//! [`ArrayDevice`]: a chain (or a 2×N ladder) of K double-dot cells with
+//! crosstalk between neighbours and readout groups (issue 24).
 //!
 //! * **Cells.** Each cell is a whole [`SimulatedDevice`] (physics, scans,
 //!   noise, drift, its own seeded RNG): cell 0 is the given base
@@ -11,8 +11,10 @@
 //! * **Crosstalk** (effective-voltage model). The voltages a lab sets are
 //!   the *commanded* ones (what a read-back returns). Cell j's own model sees
 //!   each of its [`CrosstalkConfig::gates`] `g` at
-//!   `v_j,g + Σ_{k≠j} λ(|j−k|)·(v_k,g − v⁰_k,g)` mV, where `v⁰` is the start
-//!   voltage and `λ(1) = nearest`, `λ(2) = next`, `λ(d ≥ 3) = 0`. So moving a
+//!   `v_j,g + Σ_{k≠j} λ(d(j,k))·(v_k,g − v⁰_k,g)` mV, where `v⁰` is the start
+//!   voltage, `d` the cells' distance on the array's grid (`|j − k|` in a
+//!   chain; [`crate::description::layout::CellGrid::distance`]) and
+//!   `λ(1) = nearest`, `λ(2) = next`, `λ(d ≥ 3) = 0`. So moving a
 //!   tuning gate or plunger of cell k shifts the neighbours' tunnel
 //!   coupling, lead rate (hence w and t_sr), transition lines and sensing
 //!   dot by that fraction of the own-cell effect (including the own model's
@@ -41,6 +43,7 @@ use super::device::JACOBIAN_STEP_MV;
 use super::random::random_device;
 use super::{DeviceConfig, SimulatedDevice, Truth};
 use crate::config_error::ConfigError;
+use crate::description::layout::{CellGrid, Layout};
 use crate::protocol::{Request, Response, ScanOutcome, ScanRequest};
 use crate::safety::GateSpec;
 
@@ -136,6 +139,11 @@ impl CrosstalkConfig {
 pub struct ArrayConfig {
     /// Number of cells, 1..=[`MAX_CELLS`].
     pub cells: u32,
+    /// Where the cells sit (default a chain; a ladder needs an even number
+    /// of cells, at least 4): which cells are neighbours for the crosstalk
+    /// ([`crate::description::layout`]).
+    #[serde(default, skip_serializing_if = "Layout::is_chain")]
+    pub layout: Layout,
     /// Seed of the cell population (cells ≥ 1; see [`cell_devices`]).
     pub device_seed: u64,
     /// Crosstalk between cells.
@@ -155,6 +163,7 @@ impl ArrayConfig {
     pub fn chain(cells: u32, device_seed: u64, seed: u64) -> Self {
         Self {
             cells,
+            layout: Layout::Chain,
             device_seed,
             crosstalk: CrosstalkConfig::default(),
             readout_groups: None,
@@ -170,11 +179,17 @@ impl ArrayConfig {
                 format!("{} outside 1..={MAX_CELLS}", self.cells),
             ));
         }
+        self.grid()?;
         self.crosstalk.validate()?;
         if let Some(groups) = &self.readout_groups {
             check_readout_groups(self.cells, groups)?;
         }
         Ok(())
+    }
+
+    /// The cells on their grid; `Err` naming `layout` as [`CellGrid::new`].
+    pub fn grid(&self) -> Result<CellGrid, ConfigError> {
+        CellGrid::new(self.layout, self.cells)
     }
 
     /// The readout group of every cell (index = cell).
@@ -298,7 +313,7 @@ pub fn cell_gates(cell: u32) -> Vec<GateSpec> {
         .collect()
 }
 
-/// A chain of simulated double dots (see the module docs). Plain data.
+/// An array of simulated double dots (see the module docs). Plain data.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ArrayDevice {
@@ -625,13 +640,17 @@ impl ArrayDevice {
 
     fn effective_from(&self, commanded: &[BTreeMap<String, f64>]) -> Vec<BTreeMap<String, f64>> {
         let x = &self.config.crosstalk;
+        let grid = self
+            .config
+            .grid()
+            .unwrap_or_else(|_| CellGrid::chain(commanded.len()));
         (0..commanded.len())
             .map(|j| {
                 let mut v = commanded[j].clone();
                 for g in &x.gates {
                     let mut shift = 0.0;
                     for (k, other) in commanded.iter().enumerate() {
-                        let lambda = x.lambda(j.abs_diff(k) as u32);
+                        let lambda = x.lambda(grid.distance(j, k) as u32);
                         if k == j || lambda == 0.0 {
                             continue;
                         }

@@ -54,6 +54,7 @@ use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
 use crate::config_error::ConfigError;
+use crate::description::layout::{CellGrid, Layout};
 use crate::kalman::{FilterError, KalmanGradient, ProcessNoise, UpdateOutcome};
 use crate::safety::SafetyLimits;
 use crate::solver::{newton_step, SolverConfig, StepRule};
@@ -338,6 +339,10 @@ struct Row {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct JointArrayTuner {
     cells: Vec<CellKnowledge>,
+    /// Where the cells sit ([`JointArrayTuner::with_grid`]; a chain in
+    /// runs saved before it).
+    #[serde(default)]
+    layout: Layout,
     /// Every tuning gate, cell by cell.
     gates: Vec<String>,
     rows: Vec<Row>,
@@ -404,17 +409,23 @@ pub const MIN_CHECKS_FOR_ESTIMATE: u64 = 3;
 /// lockstep step δ moves the cell as its own gate would by `factor·δ`.
 ///
 /// ```
+/// use spintune::description::layout::{CellGrid, Layout};
 /// use spintune::tuner::array::lockstep_factor;
 /// // an end cell of three sees one nearest and one next neighbour,
 /// // the middle cell two nearest
-/// assert!((lockstep_factor(0, 3, [0.3, 0.05]) - 1.35).abs() < 1e-12);
-/// assert!((lockstep_factor(1, 3, [0.3, 0.05]) - 1.6).abs() < 1e-12);
-/// assert_eq!(lockstep_factor(0, 1, [0.3, 0.05]), 1.0);
+/// let chain = CellGrid::chain(3);
+/// assert!((lockstep_factor(&chain, 0, [0.3, 0.05]) - 1.35).abs() < 1e-12);
+/// assert!((lockstep_factor(&chain, 1, [0.3, 0.05]) - 1.6).abs() < 1e-12);
+/// assert_eq!(lockstep_factor(&CellGrid::chain(1), 0, [0.3, 0.05]), 1.0);
+/// // a corner of a 2×4 ladder: two nearest (along the row, across
+/// // the rung), two next (the diagonal, two along the row)
+/// let ladder = CellGrid::new(Layout::Ladder, 8).unwrap();
+/// assert!((lockstep_factor(&ladder, 0, [0.3, 0.05]) - 1.7).abs() < 1e-12);
 /// ```
-pub fn lockstep_factor(cell: usize, cells: usize, cross_calibration: [f64; 2]) -> f64 {
-    1.0 + (0..cells)
+pub fn lockstep_factor(grid: &CellGrid, cell: usize, cross_calibration: [f64; 2]) -> f64 {
+    1.0 + (0..grid.cells())
         .filter(|&k| k != cell)
-        .map(|k| calibrated_fraction(cross_calibration, cell.abs_diff(k)))
+        .map(|k| calibrated_fraction(cross_calibration, grid.distance(cell, k)))
         .sum::<f64>()
 }
 
@@ -491,13 +502,34 @@ fn row_prior(
 }
 
 impl JointArrayTuner {
-    /// Rows and priors from each cell's knowledge (module docs).
+    /// Rows and priors from each cell's knowledge (module docs), the cells
+    /// in a chain.
     pub fn new(
         cells: Vec<CellKnowledge>,
         config: &JointConfig,
         cross_calibration: [f64; 2],
     ) -> Result<Self, ConfigError> {
+        let chain = CellGrid::chain(cells.len());
+        Self::with_grid(chain, cells, config, cross_calibration)
+    }
+
+    /// [`JointArrayTuner::new`] for cells on `grid`: a row's neighbourhood
+    /// is the cells within [`JointConfig::radius`] of its own on the grid,
+    /// and the priors' `λ̂` follow the grid's distance. `Err` naming
+    /// `layout` for a grid of another number of cells.
+    pub fn with_grid(
+        grid: CellGrid,
+        cells: Vec<CellKnowledge>,
+        config: &JointConfig,
+        cross_calibration: [f64; 2],
+    ) -> Result<Self, ConfigError> {
         config.validate()?;
+        if grid.cells() != cells.len() {
+            return Err(ConfigError::new(
+                "layout",
+                format!("a grid of {} cells for {} cells", grid.cells(), cells.len()),
+            ));
+        }
         check_cross_calibration(cross_calibration)?;
         let n_cells = cells.len();
         let mut gates = Vec::new();
@@ -509,10 +541,9 @@ impl JointArrayTuner {
         let mut rows = Vec::new();
         let f = config.neighbour_prior_fraction;
         for (ci, c) in cells.iter().enumerate() {
-            let lo = ci.saturating_sub(config.radius as usize);
-            let hi = (ci + config.radius as usize).min(cells.len() - 1);
+            let neighbourhood: Vec<usize> = grid.within(ci, config.radius as usize).collect();
             let lockstep = if config.lockstep_correction {
-                lockstep_factor(ci, cells.len(), cross_calibration)
+                lockstep_factor(&grid, ci, cross_calibration)
             } else {
                 1.0
             };
@@ -538,11 +569,11 @@ impl JointArrayTuner {
                     calibrated_fraction(cross_calibration, d)
                 };
                 let scale = g_own.iter().fold(0.0f64, |m, x| m.max(x.abs()));
-                let n = (lo..=hi).map(|nj| cells[nj].gates.len()).sum();
+                let n = neighbourhood.iter().map(|&nj| cells[nj].gates.len()).sum();
                 let mut t_mean = DMatrix::zeros(n, c.gates.len());
                 let (mut columns, mut deviation) = (Vec::with_capacity(n), Vec::with_capacity(n));
                 let mut own_at = 0;
-                for (nj, nc) in cells.iter().enumerate().take(hi + 1).skip(lo) {
+                for (nj, nc) in neighbourhood.iter().map(|&nj| (nj, &cells[nj])) {
                     if nj == ci {
                         own_at = columns.len();
                     }
@@ -557,7 +588,7 @@ impl JointArrayTuner {
                         // the same gate of the own block (prefix stripped)
                         let own = same_gate(&c.gates, gname);
                         if let Some(k) = own {
-                            t_mean[(col, k)] = lambda(ci.abs_diff(nj));
+                            t_mean[(col, k)] = lambda(grid.distance(ci, nj));
                         }
                         let size = own.map_or(scale, |k| g_own[k].abs());
                         deviation.push((f * size).powi(2) + (0.1 * f * scale).powi(2));
@@ -591,6 +622,11 @@ impl JointArrayTuner {
             }
         }
         Ok(Self {
+            layout: if grid.rows() > 1 {
+                Layout::Ladder
+            } else {
+                Layout::Chain
+            },
             cells,
             gates,
             rows,
@@ -611,6 +647,12 @@ impl JointArrayTuner {
                 [0.0; 2]
             },
         })
+    }
+
+    /// The cells on their grid.
+    fn grid(&self) -> CellGrid {
+        let n = self.cells.len();
+        CellGrid::new(self.layout, n as u32).unwrap_or_else(|_| CellGrid::chain(n))
     }
 
     /// `cell`'s row of `parameter`.
@@ -1062,6 +1104,7 @@ impl JointArrayTuner {
         } else {
             None
         };
+        let grid = self.grid();
         let mut offset = 0;
         let mut moved: Vec<Vec<f64>> = Vec::with_capacity(self.cells.len());
         for (ci, cell) in self.cells.iter().enumerate() {
@@ -1078,7 +1121,7 @@ impl JointArrayTuner {
                 if let Some(e) = self.excitation_direction(ci, offset, jacobian, &block) {
                     let b = self.excitation;
                     let flipped = self.excitation_flipped.get(ci).copied().unwrap_or(false);
-                    let sign = if flipped ^ (ci % 2 == 1) { -1.0 } else { 1.0 };
+                    let sign = if flipped ^ grid.odd(ci) { -1.0 } else { 1.0 };
                     // same length, so the limit below scales it like the plan
                     block = (&block / norm * (1.0 - b * b).sqrt() + e * (b * sign)) * norm;
                 }
@@ -1112,7 +1155,7 @@ impl JointArrayTuner {
             let mut seen = vec![0.0; cell.gates.len()];
             // (cells whose gate lists differ in length see no neighbour term)
             for (k, dv) in moved.iter().enumerate() {
-                let w = match j.abs_diff(k) {
+                let w = match grid.distance(j, k) {
                     0 => 1.0,
                     1 => self.neighbour_compensation[0],
                     2 => self.neighbour_compensation[1],

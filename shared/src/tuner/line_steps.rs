@@ -21,6 +21,7 @@
 use nalgebra::{DMatrix, DVector};
 
 use super::array::calibrated_fraction;
+use crate::description::layout::CellGrid;
 
 /// The joint steps: `cells[i] = (cell index, q)`, `q` the cell's
 /// single-cell plunger step (mV per line gate, the same gate names in the
@@ -33,11 +34,13 @@ use super::array::calibrated_fraction;
 /// use spintune::tuner::line_steps::joint_line_steps;
 /// // two neighbours that each need +1 mV: each moves 1/(1 + 0.3) mV, and
 /// // each then sees its own move plus 0.3 × its neighbour's, 1 mV in all
-/// let p = joint_line_steps(&[(0, vec![1.0]), (1, vec![1.0])], [0.3, 0.05]).unwrap();
+/// let chain = spintune::description::layout::CellGrid::chain(2);
+/// let p = joint_line_steps(&chain, &[(0, vec![1.0]), (1, vec![1.0])], [0.3, 0.05]).unwrap();
 /// assert!((p[0][0] - 1.0 / 1.3).abs() < 1e-12);
 /// assert!((p[0][0] + 0.3 * p[1][0] - 1.0).abs() < 1e-12);
 /// ```
 pub fn joint_line_steps(
+    grid: &CellGrid,
     cells: &[(usize, Vec<f64>)],
     cross_calibration: [f64; 2],
 ) -> Option<Vec<Vec<f64>>> {
@@ -47,7 +50,7 @@ pub fn joint_line_steps(
         return None;
     }
     let coupling = DMatrix::from_fn(m, m, |i, j| {
-        calibrated_fraction(cross_calibration, cells[i].0.abs_diff(cells[j].0))
+        calibrated_fraction(cross_calibration, grid.distance(cells[i].0, cells[j].0))
     });
     let lu = coupling.lu();
     let mut steps = vec![vec![0.0; gates]; m];
@@ -100,7 +103,7 @@ mod tests {
             (3, vec![0.0, -1.0]),
             (6, vec![2.5, 0.1]),
         ];
-        let p = joint_line_steps(&cells, lambda).unwrap();
+        let p = joint_line_steps(&CellGrid::chain(7), &cells, lambda).unwrap();
         for (i, (_, q)) in cells.iter().enumerate() {
             for (f, q) in felt(&cells, &p, lambda, i).iter().zip(q) {
                 assert!((f - q).abs() < 1e-12, "cell {i}: felt {f}, wanted {q}");
@@ -113,7 +116,7 @@ mod tests {
     #[test]
     fn without_crosstalk_the_steps_are_the_single_cell_ones() {
         let cells = vec![(0, vec![1.0, 2.0]), (1, vec![-3.0, 0.5])];
-        let p = joint_line_steps(&cells, [0.0, 0.0]).unwrap();
+        let p = joint_line_steps(&CellGrid::chain(2), &cells, [0.0, 0.0]).unwrap();
         assert_eq!(p, vec![vec![1.0, 2.0], vec![-3.0, 0.5]]);
     }
 
@@ -125,7 +128,7 @@ mod tests {
         let cells: Vec<_> = (0..3).map(|c| (c, vec![1.0])).collect();
         let single: Vec<Vec<f64>> = cells.iter().map(|(_, q)| q.clone()).collect();
         assert!((felt(&cells, &single, lambda, 1)[0] - 1.6).abs() < 1e-12);
-        let p = joint_line_steps(&cells, lambda).unwrap();
+        let p = joint_line_steps(&CellGrid::chain(7), &cells, lambda).unwrap();
         for i in 0..3 {
             assert!((felt(&cells, &p, lambda, i)[0] - 1.0).abs() < 1e-12);
         }
@@ -137,7 +140,15 @@ mod tests {
 
     #[test]
     fn mismatched_gate_counts_are_refused() {
-        assert!(joint_line_steps(&[(0, vec![1.0]), (1, vec![1.0, 2.0])], [0.3, 0.05]).is_none());
-        assert_eq!(joint_line_steps(&[], [0.3, 0.05]), Some(vec![]));
+        assert!(joint_line_steps(
+            &CellGrid::chain(2),
+            &[(0, vec![1.0]), (1, vec![1.0, 2.0])],
+            [0.3, 0.05]
+        )
+        .is_none());
+        assert_eq!(
+            joint_line_steps(&CellGrid::chain(0), &[], [0.3, 0.05]),
+            Some(vec![])
+        );
     }
 }

@@ -221,14 +221,13 @@ impl ArrayRun {
                 }
             }
             // the lines' model sees the own and the nearest cells' gates
-            let c = k as u32;
+            let grid = self.grid();
+            let near_cell =
+                |g: &str| split_gate(g).is_some_and(|(j, _)| grid.distance(j as usize, k) <= 1);
             let near: Vec<String> = self
                 .voltages_mv
                 .keys()
-                .filter(|g| {
-                    split_gate(g).is_some_and(|(k, _)| k.abs_diff(c) <= 1)
-                        && !l.line_gates.contains(g)
-                })
+                .filter(|g| near_cell(g) && !l.line_gates.contains(g))
                 .cloned()
                 .collect();
             let own = cells.last().expect("pushed above");
@@ -243,9 +242,7 @@ impl ArrayRun {
                 let others = self
                     .voltages_mv
                     .keys()
-                    .filter(|g| {
-                        split_gate(g).is_some_and(|(k, _)| k.abs_diff(c) <= 1) && **g != l.sd_gate
-                    })
+                    .filter(|g| near_cell(g) && **g != l.sd_gate)
                     .cloned()
                     .collect();
                 l.flank = Some(FlankModel::new(others, &self.settings.flank_prediction));
@@ -261,18 +258,18 @@ impl ArrayRun {
         if self.settings.joint_line_steps {
             // measured in lockstep: each cell saw its neighbours' plunger
             // moves too (`lockstep_factor`'s model)
-            let n = lower.len();
+            let grid = self.grid();
             for (k, l) in lower.iter_mut().enumerate() {
-                let f = lockstep_factor(k, n, self.cross_calibration);
+                let f = lockstep_factor(&grid, k, self.cross_calibration);
                 l.line_jacobian.iter_mut().flatten().for_each(|j| *j /= f);
             }
         }
         borrow_line_jacobians(&mut lower);
         if self.settings.pool_initial_gradients {
-            let n = cells.len();
-            let units: Vec<f64> = (0..n)
+            let grid = self.grid();
+            let units: Vec<f64> = (0..cells.len())
                 .map(|k| match self.settings.pool_in_lockstep_units {
-                    true => lockstep_factor(k, n, self.cross_calibration),
+                    true => lockstep_factor(&grid, k, self.cross_calibration),
                     false => 1.0,
                 })
                 .collect();
@@ -287,7 +284,8 @@ impl ArrayRun {
             config.excitation = 0.0;
             config.trust_region = false;
         }
-        let mut tuner = JointArrayTuner::new(cells, &config, self.cross_calibration)?;
+        let mut tuner =
+            JointArrayTuner::with_grid(self.grid(), cells, &config, self.cross_calibration)?;
         // the initial measurement's last values start the filters' differences
         for (c, session) in self.sessions.iter().enumerate() {
             let last = session

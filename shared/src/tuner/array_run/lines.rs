@@ -313,8 +313,12 @@ impl ArrayRun {
         // others' steps do not push it out (the cells within two of a
         // correcting one, as the crosstalk reaches)
         let correcting: Vec<u32> = lines.iter().map(|&(c, _)| c).collect();
+        let grid = self.grid();
         for (c, mu) in quiet {
-            if correcting.iter().any(|k| k.abs_diff(c) <= 2) {
+            if correcting
+                .iter()
+                .any(|&k| grid.distance(k as usize, c as usize) <= 2)
+            {
                 lines.push((c, mu));
                 moved.push(c);
             }
@@ -433,19 +437,19 @@ impl ArrayRun {
             })
             .collect();
         let steps = if self.settings.joint_line_steps {
-            joint_line_steps(&single, self.cross_calibration)
+            joint_line_steps(&self.grid(), &single, self.cross_calibration)
         } else if self.settings.couple_line_corrections {
             // the lone lever: the measured Jacobian ÷ the lockstep factor,
             // so each single step × that factor
-            let n = joint.lower.len();
+            let grid = self.grid();
             let lone: Vec<(usize, Vec<f64>)> = single
                 .iter()
                 .map(|(c, q)| {
-                    let f = lockstep_factor(*c, n, self.cross_calibration);
+                    let f = lockstep_factor(&grid, *c, self.cross_calibration);
                     (*c, q.iter().map(|x| x * f).collect())
                 })
                 .collect();
-            joint_line_steps(&lone, self.cross_calibration)
+            joint_line_steps(&self.grid(), &lone, self.cross_calibration)
         } else {
             None
         }

@@ -56,6 +56,7 @@ use super::flat_reset::FlatResetWatch;
 use super::search::SearchMemory;
 use super::stall::StallWatch;
 use crate::config_error::ConfigError;
+use crate::description::layout::{CellGrid, Layout};
 use crate::fit::uncertainty::References;
 use crate::protocol::{GradientReport, IterationRecord, Request, Response, ScanKind, ScanRequest};
 use crate::safety::{GateSpec, SafetyLimits};
@@ -412,6 +413,11 @@ pub struct ArrayRun {
     /// Per cell: its readout group (empty: one sensor per cell).
     #[serde(default)]
     readout_group: Vec<usize>,
+    /// Where the cells sit (which are neighbours; a checkpoint from before
+    /// this field: a chain). Checked against the number of cells by
+    /// [`ArrayRun::set_grid`].
+    #[serde(default)]
+    layout: Layout,
     lab_seconds: f64,
     failed_fits: u64,
     measurements: u64,
@@ -503,6 +509,7 @@ impl ArrayRun {
             iterations_since_change: 0,
             changed_since_stop: vec![true; n],
             readout_group: Vec::new(),
+            layout: Layout::Chain,
             lab_seconds: 0.0,
             failed_fits: 0,
             measurements: 0,
@@ -568,6 +575,49 @@ impl ArrayRun {
             }
             None => self.readout_group.clear(),
         }
+    }
+
+    /// Place the cells on `grid` (default: a chain), which decides which
+    /// cells are neighbours: the joint tuner's neighbourhoods and priors,
+    /// the lines and sensors re-checked after a move. Before the first
+    /// batch only: `Err` once the joint tuner is built, or for a grid of
+    /// another number of cells.
+    pub fn set_grid(&mut self, grid: CellGrid) -> Result<(), ArrayRunError> {
+        if grid.cells() != self.sessions.len() {
+            return Err(ConfigError::new(
+                "layout",
+                format!(
+                    "a grid of {} cells for {} cells",
+                    grid.cells(),
+                    self.sessions.len()
+                ),
+            )
+            .into());
+        }
+        if self.joint.is_some() || self.outstanding.is_some() {
+            return Err(ArrayRunError::Protocol(
+                "the layout is set before the run starts".into(),
+            ));
+        }
+        if grid.rows() > 1 && self.settings.staggered_differences {
+            return Err(ConfigError::new(
+                "tuning.staggered_differences",
+                "the mirrored initial repetitions are laid out for a chain; a ladder runs without them",
+            )
+            .into());
+        }
+        self.layout = if grid.rows() > 1 {
+            Layout::Ladder
+        } else {
+            Layout::Chain
+        };
+        Ok(())
+    }
+
+    /// The cells on their grid ([`ArrayRun::set_grid`]).
+    pub fn grid(&self) -> CellGrid {
+        let n = self.sessions.len();
+        CellGrid::new(self.layout, n as u32).unwrap_or_else(|_| CellGrid::chain(n))
     }
 
     /// Whether cell `c` shares its readout group with another cell.
@@ -1130,11 +1180,12 @@ impl ArrayRun {
     /// uncertain (e.g. a charge jump moved its sensor): their lower levels.
     fn after_moves(&mut self) -> Result<(), ArrayRunError> {
         let k = self.sessions.len();
+        let grid = self.grid();
         let mut affected: Vec<u32> = self
             .scratch
             .moved_cells
             .iter()
-            .flat_map(|&c| [c.saturating_sub(1), c, c + 1])
+            .flat_map(|&c| grid.within(c as usize, 1).map(|n| n as u32))
             .chain((0..k as u32).filter(|&c| self.scratch.unsure[c as usize]))
             .filter(|&c| (c as usize) < k)
             .collect();

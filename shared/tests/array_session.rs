@@ -9,6 +9,8 @@ use std::collections::BTreeMap;
 
 mod support;
 
+use spintune::description::array::ArrayDescription;
+use spintune::description::layout::Layout;
 use spintune::driver::array::ArraySimulationConfig;
 use spintune::driver::{ArraySimulationRun, Halt, Simulated, SimulationRun};
 use spintune::protocol::{ControlCommand, EventKind, FaultKind, Request, Response, RunStatus};
@@ -364,6 +366,21 @@ fn bad_configs_name_the_field() {
     assert!(e.to_string().contains("line_tolerance_mv"), "{e}");
     c.tuning.verify_lines_above_mv = Some(0.5);
     assert!(c.build().is_ok());
+    // a ladder needs an even number of cells, at least 4: named where it
+    // was written, in the simulated array or in the lab's description
+    let mut c = config(3);
+    c.array.layout = Layout::Ladder;
+    let e = c.build().err().unwrap();
+    assert_eq!(e.field, "array.layout", "{e}");
+    let mut d = ArrayDescription::simulated(3, None);
+    d.layout = Layout::Ladder;
+    let mut c = config(3);
+    c.description = Some(d);
+    assert_eq!(c.build().err().unwrap().field, "description.layout");
+    let mut c = config(4);
+    c.array.layout = Layout::Ladder;
+    let mut run = c.build().unwrap();
+    assert!(run.next_iteration().unwrap().is_some());
 }
 
 /// Bounded by construction (invariant 8): at the most cells an array may

@@ -213,8 +213,11 @@ pub fn tiles(record: &IterationRecord) -> Vec<Tile> {
 }
 
 /// What the prior expects of a Jacobian element: rows of cell c are
-/// non-zero only over the gates of cell c (own block) and of cells c ± 1
-/// (nearest-neighbour blocks).
+/// non-zero only over the gates of cell c (own block) and of the cells in
+/// its neighbourhood (neighbour blocks: c ± 1 in a chain, and the cell
+/// across the rung in a ladder). The joint tuner's rows are exactly zero
+/// outside their neighbourhood, so a record shows it: [`heat_map`] takes a
+/// neighbour block to be one with a non-zero element.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Prior {
     /// The row's own cell's gates.
@@ -226,8 +229,9 @@ pub enum Prior {
 }
 
 impl Prior {
-    /// Of a row of cell `row` and a gate of cell `col`.
-    pub fn of(row: u32, col: u32) -> Self {
+    /// Of a row of cell `row` and a gate of cell `col` in a chain (the
+    /// previews' records, [`fake_array_records`]).
+    pub fn in_chain(row: u32, col: u32) -> Self {
         match row.abs_diff(col) {
             0 => Prior::Own,
             1 => Prior::Neighbour,
@@ -279,12 +283,26 @@ pub struct HeatMap {
     pub row_cells: Vec<u32>,
     /// Cell of each column.
     pub col_cells: Vec<u32>,
+    /// `(row cell, column cell)` of every block of two different cells
+    /// with a non-zero element: the rows' neighbourhoods.
+    pub neighbour_blocks: Vec<(u32, u32)>,
 }
 
 impl HeatMap {
     /// What the prior expects of element `(r, c)`.
     pub fn prior(&self, r: usize, c: usize) -> Prior {
-        Prior::of(self.row_cells[r], self.col_cells[c])
+        self.prior_of_cells(self.row_cells[r], self.col_cells[c])
+    }
+
+    /// What the prior expects of a row of cell `row` over a gate of cell `col`.
+    fn prior_of_cells(&self, row: u32, col: u32) -> Prior {
+        if row == col {
+            Prior::Own
+        } else if self.neighbour_blocks.contains(&(row, col)) {
+            Prior::Neighbour
+        } else {
+            Prior::Outside
+        }
     }
 
     /// The block mask: [`Prior`] of every element, row by row.
@@ -303,7 +321,7 @@ impl HeatMap {
         let mut out = Vec::new();
         for &(rc, row0, nr) in &rows {
             for &(cc, col0, nc) in &cols {
-                let prior = Prior::of(rc, cc);
+                let prior = self.prior_of_cells(rc, cc);
                 if prior != Prior::Outside {
                     out.push(Block {
                         row0,
@@ -386,7 +404,15 @@ pub fn heat_map(record: &IterationRecord) -> Option<HeatMap> {
                 })
                 .collect()
         })
-        .collect();
+        .collect::<Vec<Vec<f64>>>();
+    let mut neighbour_blocks = Vec::new();
+    for (row, &rc) in values.iter().zip(&row_cells) {
+        for (v, &cc) in row.iter().zip(&col_cells) {
+            if rc != cc && *v != 0.0 && !v.is_nan() && !neighbour_blocks.contains(&(rc, cc)) {
+                neighbour_blocks.push((rc, cc));
+            }
+        }
+    }
     Some(HeatMap {
         iteration: record.iteration,
         rows: record.parameters.iter().map(|p| p.name.clone()).collect(),
@@ -399,6 +425,7 @@ pub fn heat_map(record: &IterationRecord) -> Option<HeatMap> {
         values,
         row_cells,
         col_cells,
+        neighbour_blocks,
     })
 }
 
@@ -442,7 +469,7 @@ pub fn fake_array_records(n: u64, cells: u32) -> Vec<IterationRecord> {
                             .enumerate()
                             .map(|(i, _)| {
                                 let gc = (i / 4) as u32;
-                                let scale = match Prior::of(c, gc) {
+                                let scale = match Prior::in_chain(c, gc) {
                                     Prior::Own => 0.05,
                                     Prior::Neighbour => 0.005,
                                     Prior::Outside => 0.0,
@@ -597,6 +624,32 @@ mod tests {
             "{}",
             tile.parameters[1].text()
         );
+    }
+
+    /// A 2×2 ladder (cells 0 1 over 2 3): cell 0's rows span cells 1 and
+    /// 2 (across the rung), not 3. The record says so (exactly zero outside
+    /// a row's neighbourhood), and the mask follows the record, not the
+    /// chain's c ± 1.
+    #[cfg_attr(not(target_arch = "wasm32"), test)]
+    #[cfg_attr(target_arch = "wasm32", wasm_bindgen_test::wasm_bindgen_test)]
+    fn a_ladder_s_rung_neighbour_is_a_neighbour_block() {
+        let mut r = fake_array_records(1, 4).remove(0);
+        for g in r
+            .gradients
+            .iter_mut()
+            .filter(|g| g.parameter.starts_with("c0."))
+        {
+            g.gradient[8..12].fill(0.004); // cell 2's gates
+            g.gradient[12..16].fill(0.0); // cell 3's gates
+        }
+        let h = heat_map(&r).unwrap();
+        assert_eq!(h.prior(0, 4), Prior::Neighbour);
+        assert_eq!(h.prior(0, 8), Prior::Neighbour);
+        assert_eq!(h.prior(1, 12), Prior::Outside);
+        assert!(h
+            .blocks()
+            .iter()
+            .any(|b| b.row0 == 0 && b.col0 == 8 && b.prior == Prior::Neighbour));
     }
 
     #[cfg_attr(not(target_arch = "wasm32"), test)]

@@ -105,12 +105,27 @@ def test_to_xarray_has_a_cell_dimension(tmp_path):
         ({"tuning": {"relative_tolerance": float("nan")}}, r"`tuning\.relative_tolerance`"),
         ({"device": {"bogus": 1}}, r"`device\.bogus`"),
         ({"array": {"crosstalk": {"nearest": 2.0}}}, r"`array\.crosstalk\.nearest`"),
+        ({"array": {"cells": 3, "layout": "ladder"}}, r"`array\.layout`"),
+        ({"array": {"cells": 4, "layout": "ring"}}, r"`array\.layout`"),
         ([1, 2], "dict"),
     ],
 )
 def test_bad_config_raises_value_error_naming_the_field(config, field):
     with pytest.raises(ValueError, match=field):
         spintune.ArraySimulation(config)
+
+
+def test_a_ladder_of_two_by_two_cells_tunes_and_exports():
+    """A 2×2 ladder (cells 0 1 over 2 3): the layout only changes which
+    cells are neighbours; the records and the export name the cells as in
+    a chain."""
+    run = spintune.ArraySimulation({"name": "ladder", "array": {"cells": 4, "layout": "ladder", "device_seed": 5, "seed": 3}})
+    assert run.cells == 4 and run.config["array"]["layout"] == "ladder"
+    records = run.run(max_iterations=80)
+    assert run.status == {"state": "finished"}, "every cell in band within 80 iterations"
+    assert_in_band(records[-1], 4)
+    ds = run.to_xarray()
+    assert ds.sizes["cell"] == 4
 
 
 def test_partial_config_merges_into_the_default():

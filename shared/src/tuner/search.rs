@@ -159,6 +159,35 @@ impl SearchMemory {
         self.active.take().map(|a| a.probes)
     }
 
+    /// A scan found every parameter the active search looks for while a
+    /// held one went missing (the probe moved it out of its window too):
+    /// the search ends there, its probes kept (the gates stay where the
+    /// searched parameters were found), and whatever is now missing starts
+    /// a search of its own after [`ParameterSearch::after_failures`] failed
+    /// scans, counted from this one. `missing`: per parameter, whether the
+    /// scan lacks it. Returns the probes the ended search took; `None`
+    /// (nothing changed) when no search is under way or a searched
+    /// parameter is still missing. Without it the search would go on
+    /// probing for what it has just found, and give up back where it was
+    /// lost.
+    pub(super) fn searched_found(&mut self, missing: &[bool]) -> Option<u32> {
+        let active = self.active.as_ref()?;
+        let searched_found = active
+            .signs
+            .iter()
+            .enumerate()
+            .all(|(i, s)| s.is_none() || missing.get(i) == Some(&false));
+        if !searched_found {
+            return None;
+        }
+        let probes = active.probes;
+        self.active = None;
+        self.exhausted = false;
+        self.lost_in_a_row = 0;
+        self.lost_since_give_up = 0;
+        Some(probes)
+    }
+
     /// Remember the values a scan gave (estimator units, parameter order).
     pub(super) fn seen(&mut self, samples: &[Option<f64>]) {
         self.last_seen.resize(samples.len(), None);
@@ -441,6 +470,46 @@ mod tests {
             Some(SearchMove::Probe { probe: 1, .. })
         ));
         assert_eq!(m.found(), Some(1));
+    }
+
+    /// Line B is searched for (A held); the third probe finds B but moves A
+    /// out of its window. The search ends there with B's probes kept (no
+    /// fourth probe away from where B was found, no give-up back to where
+    /// it was lost), and A's own search starts after `after_failures`
+    /// failed scans counted from that one, shifting A first toward where
+    /// it was last seen (above its target: down).
+    #[test]
+    fn a_probe_that_finds_the_searched_line_and_loses_the_held_one_ends_the_search() {
+        let j = DMatrix::from_row_slice(2, 2, &[0.5, 0.1, 0.1, 0.4]);
+        let targets = [Some(0.0), Some(0.0)];
+        let mut m = SearchMemory::default();
+        m.seen(&[Some(1.0), Some(-3.0)]);
+        let b_lost = [false, true];
+        assert_eq!(m.lost(&cfg(), &b_lost, &targets, &j), None);
+        for k in 1..=3 {
+            assert!(matches!(
+                m.lost(&cfg(), &b_lost, &targets, &j),
+                Some(SearchMove::Probe { probe, .. }) if probe == k
+            ));
+        }
+        // the third probe's scan: B found, A missing
+        let a_lost = [true, false];
+        m.seen(&[None, Some(-0.5)]);
+        assert_eq!(
+            m.searched_found(&b_lost),
+            None,
+            "B still missing: nothing ends"
+        );
+        assert_eq!(m.searched_found(&a_lost), Some(3));
+        assert_eq!(m.searched_found(&a_lost), None, "ended once");
+        // this scan counts as A's first failure; the next starts A's search
+        assert_eq!(m.lost(&cfg(), &a_lost, &targets, &j), None);
+        let Some(SearchMove::Probe { probe, offsets, .. }) = m.lost(&cfg(), &a_lost, &targets, &j)
+        else {
+            panic!("A's search expected");
+        };
+        assert_eq!(probe, 1);
+        assert_eq!(offsets, vec![-cfg().step, 0.0]);
     }
 
     /// Line A's row was never measured (its scans failed from the start);

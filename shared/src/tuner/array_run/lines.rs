@@ -342,12 +342,27 @@ impl ArrayRun {
             return false;
         }
         l.search.seen(&found.map(|m| m.map(|m| m.0)));
+        let missing = found.map(|m| m.is_none());
+        if let Some(probes) = l.search.searched_found(&missing) {
+            // the probe found the line it looked for and lost the other:
+            // the plungers stay, and this scan counts toward the other
+            // line's own search (below)
+            self.note_line_event(
+                cell as u32,
+                EventKind::SearchEnded {
+                    probes,
+                    found: true,
+                },
+            );
+        }
+        let Some(l) = self.joint.as_mut().and_then(|j| j.lower.get_mut(cell)) else {
+            return false;
+        };
         if rearm > 0 {
             l.search.rearm_after(&cfg, rearm);
         }
         let j = l.line_jacobian;
         let jacobian = DMatrix::from_fn(2, 2, |r, s| j[r][s]);
-        let missing = found.map(|m| m.is_none());
         let Some(next) = l.search.lost(&cfg, &missing, &[Some(0.0); 2], &jacobian) else {
             return false;
         };

@@ -292,14 +292,15 @@ fn rows_span_the_neighbourhood_with_a_zero_mean_neighbour_prior() {
 /// cells is refused, naming the field.
 #[test]
 fn in_a_ladder_a_row_spans_the_cell_across_the_rung() {
-    let grid = CellGrid::new(Layout::Ladder, 6).unwrap();
-    let t = JointArrayTuner::with_grid(
-        grid,
-        (0..6).map(|c| knowledge(c, 0.0)).collect(),
-        &JointConfig::default(),
-        [0.3, 0.05],
-    )
-    .unwrap();
+    let on = |grid: CellGrid| {
+        JointArrayTuner::with_grid(
+            grid,
+            (0..6).map(|c| knowledge(c, 0.0)).collect(),
+            &JointConfig::default(),
+            [0.3, 0.05],
+        )
+    };
+    let t = on(CellGrid::new(Layout::Ladder, 6).unwrap()).unwrap();
     let cells_of = |cell: usize| {
         let mut cells: Vec<u32> = t
             .row_gradient(cell, 0)
@@ -314,14 +315,7 @@ fn in_a_ladder_a_row_spans_the_cell_across_the_rung() {
     let row: BTreeMap<String, f64> = t.row_gradient(0, 0).into_iter().collect();
     assert!((row["c3.SB"] - 0.3 * -0.03).abs() < 1e-12, "{row:?}");
     assert!((row["c0.SB"] - -0.03).abs() < 1e-12);
-    let wrong = CellGrid::new(Layout::Ladder, 4).unwrap();
-    let err = JointArrayTuner::with_grid(
-        wrong,
-        (0..6).map(|c| knowledge(c, 0.0)).collect(),
-        &JointConfig::default(),
-        [0.3, 0.05],
-    )
-    .unwrap_err();
+    let err = on(CellGrid::new(Layout::Ladder, 4).unwrap()).unwrap_err();
     assert_eq!(err.field, "layout");
 }
 

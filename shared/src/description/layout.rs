@@ -85,6 +85,15 @@ impl CellGrid {
         }
     }
 
+    /// The layout this grid is (a one-row grid is a chain).
+    pub fn layout(&self) -> Layout {
+        if self.rows() > 1 {
+            Layout::Ladder
+        } else {
+            Layout::Chain
+        }
+    }
+
     /// Number of cells.
     pub fn cells(&self) -> usize {
         self.cells
@@ -142,6 +151,8 @@ mod tests {
         let next: Vec<_> = g.within(1, 2).filter(|&k| g.distance(1, k) == 2).collect();
         assert_eq!(next, [3, 4, 6]);
         assert_eq!((g.rows(), g.columns()), (2, 4));
+        assert_eq!(g.layout(), Layout::Ladder);
+        assert_eq!(CellGrid::chain(8).layout(), Layout::Chain);
         assert!(CellGrid::new(Layout::Ladder, 2).is_err());
         assert!(CellGrid::new(Layout::Ladder, 16).is_ok());
     }

@@ -622,11 +622,7 @@ impl JointArrayTuner {
             }
         }
         Ok(Self {
-            layout: if grid.rows() > 1 {
-                Layout::Ladder
-            } else {
-                Layout::Chain
-            },
+            layout: grid.layout(),
             cells,
             gates,
             rows,

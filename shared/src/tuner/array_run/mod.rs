@@ -599,18 +599,14 @@ impl ArrayRun {
                 "the layout is set before the run starts".into(),
             ));
         }
-        if grid.rows() > 1 && self.settings.staggered_differences {
+        if grid.layout() == Layout::Ladder && self.settings.staggered_differences {
             return Err(ConfigError::new(
                 "tuning.staggered_differences",
                 "the mirrored initial repetitions are laid out for a chain; a ladder runs without them",
             )
             .into());
         }
-        self.layout = if grid.rows() > 1 {
-            Layout::Ladder
-        } else {
-            Layout::Chain
-        };
+        self.layout = grid.layout();
         Ok(())
     }
 

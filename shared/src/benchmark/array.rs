@@ -971,9 +971,7 @@ pub fn lab_cross_calibration(array: &ArrayConfig, protocol: &ArrayProtocol, seed
 /// out of band.
 fn neighbours_out(lab: &Lab, c: u32, targets: &[(f64, f64)], band: f64) -> u64 {
     let config = lab.device.config();
-    let grid = config
-        .grid()
-        .unwrap_or_else(|_| CellGrid::chain(config.cells as usize));
+    let grid = CellGrid::or_chain(config.layout, config.cells as usize);
     grid.within(c as usize, 1)
         .map(|n| n as u32)
         .filter(|&n| n != c)

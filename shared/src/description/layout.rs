@@ -77,6 +77,17 @@ impl CellGrid {
         }
     }
 
+    /// The grid of `cells` cells in `layout` where that fits, else a chain:
+    /// for state that was validated when it was built ([`CellGrid::new`]
+    /// then), so the fallback is never taken in a run; it keeps a
+    /// hand-edited checkpoint from panicking.
+    pub fn or_chain(layout: Layout, cells: usize) -> Self {
+        u32::try_from(cells)
+            .ok()
+            .and_then(|c| Self::new(layout, c).ok())
+            .unwrap_or_else(|| Self::chain(cells))
+    }
+
     /// A chain of `cells` cells.
     pub fn chain(cells: usize) -> Self {
         Self {
@@ -153,6 +164,8 @@ mod tests {
         assert_eq!((g.rows(), g.columns()), (2, 4));
         assert_eq!(g.layout(), Layout::Ladder);
         assert_eq!(CellGrid::chain(8).layout(), Layout::Chain);
+        assert_eq!(CellGrid::or_chain(Layout::Ladder, 8), g);
+        assert_eq!(CellGrid::or_chain(Layout::Ladder, 5), CellGrid::chain(5));
         assert!(CellGrid::new(Layout::Ladder, 2).is_err());
         assert!(CellGrid::new(Layout::Ladder, 16).is_ok());
     }

@@ -640,10 +640,7 @@ impl ArrayDevice {
 
     fn effective_from(&self, commanded: &[BTreeMap<String, f64>]) -> Vec<BTreeMap<String, f64>> {
         let x = &self.config.crosstalk;
-        let grid = self
-            .config
-            .grid()
-            .unwrap_or_else(|_| CellGrid::chain(commanded.len()));
+        let grid = CellGrid::or_chain(self.config.layout, commanded.len());
         (0..commanded.len())
             .map(|j| {
                 let mut v = commanded[j].clone();

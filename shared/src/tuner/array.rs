@@ -648,7 +648,7 @@ impl JointArrayTuner {
     /// The cells on their grid.
     fn grid(&self) -> CellGrid {
         let n = self.cells.len();
-        CellGrid::new(self.layout, n as u32).unwrap_or_else(|_| CellGrid::chain(n))
+        CellGrid::or_chain(self.layout, n)
     }
 
     /// `cell`'s row of `parameter`.

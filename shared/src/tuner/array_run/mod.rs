@@ -613,7 +613,7 @@ impl ArrayRun {
     /// The cells on their grid ([`ArrayRun::set_grid`]).
     pub fn grid(&self) -> CellGrid {
         let n = self.sessions.len();
-        CellGrid::new(self.layout, n as u32).unwrap_or_else(|_| CellGrid::chain(n))
+        CellGrid::or_chain(self.layout, n)
     }
 
     /// Whether cell `c` shares its readout group with another cell.

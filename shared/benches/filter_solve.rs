@@ -12,14 +12,17 @@
 //! * `filter_plus_newton` — what one iteration does numerically: `m` calls of
 //!   [`KalmanGradient::update`] with the step `Δv` and the measured changes
 //!   `Δz` (with variances), the Jacobian assembled from the `m` gradients, and
-//!   one [`newton_step`] (minimum-norm pseudo-inverse step: QR of `Jᵀ` for a
-//!   clearly full-rank `J`, as here, SVD otherwise) with the paper's 10 mV limit;
+//!   one [`newton_step`] (minimum-norm pseudo-inverse step: normal equations
+//!   with one correction for a provably well-conditioned `J`, as here; QR of
+//!   `Jᵀ` or SVD otherwise) with the paper's 10 mV limit;
 //! * `filter_only` — the `m` filter updates alone;
 //! * `newton_only` — [`newton_step`] alone on the updated Jacobian;
 //! * `baseline_normal_eq` — the same limited step from the normal equations
-//!   `Δv = −Jᵀ (J Jᵀ)⁻¹ Δ` by Cholesky (no rank handling). A yardstick
-//!   for the solver's cost measured in the same run, not a replacement: it
-//!   fails on rank-deficient `J`, which `newton_step` handles.
+//!   `Δv = −Jᵀ (J Jᵀ)⁻¹ Δ` by Cholesky (no rank handling, no condition
+//!   check, no correction). A yardstick for the solver's cost measured in
+//!   the same run, not a replacement: it fails on rank-deficient `J` and
+//!   loses accuracy as `κ(J)²` on ill-conditioned ones, which `newton_step`
+//!   handles.
 //!
 //! Units, as in the crate: gate voltages and steps `Δv` in mV; parameter values,
 //! changes `Δz` and offsets `Δ = p − p*` in parameter units (ns for the

@@ -10,6 +10,8 @@
 //! *expected* under the filter's posterior of `J` and bends the step inside
 //! the step limit (a Levenberg–Marquardt trust region) instead of scaling it.
 
+mod minimum_norm;
+
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
@@ -97,11 +99,13 @@ pub struct NewtonStep {
 
 /// Minimum-norm Newton step `−J⁺ Δ`, scaled down to `cfg.max_step_mv` if longer.
 ///
-/// `J` m×n (unit/mV), `Δ` (unit), step in mV. A `J` with m ≤ n whose
-/// singular values are all well above the cut-off (the usual case) is solved
-/// by the QR decomposition of `Jᵀ` (O(n·m²)); any other `J` by its SVD,
-/// singular values `≤ rank_tolerance · σ_max` treated as zero. Both give the
-/// minimum-norm solution (equal up to float rounding).
+/// `J` m×n (unit/mV), `Δ` (unit), step in mV; singular values
+/// `≤ rank_tolerance · σ_max` are treated as zero. The cheapest of three
+/// factorisations whose accuracy is certain for this `J` computes it
+/// (normal equations with a correction for a provably well-conditioned
+/// full-row-rank `J`, the QR of `Jᵀ` for a clearly full-row-rank one, the
+/// SVD otherwise; `solver/minimum_norm.rs`): the same minimum-norm
+/// solution up to float rounding.
 ///
 /// ```
 /// use nalgebra::{DMatrix, DVector};
@@ -125,15 +129,7 @@ pub fn newton_step(
             rank: 0,
         };
     }
-    let fast = if delta.len() == jacobian.nrows() && jacobian.nrows() <= n {
-        full_row_rank_step(jacobian, delta, cfg.rank_tolerance)
-    } else {
-        None
-    };
-    let (dv, rank) = match fast {
-        Some(dv) => (dv, jacobian.nrows()),
-        None => svd_step(jacobian, delta, cfg.rank_tolerance),
-    };
+    let (dv, rank, _) = minimum_norm::unlimited_step(jacobian, delta, cfg.rank_tolerance);
     let norm = dv.norm();
     let dv = if norm > cfg.max_step_mv && norm > 0.0 {
         dv * (cfg.max_step_mv / norm)
@@ -145,91 +141,6 @@ pub fn newton_step(
         unlimited_norm_mv: norm,
         rank,
     }
-}
-
-/// The unlimited step `−J⁺Δ` (mV) by the SVD of `J`, singular values at or
-/// below `rank_tolerance · σ_max` treated as zero; and the rank kept. Any
-/// shape and rank; a zero step if nothing is kept.
-fn svd_step(
-    jacobian: &DMatrix<f64>,
-    delta: &DVector<f64>,
-    rank_tolerance: f64,
-) -> (DVector<f64>, usize) {
-    let n = jacobian.ncols();
-    let Some(svd) = crate::decomposition::svd(jacobian.clone(), true, true) else {
-        return (DVector::zeros(n), 0);
-    };
-    let smax = svd.singular_values.max();
-    let eps = (rank_tolerance * smax).max(f64::MIN_POSITIVE);
-    let rank = svd.singular_values.iter().filter(|&&s| s > eps).count();
-    let dv = if rank == 0 {
-        DVector::zeros(n)
-    } else {
-        match svd.solve(delta, eps) {
-            Ok(x) => -x,
-            Err(_) => DVector::zeros(n),
-        }
-    };
-    (dv, rank)
-}
-
-/// The unlimited step `−J⁺Δ` (mV) for an m×n `J` with m ≤ n and full row
-/// rank, by the QR decomposition `Jᵀ = Q R` (Q n×m orthonormal, R m×m upper
-/// triangular): `J = Rᵀ Qᵀ`, so `J⁺ = Q R⁻ᵀ` and `Δv = −Q y` with `Rᵀ y = Δ`.
-/// O(n·m²) instead of the SVD of `J` with both singular-vector sets; the
-/// same minimum-norm solution up to float rounding (both are backward
-/// stable: no normal equations, so no squared condition number).
-///
-/// `J` and `R` have the same singular values. `None` unless they are
-/// provably all kept by [`newton_step`]'s rule with a factor 2 to spare:
-/// `1/‖R⁻¹‖_F ≤ σ_min` must exceed twice the cut-off computed from
-/// `‖R‖_F ≥ σ_max` (O(m³/6), no SVD). Near the cut-off (within about 2·m of
-/// it in condition number) and for any rank-deficient `J` the caller takes
-/// the SVD path, so rounding differences between the two factorisations
-/// cannot change which singular values are kept.
-fn full_row_rank_step(
-    jacobian: &DMatrix<f64>,
-    delta: &DVector<f64>,
-    rank_tolerance: f64,
-) -> Option<DVector<f64>> {
-    let m = jacobian.nrows();
-    let qr = jacobian.transpose().qr();
-    let r = qr.r();
-    // Bounds without an SVD: σ_max ≤ ‖R‖_F and σ_min = 1/‖R⁻¹‖₂ ≥ 1/‖R⁻¹‖_F.
-    let sigma_max_bound = r.norm();
-    let sigma_min_bound = 1.0 / upper_triangular_inverse_norm(&r, m);
-    let eps_bound = (rank_tolerance * sigma_max_bound).max(f64::MIN_POSITIVE);
-    // (false for NaN too)
-    let clearly_full_rank =
-        sigma_min_bound.partial_cmp(&(2.0 * eps_bound)) == Some(std::cmp::Ordering::Greater);
-    if !clearly_full_rank {
-        return None;
-    }
-    let y = r.tr_solve_upper_triangular(delta)?;
-    let dv = -(qr.q() * y);
-    dv.iter().all(|x| x.is_finite()).then_some(dv)
-}
-
-/// `‖R⁻¹‖_F` of an m×m upper-triangular `R`, column by column (`R x = e_j`
-/// by back substitution, O(m³/6), no m×m temporary); `+∞` or NaN if `R` is
-/// singular.
-fn upper_triangular_inverse_norm(r: &DMatrix<f64>, m: usize) -> f64 {
-    let mut x = vec![0.0; m];
-    let mut sum = 0.0;
-    for j in 0..m {
-        x[..=j].fill(0.0);
-        x[j] = 1.0;
-        for k in (0..=j).rev() {
-            let col = r.column(k);
-            x[k] /= col[k];
-            let xk = x[k];
-            for (xi, &r_ik) in x[..k].iter_mut().zip(&col.as_slice()[..k]) {
-                *xi -= xk * r_ik;
-            }
-        }
-        sum += x[..=j].iter().map(|v| v * v).sum::<f64>();
-    }
-    sum.sqrt()
 }
 
 /// Covariance-aware step ([`StepRule::ExpectedCost`]).
@@ -465,7 +376,6 @@ pub fn covariance_direction_step(
 mod tests {
     use super::*;
     use proptest::prelude::*;
-    use rand::{Rng, SeedableRng};
 
     #[test]
     fn underdetermined_is_minimum_norm() {
@@ -661,79 +571,6 @@ mod tests {
                 (&st.dv_mv - &expected).norm() <= 1e-6 * (1.0 + expected.norm()),
                 "{} vs {}", st.dv_mv, expected
             );
-        }
-    }
-
-    #[test]
-    fn qr_path_matches_svd_path_at_64x32() {
-        // The benchmark's largest size: a dense, well-conditioned 32×64 J.
-        let (m, n) = (32, 64);
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(6432);
-        let j = DMatrix::from_fn(m, n, |_, _| rng.gen_range(-1.0..1.0));
-        let delta = DVector::from_fn(m, |_, _| rng.gen_range(-10.0..10.0));
-        let fast = full_row_rank_step(&j, &delta, 1e-9).expect("full row rank");
-        let (svd, rank) = svd_step(&j, &delta, 1e-9);
-        assert_eq!(rank, m);
-        let rel = (&fast - &svd).norm() / svd.norm();
-        assert!(rel <= 1e-10, "relative difference {rel:e}");
-        // the QR step solves J Δv = −Δ to rounding (m < n: exactly reachable)
-        let residual = (&j * &fast + &delta).norm() / delta.norm();
-        assert!(residual <= 1e-13, "residual {residual:e}");
-        // newton_step takes the QR path and reports the full rank
-        let cfg = SolverConfig {
-            max_step_mv: 1e12,
-            ..SolverConfig::default()
-        };
-        let step = newton_step(&j, &delta, &cfg);
-        assert_eq!(step.rank, m);
-        assert_eq!(step.dv_mv, fast);
-    }
-
-    #[test]
-    fn near_the_rank_cut_off_the_svd_path_decides() {
-        // σ_min/σ_max = 1.5e-9: above the 1e-9 cut-off, below twice it. The QR
-        // path declines; the SVD path keeps both singular values, as before.
-        let j = DMatrix::from_row_slice(2, 3, &[1.0, 0.0, 0.0, 0.0, 1.5e-9, 0.0]);
-        let delta = DVector::from_vec(vec![1e-9, 1e-9]);
-        assert!(full_row_rank_step(&j, &delta, 1e-9).is_none());
-        let cfg = SolverConfig {
-            max_step_mv: 1e12,
-            ..SolverConfig::default()
-        };
-        let s = newton_step(&j, &delta, &cfg);
-        assert_eq!(s.rank, 2);
-        assert!((s.dv_mv[1] + 1.0 / 1.5).abs() < 1e-9, "{}", s.dv_mv);
-    }
-
-    proptest! {
-        /// The QR path (full row rank, m ≤ n) gives the minimum-norm step
-        /// `−Jᵀ(JJᵀ)⁻¹Δ` to float rounding (1e-13·κ² relative, κ =
-        /// σ_max/σ_min ≤ 30, where the normal-equations reference itself is
-        /// accurate), and so does the SVD path it replaces, less tightly:
-        /// nalgebra's SVD stops its iteration at ~1e-11 relative, so the two
-        /// paths differ by up to that (not by the QR path's error).
-        #[test]
-        fn qr_path_matches_svd_path(
-            m in 1usize..=8,
-            extra in 0usize..=8,
-            jv in proptest::collection::vec(-5.0f64..5.0, 128),
-            d in proptest::collection::vec(-100.0f64..100.0, 8),
-        ) {
-            let n = m + extra;
-            let j = DMatrix::from_column_slice(m, n, &jv[..m * n]);
-            let sv = j.clone().svd(false, false).singular_values;
-            let kappa = sv.max() / sv.min();
-            prop_assume!(kappa <= 30.0);
-            let delta = DVector::from_column_slice(&d[..m]);
-            let exact = -(j.transpose() * (&j * j.transpose()).lu().solve(&delta).unwrap());
-            let fast = full_row_rank_step(&j, &delta, 1e-9);
-            prop_assert!(fast.is_some());
-            let fast = fast.unwrap();
-            let (svd, rank) = svd_step(&j, &delta, 1e-9);
-            prop_assert_eq!(rank, m);
-            let rel = |x: &DVector<f64>| (x - &exact).norm() / exact.norm();
-            prop_assert!(rel(&fast) <= 1e-13 * kappa * kappa, "QR: κ {kappa}, rel {:e}", rel(&fast));
-            prop_assert!(rel(&svd) <= 1e-10, "SVD: κ {kappa}, rel {:e}", rel(&svd));
         }
     }
 

@@ -6,7 +6,9 @@
 //! [`crate::cell_history`]) with a way back. The numbers come from
 //! [`crate::array_view`], the colours from [`crate::heat_scale`].
 //!
-//! Test hooks: `data-testid=array-overview` (`data-cells`), `cell-tile`
+//! Test hooks: `data-testid=array-overview` (`data-cells`), `cell-layout`
+//! (a ladder's rows and columns, in words), the tiles' grid `.cell-tiles`
+//! (`data-rows`: 2 for a ladder, else 1), `cell-tile`
 //! (`data-cell`, `data-band` = in / out / unknown), `jacobian-heatmap` (an
 //! SVG with `data-rows`, `data-cols`, `data-iteration`, `data-unit`; its
 //! elements `.hm-cell` with `data-row`, `data-col`, `data-prior`,
@@ -14,6 +16,7 @@
 //! (`data-cell`) and `cell-back`.
 
 use leptos::prelude::*;
+use spintune::description::layout::{CellGrid, Layout};
 use spintune::protocol::RunStatus;
 
 use crate::array_view::{cell_runs, heat_map, tiles, Band, HeatMap, Prior, Tile};
@@ -31,7 +34,16 @@ pub fn ArrayOverview(
     /// The run's status (for the cell charts' tuned badge).
     #[prop(optional)]
     status: Option<Signal<Option<RunStatus>>>,
+    /// How the cells sit, if known: a ladder's tiles in its two rows
+    /// (cells numbered row by row); unknown or a chain, one wrapping row.
+    #[prop(optional, into)]
+    grid: Option<Signal<Option<CellGrid>>>,
 ) -> impl IntoView {
+    let ladder = Memo::new(move |_| {
+        grid.and_then(|g| g.get())
+            .filter(|g| g.layout() == Layout::Ladder)
+            .map(|g| (g.rows(), g.columns()))
+    });
     let selected = RwSignal::new(None::<u32>);
     let latest = Memo::new(move |_| history.with(|h| h.latest().cloned()));
     let tiles = Memo::new(move |_| latest.with(|r| r.as_ref().map(tiles).unwrap_or_default()));
@@ -45,7 +57,12 @@ pub fn ArrayOverview(
             <section class="array-overview" data-testid="array-overview"
                 data-cells=move || cells.with(|c| c.len().to_string())>
                 <h3>"Cells " <small>"(in band: t_sr and w both within target ± tolerance; click a cell for its charts)"</small></h3>
-                <div class="cell-tiles">
+                {move || ladder.get().map(|(rows, columns)| view! {
+                    <p class="hint" data-testid="cell-layout">{format!("ladder: {rows} rows of {columns} cells, numbered row by row; a cell's neighbours are beside it and across the rung")}</p>
+                })}
+                <div class="cell-tiles"
+                    data-rows=move || ladder.get().map_or(1, |(r, _)| r).to_string()
+                    style:grid-template-columns=move || ladder.get().map(|(_, c)| format!("repeat({c}, minmax(150px, 1fr))")).unwrap_or_default()>
                     <For each=move || cells.get() key=|c| *c
                         children=move |cell| {
                             let t = Memo::new(move |_| tiles.with(|ts| ts.iter().find(|t| t.cell == cell).cloned()));

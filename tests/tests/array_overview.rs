@@ -4,7 +4,8 @@
 //! |Jacobian| (6 parameters × 12 gates, the prior's blocks outlined, the
 //! numbers of the server's last record); when the run has finished every
 //! tile says "in band"; a click on a tile shows that cell's charts (its two
-//! parameters, its four gates), and "all cells" goes back.
+//! parameters, its four gates), and "all cells" goes back. A 2×2 ladder's
+//! tiles then sit in its two rows.
 //!
 //! Screenshots go to `<target>/e2e-screenshots/array-*.png`.
 
@@ -302,6 +303,55 @@ async fn a_three_cell_array_shows_tiles_in_band_the_jacobian_heat_map_and_a_cell
         .find(fantoccini::Locator::Css("[data-testid=cell-view]"))
         .await
         .is_err());
+    // A chain's tiles: one row, no ladder note.
+    assert_eq!(
+        attr(&c, ".cell-tiles", "data-rows").await.as_deref(),
+        Some("1")
+    );
+    assert!(c
+        .find(fantoccini::Locator::Css("[data-testid=cell-layout]"))
+        .await
+        .is_err());
+
+    // A 2×2 ladder (cells 0 1 over 2 3): its tiles in its two rows, cell 2
+    // under cell 0 and cell 1 beside it, as the run's config says.
+    let ladder = create_run(
+        port,
+        r#"{"iteration_delay_ms": 2000, "array": {"name": "ladder", "array": {"cells": 4, "layout": "ladder", "device_seed": 5, "seed": 2}, "targets": [[20.0, 270.0]]}}"#,
+    );
+    // (a new page load: the dashboard reads the run from the address once)
+    c.goto("about:blank").await.unwrap();
+    c.goto(&format!("http://127.0.0.1:{port}/#live/{ladder}"))
+        .await
+        .unwrap();
+    let v = wait("the ladder's tiles in two rows", 120, async || {
+        let v = js(
+            &c,
+            "const o = document.querySelector('[data-testid=array-overview]');
+             const g = document.querySelector('.cell-tiles');
+             const note = document.querySelector('[data-testid=cell-layout]');
+             if (!o || o.getAttribute('data-cells') !== '4' || !g || g.getAttribute('data-rows') !== '2' || !note) return null;
+             const box = (k) => document.querySelector(`[data-testid=cell-tile][data-cell=\"${k}\"]`).getBoundingClientRect();
+             return { note: note.innerText, boxes: [0, 1, 2, 3].map(k => [box(k).left, box(k).top]) };",
+        )
+        .await;
+        (!v.is_null()).then_some(v)
+    })
+    .await;
+    eprintln!("ladder overview: {v}");
+    let note = v["note"].as_str().unwrap();
+    assert!(note.contains("2 rows of 2"), "{note}");
+    let b: Vec<(f64, f64)> = v["boxes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| (p[0].as_f64().unwrap(), p[1].as_f64().unwrap()))
+        .collect();
+    assert_eq!(b[0].1, b[1].1, "cells 0 and 1 on one row: {b:?}");
+    assert!(b[1].0 > b[0].0, "cell 1 right of cell 0: {b:?}");
+    assert_eq!((b[2].0, b[3].1), (b[0].0, b[2].1), "{b:?}");
+    assert!(b[2].1 > b[0].1, "cell 2 under cell 0: {b:?}");
+    screenshot(&c, "array-ladder").await;
     tokio::time::sleep(Duration::from_millis(200)).await;
 
     c.close().await.unwrap();

@@ -4,6 +4,8 @@
 
 use leptos::prelude::*;
 use send_wrapper::SendWrapper;
+use spintune::description::layout::CellGrid;
+use spintune::driver::array::ArraySimulationConfig;
 use spintune::parameter::Tolerance;
 use spintune::protocol::{
     ControlCommand, IterationRecord, RunStatus, RunSummary, MAX_HISTORY_PAGE,
@@ -42,6 +44,14 @@ pub async fn load_history_http(base: &ApiBase, id: u64, max: u64) -> Result<RunH
     Ok(h)
 }
 
+/// The part of `GET /api/runs/{id}/config` the page reads: an array run's
+/// config (the server's `RunConfig.array`; other fields ignored).
+#[derive(serde::Deserialize)]
+struct ServedConfig {
+    #[serde(default)]
+    array: Option<ArraySimulationConfig>,
+}
+
 /// One run: connection state, summary, controls, plots.
 #[component]
 pub fn RunView(
@@ -58,6 +68,7 @@ pub fn RunView(
     let sig = Signals::new();
     let export_base = base.clone();
     let overlay_base = base.clone();
+    let config_base = base.clone();
     let driver = Driver::start(run, total_hint, base, sig);
     {
         let driver = SendWrapper::new(driver.clone());
@@ -109,6 +120,23 @@ pub fn RunView(
         sig.history.with(|h| {
             crate::array_view::cells(h.layout().parameters.iter().map(|p| p.0.as_str())).is_some()
         })
+    });
+    // How the cells sit (a ladder's two rows): from the run's config,
+    // fetched once the run shows as an array. Unknown (tiles in one
+    // wrapping row) until it arrives, or if it cannot be read.
+    let grid = RwSignal::new(None::<CellGrid>);
+    let grid_requested = StoredValue::new(false);
+    Effect::new(move |_| {
+        if !is_array.get() || grid_requested.get_value() {
+            return;
+        }
+        grid_requested.set_value(true);
+        let url = config_base.url(&format!("/api/runs/{run}/config"));
+        leptos::task::spawn_local(async move {
+            if let Ok(served) = get_json::<ServedConfig>(&url).await {
+                let _ = grid.try_set(served.array.and_then(|a| a.grid().ok()));
+            }
+        });
     });
     let paging_note = move || match sig.paging.get() {
         PagingMode::Socket => "history pages over the socket",
@@ -190,7 +218,7 @@ pub fn RunView(
                 </span>
             </div>
             {move || if is_array.get() {
-                view! { <ArrayOverview history=sig.history status=status /> }.into_any()
+                view! { <ArrayOverview history=sig.history status=status grid=grid /> }.into_any()
             } else {
                 view! { <Dashboard history=sig.history overlay=overlay hooks=hooks /> }.into_any()
             }}

@@ -8,6 +8,7 @@ use serde::{Deserialize, Serialize};
 use super::{ArraySimulationRun, SimulationConfig, SimulationRun};
 use crate::config_error::ConfigError;
 use crate::description::array::{array_cell_tuner, ArrayDescription};
+use crate::description::layout::CellGrid;
 use crate::session::{RunSession, SessionConfig};
 use crate::sim::array::{cell_devices, ArrayConfig, ArrayDevice, MAX_CELLS};
 use crate::sim::random::cell_targets_reachable;
@@ -108,6 +109,26 @@ impl ArraySimulationConfig {
             })
     }
 
+    /// The cells on their grid (a chain, or a ladder's two rows numbered
+    /// row by row) as described; `Err` naming `description.layout` or
+    /// `array.layout`.
+    ///
+    /// ```
+    /// use spintune::driver::array::ArraySimulationConfig;
+    /// let cfg: ArraySimulationConfig = serde_json::from_str(
+    ///     r#"{"array": {"cells": 8, "layout": "ladder", "device_seed": 5, "seed": 1}}"#,
+    /// ).unwrap();
+    /// let grid = cfg.grid().unwrap();
+    /// assert_eq!((grid.rows(), grid.columns()), (2, 4));
+    /// let odd: ArraySimulationConfig = serde_json::from_str(
+    ///     r#"{"array": {"cells": 5, "layout": "ladder", "device_seed": 5, "seed": 1}}"#,
+    /// ).unwrap();
+    /// assert_eq!(odd.grid().unwrap_err().field, "array.layout");
+    /// ```
+    pub fn grid(&self) -> Result<CellGrid, ConfigError> {
+        self.described().grid().map_err(|e| self.described_error(e))
+    }
+
     /// Every gate of the array with its limits (prefixed `c{k}.`), `Err`
     /// naming the description's field.
     pub fn gates(&self) -> Result<Vec<crate::safety::GateSpec>, ConfigError> {
@@ -168,8 +189,7 @@ impl ArraySimulationConfig {
             other => ConfigError::new("", other.to_string()),
         })?;
         run.set_readout_groups(described.readout_groups.as_deref());
-        let grid = described.grid().map_err(|e| self.described_error(e))?;
-        run.set_grid(grid)
+        run.set_grid(self.grid()?)
             .map_err(|e| ConfigError::new("", e.to_string()))?;
         Ok(run)
     }

@@ -8,7 +8,7 @@
 //!
 //! | path | taken when | cost (m ≤ n) |
 //! |---|---|---|
-//! | [`Path::NormalEquations`] | full row rank and `κ(J)² ≤` [`NORMAL_EQUATIONS_MAX_CONDITION`], provably | `J Jᵀ` and its Cholesky, O(n·m²) in one matrix product |
+//! | [`Path::NormalEquations`] | at least [`NORMAL_EQUATIONS_MIN_ROWS`] rows, full row rank and `κ(J)² ≤` [`NORMAL_EQUATIONS_MAX_CONDITION`], provably | `J Jᵀ` and its Cholesky, O(n·m²) in one matrix product |
 //! | [`Path::Qr`] | full row rank, provably clear of the cut-off | Householder QR of `Jᵀ`, O(n·m²) |
 //! | [`Path::Svd`] | anything else (rank deficient, near the cut-off, m > n) | SVD of `J` |
 //!
@@ -27,12 +27,21 @@ use nalgebra::{DMatrix, DVector};
 /// `m²`: at 32 rows every `J` with `κ(J)` up to about 30 takes this path.
 pub(super) const NORMAL_EQUATIONS_MAX_CONDITION: f64 = 1e6;
 
+/// Fewest rows (parameters) for which the normal equations are tried. A
+/// single double dot's levels have at most 2 rows (t_sr and w), where the
+/// QR path costs well under a microsecond and the normal equations would
+/// save nothing; they keep the QR path, so every single-cell figure in the
+/// docs, measured on it, stays reproducible bit for bit. The saving is at
+/// array size (a 9-cell array's joint step has 18 rows; the core bench's
+/// 64×32: 41 → 20 µs, docs/core-benchmarks.md).
+pub(super) const NORMAL_EQUATIONS_MIN_ROWS: usize = 3;
+
 /// Which factorisation computed a step (for tests and benchmarks).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(super) enum Path {
     /// Cholesky of `J Jᵀ`, one correction ([`normal_equations_step`]).
     NormalEquations,
-    /// Householder QR of `Jᵀ`, semi-normal equations ([`qr_step`]).
+    /// Householder QR of `Jᵀ` ([`qr_step`]).
     Qr,
     /// SVD with the rank cut-off ([`svd_step`]).
     Svd,
@@ -48,8 +57,10 @@ pub(super) fn unlimited_step(
 ) -> (DVector<f64>, usize, Path) {
     let (m, n) = jacobian.shape();
     if delta.len() == m && m <= n {
-        if let Some(dv) = normal_equations_step(jacobian, delta, rank_tolerance) {
-            return (dv, m, Path::NormalEquations);
+        if m >= NORMAL_EQUATIONS_MIN_ROWS {
+            if let Some(dv) = normal_equations_step(jacobian, delta, rank_tolerance) {
+                return (dv, m, Path::NormalEquations);
+            }
         }
         if let Some(dv) = qr_step(jacobian, delta, rank_tolerance) {
             return (dv, m, Path::Qr);
@@ -119,16 +130,10 @@ fn svd_step(
 
 /// The unlimited step `−J⁺Δ` (mV) for an m×n `J` with m ≤ n and full row
 /// rank, by the QR decomposition `Jᵀ = Q R` (Q n×m orthonormal, R m×m upper
-/// triangular): `J Jᵀ = Rᵀ R`, so `J⁺Δ = Jᵀ z` with `Rᵀ R z = Δ`, two
-/// triangular solves (the semi-normal equations: `R` from the QR of `Jᵀ`,
-/// never from `J Jᵀ`), plus one correction `z' = (RᵀR)⁻¹(Δ − J Jᵀ z)`
-/// (the corrected semi-normal equations, as accurate as applying `Q`:
-/// Å. Björck, "Stability analysis of the method of seminormal equations
-/// for linear least squares problems", Linear Algebra Appl. 88/89, 1987;
-/// tested below against the SVD path at κ ≈ 10⁶).
-/// The factor `Q` itself is never formed: O(n·m²) for the factorisation and
-/// O(n·m) after it, instead of the SVD of `J` with both singular-vector
-/// sets; the same minimum-norm solution up to float rounding.
+/// triangular): `J = Rᵀ Qᵀ`, so `J⁺ = Q R⁻ᵀ` and `Δv = −Q y` with `Rᵀ y = Δ`.
+/// O(n·m²) instead of the SVD of `J` with both singular-vector sets; the
+/// same minimum-norm solution up to float rounding (both are backward
+/// stable: no normal equations, so no squared condition number).
 ///
 /// `J` and `R` have the same singular values. `None` unless they are
 /// provably all kept by the cut-off rule with a factor 2 to spare:
@@ -155,18 +160,8 @@ fn qr_step(
     if !clearly_full_rank {
         return None;
     }
-    // J Jᵀ = Rᵀ R, so x = J⁺Δ = Jᵀ (Rᵀ R)⁻¹ Δ: two triangular solves and
-    // one product with Jᵀ (O(n·m)), without forming the n×m factor Q.
-    let solve = |b: &DVector<f64>| {
-        r.tr_solve_upper_triangular(b)
-            .and_then(|y| r.solve_upper_triangular(&y))
-            .map(|z| jacobian.tr_mul(&z))
-    };
-    let mut x = solve(delta)?;
-    // One correction with the residual (corrected semi-normal equations):
-    // as accurate as applying Q, at O(n·m) more.
-    x += solve(&(delta - jacobian * &x))?;
-    let dv = -x;
+    let y = r.tr_solve_upper_triangular(delta)?;
+    let dv = -(qr.q() * y);
     dv.iter().all(|x| x.is_finite()).then_some(dv)
 }
 
@@ -311,17 +306,32 @@ mod tests {
 
     #[test]
     fn a_large_rank_tolerance_sends_the_step_to_the_svd() {
-        // σ ratio 1/4 with a cut-off of 0.3·σ_max: the second singular value
-        // is dropped, which only the SVD path does.
-        let j = DMatrix::from_row_slice(2, 3, &[1.0, 0.0, 0.0, 0.0, 0.25, 0.0]);
-        let delta = DVector::from_vec(vec![1.0, 1.0]);
+        // singular values 1, 0.5, 0.25 with a cut-off of 0.3·σ_max: the
+        // third is dropped, which only the SVD path does.
+        let j = DMatrix::from_row_slice(
+            3,
+            4,
+            &[1.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.0, 0.0, 0.0, 0.0, 0.25, 0.0],
+        );
+        let delta = DVector::from_vec(vec![1.0, 1.0, 1.0]);
         let (dv, rank, path) = unlimited_step(&j, &delta, 0.3);
-        assert_eq!((rank, path), (1, Path::Svd));
-        assert_eq!(dv[1], 0.0);
-        assert!((dv[0] + 1.0).abs() < 1e-12);
-        // the same J with the default cut-off keeps both, by the normal equations
+        assert_eq!((rank, path), (2, Path::Svd));
+        assert_eq!(dv[2], 0.0);
+        assert!((dv[0] + 1.0).abs() < 1e-12 && (dv[1] + 2.0).abs() < 1e-12);
+        // the same J with the default cut-off keeps all three, by the normal equations
         let (_, rank, path) = unlimited_step(&j, &delta, 1e-9);
-        assert_eq!((rank, path), (2, Path::NormalEquations));
+        assert_eq!((rank, path), (3, Path::NormalEquations));
+    }
+
+    #[test]
+    fn a_single_double_dot_s_two_rows_keep_the_qr_path() {
+        // t_sr and w over N, SA, SB, T (ns/mV and µV/mV): well conditioned,
+        // but below NORMAL_EQUATIONS_MIN_ROWS, so bit for bit the QR step.
+        let j = DMatrix::from_row_slice(2, 4, &[0.8, -1.1, 0.4, 0.3, 3.0, 1.5, -4.2, 2.2]);
+        let delta = DVector::from_vec(vec![12.0, -35.0]);
+        let (dv, rank, path) = unlimited_step(&j, &delta, 1e-9);
+        assert_eq!((rank, path), (2, Path::Qr));
+        assert_eq!(Some(dv), qr_step(&j, &delta, 1e-9));
     }
 
     #[test]
@@ -343,8 +353,10 @@ mod tests {
         /// σ_max/σ_min ≤ 30, where the reference from an LU of `JJᵀ` is
         /// itself accurate), and so does the SVD path, less tightly:
         /// nalgebra's SVD stops its iteration at ~1e-11 relative. The
-        /// dispatch takes the normal equations wherever `m²κ²`, an upper
-        /// bound of their condition bound, is within theirs.
+        /// dispatch takes the normal equations from
+        /// `NORMAL_EQUATIONS_MIN_ROWS` rows on wherever `m²κ²`, an upper
+        /// bound of their condition bound, is within theirs, and the QR
+        /// path below.
         #[test]
         fn every_path_matches_the_minimum_norm_step(
             m in 1usize..=8,
@@ -368,7 +380,9 @@ mod tests {
             let (dv, rank, path) = unlimited_step(&j, &delta, 1e-9);
             prop_assert_eq!(rank, m);
             prop_assert!(rel(&dv, &exact) <= 1e-13 * kappa * kappa, "{path:?}: κ {kappa}, rel {:e}", rel(&dv, &exact));
-            if (m * m) as f64 * kappa * kappa <= NORMAL_EQUATIONS_MAX_CONDITION {
+            if m < NORMAL_EQUATIONS_MIN_ROWS {
+                prop_assert_eq!(path, Path::Qr);
+            } else if (m * m) as f64 * kappa * kappa <= NORMAL_EQUATIONS_MAX_CONDITION {
                 prop_assert_eq!(path, Path::NormalEquations);
             }
         }

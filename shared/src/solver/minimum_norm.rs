@@ -36,7 +36,8 @@ pub(super) const NORMAL_EQUATIONS_MAX_CONDITION: f64 = 1e6;
 /// 64×32: 41 → 20 µs, docs/core-benchmarks.md).
 pub(super) const NORMAL_EQUATIONS_MIN_ROWS: usize = 3;
 
-/// Which factorisation computed a step (for tests and benchmarks).
+/// Which factorisation computed a step ([`unlimited_step`] reports it; the
+/// tests pin which one runs).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(super) enum Path {
     /// Cholesky of `J Jᵀ`, one correction ([`normal_equations_step`]).

@@ -16,9 +16,13 @@
 //! `u = C Hᵀ` and `s = H C Hᵀ + Δz²`: O(n²) per update, in place, no n×n
 //! temporaries. `C` stays exactly symmetric: the correction is symmetric
 //! float for float, and `Q` is symmetrised once, when the filter is built.
+//! The two sweeps over `C` (the product `C Hᵀ` and the correction) are in
+//! `kernels.rs`: vectorised, the same floats on every CPU.
 //!
 //! Units: gradients are in parameter units per mV (e.g. ns/mV, µV/mV); `C` and
 //! `Q` in (parameter units / mV)².
+
+mod kernels;
 
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
@@ -347,7 +351,8 @@ impl KalmanGradient {
             return Ok(UpdateOutcome::SkippedSmallStep { step_norm_mv });
         }
         let h = dv; // as a column; H = hᵀ
-        let u = &self.covariance * h; // u = C Hᵀ (n), (unit/mV)²·mV
+        let mut u = DVector::zeros(n); // u = C Hᵀ (n), (unit/mV)²·mV
+        kernels::covariance_times(self.covariance.as_slice(), h.as_slice(), u.as_mut_slice());
         let s = h.dot(&u) + dz2; // H C Hᵀ + Δz², (unit)²
         let innovation = z - h.dot(&self.gradient);
         if s <= 0.0 || !s.is_finite() {
@@ -489,29 +494,26 @@ impl KalmanGradient {
         let q = q.as_slice();
         let c = self.covariance.as_mut_slice();
         // Column-major: column j is c[j·n .. (j+1)·n].
-        for (j, (cj, qj)) in c.chunks_exact_mut(n).zip(q.chunks_exact(n)).enumerate() {
-            match (k.is_empty(), shape == QShape::Diagonal) {
-                (true, true) => {}
-                (true, false) => {
-                    for (c_ij, &q_ij) in cj.iter_mut().zip(qj) {
-                        *c_ij += q_ij * q_factor;
-                    }
+        match (k.is_empty(), shape == QShape::Diagonal) {
+            // The tuner's update (`Q = σ² I`): one vectorised sweep.
+            (false, true) => kernels::rank_two_update_plus_diagonal(c, k, w, q_diagonal, q_factor),
+            (true, true) => {
+                for (j, &q_jj) in q_diagonal.iter().enumerate() {
+                    c[j * n + j] += q_jj * q_factor;
                 }
-                (false, true) => {
-                    let (kj, wj) = (k[j], w[j]);
-                    for ((c_ij, &k_i), &w_i) in cj.iter_mut().zip(k).zip(w) {
-                        *c_ij -= k_i * wj + w_i * kj;
-                    }
+            }
+            (true, false) => {
+                for (c_ij, &q_ij) in c.iter_mut().zip(q) {
+                    *c_ij += q_ij * q_factor;
                 }
-                (false, false) => {
+            }
+            (false, false) => {
+                for (j, (cj, qj)) in c.chunks_exact_mut(n).zip(q.chunks_exact(n)).enumerate() {
                     let (kj, wj) = (k[j], w[j]);
                     for (((c_ij, &q_ij), &k_i), &w_i) in cj.iter_mut().zip(qj).zip(k).zip(w) {
                         *c_ij = (*c_ij - (k_i * wj + w_i * kj)) + q_ij * q_factor;
                     }
                 }
-            }
-            if shape == QShape::Diagonal {
-                cj[j] += q_diagonal[j] * q_factor;
             }
         }
         if shape == QShape::Asymmetric {

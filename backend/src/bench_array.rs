@@ -11,6 +11,7 @@ use spintune::benchmark::array::{
     markdown, run_strategy, single_change_cells, summarize_array, world, ArrayProtocol,
     ArrayRunResult, ArrayStrategy, ArraySummary,
 };
+use spintune::benchmark::array_timeline::CellBand;
 use spintune::benchmark::cell_trace::error_bar_coverage;
 use spintune::benchmark::BenchmarkProtocol;
 use spintune::description::layout::Layout;
@@ -304,14 +305,24 @@ fn print_traces(results: &[ArrayRunResult], c: u32) {
         .filter(|r| r.timeline.iter().any(|p| p.trace.is_some()))
     {
         println!(
-            "\nCell {c}, {} on device {} seed {} (phase, lab min since the start):",
+            "\nCell {c}, {} on device {} seed {} (phase, lab min since the start, what the iteration's measurement said of the cell):",
             r.strategy.name(),
             r.device,
             r.seed
         );
         for p in &r.timeline {
             if let Some(t) = &p.trace {
-                println!("{} {:6.1} | {}", p.phase, p.lab_minutes, t.line());
+                let verdict = match p.measured.get(c as usize) {
+                    Some(CellBand::InBand) => "in band",
+                    Some(CellBand::OutOfBand) => "out of band",
+                    Some(CellBand::NotMeasured) | None => "not measured",
+                };
+                println!(
+                    "{} {:6.1} {verdict:12} | {}",
+                    p.phase,
+                    p.lab_minutes,
+                    t.line()
+                );
             }
         }
     }

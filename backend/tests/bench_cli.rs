@@ -392,6 +392,22 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
     // and a trace at every point of the JSON timeline
     assert!(stdout.contains("Cell 1, joint on device"), "{stdout}");
     assert!(stdout.contains("c1.SB") && stdout.contains(" µV, rows /mV learned ["));
+    // each traced line says what the measurement made of the cell, and
+    // states its targets beside the truth
+    let traced: Vec<&str> = stdout.lines().filter(|l| l.contains("c1.SB")).collect();
+    assert!(!traced.is_empty(), "{stdout}");
+    for line in &traced {
+        assert!(
+            ["in band", "out of band", "not measured"]
+                .iter()
+                .any(|v| line.contains(v)),
+            "{line}"
+        );
+        assert!(
+            line.contains(", target ") && line.contains(") ns,"),
+            "{line}"
+        );
+    }
     // …and how often its scans' error bars covered the truth, with a count
     let coverage = stdout
         .lines()
@@ -408,6 +424,15 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
     assert!(!timeline.is_empty());
     assert!(
         timeline.iter().all(|p| p["trace"]["cell"] == 1),
+        "{timeline:?}"
+    );
+    // the targets traced are the record's: the protocol's set points
+    // (positive, one per parameter)
+    assert!(
+        timeline.iter().all(|p| {
+            let t = &p["trace"]["targets"];
+            (0..2).all(|i| t[i].as_f64().is_some_and(|x| x > 0.0))
+        }),
         "{timeline:?}"
     );
     assert_eq!(report["protocol"]["trace_cell"], 1);

@@ -793,6 +793,8 @@ impl Timeline<'_> {
                     .get(2 * c + p)
                     .and_then(|r| Some((r.value?, r.std.unwrap_or(f64::NAN))));
             }
+            let target = |p: usize| record.parameters.get(2 * c + p).and_then(|r| r.target);
+            t.targets = target(0).zip(target(1)).map(|(a, b)| [a, b]);
         }
         let truth = record
             .parameters
@@ -841,6 +843,7 @@ impl Timeline<'_> {
                 true_rows: truth,
                 true_lines_mv: lab.device.lines_now_mv(c)?,
                 lines_at_line_scan_mv: None,
+                targets: None,
             })
         });
         let agreements = rows

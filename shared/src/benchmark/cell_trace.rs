@@ -46,6 +46,11 @@ pub struct CellTrace {
     /// move in this iteration (or a trace written before it existed).
     #[serde(default)]
     pub lines_at_line_scan_mv: Option<[f64; 2]>,
+    /// The cell's targets of `t_sr` (ns) and `w` (µV) at the measurement,
+    /// as the iteration's record states them. `None` in traces written
+    /// before it existed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub targets: Option<[f64; 2]>,
 }
 
 impl CellTrace {
@@ -62,12 +67,13 @@ impl CellTrace {
     ///     true_rows: [vec![0.011, -0.019], vec![0.002, 0.004]],
     ///     true_lines_mv: [0.3, -1.5],
     ///     lines_at_line_scan_mv: Some([1.6, -2.0]),
+    ///     targets: Some([20.0, 200.0]),
     /// };
     /// assert_eq!(
     ///     t.line(),
-    ///     "c2.N -700.0 c2.T -650.5 mV | t_sr 21.0 ± 1.5 (true 20.0) ns, \
+    ///     "c2.N -700.0 c2.T -650.5 mV | t_sr 21.0 ± 1.5 (true 20.0, target 20.0) ns, \
     ///      rows /mV learned [+0.0100 -0.0200] true [+0.0110 -0.0190] | \
-    ///      w failed (true 180.0) µV, rows /mV learned [+0.0000 +0.0050] true [+0.0020 +0.0040] | \
+    ///      w failed (true 180.0, target 200.0) µV, rows /mV learned [+0.0000 +0.0050] true [+0.0020 +0.0040] | \
     ///      lines true A +0.3 B -1.5 mV | at its line scan after the move A +1.6 B -2.0 mV"
     /// );
     /// ```
@@ -91,8 +97,12 @@ impl CellTrace {
                     Some((v, s)) => format!("{v:.1} ± {s:.1}"),
                     None => "failed".into(),
                 };
+                let target = match self.targets {
+                    Some(t) => format!(", target {:.1}", t[p]),
+                    None => String::new(),
+                };
                 format!(
-                    "{name} {value} (true {:.1}) {unit}, rows /mV learned [{}] true [{}]",
+                    "{name} {value} (true {:.1}{target}) {unit}, rows /mV learned [{}] true [{}]",
                     self.truth[p],
                     row(&self.learned_rows[p]),
                     row(&self.true_rows[p])
@@ -128,6 +138,7 @@ impl CellTrace {
 ///     true_rows: [Vec::new(), Vec::new()],
 ///     true_lines_mv: [0.0, 0.0],
 ///     lines_at_line_scan_mv: None,
+///     targets: None,
 /// };
 /// // t_sr 0.5σ, 1σ (covered), 3σ off; w 0.1σ, 2σ, 0σ off
 /// let traces = [at(20.5, 201.0), at(21.0, 220.0), at(17.0, 200.0)];

@@ -284,6 +284,14 @@ pub struct ArrayRunSettings {
     /// Default 0 (off).
     #[serde(default)]
     pub confirm_bystander_sigma: f64,
+    /// Hysteresis of the in-band verdict: a cell that counted in band at
+    /// its previous measurement keeps counting while each of its
+    /// parameters reads within this many of its reported σ beyond its
+    /// band's edge (a cell truly at its target whose `w` scan, σ about
+    /// half the band, reads just outside). 0..=3; 0: every measurement
+    /// judged on its own ([`Self::in_band`]). Default 0 (off).
+    #[serde(default)]
+    pub stay_in_band_sigma: f64,
     /// Start a cell's parameter row again ([`Self::stalled_row_from`]) when
     /// the parameter stalled: measured out of band on one side this many
     /// iterations in a row without coming nearer its target by a band
@@ -363,6 +371,7 @@ impl Default for ArrayRunSettings {
             confirm_entry_sigma: default_confirm_entry_sigma(),
             confirm_in_band_cells: false,
             confirm_bystander_sigma: 0.0,
+            stay_in_band_sigma: 0.0,
             reset_stalled_row_after: default_reset_stalled_row_after(),
             stalled_row_from: default_stalled_row_from(),
         }
@@ -479,6 +488,7 @@ impl ArrayRunSettings {
             ),
             ("confirm_entry_sigma", self.confirm_entry_sigma, 3.0),
             ("confirm_bystander_sigma", self.confirm_bystander_sigma, 3.0),
+            ("stay_in_band_sigma", self.stay_in_band_sigma, 3.0),
         ] {
             check(
                 s.is_finite() && (0.0..=max).contains(&s),

@@ -89,6 +89,45 @@ impl InBandRule {
     }
 }
 
+/// The in-band verdict's hysteresis
+/// ([`super::array_run::ArrayRunSettings::stay_in_band_sigma`]): whether a
+/// cell that counted in band at its previous measurement (`was_in_band`)
+/// still counts on `values` (value, unit² variance per parameter) against
+/// `targets`: every parameter measured, each within `sigma` of its
+/// reported σ beyond its band's edge (`|x − target| ≤ relative_tolerance ·
+/// target + sigma·σ`). Never for a cell that was out, or with `sigma = 0`.
+///
+/// ```
+/// use spintune::tuner::in_band::stays_in_band;
+/// let targets = [20.0, 270.0];
+/// // w read 12 % high (302.4 µV, σ 20 µV): 5.4 µV (0.27σ) beyond the ±10 % band
+/// let values = [Some((20.0, 0.25)), Some((302.4, 400.0))];
+/// assert!(stays_in_band(&values, &targets, 0.1, true, 1.0));
+/// // a cell that was out does not enter this way; 0 turns it off
+/// assert!(!stays_in_band(&values, &targets, 0.1, false, 1.0));
+/// assert!(!stays_in_band(&values, &targets, 0.1, true, 0.0));
+/// // 25 % high is 40.5 µV (2.03σ) beyond the edge; a failed fit never stays
+/// let values = [Some((20.0, 0.25)), Some((337.5, 400.0))];
+/// assert!(!stays_in_band(&values, &targets, 0.1, true, 2.0));
+/// assert!(!stays_in_band(&[Some((20.0, 0.25)), None], &targets, 0.1, true, 3.0));
+/// ```
+pub fn stays_in_band(
+    values: &[Option<Measured>],
+    targets: &[f64],
+    relative_tolerance: f64,
+    was_in_band: bool,
+    sigma: f64,
+) -> bool {
+    was_in_band
+        && sigma > 0.0
+        && values.len() == targets.len()
+        && values.iter().zip(targets).all(|(m, &t)| {
+            m.is_some_and(|(x, var)| {
+                (x - t).abs() <= relative_tolerance * t + sigma * var.max(0.0).sqrt()
+            })
+        })
+}
+
 /// The parameters of a cell measured in band that are scanned once more
 /// before the run stops ([`super::array_run::ArrayRunSettings::confirm_entry_sigma`]):
 /// none when its previous measurement was in band (`was_in_band`; not so

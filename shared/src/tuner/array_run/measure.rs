@@ -15,7 +15,7 @@ use crate::protocol::{
 };
 use crate::sim::array::parameter_name;
 use crate::tuner::array::Measured;
-use crate::tuner::in_band::{to_confirm, within_band, InBandRule};
+use crate::tuner::in_band::{stays_in_band, to_confirm, within_band, InBandRule};
 use crate::tuner::stall::StalledRowSource;
 
 impl ArrayRun {
@@ -124,7 +124,8 @@ impl ArrayRun {
                 let in_band = self
                     .settings
                     .in_band
-                    .in_band(&values[c], &estimates[c], &tv, band);
+                    .in_band(&values[c], &estimates[c], &tv, band)
+                    || self.stays_in_band(c, &values[c], tv);
                 all_in &= in_band;
                 confirm.extend(self.note_in_band(c, &values[c], tv, in_band));
                 let out: Vec<bool> = (0..tv.len())
@@ -248,6 +249,23 @@ impl ArrayRun {
                     .collect()
             })
             .collect()
+    }
+
+    /// Whether cell `c` still counts in band on `values` (targets `tv`)
+    /// by the verdict's hysteresis ([`stays_in_band`],
+    /// [`ArrayRunSettings::stay_in_band_sigma`](super::ArrayRunSettings::stay_in_band_sigma)).
+    fn stays_in_band(&self, c: usize, values: &[Option<Measured>], tv: [f64; 2]) -> bool {
+        let was_in = self
+            .joint
+            .as_ref()
+            .is_some_and(|j| j.in_band.get(c).copied().unwrap_or(false));
+        stays_in_band(
+            values,
+            &tv,
+            self.settings.relative_tolerance,
+            was_in,
+            self.settings.stay_in_band_sigma,
+        )
     }
 
     /// Cell `c` was measured (`values` against the targets `tv`) and counts

@@ -17,9 +17,7 @@
 //! The world runs with the loop it was traced in: line corrections of at
 //! most 2 mV (`line_max_step_mv = 2`, the default before "Lines brought
 //! back in one step") each cell's alone (`joint_line_steps = false`, the
-//! default before "Line steps that are not cut"), each reading judged on
-//! its own (`stay_in_band_sigma = 0`, the default before "A cell in band
-//! stays in band within 1σ"); with today's line level
+//! default before "Line steps that are not cut"); with today's line level
 //! the run takes another path, on which cell 6's `w` never turns away from
 //! its target by the threshold.
 
@@ -49,7 +47,6 @@ fn traced(sigma: f64) -> (Vec<TimelinePoint>, Vec<f64>) {
     protocol.tuning.line_max_step_mv = Some(2.0);
     protocol.tuning.joint_line_steps = false;
     protocol.tuning.finite_difference_step_mv = None;
-    protocol.tuning.stay_in_band_sigma = 0.0;
     set_points.push(protocol.single_cell_target);
     let reachable = |d: &spintune::sim::DeviceConfig| cell_targets_reachable(d, &set_points);
     let config = ArrayConfig {

@@ -108,13 +108,13 @@ fn a_cell_in_band_stays_in_band_within_its_margin() {
     assert!(decided > 0, "the hysteresis never decided a stop");
 }
 
-/// Off, a record is tuned exactly when every cell is measured in band:
-/// the same derivation with no margin and no memory.
+/// Off (the default), a record is tuned exactly when every cell is
+/// measured in band: the same derivation with no margin and no memory.
 #[test]
 fn off_every_measurement_is_judged_on_its_own() {
     assert_eq!(
         ArrayProtocol::default().tuning.stay_in_band_sigma,
-        1.0,
+        0.0,
         "the default"
     );
     let rs = records(11, 0.0);

@@ -8,7 +8,9 @@
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
-use crate::kalman::{FilterError, KalmanGradient, ProcessNoise, UpdateOutcome};
+use crate::kalman::{
+    check_update_inputs, FilterError, KalmanGradient, ProcessNoise, UpdateOutcome,
+};
 
 /// Which estimator a tuner level uses, as written in a run config.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -163,7 +165,7 @@ impl GradientEstimator {
                 gradient,
                 min_step_mv,
             } => {
-                check_inputs(gradient.len(), dv, z, dz2)?;
+                check_update_inputs(gradient.len(), dv, z, dz2)?;
                 let hh = dv.dot(dv);
                 if hh.sqrt() < *min_step_mv || hh == 0.0 {
                     return Ok(UpdateOutcome::SkippedSmallStep {
@@ -178,7 +180,7 @@ impl GradientEstimator {
                 })
             }
             GradientEstimator::Measured { gradient, .. } => {
-                check_inputs(gradient.len(), dv, z, dz2)?;
+                check_update_inputs(gradient.len(), dv, z, dz2)?;
                 Ok(UpdateOutcome::SkippedSmallStep {
                     step_norm_mv: dv.norm(),
                 })
@@ -198,35 +200,6 @@ impl GradientEstimator {
             *covariance = c;
         }
     }
-}
-
-fn check_inputs(n: usize, dv: &DVector<f64>, z: f64, dz2: f64) -> Result<(), FilterError> {
-    if dv.len() != n {
-        return Err(FilterError::Dimension {
-            what: "voltage step",
-            expected: n,
-            got: dv.len(),
-        });
-    }
-    if let Some(&bad) = dv.iter().find(|x| !x.is_finite()) {
-        return Err(FilterError::Invalid {
-            what: "voltage step",
-            value: bad,
-        });
-    }
-    if !z.is_finite() {
-        return Err(FilterError::Invalid {
-            what: "measured change",
-            value: z,
-        });
-    }
-    if !(dz2.is_finite() && dz2 >= 0.0) {
-        return Err(FilterError::Invalid {
-            what: "measurement variance",
-            value: dz2,
-        });
-    }
-    Ok(())
 }
 
 #[cfg(test)]

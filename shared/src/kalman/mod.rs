@@ -321,31 +321,7 @@ impl KalmanGradient {
         dz2: f64,
     ) -> Result<UpdateOutcome, FilterError> {
         let n = self.dimension();
-        if dv.len() != n {
-            return Err(FilterError::Dimension {
-                what: "voltage step",
-                expected: n,
-                got: dv.len(),
-            });
-        }
-        if let Some(&bad) = dv.iter().find(|x| !x.is_finite()) {
-            return Err(FilterError::Invalid {
-                what: "voltage step",
-                value: bad,
-            });
-        }
-        if !z.is_finite() {
-            return Err(FilterError::Invalid {
-                what: "measured change",
-                value: z,
-            });
-        }
-        if !(dz2.is_finite() && dz2 >= 0.0) {
-            return Err(FilterError::Invalid {
-                what: "measurement variance",
-                value: dz2,
-            });
-        }
+        check_update_inputs(n, dv, z, dz2)?;
         let step_norm_mv = dv.norm();
         if step_norm_mv < self.min_step_mv || step_norm_mv == 0.0 {
             return Ok(UpdateOutcome::SkippedSmallStep { step_norm_mv });
@@ -520,6 +496,45 @@ impl KalmanGradient {
             symmetrise_in_place(&mut self.covariance);
         }
     }
+}
+
+/// The inputs of one filter update, checked: `dv` of length `n` with
+/// finite entries (mV), a finite measured change `z`, a finite variance
+/// `dz2 ≥ 0`. The one rule for every filter of the crate
+/// ([`KalmanGradient::update`], [`crate::estimator`]); an error names the
+/// input and leaves the caller's state untouched.
+pub(crate) fn check_update_inputs(
+    n: usize,
+    dv: &DVector<f64>,
+    z: f64,
+    dz2: f64,
+) -> Result<(), FilterError> {
+    if dv.len() != n {
+        return Err(FilterError::Dimension {
+            what: "voltage step",
+            expected: n,
+            got: dv.len(),
+        });
+    }
+    if let Some(&bad) = dv.iter().find(|x| !x.is_finite()) {
+        return Err(FilterError::Invalid {
+            what: "voltage step",
+            value: bad,
+        });
+    }
+    if !z.is_finite() {
+        return Err(FilterError::Invalid {
+            what: "measured change",
+            value: z,
+        });
+    }
+    if !(dz2.is_finite() && dz2 >= 0.0) {
+        return Err(FilterError::Invalid {
+            what: "measurement variance",
+            value: dz2,
+        });
+    }
+    Ok(())
 }
 
 /// `M ← (M + Mᵀ)/2` in place, for a square `M`.

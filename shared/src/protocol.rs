@@ -713,7 +713,10 @@ pub enum EventKind {
         value: Option<f64>,
         /// Its standard deviation (`unit`).
         std: Option<f64>,
-        /// Whether the value is inside the band (with an error bar that fits it).
+        /// Whether the value is inside the band (with an error bar that fits
+        /// it); under `ArrayRunSettings::pool_confirmations`, whether this
+        /// value and the iteration's reading, pooled by their inverse
+        /// variances, are.
         in_band: bool,
         /// Unit of the parameter.
         unit: String,

@@ -296,6 +296,27 @@ pub struct ArrayRunSettings {
     /// (docs/array-history.md, "A cell in band stays in band within 1σ").
     #[serde(default)]
     pub stay_in_band_sigma: f64,
+    /// Whether a confirming scan is judged together with the reading it
+    /// confirms: the parameter counts in band when the two readings'
+    /// inverse-variance mean lies within the band (the cell did not move
+    /// between them; after a line correction the second reading alone),
+    /// instead of the second reading alone. A truly-in parameter near its
+    /// edge then passes more often and a truly-out one less often than on
+    /// one reading ([`pooled_reading`](super::in_band::pooled_reading)). It
+    /// also confirms, before the run stops, every parameter of a cell that
+    /// counts in band only by [`Self::stay_in_band_sigma`] (read beyond its
+    /// edge). Default `false`.
+    #[serde(default)]
+    pub pool_confirmations: bool,
+    /// With [`Self::pool_confirmations`]: how many rounds of confirming
+    /// scans a stop may take. After each round a parameter whose pooled
+    /// reading lies within its band by more than [`Self::confirm_entry_sigma`]
+    /// of the pooled σ is confirmed, one outside its band ends the stop
+    /// (its cell out, the pooled value aimed at), and the rest are scanned
+    /// again while rounds remain (in the last round, inside is enough).
+    /// 1..=[`MAX_CONFIRM_ROUNDS`]; default 1 (one confirming scan).
+    #[serde(default = "one")]
+    pub confirm_rounds: u32,
     /// Start a cell's parameter row again ([`Self::stalled_row_from`]) when
     /// the parameter stalled: measured out of band on one side this many
     /// iterations in a row without coming nearer its target by a band
@@ -315,6 +336,14 @@ pub struct ArrayRunSettings {
 fn yes() -> bool {
     true
 }
+
+fn one() -> u32 {
+    1
+}
+
+/// Most rounds of confirming scans before a stop
+/// ([`ArrayRunSettings::confirm_rounds`]).
+pub const MAX_CONFIRM_ROUNDS: u32 = 5;
 
 fn default_joint_line_steps() -> bool {
     true
@@ -376,6 +405,8 @@ impl Default for ArrayRunSettings {
             confirm_in_band_cells: false,
             confirm_bystander_sigma: 0.0,
             stay_in_band_sigma: 0.0,
+            pool_confirmations: false,
+            confirm_rounds: 1,
             reset_stalled_row_after: default_reset_stalled_row_after(),
             stalled_row_from: default_stalled_row_from(),
         }
@@ -500,6 +531,12 @@ impl ArrayRunSettings {
                 s.to_string(),
             )?;
         }
+        let r = self.confirm_rounds;
+        check(
+            (1..=MAX_CONFIRM_ROUNDS).contains(&r),
+            "confirm_rounds",
+            r.to_string(),
+        )?;
         let n = self.reset_stalled_row_after;
         check(
             n == 0 || (2..=MAX_STALL_WINDOW as u32).contains(&n),

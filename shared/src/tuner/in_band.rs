@@ -128,6 +128,57 @@ pub fn stays_in_band(
         })
 }
 
+/// Two readings of one parameter at the same voltages (value, unit²
+/// variance each) combined by their inverse variances: the pooled value and
+/// its variance ([`super::array_run::ArrayRunSettings::pool_confirmations`]).
+/// A reading without a positive finite variance weighs as the other.
+///
+/// ```
+/// use spintune::tuner::in_band::pooled_reading;
+/// // w read 300 µV then 280 µV, σ 20 µV each: 290 µV, σ 20/√2 µV
+/// let (x, var) = pooled_reading((300.0, 400.0), (280.0, 400.0));
+/// assert!((x - 290.0).abs() < 1e-12 && (var - 200.0).abs() < 1e-12);
+/// // the surer reading weighs four times as much
+/// let (x, _) = pooled_reading((300.0, 400.0), (250.0, 100.0));
+/// assert!((x - 260.0).abs() < 1e-12);
+/// ```
+pub fn pooled_reading(a: Measured, b: Measured) -> Measured {
+    let usable = |v: f64| v.is_finite() && v > 0.0;
+    let (va, vb) = match (usable(a.1), usable(b.1)) {
+        (true, true) => (a.1, b.1),
+        (true, false) => (a.1, a.1),
+        (false, true) => (b.1, b.1),
+        (false, false) => (1.0, 1.0),
+    };
+    let (wa, wb) = (1.0 / va, 1.0 / vb);
+    ((wa * a.0 + wb * b.0) / (wa + wb), 1.0 / (wa + wb))
+}
+
+/// The parameters (by index) measured outside their band: those a cell
+/// counting in band only by [`stays_in_band`] confirms before the run
+/// stops when [`super::array_run::ArrayRunSettings::pool_confirmations`]
+/// is on. A parameter without a value is not listed.
+///
+/// ```
+/// use spintune::tuner::in_band::beyond_band;
+/// let targets = [20.0, 270.0];
+/// assert_eq!(beyond_band(&[Some((20.5, 0.25)), Some((302.4, 400.0))], &targets, 0.1), [1]);
+/// assert!(beyond_band(&[Some((20.5, 0.25)), None], &targets, 0.1).is_empty());
+/// ```
+pub fn beyond_band(
+    values: &[Option<Measured>],
+    targets: &[f64],
+    relative_tolerance: f64,
+) -> Vec<usize> {
+    values
+        .iter()
+        .zip(targets)
+        .enumerate()
+        .filter(|(_, (m, &t))| m.is_some_and(|(x, _)| !within_band(x, t, relative_tolerance)))
+        .map(|(p, _)| p)
+        .collect()
+}
+
 /// The parameters of a cell measured in band that are scanned once more
 /// before the run stops ([`super::array_run::ArrayRunSettings::confirm_entry_sigma`]):
 /// none when its previous measurement was in band (`was_in_band`; not so

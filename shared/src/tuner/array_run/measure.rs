@@ -15,7 +15,9 @@ use crate::protocol::{
 };
 use crate::sim::array::parameter_name;
 use crate::tuner::array::Measured;
-use crate::tuner::in_band::{stays_in_band, to_confirm, within_band, InBandRule};
+use crate::tuner::in_band::{
+    beyond_band, pooled_reading, stays_in_band, to_confirm, within_band, InBandRule,
+};
 use crate::tuner::stall::StalledRowSource;
 
 impl ArrayRun {
@@ -121,13 +123,22 @@ impl ArrayRun {
                 // a measured parameter within its band
                 let within =
                     |p: usize| values[c][p].is_some_and(|(x, _)| within_band(x, tv[p], band));
-                let in_band = self
+                let by_rule = self
                     .settings
                     .in_band
-                    .in_band(&values[c], &estimates[c], &tv, band)
-                    || self.stays_in_band(c, &values[c], tv);
+                    .in_band(&values[c], &estimates[c], &tv, band);
+                let held = !by_rule && self.stays_in_band(c, &values[c], tv);
+                let in_band = by_rule || held;
                 all_in &= in_band;
                 confirm.extend(self.note_in_band(c, &values[c], tv, in_band));
+                if held && self.settings.pool_confirmations {
+                    // held by the hysteresis alone: confirmed before a stop
+                    for p in beyond_band(&values[c], &tv, band) {
+                        if !confirm.contains(&(c as u32, p)) {
+                            confirm.push((c as u32, p));
+                        }
+                    }
+                }
                 let out: Vec<bool> = (0..tv.len())
                     .map(|p| values[c][p].is_some() && !within(p))
                     .collect();
@@ -193,6 +204,8 @@ impl ArrayRun {
             before_move: BTreeMap::new(),
             before_lines: BTreeMap::new(),
             lines_verified: Vec::new(),
+            confirm_round: 0,
+            pooled: Vec::new(),
             record: Some(Box::new(record)),
         };
         self.step = self.step_after_measurement(all_in, confirm, &skip)?;
@@ -358,9 +371,14 @@ impl ArrayRun {
 
     /// The answers to [`Step::Confirm`]'s scans: the iteration is tuned when
     /// each confirms its parameter in band (a value whose error bar fits
-    /// the band, within it). Otherwise a parameter that read out aims at
-    /// the mean of its two readings, its cell counts out of band, and the
-    /// iteration moves on. Each scan is reported as an event.
+    /// the band, within it; under
+    /// [`ArrayRunSettings::pool_confirmations`](super::ArrayRunSettings::pool_confirmations)
+    /// the readings since the measurement pooled, and one within the band
+    /// but near its edge scanned again while
+    /// [`ArrayRunSettings::confirm_rounds`](super::ArrayRunSettings::confirm_rounds)
+    /// remain). Otherwise a parameter that read out aims at its readings'
+    /// mean, its cell counts out of band, and the iteration moves on. Each
+    /// scan is reported as an event.
     pub(super) fn confirm_entries(
         &mut self,
         pending: &[(u32, usize)],
@@ -374,7 +392,11 @@ impl ArrayRun {
             )));
         }
         let band = self.settings.relative_tolerance;
+        let pool = self.settings.pool_confirmations;
+        let last_round = !pool || self.scratch.confirm_round + 1 >= self.settings.confirm_rounds;
+        let margin = self.settings.confirm_entry_sigma;
         let mut confirmed = true;
+        let mut again = Vec::new();
         let mut events = Vec::with_capacity(pending.len());
         for (&(c, p), a) in pending.iter().zip(answers) {
             let cell = c as usize;
@@ -385,10 +407,28 @@ impl ArrayRun {
             if m.is_none() {
                 self.evaluation_failed(cell);
             }
-            let inside = m.is_some_and(|(x, var)| {
-                x > 0.0 && var.sqrt() <= band * x && within_band(x, target, band)
-            });
-            confirmed &= inside;
+            let usable = |(x, var): Measured| x > 0.0 && var.sqrt() <= band * x;
+            let verified = self.scratch.lines_verified.contains(&c);
+            let first = self
+                .scratch
+                .record
+                .as_ref()
+                .and_then(|r| r.parameters.get(2 * cell + p))
+                .and_then(|r| Some((r.value?, r.std?.powi(2))));
+            // the readings so far at these voltages: pooled in earlier
+            // rounds, else the measurement's (not after a line correction)
+            let before = self
+                .scratch
+                .pooled
+                .iter()
+                .find(|(k, _)| *k == (c, p))
+                .map(|&(_, r)| r)
+                .or(first.filter(|&r| usable(r) && !verified));
+            let judged = match (m.filter(|&r| usable(r)), before) {
+                (Some(b), Some(a)) if pool => Some(pooled_reading(a, b)),
+                (b, _) => b,
+            };
+            let inside = judged.is_some_and(|(x, _)| within_band(x, target, band));
             events.push(TunerEvent {
                 level: "array".into(),
                 kind: EventKind::BandEntryRechecked {
@@ -400,22 +440,28 @@ impl ArrayRun {
                 },
             });
             if inside {
+                if let Some((x, var)) = judged.filter(|_| pool) {
+                    let near_edge =
+                        (x - target).abs() + margin * var.max(0.0).sqrt() > band * target;
+                    if near_edge && !last_round {
+                        again.push((c, p));
+                    }
+                    match self.scratch.pooled.iter_mut().find(|(k, _)| *k == (c, p)) {
+                        Some(slot) => slot.1 = (x, var),
+                        None => self.scratch.pooled.push(((c, p), (x, var))),
+                    }
+                }
                 continue;
             }
-            let first = self
-                .scratch
-                .record
-                .as_ref()
-                .and_then(|r| r.parameters.get(2 * cell + p))
-                .and_then(|r| r.value);
+            confirmed = false;
             if let Some(j) = self.joint.as_mut() {
                 if let Some(b) = j.in_band.get_mut(cell) {
                     *b = false;
                 }
-                let verified = self.scratch.lines_verified.contains(&c);
-                let mean = match (first, m) {
-                    (_, Some((b, _))) if b > 0.0 && verified => Some(b),
-                    (Some(a), Some((b, _))) if b > 0.0 => Some(0.5 * (a + b)),
+                let mean = match (judged, first, m) {
+                    (Some((x, _)), _, _) if pool && x > 0.0 => Some(x),
+                    (_, _, Some((b, _))) if b > 0.0 && verified => Some(b),
+                    (_, Some((a, _)), Some((b, _))) if b > 0.0 => Some(0.5 * (a + b)),
                     _ => None,
                 };
                 if let (Some(x), Some(slot)) = (
@@ -429,11 +475,15 @@ impl ArrayRun {
                 }
             }
         }
+        let more = confirmed && !again.is_empty();
         if let Some(r) = self.scratch.record.as_mut() {
             r.events.extend(events);
-            r.tuned = confirmed;
+            r.tuned = confirmed && !more;
         }
-        self.step = if confirmed {
+        self.step = if more {
+            self.scratch.confirm_round += 1;
+            Step::Confirm(again)
+        } else if confirmed {
             Step::Boundary
         } else {
             self.step_to_move()?

@@ -332,6 +332,13 @@ struct Scratch {
     /// their confirming scans replace this iteration's readings.
     #[serde(default)]
     lines_verified: Vec<u32>,
+    /// The confirming round under way (0-based) and, per parameter
+    /// rechecked so far (cell, index), its readings pooled
+    /// ([`ArrayRunSettings::pool_confirmations`]).
+    #[serde(default)]
+    confirm_round: u32,
+    #[serde(default)]
+    pooled: Vec<((u32, usize), Measured)>,
     record: Option<Box<IterationRecord>>,
 }
 

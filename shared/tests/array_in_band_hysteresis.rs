@@ -128,9 +128,12 @@ fn off_every_measurement_is_judged_on_its_own() {
     }
 }
 
+/// A reading: value and σ in the parameter's unit.
+type Reading = (f64, f64);
+
 /// Two readings (value, σ) combined by their inverse variances (written
 /// out here, not the crate's helper): the pooled value and its σ.
-fn pool((a, sa): (f64, f64), (b, sb): (f64, f64)) -> (f64, f64) {
+fn pool((a, sa): Reading, (b, sb): Reading) -> Reading {
     let (wa, wb) = (sa.powi(-2), sb.powi(-2));
     ((wa * a + wb * b) / (wa + wb), (wa + wb).powf(-0.5))
 }
@@ -165,7 +168,7 @@ fn pooled_confirmations_judge_every_reading_and_confirm_held_cells() {
             let targets: Vec<f64> = r.parameters.iter().map(|p| p.target.unwrap()).collect();
             let mut rechecks = Vec::new();
             // per parameter rechecked: (readings pooled so far, rounds)
-            let mut so_far: Vec<(usize, Option<(f64, f64)>, u32)> = Vec::new();
+            let mut so_far: Vec<(usize, Option<Reading>, u32)> = Vec::new();
             for e in &r.events {
                 if let EventKind::BandEntryRechecked {
                     parameter,

@@ -291,3 +291,21 @@ fn the_margin_is_bounded_and_named() {
     q.tuning.stay_in_band_sigma = 3.0;
     assert!(q.validate().is_ok());
 }
+
+#[test]
+fn the_confirming_rounds_are_bounded_and_named() {
+    for bad in [0, 6, u32::MAX] {
+        let mut q = ArrayProtocol::default();
+        q.tuning.confirm_rounds = bad;
+        assert_eq!(
+            q.validate().unwrap_err().field,
+            "tuning.confirm_rounds",
+            "{bad}"
+        );
+    }
+    let mut q = ArrayProtocol::default();
+    assert_eq!(q.tuning.confirm_rounds, 1, "the default");
+    assert!(!q.tuning.pool_confirmations, "the default");
+    q.tuning.confirm_rounds = 5;
+    assert!(q.validate().is_ok());
+}

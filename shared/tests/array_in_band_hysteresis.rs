@@ -276,36 +276,31 @@ fn pooled_confirmations_judge_every_reading_and_confirm_held_cells() {
     assert!(second_rounds > 0, "no parameter rechecked twice");
 }
 
+/// Whether the protocol with `set` applied validates, or the field its
+/// error names.
+fn validated(set: impl FnOnce(&mut ArrayProtocol)) -> Result<(), String> {
+    let mut q = ArrayProtocol::default();
+    set(&mut q);
+    q.validate().map_err(|e| e.field)
+}
+
 #[test]
 fn the_margin_is_bounded_and_named() {
     for bad in [-0.5, 3.5, f64::NAN, f64::INFINITY] {
-        let mut q = ArrayProtocol::default();
-        q.tuning.stay_in_band_sigma = bad;
-        assert_eq!(
-            q.validate().unwrap_err().field,
-            "tuning.stay_in_band_sigma",
-            "{bad}"
-        );
+        let field = validated(|q| q.tuning.stay_in_band_sigma = bad);
+        assert_eq!(field.unwrap_err(), "tuning.stay_in_band_sigma", "{bad}");
     }
-    let mut q = ArrayProtocol::default();
-    q.tuning.stay_in_band_sigma = 3.0;
-    assert!(q.validate().is_ok());
+    assert!(validated(|q| q.tuning.stay_in_band_sigma = 3.0).is_ok());
 }
 
 #[test]
 fn the_confirming_rounds_are_bounded_and_named() {
     for bad in [0, 6, u32::MAX] {
-        let mut q = ArrayProtocol::default();
-        q.tuning.confirm_rounds = bad;
-        assert_eq!(
-            q.validate().unwrap_err().field,
-            "tuning.confirm_rounds",
-            "{bad}"
-        );
+        let field = validated(|q| q.tuning.confirm_rounds = bad);
+        assert_eq!(field.unwrap_err(), "tuning.confirm_rounds", "{bad}");
     }
-    let mut q = ArrayProtocol::default();
+    let q = ArrayProtocol::default();
     assert_eq!(q.tuning.confirm_rounds, 1, "the default");
     assert!(!q.tuning.pool_confirmations, "the default");
-    q.tuning.confirm_rounds = 5;
-    assert!(q.validate().is_ok());
+    assert!(validated(|q| q.tuning.confirm_rounds = 5).is_ok());
 }

@@ -57,12 +57,40 @@ fn usable(p: &ParameterReport) -> Option<(f64, f64, f64, f64)> {
     (x > 0.0 && s <= 0.1 * x).then_some((x, s, t, tol))
 }
 
+/// What the record before says of the cells: each one's verdict, and the
+/// targets it was judged against.
+type Before = Option<(Vec<bool>, Vec<f64>)>;
+
+/// Cell `c`'s reports `ps` (targets `targets`, the record before
+/// `before`): whether it is measured in band, and whether it stays in
+/// band by the hysteresis (in band at the record before, same targets,
+/// every parameter within `k` σ beyond its band's edge).
+fn cell_verdict(
+    ps: &[ParameterReport],
+    c: usize,
+    targets: &[f64],
+    before: &Before,
+    k: f64,
+) -> (bool, bool) {
+    let measured = ps
+        .iter()
+        .all(|p| usable(p).is_some_and(|(x, _, t, tol)| (x - t).abs() <= tol));
+    let was_in = before
+        .as_ref()
+        .is_some_and(|(v, tv)| v[c] && tv[2 * c..2 * c + 2] == targets[2 * c..2 * c + 2]);
+    let stays = was_in
+        && ps
+            .iter()
+            .all(|p| usable(p).is_some_and(|(x, s, t, tol)| (x - t).abs() <= tol + k * s));
+    (measured, stays)
+}
+
 /// Cell verdicts derived from the records: in band on the measurement, or
 /// in band at the record before (same targets) and every parameter within
 /// `k` σ beyond its band's edge. Returns, per record, (derived verdict of
 /// every cell, whether some cell counted only by the hysteresis).
 fn derived(records: &[IterationRecord], k: f64) -> Vec<(bool, bool)> {
-    let mut before: Option<(Vec<bool>, Vec<f64>)> = None;
+    let mut before: Before = None;
     records
         .iter()
         .map(|r| {
@@ -73,16 +101,7 @@ fn derived(records: &[IterationRecord], k: f64) -> Vec<(bool, bool)> {
                 .iter()
                 .enumerate()
                 .map(|(c, ps)| {
-                    let measured = ps
-                        .iter()
-                        .all(|p| usable(p).is_some_and(|(x, _, t, tol)| (x - t).abs() <= tol));
-                    let was_in = before.as_ref().is_some_and(|(v, tv)| {
-                        v[c] && tv[2 * c..2 * c + 2] == targets[2 * c..2 * c + 2]
-                    });
-                    let stays = was_in
-                        && ps.iter().all(|p| {
-                            usable(p).is_some_and(|(x, s, t, tol)| (x - t).abs() <= tol + k * s)
-                        });
+                    let (measured, stays) = cell_verdict(ps, c, &targets, &before, k);
                     only_by_hysteresis |= stays && !measured;
                     measured || stays
                 })
@@ -162,7 +181,7 @@ fn pooled_confirmations_judge_every_reading_and_confirm_held_cells() {
         protocol.tuning.pool_confirmations = true;
         protocol.tuning.confirm_rounds = 3;
         let rs = records_with(seed, protocol);
-        let mut before: Option<(Vec<bool>, Vec<f64>)> = None;
+        let mut before: Before = None;
         for r in &rs {
             let at = format!("seed {seed}, iteration {}", r.iteration);
             let targets: Vec<f64> = r.parameters.iter().map(|p| p.target.unwrap()).collect();
@@ -227,16 +246,7 @@ fn pooled_confirmations_judge_every_reading_and_confirm_held_cells() {
             let mut held = Vec::new();
             let mut all = true;
             for (c, ps) in r.parameters.chunks(2).enumerate() {
-                let measured = ps
-                    .iter()
-                    .all(|p| usable(p).is_some_and(|(x, _, t, tol)| (x - t).abs() <= tol));
-                let was_in = before.as_ref().is_some_and(|(v, tv)| {
-                    v[c] && tv[2 * c..2 * c + 2] == targets[2 * c..2 * c + 2]
-                });
-                let stays = was_in
-                    && ps.iter().all(|p| {
-                        usable(p).is_some_and(|(x, s, t, tol)| (x - t).abs() <= tol + k * s)
-                    });
+                let (measured, stays) = cell_verdict(ps, c, &targets, &before, k);
                 let failed = rechecks.iter().any(|&(i, ok)| i / 2 == c && !ok);
                 verdicts.push((measured || stays) && !failed);
                 all &= measured || stays;

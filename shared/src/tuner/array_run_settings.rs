@@ -284,6 +284,18 @@ pub struct ArrayRunSettings {
     /// Default 0 (off).
     #[serde(default)]
     pub confirm_bystander_sigma: f64,
+    /// The in-band margin of a **disturbed bystander**: a cell whose targets
+    /// were not set since the run last stopped with every cell in band,
+    /// next to one (within one step on the grid) whose targets were. Such
+    /// a cell counts in band only when each parameter reads at least this
+    /// many of its reported σ inside its band's edge, the margin at most
+    /// half the band ([`inside_margin`](super::in_band::inside_margin)): the
+    /// change's crosstalk pushed it, and a reading just inside the edge
+    /// leaves it truly outside about as often as not; the joint step keeps
+    /// aiming it at its target until it reads well inside. 0..=3; 0: judged
+    /// like every other cell. Default 0 (off).
+    #[serde(default)]
+    pub disturbed_margin_sigma: f64,
     /// Hysteresis of the in-band verdict: a cell that counted in band at
     /// its previous measurement keeps counting while each of its
     /// parameters reads within this many of its reported σ beyond its
@@ -404,6 +416,7 @@ impl Default for ArrayRunSettings {
             confirm_entry_sigma: default_confirm_entry_sigma(),
             confirm_in_band_cells: false,
             confirm_bystander_sigma: 0.0,
+            disturbed_margin_sigma: 0.0,
             stay_in_band_sigma: 0.0,
             pool_confirmations: false,
             confirm_rounds: 1,
@@ -523,6 +536,7 @@ impl ArrayRunSettings {
             ),
             ("confirm_entry_sigma", self.confirm_entry_sigma, 3.0),
             ("confirm_bystander_sigma", self.confirm_bystander_sigma, 3.0),
+            ("disturbed_margin_sigma", self.disturbed_margin_sigma, 3.0),
             ("stay_in_band_sigma", self.stay_in_band_sigma, 3.0),
         ] {
             check(

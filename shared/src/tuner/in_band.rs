@@ -128,6 +128,44 @@ pub fn stays_in_band(
         })
 }
 
+/// The in-band verdict of a **disturbed bystander**
+/// ([`super::array_run::ArrayRunSettings::disturbed_margin_sigma`]): whether
+/// every parameter of `values` (value, unit² variance) reads at least
+/// `sigma` of its reported σ inside its band's edge, the margin at most
+/// half the band (`|x − target| ≤ relative_tolerance · target − min(sigma·σ,
+/// relative_tolerance · target / 2)`). A cell whose reading sits just
+/// inside its edge is truly outside about as often as its noise allows;
+/// one read this far inside rarely is. `sigma = 0` is the plain band; a
+/// parameter without a value never passes.
+///
+/// ```
+/// use spintune::tuner::in_band::inside_margin;
+/// let targets = [20.0, 270.0];
+/// // w read 291.3 µV, σ 5.6 µV: 1.02σ inside the 297 µV edge
+/// let values = [Some((20.0, 0.04)), Some((291.3, 5.6 * 5.6))];
+/// assert!(inside_margin(&values, &targets, 0.1, 1.0));
+/// assert!(!inside_margin(&values, &targets, 0.1, 2.0));
+/// // σ 20 µV: 2σ would exceed half the band (13.5 µV), which caps it
+/// let values = [Some((20.0, 0.04)), Some((283.0, 400.0))];
+/// assert!(inside_margin(&values, &targets, 0.1, 2.0));
+/// assert!(!inside_margin(&[Some((20.0, 0.04)), None], &targets, 0.1, 0.0));
+/// ```
+pub fn inside_margin(
+    values: &[Option<Measured>],
+    targets: &[f64],
+    relative_tolerance: f64,
+    sigma: f64,
+) -> bool {
+    values.len() == targets.len()
+        && values.iter().zip(targets).all(|(m, &t)| {
+            m.is_some_and(|(x, var)| {
+                let half = relative_tolerance * t;
+                let margin = (sigma * var.max(0.0).sqrt()).min(0.5 * half);
+                (x - t).abs() <= half - margin
+            })
+        })
+}
+
 /// Two readings of one parameter at the same voltages (value, unit²
 /// variance each) combined by their inverse variances: the pooled value and
 /// its variance ([`super::array_run::ArrayRunSettings::pool_confirmations`]).

@@ -16,7 +16,7 @@ use crate::protocol::{
 use crate::sim::array::parameter_name;
 use crate::tuner::array::Measured;
 use crate::tuner::in_band::{
-    beyond_band, pooled_reading, stays_in_band, to_confirm, within_band, InBandRule,
+    beyond_band, inside_margin, pooled_reading, stays_in_band, to_confirm, within_band, InBandRule,
 };
 use crate::tuner::stall::StalledRowSource;
 
@@ -109,6 +109,7 @@ impl ArrayRun {
                 j.tuner.observe(c, vals, &v);
             }
         }
+        let disturbed = self.disturbed_bystanders();
         let mut residual = vec![vec![None; 2]; k];
         let mut all_in = true;
         let mut confirm = Vec::new();
@@ -126,7 +127,14 @@ impl ArrayRun {
                 let by_rule = self
                     .settings
                     .in_band
-                    .in_band(&values[c], &estimates[c], &tv, band);
+                    .in_band(&values[c], &estimates[c], &tv, band)
+                    && (!disturbed[c]
+                        || inside_margin(
+                            &values[c],
+                            &tv,
+                            band,
+                            self.settings.disturbed_margin_sigma,
+                        ));
                 let held = !by_rule && self.stays_in_band(c, &values[c], tv);
                 let in_band = by_rule || held;
                 all_in &= in_band;
@@ -261,6 +269,23 @@ impl ArrayRun {
                     })
                     .collect()
             })
+            .collect()
+    }
+
+    /// Per cell: whether it is a disturbed bystander, judged with
+    /// [`ArrayRunSettings::disturbed_margin_sigma`](super::ArrayRunSettings::disturbed_margin_sigma):
+    /// its targets not set since the run last stopped tuned, a cell within
+    /// one step on the grid whose targets were. All `false` when the
+    /// margin is off.
+    fn disturbed_bystanders(&self) -> Vec<bool> {
+        let k = self.sessions.len();
+        if self.settings.disturbed_margin_sigma <= 0.0 {
+            return vec![false; k];
+        }
+        let changed = |c: usize| self.changed_since_stop.get(c).copied().unwrap_or(true);
+        let grid = self.grid();
+        (0..k)
+            .map(|c| !changed(c) && grid.within(c, 1).any(|n| n != c && changed(n)))
             .collect()
     }
 

@@ -70,6 +70,9 @@ fn run(seed: u64, rules: Rules, phases: &[TargetChange]) -> Vec<Iteration> {
     protocol.tuning.confirm_entry_sigma = rules.sigma;
     protocol.tuning.confirm_in_band_cells = rules.in_band_cells;
     protocol.tuning.confirm_bystander_sigma = rules.bystander_sigma;
+    // the verdicts here are the plain band's (the disturbed neighbours'
+    // margin has its own test, array_disturbed_margin.rs)
+    protocol.tuning.disturbed_margin_sigma = 0.0;
     let (mut run, mut lab) = joint_in_lab(world_of(seed), &protocol, seed);
     let batches = std::cell::RefCell::new(Vec::new());
     let mut records = Vec::new();

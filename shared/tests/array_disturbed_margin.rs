@@ -118,11 +118,15 @@ fn a_changed_cell_s_neighbours_stop_only_well_inside_their_bands() {
     assert!(decided > 0, "the margin never held a run back");
 }
 
-/// Off (the default), a record is tuned exactly when every cell reads in
-/// its band: the same derivation with no margin.
+/// Off, a record is tuned exactly when every cell reads in its band: the
+/// same derivation with no margin.
 #[test]
 fn off_neighbours_are_judged_on_the_plain_band() {
-    assert_eq!(ArrayProtocol::default().tuning.disturbed_margin_sigma, 0.0);
+    assert_eq!(
+        ArrayProtocol::default().tuning.disturbed_margin_sigma,
+        1.0,
+        "the default"
+    );
     let rs = records(1, 0.0);
     for (r, (verdict, by_margin)) in rs.iter().zip(derived(&rs, 0.0)) {
         assert_eq!(r.tuned, verdict, "iteration {}", r.iteration);

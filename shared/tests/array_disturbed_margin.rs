@@ -9,10 +9,10 @@
 mod support;
 
 use spintune::benchmark::array::{world, ArrayProtocol};
-use spintune::protocol::{IterationRecord, ParameterReport};
+use spintune::protocol::IterationRecord;
 use spintune::sim::array::{ArrayConfig, ArrayDevice};
 use spintune::sim::DeviceConfig;
-use support::array::{joint_in_lab, through_changes, TargetChange};
+use support::array::{assert_tuned_as_derived, records_through, usable_report, TargetChange};
 
 const CELLS: usize = 3;
 
@@ -33,29 +33,13 @@ fn records(seed: u64, sigma: f64) -> Vec<IterationRecord> {
     protocol.tuning.confirm_entry_sigma = 0.0;
     protocol.tuning.verify_lines_above_mv = None;
     protocol.tuning.disturbed_margin_sigma = sigma;
-    let (mut run, mut lab) = joint_in_lab(world_of(seed), &protocol, seed);
     let phases: [TargetChange; 4] = [
         (None, (20.0, 270.0)),
         (Some(1), (24.0, 240.0)),
         (Some(0), (17.0, 300.0)),
         (Some(1), (20.0, 270.0)),
     ];
-    let mut out = Vec::new();
-    through_changes(
-        &mut run,
-        &mut lab,
-        &phases,
-        |_| {},
-        |_, r| out.push(r.clone()),
-    );
-    out
-}
-
-/// A report's value, σ, target and half band, when its error bar is within
-/// the band (the loop does not act on a wider one: never in band).
-fn usable(p: &ParameterReport) -> Option<(f64, f64, f64, f64)> {
-    let (x, s, t, tol) = (p.value?, p.std?, p.target?, p.tolerance?);
-    (x > 0.0 && s <= tol / t * x).then_some((x, s, t, tol))
+    records_through(world_of(seed), &protocol, seed, &phases)
 }
 
 /// Per record: the verdict derived with margin `k` (every cell in band; a
@@ -82,7 +66,7 @@ fn derived(records: &[IterationRecord], k: f64) -> Vec<(bool, bool)> {
                 let disturbed = !changed[c] && next_to_changed;
                 let inside = |margin: bool| {
                     ps.iter().all(|p| {
-                        usable(p).is_some_and(|(x, s, t, tol)| {
+                        usable_report(p).is_some_and(|(x, s, t, tol)| {
                             let m = if margin { (k * s).min(tol / 2.0) } else { 0.0 };
                             (x - t).abs() <= tol - m
                         })
@@ -110,10 +94,9 @@ fn a_changed_cell_s_neighbours_stop_only_well_inside_their_bands() {
     for seed in 1..=3 {
         let rs = records(seed, 2.0);
         assert!(rs.iter().filter(|r| r.tuned).count() >= 3, "seed {seed}");
-        for (r, (verdict, by_margin)) in rs.iter().zip(derived(&rs, 2.0)) {
-            assert_eq!(r.tuned, verdict, "seed {seed}, iteration {}", r.iteration);
-            decided += u32::from(by_margin);
-        }
+        let d = derived(&rs, 2.0);
+        assert_tuned_as_derived(&rs, d.iter().map(|v| v.0), &format!("seed {seed}"));
+        decided += d.iter().filter(|v| v.1).count();
     }
     assert!(decided > 0, "the margin never held a run back");
 }
@@ -128,10 +111,9 @@ fn off_neighbours_are_judged_on_the_plain_band() {
         "the default"
     );
     let rs = records(1, 0.0);
-    for (r, (verdict, by_margin)) in rs.iter().zip(derived(&rs, 0.0)) {
-        assert_eq!(r.tuned, verdict, "iteration {}", r.iteration);
-        assert!(!by_margin);
-    }
+    let d = derived(&rs, 0.0);
+    assert_tuned_as_derived(&rs, d.iter().map(|v| v.0), "seed 1");
+    assert!(d.iter().all(|v| !v.1));
 }
 
 /// The margin's bound: 0..=3, a value outside refused with its field named.

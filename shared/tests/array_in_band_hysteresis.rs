@@ -14,7 +14,7 @@ use spintune::protocol::{EventKind, IterationRecord, ParameterReport};
 use spintune::sim::array::{ArrayConfig, ArrayDevice};
 use spintune::sim::random::random_device;
 use spintune::sim::DeviceConfig;
-use support::array::{joint_in_lab, through_changes, TargetChange};
+use support::array::{assert_tuned_as_derived, records_through, usable_report, TargetChange};
 
 /// Three cells drawn around random device 15202, whose `w` scans read
 /// with σ of 6–8 % (half the ±10 % band and more): cells truly in band
@@ -37,24 +37,8 @@ fn records(seed: u64, stay_sigma: f64) -> Vec<IterationRecord> {
 }
 
 fn records_with(seed: u64, protocol: ArrayProtocol) -> Vec<IterationRecord> {
-    let (mut run, mut lab) = joint_in_lab(world_of(seed), &protocol, seed);
     let phases: Vec<TargetChange> = PAPER_SET_POINTS.iter().map(|&t| (None, t)).collect();
-    let mut out = Vec::new();
-    through_changes(
-        &mut run,
-        &mut lab,
-        &phases,
-        |_| {},
-        |_, r| out.push(r.clone()),
-    );
-    out
-}
-
-/// A report's value, σ and target, when its error bar is within the band
-/// (the loop does not act on a wider one: never in band).
-fn usable(p: &ParameterReport) -> Option<(f64, f64, f64, f64)> {
-    let (x, s, t, tol) = (p.value?, p.std?, p.target?, p.tolerance?);
-    (x > 0.0 && s <= 0.1 * x).then_some((x, s, t, tol))
+    records_through(world_of(seed), &protocol, seed, &phases)
 }
 
 /// What the record before says of the cells: each one's verdict, and the
@@ -74,14 +58,14 @@ fn cell_verdict(
 ) -> (bool, bool) {
     let measured = ps
         .iter()
-        .all(|p| usable(p).is_some_and(|(x, _, t, tol)| (x - t).abs() <= tol));
+        .all(|p| usable_report(p).is_some_and(|(x, _, t, tol)| (x - t).abs() <= tol));
     let was_in = before
         .as_ref()
         .is_some_and(|(v, tv)| v[c] && tv[2 * c..2 * c + 2] == targets[2 * c..2 * c + 2]);
     let stays = was_in
         && ps
             .iter()
-            .all(|p| usable(p).is_some_and(|(x, s, t, tol)| (x - t).abs() <= tol + k * s));
+            .all(|p| usable_report(p).is_some_and(|(x, s, t, tol)| (x - t).abs() <= tol + k * s));
     (measured, stays)
 }
 
@@ -123,10 +107,12 @@ fn a_cell_in_band_stays_in_band_within_its_margin() {
     let mut decided = 0;
     for seed in 16..=18 {
         let rs = records(seed, 2.0);
-        for (r, (all, by_hysteresis)) in rs.iter().zip(derived(&rs, 2.0)) {
-            assert_eq!(r.tuned, all, "seed {seed}, iteration {}", r.iteration);
-            decided += u32::from(all && by_hysteresis);
-        }
+        let d = derived(&rs, 2.0);
+        assert_tuned_as_derived(&rs, d.iter().map(|v| v.0), &format!("seed {seed}"));
+        decided += d
+            .iter()
+            .filter(|&&(all, by_hysteresis)| all && by_hysteresis)
+            .count();
     }
     assert!(decided > 0, "the hysteresis never decided a stop");
 }
@@ -141,10 +127,9 @@ fn off_every_measurement_is_judged_on_its_own() {
         "the default"
     );
     let rs = records(11, 0.0);
-    for (r, (all, by_hysteresis)) in rs.iter().zip(derived(&rs, 0.0)) {
-        assert_eq!(r.tuned, all, "iteration {}", r.iteration);
-        assert!(!by_hysteresis);
-    }
+    let d = derived(&rs, 0.0);
+    assert_tuned_as_derived(&rs, d.iter().map(|v| v.0), "seed 11");
+    assert!(d.iter().all(|v| !v.1));
 }
 
 /// A reading: value and σ in the parameter's unit.
@@ -217,7 +202,7 @@ fn pooled_confirmations_judge_every_reading_and_confirm_held_cells() {
                             j
                         }
                         None => {
-                            so_far.push((i, usable(p).map(|(x, s, _, _)| (x, s)), 0));
+                            so_far.push((i, usable_report(p).map(|(x, s, _, _)| (x, s)), 0));
                             so_far.len() - 1
                         }
                     };
@@ -252,7 +237,7 @@ fn pooled_confirmations_judge_every_reading_and_confirm_held_cells() {
                 all &= measured || stays;
                 if stays && !measured {
                     for (q, p) in ps.iter().enumerate() {
-                        let (x, _, t, tol) = usable(p).unwrap();
+                        let (x, _, t, tol) = usable_report(p).unwrap();
                         if (x - t).abs() > tol {
                             held.push((2 * c + q, &p.name));
                         }

@@ -4,7 +4,7 @@
 //! as the lab's calibration.
 
 use spintune::benchmark::array::{cell_tuner, lab_cross_calibration, world, ArrayProtocol, Lab};
-use spintune::protocol::{IterationRecord, Request, ScanKind};
+use spintune::protocol::{IterationRecord, ParameterReport, Request, ScanKind};
 use spintune::sim::array::{ArrayConfig, ArrayDevice};
 use spintune::sim::DeviceConfig;
 use spintune::tuner::array_run::{ArrayAction, ArrayRun, ArrayRunSettings};
@@ -177,4 +177,50 @@ pub fn is_measurement_of(request: &Request, cell: u32) -> bool {
     matches!(request, Request::Measure { scan }
         if scan.cell == Some(cell)
             && matches!(scan.kind, ScanKind::ReloadTime | ScanKind::TransitionWidth))
+}
+
+/// The records of the joint loop on `array` with `protocol` and noise
+/// `seed`, through `changes` ([`through_changes`]).
+pub fn records_through(
+    array: ArrayDevice,
+    protocol: &ArrayProtocol,
+    seed: u64,
+    changes: &[TargetChange],
+) -> Vec<IterationRecord> {
+    let (mut run, mut lab) = joint_in_lab(array, protocol, seed);
+    let mut out = Vec::new();
+    through_changes(
+        &mut run,
+        &mut lab,
+        changes,
+        |_| {},
+        |_, r| out.push(r.clone()),
+    );
+    out
+}
+
+/// A report's value, σ, target and half band (unit), when its error bar
+/// is within the band (the loop does not act on a wider one: never in
+/// band).
+pub fn usable_report(p: &ParameterReport) -> Option<(f64, f64, f64, f64)> {
+    let (x, s, t, tol) = (p.value?, p.std?, p.target?, p.tolerance?);
+    (x > 0.0 && s <= tol / t * x).then_some((x, s, t, tol))
+}
+
+/// Every record's `tuned` equals the verdict derived for it (`verdicts`,
+/// one per record, in order); `at` names the run in a failure.
+pub fn assert_tuned_as_derived(
+    records: &[IterationRecord],
+    verdicts: impl IntoIterator<Item = bool>,
+    at: &str,
+) {
+    let verdicts: Vec<bool> = verdicts.into_iter().collect();
+    assert_eq!(
+        records.len(),
+        verdicts.len(),
+        "{at}: one verdict per record"
+    );
+    for (r, v) in records.iter().zip(verdicts) {
+        assert_eq!(r.tuned, v, "{at}, iteration {}", r.iteration);
+    }
 }

@@ -13,6 +13,10 @@
 //! A cell that has just entered its band near the edge is scanned once
 //! more, where it is, before the run stops ([`to_confirm`]): two readings
 //! in band are much less likely than one for a cell truly just outside.
+//!
+//! A changed cell's neighbours, pushed by its crosstalk, count in band
+//! only a margin inside their edges ([`inside_margin`]), so that they stop
+//! well inside rather than where they first read in again.
 
 use serde::{Deserialize, Serialize};
 

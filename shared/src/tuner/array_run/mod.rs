@@ -413,7 +413,9 @@ pub struct ArrayRun {
     /// Per cell: its targets were set since the run last stopped with every
     /// cell in band (all cells at the start). A cell that is not is a
     /// bystander of the present change
-    /// ([`ArrayRunSettings::confirm_bystander_sigma`]). Empty (a checkpoint
+    /// ([`ArrayRunSettings::confirm_bystander_sigma`]; next to a changed
+    /// cell, a disturbed one: [`ArrayRunSettings::disturbed_margin_sigma`]).
+    /// Empty (a checkpoint
     /// from before this field): every cell counts as changed.
     #[serde(default)]
     changed_since_stop: Vec<bool>,

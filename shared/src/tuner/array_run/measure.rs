@@ -282,11 +282,17 @@ impl ArrayRun {
         if self.settings.disturbed_margin_sigma <= 0.0 {
             return vec![false; k];
         }
-        let changed = |c: usize| self.changed_since_stop.get(c).copied().unwrap_or(true);
         let grid = self.grid();
         (0..k)
-            .map(|c| !changed(c) && grid.within(c, 1).any(|n| n != c && changed(n)))
+            .map(|c| self.is_bystander(c) && grid.within(c, 1).any(|n| !self.is_bystander(n)))
             .collect()
+    }
+
+    /// Whether cell `c` is a bystander of the present change: its targets
+    /// not set since the run last stopped with every cell in band (a
+    /// checkpoint without the flags: every cell counts as changed).
+    fn is_bystander(&self, c: usize) -> bool {
+        !self.changed_since_stop.get(c).copied().unwrap_or(true)
     }
 
     /// Whether cell `c` still counts in band on `values` (targets `tv`)
@@ -322,6 +328,7 @@ impl ArrayRun {
     ) -> Vec<(u32, usize)> {
         let k = self.sessions.len();
         let band = self.settings.relative_tolerance;
+        let bystander = self.is_bystander(c);
         let Some(j) = self.joint.as_mut() else {
             return Vec::new();
         };
@@ -330,7 +337,6 @@ impl ArrayRun {
         }
         let mut confirm = Vec::new();
         if in_band {
-            let bystander = !self.changed_since_stop.get(c).copied().unwrap_or(true);
             let by_sigma = self.settings.confirm_bystander_sigma;
             // a bystander near its edge is scanned again whether or
             // not it was in band before: the change's crosstalk and

@@ -572,6 +572,7 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
             "retreat = \"lines\"\n",
             &["retreat", "every_gate_lines_kept", "tuning_gates"][..],
         ),
+        ("t_sr_floor = 0.25\n", &["tuning.t_sr_floor", "0.25"][..]),
     ] {
         std::fs::write(&tuning, contents).unwrap();
         let out = bin()

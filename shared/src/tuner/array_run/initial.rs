@@ -197,7 +197,11 @@ impl ArrayRun {
                     .as_ref()
                     .map(|c| (c.gates.clone(), c.matrix.clone())),
             });
-            let mut l = CellLower::empty(cfg.fit_references);
+            // the load curve's σ at least the run's floor (ArrayRunSettings::t_sr_floor)
+            let mut references = cfg.fit_references;
+            let t_sr = &mut references.t_sr.relative_floor;
+            *t_sr = t_sr.max(self.settings.t_sr_floor);
+            let mut l = CellLower::empty(references);
             for level in cfg.levels.iter().skip(1) {
                 match &level.kind {
                     LevelKind::SensingDot(sd) => {

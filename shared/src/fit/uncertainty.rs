@@ -53,7 +53,9 @@ pub struct Reference {
     pub delta_p0: f64,
     /// Relative floor `r` of [`UncertaintyRule::FitCovariance`]: scatter
     /// between scans that a single scan's residuals cannot show, as a
-    /// fraction of the value (dimensionless, 0 ≤ r < 1; default 0).
+    /// fraction of the value (dimensionless, 0 ≤ r < 1; default 0). The
+    /// joint array loop raises `t_sr`'s to at least
+    /// [`ArrayRunSettings::t_sr_floor`](crate::tuner::array_run::ArrayRunSettings::t_sr_floor).
     #[serde(default)]
     pub relative_floor: f64,
 }

@@ -10,21 +10,12 @@
 
 mod support;
 
-use spintune::benchmark::array::{world, ArrayProtocol};
+use spintune::benchmark::array::ArrayProtocol;
 use spintune::benchmark::PAPER_SET_POINTS;
 use spintune::protocol::{EventKind, IterationRecord, ParameterReport, Request, ScanKind};
-use spintune::sim::array::{split_gate, ArrayConfig, ArrayDevice};
+use spintune::sim::array::split_gate;
 use spintune::sim::DeviceConfig;
-use support::array::{joint_in_lab, through_changes, TargetChange};
-
-fn world_of(seed: u64) -> ArrayDevice {
-    world(
-        &DeviceConfig::default(),
-        ArrayConfig::chain(3, 5, seed),
-        |_| true,
-    )
-    .unwrap()
-}
+use support::array::{chain_world, joint_in_lab, through_changes, TargetChange};
 
 /// One iteration: its record and the batches it sent.
 struct Iteration {
@@ -73,7 +64,11 @@ fn run(seed: u64, rules: Rules, phases: &[TargetChange]) -> Vec<Iteration> {
     // the verdicts here are the plain band's (the disturbed neighbours'
     // margin has its own test, array_disturbed_margin.rs)
     protocol.tuning.disturbed_margin_sigma = 0.0;
-    let (mut run, mut lab) = joint_in_lab(world_of(seed), &protocol, seed);
+    let (mut run, mut lab) = joint_in_lab(
+        chain_world(&DeviceConfig::default(), 3, seed),
+        &protocol,
+        seed,
+    );
     let batches = std::cell::RefCell::new(Vec::new());
     let mut records = Vec::new();
     through_changes(

@@ -8,22 +8,14 @@
 
 mod support;
 
-use spintune::benchmark::array::{world, ArrayProtocol};
+use spintune::benchmark::array::ArrayProtocol;
 use spintune::protocol::IterationRecord;
-use spintune::sim::array::{ArrayConfig, ArrayDevice};
 use spintune::sim::DeviceConfig;
-use support::array::{assert_tuned_as_derived, records_through, usable_report, TargetChange};
+use support::array::{
+    assert_tuned_as_derived, chain_world, records_through, usable_report, TargetChange,
+};
 
 const CELLS: usize = 3;
-
-fn world_of(seed: u64) -> ArrayDevice {
-    world(
-        &DeviceConfig::default(),
-        ArrayConfig::chain(CELLS as u32, 5, seed),
-        |_| true,
-    )
-    .unwrap()
-}
 
 /// The records of a cold start to (20 ns, 270 µV), then cell 1's targets
 /// changed alone (both others its neighbours), then cell 0's (cell 1 its
@@ -39,7 +31,12 @@ fn records(seed: u64, sigma: f64) -> Vec<IterationRecord> {
         (Some(0), (17.0, 300.0)),
         (Some(1), (20.0, 270.0)),
     ];
-    records_through(world_of(seed), &protocol, seed, &phases)
+    records_through(
+        chain_world(&DeviceConfig::default(), CELLS as u32, seed),
+        &protocol,
+        seed,
+        &phases,
+    )
 }
 
 /// Per record: the verdict derived with margin `k` (every cell in band; a

@@ -8,26 +8,18 @@
 
 mod support;
 
-use spintune::benchmark::array::{world, ArrayProtocol};
+use spintune::benchmark::array::ArrayProtocol;
 use spintune::benchmark::PAPER_SET_POINTS;
 use spintune::protocol::{EventKind, IterationRecord, ParameterReport};
-use spintune::sim::array::{ArrayConfig, ArrayDevice};
 use spintune::sim::random::random_device;
 use spintune::sim::DeviceConfig;
-use support::array::{assert_tuned_as_derived, records_through, usable_report, TargetChange};
+use support::array::{
+    assert_tuned_as_derived, chain_world, records_through, usable_report, TargetChange,
+};
 
 /// Three cells drawn around random device 15202, whose `w` scans read
 /// with σ of 6–8 % (half the ±10 % band and more): cells truly in band
 /// that read just outside, which the hysteresis is for.
-fn world_of(seed: u64) -> ArrayDevice {
-    world(
-        &random_device(&DeviceConfig::default(), 15202),
-        ArrayConfig::chain(3, 5, seed),
-        |_| true,
-    )
-    .unwrap()
-}
-
 fn records(seed: u64, stay_sigma: f64) -> Vec<IterationRecord> {
     let mut protocol = ArrayProtocol::default();
     protocol.tuning.confirm_entry_sigma = 0.0;
@@ -38,7 +30,12 @@ fn records(seed: u64, stay_sigma: f64) -> Vec<IterationRecord> {
 
 fn records_with(seed: u64, protocol: ArrayProtocol) -> Vec<IterationRecord> {
     let phases: Vec<TargetChange> = PAPER_SET_POINTS.iter().map(|&t| (None, t)).collect();
-    records_through(world_of(seed), &protocol, seed, &phases)
+    records_through(
+        chain_world(&random_device(&DeviceConfig::default(), 15202), 3, seed),
+        &protocol,
+        seed,
+        &phases,
+    )
 }
 
 /// What the record before says of the cells: each one's verdict, and the

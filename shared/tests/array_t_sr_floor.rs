@@ -5,27 +5,22 @@
 
 mod support;
 
-use spintune::benchmark::array::{world, ArrayProtocol};
+use spintune::benchmark::array::ArrayProtocol;
 use spintune::protocol::IterationRecord;
-use spintune::sim::array::{ArrayConfig, ArrayDevice};
 use spintune::sim::DeviceConfig;
 use spintune::tuner::array_run::ArrayRunSettings;
-use support::array::{records_through, TargetChange};
-
-fn world_of(seed: u64) -> ArrayDevice {
-    world(
-        &DeviceConfig::default(),
-        ArrayConfig::chain(3, 5, seed),
-        |_| true,
-    )
-    .unwrap()
-}
+use support::array::{chain_world, records_through, TargetChange};
 
 fn records(seed: u64, floor: f64) -> Vec<IterationRecord> {
     let mut protocol = ArrayProtocol::default();
     protocol.tuning.t_sr_floor = floor;
     let phases: [TargetChange; 2] = [(None, (20.0, 270.0)), (None, (30.0, 240.0))];
-    records_through(world_of(seed), &protocol, seed, &phases)
+    records_through(
+        chain_world(&DeviceConfig::default(), 3, seed),
+        &protocol,
+        seed,
+        &phases,
+    )
 }
 
 /// `(value ns, σ ns)` of every `t_sr` reading in `records`.

@@ -10,6 +10,12 @@ use spintune::sim::DeviceConfig;
 use spintune::tuner::array_run::{ArrayAction, ArrayRun, ArrayRunSettings};
 use spintune::tuner::TunerConfig;
 
+/// A chain of `cells` cells around `base` (device seed 5), noise seed
+/// `seed`, every cell with its own sensor.
+pub fn chain_world(base: &DeviceConfig, cells: u32, seed: u64) -> ArrayDevice {
+    world(base, ArrayConfig::chain(cells, 5, seed), |_| true).unwrap()
+}
+
 /// The world and a joint loop with one tuner per cell (`cells.len()` = 3).
 pub fn three_cells(cells: Vec<TunerConfig>) -> (ArrayRun, ArrayDevice) {
     three_cells_with(cells, ArrayProtocol::default().run_settings())

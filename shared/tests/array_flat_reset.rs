@@ -47,6 +47,8 @@ fn traced(sigma: f64) -> (Vec<TimelinePoint>, Vec<f64>) {
     protocol.tuning.line_max_step_mv = Some(2.0);
     protocol.tuning.joint_line_steps = false;
     protocol.tuning.finite_difference_step_mv = None;
+    // the scenario was traced with the references' own t_sr floor
+    protocol.tuning.t_sr_floor = 0.0;
     set_points.push(protocol.single_cell_target);
     let reachable = |d: &spintune::sim::DeviceConfig| cell_targets_reachable(d, &set_points);
     let config = ArrayConfig {

@@ -74,7 +74,7 @@ pub struct BenchArrayArgs {
     pub precorrect_lines_mv: Option<f64>,
     /// `joint`/`oracle`: skip the scans of a held cell that shares its
     /// sensor when predicted in band with this many σ (0.5..=10; 0 turns it
-    /// off) [default: the protocol's, 2].
+    /// off) [default: the protocol's, 1.5].
     #[arg(long)]
     pub skip_confident_sigma: Option<f64>,
     /// The joint loop's settings from this TOML file (an `ArrayRunSettings`

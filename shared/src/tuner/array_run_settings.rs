@@ -137,8 +137,14 @@ pub struct ArrayRunSettings {
     /// with another cell (a skipped scan then saves lab time), was measured
     /// in band and is predicted by the filter to stay in band with this many
     /// σ of margin (0.5..=10; `None`: measure every cell every iteration).
-    /// At most [`MAX_SKIPS_IN_A_ROW`](super::array_run::MAX_SKIPS_IN_A_ROW) iterations in a row. Default 2, the
-    /// single-cell level's confirming-scan rule (docs/array-history.md).
+    /// At most [`MAX_SKIPS_IN_A_ROW`](super::array_run::MAX_SKIPS_IN_A_ROW) iterations in a row. Default 1.5:
+    /// the prediction's σ is at least the last reading's, and a `t_sr`
+    /// reading's is at least [`ArrayRunSettings::t_sr_floor`] (5.5 %), so
+    /// with 2σ (the single-cell confirming-scan rule, the default before
+    /// the floor) no margin fits in a 10 % band and no scan is ever
+    /// skipped. Chosen on development arrays with three cells per sensor
+    /// among 1, 1.5 and 2, checked on fresh ones (docs/array-history.md,
+    /// "Skipping shared-sensor scans under the t_sr floor").
     #[serde(default = "default_skip_sigma")]
     pub skip_confident_sigma: Option<f64>,
     /// Park a cell's sensing dot on its flank as predicted from the gates
@@ -504,7 +510,7 @@ fn default_max_iterations() -> Option<u32> {
 }
 
 fn default_skip_sigma() -> Option<f64> {
-    Some(2.0)
+    Some(1.5)
 }
 
 impl ArrayRunSettings {

@@ -1,15 +1,18 @@
 //! The least relative floor of a `t_sr` reading's σ in the joint loop
 //! (`ArrayRunSettings::t_sr_floor`), checked from outside: a 3-cell chain
 //! tuned from cold and through an all-cell change, every `t_sr` reading's
-//! reported σ in the records against `floor × value`.
+//! reported σ in the records against `floor × value`; and with
+//! `t_sr_floor_filter_only`, the readings with their own σ and the filter
+//! taught with the floor.
 
 mod support;
 
 use spintune::benchmark::array::ArrayProtocol;
+use spintune::fit::uncertainty::SIMULATED_DEVICE_REFERENCES;
 use spintune::protocol::IterationRecord;
 use spintune::sim::DeviceConfig;
-use spintune::tuner::array_run::ArrayRunSettings;
-use support::array::{chain_world, records_through, TargetChange};
+use spintune::tuner::array_run::{ArrayAction, ArrayRunSettings};
+use support::array::{chain_world, joint_in_lab, records_through, TargetChange};
 
 fn records(seed: u64, floor: f64) -> Vec<IterationRecord> {
     let mut protocol = ArrayProtocol::default();
@@ -60,6 +63,70 @@ fn every_t_sr_reading_carries_at_least_the_floor() {
     }
 }
 
+/// With the floor for the filter only, a `t_sr` reading keeps the load
+/// curve's σ in the record (some below the floor), while the filter's row
+/// holds it with the floor added in quadrature: its prediction at the
+/// voltages it was measured at (no change since, so no row uncertainty)
+/// has `σ² = s² + (r² − r_ref²)·x²`, `s` the reported σ, `x` the value, `r`
+/// the run's floor and `r_ref` the references' own.
+#[test]
+fn the_floor_can_teach_the_filter_alone() {
+    let mut protocol = ArrayProtocol::default();
+    protocol.tuning.t_sr_floor_filter_only = true;
+    let r = protocol.tuning.t_sr_floor;
+    let r_ref = SIMULATED_DEVICE_REFERENCES.t_sr.relative_floor;
+    let band = protocol.tuning.relative_tolerance;
+    let seed = 3;
+    let (mut run, mut lab) = joint_in_lab(
+        chain_world(&DeviceConfig::default(), 3, seed),
+        &protocol,
+        seed,
+    );
+    let (mut below, mut checked, mut iterations) = (0, 0, 0);
+    while iterations < 30 {
+        match run.poll().unwrap() {
+            ArrayAction::Execute(batch) => {
+                let before = lab.device.lab_seconds();
+                let answers = lab.batch(&batch);
+                run.feed(answers, lab.device.lab_seconds() - before)
+                    .unwrap();
+            }
+            ArrayAction::Iteration(record) => {
+                iterations += 1;
+                let Some(tuner) = run.tuner() else { continue };
+                for c in 0..3 {
+                    let name = format!("c{c}.t_sr");
+                    let p = record.parameters.iter().find(|p| p.name == name);
+                    // a value with an error bar wider than the band is not taught
+                    let Some((x, s)) = p
+                        .and_then(|p| p.value.zip(p.std))
+                        .filter(|&(x, s)| x > 0.0 && s <= band * x)
+                    else {
+                        continue;
+                    };
+                    below += usize::from(s < r * x);
+                    let (y, var) = tuner.predict(c, 0, &record.voltages_mv).unwrap();
+                    let (_, taught) = tuner.scale(c, 0).unwrap().value_and_std(y, var);
+                    let expected = (s * s + (r * r - r_ref * r_ref) * x * x).sqrt();
+                    assert!(
+                        (taught - expected).abs() <= 1e-6 * expected,
+                        "iteration {}, {name} = {x:.2} ± {s:.3} ns: taught ± {taught:.4}, \
+                         expected ± {expected:.4}",
+                        record.iteration
+                    );
+                    checked += 1;
+                }
+            }
+            ArrayAction::Idle => break,
+        }
+    }
+    assert!(checked >= 6, "{checked} readings checked");
+    assert!(
+        below > 0,
+        "no reading below the floor: the records were floored"
+    );
+}
+
 #[test]
 fn the_floor_is_bounded_and_named() {
     for bad in [-0.01, 0.2, f64::NAN] {
@@ -72,4 +139,5 @@ fn the_floor_is_bounded_and_named() {
     }
     // an old settings file without the field gets the default
     assert_eq!(support::array::oldest_settings().t_sr_floor, 0.055);
+    assert!(!support::array::oldest_settings().t_sr_floor_filter_only);
 }

@@ -371,6 +371,13 @@ pub struct ArrayRunSettings {
     /// change (docs/array-history.md, "A floor under the load curve's σ").
     #[serde(default = "default_t_sr_floor")]
     pub t_sr_floor: f64,
+    /// Apply [`Self::t_sr_floor`] only to what the filter learns from
+    /// (the variance of a `t_sr` reading handed to the rows), not to the
+    /// readings themselves: the in-band margins, the confirming scans, the
+    /// skips and the records keep the load curve's own σ. Default off
+    /// (the floor applies everywhere).
+    #[serde(default)]
+    pub t_sr_floor_filter_only: bool,
 }
 
 fn yes() -> bool {
@@ -463,6 +470,7 @@ impl Default for ArrayRunSettings {
             reset_stalled_row_after: default_reset_stalled_row_after(),
             stalled_row_from: default_stalled_row_from(),
             t_sr_floor: default_t_sr_floor(),
+            t_sr_floor_filter_only: false,
         }
     }
 }

@@ -200,7 +200,9 @@ impl ArrayRun {
             // the load curve's σ at least the run's floor (ArrayRunSettings::t_sr_floor)
             let mut references = cfg.fit_references;
             let t_sr = &mut references.t_sr.relative_floor;
-            *t_sr = t_sr.max(self.settings.t_sr_floor);
+            if !self.settings.t_sr_floor_filter_only {
+                *t_sr = t_sr.max(self.settings.t_sr_floor);
+            }
             let mut l = CellLower::empty(references);
             for level in cfg.levels.iter().skip(1) {
                 match &level.kind {

@@ -105,8 +105,9 @@ impl ArrayRun {
                     j.last_good[c] = good;
                 }
             }
+            let taught = self.taught(c, vals);
             if let Some(j) = self.joint.as_mut() {
-                j.tuner.observe(c, vals, &v);
+                j.tuner.observe(c, &taught, &v);
             }
         }
         let disturbed = self.disturbed_bystanders();
@@ -218,6 +219,39 @@ impl ArrayRun {
         };
         self.step = self.step_after_measurement(all_in, confirm, &skip)?;
         Ok(())
+    }
+
+    /// Cell `cell`'s values as the filter learns from them: under
+    /// [`ArrayRunSettings::t_sr_floor_filter_only`](super::ArrayRunSettings::t_sr_floor_filter_only)
+    /// the `t_sr` variance as if evaluated with the run's floor `r` (the
+    /// floor adds in quadrature, [`Reference::delta_from_fit`](crate::fit::uncertainty::Reference::delta_from_fit):
+    /// `var + (r² − r_ref²)·t_sr²`, `r_ref` the references' own floor, when
+    /// `r` is higher); else as measured (the floor is in the readings then).
+    fn taught(&self, cell: usize, values: &[Option<Measured>]) -> Vec<Option<Measured>> {
+        let r = self.settings.t_sr_floor;
+        let own = self
+            .joint
+            .as_ref()
+            .and_then(|j| j.lower.get(cell))
+            .map_or(0.0, |l| l.references.t_sr.relative_floor);
+        let extra = if self.settings.t_sr_floor_filter_only && r > own {
+            r * r - own * own
+        } else {
+            0.0
+        };
+        values
+            .iter()
+            .enumerate()
+            .map(|(p, m)| {
+                m.map(|(x, var)| {
+                    if p == 0 {
+                        (x, var + extra * x * x)
+                    } else {
+                        (x, var)
+                    }
+                })
+            })
+            .collect()
     }
 
     /// A skipped cell's parameters: its predictions, reported as events,

@@ -101,6 +101,40 @@ impl Reference {
         let floor = self.relative_floor * value;
         (fit * fit + floor * floor).sqrt()
     }
+
+    /// The variance (unit²) a value `value` evaluated under `rule` with
+    /// variance `variance` would have had with this reference's relative
+    /// floor raised to `floor`: under [`UncertaintyRule::FitCovariance`] the
+    /// floor adds in quadrature ([`Self::delta_from_fit`]), so `variance +
+    /// (floor² − r²)·value²` when `floor > r`; unchanged otherwise, and
+    /// under [`UncertaintyRule::Paper`], which has no floor.
+    ///
+    /// ```
+    /// use spintune::fit::uncertainty::{Reference, UncertaintyRule};
+    /// let r = Reference { sigma0: 1.0, delta_p0: 1.0, relative_floor: 0.01 };
+    /// let d = r.delta_from_fit(100.0, 3.0, &[1.0, -1.0, 1.0, -1.0]);
+    /// let raised = Reference { relative_floor: 0.05, ..r };
+    /// let e = raised.delta_from_fit(100.0, 3.0, &[1.0, -1.0, 1.0, -1.0]);
+    /// let v = r.variance_with_floor(UncertaintyRule::FitCovariance, 100.0, d * d, 0.05);
+    /// assert!((v - e * e).abs() < 1e-9);
+    /// assert_eq!(r.variance_with_floor(UncertaintyRule::Paper, 100.0, 4.0, 0.05), 4.0);
+    /// assert_eq!(r.variance_with_floor(UncertaintyRule::FitCovariance, 100.0, 4.0, 0.0), 4.0);
+    /// ```
+    pub fn variance_with_floor(
+        &self,
+        rule: UncertaintyRule,
+        value: f64,
+        variance: f64,
+        floor: f64,
+    ) -> f64 {
+        let r = self.relative_floor;
+        match rule {
+            UncertaintyRule::FitCovariance if floor > r => {
+                variance + (floor * floor - r * r) * value * value
+            }
+            _ => variance,
+        }
+    }
 }
 
 /// `κ = √((1+ρ)/(1−ρ))`, `ρ` the lag-1 autocorrelation of `residuals`

@@ -223,32 +223,24 @@ impl ArrayRun {
 
     /// Cell `cell`'s values as the filter learns from them: under
     /// [`ArrayRunSettings::t_sr_floor_filter_only`](super::ArrayRunSettings::t_sr_floor_filter_only)
-    /// the `t_sr` variance as if evaluated with the run's floor `r` (the
-    /// floor adds in quadrature, [`Reference::delta_from_fit`](crate::fit::uncertainty::Reference::delta_from_fit):
-    /// `var + (r² − r_ref²)·t_sr²`, `r_ref` the references' own floor, when
-    /// `r` is higher); else as measured (the floor is in the readings then).
+    /// the `t_sr` variance as if evaluated with the run's floor
+    /// ([`Reference::variance_with_floor`](crate::fit::uncertainty::Reference::variance_with_floor));
+    /// else as measured (the floor is in the readings then).
     fn taught(&self, cell: usize, values: &[Option<Measured>]) -> Vec<Option<Measured>> {
-        let r = self.settings.t_sr_floor;
-        let own = self
+        let references = self
             .joint
             .as_ref()
             .and_then(|j| j.lower.get(cell))
-            .map_or(0.0, |l| l.references.t_sr.relative_floor);
-        let extra = if self.settings.t_sr_floor_filter_only && r > own {
-            r * r - own * own
-        } else {
-            0.0
-        };
+            .map(|l| &l.references)
+            .filter(|_| self.settings.t_sr_floor_filter_only);
+        let floor = self.settings.t_sr_floor;
         values
             .iter()
             .enumerate()
             .map(|(p, m)| {
-                m.map(|(x, var)| {
-                    if p == 0 {
-                        (x, var + extra * x * x)
-                    } else {
-                        (x, var)
-                    }
+                m.map(|(x, var)| match references {
+                    Some(r) if p == 0 => (x, r.t_sr.variance_with_floor(r.rule, x, var, floor)),
+                    _ => (x, var),
                 })
             })
             .collect()

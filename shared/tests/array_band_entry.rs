@@ -301,11 +301,14 @@ fn near_edge_entries_are_scanned_again_before_the_run_stops() {
 }
 
 /// With `confirm_in_band_cells` the cells already in band are rechecked
-/// near their edge too (some of them here, over the same twelve worlds), by
-/// the same rule otherwise.
+/// near their edge too, by the same rule otherwise. Over twelve other
+/// worlds, seeds 25…36: under the default `t_sr` floor for the filter
+/// alone the readings keep the fit's σ, and a cell in band reads near its
+/// edge more rarely (of seeds 11…60 ten worlds have such a recheck, five
+/// of them here, none of 11…22).
 #[test]
 fn with_in_band_cells_every_near_edge_reading_is_scanned_again() {
-    let seeds: Vec<u64> = (11..=22).collect();
+    let seeds: Vec<u64> = (25..=36).collect();
     let rules = Rules {
         in_band_cells: true,
         ..DEFAULT_RULES

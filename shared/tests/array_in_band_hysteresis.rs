@@ -97,12 +97,13 @@ fn derived(records: &[IterationRecord], k: f64) -> Vec<(bool, bool)> {
 /// With `stay_in_band_sigma = 2` every record's `tuned` is the derived
 /// verdict, and in these worlds the hysteresis decides some of them (a
 /// record whose cells count in band only because one of them was in band
-/// before and reads within 2σ of its edge: 3 stops, on seeds 16 and 18;
-/// of seeds 11…30 only 16, 18 and 28 have such a stop).
+/// before and reads within 2σ of its edge: one stop on each of seeds 19,
+/// 20 and 21; of seeds 11…40, 12 have such a stop under the default
+/// `t_sr` floor for the filter alone, none of 11…18).
 #[test]
 fn a_cell_in_band_stays_in_band_within_its_margin() {
     let mut decided = 0;
-    for seed in 16..=18 {
+    for seed in 19..=21 {
         let rs = records(seed, 2.0);
         let d = derived(&rs, 2.0);
         assert_tuned_as_derived(&rs, d.iter().map(|v| v.0), &format!("seed {seed}"));

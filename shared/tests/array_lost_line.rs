@@ -1,7 +1,10 @@
 //! A cell whose line is lost (docs/array-history.md, "A lost line: no forecast, a
-//! new search"). A charge rearrangement puts cell 1's line B 14 mV off
+//! new search"). A charge rearrangement puts cell 1's line B 16 mV off
 //! (world side), past the line scan's ±4 mV window and the line search's
-//! probes, right after a set-point change: the line stays lost.
+//! probes, right after a set-point change: the line stays lost. (At 14 mV,
+//! the scenario's first offset, the run under today's defaults finds line
+//! B again after one search; at 16, 18 and 20 mV, or 14 mV on line A or
+//! the other way, it stays lost.)
 //!
 //! * While the line level counts it lost (two failed line scans in a row,
 //!   the search's rule), the lines' forecast starts from a scan made before
@@ -61,7 +64,7 @@ fn watch_after_rearrangement(settings: ArrayRunSettings) -> Watch {
     for c in 0..3 {
         run.set_targets(c, PAPER_SET_POINTS[1]).unwrap();
     }
-    assert!(device.rearrange_charges(1, [0.0, 14.0]));
+    assert!(device.rearrange_charges(1, [0.0, 16.0]));
 
     let mut w = Watch::default();
     // line scans of cell 1 in a row that lost a line (one 3–5 mV off is
@@ -126,18 +129,14 @@ fn a_forecast_from_before_a_lost_line_is_not_acted_on() {
     let w = watch_after_rearrangement(ArrayProtocol::default().run_settings());
     // the scenario: the rearrangement lost the line for good
     assert!(w.after_a_loss >= 5, "{w:?}");
-    // (before the rule, every one of them pre-corrected)
+    // (with the rule taken out of `lines.rs`, 4 of the 8 did)
     assert_eq!(w.precorrected_after_a_loss, 0, "{w:?}");
 }
 
 #[test]
 fn a_search_that_gave_up_starts_again() {
-    let mut settings = ArrayProtocol::default().run_settings();
+    let settings = ArrayProtocol::default().run_settings();
     assert_eq!(settings.rearm_line_search_after, 3);
-    // the scenario was traced with the references' t_sr floor (0); under
-    // the default floor the run takes another path, on which one line scan
-    // gives both lines between two searches (which ends the first)
-    settings.t_sr_floor = 0.0;
     let rearmed = watch_after_rearrangement(settings.clone());
     let once = watch_after_rearrangement(ArrayRunSettings {
         rearm_line_search_after: 0,

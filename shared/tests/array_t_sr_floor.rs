@@ -1,9 +1,10 @@
 //! The least relative floor of a `t_sr` reading's σ in the joint loop
 //! (`ArrayRunSettings::t_sr_floor`), checked from outside: a 3-cell chain
 //! tuned from cold and through an all-cell change, every `t_sr` reading's
-//! reported σ in the records against `floor × value`; and with
-//! `t_sr_floor_filter_only`, the readings with their own σ and the filter
-//! taught with the floor.
+//! reported σ in the records against `floor × value` when the floor
+//! applies everywhere (`t_sr_floor_filter_only = false`); and by default
+//! (`t_sr_floor_filter_only`), the readings with their own σ and the
+//! filter taught with the floor.
 
 mod support;
 
@@ -17,6 +18,8 @@ use support::array::{chain_world, joint_in_lab, records_through, TargetChange};
 fn records(seed: u64, floor: f64) -> Vec<IterationRecord> {
     let mut protocol = ArrayProtocol::default();
     protocol.tuning.t_sr_floor = floor;
+    // the floor on every reading, not only on what the filter learns
+    protocol.tuning.t_sr_floor_filter_only = false;
     let phases: [TargetChange; 2] = [(None, (20.0, 270.0)), (None, (30.0, 240.0))];
     records_through(
         chain_world(&DeviceConfig::default(), 3, seed),
@@ -63,7 +66,7 @@ fn every_t_sr_reading_carries_at_least_the_floor() {
     }
 }
 
-/// With the floor for the filter only, a `t_sr` reading keeps the load
+/// With the floor for the filter only (the default), a `t_sr` reading keeps the load
 /// curve's σ in the record (some below the floor), while the filter's row
 /// holds it with the floor added in quadrature: its prediction at the
 /// voltages it was measured at (no change since, so no row uncertainty)
@@ -71,8 +74,8 @@ fn every_t_sr_reading_carries_at_least_the_floor() {
 /// the run's floor and `r_ref` the references' own.
 #[test]
 fn the_floor_can_teach_the_filter_alone() {
-    let mut protocol = ArrayProtocol::default();
-    protocol.tuning.t_sr_floor_filter_only = true;
+    let protocol = ArrayProtocol::default();
+    assert!(protocol.tuning.t_sr_floor_filter_only);
     let r = protocol.tuning.t_sr_floor;
     let r_ref = SIMULATED_DEVICE_REFERENCES.t_sr.relative_floor;
     let band = protocol.tuning.relative_tolerance;
@@ -139,5 +142,5 @@ fn the_floor_is_bounded_and_named() {
     }
     // an old settings file without the field gets the default
     assert_eq!(support::array::oldest_settings().t_sr_floor, 0.055);
-    assert!(!support::array::oldest_settings().t_sr_floor_filter_only);
+    assert!(support::array::oldest_settings().t_sr_floor_filter_only);
 }

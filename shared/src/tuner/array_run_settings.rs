@@ -377,10 +377,11 @@ pub struct ArrayRunSettings {
     /// readings themselves: the in-band margins, the confirming scans, the
     /// skips and the records keep the load curve's own σ. Default on:
     /// against the floor everywhere it left fewer phases unconverged where
-    /// the oracle converged on 48 fresh runs (2 against 7) at equal or
-    /// shorter lab times (docs/array-history.md, "The t_sr floor for the
-    /// filter alone"). Off applies the floor everywhere (the eighth
-    /// round's rule).
+    /// the oracle converged on 96 fresh runs (5 against 12), with shorter
+    /// single-cell changes but an all-cell change up to 1 lab min longer
+    /// on some sets (docs/array-history.md, "The t_sr floor for the filter
+    /// alone" and "… now the default"). Off applies the floor everywhere
+    /// (the eighth round's rule).
     #[serde(default = "yes")]
     pub t_sr_floor_filter_only: bool,
 }

@@ -449,7 +449,7 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
     assert_eq!(report["protocol"]["tuning"]["reset_stalled_row_after"], 3);
     assert_eq!(report["protocol"]["tuning"]["stalled_row_from"], "prior");
     assert_eq!(report["protocol"]["tuning"]["line_rounds"], 2);
-    // the line forecast (off by default): the file's field, the rest defaults
+    // the line forecast (on by default): the file's field, the rest defaults
     assert_eq!(
         report["protocol"]["tuning"]["line_forecast"]["max_skips"],
         2

@@ -17,9 +17,10 @@
 //! The world runs with the loop it was traced in: line corrections of at
 //! most 2 mV (`line_max_step_mv = 2`, the default before "Lines brought
 //! back in one step") each cell's alone (`joint_line_steps = false`, the
-//! default before "Line steps that are not cut"); with today's line level
-//! the run takes another path, on which cell 6's `w` never turns away from
-//! its target by the threshold.
+//! default before "Line steps that are not cut"), every line scanned (no
+//! `line_forecast`, the default before "Lines forecast instead of scanned,
+//! now the default"); with today's line level the run takes another path,
+//! on which cell 6's `w` never turns away from its target by the threshold.
 
 use spintune::benchmark::array::{run_strategy, world, ArrayProtocol, ArrayStrategy};
 use spintune::benchmark::array_timeline::TimelinePoint;
@@ -47,8 +48,10 @@ fn traced(sigma: f64) -> (Vec<TimelinePoint>, Vec<f64>) {
     protocol.tuning.line_max_step_mv = Some(2.0);
     protocol.tuning.joint_line_steps = false;
     protocol.tuning.finite_difference_step_mv = None;
-    // the scenario was traced with the references' own t_sr floor
+    // the scenario was traced with the references' own t_sr floor, and
+    // with every line scanned (no forecast)
     protocol.tuning.t_sr_floor = 0.0;
+    protocol.tuning.line_forecast = None;
     set_points.push(protocol.single_cell_target);
     let reachable = |d: &spintune::sim::DeviceConfig| cell_targets_reachable(d, &set_points);
     let config = ArrayConfig {

@@ -214,15 +214,23 @@ fn the_line_forecast_is_bounded_and_named_in_errors() {
         bad.validate().unwrap_err().field,
         "tuning.line_forecast.skip_std"
     );
-    // an old settings file (before the option) loads without it
+    // an old settings file (before the option) loads with the default: on
     let old = oldest_settings();
-    assert!(old.line_forecast.is_none());
-    // and an empty table (every field at its default) turns it on
-    let on: spintune::tuner::array_run::ArrayRunSettings =
+    assert_eq!(old.line_forecast, Some(ParameterForecast::default()));
+    let settings = |forecast: serde_json::Value| -> spintune::tuner::array_run::ArrayRunSettings {
         serde_json::from_value(serde_json::json!({
             "relative_tolerance": 0.1, "line_rounds": 1, "moves_per_iteration": 1,
-            "line_tolerance_mv": 0.1, "line_forecast": {}
+            "line_tolerance_mv": 0.1, "line_forecast": forecast
         }))
-        .unwrap();
-    assert_eq!(on.line_forecast, Some(ParameterForecast::default()));
+        .unwrap()
+    };
+    // an empty table (every field at its default) is the same
+    assert_eq!(
+        settings(serde_json::json!({})).line_forecast,
+        Some(ParameterForecast::default())
+    );
+    // null turns it off, and so does max_skips = 0 (TOML has no null)
+    assert_eq!(settings(serde_json::Value::Null).line_forecast, None);
+    let never = settings(serde_json::json!({ "max_skips": 0 }));
+    assert_eq!(never.line_forecast.map(|f| f.max_skips), Some(0));
 }

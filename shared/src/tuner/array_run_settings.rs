@@ -121,10 +121,14 @@ pub struct ArrayRunSettings {
     /// (the lab time is the same): with one sensor per cell, a line batch
     /// is skipped only when every cell in it is confident. The forecast is
     /// honest only with unbiased line Jacobians (`joint_line_steps`).
-    /// `None`: scan every time. Default `None`: every version measured left
-    /// more changes unconverged (docs/array-history.md, "Lines forecast instead of
-    /// scanned").
-    #[serde(default)]
+    /// `None` (JSON `null`) or `max_skips = 0`: scan every time. Default
+    /// on, with the single-cell level's defaults: measured left off in an
+    /// earlier round (more changes unconverged, before the line level was
+    /// coupled by default), then measured again on the eleventh round's
+    /// code, where it was faster and left fewer changes unconverged on
+    /// development and fresh arrays (docs/array-history.md, "Lines
+    /// forecast instead of scanned, now the default").
+    #[serde(default = "default_line_forecast")]
     pub line_forecast: Option<ParameterForecast>,
     /// Iterations after the start or the last target change without every
     /// cell in band after which the run gives up: it finishes, not tuned,
@@ -451,7 +455,7 @@ impl Default for ArrayRunSettings {
             line_max_step_mv: default_line_max_step_mv(),
             rearm_line_search_after: default_rearm_line_search_after(),
             verify_lines_above_mv: default_verify_lines_above_mv(),
-            line_forecast: None,
+            line_forecast: default_line_forecast(),
             max_iterations: default_max_iterations(),
             skip_confident_sigma: default_skip_sigma(),
             flank_prediction: FlankPrediction::default(),
@@ -517,6 +521,10 @@ fn default_rearm_line_search_after() -> u32 {
 
 fn default_verify_lines_above_mv() -> Option<f64> {
     None
+}
+
+fn default_line_forecast() -> Option<ParameterForecast> {
+    Some(ParameterForecast::default())
 }
 
 fn default_max_iterations() -> Option<u32> {

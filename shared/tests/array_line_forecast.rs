@@ -232,5 +232,6 @@ fn the_line_forecast_is_bounded_and_named_in_errors() {
     // null turns it off, and so does max_skips = 0 (TOML has no null)
     assert_eq!(settings(serde_json::Value::Null).line_forecast, None);
     let never = settings(serde_json::json!({ "max_skips": 0 }));
-    assert_eq!(never.line_forecast.map(|f| f.max_skips), Some(0));
+    assert_eq!(never.line_forecast.as_ref().map(|f| f.max_skips), Some(0));
+    assert!(never.validate().is_ok());
 }

@@ -449,15 +449,14 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
     assert_eq!(report["protocol"]["tuning"]["reset_stalled_row_after"], 3);
     assert_eq!(report["protocol"]["tuning"]["stalled_row_from"], "prior");
     assert_eq!(report["protocol"]["tuning"]["line_rounds"], 2);
-    // the line forecast (on by default): the file's field, the rest the
-    // array's defaults (its 0.5 mV threshold, not the single-cell level's 0.3)
+    // the line forecast (on by default): the file's field, the rest defaults
     assert_eq!(
         report["protocol"]["tuning"]["line_forecast"]["max_skips"],
         2
     );
     assert_eq!(
         report["protocol"]["tuning"]["line_forecast"]["skip_std"],
-        0.5
+        0.3
     );
     // how the cells came into band in the all-cell changes: first ≤ half ≤ every
     let entry = &report["strategies"][0]["change_band_entry"];

@@ -9,7 +9,6 @@ use spintune::benchmark::array::{run_strategy, world, ArrayProtocol, ArrayStrate
 use spintune::protocol::{EventKind, Request, ScanKind};
 use spintune::sim::array::ArrayConfig;
 use spintune::sim::DeviceConfig;
-use spintune::tuner::array_run::{array_line_forecast, ARRAY_LINE_SKIP_STD_MV};
 use spintune::tuner::{Consistency, ParameterForecast};
 use support::array::{joint_in_lab, oldest_settings, through_set_points};
 
@@ -215,28 +214,9 @@ fn the_line_forecast_is_bounded_and_named_in_errors() {
         bad.validate().unwrap_err().field,
         "tuning.line_forecast.skip_std"
     );
-    // an old settings file (before the option) loads with the default: on,
-    // the array's threshold, the single-cell level's other constants
+    // an old settings file (before the option) loads with the default: on
     let old = oldest_settings();
-    assert_eq!(old.line_forecast, Some(array_line_forecast()));
-    let single = ParameterForecast::default();
-    let array = array_line_forecast();
-    assert_eq!(array.skip_std, ARRAY_LINE_SKIP_STD_MV);
-    assert_ne!(array.skip_std, single.skip_std);
-    assert_eq!(
-        (
-            array.prior_lever_per_mv,
-            array.noise,
-            array.max_skips,
-            array.max_age_s
-        ),
-        (
-            single.prior_lever_per_mv,
-            single.noise,
-            single.max_skips,
-            single.max_age_s
-        )
-    );
+    assert_eq!(old.line_forecast, Some(ParameterForecast::default()));
     let settings = |forecast: serde_json::Value| -> spintune::tuner::array_run::ArrayRunSettings {
         serde_json::from_value(serde_json::json!({
             "relative_tolerance": 0.1, "line_rounds": 1, "moves_per_iteration": 1,
@@ -247,26 +227,8 @@ fn the_line_forecast_is_bounded_and_named_in_errors() {
     // an empty table (every field at its default) is the same
     assert_eq!(
         settings(serde_json::json!({})).line_forecast,
-        Some(array_line_forecast())
+        Some(ParameterForecast::default())
     );
-    // a table's missing keys are the array's defaults, not the single-cell
-    // level's: setting max_skips keeps the array's skip_std
-    let two = settings(serde_json::json!({ "max_skips": 2 }));
-    assert_eq!(
-        two.line_forecast,
-        Some(ParameterForecast {
-            max_skips: 2,
-            ..array_line_forecast()
-        })
-    );
-    // an unknown key is named
-    let err =
-        serde_json::from_value::<spintune::tuner::array_run::ArrayRunSettings>(serde_json::json!({
-            "relative_tolerance": 0.1, "line_rounds": 1, "moves_per_iteration": 1,
-            "line_tolerance_mv": 0.1, "line_forecast": { "skip_sd": 0.4 }
-        }))
-        .unwrap_err();
-    assert!(err.to_string().contains("skip_sd"), "{err}");
     // null turns it off, and so does max_skips = 0 (TOML has no null)
     assert_eq!(settings(serde_json::Value::Null).line_forecast, None);
     let never = settings(serde_json::json!({ "max_skips": 0 }));

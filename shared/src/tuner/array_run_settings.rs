@@ -3,7 +3,7 @@
 //! [`Retreat`], the rule a cell whose evaluation failed moves back by.
 //! Plain data; the loop that reads them is [`super::array_run::ArrayRun`].
 
-use serde::{Deserialize, Deserializer, Serialize};
+use serde::{Deserialize, Serialize};
 
 use super::in_band::InBandRule;
 use super::stall::{StalledRowSource, MAX_STALL_WINDOW};
@@ -121,20 +121,16 @@ pub struct ArrayRunSettings {
     /// (the lab time is the same): with one sensor per cell, a line batch
     /// is skipped only when every cell in it is confident. The forecast is
     /// honest only with unbiased line Jacobians (`joint_line_steps`).
-    /// `None` (JSON `null`) or `max_skips = 0`: scan every time.
-    ///
-    /// Default on, [`array_line_forecast`]: the single-cell level's
-    /// constants but `skip_std` [`ARRAY_LINE_SKIP_STD_MV`]. A
-    /// `[line_forecast]` table's missing keys take those defaults too (an
-    /// empty table is the default). On since the eleventh round (a trade:
-    /// shorter changes on every fresh set, the phases unconverged where
-    /// the oracle converged within the sets' noise), 0.5 mV since the
-    /// twelfth (docs/array-history.md, "Lines forecast instead of scanned,
-    /// now the default" and "The array's lines forecast at 0.5 mV").
-    #[serde(
-        default = "default_line_forecast",
-        deserialize_with = "line_forecast_table"
-    )]
+    /// `None` (JSON `null`) or `max_skips = 0`: scan every time. Default
+    /// on, with the single-cell level's defaults, a trade: on the
+    /// eleventh round's loop every fresh set's all-cell and single-cell
+    /// changes were shorter (by 0.4–0.8 and 0.2–2.5 lab min), the phases
+    /// unconverged where the oracle converged 24 against 19 on 240 fresh
+    /// runs and 0 against 4 on 84 development runs, within the sets'
+    /// noise (earlier rounds, on older loops, measured 7 against 1 and
+    /// left it off; docs/array-history.md, "Lines forecast instead of
+    /// scanned, now the default").
+    #[serde(default = "default_line_forecast")]
     pub line_forecast: Option<ParameterForecast>,
     /// Iterations after the start or the last target change without every
     /// cell in band after which the run gives up: it finishes, not tuned,
@@ -529,68 +525,8 @@ fn default_verify_lines_above_mv() -> Option<f64> {
     None
 }
 
-/// The array's [`ParameterForecast::skip_std`] of its lines, mV: the
-/// largest predicted σ of a line at which a cell corrects its lines from
-/// their forecast instead of scanning them. The single-cell level skips at
-/// 0.3 mV (docs/benchmarks.md, "Choosing the line forecast": lab time falls
-/// up to 0.5 mV there); an array skips a line batch only when every cell in
-/// it is confident, so a cell's threshold weighs more. Chosen among 0.3,
-/// 0.5, 0.7 and 1 mV on 48 runs of random development arrays, where 0.5
-/// and 0.7 shortened the all-cell change alike and 1 did not; checked on
-/// fresh arrays (docs/array-history.md, "The array's lines forecast at
-/// 0.5 mV").
-pub const ARRAY_LINE_SKIP_STD_MV: f64 = 0.5;
-
-/// The array's line forecast by default ([`ArrayRunSettings::line_forecast`]):
-/// the single-cell level's constants, `skip_std` [`ARRAY_LINE_SKIP_STD_MV`].
-///
-/// ```
-/// use spintune::tuner::array_run::{array_line_forecast, ArrayRunSettings};
-/// use spintune::tuner::ParameterForecast;
-/// let f = array_line_forecast();
-/// assert_eq!(f.skip_std, 0.5);
-/// assert_eq!(f.max_skips, ParameterForecast::default().max_skips);
-/// assert_eq!(ArrayRunSettings::default().line_forecast, Some(f));
-/// ```
-pub fn array_line_forecast() -> ParameterForecast {
-    ParameterForecast {
-        skip_std: ARRAY_LINE_SKIP_STD_MV,
-        ..ParameterForecast::default()
-    }
-}
-
 fn default_line_forecast() -> Option<ParameterForecast> {
-    Some(array_line_forecast())
-}
-
-/// `[line_forecast]` as a settings file writes it: every key optional.
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct LineForecastTable {
-    skip_std: Option<f64>,
-    prior_lever_per_mv: Option<f64>,
-    noise: Option<f64>,
-    max_skips: Option<u32>,
-    max_age_s: Option<f64>,
-}
-
-/// [`ArrayRunSettings::line_forecast`] from its table, a missing key taking
-/// [`array_line_forecast`]'s value (not the single-cell level's: an array
-/// file that sets only `max_skips` keeps the array's `skip_std`); `null`
-/// turns the forecast off.
-fn line_forecast_table<'de, D: Deserializer<'de>>(
-    d: D,
-) -> Result<Option<ParameterForecast>, D::Error> {
-    let base = array_line_forecast();
-    Ok(
-        Option::<LineForecastTable>::deserialize(d)?.map(|t| ParameterForecast {
-            skip_std: t.skip_std.unwrap_or(base.skip_std),
-            prior_lever_per_mv: t.prior_lever_per_mv.unwrap_or(base.prior_lever_per_mv),
-            noise: t.noise.unwrap_or(base.noise),
-            max_skips: t.max_skips.unwrap_or(base.max_skips),
-            max_age_s: t.max_age_s.unwrap_or(base.max_age_s),
-        }),
-    )
+    Some(ParameterForecast::default())
 }
 
 fn default_max_iterations() -> Option<u32> {

@@ -50,9 +50,7 @@ use std::collections::BTreeMap;
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
-pub use super::array_run_settings::{
-    array_line_forecast, ArrayRunSettings, Retreat, ARRAY_LINE_SKIP_STD_MV,
-};
+pub use super::array_run_settings::{ArrayRunSettings, Retreat};
 use super::flank::FlankModel;
 use super::flat_reset::FlatResetWatch;
 use super::search::SearchMemory;

@@ -59,6 +59,7 @@ use crate::kalman::{FilterError, KalmanGradient, ProcessNoise, UpdateOutcome};
 use crate::safety::SafetyLimits;
 use crate::solver::{newton_step, SolverConfig, StepRule};
 use crate::tuner::block_trust_region::block_trust_region_step;
+use crate::tuner::curvature::{Curvature, MAX_CURVATURE_PRIOR_PER_MV2};
 use crate::tuner::excitation::null_space_direction;
 use crate::tuner::miss_cusum::MissCusum;
 use crate::tuner::newton::{retreat_target, Consistency};
@@ -177,6 +178,12 @@ pub struct JointConfig {
     /// must learn about. 0: off (the widened covariance counts at once).
     #[serde(default)]
     pub widened_row_explores: u32,
+    /// Prior σ of each curvature coefficient of a row's scale over its
+    /// cell's own gates, 1/mV² (0: off, rows learn a gradient only;
+    /// otherwise up to [`MAX_CURVATURE_PRIOR_PER_MV2`]): the row learns how
+    /// its gradient bends ([`super::curvature`]). Default 0.
+    #[serde(default)]
+    pub curvature_prior_per_mv2: f64,
 }
 
 /// Largest [`JointConfig::widened_row_explores`].
@@ -216,6 +223,7 @@ impl Default for JointConfig {
             trust_region: true,
             trust_region_covariance: default_trust_region_covariance(),
             widened_row_explores: 0,
+            curvature_prior_per_mv2: 0.0,
         }
     }
 }
@@ -253,6 +261,10 @@ impl JointConfig {
         let k = self.trust_region_covariance;
         if !(k.is_finite() && (0.0..=MAX_TRUST_REGION_COVARIANCE).contains(&k)) {
             return bad("joint.trust_region_covariance", k, "[0, 10]");
+        }
+        let c = self.curvature_prior_per_mv2;
+        if !(c.is_finite() && (0.0..=MAX_CURVATURE_PRIOR_PER_MV2).contains(&c)) {
+            return bad("joint.curvature_prior_per_mv2", c, "[0, 0.01]");
         }
         if self.widened_row_explores > MAX_WIDENED_ROW_EXPLORES {
             return bad(
@@ -333,6 +345,48 @@ struct Row {
     /// the step's uncertainty term ([`JointConfig::widened_row_explores`]).
     #[serde(default)]
     explores_left: u32,
+    /// The row's second-order part ([`JointConfig::curvature_prior_per_mv2`];
+    /// `None`: a gradient only, the filter's state is the gradient).
+    #[serde(default)]
+    curvature: Option<Curvature>,
+}
+
+impl Row {
+    /// What the filter learns from at `v` (the row's columns, mV): `v`
+    /// itself, or the curvature's features.
+    fn features(&self, v: &[f64]) -> DVector<f64> {
+        match &self.curvature {
+            Some(c) => c.features(v),
+            None => DVector::from_column_slice(v),
+        }
+    }
+
+    /// `A` at the row's last value ([`Curvature::local_map`]); `None`
+    /// without curvature or a last value.
+    fn local_map(&self) -> Option<DMatrix<f64>> {
+        let c = self.curvature.as_ref()?;
+        let (_, _, v) = self.last.as_ref()?;
+        Some(c.local_map(v))
+    }
+
+    /// The row's gradient where it last measured, over its columns, 1/mV.
+    fn gradient(&self) -> DVector<f64> {
+        let g = self.filter.gradient();
+        match self.local_map() {
+            Some(a) => a * g,
+            None => g.rows(0, self.columns.len()).into_owned(),
+        }
+    }
+
+    /// That gradient's covariance, (1/mV)².
+    fn covariance(&self) -> DMatrix<f64> {
+        let c = self.filter.covariance();
+        let n = self.columns.len();
+        match self.local_map() {
+            Some(a) => &a * c * a.transpose(),
+            None => c.view((0, 0), (n, n)).into_owned(),
+        }
+    }
 }
 
 /// The joint tuner (module docs).
@@ -501,6 +555,40 @@ fn row_prior(
     (g0, c0, ProcessNoise::Constant { q: q * s2 })
 }
 
+/// A row's prior `(g0, c0, q)` extended by `terms` curvature coefficients
+/// ([`super::curvature`]): mean 0, independent prior σ `sigma_per_mv2`
+/// (1/mV²), no process noise (a device's curvature does not drift).
+fn with_curvature(
+    g0: DVector<f64>,
+    c0: DMatrix<f64>,
+    q: ProcessNoise,
+    terms: usize,
+    sigma_per_mv2: f64,
+) -> (DVector<f64>, DMatrix<f64>, ProcessNoise) {
+    let n = g0.len();
+    let m = n + terms;
+    let g = DVector::from_fn(m, |i, _| if i < n { g0[i] } else { 0.0 });
+    let c = DMatrix::from_fn(m, m, |i, j| match (i < n, j < n) {
+        (true, true) => c0[(i, j)],
+        (false, false) if i == j => sigma_per_mv2 * sigma_per_mv2,
+        _ => 0.0,
+    });
+    let extend = |q: &DMatrix<f64>| {
+        DMatrix::from_fn(m, m, |i, j| if i < n && j < n { q[(i, j)] } else { 0.0 })
+    };
+    let q = match q {
+        ProcessNoise::Constant { q } => ProcessNoise::Constant { q: extend(&q) },
+        ProcessNoise::StepScaled {
+            q_ref,
+            reference_step_mv,
+        } => ProcessNoise::StepScaled {
+            q_ref: extend(&q_ref),
+            reference_step_mv,
+        },
+    };
+    (g, c, q)
+}
+
 impl JointArrayTuner {
     /// Rows and priors from each cell's knowledge (module docs), the cells
     /// in a chain.
@@ -603,6 +691,13 @@ impl JointArrayTuner {
                     c.process_noise_per_mv[pi],
                     config.correlated_prior,
                 );
+                let curvature = (config.curvature_prior_per_mv2 > 0.0).then(|| {
+                    Curvature::new(columns.len(), (own_at..own_at + c.gates.len()).collect())
+                });
+                let (g0, c0, q) = match &curvature {
+                    Some(k) => with_curvature(g0, c0, q, k.terms(), config.curvature_prior_per_mv2),
+                    None => (g0, c0, q),
+                };
                 let filter = KalmanGradient::new(g0, c0, q)
                     .and_then(|k| k.with_outlier_sigma(Some(config.outlier_sigma)))
                     .and_then(|k| k.with_min_step_mv(config.min_step_mv))
@@ -618,6 +713,7 @@ impl JointArrayTuner {
                     misses: MissCusum::default(),
                     checks: Consistency::default(),
                     explores_left: 0,
+                    curvature,
                 });
             }
         }
@@ -668,8 +764,7 @@ impl JointArrayTuner {
     /// Euclidean norm of a row's learned gradient (log space, 1/mV); `None`
     /// for an unknown row.
     pub fn row_norm(&self, cell: usize, parameter: usize) -> Option<f64> {
-        self.row(cell, parameter)
-            .map(|r| r.filter.gradient().norm())
+        self.row(cell, parameter).map(|r| r.gradient().norm())
     }
 
     /// Return a row's estimate to its prior (the cell's initial measurement
@@ -776,7 +871,7 @@ impl JointArrayTuner {
         }) {
             for (a, local) in own_gates(r) {
                 if let Some(i) = gates.iter().position(|(_, l)| *l == local) {
-                    samples[i].push((r.filter.gradient()[a], r.filter.covariance()[(a, a)]));
+                    samples[i].push((r.gradient()[a], r.covariance()[(a, a)]));
                 }
             }
         }
@@ -820,7 +915,7 @@ impl JointArrayTuner {
             .map(|r| {
                 r.columns
                     .iter()
-                    .zip(r.filter.gradient().iter())
+                    .zip(r.gradient().iter())
                     .map(|(&c, &g)| (self.gates[c].clone(), g))
                     .collect()
             })
@@ -841,10 +936,12 @@ impl JointArrayTuner {
     ) -> Option<(f64, f64)> {
         let row = self.row(cell, parameter)?;
         let (y0, vy0, v0) = row.last.as_ref()?;
-        let mut dv = DVector::zeros(row.columns.len());
-        for (k, &c) in row.columns.iter().enumerate() {
-            dv[k] = voltages_mv.get(&self.gates[c])? - v0[k];
-        }
+        let v: Vec<f64> = row
+            .columns
+            .iter()
+            .map(|&c| voltages_mv.get(&self.gates[c]).copied())
+            .collect::<Option<_>>()?;
+        let dv = row.features(&v) - row.features(v0);
         let g = row.filter.gradient();
         let p = row.filter.covariance() + row.filter.process_noise().for_step(&dv);
         let var = vy0 + (dv.transpose() * p * &dv)[(0, 0)];
@@ -954,8 +1051,13 @@ impl JointArrayTuner {
                 .iter()
                 .map(|&c| voltages_mv.get(&self.gates[c]).copied().unwrap_or(f64::NAN))
                 .collect();
+            if let Some(c) = row.curvature.as_mut() {
+                if v.iter().all(|x| x.is_finite()) {
+                    c.anchor_at(&v);
+                }
+            }
             if let Some((y0, vy0, v0)) = &row.last {
-                let dv = DVector::from_iterator(v.len(), v.iter().zip(v0).map(|(a, b)| a - b));
+                let dv = row.features(&v) - row.features(v0);
                 match row.filter.update(&dv, y - y0, vy + vy0) {
                     Err(_) => self.rejected_updates += 1,
                     Ok(
@@ -990,7 +1092,7 @@ impl JointArrayTuner {
     pub fn jacobian(&self) -> DMatrix<f64> {
         let mut j = DMatrix::zeros(self.rows.len(), self.gates.len());
         for (i, r) in self.rows.iter().enumerate() {
-            for (&c, &g) in r.columns.iter().zip(r.filter.gradient().iter()) {
+            for (&c, &g) in r.columns.iter().zip(r.gradient().iter()) {
                 j[(i, c)] = g;
             }
         }
@@ -1015,7 +1117,7 @@ impl JointArrayTuner {
         let mut uncertainty = DMatrix::zeros(n, n);
         for &ri in &rows {
             let row = &self.rows[ri];
-            let cov = row.filter.covariance();
+            let cov = row.covariance();
             let at: Vec<Option<usize>> = (0..n)
                 .map(|g| row.columns.iter().position(|&c| c == offset + g))
                 .collect();
@@ -1045,7 +1147,7 @@ impl JointArrayTuner {
             if row.explores_left > 0 {
                 continue;
             }
-            let cov = row.filter.covariance();
+            let cov = row.covariance();
             for (a, &ca) in row.columns.iter().enumerate() {
                 for (b, &cb) in row.columns.iter().enumerate() {
                     u[(ca, cb)] += kappa * cov[(a, b)];

@@ -6,6 +6,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::in_band::InBandRule;
+use super::lagging::{MAX_LAGGING_AFTER, MAX_REPEATS};
 use super::stall::{StalledRowSource, MAX_STALL_WINDOW};
 use crate::config_error::ConfigError;
 use crate::tuner::array::JointConfig;
@@ -390,6 +391,27 @@ pub struct ArrayRunSettings {
     /// (the eighth round's rule).
     #[serde(default = "yes")]
     pub t_sr_floor_filter_only: bool,
+    /// Extra scans per iteration of a lagging parameter (0..=[`MAX_REPEATS`];
+    /// 0: off, the default): a parameter that lags (measured out of band on
+    /// the same side [`Self::lagging_after`] iterations in a row, the latest
+    /// no nearer its target than the first of them by a band:
+    /// [`super::lagging::LagCount`]) is scanned this many more times in each
+    /// measurement while it lags, and its readings are pooled by their
+    /// inverse variances
+    /// ([`super::lagging`]): the filter learns its row from each move with a
+    /// smaller error bar, at the extra scans' lab time (serial on the cell's
+    /// sensor).
+    #[serde(default)]
+    pub repeat_lagging_scans: u32,
+    /// With [`Self::repeat_lagging_scans`]: the iterations in a row over
+    /// which a parameter out of band on one side that came no nearer by a
+    /// band lags, 1..=[`MAX_LAGGING_AFTER`]. Default 4.
+    #[serde(default = "default_lagging_after")]
+    pub lagging_after: u32,
+}
+
+fn default_lagging_after() -> u32 {
+    4
 }
 
 fn yes() -> bool {
@@ -480,6 +502,8 @@ impl Default for ArrayRunSettings {
             pool_confirmations: false,
             confirm_rounds: 1,
             reset_stalled_row_after: default_reset_stalled_row_after(),
+            repeat_lagging_scans: 0,
+            lagging_after: default_lagging_after(),
             stalled_row_from: default_stalled_row_from(),
             t_sr_floor: default_t_sr_floor(),
             t_sr_floor_filter_only: true,
@@ -580,6 +604,14 @@ impl ArrayRunSettings {
         }
         let n = self.rearm_line_search_after;
         check(n <= 30, "rearm_line_search_after", n.to_string())?;
+        let n = self.repeat_lagging_scans;
+        check(n <= MAX_REPEATS, "repeat_lagging_scans", n.to_string())?;
+        let n = self.lagging_after;
+        check(
+            (1..=MAX_LAGGING_AFTER).contains(&n),
+            "lagging_after",
+            n.to_string(),
+        )?;
         if let Some(m) = self.verify_lines_above_mv {
             check(
                 m.is_finite() && m > 0.0 && m <= 4.0,

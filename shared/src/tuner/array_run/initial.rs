@@ -317,6 +317,8 @@ impl ArrayRun {
             skips_in_a_row: vec![0; k],
             stalls: vec![Default::default(); k],
             flat_resets: vec![Default::default(); k],
+            lags: vec![Default::default(); k],
+            repeats: Vec::new(),
         });
         Ok(())
     }

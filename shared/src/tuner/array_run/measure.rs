@@ -55,19 +55,35 @@ impl ArrayRun {
             _ => vec![false; k],
         };
         let measured: Vec<usize> = (0..k).filter(|&c| !skip[c]).collect();
-        if answers.len() != 2 * measured.len() {
+        let repeats = self
+            .joint
+            .as_ref()
+            .map(|j| j.repeats.clone())
+            .unwrap_or_default();
+        if answers.len() != 2 * measured.len() + repeats.len() {
             return Err(ArrayRunError::Protocol(format!(
-                "{} answers to the measurement of {} cells",
+                "{} answers to the measurement of {} cells and {} repeated scans",
                 answers.len(),
-                measured.len()
+                measured.len(),
+                repeats.len()
             )));
         }
-        let mut raw = vec![vec![None; 2]; k];
-        for (i, a) in answers.iter().enumerate() {
+        let (first, again) = answers.split_at(2 * measured.len());
+        let mut raw: Vec<Vec<Option<Measured>>> = vec![vec![None; 2]; k];
+        for (i, a) in first.iter().enumerate() {
             let (c, p) = (measured[i / 2], i % 2);
             match self.evaluate(c, a, CELL_PARAMETERS[p]) {
                 Some(v) => raw[c][p] = Some(v),
                 None => self.evaluation_failed(c),
+            }
+        }
+        // a lagging parameter's extra readings, pooled with its first
+        for (&(c, p), a) in repeats.iter().zip(again) {
+            let (c, p) = (c as usize, p);
+            match (self.evaluate(c, a, CELL_PARAMETERS[p]), raw[c][p]) {
+                (Some(v), Some(r)) => raw[c][p] = Some(pooled_reading(r, v)),
+                (Some(v), None) => raw[c][p] = Some(v),
+                (None, _) => self.failed_fits += 1,
             }
         }
         let events = self.skipped_predictions(&skip);
@@ -158,6 +174,7 @@ impl ArrayRun {
                     }
                     if let Some((x, _)) = m {
                         self.reset_if_stalled(c, p, x / tv[p]);
+                        self.note_lag(c, p, x / tv[p]);
                     }
                     let hold = in_band && self.settings.hold_in_band;
                     let tuner = self.joint.as_ref().map(|j| &j.tuner);
@@ -630,6 +647,48 @@ impl ArrayRun {
                 j.tuner.borrow_row(c, p, &peers);
             }
         }
+    }
+
+    /// Cell `c`'s parameter `p` measured at `ratio` = value/target: its
+    /// count of measurements in a row out of band on one side
+    /// ([`ArrayRunSettings::repeat_lagging_scans`](super::ArrayRunSettings::repeat_lagging_scans)).
+    fn note_lag(&mut self, c: usize, p: usize, ratio: f64) {
+        let band = self.settings.relative_tolerance;
+        let k = self.sessions.len();
+        let Some(j) = self.joint.as_mut() else {
+            return;
+        };
+        if j.lags.len() != k {
+            j.lags = vec![Default::default(); k];
+        }
+        j.lags[c][p].note(ratio, band, self.settings.lagging_after);
+    }
+
+    /// The extra scans of the next measurement: each lagging parameter of
+    /// a cell that scans ([`ArrayRunSettings::lagging_after`](super::ArrayRunSettings::lagging_after)),
+    /// [`ArrayRunSettings::repeat_lagging_scans`](super::ArrayRunSettings::repeat_lagging_scans)
+    /// times, cell by cell.
+    pub(super) fn lagging_repeats(&self, skip: &[bool]) -> Vec<(u32, usize)> {
+        let (r, after, band) = (
+            self.settings.repeat_lagging_scans,
+            self.settings.lagging_after,
+            self.settings.relative_tolerance,
+        );
+        let Some(j) = self.joint.as_ref().filter(|_| r > 0) else {
+            return Vec::new();
+        };
+        let mut out = Vec::new();
+        for (c, lags) in j.lags.iter().enumerate() {
+            if skip.get(c).copied().unwrap_or(true) {
+                continue;
+            }
+            for (p, lag) in lags.iter().enumerate() {
+                if lag.lags(band, after) {
+                    out.extend(std::iter::repeat_n((c as u32, p), r as usize));
+                }
+            }
+        }
+        out
     }
 
     /// An evaluation of cell `c` failed: counted, and its sensor sweeps at

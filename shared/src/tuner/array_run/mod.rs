@@ -53,6 +53,7 @@ use serde::{Deserialize, Serialize};
 pub use super::array_run_settings::{ArrayRunSettings, Retreat};
 use super::flank::FlankModel;
 use super::flat_reset::FlatResetWatch;
+use super::lagging::LagCount;
 use super::search::SearchMemory;
 use super::stall::StallWatch;
 use crate::config_error::ConfigError;
@@ -382,6 +383,15 @@ struct Joint {
     /// ([`ArrayRunSettings::flat_reset_refuted_sigma`]).
     #[serde(default)]
     flat_resets: Vec<[FlatResetWatch; 2]>,
+    /// Per cell and parameter: measurements in a row out of band on one
+    /// side ([`ArrayRunSettings::repeat_lagging_scans`]).
+    #[serde(default)]
+    lags: Vec<[LagCount; 2]>,
+    /// The extra scans (cell, index into [`CELL_PARAMETERS`]) of the
+    /// measurement under way, in the order of its batch after every
+    /// measured cell's two.
+    #[serde(default)]
+    repeats: Vec<(u32, usize)>,
 }
 
 /// The joint array loop (module docs). Serializable as a whole.
@@ -558,6 +568,9 @@ impl ArrayRun {
             }
             if let Some(f) = j.flat_resets.get_mut(cell) {
                 *f = Default::default();
+            }
+            if let Some(l) = j.lags.get_mut(cell) {
+                *l = Default::default();
             }
         }
         if self.step == Step::Idle {
@@ -806,20 +819,22 @@ impl ArrayRun {
                 if skip.iter().all(|&s| s) {
                     skip.iter_mut().for_each(|s| *s = false);
                 }
+                let repeats = self.lagging_repeats(&skip);
                 if let Some(j) = self.joint.as_mut() {
                     j.skip = skip.clone();
+                    j.repeats = repeats.clone();
                 }
+                let scan = |c: u32, kind: ScanKind| Request::Measure {
+                    scan: ScanRequest {
+                        kind,
+                        sweep: None,
+                        cell: Some(c),
+                    },
+                };
                 (0..self.sessions.len() as u32)
                     .filter(|&c| !skip[c as usize])
-                    .flat_map(|c| {
-                        CELL_SCANS.map(|kind| Request::Measure {
-                            scan: ScanRequest {
-                                kind,
-                                sweep: None,
-                                cell: Some(c),
-                            },
-                        })
-                    })
+                    .flat_map(|c| CELL_SCANS.map(|kind| scan(c, kind)))
+                    .chain(repeats.iter().map(|&(c, p)| scan(c, CELL_SCANS[p])))
                     .collect()
             }
             Step::Confirm(pending) => pending

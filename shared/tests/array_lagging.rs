@@ -15,17 +15,26 @@
 mod support;
 
 use spintune::benchmark::array::ArrayProtocol;
+use spintune::benchmark::array::{cell_tuner, world};
 use spintune::benchmark::PAPER_SET_POINTS;
 use spintune::protocol::{IterationRecord, Request, ScanKind};
+use spintune::sim::array::ArrayConfig;
 use spintune::sim::array::ArrayDevice;
+use spintune::sim::DeviceConfig;
 use spintune::tuner::array_run::{ArrayAction, ArrayRun, ArrayRunSettings};
-use support::array::three_cells_tuned;
+use support::array::{three_cells_tuned, until_tuned};
 
 /// Per measurement batch after cell 1's change: how many scans of each
 /// kind it held of cell 1, and each iteration's record; at most 40
 /// iterations or until tuned.
 fn after_change(settings: ArrayRunSettings) -> (Vec<[usize; 2]>, Vec<(usize, IterationRecord)>) {
-    let (mut run, mut device): (ArrayRun, ArrayDevice) = three_cells_tuned(settings);
+    after_change_of(three_cells_tuned(settings))
+}
+
+/// [`after_change`] of a tuned run on its device.
+fn after_change_of(
+    (mut run, mut device): (ArrayRun, ArrayDevice),
+) -> (Vec<[usize; 2]>, Vec<(usize, IterationRecord)>) {
     run.set_targets(1, PAPER_SET_POINTS[1]).unwrap();
     let (mut counts, mut records) = (Vec::new(), Vec::new());
     // `w` scans of cell 1 in the last batch that measured both its parameters
@@ -112,6 +121,24 @@ fn a_lagging_parameter_is_scanned_again_and_its_readings_pooled() {
         mean(&pooled) < 0.8 * mean(&one),
         "pooled {pooled:?} against one scan's {one:?}"
     );
+}
+
+/// The oracle plans with the true Jacobian: it never scans again.
+#[test]
+fn the_oracle_never_repeats() {
+    let protocol = ArrayProtocol::default();
+    let cells = (0..3).map(|c| cell_tuner(c, &protocol)).collect();
+    let mut device = world(
+        &DeviceConfig::default(),
+        ArrayConfig::chain(3, 5, 11),
+        |_| true,
+    )
+    .unwrap();
+    let mut run = ArrayRun::new(cells, &device.gates(), settings(2, 1), [0.3, 0.05], true).unwrap();
+    until_tuned(&mut run, &mut device);
+    let (counts, records) = after_change_of((run, device));
+    assert!(!records.is_empty());
+    assert!(counts.iter().all(|c| c[0] <= 1 && c[1] <= 1), "{counts:?}");
 }
 
 #[test]

@@ -393,19 +393,18 @@ pub struct ArrayRunSettings {
     pub t_sr_floor_filter_only: bool,
     /// Extra scans per iteration of a lagging parameter (0..=[`MAX_REPEATS`];
     /// 0: off, the default): a parameter that lags (measured out of band on
-    /// the same side [`Self::lagging_after`] iterations in a row, the latest
-    /// no nearer its target than the first of them by a band:
+    /// the same side [`Self::lagging_after`] iterations in a row:
     /// [`super::lagging::LagCount`]) is scanned this many more times in each
     /// measurement while it lags, and its readings are pooled by their
     /// inverse variances
     /// ([`super::lagging`]): the filter learns its row from each move with a
     /// smaller error bar, at the extra scans' lab time (serial on the cell's
-    /// sensor).
+    /// sensor). Never for the oracle, which plans with the true Jacobian.
     #[serde(default)]
     pub repeat_lagging_scans: u32,
-    /// With [`Self::repeat_lagging_scans`]: the iterations in a row over
-    /// which a parameter out of band on one side that came no nearer by a
-    /// band lags, 1..=[`MAX_LAGGING_AFTER`]. Default 4.
+    /// With [`Self::repeat_lagging_scans`]: the iterations in a row out of
+    /// band on one side after which a parameter lags,
+    /// 1..=[`MAX_LAGGING_AFTER`]. Default 4.
     #[serde(default = "default_lagging_after")]
     pub lagging_after: u32,
 }

@@ -1,5 +1,5 @@
 //! A parameter that lags: measured out of band on the same side of its
-//! target iteration after iteration without coming nearer
+//! target iteration after iteration
 //! ([`super::array_run::ArrayRunSettings::repeat_lagging_scans`]).
 //!
 //! A cell left out of band while the rest of the array is in band is most
@@ -15,77 +15,64 @@ use serde::{Deserialize, Serialize};
 /// Most extra scans of a lagging parameter per iteration.
 pub const MAX_REPEATS: u32 = 4;
 
-/// Most measurements a [`LagCount`] keeps (the longest
-/// [`super::array_run::ArrayRunSettings::lagging_after`]).
+/// Largest [`super::array_run::ArrayRunSettings::lagging_after`].
 pub const MAX_LAGGING_AFTER: u32 = 30;
 
-/// One parameter's measurements in a row out of band on the same side of
-/// its target (their `|ln(value/target)|`, at most [`MAX_LAGGING_AFTER`]).
-/// The parameter lags when `after` of them in a row came no nearer the
-/// target than by one band: a parameter that approaches, however far it
-/// started, does not lag.
+/// Consecutive measurements of one parameter out of band on the same side.
+/// The parameter lags once they reach `after`
+/// ([`super::array_run::ArrayRunSettings::lagging_after`]), approaching or
+/// not: a rule that also asked it to come no nearer than a band lagged
+/// later and measured worse (docs/array-history.md, "A lagging parameter
+/// scanned again").
 ///
 /// ```
 /// use spintune::tuner::lagging::LagCount;
-/// let (band, after) = (0.1, 3);
 /// let mut lag = LagCount::default();
-/// // w against a target of 270 µV: held near 200 µV
-/// let lags: Vec<bool> = [200.0, 210.0, 205.0, 207.0]
+/// // w against a target of 270 µV, band ±10 %
+/// let counts: Vec<u32> = [200.0, 210.0, 205.0, 280.0, 200.0, 310.0]
 ///     .iter()
-///     .map(|w| lag.note(w / 270.0_f64, band, after))
+///     .map(|w| lag.note(w / 270.0_f64, 0.1))
 ///     .collect();
-/// assert_eq!(lags, [false, false, true, true]);
-/// // in band, then approaching from below by more than a band in 3: no lag
-/// let mut lag = LagCount::default();
-/// let lags: Vec<bool> = [280.0, 150.0, 170.0, 195.0, 215.0]
-///     .iter()
-///     .map(|w| lag.note(w / 270.0_f64, band, after))
-///     .collect();
-/// assert_eq!(lags, [false; 5]);
+/// // in band at 280 µV, then low again, then high (the other side)
+/// assert_eq!(counts, [1, 2, 3, 0, 1, 1]);
+/// assert!(lag.lags(1) && !lag.lags(2));
 /// ```
-#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub struct LagCount {
     /// −1 below the band, +1 above, 0 in band or not yet measured.
     side: i8,
-    /// `|ln(value/target)|` of the measurements on that side, oldest first.
-    residuals: Vec<f64>,
+    /// Measurements in a row on that side.
+    count: u32,
 }
 
 impl LagCount {
     /// Note a measurement, `ratio = value/target` (a non-finite or
-    /// non-positive ratio, a failed fit, changes nothing), against the
-    /// band's `relative_tolerance`; returns whether the parameter now lags
-    /// over `after` measurements (1..=[`MAX_LAGGING_AFTER`], clamped).
-    pub fn note(&mut self, ratio: f64, relative_tolerance: f64, after: u32) -> bool {
-        if ratio.is_finite() && ratio > 0.0 {
-            let side = if (ratio - 1.0).abs() <= relative_tolerance {
-                0
-            } else if ratio > 1.0 {
-                1
-            } else {
-                -1
-            };
-            if side != self.side || side == 0 {
-                self.residuals.clear();
-            }
-            self.side = side;
-            if side != 0 {
-                self.residuals.push(ratio.ln().abs());
-                if self.residuals.len() > MAX_LAGGING_AFTER as usize {
-                    self.residuals.remove(0);
-                }
-            }
+    /// non-positive ratio, a failed fit, leaves the count as it is),
+    /// against the band's `relative_tolerance`; returns the count.
+    pub fn note(&mut self, ratio: f64, relative_tolerance: f64) -> u32 {
+        if !(ratio.is_finite() && ratio > 0.0) {
+            return self.count;
         }
-        self.lags(relative_tolerance, after)
+        let side = if (ratio - 1.0).abs() <= relative_tolerance {
+            0
+        } else if ratio > 1.0 {
+            1
+        } else {
+            -1
+        };
+        self.count = match side {
+            0 => 0,
+            s if s == self.side => self.count.saturating_add(1),
+            _ => 1,
+        };
+        self.side = side;
+        self.count
     }
 
-    /// Whether the last `after` measurements were all out of band on one
-    /// side and the latest is not nearer the target than the first of them
-    /// by `ln(1 + relative_tolerance)` (one band).
-    pub fn lags(&self, relative_tolerance: f64, after: u32) -> bool {
-        let after = after.clamp(1, MAX_LAGGING_AFTER) as usize;
-        let n = self.residuals.len();
-        n >= after && self.residuals[n - after] - self.residuals[n - 1] < relative_tolerance.ln_1p()
+    /// Whether `after` or more measurements in a row were out of band on
+    /// one side.
+    pub fn lags(&self, after: u32) -> bool {
+        after > 0 && self.count >= after
     }
 
     /// Start afresh (the target changed).

@@ -661,20 +661,20 @@ impl ArrayRun {
         if j.lags.len() != k {
             j.lags = vec![Default::default(); k];
         }
-        j.lags[c][p].note(ratio, band, self.settings.lagging_after);
+        j.lags[c][p].note(ratio, band);
     }
 
     /// The extra scans of the next measurement: each lagging parameter of
     /// a cell that scans ([`ArrayRunSettings::lagging_after`](super::ArrayRunSettings::lagging_after)),
     /// [`ArrayRunSettings::repeat_lagging_scans`](super::ArrayRunSettings::repeat_lagging_scans)
-    /// times, cell by cell.
+    /// times, cell by cell. Never for the oracle.
     pub(super) fn lagging_repeats(&self, skip: &[bool]) -> Vec<(u32, usize)> {
-        let (r, after, band) = (
+        let (r, after) = (
             self.settings.repeat_lagging_scans,
             self.settings.lagging_after,
-            self.settings.relative_tolerance,
         );
-        let Some(j) = self.joint.as_ref().filter(|_| r > 0) else {
+        // the oracle plans with the truth: more readings would not teach it
+        let Some(j) = self.joint.as_ref().filter(|_| r > 0 && !self.oracle) else {
             return Vec::new();
         };
         let mut out = Vec::new();
@@ -683,7 +683,7 @@ impl ArrayRun {
                 continue;
             }
             for (p, lag) in lags.iter().enumerate() {
-                if lag.lags(band, after) {
+                if lag.lags(after) {
                     out.extend(std::iter::repeat_n((c as u32, p), r as usize));
                 }
             }

@@ -181,7 +181,10 @@ pub struct JointConfig {
     /// Prior σ of each curvature coefficient of a row's scale over its
     /// cell's own gates, 1/mV² (0: off, rows learn a gradient only;
     /// otherwise up to [`MAX_CURVATURE_PRIOR_PER_MV2`]): the row learns how
-    /// its gradient bends ([`super::curvature`]). Default 0.
+    /// its gradient bends ([`super::curvature`]). Default 0: on random
+    /// development arrays the rows came barely nearer the truth and more
+    /// phases were left unconverged (docs/array-history.md, "A row that
+    /// learns its bend").
     #[serde(default)]
     pub curvature_prior_per_mv2: f64,
 }

@@ -8,7 +8,7 @@
 //! move changes its value by less than one reading's σ, so the filter
 //! learns the row slowly. Scanning that parameter more than once per
 //! iteration and pooling the readings gives each move a smaller error bar,
-//! at the lab time of the extra scans.
+//! at the lab time of the extra scans. Off by default (measured there).
 
 use serde::{Deserialize, Serialize};
 
@@ -22,8 +22,9 @@ pub const MAX_LAGGING_AFTER: u32 = 30;
 /// The parameter lags once they reach `after`
 /// ([`super::array_run::ArrayRunSettings::lagging_after`]), approaching or
 /// not: a rule that also asked it to come no nearer than a band lagged
-/// later and measured worse (docs/array-history.md, "A lagging parameter
-/// scanned again").
+/// later and measured worse (docs/array-history.md, "A row that learns
+/// its bend; a lagging parameter scanned again"). Off by default: on fresh
+/// arrays the extra scans cost more lab time than the phases they spared.
 ///
 /// ```
 /// use spintune::tuner::lagging::LagCount;

@@ -267,7 +267,8 @@ impl JointConfig {
         }
         let c = self.curvature_prior_per_mv2;
         if !(c.is_finite() && (0.0..=MAX_CURVATURE_PRIOR_PER_MV2).contains(&c)) {
-            return bad("joint.curvature_prior_per_mv2", c, "[0, 0.01]");
+            let range = format!("[0, {MAX_CURVATURE_PRIOR_PER_MV2}]");
+            return bad("joint.curvature_prior_per_mv2", c, &range);
         }
         if self.widened_row_explores > MAX_WIDENED_ROW_EXPLORES {
             return bad(

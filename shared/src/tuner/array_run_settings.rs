@@ -7,6 +7,7 @@ use serde::{Deserialize, Serialize};
 
 use super::in_band::InBandRule;
 use super::lagging::{MAX_LAGGING_AFTER, MAX_REPEATS};
+use super::shrink::MAX_SHRINK;
 use super::stall::{StalledRowSource, MAX_STALL_WINDOW};
 use crate::config_error::ConfigError;
 use crate::tuner::array::JointConfig;
@@ -407,6 +408,16 @@ pub struct ArrayRunSettings {
     /// 1..=[`MAX_LAGGING_AFTER`]. Default 4.
     #[serde(default = "default_lagging_after")]
     pub lagging_after: u32,
+    /// Aim each step at readings shrunk toward their targets
+    /// (0..=[`MAX_SHRINK`]; 0: off, the default): a parameter's residual
+    /// `y` (row scale) with variance `σ²` (the filter's, under
+    /// [`Self::t_sr_floor_filter_only`] with the `t_sr` floor) enters the
+    /// step as `y · y²/(y² + s·σ²)` ([`super::shrink`]): a reading within
+    /// the noise of its target moves its cell little, one many σ away as
+    /// before. For `joint` and the oracle alike (it is about the readings'
+    /// noise, not the Jacobian).
+    #[serde(default)]
+    pub shrink_residuals: f64,
 }
 
 fn default_lagging_after() -> u32 {
@@ -503,6 +514,7 @@ impl Default for ArrayRunSettings {
             reset_stalled_row_after: default_reset_stalled_row_after(),
             repeat_lagging_scans: 0,
             lagging_after: default_lagging_after(),
+            shrink_residuals: 0.0,
             stalled_row_from: default_stalled_row_from(),
             t_sr_floor: default_t_sr_floor(),
             t_sr_floor_filter_only: true,
@@ -610,6 +622,12 @@ impl ArrayRunSettings {
             (1..=MAX_LAGGING_AFTER).contains(&n),
             "lagging_after",
             n.to_string(),
+        )?;
+        let f = self.shrink_residuals;
+        check(
+            f.is_finite() && (0.0..=MAX_SHRINK).contains(&f),
+            "shrink_residuals",
+            f.to_string(),
         )?;
         if let Some(m) = self.verify_lines_above_mv {
             check(

@@ -51,6 +51,7 @@ pub mod miss_cusum;
 mod newton;
 pub mod pooled_gradient;
 mod search;
+pub mod shrink;
 pub mod stall;
 pub mod thermal_floor;
 

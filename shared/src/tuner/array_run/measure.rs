@@ -14,10 +14,11 @@ use crate::protocol::{
     EventKind, IterationRecord, ParameterReport, Response, ScanOutcome, TunerEvent,
 };
 use crate::sim::array::parameter_name;
-use crate::tuner::array::Measured;
+use crate::tuner::array::{JointArrayTuner, Measured};
 use crate::tuner::in_band::{
     beyond_band, inside_margin, pooled_reading, stays_in_band, to_confirm, within_band, InBandRule,
 };
+use crate::tuner::shrink::shrunk_residual;
 use crate::tuner::stall::StalledRowSource;
 
 impl ArrayRun {
@@ -178,11 +179,11 @@ impl ArrayRun {
                     }
                     let hold = in_band && self.settings.hold_in_band;
                     let tuner = self.joint.as_ref().map(|j| &j.tuner);
-                    residual[c][p] = m.filter(|(x, _)| *x > 0.0).and_then(|(x, _)| {
+                    residual[c][p] = m.filter(|(x, _)| *x > 0.0).and_then(|m| {
                         if hold {
                             Some(0.0)
                         } else {
-                            tuner?.residual(c, p, x, tv[p])
+                            self.step_residual(tuner?, c, p, m, tv[p])
                         }
                     });
                 }
@@ -236,6 +237,30 @@ impl ArrayRun {
         };
         self.step = self.step_after_measurement(all_in, confirm, &skip)?;
         Ok(())
+    }
+
+    /// The step's residual of cell `c`'s parameter `p` read `m` (value and
+    /// variance) against `target`: [`JointArrayTuner::residual`], shrunk
+    /// toward 0 by [`ArrayRunSettings::shrink_residuals`](super::ArrayRunSettings::shrink_residuals)
+    /// with the variance the filter learns from ([`Self::taught`]).
+    fn step_residual(
+        &self,
+        tuner: &JointArrayTuner,
+        c: usize,
+        p: usize,
+        m: Measured,
+        target: f64,
+    ) -> Option<f64> {
+        let y = tuner.residual(c, p, m.0, target)?;
+        let factor = self.settings.shrink_residuals;
+        if factor <= 0.0 {
+            return Some(y);
+        }
+        let mut one = vec![None; CELL_PARAMETERS.len()];
+        *one.get_mut(p)? = Some(m);
+        let (x, var) = self.taught(c, &one)[p]?;
+        let var_y = tuner.scale(c, p)?.variance(x, var);
+        Some(shrunk_residual(y, var_y, factor))
     }
 
     /// Cell `cell`'s values as the filter learns from them: under
@@ -528,24 +553,31 @@ impl ArrayRun {
                 continue;
             }
             confirmed = false;
+            let mean = match (judged, first, m) {
+                (Some((x, _)), _, _) if pool && x > 0.0 => Some(x),
+                (_, _, Some((b, _))) if b > 0.0 && verified => Some(b),
+                (_, Some((a, _)), Some((b, _))) if b > 0.0 => Some(0.5 * (a + b)),
+                _ => None,
+            };
+            // (shrunk with the latest reading's variance: the mean's is smaller)
+            let residual = match (mean, m, self.joint.as_ref()) {
+                (Some(x), Some((_, var)), Some(j)) => {
+                    self.step_residual(&j.tuner, cell, p, (x, var), target)
+                }
+                _ => None,
+            };
             if let Some(j) = self.joint.as_mut() {
                 if let Some(b) = j.in_band.get_mut(cell) {
                     *b = false;
                 }
-                let mean = match (judged, first, m) {
-                    (Some((x, _)), _, _) if pool && x > 0.0 => Some(x),
-                    (_, _, Some((b, _))) if b > 0.0 && verified => Some(b),
-                    (_, Some((a, _)), Some((b, _))) if b > 0.0 => Some(0.5 * (a + b)),
-                    _ => None,
-                };
-                if let (Some(x), Some(slot)) = (
-                    mean,
+                if let (Some(r), Some(slot)) = (
+                    residual,
                     self.scratch
                         .residual
                         .get_mut(cell)
                         .and_then(|r| r.get_mut(p)),
                 ) {
-                    *slot = j.tuner.residual(cell, p, x, target);
+                    *slot = Some(r);
                 }
             }
         }

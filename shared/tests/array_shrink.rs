@@ -1,17 +1,18 @@
 //! Steps aimed at readings shrunk toward their targets
-//! (`ArrayRunSettings::shrink_residuals`, `spintune::tuner::shrink`).
+//! (`ArrayRunSettings::shrink_residuals`, `shrink_in_band_only`;
+//! `spintune::tuner::shrink`).
 //!
 //! A 3-cell chain without crosstalk (and a lab calibration that says so)
-//! is tuned from cold with the option off; a copy of the run (through its
-//! serialized form, as a checkpoint) gets the option on, and both give
-//! cell 1 the paper's next set point on copies of the same world. Their
-//! first measurement after the change is the same. Cells 0 and 2, tuned
-//! and not coupled to cell 1, have nothing to correct but their readings'
-//! noise: aimed at those readings they wander by about a σ's worth of
-//! gate each iteration; with the option they move far less (summed over
-//! the phase, less than half as far with a factor of 4). Cell 1, many σ
-//! from its new targets, moves as far in its first step either way (its
-//! residual is shrunk by under 3 %, and the step is held to its limit).
+//! is tuned from cold with the option off; copies of the run (through its
+//! serialized form, as a checkpoint) get the option on or off and a band
+//! of ±3 %, and every cell's targets are set again on copies of the same
+//! world, so all copies take the same first measurement. Tuned cells
+//! then have little to correct but their readings' noise: aimed at those
+//! readings they wander by about a σ's worth of gate each iteration; with
+//! a factor of 4 they move less than half as far per iteration (over 8
+//! noise seeds). With `shrink_in_band_only`, readings out of band are
+//! aimed at in full: moved to far targets, the first move is the same
+//! gate for gate as without the option. The bounds name their field.
 
 mod support;
 
@@ -25,9 +26,18 @@ use support::array::until_tuned;
 
 /// The records of `run` on `device` after every cell's targets were set
 /// again to the cold start's, until tuned, idle or 16 iterations.
-fn after_change(mut run: ArrayRun, mut device: ArrayDevice) -> Vec<IterationRecord> {
+fn after_change(run: ArrayRun, device: ArrayDevice) -> Vec<IterationRecord> {
+    after_change_to(run, device, PAPER_SET_POINTS[0])
+}
+
+/// [`after_change`] with every cell's targets set to `targets`.
+fn after_change_to(
+    mut run: ArrayRun,
+    mut device: ArrayDevice,
+    targets: (f64, f64),
+) -> Vec<IterationRecord> {
     for c in 0..3 {
-        run.set_targets(c, PAPER_SET_POINTS[0]).unwrap();
+        run.set_targets(c, targets).unwrap();
     }
     let mut out: Vec<IterationRecord> = Vec::new();
     for _ in 0..4000 {
@@ -65,8 +75,16 @@ fn moved(records: &[IterationRecord], i: usize, c: u32) -> f64 {
 }
 
 fn with_shrink(run: &ArrayRun, factor: f64) -> ArrayRun {
+    with_shrink_of(run, factor, false)
+}
+
+/// `run` with the option at `factor` (only for readings in band with
+/// `in_band_only`) and a band of ±3 %, so that cells within a few σ of
+/// their targets still iterate.
+fn with_shrink_of(run: &ArrayRun, factor: f64, in_band_only: bool) -> ArrayRun {
     let mut v = serde_json::to_value(run).unwrap();
     v["settings"]["shrink_residuals"] = serde_json::json!(factor);
+    v["settings"]["shrink_in_band_only"] = serde_json::json!(in_band_only);
     v["settings"]["relative_tolerance"] = serde_json::json!(0.03);
     serde_json::from_value(v).unwrap()
 }
@@ -126,6 +144,40 @@ fn a_reading_within_its_noise_moves_its_cell_less() {
     );
 }
 
+/// With `shrink_in_band_only`, readings out of their band are aimed at in
+/// full: after every cell's targets moved to (70 ns, 180 µV) (every
+/// reading out of band), the first move is the same as without the
+/// option, gate for gate, and differs with the option on every reading.
+#[test]
+fn in_band_only_leaves_readings_out_of_band_alone() {
+    for seed in [11, 12, 13] {
+        let (run, device) = uncoupled_tuned(seed);
+        let first_move = |run: ArrayRun| {
+            let r = after_change_to(run, device.clone(), (70.0, 180.0));
+            assert!(r.len() >= 2, "seed {seed}");
+            assert!(
+                r[0].parameters.iter().all(|p| {
+                    let (x, t) = (p.value.unwrap(), p.target.unwrap());
+                    (x / t - 1.0).abs() > 0.1 && (t / x - 1.0).abs() > 0.1
+                }),
+                "{:?}",
+                r[0].parameters
+            );
+            (0..3)
+                .flat_map(|c| ["N", "T", "SA", "SB"].map(|g| format!("c{c}.{g}")))
+                .map(|g| r[1].voltages_mv[&g])
+                .collect::<Vec<f64>>()
+        };
+        let off = first_move(with_shrink(&run, 0.0));
+        assert_eq!(
+            off,
+            first_move(with_shrink_of(&run, 4.0, true)),
+            "seed {seed}"
+        );
+        assert_ne!(off, first_move(with_shrink(&run, 4.0)), "seed {seed}");
+    }
+}
+
 #[test]
 fn the_factor_is_bounded_and_named() {
     let s = |f: f64| ArrayRunSettings {
@@ -141,5 +193,7 @@ fn the_factor_is_bounded_and_named() {
     }
     assert!(s(0.0).validate().is_ok() && s(10.0).validate().is_ok());
     // a settings file without it: off
-    assert_eq!(support::array::oldest_settings().shrink_residuals, 0.0);
+    let old = support::array::oldest_settings();
+    assert_eq!(old.shrink_residuals, 0.0);
+    assert!(!old.shrink_in_band_only);
 }

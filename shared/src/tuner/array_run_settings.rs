@@ -418,6 +418,10 @@ pub struct ArrayRunSettings {
     /// noise, not the Jacobian).
     #[serde(default)]
     pub shrink_residuals: f64,
+    /// With [`Self::shrink_residuals`]: shrink only the readings within
+    /// their band (a parameter read out of band is aimed at in full).
+    #[serde(default)]
+    pub shrink_in_band_only: bool,
 }
 
 fn default_lagging_after() -> u32 {
@@ -515,6 +519,7 @@ impl Default for ArrayRunSettings {
             repeat_lagging_scans: 0,
             lagging_after: default_lagging_after(),
             shrink_residuals: 0.0,
+            shrink_in_band_only: false,
             stalled_row_from: default_stalled_row_from(),
             t_sr_floor: default_t_sr_floor(),
             t_sr_floor_filter_only: true,

@@ -183,7 +183,7 @@ impl ArrayRun {
                         if hold {
                             Some(0.0)
                         } else {
-                            self.step_residual(tuner?, c, p, m, tv[p])
+                            self.step_residual(tuner?, c, p, m, tv[p], !out[p])
                         }
                     });
                 }
@@ -242,7 +242,9 @@ impl ArrayRun {
     /// The step's residual of cell `c`'s parameter `p` read `m` (value and
     /// variance) against `target`: [`JointArrayTuner::residual`], shrunk
     /// toward 0 by [`ArrayRunSettings::shrink_residuals`](super::ArrayRunSettings::shrink_residuals)
-    /// with the variance the filter learns from ([`Self::taught`]).
+    /// with the variance the filter learns from ([`Self::taught`]); under
+    /// [`ArrayRunSettings::shrink_in_band_only`](super::ArrayRunSettings::shrink_in_band_only)
+    /// only a reading `within` its band.
     fn step_residual(
         &self,
         tuner: &JointArrayTuner,
@@ -250,10 +252,11 @@ impl ArrayRun {
         p: usize,
         m: Measured,
         target: f64,
+        within: bool,
     ) -> Option<f64> {
         let y = tuner.residual(c, p, m.0, target)?;
         let factor = self.settings.shrink_residuals;
-        if factor <= 0.0 {
+        if factor <= 0.0 || (self.settings.shrink_in_band_only && !within) {
             return Some(y);
         }
         let mut one = vec![None; CELL_PARAMETERS.len()];
@@ -562,7 +565,7 @@ impl ArrayRun {
             // (shrunk with the latest reading's variance: the mean's is smaller)
             let residual = match (mean, m, self.joint.as_ref()) {
                 (Some(x), Some((_, var)), Some(j)) => {
-                    self.step_residual(&j.tuner, cell, p, (x, var), target)
+                    self.step_residual(&j.tuner, cell, p, (x, var), target, false)
                 }
                 _ => None,
             };

@@ -13,6 +13,7 @@ use spintune::benchmark::array::{
 };
 use spintune::benchmark::array_timeline::CellBand;
 use spintune::benchmark::cell_trace::error_bar_coverage;
+use spintune::benchmark::oracle_twin::{oracle_twin, OracleTwin};
 use spintune::benchmark::BenchmarkProtocol;
 use spintune::description::layout::Layout;
 use spintune::driver::SimulationConfig;
@@ -100,6 +101,15 @@ pub struct BenchArrayArgs {
     /// JSON's timeline).
     #[arg(long, value_name = "K")]
     pub trace_cell: Option<u32>,
+    /// Also run the oracle on noise seeds N+1..=2N (N = --seeds) and pair
+    /// each with the oracle's run on seed s − N of the same array, as
+    /// `joint` is paired with the oracle: how often a strategy planning
+    /// with the true Jacobian fails "not converged where the oracle
+    /// converged" and leaves neighbours out, the noise floor of those
+    /// goals (printed after the table; `oracle_twin` in the JSON). Needs
+    /// `oracle` in --strategies.
+    #[arg(long)]
+    pub oracle_twin: bool,
 }
 
 /// The JSON report.
@@ -121,6 +131,10 @@ pub struct BenchArrayReport {
     /// With `--random-devices`: the devices of cell 0.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub random_devices: Option<RandomDevices>,
+    /// With `--oracle-twin`: the oracle against itself (its runs on seeds
+    /// above `seeds` are not in `runs`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub oracle_twin: Option<OracleTwin>,
 }
 
 /// Run `spintune bench-array`.
@@ -136,6 +150,11 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
         )));
     }
     let strategies = parse_strategies(&args.strategies)?;
+    if args.oracle_twin && !strategies.contains(&ArrayStrategy::Oracle) {
+        return Err(CliError::input(
+            "--oracle-twin pairs the oracle with itself: add oracle to --strategies".to_string(),
+        ));
+    }
     let plotted = [ArrayStrategy::Joint, ArrayStrategy::Oracle]
         .into_iter()
         .find(|s| strategies.contains(s));
@@ -219,9 +238,13 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
     let mut set_points = protocol.set_points.clone();
     set_points.push(protocol.single_cell_target);
     let reachable = |d: &spintune::sim::DeviceConfig| cell_targets_reachable(d, &set_points);
+    let twin_seeds = if args.oracle_twin { args.seeds } else { 0 };
     let work: Vec<(usize, u64, ArrayStrategy)> = (0..devices.len())
-        .flat_map(|d| (1..=args.seeds).flat_map(move |s| ArrayStrategy::ALL.map(|k| (d, s, k))))
+        .flat_map(|d| {
+            (1..=args.seeds + twin_seeds).flat_map(move |s| ArrayStrategy::ALL.map(|k| (d, s, k)))
+        })
         .filter(|(_, _, k)| strategies.contains(k))
+        .filter(|&(_, s, k)| s <= args.seeds || k == ArrayStrategy::Oracle)
         .collect();
     let (mut results, failures) = parallel_map(&work, threads, |&(d, seed, strategy)| {
         let (device, cfg) = &devices[d];
@@ -239,6 +262,8 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
     for f in &failures {
         eprintln!("warning: {f}");
     }
+    let twin = oracle_twin(&results, args.seeds);
+    results.retain(|r| r.seed <= args.seeds);
     let summary = summarize_array(&results, &strategies);
     let readout = match args.cells_per_sensor {
         1 => "one sensor per cell".to_string(),
@@ -261,6 +286,18 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
         args.next
     );
     println!("{}", markdown(&summary));
+    if let Some(t) = &twin {
+        println!(
+            "The oracle against itself (noise seeds {}..={} paired with 1..={} on the same arrays): {} not converged where the oracle converged ({} not converged), {} neighbours left out of band, {} runs.\n",
+            args.seeds + 1,
+            2 * args.seeds,
+            args.seeds,
+            t.not_converged_where_oracle_converged,
+            t.not_converged,
+            t.neighbours_left_out_of_band,
+            t.runs
+        );
+    }
     if let Some(c) = args.trace_cell {
         print_traces(&results, c);
     }
@@ -287,6 +324,7 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
             strategies: summary,
             runs: results,
             random_devices,
+            oracle_twin: twin,
         };
         let text = serde_json::to_string_pretty(&report).expect("serializable report");
         std::fs::write(path, text)

@@ -608,3 +608,91 @@ fn bench_array_writes_the_documented_keys_and_reads_tuning_from_a_file() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `bench-array --oracle-twin`: the oracle again on seeds N+1..=2N, paired
+/// with its own runs on 1..=N. Its counts equal those derived from a plain
+/// run of both seeds' oracle (the JSON's phases, paired by hand), its runs
+/// stay out of the report's `runs`, and it needs the oracle.
+#[test]
+fn bench_array_oracle_twin_pairs_the_oracle_with_itself() {
+    let dir = std::env::temp_dir().join(format!("spintune-oracle-twin-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let (twin_json, plain_json) = (dir.join("twin.json"), dir.join("plain.json"));
+    let base = [
+        "bench-array",
+        "--cells",
+        "2",
+        "--strategies",
+        "oracle",
+        "--threads",
+        "1",
+    ];
+    let out = run_ok(
+        bin()
+            .args(base)
+            .args(["--seeds", "1", "--oracle-twin", "--json"])
+            .arg(&twin_json),
+    );
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        stdout.contains("The oracle against itself (noise seeds 2..=2 paired with 1..=1"),
+        "{stdout}"
+    );
+    run_ok(
+        bin()
+            .args(base)
+            .args(["--seeds", "2", "--json"])
+            .arg(&plain_json),
+    );
+    let read = |p: &std::path::Path| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
+    };
+    let (twin, plain) = (read(&twin_json), read(&plain_json));
+    let runs = twin["runs"].as_array().unwrap();
+    assert!(runs.iter().all(|r| r["seed"] == 1), "only seed 1 reported");
+    // by hand: seed 2's phases against seed 1's on the same device
+    let phases = |r: &serde_json::Value| -> Vec<bool> {
+        std::iter::once(&r["cold_start_lab_minutes"])
+            .chain(r["changes"].as_array().unwrap())
+            .chain(r["single_cell_changes"].as_array().unwrap())
+            .map(|p| p.is_null())
+            .collect()
+    };
+    let plain_runs = plain["runs"].as_array().unwrap();
+    let (mut pairs, mut missed, mut missed_where, mut out_of_band) = (0, 0, 0, 0);
+    for t in plain_runs.iter().filter(|r| r["seed"] == 2) {
+        let o = plain_runs
+            .iter()
+            .find(|o| o["seed"] == 1 && o["device"] == t["device"])
+            .unwrap();
+        // the plain run's seed 1 is the twin report's seed 1
+        assert!(runs.iter().any(|r| r == o), "seed 1 as in the plain run");
+        pairs += 1;
+        let (a, b) = (phases(t), phases(o));
+        missed += a.iter().filter(|&&x| x).count();
+        missed_where += a.iter().zip(&b).filter(|(x, y)| **x && !**y).count();
+        out_of_band += t["neighbours_left_out_of_band"].as_u64().unwrap();
+    }
+    let t = &twin["oracle_twin"];
+    assert_eq!(t["runs"], pairs);
+    assert_eq!(t["not_converged"], missed);
+    assert_eq!(t["not_converged_where_oracle_converged"], missed_where);
+    assert_eq!(t["neighbours_left_out_of_band"], out_of_band);
+    // without the oracle it is refused before anything runs
+    let out = bin()
+        .args([
+            "bench-array",
+            "--cells",
+            "2",
+            "--seeds",
+            "1",
+            "--strategies",
+            "joint",
+            "--oracle-twin",
+        ])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--oracle-twin"));
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -1049,7 +1049,9 @@ fn rows_before_band(runs: &[&ArrayRunResult]) -> Option<[[f64; 2]; 2]> {
     before_band(&timelines, &phases)
 }
 
-fn all_changes(r: &ArrayRunResult) -> Vec<Option<f64>> {
+/// A run's phases in order: the cold start, the all-cell changes, the
+/// single-cell changes (lab minutes; `None`: not converged).
+pub(crate) fn all_changes(r: &ArrayRunResult) -> Vec<Option<f64>> {
     std::iter::once(r.cold_start_lab_minutes)
         .chain(r.changes.iter().copied())
         .chain(r.single_cell_changes.iter().copied())

@@ -27,6 +27,7 @@ pub mod array_timeline;
 pub mod cell_trace;
 pub mod keep;
 pub mod keep_goals;
+pub mod oracle_twin;
 pub mod row_agreement;
 
 use std::collections::BTreeMap;

@@ -49,7 +49,8 @@ mod tests {
             // the same shrink on the other side
             assert_eq!(shrunk_residual(-y, var, 2.0), -shrunk_residual(y, var, 2.0));
         }
-        assert!(last > 0.95);
+        // at 5σ with s = 2: 25/27
+        assert!((last - 25.0 / 27.0).abs() < 1e-12, "{last}");
     }
 
     #[test]

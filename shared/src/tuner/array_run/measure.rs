@@ -562,10 +562,11 @@ impl ArrayRun {
                 (_, Some((a, _)), Some((b, _))) if b > 0.0 => Some(0.5 * (a + b)),
                 _ => None,
             };
-            // (shrunk with the latest reading's variance: the mean's is smaller)
+            // the slot's new value when there is a mean (shrunk with the
+            // latest reading's variance: the mean's is smaller)
             let residual = match (mean, m, self.joint.as_ref()) {
                 (Some(x), Some((_, var)), Some(j)) => {
-                    self.step_residual(&j.tuner, cell, p, (x, var), target, false)
+                    Some(self.step_residual(&j.tuner, cell, p, (x, var), target, false))
                 }
                 _ => None,
             };
@@ -580,7 +581,7 @@ impl ArrayRun {
                         .get_mut(cell)
                         .and_then(|r| r.get_mut(p)),
                 ) {
-                    *slot = Some(r);
+                    *slot = r;
                 }
             }
         }

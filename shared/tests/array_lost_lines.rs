@@ -15,8 +15,9 @@ use spintune::benchmark::array::{cell_tuner, ArrayProtocol};
 use spintune::benchmark::PAPER_SET_POINTS;
 use spintune::protocol::{EventKind, IterationRecord};
 use spintune::sim::array::ArrayDevice;
-use spintune::tuner::array_run::{ArrayAction, ArrayRun};
+use spintune::tuner::array_run::ArrayRun;
 use spintune::tuner::LevelKind;
+use support::array::drive;
 
 /// Three default-population cells, every cell's line search on or off.
 fn array(search: bool) -> (ArrayRun, ArrayDevice) {
@@ -36,28 +37,6 @@ fn array(search: bool) -> (ArrayRun, ArrayDevice) {
         })
         .collect();
     support::array::three_cells(cells)
-}
-
-/// Drive the run until it is measured in band or `max` iterations end.
-fn drive(run: &mut ArrayRun, device: &mut ArrayDevice, max: u32) -> Vec<IterationRecord> {
-    let mut records = Vec::new();
-    loop {
-        match run.poll().unwrap() {
-            ArrayAction::Execute(batch) => {
-                let before = device.lab_seconds();
-                let answers = device.execute_batch(&batch);
-                run.feed(answers, device.lab_seconds() - before).unwrap();
-            }
-            ArrayAction::Iteration(record) => {
-                let tuned = record.tuned;
-                records.push(*record);
-                if tuned || records.len() as u32 >= max {
-                    return records;
-                }
-            }
-            ArrayAction::Idle => return records,
-        }
-    }
 }
 
 fn line_events(records: &[IterationRecord]) -> Vec<EventKind> {

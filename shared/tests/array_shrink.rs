@@ -21,8 +21,8 @@ use spintune::benchmark::PAPER_SET_POINTS;
 use spintune::protocol::IterationRecord;
 use spintune::sim::array::{ArrayConfig, ArrayDevice, CrosstalkConfig};
 use spintune::sim::DeviceConfig;
-use spintune::tuner::array_run::{ArrayAction, ArrayRun, ArrayRunSettings};
-use support::array::until_tuned;
+use spintune::tuner::array_run::{ArrayRun, ArrayRunSettings};
+use support::array::{drive, until_tuned};
 
 /// The records of `run` on `device` after every cell's targets were set
 /// again to the cold start's, until tuned, idle or 16 iterations.
@@ -39,25 +39,7 @@ fn after_change_to(
     for c in 0..3 {
         run.set_targets(c, targets).unwrap();
     }
-    let mut out: Vec<IterationRecord> = Vec::new();
-    for _ in 0..4000 {
-        match run.poll().unwrap() {
-            ArrayAction::Execute(batch) => {
-                let before = device.lab_seconds();
-                let answers = device.execute_batch(&batch);
-                run.feed(answers, device.lab_seconds() - before).unwrap();
-            }
-            ArrayAction::Iteration(r) => {
-                let tuned = r.tuned;
-                out.push(*r);
-                if tuned || out.len() == 16 {
-                    break;
-                }
-            }
-            ArrayAction::Idle => break,
-        }
-    }
-    out
+    drive(&mut run, &mut device, 16)
 }
 
 /// Length (mV) of cell `c`'s move of its tuning gates from record `i` to

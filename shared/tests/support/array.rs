@@ -160,6 +160,29 @@ pub fn wide_limits(gates: &[String]) -> spintune::safety::SafetyLimits {
     )
 }
 
+/// Drive `run` against `device` until it is measured in band, idles or
+/// `max` iterations end; the records of those iterations.
+pub fn drive(run: &mut ArrayRun, device: &mut ArrayDevice, max: u32) -> Vec<IterationRecord> {
+    let mut records = Vec::new();
+    loop {
+        match run.poll().unwrap() {
+            ArrayAction::Execute(batch) => {
+                let before = device.lab_seconds();
+                let answers = device.execute_batch(&batch);
+                run.feed(answers, device.lab_seconds() - before).unwrap();
+            }
+            ArrayAction::Iteration(record) => {
+                let tuned = record.tuned;
+                records.push(*record);
+                if tuned || records.len() as u32 >= max {
+                    return records;
+                }
+            }
+            ArrayAction::Idle => return records,
+        }
+    }
+}
+
 /// Drive `run` against `device` until a record says tuned or the run
 /// idles (a cold start, or the end of a phase); at most 2000 polls.
 pub fn until_tuned(run: &mut ArrayRun, device: &mut ArrayDevice) {

@@ -953,6 +953,45 @@ impl JointArrayTuner {
         (y.is_finite() && var.is_finite()).then_some((y, var))
     }
 
+    /// A reading `measured` (value and variance, unit and unit²) of `cell`'s
+    /// parameter `parameter` taken at `from_mv`, carried to `to_mv` along
+    /// the row's learned gradient: `y + g·Δ` with the variance of `y` plus
+    /// `Δᵀ(C + Q(Δ))Δ` (the gradient's uncertainty and process noise along
+    /// the change `Δ` of the row's features), back in the parameter's
+    /// unit. At equal voltages the reading itself. `None` for an unknown
+    /// row, a value ≤ 0, a variance that is not finite, or a gate of the
+    /// row missing from either map.
+    pub fn carry(
+        &self,
+        cell: usize,
+        parameter: usize,
+        measured: Measured,
+        from_mv: &BTreeMap<String, f64>,
+        to_mv: &BTreeMap<String, f64>,
+    ) -> Option<Measured> {
+        let row = self.row(cell, parameter)?;
+        let (x, var) = measured;
+        if !(x > 0.0 && var.is_finite() && var >= 0.0) {
+            return None;
+        }
+        let at = |m: &BTreeMap<String, f64>| -> Option<Vec<f64>> {
+            row.columns
+                .iter()
+                .map(|&c| m.get(&self.gates[c]).copied())
+                .collect()
+        };
+        let dv = row.features(&at(to_mv)?) - row.features(&at(from_mv)?);
+        if dv.iter().all(|&d| d == 0.0) {
+            return Some(measured);
+        }
+        let p = row.filter.covariance() + row.filter.process_noise().for_step(&dv);
+        let s = row.scale;
+        let y = s.y(x) + row.filter.gradient().dot(&dv);
+        let vy = s.variance(x, var) + (dv.transpose() * p * &dv)[(0, 0)];
+        let (value, std) = s.value_and_std(y, vy);
+        (value.is_finite() && std.is_finite()).then_some((value, std * std))
+    }
+
     /// The scale `cell`'s parameter `parameter` is learned in (`None` for an
     /// unknown row).
     pub fn scale(&self, cell: usize, parameter: usize) -> Option<FloorLog> {

@@ -422,6 +422,16 @@ pub struct ArrayRunSettings {
     /// their band (a parameter read out of band is aimed at in full).
     #[serde(default)]
     pub shrink_in_band_only: bool,
+    /// Scan `t_sr` and `w` of the cells that wait while others scan their
+    /// lines, in the same batch where their readout group has the time
+    /// (the batch lasts as long as its busiest group: such scans cost no
+    /// lab time; the scans' durations are taken from the batches answered
+    /// before, [`super::array_run::slack`]), and pool each such reading
+    /// with the next measurement's, carried there along the learned row
+    /// ([`super::array::JointArrayTuner::carry`]). For `joint` and the
+    /// oracle alike. Default off.
+    #[serde(default)]
+    pub slack_readings: bool,
 }
 
 fn default_lagging_after() -> u32 {
@@ -520,6 +530,7 @@ impl Default for ArrayRunSettings {
             lagging_after: default_lagging_after(),
             shrink_residuals: 0.0,
             shrink_in_band_only: false,
+            slack_readings: false,
             stalled_row_from: default_stalled_row_from(),
             t_sr_floor: default_t_sr_floor(),
             t_sr_floor_filter_only: true,

@@ -319,6 +319,9 @@ impl ArrayRun {
             flat_resets: vec![Default::default(); k],
             lags: vec![Default::default(); k],
             repeats: Vec::new(),
+            clock: Default::default(),
+            slack: Vec::new(),
+            early: Vec::new(),
         });
         Ok(())
     }

@@ -87,6 +87,7 @@ impl ArrayRun {
                 (None, _) => self.failed_fits += 1,
             }
         }
+        self.pool_early(&mut raw, &skip);
         let events = self.skipped_predictions(&skip);
         // values with error bars wider than the band are not acted on
         let values: Vec<Vec<Option<Measured>>> = raw

@@ -36,7 +36,10 @@
 //!    it puts them beyond [`ArrayRunSettings::precorrect_lines_mv`], then
 //!    up to [`ArrayRunSettings::line_rounds`] line scans with a plunger
 //!    correction each, at most [`ArrayRunSettings::line_max_step_mv`]
-//!    (and a re-park of the cells moved).
+//!    (and a re-park of the cells moved). With
+//!    [`ArrayRunSettings::slack_readings`] the cells that wait in a line
+//!    round scan `t_sr` and `w` in its batch where their group has the
+//!    time, pooled with the next measurement ([`slack`]).
 //!
 //! The run's voltages are what the instrument answered: every gate is read
 //! after the initial measurements, and each accepted set's read-back
@@ -71,6 +74,7 @@ mod initial;
 mod lines;
 mod measure;
 mod sensors;
+pub mod slack;
 
 use lines::line_scan_requests;
 
@@ -392,6 +396,17 @@ struct Joint {
     /// measured cell's two.
     #[serde(default)]
     repeats: Vec<(u32, usize)>,
+    /// The lab time per scan seen so far ([`ArrayRunSettings::slack_readings`]).
+    #[serde(default)]
+    clock: slack::ScanClock,
+    /// The cells scanning `t_sr` and `w` in the outstanding line round's
+    /// slack, after its line scans.
+    #[serde(default)]
+    slack: Vec<u32>,
+    /// Readings taken in this iteration's line rounds' slack, for the next
+    /// measurement.
+    #[serde(default)]
+    early: Vec<slack::EarlyReading>,
 }
 
 /// The joint array loop (module docs). Serializable as a whole.
@@ -952,7 +967,21 @@ impl ArrayRun {
                     self.step = Step::Boundary;
                     Vec::new()
                 } else {
-                    line_scan_requests(&cells)
+                    let slack = self.plan_slack(&cells, round);
+                    if let Some(j) = self.joint.as_mut() {
+                        j.slack = slack.clone();
+                    }
+                    let mut batch = line_scan_requests(&cells);
+                    batch.extend(slack.iter().flat_map(|&c| {
+                        CELL_SCANS.map(|kind| Request::Measure {
+                            scan: ScanRequest {
+                                kind,
+                                sweep: None,
+                                cell: Some(c),
+                            },
+                        })
+                    }));
+                    batch
                 }
             }
             Step::LineSet(lines, moved, round) => {
@@ -1016,7 +1045,10 @@ impl ArrayRun {
                     )));
                 }
             }
-            Step::Measure => self.evaluate_measurement(&answers)?,
+            Step::Measure => {
+                self.measure_timed(lab_seconds);
+                self.evaluate_measurement(&answers)?
+            }
             Step::Confirm(pending) => self.confirm_entries(&pending, &answers)?,
             Step::VerifyLines(cells, pending) => self.lines_verified(&cells, pending, &answers)?,
             Step::VerifySet(_, moved, pending) => {
@@ -1058,7 +1090,9 @@ impl ArrayRun {
                 ))
             }
             Step::LineScan(cells, round) => {
-                let (lines, mut moved) = self.line_corrections(&cells, &answers)?;
+                let (answers, extra) = answers.split_at(cells.len().min(answers.len()));
+                self.slack_answered(&cells, extra, lab_seconds);
+                let (lines, mut moved) = self.line_corrections(&cells, answers)?;
                 for c in std::mem::take(&mut self.scratch.forecast_moved) {
                     if !moved.contains(&c) {
                         moved.push(c);

@@ -239,11 +239,13 @@ impl ArrayRun {
     /// up. A reading this measurement lacks stays lacking (its fit failed:
     /// the sensor may be off its flank).
     pub(super) fn pool_early(&mut self, raw: &mut [Vec<Option<Measured>>], skip: &[bool]) {
-        let Some(j) = self.joint.as_mut() else {
+        let early = match self.joint.as_mut() {
+            Some(j) => std::mem::take(&mut j.early),
+            None => return,
+        };
+        let Some(j) = self.joint.as_ref() else {
             return;
         };
-        let early = std::mem::take(&mut j.early);
-        let j = self.joint.as_ref().expect("checked above");
         for e in early {
             let c = e.cell as usize;
             if skip.get(c).copied().unwrap_or(true) {

@@ -3,19 +3,15 @@
 //! this module only runs seeds in parallel, shows progress and writes reports).
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::Mutex;
 
 use clap::Args;
-use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 use spintune::benchmark::{
-    draw_devices, run_seed, summarize, BenchmarkProtocol, SeedResult, Strategy, StrategySummary,
+    run_seed, summarize, BenchmarkProtocol, SeedResult, Strategy, StrategySummary,
 };
-use spintune::driver::SimulationConfig;
 use spintune::protocol::IterationRecord;
-use spintune::sim::DeviceConfig;
 
+use crate::bench_runner::{parallel_map, parse_names, worker_threads, DeviceArgs, RandomDevices};
 use crate::cli::CliError;
 
 /// Arguments of `spintune bench`.
@@ -30,23 +26,12 @@ pub struct BenchArgs {
     /// fixed-jacobian, fd-newton, oracle, oracle-log, oracle-log-multi-bare.
     #[arg(long, value_delimiter = ',')]
     pub strategies: Vec<String>,
-    /// Device description (TOML or JSON) overriding the simulator's defaults.
-    #[arg(long)]
-    pub device: Option<PathBuf>,
-    /// Run config (TOML, as for `spintune run`) whose tuner the `default`
-    /// strategy runs (default: the built-in default, what `spintune run`
-    /// does with a config that has no `tuner` section).
-    #[arg(long)]
-    pub config: Option<PathBuf>,
+    /// The device(s), the product's tuner, the band and the worker threads.
+    #[command(flatten)]
+    pub devices: DeviceArgs,
     /// Write machine-readable results here.
     #[arg(long)]
     pub json: Option<PathBuf>,
-    /// Relative tolerance band of both parameters (0.1 = ±10 %).
-    #[arg(long, default_value_t = 0.1)]
-    pub tolerance: f64,
-    /// Worker threads (default: all cores).
-    #[arg(long)]
-    pub threads: Option<usize>,
     /// Draw one seed's parameter traces and gradient estimates (paper Fig. 3 style) to this PNG.
     #[arg(long)]
     pub plot: Option<PathBuf>,
@@ -57,15 +42,6 @@ pub struct BenchArgs {
     /// scan kind) to this PNG.
     #[arg(long)]
     pub plot_time: Option<PathBuf>,
-    /// Benchmark N plausible devices drawn around the (default or `--device`)
-    /// device instead of that device alone, each with every seed
-    /// (distribution: `spintune::sim::random`; devices whose targets lie
-    /// outside the gate limits are rejected and redrawn).
-    #[arg(long)]
-    pub random_devices: Option<usize>,
-    /// Device seed of the first random device (then +1, +2, …).
-    #[arg(long, default_value_t = 1)]
-    pub device_seed: u64,
     /// Step rule of the `-tr` strategies: expected-cost or covariance-direction.
     #[arg(long, default_value = "expected-cost")]
     pub tr_rule: String,
@@ -76,15 +52,6 @@ pub struct BenchArgs {
     /// Moves per iteration of the `-multi` strategies (1..=5).
     #[arg(long, default_value_t = spintune::benchmark::MULTI_MOVES)]
     pub multi_moves: u32,
-}
-
-/// Which random devices were benchmarked.
-#[derive(Debug, Serialize)]
-pub struct RandomDevices {
-    /// Device seeds of the accepted devices.
-    pub device_seeds: Vec<u64>,
-    /// Devices drawn and rejected (targets outside the gate limits).
-    pub rejected: u64,
 }
 
 /// The JSON report.
@@ -104,19 +71,7 @@ pub struct BenchReport {
 /// Run the benchmark.
 pub fn run(args: BenchArgs) -> Result<(), CliError> {
     let strategies = parse_strategies(&args.strategies)?;
-    let mut base = SimulationConfig::paper_default();
-    if let Some(path) = &args.device {
-        base.device = load_device(path)?;
-    }
-    base.validate()
-        .map_err(|e| CliError::input(e.to_string()))?;
-    let product = match &args.config {
-        Some(path) => crate::cli::load_config(path)?.simulation.tuner,
-        None => SimulationConfig::recommended().tuner,
-    };
-    if !(args.tolerance.is_finite() && args.tolerance > 0.0) {
-        return Err(CliError::input("--tolerance must be a positive number"));
-    }
+    let (base, product) = args.devices.load()?;
     let tr_rule = match args.tr_rule.as_str() {
         "expected-cost" => spintune::solver::StepRule::ExpectedCost,
         "covariance-direction" => spintune::solver::StepRule::CovarianceDirection,
@@ -135,18 +90,14 @@ pub fn run(args: BenchArgs) -> Result<(), CliError> {
         return Err(CliError::input("--multi-moves must be between 1 and 5"));
     }
     let protocol = BenchmarkProtocol {
-        relative_tolerance: args.tolerance,
+        relative_tolerance: args.devices.tolerance,
         tr_rule,
         covariance_weight: args.covariance_weight,
         multi_moves: args.multi_moves,
         ..BenchmarkProtocol::default()
     };
-    let threads = args
-        .threads
-        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
-        .max(1);
-    let (devices, random_devices) =
-        select_devices(&base, &protocol, args.random_devices, args.device_seed)?;
+    let threads = worker_threads(args.devices.threads);
+    let (devices, random_devices) = args.devices.devices(&base, &protocol)?;
     let work: Vec<(usize, u64)> = (0..devices.len())
         .flat_map(|d| (1..=args.seeds).map(move |s| (d, s)))
         .collect();
@@ -220,81 +171,6 @@ pub fn run(args: BenchArgs) -> Result<(), CliError> {
     Ok(())
 }
 
-/// A benchmarked device: its device seed (0: the given device) and config.
-pub(crate) type DeviceUnderTest = (u64, SimulationConfig);
-
-/// The devices to benchmark: `base` alone (device seed 0), or `n` random
-/// devices drawn around it from `device_seed` on (with the report of which).
-pub(crate) fn select_devices(
-    base: &SimulationConfig,
-    protocol: &BenchmarkProtocol,
-    random_devices: Option<usize>,
-    device_seed: u64,
-) -> Result<(Vec<DeviceUnderTest>, Option<RandomDevices>), CliError> {
-    let Some(n) = random_devices else {
-        return Ok((vec![(0, base.clone())], None));
-    };
-    let (drawn, rejected) = draw_devices(base, protocol, n, device_seed);
-    if drawn.len() < n {
-        return Err(CliError::runtime(format!(
-            "only {} of {n} random devices have reachable targets ({rejected} rejected)",
-            drawn.len()
-        )));
-    }
-    eprintln!("{n} random devices ({rejected} rejected: targets outside the gate limits)");
-    let report = RandomDevices {
-        device_seeds: drawn.iter().map(|(k, _)| *k).collect(),
-        rejected,
-    };
-    let configs = drawn
-        .into_iter()
-        .map(|(k, device)| {
-            let mut cfg = base.clone();
-            cfg.device = device;
-            (k, cfg)
-        })
-        .collect();
-    Ok((configs, Some(report)))
-}
-
-/// `f` over `work` on `threads` threads with a progress bar; the results
-/// in no particular order and the failures' messages.
-pub(crate) fn parallel_map<W: Sync, T: Send>(
-    work: &[W],
-    threads: usize,
-    f: impl Fn(&W) -> Result<T, String> + Sync,
-) -> (Vec<T>, Vec<String>) {
-    let bar = ProgressBar::new(work.len() as u64);
-    bar.set_style(
-        ProgressStyle::with_template(
-            "{spinner} seeds {pos}/{len} [{bar:30}] {elapsed} (eta {eta}) {msg}",
-        )
-        .expect("valid template")
-        .progress_chars("=> "),
-    );
-    let next = AtomicUsize::new(0);
-    let results: Mutex<Vec<T>> = Mutex::new(Vec::new());
-    let failures: Mutex<Vec<String>> = Mutex::new(Vec::new());
-    std::thread::scope(|scope| {
-        for _ in 0..threads.max(1) {
-            scope.spawn(|| loop {
-                let i = next.fetch_add(1, Ordering::Relaxed);
-                let Some(w) = work.get(i) else { break };
-                match f(w) {
-                    Ok(r) => results.lock().unwrap().push(r),
-                    Err(e) => failures.lock().unwrap().push(e),
-                }
-                bar.inc(1);
-            });
-        }
-    });
-    bar.finish_and_clear();
-    (
-        results.into_inner().unwrap(),
-        failures.into_inner().unwrap(),
-    )
-}
-
 fn parse_strategies(names: &[String]) -> Result<Vec<Strategy>, CliError> {
     parse_names(
         names,
@@ -304,54 +180,6 @@ fn parse_strategies(names: &[String]) -> Result<Vec<Strategy>, CliError> {
         "strategy",
         "",
     )
-}
-
-/// The strategies a comma-separated `--strategies` names (`all` when it is
-/// empty), or an input error naming the unknown one and the choices (the
-/// names of `all`, then `more`, e.g. a pattern the parser also takes).
-pub(crate) fn parse_names<T: Copy>(
-    names: &[String],
-    all: &[T],
-    parse: impl Fn(&str) -> Option<T>,
-    name: impl Fn(&T) -> String,
-    what: &str,
-    more: &str,
-) -> Result<Vec<T>, CliError> {
-    if names.is_empty() {
-        return Ok(all.to_vec());
-    }
-    names
-        .iter()
-        .map(|n| {
-            parse(n.trim()).ok_or_else(|| {
-                let choices: Vec<String> = all.iter().map(&name).collect();
-                CliError::input(format!(
-                    "unknown {what} {n:?}; choose from {}{more}",
-                    choices.join(", ")
-                ))
-            })
-        })
-        .collect()
-}
-
-pub(crate) fn load_device(path: &Path) -> Result<DeviceConfig, CliError> {
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| CliError::input(format!("cannot read {}: {e}", path.display())))?;
-    let is_json = path.extension().is_some_and(|e| e == "json");
-    let invalid = |m: &dyn std::fmt::Display| {
-        CliError::input(format!("invalid device file {}: {m}", path.display()))
-    };
-    let device: DeviceConfig = if is_json {
-        let de = &mut serde_json::Deserializer::from_str(&text);
-        serde_path_to_error::deserialize(de)
-            .map_err(|e| invalid(&format_args!("at `{}`: {}", e.path(), e.inner())))?
-    } else {
-        toml::from_str(&text).map_err(|e| invalid(&e))?
-    };
-    device
-        .validate()
-        .map_err(|m| CliError::input(format!("invalid device file {}: {m}", path.display())))?;
-    Ok(device)
 }
 
 /// The markdown table printed at the end.

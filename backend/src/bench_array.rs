@@ -21,7 +21,7 @@ use spintune::sim::array::{ArrayConfig, MAX_CELLS};
 use spintune::sim::random::cell_targets_reachable;
 use spintune::tuner::array_run::ArrayRunSettings;
 
-use crate::bench::{parallel_map, select_devices, RandomDevices};
+use crate::bench_runner::{parallel_map, select_devices, worker_threads, RandomDevices};
 use crate::cli::CliError;
 
 /// Most seeds per array.
@@ -231,10 +231,7 @@ pub fn run(args: BenchArrayArgs) -> Result<(), CliError> {
                 .collect(),
         );
     }
-    let threads = args
-        .threads
-        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
-        .max(1);
+    let threads = worker_threads(args.threads);
     let mut set_points = protocol.set_points.clone();
     set_points.push(protocol.single_cell_target);
     let reachable = |d: &spintune::sim::DeviceConfig| cell_targets_reachable(d, &set_points);
@@ -381,7 +378,7 @@ fn print_traces(results: &[ArrayRunResult], c: u32) {
 }
 
 fn parse_strategies(names: &[String]) -> Result<Vec<ArrayStrategy>, CliError> {
-    crate::bench::parse_names(
+    crate::bench_runner::parse_names(
         names,
         &ArrayStrategy::ALL,
         ArrayStrategy::from_name,

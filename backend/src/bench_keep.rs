@@ -12,9 +12,8 @@ use spintune::benchmark::keep::{
 };
 use spintune::benchmark::keep_goals::KeepGoals;
 use spintune::benchmark::BenchmarkProtocol;
-use spintune::driver::SimulationConfig;
 
-use crate::bench::{load_device, parallel_map, select_devices, RandomDevices};
+use crate::bench_runner::{parallel_map, worker_threads, DeviceArgs, RandomDevices};
 use crate::cli::CliError;
 
 /// Longest keep window, lab hours (a week).
@@ -40,25 +39,10 @@ pub struct BenchKeepArgs {
     /// against time in band.
     #[arg(long, value_delimiter = ',')]
     pub strategies: Vec<String>,
-    /// Device description (TOML or JSON) overriding the simulator's defaults.
-    #[arg(long)]
-    pub device: Option<PathBuf>,
-    /// Run config (TOML, as for `spintune run`) whose tuner (and `tuner.keep`
-    /// settings) the strategies use (default: the built-in default).
-    #[arg(long)]
-    pub config: Option<PathBuf>,
-    /// Benchmark N random devices drawn around the device instead of it alone.
-    #[arg(long)]
-    pub random_devices: Option<usize>,
-    /// Device seed of the first random device (then +1, +2, …).
-    #[arg(long, default_value_t = 1)]
-    pub device_seed: u64,
-    /// Relative tolerance band of both parameters (0.1 = ±10 %).
-    #[arg(long, default_value_t = 0.1)]
-    pub tolerance: f64,
-    /// Worker threads (default: all cores).
-    #[arg(long)]
-    pub threads: Option<usize>,
+    /// The device(s), the tuner (and its `tuner.keep` settings), the band
+    /// and the worker threads.
+    #[command(flatten)]
+    pub devices: DeviceArgs,
     /// Write machine-readable results here.
     #[arg(long)]
     pub json: Option<PathBuf>,
@@ -105,30 +89,14 @@ pub fn run(args: BenchKeepArgs) -> Result<(), CliError> {
             "--seeds must be between 1 and {MAX_SEEDS}"
         )));
     }
-    if !(args.tolerance.is_finite() && args.tolerance > 0.0 && args.tolerance < 1.0) {
-        return Err(CliError::input("--tolerance must be in (0, 1)"));
-    }
     let strategies = parse_strategies(&args.strategies)?;
-    let mut base = SimulationConfig::paper_default();
-    if let Some(path) = &args.device {
-        base.device = load_device(path)?;
-    }
-    base.validate()
-        .map_err(|e| CliError::input(e.to_string()))?;
-    let product = match &args.config {
-        Some(path) => crate::cli::load_config(path)?.simulation.tuner,
-        None => SimulationConfig::recommended().tuner,
-    };
+    let (base, product) = args.devices.load()?;
     let protocol = BenchmarkProtocol {
-        relative_tolerance: args.tolerance,
+        relative_tolerance: args.devices.tolerance,
         ..BenchmarkProtocol::default()
     };
-    let threads = args
-        .threads
-        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
-        .max(1);
-    let (devices, random_devices) =
-        select_devices(&base, &protocol, args.random_devices, args.device_seed)?;
+    let threads = worker_threads(args.devices.threads);
+    let (devices, random_devices) = args.devices.devices(&base, &protocol)?;
     let work: Vec<(usize, u64, KeepStrategy)> = (0..devices.len())
         .flat_map(|d| {
             let strategies = &strategies;
@@ -165,7 +133,7 @@ pub fn run(args: BenchKeepArgs) -> Result<(), CliError> {
         let report = BenchKeepReport {
             hours: args.hours,
             seeds: args.seeds,
-            relative_tolerance: args.tolerance,
+            relative_tolerance: args.devices.tolerance,
             goals: KeepGoals::judge(&summary),
             strategies: summary,
             random_devices,
@@ -193,7 +161,7 @@ pub fn run(args: BenchKeepArgs) -> Result<(), CliError> {
             .iter()
             .filter_map(|p| Some((p.name.clone(), p.target?)))
             .collect::<Vec<_>>();
-        draw_day(path, &r, &targets, args.tolerance, args.hours)?;
+        draw_day(path, &r, &targets, args.devices.tolerance, args.hours)?;
         eprintln!("wrote {}", path.display());
     }
     if !failures.is_empty() {
@@ -206,7 +174,7 @@ pub fn run(args: BenchKeepArgs) -> Result<(), CliError> {
 }
 
 fn parse_strategies(names: &[String]) -> Result<Vec<KeepStrategy>, CliError> {
-    crate::bench::parse_names(
+    crate::bench_runner::parse_names(
         names,
         &KeepStrategy::ALL,
         KeepStrategy::parse,
@@ -221,7 +189,7 @@ pub fn markdown_table(summary: &[KeepSummary], runs: u64, args: &BenchKeepArgs) 
     let mut s = format!(
         "Runs (devices × seeds): {runs}; {:.0} lab hours kept after the first tuned point, tolerance ±{:.0} %.\n\n",
         args.hours,
-        args.tolerance * 100.0
+        args.devices.tolerance * 100.0
     );
     s.push_str("| strategy | fraction in band (mean) | median | p10 | min | measurement min/h | re-tunes/day | checks/day | longest out of band, min (median) | p90 | max | alerts | not tuned | limit violations | truth queries |\n");
     s.push_str("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");

@@ -43,7 +43,7 @@ pub fn run(args: DriftDayArgs) -> Result<(), CliError> {
         return Err(CliError::input("--hours must be between 1 and 168"));
     }
     let config = match &args.device {
-        Some(p) => crate::bench::load_device(p)?,
+        Some(p) => crate::bench_runner::load_device(p)?,
         None => DeviceConfig::default(),
     };
     config

@@ -12,6 +12,7 @@ pub mod bench;
 pub mod bench_array;
 pub mod bench_array_plot;
 pub mod bench_keep;
+pub mod bench_runner;
 pub mod bench_server;
 pub mod bench_time_plot;
 pub mod cli;

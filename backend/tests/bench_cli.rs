@@ -101,6 +101,44 @@ fn bench_rejects_unknown_strategy_and_bad_device_file() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// `bench` and `bench-keep` share their device, band and thread options
+/// (`bench_runner::DeviceArgs`): both refuse a band that is not a fraction
+/// and a device file with an unknown key, naming them, before any seed runs.
+#[test]
+fn bench_and_bench_keep_check_their_shared_options_alike() {
+    let dir = std::env::temp_dir().join(format!("spintune-bench-shared-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let dev = dir.join("device.json");
+    std::fs::write(&dev, r#"{"lever_arm_typo": 3.0}"#).unwrap();
+    for command in ["bench", "bench-keep"] {
+        for tolerance in ["0", "1", "1.5", "nan"] {
+            let out = bin()
+                .args([command, "--seeds", "1", "--tolerance", tolerance])
+                .output()
+                .unwrap();
+            assert_eq!(
+                out.status.code(),
+                Some(2),
+                "{command} --tolerance {tolerance}"
+            );
+            let err = String::from_utf8_lossy(&out.stderr);
+            assert!(
+                err.contains("--tolerance must be in (0, 1)"),
+                "{command}: {err}"
+            );
+        }
+        let out = bin()
+            .args([command, "--seeds", "1", "--device"])
+            .arg(&dev)
+            .output()
+            .unwrap();
+        assert_eq!(out.status.code(), Some(2), "{command} --device");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains("lever_arm_typo"), "{command}: {err}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// The rows of a markdown table in `stdout` whose first cell is `clients`.
 fn rows<'a>(stdout: &'a str, clients: &str) -> Vec<Vec<&'a str>> {
     stdout

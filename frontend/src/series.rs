@@ -608,6 +608,25 @@ fn draw_rejected<DB: DrawingBackend>(
     Ok(())
 }
 
+/// One panel per tuning gate ([`panel_grid`] over the plot's width) and
+/// what a chart of such panels reports before any is drawn (its iterations,
+/// x range and panel size; no y range yet).
+fn gate_panels<'a, DB: DrawingBackend>(
+    plot: &Plot<'a, DB>,
+    f: &Viewport<'_>,
+) -> (Vec<Plot<'a, DB>>, Drawn) {
+    let width = plot.area().dim_in_pixel().0 as f64;
+    let grid = panel_grid(f.history.layout().gates.len(), width);
+    let drawn = Drawn {
+        iterations: f.rows().len(),
+        y_max: f64::NAN,
+        x_range: f.x_range(),
+        panels: Some((width / grid.1 as f64, grid.1)),
+        ..Drawn::default()
+    };
+    (plot.split_evenly(grid), drawn)
+}
+
 /// Every element of one parameter's gradient, ±1σ `√diag C` (one panel per gate).
 pub fn draw_gradient<DB: DrawingBackend>(
     plot: &Plot<'_, DB>,
@@ -619,18 +638,8 @@ pub fn draw_gradient<DB: DrawingBackend>(
         return placeholder(plot.area(), "gradient", "waiting for a gradient estimate…")
             .map(|_| Drawn::default());
     };
-    let rows = f.rows();
     let (x0, x1) = f.x_range();
-    let width = plot.area().dim_in_pixel().0 as f64;
-    let grid = panel_grid(layout.gates.len(), width);
-    let panels = plot.split_evenly(grid);
-    let mut drawn = Drawn {
-        iterations: rows.len(),
-        y_max: f64::NAN,
-        x_range: (x0, x1),
-        panels: Some((width / grid.1 as f64, grid.1)),
-        ..Drawn::default()
-    };
+    let (panels, mut drawn) = gate_panels(plot, f);
     for (gi, (gate, panel)) in layout.gates.iter().zip(panels.iter()).enumerate() {
         let o = layout.grad(g, gi);
         let cols = plot_columns(panel.area(), 58);
@@ -700,18 +709,8 @@ pub fn draw_gates<DB: DrawingBackend>(
         return placeholder(plot.area(), "gate voltages", "waiting for data…")
             .map(|_| Drawn::default());
     }
-    let rows = f.rows();
     let (x0, x1) = f.x_range();
-    let width = plot.area().dim_in_pixel().0 as f64;
-    let grid = panel_grid(layout.gates.len(), width);
-    let panels = plot.split_evenly(grid);
-    let mut drawn = Drawn {
-        iterations: rows.len(),
-        y_max: f64::NAN,
-        x_range: (x0, x1),
-        panels: Some((width / grid.1 as f64, grid.1)),
-        ..Drawn::default()
-    };
+    let (panels, mut drawn) = gate_panels(plot, f);
     for (gi, (gate, panel)) in layout.gates.iter().zip(panels.iter()).enumerate() {
         let o = layout.gate(gi);
         let cols = plot_columns(panel.area(), 58);

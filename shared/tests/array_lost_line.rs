@@ -20,29 +20,9 @@ mod support;
 
 use spintune::benchmark::array::ArrayProtocol;
 use spintune::benchmark::PAPER_SET_POINTS;
-use spintune::protocol::{EventKind, Request, ScanKind};
+use spintune::protocol::EventKind;
 use spintune::tuner::array_run::{ArrayAction, ArrayRunSettings};
-use support::array::three_cells_tuned;
-
-const PLUNGERS: [&str; 2] = ["c1.PA", "c1.PB"];
-
-fn is_line_scan_of_1(request: &Request) -> bool {
-    matches!(request, Request::Measure { scan }
-        if scan.cell == Some(1) && scan.kind == ScanKind::ChemicalPotential)
-}
-
-/// A set of cell 1's plungers and no other gate of it (a line correction,
-/// or a move that only compensates the neighbours' crosstalk).
-fn sets_only_plungers_of_1(request: &Request) -> bool {
-    let Request::SetVoltages { voltages_mv } = request else {
-        return false;
-    };
-    let own: Vec<&String> = voltages_mv
-        .keys()
-        .filter(|g| g.starts_with("c1."))
-        .collect();
-    !own.is_empty() && own.iter().all(|g| PLUNGERS.contains(&g.as_str()))
-}
+use support::array::{is_line_scan_of, sets_only_plungers_of, three_cells_tuned};
 
 /// What the 25 iterations after the rearrangement did, world side.
 #[derive(Debug, Default)]
@@ -77,7 +57,7 @@ fn watch_after_rearrangement(settings: ArrayRunSettings) -> Watch {
     for _ in 0..3000 {
         match run.poll().unwrap() {
             ArrayAction::Execute(batch) => {
-                if batch.iter().any(is_line_scan_of_1) {
+                if batch.iter().any(|r| is_line_scan_of(r, 1)) {
                     // the batch right before the iteration's first line scan
                     // (a move is followed by the sensors' park first)
                     precorrected |= !scanned && previous_sets_plungers;
@@ -89,7 +69,7 @@ fn watch_after_rearrangement(settings: ArrayRunSettings) -> Watch {
                         _ => {}
                     }
                 }
-                previous_sets_plungers = batch.iter().any(sets_only_plungers_of_1);
+                previous_sets_plungers = batch.iter().any(|r| sets_only_plungers_of(r, 1));
                 let before = device.lab_seconds();
                 let answers = device.execute_batch(&batch);
                 run.feed(answers, device.lab_seconds() - before).unwrap();

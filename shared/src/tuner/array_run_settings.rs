@@ -94,6 +94,15 @@ pub struct ArrayRunSettings {
     /// (docs/array-history.md, "A lost line: no forecast, a new search").
     #[serde(default = "default_rearm_line_search_after")]
     pub rearm_line_search_after: u32,
+    /// A cell's line search also brings the line it holds back to its
+    /// window's centre from where the scan that started the search saw it
+    /// (at most one probe step), instead of holding it where it is. A held
+    /// line near its window's edge is otherwise pushed out by the first
+    /// probe whose 2×2 line Jacobian is off, and two searches can undo each
+    /// other for the rest of the run (docs/array-history.md, "A probe that
+    /// finds its line ends the search", on a 2×4 ladder).
+    #[serde(default)]
+    pub search_recentres_held_line: bool,
     /// Before the run stops with every cell measured in band, each measured
     /// cell whose last line scan found a line farther than this from its
     /// centre, mV, or lost one, scans its lines again where they are
@@ -502,6 +511,7 @@ impl Default for ArrayRunSettings {
             precorrect_lines_mv: Some(1.0),
             line_max_step_mv: default_line_max_step_mv(),
             rearm_line_search_after: default_rearm_line_search_after(),
+            search_recentres_held_line: false,
             verify_lines_above_mv: default_verify_lines_above_mv(),
             line_forecast: default_line_forecast(),
             max_iterations: default_max_iterations(),

@@ -929,7 +929,9 @@ impl Tuner {
             .iter()
             .map(|p| p.target.and_then(|t| p.transform.forward_value(t)))
             .collect();
-        let mv = state.search.lost(&search, missing, &targets, &jacobian)?;
+        let mv = state
+            .search
+            .lost(&search, missing, &targets, &jacobian, false)?;
         let probing = matches!(mv, SearchMove::Probe { .. });
         let (dv, event) = match mv {
             SearchMove::Probe {

@@ -118,6 +118,11 @@ pub(super) struct ActiveSearch {
     pub(super) signs: Vec<Option<f64>>,
     /// What the probes added to the level's gates so far, mV.
     pub(super) applied_mv: Vec<f64>,
+    /// Per parameter, the shift every probe gives a held one (estimator
+    /// units): 0, or with `recentre_held` its target minus where the scan
+    /// that started the search saw it (at most one `step`).
+    #[serde(default)]
+    pub(super) held: Vec<f64>,
 }
 
 /// What a level remembers for searching (part of its serializable state).
@@ -218,14 +223,19 @@ impl SearchMemory {
     /// A targeted parameter is missing and the level has nothing to retreat
     /// to. `missing`: per parameter, whether it is targeted and missing;
     /// `targets`: estimator-space targets; `jacobian`: the level's m×n
-    /// Jacobian (estimator units per mV). `None`: no search (yet): the
-    /// level goes on as without one.
+    /// Jacobian (estimator units per mV). `recentre_held`: the probes also
+    /// bring each held parameter to its target from where the scan that
+    /// started the search saw it (at most one `step`), instead of holding
+    /// it where it is: a held line near its window's edge is otherwise
+    /// pushed out by the first probe whose Jacobian is off. `None`: no
+    /// search (yet): the level goes on as without one.
     pub(super) fn lost(
         &mut self,
         cfg: &ParameterSearch,
         missing: &[bool],
         targets: &[Option<f64>],
         jacobian: &DMatrix<f64>,
+        recentre_held: bool,
     ) -> Option<SearchMove> {
         let n = jacobian.ncols();
         if self.active.is_none() {
@@ -252,10 +262,21 @@ impl SearchMemory {
                     })
                 })
                 .collect();
+            let held = (0..missing.len())
+                .map(|i| {
+                    let seen = self.last_seen.get(i).copied().flatten();
+                    let target = targets.get(i).copied().flatten();
+                    match (recentre_held && !missing[i], seen, target) {
+                        (true, Some(s), Some(t)) => (t - s).clamp(-cfg.step, cfg.step),
+                        _ => 0.0,
+                    }
+                })
+                .collect();
             self.active = Some(ActiveSearch {
                 probes: 0,
                 signs,
                 applied_mv: vec![0.0; n],
+                held,
             });
         }
         let active = self.active.as_mut()?;
@@ -266,7 +287,11 @@ impl SearchMemory {
         let offsets: Vec<f64> = active
             .signs
             .iter()
-            .map(|s| s.map_or(0.0, |sign| cfg.offset(k, sign)))
+            .enumerate()
+            .map(|(i, s)| match s {
+                Some(sign) => cfg.offset(k, *sign),
+                None => active.held.get(i).copied().unwrap_or(0.0),
+            })
             .collect();
         let assumed = with_assumed_rows(jacobian, &active.signs);
         let Some(total) = probe_voltages(&assumed, &offsets) else {
@@ -433,14 +458,14 @@ mod tests {
         let missing = [true, false];
         let targets = [Some(0.0), Some(0.0)];
         // the first failure is not enough
-        assert_eq!(m.lost(&cfg(), &missing, &targets, &j), None);
+        assert_eq!(m.lost(&cfg(), &missing, &targets, &j, false), None);
         let mut position = [0.0, 0.0];
         for (k, expected) in [(1, -6.0), (2, 6.0), (3, -12.0), (4, 12.0)] {
             let Some(SearchMove::Probe {
                 probe,
                 offsets,
                 dv_mv,
-            }) = m.lost(&cfg(), &missing, &targets, &j)
+            }) = m.lost(&cfg(), &missing, &targets, &j, false)
             else {
                 panic!("probe {k} expected");
             };
@@ -453,7 +478,8 @@ mod tests {
             }
         }
         // the fifth call gives up and goes back where it started
-        let Some(SearchMove::GiveUp { probes, dv_mv }) = m.lost(&cfg(), &missing, &targets, &j)
+        let Some(SearchMove::GiveUp { probes, dv_mv }) =
+            m.lost(&cfg(), &missing, &targets, &j, false)
         else {
             panic!("give up expected");
         };
@@ -461,12 +487,12 @@ mod tests {
         assert!((position[0] + dv_mv[0]).abs() < 1e-9 && (position[1] + dv_mv[1]).abs() < 1e-9);
         // and does not search again until something is found
         for _ in 0..5 {
-            assert_eq!(m.lost(&cfg(), &missing, &targets, &j), None);
+            assert_eq!(m.lost(&cfg(), &missing, &targets, &j, false), None);
         }
         assert_eq!(m.found(), None);
-        assert_eq!(m.lost(&cfg(), &missing, &targets, &j), None);
+        assert_eq!(m.lost(&cfg(), &missing, &targets, &j, false), None);
         assert!(matches!(
-            m.lost(&cfg(), &missing, &targets, &j),
+            m.lost(&cfg(), &missing, &targets, &j, false),
             Some(SearchMove::Probe { probe: 1, .. })
         ));
         assert_eq!(m.found(), Some(1));
@@ -485,10 +511,10 @@ mod tests {
         let mut m = SearchMemory::default();
         m.seen(&[Some(1.0), Some(-3.0)]);
         let b_lost = [false, true];
-        assert_eq!(m.lost(&cfg(), &b_lost, &targets, &j), None);
+        assert_eq!(m.lost(&cfg(), &b_lost, &targets, &j, false), None);
         for k in 1..=3 {
             assert!(matches!(
-                m.lost(&cfg(), &b_lost, &targets, &j),
+                m.lost(&cfg(), &b_lost, &targets, &j, false),
                 Some(SearchMove::Probe { probe, .. }) if probe == k
             ));
         }
@@ -503,13 +529,63 @@ mod tests {
         assert_eq!(m.searched_found(&a_lost), Some(3));
         assert_eq!(m.searched_found(&a_lost), None, "ended once");
         // this scan counts as A's first failure; the next starts A's search
-        assert_eq!(m.lost(&cfg(), &a_lost, &targets, &j), None);
-        let Some(SearchMove::Probe { probe, offsets, .. }) = m.lost(&cfg(), &a_lost, &targets, &j)
+        assert_eq!(m.lost(&cfg(), &a_lost, &targets, &j, false), None);
+        let Some(SearchMove::Probe { probe, offsets, .. }) =
+            m.lost(&cfg(), &a_lost, &targets, &j, false)
         else {
             panic!("A's search expected");
         };
         assert_eq!(probe, 1);
         assert_eq!(offsets, vec![-cfg().step, 0.0]);
+    }
+
+    /// With `recentre_held`, the probes also bring the held line B from
+    /// where the search's first scan saw it (+2.5 mV) to its target (0):
+    /// every probe's total shift is (±6·⌈k/2⌉, −2.5), so by hand (the
+    /// inverse above) the first probe's move is ΔPA = (0.4·−6 − 0.1·−2.5)/0.19,
+    /// ΔPB = (−0.1·−6 + 0.5·−2.5)/0.19, and the second's total (+6, −2.5)
+    /// moves B by nothing more. A held shift is at most one step.
+    #[test]
+    fn recentring_probes_bring_the_held_line_to_its_target() {
+        let j = DMatrix::from_row_slice(2, 2, &[0.5, 0.1, 0.1, 0.4]);
+        let targets = [Some(0.0), Some(0.0)];
+        let missing = [true, false];
+        let mut m = SearchMemory::default();
+        m.seen(&[Some(3.0), Some(2.5)]);
+        assert_eq!(m.lost(&cfg(), &missing, &targets, &j, true), None);
+        let mut position = [0.0, 0.0];
+        for (k, a) in [(1, -6.0), (2, 6.0)] {
+            let Some(SearchMove::Probe {
+                probe,
+                offsets,
+                dv_mv,
+            }) = m.lost(&cfg(), &missing, &targets, &j, true)
+            else {
+                panic!("probe {k} expected");
+            };
+            assert_eq!((probe, offsets), (k, vec![a, -2.5]));
+            position[0] += dv_mv[0];
+            position[1] += dv_mv[1];
+            let by_hand = [
+                (0.4 * a - 0.1 * -2.5) / 0.19,
+                (-0.1 * a + 0.5 * -2.5) / 0.19,
+            ];
+            for (p, h) in position.iter().zip(by_hand) {
+                assert!((p - h).abs() < 1e-9, "{position:?} vs {by_hand:?}");
+            }
+            // what the probes did to B in total: its target minus where it was seen
+            let shift_b = 0.1 * position[0] + 0.4 * position[1];
+            assert!((shift_b + 2.5).abs() < 1e-9, "{shift_b}");
+        }
+        let mut far = SearchMemory::default();
+        far.seen(&[Some(3.0), Some(9.0)]);
+        let _ = far.lost(&cfg(), &missing, &targets, &j, true);
+        let Some(SearchMove::Probe { offsets, .. }) =
+            far.lost(&cfg(), &missing, &targets, &j, true)
+        else {
+            panic!("a probe expected");
+        };
+        assert_eq!(offsets, vec![-6.0, -cfg().step]);
     }
 
     /// Line A's row was never measured (its scans failed from the start);
@@ -527,7 +603,7 @@ mod tests {
             ..cfg()
         };
         let Some(SearchMove::Probe { dv_mv, .. }) =
-            m.lost(&search, &[true, false], &[Some(0.0); 2], &j)
+            m.lost(&search, &[true, false], &[Some(0.0); 2], &j, false)
         else {
             panic!("a probe expected");
         };
@@ -551,20 +627,22 @@ mod tests {
         };
         let weak = DMatrix::from_row_slice(1, 1, &[0.01]);
         let mut m = SearchMemory::default();
-        assert_eq!(m.lost(&search, &[true], &[Some(0.0)], &weak), None);
+        assert_eq!(m.lost(&search, &[true], &[Some(0.0)], &weak, false), None);
         assert!(m.active.is_none());
         let j = DMatrix::from_row_slice(1, 1, &[0.5]);
         let mut m = SearchMemory::default();
         let mut at = 0.0;
         for _ in 0..2 {
-            let Some(SearchMove::Probe { dv_mv, .. }) = m.lost(&search, &[true], &[Some(0.0)], &j)
+            let Some(SearchMove::Probe { dv_mv, .. }) =
+                m.lost(&search, &[true], &[Some(0.0)], &j, false)
             else {
                 panic!("probe expected");
             };
             at += dv_mv[0];
             assert!(at.abs() <= 20.0);
         }
-        let Some(SearchMove::GiveUp { probes, dv_mv }) = m.lost(&search, &[true], &[Some(0.0)], &j)
+        let Some(SearchMove::GiveUp { probes, dv_mv }) =
+            m.lost(&search, &[true], &[Some(0.0)], &j, false)
         else {
             panic!("give up expected");
         };
@@ -576,8 +654,14 @@ mod tests {
     fn no_search_without_a_usable_jacobian() {
         let mut m = SearchMemory::default();
         let zero = DMatrix::zeros(2, 2);
-        assert_eq!(m.lost(&cfg(), &[true, true], &[Some(0.0); 2], &zero), None);
-        assert_eq!(m.lost(&cfg(), &[true, true], &[Some(0.0); 2], &zero), None);
+        assert_eq!(
+            m.lost(&cfg(), &[true, true], &[Some(0.0); 2], &zero, false),
+            None
+        );
+        assert_eq!(
+            m.lost(&cfg(), &[true, true], &[Some(0.0); 2], &zero, false),
+            None
+        );
     }
 
     /// A search that gave up stays given up (the single-cell rule) until
@@ -587,7 +671,8 @@ mod tests {
     #[test]
     fn a_given_up_search_is_rearmed_after_that_many_failures() {
         let j = DMatrix::from_row_slice(2, 2, &[0.5, 0.1, 0.1, 0.4]);
-        let lost = |m: &mut SearchMemory| m.lost(&cfg(), &[true, false], &[Some(0.0); 2], &j);
+        let lost =
+            |m: &mut SearchMemory| m.lost(&cfg(), &[true, false], &[Some(0.0); 2], &j, false);
         let mut m = SearchMemory::default();
         assert_eq!(lost(&mut m), None);
         for _ in 0..4 {

@@ -208,6 +208,28 @@ pub fn is_measurement_of(request: &Request, cell: u32) -> bool {
             && matches!(scan.kind, ScanKind::ReloadTime | ScanKind::TransitionWidth))
 }
 
+/// Whether `request` is a line scan of cell `cell`.
+pub fn is_line_scan_of(request: &Request, cell: u32) -> bool {
+    matches!(request, Request::Measure { scan }
+        if scan.cell == Some(cell) && scan.kind == ScanKind::ChemicalPotential)
+}
+
+/// Whether `request` sets cell `cell`'s plungers (`c{cell}.PA`, `c{cell}.PB`)
+/// and no other gate of it: a line correction, a search probe, or a move
+/// that only compensates the neighbours' crosstalk.
+pub fn sets_only_plungers_of(request: &Request, cell: u32) -> bool {
+    let Request::SetVoltages { voltages_mv } = request else {
+        return false;
+    };
+    let prefix = format!("c{cell}.");
+    let plungers = [format!("c{cell}.PA"), format!("c{cell}.PB")];
+    let own: Vec<&String> = voltages_mv
+        .keys()
+        .filter(|g| g.starts_with(&prefix))
+        .collect();
+    !own.is_empty() && own.iter().all(|g| plungers.contains(g))
+}
+
 /// The records of the joint loop on `array` with `protocol` and noise
 /// `seed`, through `changes` ([`through_changes`]).
 pub fn records_through(

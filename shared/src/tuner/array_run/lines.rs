@@ -332,6 +332,7 @@ impl ArrayRun {
     /// plungers move.
     fn lines_lost(&mut self, cell: usize, found: [Option<Measured>; 2]) -> bool {
         let rearm = self.settings.rearm_line_search_after;
+        let recentre = self.settings.search_recentres_held_line;
         let Some(l) = self.joint.as_mut().and_then(|j| j.lower.get_mut(cell)) else {
             return false;
         };
@@ -363,7 +364,10 @@ impl ArrayRun {
         }
         let j = l.line_jacobian;
         let jacobian = DMatrix::from_fn(2, 2, |r, s| j[r][s]);
-        let Some(next) = l.search.lost(&cfg, &missing, &[Some(0.0); 2], &jacobian) else {
+        let Some(next) = l
+            .search
+            .lost(&cfg, &missing, &[Some(0.0); 2], &jacobian, recentre)
+        else {
             return false;
         };
         let (dv, event) = match next {

@@ -80,6 +80,9 @@ fn the_first_probe_brings_the_held_line_to_its_centre_only_when_asked() {
     // and the probe still shifts the lost line A by its step (4 mV; the
     // first probe's side from where A was last seen), as without the option
     for a in [after[0], after_r[0]] {
-        assert!(((a - before[0]).abs() - 4.0).abs() < 1.0, "{before:?} -> {a}");
+        assert!(
+            ((a - before[0]).abs() - 4.0).abs() < 1.0,
+            "{before:?} -> {a}"
+        );
     }
 }
